@@ -1,0 +1,229 @@
+//! Position/turn arithmetic for encoders, shared by every driver that counts.
+//!
+//! An [`EncoderCounter`] keeps one signed count of motion (positive = the positive
+//! direction) in an atomic and derives position and turn from it by the rules of the
+//! [`Encoder`](crate::Encoder) trait, so a simulated axis, a CAN position signal with turn
+//! counting on wrap and a software quadrature decoder all agree on what "position 0,
+//! turn 1" means.
+//!
+//! ```
+//! use device_interface::encoder::EncoderCounter;
+//!
+//! let enc = EncoderCounter::new(1000, true)?;
+//! enc.set_position(999)?;
+//! enc.advance(2); // roll over
+//! assert_eq!((enc.position(), enc.turn()), (1, 1));
+//! # Ok::<(), device_interface::DeviceError>(())
+//! ```
+
+use crate::DeviceError;
+use std::sync::atomic::{AtomicI64, Ordering};
+
+/// Resolution and counting direction of an encoder.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct EncoderGeometry {
+    resolution: i64,
+    upcounting: bool,
+}
+
+impl EncoderGeometry {
+    /// An encoder with `resolution` counts per turn (negative: positions run from
+    /// `resolution+1` to 0). A resolution of 0 or `i64::MIN` is refused with
+    /// [`DeviceError::PositionOutOfRange`].
+    pub fn new(resolution: i64, upcounting: bool) -> Result<Self, DeviceError> {
+        if resolution == 0 || resolution == i64::MIN {
+            return Err(DeviceError::PositionOutOfRange {
+                position: 0,
+                resolution,
+            });
+        }
+        Ok(EncoderGeometry {
+            resolution,
+            upcounting,
+        })
+    }
+
+    /// Counts per turn, with its sign.
+    pub fn resolution(&self) -> i64 {
+        self.resolution
+    }
+
+    /// True when positive motion raises the position.
+    pub fn upcounting(&self) -> bool {
+        self.upcounting
+    }
+
+    /// Checks that `position` lies in the interval the resolution allows.
+    pub fn check_position(&self, position: i64) -> Result<(), DeviceError> {
+        let ok = if self.resolution > 0 {
+            (0..self.resolution).contains(&position)
+        } else {
+            (self.resolution + 1..=0).contains(&position)
+        };
+        if ok {
+            Ok(())
+        } else {
+            Err(DeviceError::PositionOutOfRange {
+                position,
+                resolution: self.resolution,
+            })
+        }
+    }
+
+    /// (position, turn) of a motion count.
+    pub fn split(&self, total: i64) -> (i64, i64) {
+        let m = self.resolution.abs();
+        // Downcounting mirrors the count, so the roll-over from 0 to the last position adds
+        // the turn.
+        let k = if self.upcounting {
+            i128::from(total)
+        } else {
+            -i128::from(total)
+        };
+        let (p, q) = (k.rem_euclid(i128::from(m)), k.div_euclid(i128::from(m)));
+        let turn = if self.upcounting { q } else { -q };
+        let position = if self.resolution > 0 { p } else { -p };
+        // |p| < m <= i64::MAX and |q| <= |total|, so both fit.
+        (position as i64, turn as i64)
+    }
+
+    /// The motion count of (position, turn); the inverse of [`split`](Self::split).
+    pub fn join(&self, position: i64, turn: i64) -> Result<i64, DeviceError> {
+        self.check_position(position)?;
+        let m = i128::from(self.resolution.abs());
+        let p = i128::from(position.abs());
+        let total = if self.upcounting {
+            i128::from(turn) * m + p
+        } else {
+            -(-i128::from(turn) * m + p)
+        };
+        i64::try_from(total).map_err(|_| DeviceError::TurnOutOfRange { turn })
+    }
+}
+
+/// A lock-free encoder count: read and set from any thread, advanced by the bus activity.
+#[derive(Debug)]
+pub struct EncoderCounter {
+    geometry: EncoderGeometry,
+    total: AtomicI64,
+}
+
+impl EncoderCounter {
+    /// A counter at position 0, turn 0. Errors as [`EncoderGeometry::new`].
+    pub fn new(resolution: i64, upcounting: bool) -> Result<Self, DeviceError> {
+        Ok(EncoderCounter {
+            geometry: EncoderGeometry::new(resolution, upcounting)?,
+            total: AtomicI64::new(0),
+        })
+    }
+
+    /// The counter's geometry.
+    pub fn geometry(&self) -> EncoderGeometry {
+        self.geometry
+    }
+
+    /// The position within the current turn.
+    pub fn position(&self) -> i64 {
+        self.geometry.split(self.total()).0
+    }
+
+    /// The number of turns.
+    pub fn turn(&self) -> i64 {
+        self.geometry.split(self.total()).1
+    }
+
+    /// The raw motion count.
+    pub fn total(&self) -> i64 {
+        self.total.load(Ordering::Acquire)
+    }
+
+    /// Adds `counts` of motion (negative: the negative direction). Wraps at the ends of
+    /// `i64`, as a hardware counter does.
+    pub fn advance(&self, counts: i64) {
+        self.total.fetch_add(counts, Ordering::AcqRel);
+    }
+
+    /// Sets the position and keeps the turn.
+    pub fn set_position(&self, position: i64) -> Result<(), DeviceError> {
+        self.update(|g, _, turn| g.join(position, turn))
+    }
+
+    /// Sets the turn and keeps the position.
+    pub fn set_turn(&self, turn: i64) -> Result<(), DeviceError> {
+        self.update(|g, position, _| g.join(position, turn))
+    }
+
+    fn update(
+        &self,
+        f: impl Fn(&EncoderGeometry, i64, i64) -> Result<i64, DeviceError>,
+    ) -> Result<(), DeviceError> {
+        // A compare-and-swap loop, so motion counted concurrently is not lost.
+        let mut cur = self.total();
+        loop {
+            let (p, t) = self.geometry.split(cur);
+            let new = f(&self.geometry, p, t)?;
+            match self
+                .total
+                .compare_exchange_weak(cur, new, Ordering::AcqRel, Ordering::Acquire)
+            {
+                Ok(_) => return Ok(()),
+                Err(now) => cur = now,
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn split_join_round_trip_all_geometries() {
+        for (res, up) in [(4, true), (4, false), (-4, true), (-4, false), (1, true)] {
+            let g = EncoderGeometry::new(res, up).unwrap();
+            for total in -20..=20 {
+                let (p, t) = g.split(total);
+                g.check_position(p).unwrap();
+                assert_eq!(
+                    g.join(p, t).unwrap(),
+                    total,
+                    "res {res} up {up} total {total}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn roll_over_direction() {
+        // Upcounting: 3 -> 0 adds a turn.
+        let up = EncoderGeometry::new(4, true).unwrap();
+        assert_eq!(up.split(3), (3, 0));
+        assert_eq!(up.split(4), (0, 1));
+        assert_eq!(up.split(-1), (3, -1));
+        // Downcounting: positive motion lowers the position; 0 -> 3 adds a turn.
+        let down = EncoderGeometry::new(4, false).unwrap();
+        assert_eq!(down.split(1), (3, 1));
+        assert_eq!(down.split(2), (2, 1));
+        assert_eq!(down.split(4), (0, 1));
+        assert_eq!(down.split(5), (3, 2));
+        // Negative resolution: positions 0, -1, -2, -3.
+        let neg = EncoderGeometry::new(-4, true).unwrap();
+        assert_eq!(neg.split(3), (-3, 0));
+        assert_eq!(neg.split(4), (0, 1));
+    }
+
+    #[test]
+    fn refusals() {
+        assert!(EncoderGeometry::new(0, true).is_err());
+        let c = EncoderCounter::new(100, true).unwrap();
+        c.set_turn(5).unwrap();
+        c.set_position(42).unwrap();
+        assert!(c.set_position(100).is_err());
+        assert!(c.set_position(-1).is_err());
+        assert!(matches!(
+            c.set_turn(i64::MAX),
+            Err(DeviceError::TurnOutOfRange { .. })
+        ));
+        assert_eq!((c.position(), c.turn()), (42, 5));
+    }
+}

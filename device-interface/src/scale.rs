@@ -1,0 +1,417 @@
+//! Raw-to-physical conversion of analog channels, shared by every driver.
+//!
+//! Drivers deal in raw values (ADC counts, register contents, signal bits); a [`Scale`] turns
+//! them into physical values in a [`Unit`] and back. It is the one place this arithmetic
+//! lives, so every bus converts, rounds and range-checks the same way.
+//!
+//! A scale maps the raw range `[min, max]` linearly onto the physical values at its two ends.
+//! It is built either from the physical range ([`Scale::linear`], the Orocos and comedi view)
+//! or from a factor and offset ([`Scale::from_factor`], the DBC and Modbus view). Endpoints
+//! convert exactly: the lowest raw value gives exactly the lowest physical value.
+//!
+//! ```
+//! use device_interface::{RawRange, Scale, Unit};
+//!
+//! // A 12-bit ADC reading 0..10 V.
+//! let s = Scale::linear(RawRange::unsigned_bits(12)?, 0.0, 10.0, Unit::new("V")?)?;
+//! assert_eq!(s.to_physical(4095), 10.0);
+//! assert_eq!(s.to_raw(5.0), Some(2048)); // rounds to the nearest count
+//! assert_eq!(s.to_raw(10.5), None); // out of range
+//! assert!((s.resolution() - 10.0 / 4095.0).abs() < 1e-15);
+//!
+//! // A CAN signal: physical = raw * 0.1 - 40 degC, raw is a signed byte.
+//! let t = Scale::from_factor(RawRange::signed_bits(8)?, 0.1, -40.0, Unit::new("degC")?)?;
+//! assert_eq!(t.range().lowest, -52.8);
+//! # Ok::<(), device_interface::ScaleError>(())
+//! ```
+
+use std::fmt;
+
+/// Why a scale, raw range or unit could not be built.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum ScaleError {
+    /// The raw range is empty or reversed.
+    #[error("raw range [{min}, {max}] is invalid: min must be below max")]
+    InvalidRawRange {
+        /// Given minimum.
+        min: i64,
+        /// Given maximum.
+        max: i64,
+    },
+    /// A bit width that does not give a raw range (0, or over 63 bits).
+    #[error("raw width of {bits} bits is invalid: expected 1..=63")]
+    InvalidBits {
+        /// Given width.
+        bits: u32,
+    },
+    /// The physical range is empty, reversed or not finite.
+    #[error("physical range [{lowest}, {highest}] is invalid: needs finite lowest < highest")]
+    InvalidPhysicalRange {
+        /// Given lowest value.
+        lowest: f64,
+        /// Given highest value.
+        highest: f64,
+    },
+    /// A factor of zero, or a factor or offset that is not finite.
+    #[error(
+        "factor {factor} and offset {offset} are invalid: needs a finite non-zero factor and a finite offset"
+    )]
+    InvalidFactor {
+        /// Given factor.
+        factor: f64,
+        /// Given offset.
+        offset: f64,
+    },
+    /// A unit name longer than [`Unit::MAX_LEN`] bytes.
+    #[error("unit {unit:?} is longer than {} bytes", Unit::MAX_LEN)]
+    UnitTooLong {
+        /// The refused unit.
+        unit: String,
+    },
+}
+
+/// The unit of a physical value ("V", "mA", "degC", "rad/s"), stored inline.
+///
+/// `Copy` and allocation-free so ranges can be returned from real-time paths.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub struct Unit {
+    len: u8,
+    bytes: [u8; Unit::MAX_LEN],
+}
+
+impl Unit {
+    /// Longest unit name in bytes.
+    pub const MAX_LEN: usize = 23;
+
+    /// A unit named `name`; the empty string means dimensionless.
+    pub fn new(name: &str) -> Result<Unit, ScaleError> {
+        if name.len() > Self::MAX_LEN {
+            return Err(ScaleError::UnitTooLong {
+                unit: name.to_string(),
+            });
+        }
+        let mut bytes = [0u8; Self::MAX_LEN];
+        bytes[..name.len()].copy_from_slice(name.as_bytes());
+        Ok(Unit {
+            // Fits: checked against MAX_LEN above.
+            len: name.len() as u8,
+            bytes,
+        })
+    }
+
+    /// A dimensionless unit.
+    pub const fn none() -> Unit {
+        Unit {
+            len: 0,
+            bytes: [0; Self::MAX_LEN],
+        }
+    }
+
+    /// The unit's name.
+    pub fn as_str(&self) -> &str {
+        // Built from a &str cut at its own length, so always valid UTF-8.
+        std::str::from_utf8(&self.bytes[..usize::from(self.len)]).unwrap_or("")
+    }
+}
+
+impl fmt::Debug for Unit {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "Unit({:?})", self.as_str())
+    }
+}
+
+impl fmt::Display for Unit {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl serde::Serialize for Unit {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(self.as_str())
+    }
+}
+
+impl<'de> serde::Deserialize<'de> for Unit {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let s = <std::borrow::Cow<'de, str>>::deserialize(d)?;
+        Unit::new(&s).map_err(serde::de::Error::custom)
+    }
+}
+
+/// The physical range of an analog channel.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct AnalogRange {
+    /// Lowest value the channel can read or write.
+    pub lowest: f64,
+    /// Highest value the channel can read or write.
+    pub highest: f64,
+    /// Unit of the values.
+    pub unit: Unit,
+}
+
+/// The inclusive range of raw values of a channel.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+pub struct RawRange {
+    /// Lowest raw value.
+    pub min: i64,
+    /// Highest raw value.
+    pub max: i64,
+}
+
+impl RawRange {
+    /// `[min, max]`; `min` must be below `max`.
+    pub fn new(min: i64, max: i64) -> Result<RawRange, ScaleError> {
+        if min < max {
+            Ok(RawRange { min, max })
+        } else {
+            Err(ScaleError::InvalidRawRange { min, max })
+        }
+    }
+
+    /// `[0, 2^bits - 1]`: an unsigned converter of `bits` bits.
+    pub fn unsigned_bits(bits: u32) -> Result<RawRange, ScaleError> {
+        if !(1..=63).contains(&bits) {
+            return Err(ScaleError::InvalidBits { bits });
+        }
+        Ok(RawRange {
+            min: 0,
+            max: (1i64 << bits) - 1,
+        })
+    }
+
+    /// `[-2^(bits-1), 2^(bits-1) - 1]`: a two's-complement value of `bits` bits.
+    pub fn signed_bits(bits: u32) -> Result<RawRange, ScaleError> {
+        if !(2..=63).contains(&bits) {
+            return Err(ScaleError::InvalidBits { bits });
+        }
+        let half = 1i64 << (bits - 1);
+        Ok(RawRange {
+            min: -half,
+            max: half - 1,
+        })
+    }
+
+    /// True when `raw` lies in the range.
+    pub fn contains(&self, raw: i64) -> bool {
+        (self.min..=self.max).contains(&raw)
+    }
+
+    /// `raw` moved into the range.
+    pub fn clamp(&self, raw: i64) -> i64 {
+        raw.clamp(self.min, self.max)
+    }
+
+    fn steps(&self) -> f64 {
+        // i128 avoids overflow for ranges spanning most of i64.
+        (i128::from(self.max) - i128::from(self.min)) as f64
+    }
+}
+
+/// A linear map between a raw range and physical values.
+///
+/// `Copy`: devices hand it out from real-time paths.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Scale {
+    raw: RawRange,
+    /// Physical value at `raw.min`.
+    at_min: f64,
+    /// Physical value at `raw.max` (below `at_min` for a negative factor).
+    at_max: f64,
+    unit: Unit,
+}
+
+impl Scale {
+    /// Maps `raw.min` to `lowest` and `raw.max` to `highest`.
+    pub fn linear(
+        raw: RawRange,
+        lowest: f64,
+        highest: f64,
+        unit: Unit,
+    ) -> Result<Scale, ScaleError> {
+        RawRange::new(raw.min, raw.max)?;
+        if !(lowest.is_finite() && highest.is_finite() && lowest < highest) {
+            return Err(ScaleError::InvalidPhysicalRange { lowest, highest });
+        }
+        Ok(Scale {
+            raw,
+            at_min: lowest,
+            at_max: highest,
+            unit,
+        })
+    }
+
+    /// `physical = raw * factor + offset` over `raw`. A negative factor is allowed.
+    pub fn from_factor(
+        raw: RawRange,
+        factor: f64,
+        offset: f64,
+        unit: Unit,
+    ) -> Result<Scale, ScaleError> {
+        RawRange::new(raw.min, raw.max)?;
+        if !(factor.is_finite() && offset.is_finite() && factor != 0.0) {
+            return Err(ScaleError::InvalidFactor { factor, offset });
+        }
+        let at_min = raw.min as f64 * factor + offset;
+        let at_max = raw.max as f64 * factor + offset;
+        if !(at_min.is_finite() && at_max.is_finite()) || at_min == at_max {
+            return Err(ScaleError::InvalidFactor { factor, offset });
+        }
+        Ok(Scale {
+            raw,
+            at_min,
+            at_max,
+            unit,
+        })
+    }
+
+    /// The raw range.
+    pub fn raw_range(&self) -> RawRange {
+        self.raw
+    }
+
+    /// The physical range and unit.
+    pub fn range(&self) -> AnalogRange {
+        AnalogRange {
+            lowest: self.at_min.min(self.at_max),
+            highest: self.at_min.max(self.at_max),
+            unit: self.unit,
+        }
+    }
+
+    /// The unit of physical values.
+    pub fn unit(&self) -> Unit {
+        self.unit
+    }
+
+    /// Physical size of one raw step (always positive).
+    pub fn resolution(&self) -> f64 {
+        (self.at_max - self.at_min).abs() / self.raw.steps()
+    }
+
+    /// The physical value of `raw`. Raw values outside the raw range extrapolate linearly.
+    pub fn to_physical(&self, raw: i64) -> f64 {
+        let t = (i128::from(raw) - i128::from(self.raw.min)) as f64 / self.raw.steps();
+        // Interpolate from the nearer end so both endpoints come out exactly.
+        if t < 0.5 {
+            self.at_min + t * (self.at_max - self.at_min)
+        } else {
+            self.at_max - (1.0 - t) * (self.at_max - self.at_min)
+        }
+    }
+
+    /// The raw value nearest to `value`, or `None` when `value` is outside the physical range
+    /// or not a number.
+    pub fn to_raw(&self, value: f64) -> Option<i64> {
+        let r = self.range();
+        if !(value >= r.lowest && value <= r.highest) {
+            return None;
+        }
+        Some(self.nearest_raw(value))
+    }
+
+    /// The raw value nearest to `value`, clamped into the raw range (NaN gives the raw minimum).
+    ///
+    /// For simulations and loopbacks, where an out-of-range value saturates like a real
+    /// converter does.
+    pub fn to_raw_saturating(&self, value: f64) -> i64 {
+        if value.is_nan() {
+            return self.raw.min;
+        }
+        self.nearest_raw(value)
+    }
+
+    fn nearest_raw(&self, value: f64) -> i64 {
+        let t = (value - self.at_min) / (self.at_max - self.at_min);
+        // Clamped in step space, so infinities saturate and the sum stays within the range.
+        let steps = (t * self.raw.steps()).round().clamp(0.0, self.raw.steps());
+        let raw = i128::from(self.raw.min) + steps as i128;
+        self.raw
+            .clamp(raw.clamp(i128::from(i64::MIN), i128::from(i64::MAX)) as i64)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn v() -> Unit {
+        Unit::new("V").expect("short unit")
+    }
+
+    #[test]
+    fn endpoints_are_exact() {
+        for (lo, hi, bits) in [
+            (-10.0, 10.0, 16),
+            (0.0, 5.0, 12),
+            (-0.3, 0.7, 24),
+            (1e-3, 2e-3, 10),
+        ] {
+            let s = Scale::linear(RawRange::unsigned_bits(bits).unwrap(), lo, hi, v()).unwrap();
+            assert_eq!(s.to_physical(0), lo);
+            assert_eq!(s.to_physical(s.raw_range().max), hi);
+            assert_eq!(s.to_raw(lo), Some(0));
+            assert_eq!(s.to_raw(hi), Some(s.raw_range().max));
+        }
+    }
+
+    #[test]
+    fn round_trip_within_half_a_step() {
+        let s = Scale::linear(RawRange::signed_bits(16).unwrap(), -5.0, 5.0, v()).unwrap();
+        for i in 0..=1000 {
+            let x = -5.0 + 10.0 * f64::from(i) / 1000.0;
+            let back = s.to_physical(s.to_raw(x).unwrap());
+            assert!(
+                (back - x).abs() <= s.resolution() / 2.0 + 1e-12,
+                "{x} -> {back}"
+            );
+        }
+    }
+
+    #[test]
+    fn negative_factor_swaps_the_range() {
+        let s = Scale::from_factor(RawRange::new(0, 100).unwrap(), -0.5, 10.0, v()).unwrap();
+        let r = s.range();
+        assert_eq!((r.lowest, r.highest), (-40.0, 10.0));
+        assert_eq!(s.to_raw(-40.0), Some(100));
+        assert_eq!(s.to_raw(9.75), Some(1)); // half a step: rounds away from zero
+        assert_eq!(s.resolution(), 0.5);
+    }
+
+    #[test]
+    fn out_of_range_and_nan_are_refused() {
+        let s = Scale::linear(RawRange::unsigned_bits(8).unwrap(), 0.0, 1.0, v()).unwrap();
+        assert_eq!(s.to_raw(f64::NAN), None);
+        assert_eq!(s.to_raw(1.0 + 1e-9), None);
+        assert_eq!(s.to_raw(f64::NEG_INFINITY), None);
+        assert_eq!(s.to_raw_saturating(7.0), 255);
+        assert_eq!(s.to_raw_saturating(f64::NAN), 0);
+        assert_eq!(s.to_raw_saturating(f64::INFINITY), 255);
+        assert_eq!(s.to_raw_saturating(f64::NEG_INFINITY), 0);
+    }
+
+    #[test]
+    fn bad_parameters_are_errors() {
+        assert!(RawRange::new(5, 5).is_err());
+        assert!(RawRange::unsigned_bits(0).is_err());
+        assert!(RawRange::signed_bits(64).is_err());
+        let r = RawRange::new(0, 1).unwrap();
+        assert!(Scale::linear(r, 1.0, 1.0, v()).is_err());
+        assert!(Scale::linear(r, f64::NAN, 1.0, v()).is_err());
+        assert!(Scale::from_factor(r, 0.0, 1.0, v()).is_err());
+        assert!(Scale::from_factor(r, 1.0, f64::INFINITY, v()).is_err());
+        assert!(matches!(
+            Unit::new("a-unit-name-that-is-much-too-long"),
+            Err(ScaleError::UnitTooLong { .. })
+        ));
+    }
+
+    #[test]
+    fn wide_raw_ranges_do_not_overflow() {
+        let s = Scale::linear(RawRange::new(i64::MIN, i64::MAX).unwrap(), -1.0, 1.0, v()).unwrap();
+        assert_eq!(s.to_physical(i64::MIN), -1.0);
+        assert_eq!(s.to_physical(i64::MAX), 1.0);
+        assert_eq!(s.to_raw(1.0), Some(i64::MAX));
+    }
+}
