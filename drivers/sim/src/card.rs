@@ -1,0 +1,790 @@
+//! The simulated card: device images, the simulation step, faults and test hooks.
+
+use crate::config::{SimConfig, Waveform};
+use crate::record::{OutputEvent, OutputRecord, OutputWrite};
+use arc_swap::ArcSwapOption;
+use device_interface::bits::{BitImage, BitSpan};
+use device_interface::encoder::EncoderCounter;
+use device_interface::time::{Clock, Timestamp};
+use device_interface::{
+    AnalogIn, AnalogOut, Device, DeviceError, DigitalIn, DigitalOut, Encoder, Health, Registry,
+    RegistryError, Scale, ScaleError, Status,
+};
+use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU8, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+
+/// Why a [`SimConfig`] was refused; each names the key path of the problem.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum SimConfigError {
+    /// A range, raw range or unit that does not make a scale.
+    #[error("{path}: {source}")]
+    Scale {
+        /// Key path, e.g. `analog_in[1].range`.
+        path: String,
+        /// What is wrong with it.
+        #[source]
+        source: ScaleError,
+    },
+    /// A loopback or velocity source naming an analog output the card does not have.
+    #[error("{path}: analog output {channel} does not exist (the card has {count} analog outputs)")]
+    NoSuchAnalogOut {
+        /// Key path.
+        path: String,
+        /// The channel named.
+        channel: u32,
+        /// How many analog outputs the card has.
+        count: u32,
+    },
+    /// A value outside what the key accepts.
+    #[error("{path}: {problem}")]
+    Invalid {
+        /// Key path.
+        path: String,
+        /// What was expected.
+        problem: String,
+    },
+}
+
+/// A fault to simulate, set with [`SimCard::set_fault`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum SimFault {
+    /// Healthy: steps refresh the inputs.
+    None,
+    /// Inputs stop refreshing and read as [`DeviceError::Stale`]; outputs still work.
+    Stale,
+    /// The card is gone: inputs and outputs fail with [`DeviceError::Offline`].
+    Offline,
+    /// The bus fails: inputs and outputs fail with [`DeviceError::Bus`] carrying this text.
+    Bus(String),
+}
+
+const FAULT_NONE: u8 = 0;
+const FAULT_STALE: u8 = 1;
+const FAULT_OFFLINE: u8 = 2;
+const FAULT_BUS: u8 = 3;
+
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+struct SimulatedBusError(String);
+
+struct AnalogInChannel {
+    scale: Scale,
+    waveform: Waveform,
+    raw: AtomicI64,
+    /// Set by a test hook: the step leaves the value alone.
+    held: AtomicBool,
+}
+
+struct AnalogOutChannel {
+    scale: Scale,
+    raw: AtomicI64,
+}
+
+struct SimEncoderState {
+    counter: EncoderCounter,
+    velocity_from: Option<u32>,
+    counts_per_unit: f64,
+}
+
+struct StepState {
+    last_step: Timestamp,
+    /// Fractions of a count each encoder has moved but not yet counted.
+    encoder_fraction: Vec<f64>,
+}
+
+/// A simulated IO card: analog and digital inputs and outputs and encoders, with waveforms,
+/// loopbacks, injectable faults and a record of output writes.
+///
+/// Its device methods keep the real-time contract (atomics only); [`step`](Self::step) is
+/// its bus cycle, run by the card's activity (or by hand in tests): it samples the
+/// waveforms, copies loopbacks and moves the encoders, at the card clock's time.
+pub struct SimCard {
+    clock: Arc<dyn Clock>,
+    epoch: Timestamp,
+    seed: u64,
+    ai: Box<[AnalogInChannel]>,
+    ao: Box<[AnalogOutChannel]>,
+    di: BitImage,
+    di_held: BitImage,
+    dout: BitImage,
+    /// Digital inputs driven from outputs at each step.
+    di_looped: BitImage,
+    encoders: Box<[SimEncoderState]>,
+    fault: AtomicU8,
+    bus_error: ArcSwapOption<DeviceError>,
+    /// Time of the last good sample in ns plus one; 0 means never.
+    last_good: AtomicU64,
+    step_state: Mutex<StepState>,
+    record: Option<OutputRecord>,
+}
+
+impl SimCard {
+    /// Builds a card from `config`, with its time from `clock`, and takes its first sample.
+    pub fn new(config: &SimConfig, clock: Arc<dyn Clock>) -> Result<Arc<SimCard>, SimConfigError> {
+        let mut ao = Vec::new();
+        for (g, group) in config.analog_out.iter().enumerate() {
+            let path = format!("analog_out[{g}]");
+            let scale = group
+                .range
+                .scale(group.raw)
+                .map_err(|source| SimConfigError::Scale {
+                    path: format!("{path}.range"),
+                    source,
+                })?;
+            let raw = match group.initial {
+                None => scale.to_raw_saturating(0.0),
+                Some(v) => scale.to_raw(v).ok_or_else(|| SimConfigError::Invalid {
+                    path: format!("{path}.initial"),
+                    problem: format!("{v} is outside the range {:?}", scale.range()),
+                })?,
+            };
+            for _ in 0..group.count {
+                ao.push(AnalogOutChannel {
+                    scale,
+                    raw: AtomicI64::new(raw),
+                });
+            }
+        }
+        let ao_count = ao.len() as u32;
+        let check_ao = |path: String, channel: u32| {
+            if channel < ao_count {
+                Ok(())
+            } else {
+                Err(SimConfigError::NoSuchAnalogOut {
+                    path,
+                    channel,
+                    count: ao_count,
+                })
+            }
+        };
+
+        let mut ai = Vec::new();
+        for (g, group) in config.analog_in.iter().enumerate() {
+            let path = format!("analog_in[{g}]");
+            let scale = group
+                .range
+                .scale(group.raw)
+                .map_err(|source| SimConfigError::Scale {
+                    path: format!("{path}.range"),
+                    source,
+                })?;
+            check_waveform(&format!("{path}.waveform"), &group.waveform, &check_ao)?;
+            for _ in 0..group.count {
+                ai.push(AnalogInChannel {
+                    scale,
+                    waveform: group.waveform.clone(),
+                    raw: AtomicI64::new(scale.to_raw_saturating(0.0)),
+                    held: AtomicBool::new(false),
+                });
+            }
+        }
+
+        let mut encoders = Vec::new();
+        for (i, e) in config.encoder.iter().enumerate() {
+            let path = format!("encoder[{i}]");
+            let counter = EncoderCounter::new(e.resolution, e.upcounting).map_err(|_| {
+                SimConfigError::Invalid {
+                    path: format!("{path}.resolution"),
+                    problem: format!(
+                        "{} is not a resolution: expected a non-zero count per turn",
+                        e.resolution
+                    ),
+                }
+            })?;
+            if let Some(ch) = e.velocity_from {
+                check_ao(format!("{path}.velocity_from"), ch)?;
+            }
+            if !e.counts_per_unit.is_finite() {
+                return Err(SimConfigError::Invalid {
+                    path: format!("{path}.counts_per_unit"),
+                    problem: format!("{} is not a finite number", e.counts_per_unit),
+                });
+            }
+            encoders.push(SimEncoderState {
+                counter,
+                velocity_from: e.velocity_from,
+                counts_per_unit: e.counts_per_unit,
+            });
+        }
+
+        let di_looped = BitImage::new(config.digital_inputs);
+        if config.digital_loopback {
+            for b in 0..config.digital_inputs.min(config.digital_outputs) {
+                di_looped
+                    .set(b, true)
+                    .map_err(|e| SimConfigError::Invalid {
+                        path: "digital_loopback".into(),
+                        problem: e.to_string(),
+                    })?;
+            }
+        }
+
+        let now = clock.now();
+        let card = Arc::new(SimCard {
+            epoch: now,
+            seed: config.seed,
+            ai: ai.into(),
+            ao: ao.into(),
+            di: BitImage::new(config.digital_inputs),
+            di_held: BitImage::new(config.digital_inputs),
+            dout: BitImage::new(config.digital_outputs),
+            di_looped,
+            step_state: Mutex::new(StepState {
+                last_step: now,
+                encoder_fraction: vec![0.0; encoders.len()],
+            }),
+            encoders: encoders.into(),
+            fault: AtomicU8::new(FAULT_NONE),
+            bus_error: ArcSwapOption::empty(),
+            last_good: AtomicU64::new(0),
+            record: (config.record_capacity > 0).then(|| OutputRecord::new(config.record_capacity)),
+            clock,
+        });
+        card.step();
+        Ok(card)
+    }
+}
+
+fn check_waveform(
+    path: &str,
+    w: &Waveform,
+    check_ao: &impl Fn(String, u32) -> Result<(), SimConfigError>,
+) -> Result<(), SimConfigError> {
+    let invalid = |key: &str, problem: String| SimConfigError::Invalid {
+        path: format!("{path}.{key}"),
+        problem,
+    };
+    let finite = |key: &str, v: f64| {
+        if v.is_finite() {
+            Ok(())
+        } else {
+            Err(invalid(key, format!("{v} is not a finite number")))
+        }
+    };
+    match *w {
+        Waveform::Constant { value } => finite("value", value),
+        Waveform::Sine {
+            amplitude,
+            frequency,
+            offset,
+            phase,
+        } => {
+            finite("amplitude", amplitude)?;
+            finite("offset", offset)?;
+            finite("phase", phase)?;
+            if !(frequency.is_finite() && frequency >= 0.0) {
+                return Err(invalid(
+                    "frequency",
+                    format!("{frequency} Hz: expected a frequency >= 0"),
+                ));
+            }
+            Ok(())
+        }
+        Waveform::Ramp { from, to, period } => {
+            finite("from", from)?;
+            finite("to", to)?;
+            if !(period.is_finite() && period > 0.0) {
+                return Err(invalid(
+                    "period",
+                    format!("{period} s: expected a period > 0"),
+                ));
+            }
+            Ok(())
+        }
+        Waveform::Noise { mean, amplitude } => {
+            finite("mean", mean)?;
+            finite("amplitude", amplitude)
+        }
+        Waveform::Loopback { analog_out } => check_ao(format!("{path}.analog_out"), analog_out),
+    }
+}
+
+/// splitmix64: a well-mixed 64-bit hash of a 64-bit input, so noise at a given time and
+/// channel depends only on the seed.
+fn mix(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9e37_79b9_7f4a_7c15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+impl SimCard {
+    /// One bus cycle at the clock's current time: samples every input that is not held by a
+    /// test hook, copies digital loopbacks, moves the encoders by their velocity since the
+    /// last step, and marks the sample good. Does nothing to the inputs while the card is
+    /// faulted (a stale or dead card delivers nothing new).
+    pub fn step(&self) {
+        let now = self.clock.now();
+        let mut state = self.step_state.lock().unwrap_or_else(|p| p.into_inner());
+        let dt = now.duration_since(state.last_step).as_secs_f64();
+        state.last_step = now;
+
+        // Encoders move whatever the bus does: the axis turns even when nobody reads it.
+        for (i, enc) in self.encoders.iter().enumerate() {
+            let Some(ch) = enc.velocity_from else {
+                continue;
+            };
+            let velocity = self.ao_value(ch).unwrap_or(0.0) * enc.counts_per_unit;
+            let moved = state.encoder_fraction[i] + velocity * dt;
+            let whole = moved.trunc();
+            state.encoder_fraction[i] = moved - whole;
+            enc.counter.advance(whole as i64);
+        }
+
+        if self.fault.load(Ordering::Acquire) != FAULT_NONE {
+            return;
+        }
+        let t = now.duration_since(self.epoch).as_secs_f64();
+        for (c, ch) in self.ai.iter().enumerate() {
+            if ch.held.load(Ordering::Acquire) {
+                continue;
+            }
+            let value = match ch.waveform {
+                Waveform::Constant { value } => value,
+                Waveform::Sine {
+                    amplitude,
+                    frequency,
+                    offset,
+                    phase,
+                } => offset + amplitude * (std::f64::consts::TAU * frequency * t + phase).sin(),
+                Waveform::Ramp { from, to, period } => from + (to - from) * (t / period).fract(),
+                Waveform::Noise { mean, amplitude } => {
+                    let h = mix(self.seed ^ mix(now.as_nanos() ^ mix(c as u64)));
+                    // The top 53 bits give a uniform float in [0, 1).
+                    let u = (h >> 11) as f64 / (1u64 << 53) as f64;
+                    mean + amplitude * (2.0 * u - 1.0)
+                }
+                Waveform::Loopback { analog_out } => self.ao_value(analog_out).unwrap_or(0.0),
+            };
+            ch.raw
+                .store(ch.scale.to_raw_saturating(value), Ordering::Release);
+        }
+        // Looped bits follow the outputs unless a test holds them.
+        self.di
+            .copy_from(&self.dout, &self.di_looped, Some(&self.di_held));
+        self.last_good
+            .store(now.as_nanos().saturating_add(1), Ordering::Release);
+    }
+
+    fn ao_value(&self, channel: u32) -> Option<f64> {
+        let ch = self.ao.get(channel as usize)?;
+        Some(ch.scale.to_physical(ch.raw.load(Ordering::Acquire)))
+    }
+
+    fn last_good(&self) -> Option<Timestamp> {
+        match self.last_good.load(Ordering::Acquire) {
+            0 => None,
+            n => Some(Timestamp::from_nanos(n - 1)),
+        }
+    }
+
+    /// Fails as the simulated fault says, for an input (`stale_fails`) or an output.
+    fn check_fault(&self, input: bool) -> Result<(), DeviceError> {
+        match self.fault.load(Ordering::Acquire) {
+            FAULT_NONE => Ok(()),
+            FAULT_STALE if !input => Ok(()),
+            FAULT_STALE => Err(DeviceError::Stale {
+                age: self.last_good().map(|t| self.clock.now().duration_since(t)),
+            }),
+            FAULT_BUS => Err(self
+                .bus_error
+                .load()
+                .as_deref()
+                .cloned()
+                .unwrap_or(DeviceError::Offline)),
+            _ => Err(DeviceError::Offline),
+        }
+    }
+
+    fn record(&self, write: OutputWrite) {
+        if let Some(r) = &self.record {
+            r.push(self.clock.now(), write);
+        }
+    }
+
+    fn ai_channel(&self, channel: u32) -> Result<&AnalogInChannel, DeviceError> {
+        self.ai
+            .get(channel as usize)
+            .ok_or(DeviceError::ChannelOutOfRange {
+                channel,
+                count: self.ai.len() as u32,
+            })
+    }
+
+    fn ao_channel(&self, channel: u32) -> Result<&AnalogOutChannel, DeviceError> {
+        self.ao
+            .get(channel as usize)
+            .ok_or(DeviceError::ChannelOutOfRange {
+                channel,
+                count: self.ao.len() as u32,
+            })
+    }
+
+    // ---- test hooks ----
+
+    /// Sets analog input `channel` to `raw` and holds it there (steps leave it alone) until
+    /// [`release_analog_in`](Self::release_analog_in).
+    pub fn set_analog_in_raw(&self, channel: u32, raw: i64) -> Result<(), DeviceError> {
+        let ch = self.ai_channel(channel)?;
+        let r = ch.scale.raw_range();
+        if !r.contains(raw) {
+            return Err(DeviceError::RawOutOfRange {
+                channel,
+                raw,
+                min: r.min,
+                max: r.max,
+            });
+        }
+        ch.held.store(true, Ordering::Release);
+        ch.raw.store(raw, Ordering::Release);
+        Ok(())
+    }
+
+    /// Sets analog input `channel` to `value` (physical units, rounded to a raw step) and
+    /// holds it, as [`set_analog_in_raw`](Self::set_analog_in_raw).
+    pub fn set_analog_in(&self, channel: u32, value: f64) -> Result<(), DeviceError> {
+        let scale = self.ai_channel(channel)?.scale;
+        let raw = scale.to_raw(value).ok_or_else(|| {
+            let r = scale.range();
+            DeviceError::ValueOutOfRange {
+                channel,
+                value,
+                lowest: r.lowest,
+                highest: r.highest,
+            }
+        })?;
+        self.set_analog_in_raw(channel, raw)
+    }
+
+    /// Lets analog input `channel` follow its waveform again from the next step.
+    pub fn release_analog_in(&self, channel: u32) -> Result<(), DeviceError> {
+        self.ai_channel(channel)?
+            .held
+            .store(false, Ordering::Release);
+        Ok(())
+    }
+
+    /// Sets digital input `bit` and holds it (loopback leaves it alone) until
+    /// [`release_digital_in`](Self::release_digital_in).
+    pub fn set_digital_in(&self, bit: u32, value: bool) -> Result<(), DeviceError> {
+        self.di_held.set(bit, true)?;
+        self.di.set(bit, value).map(|_| ())
+    }
+
+    /// Lets digital input `bit` follow its loopback again from the next step.
+    pub fn release_digital_in(&self, bit: u32) -> Result<(), DeviceError> {
+        self.di_held.set(bit, false).map(|_| ())
+    }
+
+    /// Moves encoder `index` by `counts` (positive: the positive direction), as motion of
+    /// the axis would.
+    pub fn move_encoder(&self, index: usize, counts: i64) -> Result<(), DeviceError> {
+        let enc = self
+            .encoders
+            .get(index)
+            .ok_or(DeviceError::ChannelOutOfRange {
+                channel: u32::try_from(index).unwrap_or(u32::MAX),
+                count: self.encoders.len() as u32,
+            })?;
+        enc.counter.advance(counts);
+        Ok(())
+    }
+
+    /// Simulates a fault, or clears it with [`SimFault::None`] (inputs are fresh again from
+    /// the next step).
+    pub fn set_fault(&self, fault: SimFault) {
+        let code = match fault {
+            SimFault::None => FAULT_NONE,
+            SimFault::Stale => FAULT_STALE,
+            SimFault::Offline => FAULT_OFFLINE,
+            SimFault::Bus(text) => {
+                self.bus_error
+                    .store(Some(Arc::new(DeviceError::bus(SimulatedBusError(text)))));
+                FAULT_BUS
+            }
+        };
+        self.fault.store(code, Ordering::Release);
+    }
+
+    /// Takes the output writes recorded since the last call, oldest first. Empty when the
+    /// card was built with `record_capacity = 0`.
+    pub fn take_output_record(&self) -> Vec<OutputEvent> {
+        self.record
+            .as_ref()
+            .map(OutputRecord::take)
+            .unwrap_or_default()
+    }
+
+    /// Output writes not recorded because the record was full.
+    pub fn output_record_dropped(&self) -> u64 {
+        self.record.as_ref().map_or(0, OutputRecord::dropped)
+    }
+
+    /// Number of simulated encoders.
+    pub fn encoder_count(&self) -> usize {
+        self.encoders.len()
+    }
+
+    /// Encoder `index` as a device of its own (an Orocos encoder is one axis).
+    pub fn encoder(self: &Arc<Self>, index: usize) -> Option<Arc<SimEncoder>> {
+        (index < self.encoders.len()).then(|| {
+            Arc::new(SimEncoder {
+                card: Arc::clone(self),
+                index,
+            })
+        })
+    }
+
+    /// Registers every interface the card has under `name` (`name.encoder0`, `name.encoder1`
+    /// … for encoders), owned by `name`. On error nothing stays registered.
+    pub fn register(
+        self: &Arc<Self>,
+        registry: &Registry,
+        name: &str,
+    ) -> Result<(), RegistryError> {
+        let result = self.register_all(registry, name);
+        if result.is_err() {
+            // Undo only what this call added: a name that was already taken stays with its owner.
+            for n in &self.registered_names(name) {
+                unregister_if_mine(registry, n, name);
+            }
+        }
+        result
+    }
+
+    fn registered_names(&self, name: &str) -> Vec<String> {
+        let mut v = vec![name.to_string()];
+        v.extend((0..self.encoders.len()).map(|i| format!("{name}.encoder{i}")));
+        v
+    }
+
+    fn register_all(
+        self: &Arc<Self>,
+        registry: &Registry,
+        name: &str,
+    ) -> Result<(), RegistryError> {
+        if !self.ai.is_empty() {
+            registry.analog_in().register(name, name, self.clone())?;
+        }
+        if !self.ao.is_empty() {
+            registry.analog_out().register(name, name, self.clone())?;
+        }
+        if !self.di.is_empty() {
+            registry.digital_in().register(name, name, self.clone())?;
+        }
+        if !self.dout.is_empty() {
+            registry.digital_out().register(name, name, self.clone())?;
+        }
+        for i in 0..self.encoders.len() {
+            if let Some(enc) = self.encoder(i) {
+                registry
+                    .encoder()
+                    .register(&format!("{name}.encoder{i}"), name, enc)?;
+            }
+        }
+        Ok(())
+    }
+}
+
+fn unregister_if_mine(registry: &Registry, name: &str, owner: &str) {
+    let mine = |infos: Vec<device_interface::NameInfo>| {
+        infos
+            .iter()
+            .any(|i| i.name == name && i.owner == owner && i.alias_of.is_none())
+    };
+    if mine(registry.analog_in().names()) {
+        let _ = registry.analog_in().unregister(name);
+    }
+    if mine(registry.analog_out().names()) {
+        let _ = registry.analog_out().unregister(name);
+    }
+    if mine(registry.digital_in().names()) {
+        let _ = registry.digital_in().unregister(name);
+    }
+    if mine(registry.digital_out().names()) {
+        let _ = registry.digital_out().unregister(name);
+    }
+    if mine(registry.encoder().names()) {
+        let _ = registry.encoder().unregister(name);
+    }
+}
+
+impl Device for SimCard {
+    fn health(&self) -> Health {
+        let (status, last_error) = match self.fault.load(Ordering::Acquire) {
+            FAULT_NONE => (Status::Online, None),
+            FAULT_STALE => (Status::Stale, self.check_fault(true).err()),
+            _ => (Status::Offline, self.check_fault(false).err()),
+        };
+        Health {
+            status,
+            last_good: self.last_good(),
+            checked_at: self.clock.now(),
+            last_error,
+        }
+    }
+}
+
+impl AnalogIn for SimCard {
+    fn channel_count(&self) -> u32 {
+        self.ai.len() as u32
+    }
+
+    fn scale(&self, channel: u32) -> Result<Scale, DeviceError> {
+        Ok(self.ai_channel(channel)?.scale)
+    }
+
+    fn read_raw(&self, channel: u32) -> Result<i64, DeviceError> {
+        let ch = self.ai_channel(channel)?;
+        self.check_fault(true)?;
+        Ok(ch.raw.load(Ordering::Acquire))
+    }
+}
+
+impl AnalogOut for SimCard {
+    fn channel_count(&self) -> u32 {
+        self.ao.len() as u32
+    }
+
+    fn scale(&self, channel: u32) -> Result<Scale, DeviceError> {
+        Ok(self.ao_channel(channel)?.scale)
+    }
+
+    fn write_raw(&self, channel: u32, raw: i64) -> Result<(), DeviceError> {
+        let ch = self.ao_channel(channel)?;
+        let r = ch.scale.raw_range();
+        if !r.contains(raw) {
+            return Err(DeviceError::RawOutOfRange {
+                channel,
+                raw,
+                min: r.min,
+                max: r.max,
+            });
+        }
+        self.check_fault(false)?;
+        ch.raw.store(raw, Ordering::Release);
+        self.record(OutputWrite::Analog { channel, raw });
+        Ok(())
+    }
+
+    fn read_back_raw(&self, channel: u32) -> Result<i64, DeviceError> {
+        Ok(self.ao_channel(channel)?.raw.load(Ordering::Acquire))
+    }
+}
+
+impl DigitalIn for SimCard {
+    fn input_count(&self) -> u32 {
+        self.di.len()
+    }
+
+    fn read_bit(&self, bit: u32) -> Result<bool, DeviceError> {
+        let v = self.di.get(bit)?;
+        self.check_fault(true)?;
+        Ok(v)
+    }
+
+    fn read_sequence(&self, start: u32, stop: u32) -> Result<u64, DeviceError> {
+        let span = BitSpan::new(start, stop, self.di.len())?;
+        self.check_fault(true)?;
+        Ok(self.di.read_span(span))
+    }
+}
+
+impl DigitalOut for SimCard {
+    fn output_count(&self) -> u32 {
+        self.dout.len()
+    }
+
+    fn set_bit(&self, bit: u32, value: bool) -> Result<(), DeviceError> {
+        if bit >= self.dout.len() {
+            return Err(DeviceError::BitOutOfRange {
+                bit,
+                count: self.dout.len(),
+            });
+        }
+        self.check_fault(false)?;
+        self.dout.set(bit, value)?;
+        self.record(OutputWrite::Bit { bit, value });
+        Ok(())
+    }
+
+    fn check_bit(&self, bit: u32) -> Result<bool, DeviceError> {
+        self.dout.get(bit)
+    }
+
+    fn set_sequence(&self, start: u32, stop: u32, value: u64) -> Result<(), DeviceError> {
+        let span = BitSpan::new(start, stop, self.dout.len())?;
+        span.check_value(value)?;
+        self.check_fault(false)?;
+        self.dout.write_span(span, value)?;
+        self.record(OutputWrite::Sequence { start, stop, value });
+        Ok(())
+    }
+
+    fn check_sequence(&self, start: u32, stop: u32) -> Result<u64, DeviceError> {
+        Ok(self
+            .dout
+            .read_span(BitSpan::new(start, stop, self.dout.len())?))
+    }
+}
+
+/// One encoder of a [`SimCard`], as a device of its own.
+pub struct SimEncoder {
+    card: Arc<SimCard>,
+    index: usize,
+}
+
+impl SimEncoder {
+    fn state(&self) -> &SimEncoderState {
+        // `index` was checked when the handle was made and encoders never go away.
+        &self.card.encoders[self.index]
+    }
+}
+
+impl Device for SimEncoder {
+    fn health(&self) -> Health {
+        self.card.health()
+    }
+}
+
+impl Encoder for SimEncoder {
+    fn position(&self) -> Result<i64, DeviceError> {
+        self.card.check_fault(true)?;
+        Ok(self.state().counter.position())
+    }
+
+    fn turn(&self) -> Result<i64, DeviceError> {
+        self.card.check_fault(true)?;
+        Ok(self.state().counter.turn())
+    }
+
+    fn set_position(&self, position: i64) -> Result<(), DeviceError> {
+        self.state().counter.geometry().check_position(position)?;
+        self.card.check_fault(false)?;
+        self.state().counter.set_position(position)?;
+        self.card.record(OutputWrite::EncoderPosition {
+            encoder: self.index as u32,
+            position,
+        });
+        Ok(())
+    }
+
+    fn set_turn(&self, turn: i64) -> Result<(), DeviceError> {
+        self.card.check_fault(false)?;
+        self.state().counter.set_turn(turn)?;
+        self.card.record(OutputWrite::EncoderTurn {
+            encoder: self.index as u32,
+            turn,
+        });
+        Ok(())
+    }
+
+    fn resolution(&self) -> i64 {
+        self.state().counter.geometry().resolution()
+    }
+
+    fn upcounting(&self) -> bool {
+        self.state().counter.geometry().upcounting()
+    }
+}
