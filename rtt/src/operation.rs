@@ -1,0 +1,431 @@
+//! Operations: named, documented, typed functions a component offers to others.
+//!
+//! An operation runs either in the caller's thread ([`ExecutionThread::ClientThread`]: no
+//! queue, no wait, no allocation) or in the component's own thread
+//! ([`ExecutionThread::OwnThread`]: queued to the component's engine, run before its next
+//! update with `&mut` access to the component). Callers hold an [`OperationCaller`]: `call()`
+//! blocks for the result, `send()` returns a [`SendHandle`] to `collect()` later. A call to a
+//! component that is not running, or that is gone, is an error, not a hang or a crash.
+//!
+//! Arguments travel as a tuple; every operation can also be called with dynamically typed
+//! (JSON) arguments, which is how the control socket calls it.
+
+use serde::Serialize;
+use serde::de::DeserializeOwned;
+use serde_json::Value;
+use std::any::Any;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, Weak};
+use std::time::Duration;
+
+/// Which thread runs an operation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ExecutionThread {
+    /// The caller's thread, at once.
+    ClientThread,
+    /// The component's own thread, before its next update.
+    OwnThread,
+}
+
+/// Why a call did not produce a result.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
+pub enum CallError {
+    /// The component's engine is not running, so an OwnThread operation cannot run.
+    #[error(
+        "operation {operation:?} runs in component {component:?}'s thread, which is not running (state {state})"
+    )]
+    NotRunning {
+        /// The operation.
+        operation: String,
+        /// The component.
+        component: String,
+        /// Its lifecycle state.
+        state: String,
+    },
+    /// The component offering the operation is gone.
+    #[error("operation {operation:?}: the component offering it is gone")]
+    Vanished {
+        /// The operation.
+        operation: String,
+    },
+    /// The operation panicked; the component keeps running.
+    #[error("operation {operation:?} panicked: {message}")]
+    Panicked {
+        /// The operation.
+        operation: String,
+        /// The panic message.
+        message: String,
+    },
+    /// The component stopped before running the queued call.
+    #[error("operation {operation:?} was cancelled: its component stopped before running it")]
+    Cancelled {
+        /// The operation.
+        operation: String,
+    },
+    /// An OwnThread operation called from its own component's update (it would wait for
+    /// itself).
+    #[error(
+        "operation {operation:?} was called from its own component's thread; call the function directly"
+    )]
+    Reentrant {
+        /// The operation.
+        operation: String,
+    },
+    /// Dynamically typed arguments that do not fit.
+    #[error("operation {operation:?} takes {expected}: {detail}")]
+    WrongArguments {
+        /// The operation.
+        operation: String,
+        /// The argument types.
+        expected: String,
+        /// What was wrong.
+        detail: String,
+    },
+    /// `collect` after the result was already taken.
+    #[error("the result was already collected")]
+    AlreadyCollected,
+}
+
+/// One argument, as documented.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct ArgInfo {
+    /// Name.
+    pub name: String,
+    /// What it means.
+    pub doc: String,
+    /// Rust type.
+    pub type_name: String,
+}
+
+/// An operation, as listed.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct OperationInfo {
+    /// Name.
+    pub name: String,
+    /// What it does.
+    pub doc: String,
+    /// Arguments, in order.
+    pub args: Vec<ArgInfo>,
+    /// Rust type of the result.
+    pub result: String,
+    /// Which thread runs it.
+    pub thread: ExecutionThread,
+}
+
+/// Argument tuples: `()`, `(A,)`, `(A, B)`, … up to five.
+pub trait Args: DeserializeOwned + Send + 'static {
+    /// Number of arguments.
+    const ARITY: usize;
+    /// Rust type names of the arguments.
+    fn type_names() -> Vec<&'static str>;
+}
+
+impl Args for () {
+    const ARITY: usize = 0;
+    fn type_names() -> Vec<&'static str> {
+        Vec::new()
+    }
+}
+
+macro_rules! args_tuple {
+    ($n:expr; $($t:ident),+) => {
+        impl<$($t: DeserializeOwned + Send + 'static),+> Args for ($($t,)+) {
+            const ARITY: usize = $n;
+            fn type_names() -> Vec<&'static str> {
+                vec![$(std::any::type_name::<$t>()),+]
+            }
+        }
+    };
+}
+args_tuple!(1; A);
+args_tuple!(2; A, B);
+args_tuple!(3; A, B, C);
+args_tuple!(4; A, B, C, D);
+args_tuple!(5; A, B, C, D, E);
+
+/// A queued OwnThread call: runs with the component as `&mut dyn Any`.
+pub(crate) type Message = Box<dyn FnOnce(&mut dyn Any) + Send>;
+
+/// What queues OwnThread calls: the component's engine.
+pub(crate) trait Engine: Send + Sync {
+    /// Queues `msg` and wakes the engine, or says why not.
+    fn submit(&self, operation: &str, msg: Message) -> Result<(), CallError>;
+}
+
+/// The result slot of a sent call.
+struct Slot<R> {
+    result: Mutex<Option<Result<R, CallError>>>,
+    done: AtomicBool,
+    waiter: Mutex<Option<std::thread::Thread>>,
+}
+
+impl<R> Slot<R> {
+    fn complete(&self, r: Result<R, CallError>) {
+        *crate::port::lock(&self.result) = Some(r);
+        self.done.store(true, Ordering::Release);
+        if let Some(t) = crate::port::lock(&self.waiter).as_ref() {
+            t.unpark();
+        }
+    }
+}
+
+/// Completes the slot with `Cancelled` if the queued call is dropped without running.
+struct Completer<R> {
+    slot: Arc<Slot<R>>,
+    operation: Arc<str>,
+    completed: bool,
+}
+
+impl<R> Completer<R> {
+    fn complete(mut self, r: Result<R, CallError>) {
+        self.completed = true;
+        self.slot.complete(r);
+    }
+}
+
+impl<R> Drop for Completer<R> {
+    fn drop(&mut self) {
+        if !self.completed {
+            self.slot.complete(Err(CallError::Cancelled {
+                operation: self.operation.to_string(),
+            }));
+        }
+    }
+}
+
+/// The pending or finished result of [`OperationCaller::send`].
+pub struct SendHandle<R> {
+    state: HandleState<R>,
+}
+
+enum HandleState<R> {
+    Ready(Result<R, CallError>),
+    Pending(Arc<Slot<R>>),
+    Taken,
+}
+
+impl<R> SendHandle<R> {
+    /// Waits for the result and takes it.
+    pub fn collect(mut self) -> Result<R, CallError> {
+        match std::mem::replace(&mut self.state, HandleState::Taken) {
+            HandleState::Ready(r) => r,
+            HandleState::Taken => Err(CallError::AlreadyCollected),
+            HandleState::Pending(slot) => {
+                *crate::port::lock(&slot.waiter) = Some(std::thread::current());
+                let backoff = crossbeam_utils::Backoff::new();
+                while !slot.done.load(Ordering::Acquire) {
+                    if backoff.is_completed() {
+                        // Bounded park: a wake-up aimed at another thread cannot strand us.
+                        std::thread::park_timeout(Duration::from_millis(1));
+                    } else {
+                        backoff.snooze();
+                    }
+                }
+                crate::port::lock(&slot.result)
+                    .take()
+                    .unwrap_or(Err(CallError::AlreadyCollected))
+            }
+        }
+    }
+
+    /// The result if the call has finished (`None` if not yet); a second call after a
+    /// result gives [`CallError::AlreadyCollected`].
+    pub fn collect_if_done(&mut self) -> Option<Result<R, CallError>> {
+        match &self.state {
+            HandleState::Pending(slot) if !slot.done.load(Ordering::Acquire) => return None,
+            _ => {}
+        }
+        Some(
+            match std::mem::replace(&mut self.state, HandleState::Taken) {
+                HandleState::Ready(r) => r,
+                HandleState::Taken => Err(CallError::AlreadyCollected),
+                HandleState::Pending(slot) => crate::port::lock(&slot.result)
+                    .take()
+                    .unwrap_or(Err(CallError::AlreadyCollected)),
+            },
+        )
+    }
+}
+
+pub(crate) trait Invoke<A, R>: Send + Sync {
+    fn call(&self, args: A) -> Result<R, CallError>;
+    fn send(&self, args: A) -> SendHandle<R>;
+}
+
+fn panic_message(p: &(dyn Any + Send)) -> String {
+    p.downcast_ref::<&str>()
+        .map(|s| s.to_string())
+        .or_else(|| p.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "(no message)".to_string())
+}
+
+pub(crate) struct ClientOp<F> {
+    pub(crate) name: Arc<str>,
+    pub(crate) f: F,
+}
+
+impl<A, R, F> Invoke<A, R> for ClientOp<F>
+where
+    F: Fn(A) -> R + Send + Sync,
+{
+    fn call(&self, args: A) -> Result<R, CallError> {
+        std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| (self.f)(args))).map_err(|p| {
+            CallError::Panicked {
+                operation: self.name.to_string(),
+                message: panic_message(p.as_ref()),
+            }
+        })
+    }
+
+    fn send(&self, args: A) -> SendHandle<R> {
+        SendHandle {
+            state: HandleState::Ready(self.call(args)),
+        }
+    }
+}
+
+pub(crate) struct OwnOp<C, F> {
+    pub(crate) name: Arc<str>,
+    pub(crate) f: Arc<F>,
+    pub(crate) engine: Weak<dyn Engine>,
+    pub(crate) _component: std::marker::PhantomData<fn(&mut C)>,
+}
+
+impl<C, A, R, F> Invoke<A, R> for OwnOp<C, F>
+where
+    C: 'static,
+    A: Send + 'static,
+    R: Send + 'static,
+    F: Fn(&mut C, A) -> R + Send + Sync + 'static,
+{
+    fn call(&self, args: A) -> Result<R, CallError> {
+        self.send(args).collect()
+    }
+
+    fn send(&self, args: A) -> SendHandle<R> {
+        let Some(engine) = self.engine.upgrade() else {
+            return SendHandle {
+                state: HandleState::Ready(Err(CallError::Vanished {
+                    operation: self.name.to_string(),
+                })),
+            };
+        };
+        let slot = Arc::new(Slot {
+            result: Mutex::new(None),
+            done: AtomicBool::new(false),
+            waiter: Mutex::new(None),
+        });
+        let completer = Completer {
+            slot: slot.clone(),
+            operation: self.name.clone(),
+            completed: false,
+        };
+        let f = self.f.clone();
+        let name = self.name.clone();
+        let msg: Message = Box::new(move |any: &mut dyn Any| {
+            let result = match any.downcast_mut::<C>() {
+                Some(c) => std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(c, args)))
+                    .map_err(|p| CallError::Panicked {
+                        operation: name.to_string(),
+                        message: panic_message(p.as_ref()),
+                    }),
+                None => Err(CallError::Vanished {
+                    operation: name.to_string(),
+                }),
+            };
+            completer.complete(result);
+        });
+        match engine.submit(&self.name, msg) {
+            Ok(()) => SendHandle {
+                state: HandleState::Pending(slot),
+            },
+            Err(e) => SendHandle {
+                state: HandleState::Ready(Err(e)),
+            },
+        }
+    }
+}
+
+/// A typed handle to call an operation.
+pub struct OperationCaller<A, R> {
+    pub(crate) name: Arc<str>,
+    pub(crate) inner: Arc<dyn Invoke<A, R>>,
+}
+
+impl<A, R> Clone for OperationCaller<A, R> {
+    fn clone(&self) -> Self {
+        OperationCaller {
+            name: self.name.clone(),
+            inner: self.inner.clone(),
+        }
+    }
+}
+
+impl<A, R> OperationCaller<A, R> {
+    /// Runs the operation and waits for its result. A ClientThread operation runs here and
+    /// now, allocation-free; an OwnThread one is queued to its component and waited for.
+    pub fn call(&self, args: A) -> Result<R, CallError> {
+        self.inner.call(args)
+    }
+
+    /// Starts the operation and returns at once with a handle to collect the result.
+    pub fn send(&self, args: A) -> SendHandle<R> {
+        self.inner.send(args)
+    }
+
+    /// The operation's name.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+}
+
+/// An operation as the dynamic interface sees it.
+pub(crate) trait DynOperation: Send + Sync {
+    fn info(&self) -> &OperationInfo;
+    fn call_value(&self, args: Vec<Value>) -> Result<Value, CallError>;
+    fn as_any(&self) -> &dyn Any;
+}
+
+pub(crate) struct OperationEntry<A, R> {
+    pub(crate) info: OperationInfo,
+    pub(crate) caller: OperationCaller<A, R>,
+}
+
+impl<A: Args, R: Serialize + 'static> DynOperation for OperationEntry<A, R> {
+    fn info(&self) -> &OperationInfo {
+        &self.info
+    }
+
+    fn call_value(&self, args: Vec<Value>) -> Result<Value, CallError> {
+        let wrong = |detail: String| CallError::WrongArguments {
+            operation: self.info.name.clone(),
+            expected: format!("({})", A::type_names().join(", ")),
+            detail,
+        };
+        if args.len() != A::ARITY {
+            return Err(wrong(format!(
+                "{} arguments given, {} expected",
+                args.len(),
+                A::ARITY
+            )));
+        }
+        let value = if A::ARITY == 0 {
+            Value::Null
+        } else {
+            Value::Array(args)
+        };
+        let a: A = serde_json::from_value(value).map_err(|e| wrong(e.to_string()))?;
+        let r = self.caller.call(a)?;
+        serde_json::to_value(&r).map_err(|e| CallError::WrongArguments {
+            operation: self.info.name.clone(),
+            expected: "a result that serialises".into(),
+            detail: e.to_string(),
+        })
+    }
+
+    fn as_any(&self) -> &dyn Any {
+        self
+    }
+}

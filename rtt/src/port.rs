@@ -1,0 +1,784 @@
+//! Data-flow ports: `OutputPort<T>` writes, `InputPort<T>` reads, connections carry samples.
+//!
+//! As in RTT 2.x, `write()` never blocks and does not care whether anyone listens;
+//! `read()` says whether it got [`NewData`](FlowStatus::NewData), the last sample again
+//! ([`OldData`](FlowStatus::OldData)), or nothing yet ([`NoData`](FlowStatus::NoData)). How
+//! samples travel is fixed per connection by a [`ConnPolicy`]: the last value (`data`), a
+//! FIFO that drops the newest sample when full (`buffer`), or one that drops the oldest
+//! (`circular_buffer`); with `init`, a new connection starts with the last value written.
+//!
+//! One output may feed many inputs (fan-out) and one input may be fed by many outputs
+//! (fan-in: `read` takes the first connection with new data). Connections are made and
+//! broken at run time, from any thread.
+//!
+//! # Real-time behaviour
+//!
+//! Every connection owns a fixed pool of pre-allocated samples (copies of the port's data
+//! sample) that move between two lock-free queues; `write` copies into a free sample with
+//! `clone_from` and `read` copies out the same way. So writing and reading never lock, and
+//! never allocate as long as `clone_from` does not — true for plain data, and for a `Vec`
+//! or `String` no longer than the data sample given with
+//! [`OutputPort::with_sample`]/[`InputPort::with_sample`].
+//!
+//! ```
+//! use rtt::port::{connect, ConnPolicy, FlowStatus, InputPort, OutputPort};
+//!
+//! let mut out = OutputPort::<f64>::new("setpoint");
+//! let mut inp = InputPort::<f64>::new("setpoint_in");
+//! connect(&out, &inp, ConnPolicy::buffer(2))?;
+//!
+//! let mut x = 0.0;
+//! assert_eq!(inp.read(&mut x), FlowStatus::NoData);
+//! for v in [1.0, 2.0, 3.0] {
+//!     out.write(&v); // the third is dropped: the buffer holds two
+//! }
+//! assert_eq!((inp.read(&mut x), x), (FlowStatus::NewData, 1.0));
+//! assert_eq!((inp.read(&mut x), x), (FlowStatus::NewData, 2.0));
+//! assert_eq!((inp.read(&mut x), x), (FlowStatus::OldData, 2.0));
+//! # Ok::<(), rtt::port::ConnectError>(())
+//! ```
+
+use crate::activity::Waker;
+use crossbeam_queue::ArrayQueue;
+use serde::{Deserialize, Serialize};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, OnceLock, Weak};
+
+/// What a read found.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FlowStatus {
+    /// Nothing was ever received.
+    NoData,
+    /// No new sample; the sample is the last one received, again.
+    OldData,
+    /// A sample not read before.
+    NewData,
+}
+
+/// How a connection carries samples.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+pub enum ConnKind {
+    /// The last value: a new sample replaces an unread one.
+    Data,
+    /// A FIFO of `size` samples; when full, the newest sample is dropped (and counted).
+    Buffer {
+        /// Capacity in samples (at least 1).
+        size: usize,
+    },
+    /// A FIFO of `size` samples; when full, the oldest sample is dropped (and counted).
+    CircularBuffer {
+        /// Capacity in samples (at least 1).
+        size: usize,
+    },
+}
+
+/// A connection policy: the kind of connection and whether it starts with the last value.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct ConnPolicy {
+    /// How samples are carried.
+    pub kind: ConnKind,
+    /// A new connection starts with the last value the output wrote, as new data.
+    #[serde(default)]
+    pub init: bool,
+}
+
+impl Default for ConnPolicy {
+    fn default() -> Self {
+        ConnPolicy::data()
+    }
+}
+
+impl ConnPolicy {
+    /// The last value.
+    pub const fn data() -> Self {
+        ConnPolicy {
+            kind: ConnKind::Data,
+            init: false,
+        }
+    }
+
+    /// A FIFO of `size` samples that drops the newest when full.
+    pub const fn buffer(size: usize) -> Self {
+        ConnPolicy {
+            kind: ConnKind::Buffer { size },
+            init: false,
+        }
+    }
+
+    /// A FIFO of `size` samples that drops the oldest when full.
+    pub const fn circular_buffer(size: usize) -> Self {
+        ConnPolicy {
+            kind: ConnKind::CircularBuffer { size },
+            init: false,
+        }
+    }
+
+    /// The same policy, starting new connections with the last written value.
+    pub const fn with_init(mut self, init: bool) -> Self {
+        self.init = init;
+        self
+    }
+
+    fn capacity(&self) -> usize {
+        match self.kind {
+            ConnKind::Data => 1,
+            ConnKind::Buffer { size } | ConnKind::CircularBuffer { size } => size.max(1),
+        }
+    }
+}
+
+/// Why two ports could not be connected.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
+pub enum ConnectError {
+    /// The ports carry different types.
+    #[error(
+        "cannot connect {output:?} ({output_type}) to {input:?} ({input_type}): the types differ"
+    )]
+    TypeMismatch {
+        /// Output port name.
+        output: String,
+        /// Its data type.
+        output_type: &'static str,
+        /// Input port name.
+        input: String,
+        /// Its data type.
+        input_type: &'static str,
+    },
+    /// Both ports are outputs, or both inputs.
+    #[error(
+        "cannot connect {from:?} to {to:?}: a connection goes from an output port to an input port"
+    )]
+    Direction {
+        /// The port given as the source.
+        from: String,
+        /// The port given as the destination.
+        to: String,
+    },
+    /// A port had too many connections waiting for its owner to take them up.
+    #[error(
+        "port {port:?} has {limit} connections waiting for its component to take them up; is the component running?"
+    )]
+    TooManyPending {
+        /// The port.
+        port: String,
+        /// The limit.
+        limit: usize,
+    },
+    /// A buffer policy with a size of zero.
+    #[error("a buffer connection needs a size of at least 1")]
+    ZeroSize,
+}
+
+/// Counters of one connection.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct ConnectionInfo {
+    /// Unique id of the connection within the process.
+    pub id: u64,
+    /// The output port.
+    pub from: String,
+    /// The input port.
+    pub to: String,
+    /// Its policy.
+    pub policy: ConnPolicy,
+    /// Samples written into it.
+    pub written: u64,
+    /// Samples taken out by the reader.
+    pub read: u64,
+    /// Samples lost because a buffer was full.
+    pub dropped: u64,
+}
+
+static NEXT_CONNECTION: AtomicU64 = AtomicU64::new(1);
+
+/// One connection: a pool of samples cycling between `free` and `full`.
+pub(crate) struct Channel<T> {
+    id: u64,
+    from: Arc<str>,
+    to: Arc<str>,
+    policy: ConnPolicy,
+    free: ArrayQueue<T>,
+    full: ArrayQueue<T>,
+    closed: AtomicBool,
+    written: AtomicU64,
+    read: AtomicU64,
+    dropped: AtomicU64,
+    waker: Option<Arc<dyn Waker>>,
+}
+
+impl<T: Clone> Channel<T> {
+    fn new(
+        from: Arc<str>,
+        to: Arc<str>,
+        policy: ConnPolicy,
+        sample: &T,
+        waker: Option<Arc<dyn Waker>>,
+    ) -> Self {
+        let capacity = policy.capacity();
+        // Room for a full queue, the sample the writer fills and the one the reader empties.
+        let pool = capacity + 2;
+        let free = ArrayQueue::new(pool);
+        for _ in 0..pool {
+            let _ = free.push(sample.clone());
+        }
+        Channel {
+            id: NEXT_CONNECTION.fetch_add(1, Ordering::Relaxed),
+            from,
+            to,
+            policy,
+            free,
+            full: ArrayQueue::new(capacity),
+            closed: AtomicBool::new(false),
+            written: AtomicU64::new(0),
+            read: AtomicU64::new(0),
+            dropped: AtomicU64::new(0),
+            waker,
+        }
+    }
+
+    /// Writer side. Lock-free; allocation-free when `clone_from` is.
+    fn push(&self, value: &T) {
+        let drop_newest = matches!(self.policy.kind, ConnKind::Buffer { .. });
+        if drop_newest && self.full.is_full() {
+            self.dropped.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
+        // The pool is sized so a free sample always exists for the single writer.
+        let Some(mut slot) = self.free.pop() else {
+            self.dropped.fetch_add(1, Ordering::Relaxed);
+            return;
+        };
+        slot.clone_from(value);
+        if let Err(slot) = self.full.push(slot) {
+            if drop_newest {
+                let _ = self.free.push(slot);
+                self.dropped.fetch_add(1, Ordering::Relaxed);
+                return;
+            }
+            // Make room by dropping the oldest; only this writer pushes, so room stays.
+            if let Some(old) = self.full.pop() {
+                let _ = self.free.push(old);
+                if self.policy.kind != ConnKind::Data {
+                    self.dropped.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+            if let Err(slot) = self.full.push(slot) {
+                let _ = self.free.push(slot);
+                self.dropped.fetch_add(1, Ordering::Relaxed);
+                return;
+            }
+        }
+        self.written.fetch_add(1, Ordering::Relaxed);
+        if let Some(w) = &self.waker {
+            w.wake();
+        }
+    }
+
+    /// Reader side: copies the next sample into `into`. Lock-free.
+    fn pop_into(&self, into: &mut T) -> bool {
+        match self.full.pop() {
+            Some(slot) => {
+                into.clone_from(&slot);
+                let _ = self.free.push(slot);
+                self.read.fetch_add(1, Ordering::Relaxed);
+                true
+            }
+            None => false,
+        }
+    }
+
+    fn is_closed(&self) -> bool {
+        self.closed.load(Ordering::Acquire)
+    }
+
+    fn info(&self) -> ConnectionInfo {
+        ConnectionInfo {
+            id: self.id,
+            from: self.from.to_string(),
+            to: self.to.to_string(),
+            policy: self.policy,
+            written: self.written.load(Ordering::Relaxed),
+            read: self.read.load(Ordering::Relaxed),
+            dropped: self.dropped.load(Ordering::Relaxed),
+        }
+    }
+}
+
+/// How many connections may wait for a port's owner to take them up.
+const PENDING: usize = 64;
+
+/// Connections of one port, as seen from other threads: new ones wait in `pending` until
+/// the owner's next read or write takes them; `all` lists them.
+struct Links<T> {
+    pending: ArrayQueue<Arc<Channel<T>>>,
+    all: Mutex<Vec<Weak<Channel<T>>>>,
+}
+
+impl<T: Clone> Links<T> {
+    fn new() -> Self {
+        Links {
+            pending: ArrayQueue::new(PENDING),
+            all: Mutex::new(Vec::new()),
+        }
+    }
+
+    fn offer(&self, port: &str, ch: &Arc<Channel<T>>) -> Result<(), ConnectError> {
+        self.pending
+            .push(Arc::clone(ch))
+            .map_err(|_| ConnectError::TooManyPending {
+                port: port.to_string(),
+                limit: PENDING,
+            })?;
+        let mut all = lock(&self.all);
+        all.retain(|w| w.strong_count() > 0);
+        all.push(Arc::downgrade(ch));
+        Ok(())
+    }
+
+    fn live(&self) -> Vec<Arc<Channel<T>>> {
+        lock(&self.all)
+            .iter()
+            .filter_map(Weak::upgrade)
+            .filter(|c| !c.is_closed())
+            .collect()
+    }
+
+    /// Owner side: takes up pending connections and forgets closed ones.
+    fn refresh(&self, local: &mut Vec<Arc<Channel<T>>>) {
+        if !self.pending.is_empty() {
+            while let Some(ch) = self.pending.pop() {
+                // Capacity is reserved when the port is made; beyond it this allocates
+                // once, when a connection is taken up.
+                local.push(ch);
+            }
+        }
+        local.retain(|c| !c.is_closed());
+    }
+}
+
+pub(crate) fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    // Every value guarded in this crate stays consistent across a panic (plain lists and
+    // samples), so a poisoned lock is still usable.
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// How many connections a port holds before taking up one more allocates.
+const RESERVED_CONNECTIONS: usize = 8;
+
+pub(crate) struct OutputShared<T> {
+    pub(crate) name: Arc<str>,
+    links: Links<T>,
+    sample: Mutex<T>,
+    /// The last written value, kept for `init` connections and for introspection.
+    last: Channel<T>,
+    last_reader: Mutex<(bool, T)>,
+}
+
+impl<T: Clone> OutputShared<T> {
+    /// A copy of the data sample new connections pre-allocate from.
+    pub(crate) fn sample_clone(&self) -> T {
+        lock(&self.sample).clone()
+    }
+
+    /// The last value written, if any. Not for real-time paths (locks, clones).
+    pub(crate) fn last_written(&self) -> Option<T> {
+        let mut guard = lock(&self.last_reader);
+        let (seen, value) = &mut *guard;
+        if self.last.pop_into(value) {
+            *seen = true;
+        }
+        seen.then(|| value.clone())
+    }
+}
+
+/// The writing end of a data flow.
+pub struct OutputPort<T> {
+    shared: Arc<OutputShared<T>>,
+    conns: Vec<Arc<Channel<T>>>,
+}
+
+impl<T: Clone + Send + 'static> OutputPort<T> {
+    /// An output port named `name`, with `T::default()` as its data sample.
+    pub fn new(name: &str) -> Self
+    where
+        T: Default,
+    {
+        Self::with_sample(name, T::default())
+    }
+
+    /// An output port named `name` whose connections pre-allocate copies of `sample`: size a
+    /// `Vec` sample to the longest value written and writing never allocates.
+    pub fn with_sample(name: &str, sample: T) -> Self {
+        let name: Arc<str> = Arc::from(name);
+        OutputPort {
+            shared: Arc::new(OutputShared {
+                last: Channel::new(
+                    name.clone(),
+                    name.clone(),
+                    ConnPolicy::data(),
+                    &sample,
+                    None,
+                ),
+                last_reader: Mutex::new((false, sample.clone())),
+                sample: Mutex::new(sample),
+                links: Links::new(),
+                name,
+            }),
+            conns: Vec::with_capacity(RESERVED_CONNECTIONS),
+        }
+    }
+
+    /// Sends `value` to every connection. Never blocks; a full buffer drops and counts.
+    pub fn write(&mut self, value: &T) {
+        self.shared.links.refresh(&mut self.conns);
+        for c in &self.conns {
+            c.push(value);
+        }
+        self.shared.last.push(value);
+    }
+
+    /// Replaces the data sample future connections pre-allocate from.
+    pub fn set_data_sample(&self, sample: T) {
+        *lock(&self.shared.sample) = sample;
+    }
+
+    /// The last value written, if any. Not for real-time paths (locks, clones).
+    pub fn last_written(&self) -> Option<T> {
+        self.shared.last_written()
+    }
+
+    /// The port's name.
+    pub fn name(&self) -> &str {
+        &self.shared.name
+    }
+
+    /// Live connections with their counters.
+    pub fn connections(&self) -> Vec<ConnectionInfo> {
+        self.shared.links.live().iter().map(|c| c.info()).collect()
+    }
+
+    pub(crate) fn shared(&self) -> &Arc<OutputShared<T>> {
+        &self.shared
+    }
+}
+
+pub(crate) struct InputShared<T> {
+    pub(crate) name: Arc<str>,
+    links: Links<T>,
+    /// Set when the port is an event port of a component: new data wakes its activity.
+    pub(crate) waker: OnceLock<Arc<dyn Waker>>,
+}
+
+/// The reading end of a data flow.
+pub struct InputPort<T> {
+    shared: Arc<InputShared<T>>,
+    conns: Vec<Arc<Channel<T>>>,
+    last: T,
+    has_last: bool,
+}
+
+impl<T: Clone + Send + 'static> InputPort<T> {
+    /// An input port named `name`, with `T::default()` as its sample.
+    pub fn new(name: &str) -> Self
+    where
+        T: Default,
+    {
+        Self::with_sample(name, T::default())
+    }
+
+    /// An input port named `name` keeping its last sample in a copy of `sample`: size a `Vec`
+    /// sample to the longest value read and reading never allocates.
+    pub fn with_sample(name: &str, sample: T) -> Self {
+        InputPort {
+            shared: Arc::new(InputShared {
+                name: Arc::from(name),
+                links: Links::new(),
+                waker: OnceLock::new(),
+            }),
+            conns: Vec::with_capacity(RESERVED_CONNECTIONS),
+            last: sample,
+            has_last: false,
+        }
+    }
+
+    /// Reads the next sample into `sample`: from the first connection that has new data
+    /// ([`NewData`](FlowStatus::NewData)), else the last sample read again
+    /// ([`OldData`](FlowStatus::OldData)), else [`NoData`](FlowStatus::NoData) and `sample`
+    /// is left alone. Never blocks.
+    pub fn read(&mut self, sample: &mut T) -> FlowStatus {
+        self.shared.links.refresh(&mut self.conns);
+        for c in &self.conns {
+            if c.pop_into(&mut self.last) {
+                self.has_last = true;
+                sample.clone_from(&self.last);
+                return FlowStatus::NewData;
+            }
+        }
+        if self.has_last {
+            sample.clone_from(&self.last);
+            FlowStatus::OldData
+        } else {
+            FlowStatus::NoData
+        }
+    }
+
+    /// The port's name.
+    pub fn name(&self) -> &str {
+        &self.shared.name
+    }
+
+    /// Live connections with their counters.
+    pub fn connections(&self) -> Vec<ConnectionInfo> {
+        self.shared.links.live().iter().map(|c| c.info()).collect()
+    }
+
+    pub(crate) fn shared(&self) -> &Arc<InputShared<T>> {
+        &self.shared
+    }
+}
+
+/// Connects `output` to `input` with `policy`. Callable from any thread, at any time; the
+/// ports take the connection up at their next write or read.
+pub fn connect<T: Clone + Send + 'static>(
+    output: &OutputPort<T>,
+    input: &InputPort<T>,
+    policy: ConnPolicy,
+) -> Result<ConnectionInfo, ConnectError> {
+    connect_shared(output.shared(), input.shared(), policy)
+}
+
+pub(crate) fn connect_shared<T: Clone + Send + 'static>(
+    out: &Arc<OutputShared<T>>,
+    inp: &Arc<InputShared<T>>,
+    policy: ConnPolicy,
+) -> Result<ConnectionInfo, ConnectError> {
+    if let ConnKind::Buffer { size: 0 } | ConnKind::CircularBuffer { size: 0 } = policy.kind {
+        return Err(ConnectError::ZeroSize);
+    }
+    let sample = lock(&out.sample).clone();
+    let ch = Arc::new(Channel::new(
+        out.name.clone(),
+        inp.name.clone(),
+        policy,
+        &sample,
+        inp.waker.get().cloned(),
+    ));
+    if policy.init
+        && let Some(v) = out.last_written()
+    {
+        ch.push(&v);
+    }
+    inp.links.offer(&inp.name, &ch)?;
+    if let Err(e) = out.links.offer(&out.name, &ch) {
+        ch.closed.store(true, Ordering::Release);
+        return Err(e);
+    }
+    Ok(ch.info())
+}
+
+/// Closes connection `id` of an output port's shared state; true if it was there.
+fn disconnect_links<T: Clone>(links: &Links<T>, id: Option<u64>) -> usize {
+    let mut n = 0;
+    for c in links.live() {
+        if id.is_none_or(|id| c.id == id) {
+            c.closed.store(true, Ordering::Release);
+            n += 1;
+        }
+    }
+    n
+}
+
+impl<T: Clone> OutputShared<T> {
+    pub(crate) fn connections(&self) -> Vec<ConnectionInfo> {
+        self.links.live().iter().map(|c| c.info()).collect()
+    }
+
+    pub(crate) fn disconnect(&self, id: Option<u64>) -> usize {
+        disconnect_links(&self.links, id)
+    }
+}
+
+impl<T: Clone> InputShared<T> {
+    pub(crate) fn connections(&self) -> Vec<ConnectionInfo> {
+        self.links.live().iter().map(|c| c.info()).collect()
+    }
+
+    pub(crate) fn disconnect(&self, id: Option<u64>) -> usize {
+        disconnect_links(&self.links, id)
+    }
+}
+
+impl<T: Clone + Send + 'static> OutputPort<T> {
+    /// Closes connection `id` (or every connection with `None`); returns how many closed.
+    pub fn disconnect(&self, id: Option<u64>) -> usize {
+        self.shared.disconnect(id)
+    }
+}
+
+impl<T: Clone + Send + 'static> InputPort<T> {
+    /// Closes connection `id` (or every connection with `None`); returns how many closed.
+    /// The last sample read stays readable as old data.
+    pub fn disconnect(&self, id: Option<u64>) -> usize {
+        self.shared.disconnect(id)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pair<T: Clone + Send + Default + 'static>(
+        policy: ConnPolicy,
+    ) -> (OutputPort<T>, InputPort<T>) {
+        let out = OutputPort::new("out");
+        let inp = InputPort::new("in");
+        connect(&out, &inp, policy).unwrap();
+        (out, inp)
+    }
+
+    fn drain(inp: &mut InputPort<i32>) -> Vec<i32> {
+        let mut v = Vec::new();
+        let mut x = 0;
+        while inp.read(&mut x) == FlowStatus::NewData {
+            v.push(x);
+        }
+        v
+    }
+
+    #[test]
+    fn data_keeps_the_last_value() {
+        let (mut out, mut inp) = pair::<i32>(ConnPolicy::data());
+        let mut x = -1;
+        assert_eq!(inp.read(&mut x), FlowStatus::NoData);
+        assert_eq!(x, -1, "NoData leaves the sample alone");
+        for v in 1..=5 {
+            out.write(&v);
+        }
+        assert_eq!((inp.read(&mut x), x), (FlowStatus::NewData, 5));
+        assert_eq!((inp.read(&mut x), x), (FlowStatus::OldData, 5));
+        assert_eq!(
+            out.connections()[0].dropped,
+            0,
+            "data connections overwrite, they do not drop"
+        );
+    }
+
+    #[test]
+    fn buffer_drops_newest_and_counts() {
+        let (mut out, mut inp) = pair::<i32>(ConnPolicy::buffer(3));
+        for v in 1..=5 {
+            out.write(&v);
+        }
+        assert_eq!(drain(&mut inp), vec![1, 2, 3]);
+        let info = &inp.connections()[0];
+        assert_eq!((info.written, info.read, info.dropped), (3, 3, 2));
+    }
+
+    #[test]
+    fn circular_buffer_drops_oldest_and_counts() {
+        let (mut out, mut inp) = pair::<i32>(ConnPolicy::circular_buffer(3));
+        for v in 1..=5 {
+            out.write(&v);
+        }
+        assert_eq!(drain(&mut inp), vec![3, 4, 5]);
+        assert_eq!(out.connections()[0].dropped, 2);
+        out.write(&6);
+        assert_eq!(drain(&mut inp), vec![6]);
+    }
+
+    #[test]
+    fn init_hands_a_new_reader_the_last_value() {
+        let mut out = OutputPort::<i32>::new("out");
+        out.write(&41);
+        out.write(&42);
+        let mut late = InputPort::new("late");
+        connect(&out, &late, ConnPolicy::data().with_init(true)).unwrap();
+        let mut x = 0;
+        assert_eq!((late.read(&mut x), x), (FlowStatus::NewData, 42));
+        let mut plain = InputPort::new("plain");
+        connect(&out, &plain, ConnPolicy::buffer(4)).unwrap();
+        assert_eq!(
+            plain.read(&mut x),
+            FlowStatus::NoData,
+            "without init a new reader has nothing"
+        );
+        let mut buffered = InputPort::new("buffered");
+        connect(&out, &buffered, ConnPolicy::buffer(4).with_init(true)).unwrap();
+        assert_eq!(drain(&mut buffered), vec![42]);
+    }
+
+    #[test]
+    fn fan_out_and_fan_in() {
+        let (mut a, mut b) = (OutputPort::<i32>::new("a"), OutputPort::<i32>::new("b"));
+        let (mut i1, mut i2) = (InputPort::<i32>::new("i1"), InputPort::<i32>::new("i2"));
+        connect(&a, &i1, ConnPolicy::buffer(8)).unwrap();
+        connect(&a, &i2, ConnPolicy::buffer(8)).unwrap();
+        connect(&b, &i1, ConnPolicy::buffer(8)).unwrap();
+        a.write(&1);
+        b.write(&10);
+        a.write(&2);
+        let mut got = drain(&mut i1);
+        got.sort();
+        assert_eq!(got, vec![1, 2, 10]);
+        assert_eq!(drain(&mut i2), vec![1, 2]);
+    }
+
+    #[test]
+    fn disconnect_at_run_time() {
+        let (mut out, mut inp) = pair::<i32>(ConnPolicy::buffer(4));
+        out.write(&1);
+        assert_eq!(out.disconnect(None), 1);
+        out.write(&2);
+        let mut x = 0;
+        assert_eq!(
+            inp.read(&mut x),
+            FlowStatus::NoData,
+            "a closed connection delivers nothing"
+        );
+        assert!(inp.connections().is_empty());
+        connect(&out, &inp, ConnPolicy::data()).unwrap();
+        out.write(&3);
+        assert_eq!((inp.read(&mut x), x), (FlowStatus::NewData, 3));
+    }
+
+    #[test]
+    fn zero_size_buffers_are_refused() {
+        let out = OutputPort::<i32>::new("o");
+        let inp = InputPort::<i32>::new("i");
+        assert_eq!(
+            connect(&out, &inp, ConnPolicy::buffer(0)).unwrap_err(),
+            ConnectError::ZeroSize
+        );
+    }
+
+    #[test]
+    fn writer_and_reader_on_two_threads_lose_nothing_in_order() {
+        let (mut out, mut inp) = pair::<u64>(ConnPolicy::buffer(64));
+        let n = 50_000u64;
+        let writer = std::thread::spawn(move || {
+            let mut v = 0;
+            while v < n {
+                // Only write when there is room, to test order, not dropping.
+                if out.connections()[0].written - out.connections()[0].read < 60 {
+                    out.write(&v);
+                    v += 1;
+                } else {
+                    std::thread::yield_now();
+                }
+            }
+            out
+        });
+        let mut expect = 0;
+        let mut x = 0;
+        while expect < n {
+            if inp.read(&mut x) == FlowStatus::NewData {
+                assert_eq!(x, expect);
+                expect += 1;
+            }
+        }
+        let out = writer.join().unwrap();
+        assert_eq!(out.connections()[0].dropped, 0);
+    }
+}

@@ -1,0 +1,89 @@
+//! ThreadScope: every runtime thread as a bit on a digital output, high while it steps.
+//!
+//! Every runtime thread gets a number: the thread that made the [`Runtime`](crate::Runtime)
+//! is 0, then activity threads in the order they are created. With ThreadScope on, just
+//! before a thread steps a component its bit on the DigitalOut registered as
+//! `"ThreadScope"` goes high, and just after it goes low, so an oscilloscope (or the sim
+//! card's output record) shows which thread ran when and for how long. The mapping of
+//! threads to bits is logged. With ThreadScope off, a step costs one branch more.
+
+use device_interface::DigitalOut;
+use std::cell::Cell;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+thread_local! {
+    static THREAD_NUMBER: Cell<Option<u32>> = const { Cell::new(None) };
+    static DEPTH: Cell<u32> = const { Cell::new(0) };
+}
+
+/// The runtime thread number of the calling thread, if it is a runtime thread.
+pub fn current_thread_number() -> Option<u32> {
+    THREAD_NUMBER.with(Cell::get)
+}
+
+pub(crate) fn set_thread_number(n: u32) {
+    THREAD_NUMBER.with(|c| c.set(Some(n)));
+}
+
+/// The ThreadScope output, or nothing.
+pub struct ThreadScope {
+    out: Option<Arc<dyn DigitalOut>>,
+    errors: AtomicU64,
+}
+
+impl ThreadScope {
+    /// ThreadScope off.
+    pub fn off() -> Self {
+        ThreadScope {
+            out: None,
+            errors: AtomicU64::new(0),
+        }
+    }
+
+    /// ThreadScope on `out`.
+    pub fn on(out: Arc<dyn DigitalOut>) -> Self {
+        ThreadScope {
+            out: Some(out),
+            errors: AtomicU64::new(0),
+        }
+    }
+
+    /// True when on.
+    pub fn is_on(&self) -> bool {
+        self.out.is_some()
+    }
+
+    /// Writes to the output that failed (a bit past its end, an offline card).
+    pub fn errors(&self) -> u64 {
+        self.errors.load(Ordering::Relaxed)
+    }
+
+    /// Runs `f` with the calling thread's bit high. Nested pulses on one thread (a slave
+    /// stepped from its master's step) keep the bit high until the outermost ends.
+    pub(crate) fn pulse<R>(&self, f: impl FnOnce() -> R) -> R {
+        let (Some(out), Some(bit)) = (&self.out, current_thread_number()) else {
+            return f();
+        };
+        let outer = DEPTH.with(|d| {
+            let v = d.get();
+            d.set(v + 1);
+            v == 0
+        });
+        if outer {
+            self.set(out.as_ref(), bit, true);
+        }
+        let r = f();
+        if outer {
+            self.set(out.as_ref(), bit, false);
+        }
+        DEPTH.with(|d| d.set(d.get().saturating_sub(1)));
+        r
+    }
+
+    fn set(&self, out: &dyn DigitalOut, bit: u32, value: bool) {
+        if out.set_bit(bit, value).is_err() {
+            self.errors.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+}
