@@ -16,7 +16,7 @@
 
 use crate::scope::{ThreadScope, set_thread_number};
 use arc_swap::ArcSwapOption;
-use device_interface::time::{Clock, MonotonicClock};
+use device_interface::time::{Clock, MonotonicClock, Timestamp};
 use nix::sys::epoll::{Epoll, EpollCreateFlags, EpollEvent, EpollFlags, EpollTimeout};
 use nix::sys::eventfd::{EfdFlags, EventFd};
 use serde::{Deserialize, Serialize};
@@ -304,9 +304,34 @@ impl StatsCell {
     }
 }
 
+/// When a step was due and when it began, on the monotonic clock.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct StepTiming {
+    /// When the step was due: the periodic grid point, the wake-up request, or (file
+    /// descriptor and slave activities) the start of the step.
+    pub scheduled: Timestamp,
+    /// When the step began.
+    pub started: Timestamp,
+}
+
+impl StepTiming {
+    fn now() -> Self {
+        let t = MonotonicClock.now();
+        StepTiming {
+            scheduled: t,
+            started: t,
+        }
+    }
+
+    /// How late the step began.
+    pub fn lateness(&self) -> Duration {
+        self.started.duration_since(self.scheduled)
+    }
+}
+
 /// What an activity steps.
 pub(crate) trait Runner: Send + Sync {
-    fn step(&self, events: &FdEvents);
+    fn step(&self, events: &FdEvents, timing: StepTiming);
 }
 
 /// Wakes a parked thread: a flag, a short spin, then park/unpark.
@@ -584,9 +609,13 @@ impl Activity {
         }
         let clock = MonotonicClock;
         let t0 = clock.now();
+        let timing = StepTiming {
+            scheduled: t0,
+            started: t0,
+        };
         self.shared
             .scope
-            .pulse(|| runner.step(&FdEvents::default()));
+            .pulse(|| runner.step(&FdEvents::default(), timing));
         self.shared
             .stats
             .step(clock.now().duration_since(t0).as_nanos() as u64);
@@ -683,7 +712,11 @@ fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                 }
                 let woke = clock.now().as_nanos();
                 stats.lateness(woke.saturating_sub(next));
-                shared.scope.pulse(|| runner.step(&events));
+                let step_timing = StepTiming {
+                    scheduled: Timestamp::from_nanos(next),
+                    started: Timestamp::from_nanos(woke),
+                };
+                shared.scope.pulse(|| runner.step(&events, step_timing));
                 let end = clock.now().as_nanos();
                 stats.step(end.saturating_sub(woke));
                 next = match timing {
@@ -729,7 +762,11 @@ fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                 if woken_at != 0 {
                     stats.lateness(start.saturating_sub(woken_at));
                 }
-                shared.scope.pulse(|| runner.step(&events));
+                let timing = StepTiming {
+                    scheduled: Timestamp::from_nanos(if woken_at == 0 { start } else { woken_at }),
+                    started: Timestamp::from_nanos(start),
+                };
+                shared.scope.pulse(|| runner.step(&events, timing));
                 stats.step(clock.now().as_nanos().saturating_sub(start));
             }
         }
@@ -769,7 +806,8 @@ fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                     }
                 }
                 let start = clock.now().as_nanos();
-                shared.scope.pulse(|| runner.step(&events));
+                let timing = StepTiming::now();
+                shared.scope.pulse(|| runner.step(&events, timing));
                 stats.step(clock.now().as_nanos().saturating_sub(start));
             }
         }

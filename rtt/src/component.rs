@@ -18,6 +18,7 @@
 //! component in Exception (its stop hook runs if it was running). The panic is caught and
 //! reported; the process and the other components keep running.
 
+use crate::activity::StepTiming;
 use crate::activity::{
     Activity, ActivityError, ActivitySpec, ActivityStats, FdEvents, Runner, Waker,
 };
@@ -171,6 +172,7 @@ impl<C: Component> ErasedComponent for C {
 pub struct Context<'a> {
     core: &'a TaskCore,
     events: &'a FdEvents,
+    timing: StepTiming,
     error_requested: bool,
     recover_requested: bool,
 }
@@ -210,6 +212,11 @@ impl Context<'_> {
     /// For a file-descriptor activity: which descriptors woke this step, or the timeout.
     pub fn fd_events(&self) -> &FdEvents {
         self.events
+    }
+
+    /// When this step was due and when it began (for a lifecycle hook: when it was called).
+    pub fn timing(&self) -> StepTiming {
+        self.timing
     }
 
     /// The component's activity (to watch file descriptors, read statistics).
@@ -326,6 +333,9 @@ pub enum IntrospectError {
     /// Connecting failed.
     #[error(transparent)]
     Connect(#[from] ConnectError),
+    /// A property could not be added, found or set.
+    #[error(transparent)]
+    Property(#[from] crate::property::PropertyError),
 }
 
 /// Data direction of a port.
@@ -402,12 +412,12 @@ pub trait DynPort: Send + Sync {
     fn as_any(&self) -> &dyn Any;
 }
 
-struct OutEntry<T> {
+struct OutEntry<T: Send> {
     shared: Arc<OutputShared<T>>,
     doc: String,
 }
 
-struct InEntry<T> {
+struct InEntry<T: Send> {
     shared: Arc<InputShared<T>>,
     doc: String,
     sample: T,
@@ -427,7 +437,7 @@ fn direction_error(port: &str, actual: Direction, what: &'static str) -> Introsp
     }
 }
 
-struct ValueReader<T> {
+struct ValueReader<T: Send> {
     port: InputPort<T>,
     sample: T,
 }
@@ -441,7 +451,7 @@ impl<T: PortData> DynReader for ValueReader<T> {
     }
 }
 
-struct ValueWriter<T> {
+struct ValueWriter<T: Send> {
     port: OutputPort<T>,
     what: String,
 }
@@ -483,7 +493,7 @@ impl<T: PortData> DynPort for OutEntry<T> {
     fn reader(&self, policy: ConnPolicy) -> Result<Box<dyn DynReader>, IntrospectError> {
         let sample = match self.shared.last_written() {
             Some(v) => v,
-            None => lock_sample(&self.shared),
+            None => self.shared.sample_clone(),
         };
         let port = InputPort::with_sample(&format!("{}.reader", self.shared.name), sample.clone());
         connect_shared(&self.shared, port.shared(), policy)?;
@@ -532,10 +542,6 @@ impl<T: PortData> DynPort for OutEntry<T> {
     fn as_any(&self) -> &dyn Any {
         self
     }
-}
-
-fn lock_sample<T: Clone>(shared: &OutputShared<T>) -> T {
-    shared.sample_clone()
 }
 
 impl<T: PortData> DynPort for InEntry<T> {
@@ -843,11 +849,13 @@ impl TaskCore {
         &self,
         comp: &mut dyn ErasedComponent,
         events: &FdEvents,
+        timing: StepTiming,
         f: impl FnOnce(&mut dyn ErasedComponent, &mut Context<'_>) -> R,
     ) -> (Result<R, String>, bool, bool) {
         let mut ctx = Context {
             core: self,
             events,
+            timing,
             error_requested: false,
             recover_requested: false,
         };
@@ -871,10 +879,12 @@ impl TaskCore {
         self.set_state(TaskState::Exception);
         self.activity.stop();
         let events = FdEvents::default();
-        let (r, _, _) = self.run_hook(comp, &events, |c, ctx| c.exception_hook(ctx));
+        let timing = StepTiming::default();
+        let (r, _, _) = self.run_hook(comp, &events, timing, |c, ctx| c.exception_hook(ctx));
         let r = r.and_then(|()| {
             if was_running {
-                self.run_hook(comp, &events, |c, ctx| c.stop_hook(ctx)).0
+                self.run_hook(comp, &events, timing, |c, ctx| c.stop_hook(ctx))
+                    .0
             } else {
                 Ok(())
             }
@@ -893,7 +903,7 @@ impl TaskCore {
         while self.queue.pop().is_some() {}
     }
 
-    fn step(&self, events: &FdEvents) {
+    fn step(&self, events: &FdEvents, timing: StepTiming) {
         let mut guard = lock(&self.component);
         let comp: &mut dyn ErasedComponent = &mut **guard;
         while let Some(msg) = self.queue.pop() {
@@ -901,7 +911,8 @@ impl TaskCore {
         }
         match self.state() {
             TaskState::Running => {
-                let (r, error, _) = self.run_hook(comp, events, |c, ctx| c.update_hook(ctx));
+                let (r, error, _) =
+                    self.run_hook(comp, events, timing, |c, ctx| c.update_hook(ctx));
                 match r {
                     Ok(Ok(())) if error => {
                         self.runtime_errors.fetch_add(1, Ordering::Relaxed);
@@ -917,7 +928,8 @@ impl TaskCore {
                 }
             }
             TaskState::RunTimeError => {
-                let (r, _, recover) = self.run_hook(comp, events, |c, ctx| c.error_hook(ctx));
+                let (r, _, recover) =
+                    self.run_hook(comp, events, timing, |c, ctx| c.error_hook(ctx));
                 match r {
                     Ok(()) if recover => self.set_state(TaskState::Running),
                     Ok(()) => {}
@@ -957,9 +969,9 @@ impl Engine for TaskCore {
 struct EngineRunner(Weak<TaskCore>);
 
 impl Runner for EngineRunner {
-    fn step(&self, events: &FdEvents) {
+    fn step(&self, events: &FdEvents, timing: StepTiming) {
         if let Some(core) = self.0.upgrade() {
-            core.step(events);
+            core.step(events, timing);
         }
     }
 }
@@ -1092,7 +1104,11 @@ impl TaskContext {
             return Err(self.illegal(command));
         }
         let comp: &mut dyn ErasedComponent = &mut **guard;
-        match self.core.run_hook(comp, &FdEvents::default(), f).0 {
+        match self
+            .core
+            .run_hook(comp, &FdEvents::default(), StepTiming::default(), f)
+            .0
+        {
             Ok(Ok(())) => {
                 self.core.set_state(success);
                 Ok(())
@@ -1352,14 +1368,14 @@ struct RecordThread {
 }
 
 impl Runner for RecordThread {
-    fn step(&self, events: &FdEvents) {
+    fn step(&self, events: &FdEvents, timing: StepTiming) {
         if let Some(core) = self.core.upgrade()
             && let Ok(mut t) = core.engine_thread.try_lock()
             && t.is_none()
         {
             *t = Some(std::thread::current().id());
         }
-        self.inner.step(events);
+        self.inner.step(events, timing);
     }
 }
 

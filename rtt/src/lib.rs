@@ -118,6 +118,11 @@ pub struct RuntimeOptions {
     pub thread_scope: bool,
     /// The clock components read through their context.
     pub clock: Arc<dyn Clock>,
+    /// Ask the kernel (PM QoS, `/dev/cpu_dma_latency`) to keep CPU wake-up latency at or
+    /// below this many µs while the runtime lives: `Some(0)` keeps CPUs out of deep idle
+    /// states, as cyclictest does. Needs write access to the device; refused, it is logged
+    /// and the runtime runs on.
+    pub cpu_dma_latency_us: Option<u32>,
 }
 
 impl Default for RuntimeOptions {
@@ -125,6 +130,33 @@ impl Default for RuntimeOptions {
         RuntimeOptions {
             thread_scope: false,
             clock: Arc::new(MonotonicClock),
+            cpu_dma_latency_us: None,
+        }
+    }
+}
+
+/// Holds a PM QoS CPU latency request: the kernel honours it while the file stays open.
+fn hold_cpu_latency(us: u32) -> Option<std::fs::File> {
+    use std::io::Write;
+    let path = "/dev/cpu_dma_latency";
+    let result = std::fs::OpenOptions::new()
+        .write(true)
+        .open(path)
+        .and_then(|mut f| {
+            f.write_all(&(us.min(i32::MAX as u32) as i32).to_ne_bytes())
+                .map(|()| f)
+        });
+    match result {
+        Ok(f) => {
+            tracing::info!("holding CPU wake-up latency at {us} µs ({path})");
+            Some(f)
+        }
+        Err(e) => {
+            tracing::warn!(
+                "cannot hold CPU wake-up latency at {us} µs: {path}: {e}; deep idle states may add \
+                 wake-up latency (give the service write access to {path})"
+            );
+            None
         }
     }
 }
@@ -139,6 +171,7 @@ pub struct Runtime {
     scope: Arc<ThreadScope>,
     next_thread: Arc<AtomicU32>,
     components: Mutex<Vec<TaskContext>>,
+    _cpu_latency: Option<std::fs::File>,
 }
 
 impl Runtime {
@@ -162,6 +195,7 @@ impl Runtime {
             scope: Arc::new(scope),
             next_thread: Arc::new(AtomicU32::new(1)),
             components: Mutex::new(Vec::new()),
+            _cpu_latency: options.cpu_dma_latency_us.and_then(hold_cpu_latency),
         })
     }
 

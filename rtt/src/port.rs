@@ -120,13 +120,6 @@ impl ConnPolicy {
         self.init = init;
         self
     }
-
-    fn capacity(&self) -> usize {
-        match self.kind {
-            ConnKind::Data => 1,
-            ConnKind::Buffer { size } | ConnKind::CircularBuffer { size } => size.max(1),
-        }
-    }
 }
 
 /// Why two ports could not be connected.
@@ -193,14 +186,25 @@ pub struct ConnectionInfo {
 
 static NEXT_CONNECTION: AtomicU64 = AtomicU64::new(1);
 
-/// One connection: a pool of samples cycling between `free` and `full`.
+/// Adds one to a counter only one thread writes: a plain load and store, no atomic
+/// read-modify-write on the hot path.
+fn bump(counter: &AtomicU64) {
+    counter.store(
+        counter.load(Ordering::Relaxed).wrapping_add(1),
+        Ordering::Relaxed,
+    );
+}
+
+/// What both ends of one connection share: its identity, state and counters. `written`
+/// and `dropped` are only written by the writer, `read` only by the reader.
 pub(crate) struct Channel<T> {
     id: u64,
     from: Arc<str>,
     to: Arc<str>,
     policy: ConnPolicy,
-    free: ArrayQueue<T>,
-    full: ArrayQueue<T>,
+    /// The sample pool of a buffer connection; `None` for a data connection, whose triple
+    /// buffer halves live in the two ends.
+    queues: Option<Queues<T>>,
     closed: AtomicBool,
     written: AtomicU64,
     read: AtomicU64,
@@ -208,87 +212,13 @@ pub(crate) struct Channel<T> {
     waker: Option<Arc<dyn Waker>>,
 }
 
-impl<T: Clone> Channel<T> {
-    fn new(
-        from: Arc<str>,
-        to: Arc<str>,
-        policy: ConnPolicy,
-        sample: &T,
-        waker: Option<Arc<dyn Waker>>,
-    ) -> Self {
-        let capacity = policy.capacity();
-        // Room for a full queue, the sample the writer fills and the one the reader empties.
-        let pool = capacity + 2;
-        let free = ArrayQueue::new(pool);
-        for _ in 0..pool {
-            let _ = free.push(sample.clone());
-        }
-        Channel {
-            id: NEXT_CONNECTION.fetch_add(1, Ordering::Relaxed),
-            from,
-            to,
-            policy,
-            free,
-            full: ArrayQueue::new(capacity),
-            closed: AtomicBool::new(false),
-            written: AtomicU64::new(0),
-            read: AtomicU64::new(0),
-            dropped: AtomicU64::new(0),
-            waker,
-        }
-    }
+/// A buffer connection's samples, cycling between `free` and `full`.
+struct Queues<T> {
+    free: ArrayQueue<T>,
+    full: ArrayQueue<T>,
+}
 
-    /// Writer side. Lock-free; allocation-free when `clone_from` is.
-    fn push(&self, value: &T) {
-        let drop_newest = matches!(self.policy.kind, ConnKind::Buffer { .. });
-        if drop_newest && self.full.is_full() {
-            self.dropped.fetch_add(1, Ordering::Relaxed);
-            return;
-        }
-        // The pool is sized so a free sample always exists for the single writer.
-        let Some(mut slot) = self.free.pop() else {
-            self.dropped.fetch_add(1, Ordering::Relaxed);
-            return;
-        };
-        slot.clone_from(value);
-        if let Err(slot) = self.full.push(slot) {
-            if drop_newest {
-                let _ = self.free.push(slot);
-                self.dropped.fetch_add(1, Ordering::Relaxed);
-                return;
-            }
-            // Make room by dropping the oldest; only this writer pushes, so room stays.
-            if let Some(old) = self.full.pop() {
-                let _ = self.free.push(old);
-                if self.policy.kind != ConnKind::Data {
-                    self.dropped.fetch_add(1, Ordering::Relaxed);
-                }
-            }
-            if let Err(slot) = self.full.push(slot) {
-                let _ = self.free.push(slot);
-                self.dropped.fetch_add(1, Ordering::Relaxed);
-                return;
-            }
-        }
-        self.written.fetch_add(1, Ordering::Relaxed);
-        if let Some(w) = &self.waker {
-            w.wake();
-        }
-    }
-
-    /// Reader side: copies the next sample into `into`. Lock-free.
-    fn pop_into(&self, into: &mut T) -> bool {
-        match self.full.pop() {
-            Some(slot) => {
-                into.clone_from(&slot);
-                let _ = self.free.push(slot);
-                self.read.fetch_add(1, Ordering::Relaxed);
-                true
-            }
-            None => false,
-        }
-    }
-
+impl<T> Channel<T> {
     fn is_closed(&self) -> bool {
         self.closed.load(Ordering::Acquire)
     }
@@ -306,17 +236,153 @@ impl<T: Clone> Channel<T> {
     }
 }
 
+/// The writing end of one connection, owned by its output port.
+pub(crate) struct Writer<T: Send> {
+    ch: Arc<Channel<T>>,
+    latest: Option<triple_buffer::Input<T>>,
+}
+
+/// The reading end of one connection, owned by its input port.
+pub(crate) struct Reader<T: Send> {
+    ch: Arc<Channel<T>>,
+    latest: Option<triple_buffer::Output<T>>,
+}
+
+/// Makes a connection and its two ends.
+fn channel<T: Clone + Send>(
+    from: Arc<str>,
+    to: Arc<str>,
+    policy: ConnPolicy,
+    sample: &T,
+    waker: Option<Arc<dyn Waker>>,
+) -> (Writer<T>, Reader<T>) {
+    let (queues, halves) = match policy.kind {
+        ConnKind::Data => (None, Some(triple_buffer::triple_buffer(sample))),
+        ConnKind::Buffer { size } | ConnKind::CircularBuffer { size } => {
+            let capacity = size.max(1);
+            // Room for a full queue, the sample the writer fills and the one the reader
+            // empties.
+            let pool = capacity + 2;
+            let free = ArrayQueue::new(pool);
+            for _ in 0..pool {
+                let _ = free.push(sample.clone());
+            }
+            let full = ArrayQueue::new(capacity);
+            (Some(Queues { free, full }), None)
+        }
+    };
+    let ch = Arc::new(Channel {
+        id: NEXT_CONNECTION.fetch_add(1, Ordering::Relaxed),
+        from,
+        to,
+        policy,
+        queues,
+        closed: AtomicBool::new(false),
+        written: AtomicU64::new(0),
+        read: AtomicU64::new(0),
+        dropped: AtomicU64::new(0),
+        waker,
+    });
+    let (input, output) = match halves {
+        Some((i, o)) => (Some(i), Some(o)),
+        None => (None, None),
+    };
+    (
+        Writer {
+            ch: ch.clone(),
+            latest: input,
+        },
+        Reader { ch, latest: output },
+    )
+}
+
+impl<T: Clone + Send> Writer<T> {
+    /// Writer side. Wait-free for data, lock-free for buffers; allocation-free when
+    /// `clone_from` is.
+    fn push(&mut self, value: &T) {
+        let ch = &*self.ch;
+        if let Some(input) = &mut self.latest {
+            input.input_buffer_mut().clone_from(value);
+            // An unread value replaced is what a data connection is for: not a drop.
+            input.publish();
+        } else if let Some(q) = &ch.queues {
+            let drop_newest = matches!(ch.policy.kind, ConnKind::Buffer { .. });
+            if drop_newest && q.full.is_full() {
+                bump(&ch.dropped);
+                return;
+            }
+            // The pool is sized so a free sample always exists for the single writer.
+            let Some(mut slot) = q.free.pop() else {
+                bump(&ch.dropped);
+                return;
+            };
+            slot.clone_from(value);
+            if let Err(slot) = q.full.push(slot) {
+                if drop_newest {
+                    let _ = q.free.push(slot);
+                    bump(&ch.dropped);
+                    return;
+                }
+                // Make room by dropping the oldest; only this writer pushes, so room stays.
+                if let Some(old) = q.full.pop() {
+                    let _ = q.free.push(old);
+                    bump(&ch.dropped);
+                }
+                if let Err(slot) = q.full.push(slot) {
+                    let _ = q.free.push(slot);
+                    bump(&ch.dropped);
+                    return;
+                }
+            }
+        }
+        bump(&ch.written);
+        if let Some(w) = &ch.waker {
+            w.wake();
+        }
+    }
+}
+
+impl<T: Clone + Send> Reader<T> {
+    /// Reader side: copies the next sample into `into`, if there is one.
+    fn pop_into(&mut self, into: &mut T) -> bool {
+        let ch = &*self.ch;
+        let got = if let Some(output) = &mut self.latest {
+            if output.update() {
+                into.clone_from(output.output_buffer());
+                true
+            } else {
+                false
+            }
+        } else if let Some(q) = &ch.queues {
+            match q.full.pop() {
+                Some(slot) => {
+                    into.clone_from(&slot);
+                    let _ = q.free.push(slot);
+                    true
+                }
+                None => false,
+            }
+        } else {
+            false
+        };
+        if got {
+            bump(&ch.read);
+        }
+        got
+    }
+}
+
 /// How many connections may wait for a port's owner to take them up.
 const PENDING: usize = 64;
 
-/// Connections of one port, as seen from other threads: new ones wait in `pending` until
-/// the owner's next read or write takes them; `all` lists them.
-struct Links<T> {
-    pending: ArrayQueue<Arc<Channel<T>>>,
+/// Connections of one port, as seen from other threads: new ends wait in `pending` until
+/// the owner's next read or write takes them; `all` lists the connections.
+struct Links<E, T> {
+    pending: ArrayQueue<E>,
     all: Mutex<Vec<Weak<Channel<T>>>>,
 }
 
-impl<T: Clone> Links<T> {
+impl<E, T> Links<E, T> {
     fn new() -> Self {
         Links {
             pending: ArrayQueue::new(PENDING),
@@ -324,9 +390,9 @@ impl<T: Clone> Links<T> {
         }
     }
 
-    fn offer(&self, port: &str, ch: &Arc<Channel<T>>) -> Result<(), ConnectError> {
+    fn offer(&self, port: &str, ch: &Arc<Channel<T>>, end: E) -> Result<(), ConnectError> {
         self.pending
-            .push(Arc::clone(ch))
+            .push(end)
             .map_err(|_| ConnectError::TooManyPending {
                 port: port.to_string(),
                 limit: PENDING,
@@ -345,16 +411,31 @@ impl<T: Clone> Links<T> {
             .collect()
     }
 
-    /// Owner side: takes up pending connections and forgets closed ones.
-    fn refresh(&self, local: &mut Vec<Arc<Channel<T>>>) {
-        if !self.pending.is_empty() {
-            while let Some(ch) = self.pending.pop() {
-                // Capacity is reserved when the port is made; beyond it this allocates
-                // once, when a connection is taken up.
-                local.push(ch);
+    fn info(&self) -> Vec<ConnectionInfo> {
+        self.live().iter().map(|c| c.info()).collect()
+    }
+
+    fn disconnect(&self, id: Option<u64>) -> usize {
+        let mut n = 0;
+        for c in self.live() {
+            if id.is_none_or(|id| c.id == id) {
+                c.closed.store(true, Ordering::Release);
+                n += 1;
             }
         }
-        local.retain(|c| !c.is_closed());
+        n
+    }
+
+    /// Owner side: takes up pending ends and forgets closed connections.
+    fn refresh(&self, local: &mut Vec<E>, channel: impl Fn(&E) -> &Channel<T>) {
+        if !self.pending.is_empty() {
+            while let Some(end) = self.pending.pop() {
+                // Capacity is reserved when the port is made; beyond it this allocates
+                // once, when a connection is taken up.
+                local.push(end);
+            }
+        }
+        local.retain(|e| !channel(e).is_closed());
     }
 }
 
@@ -367,16 +448,17 @@ pub(crate) fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 /// How many connections a port holds before taking up one more allocates.
 const RESERVED_CONNECTIONS: usize = 8;
 
-pub(crate) struct OutputShared<T> {
+pub(crate) struct OutputShared<T: Send> {
     pub(crate) name: Arc<str>,
-    links: Links<T>,
+    links: Links<Writer<T>, T>,
     sample: Mutex<T>,
-    /// The last written value, kept for `init` connections and for introspection.
-    last: Channel<T>,
-    last_reader: Mutex<(bool, T)>,
+    /// Set at the first write: the last value below is real.
+    written: AtomicBool,
+    /// The reading half of the last written value, for `init` and introspection.
+    last: Mutex<triple_buffer::Output<T>>,
 }
 
-impl<T: Clone> OutputShared<T> {
+impl<T: Clone + Send> OutputShared<T> {
     /// A copy of the data sample new connections pre-allocate from.
     pub(crate) fn sample_clone(&self) -> T {
         lock(&self.sample).clone()
@@ -384,19 +466,29 @@ impl<T: Clone> OutputShared<T> {
 
     /// The last value written, if any. Not for real-time paths (locks, clones).
     pub(crate) fn last_written(&self) -> Option<T> {
-        let mut guard = lock(&self.last_reader);
-        let (seen, value) = &mut *guard;
-        if self.last.pop_into(value) {
-            *seen = true;
+        if !self.written.load(Ordering::Acquire) {
+            return None;
         }
-        seen.then(|| value.clone())
+        let mut last = lock(&self.last);
+        last.update();
+        Some(last.output_buffer().clone())
+    }
+
+    pub(crate) fn connections(&self) -> Vec<ConnectionInfo> {
+        self.links.info()
+    }
+
+    pub(crate) fn disconnect(&self, id: Option<u64>) -> usize {
+        self.links.disconnect(id)
     }
 }
 
 /// The writing end of a data flow.
-pub struct OutputPort<T> {
+pub struct OutputPort<T: Send> {
     shared: Arc<OutputShared<T>>,
-    conns: Vec<Arc<Channel<T>>>,
+    conns: Vec<Writer<T>>,
+    last: triple_buffer::Input<T>,
+    written: bool,
 }
 
 impl<T: Clone + Send + 'static> OutputPort<T> {
@@ -411,32 +503,33 @@ impl<T: Clone + Send + 'static> OutputPort<T> {
     /// An output port named `name` whose connections pre-allocate copies of `sample`: size a
     /// `Vec` sample to the longest value written and writing never allocates.
     pub fn with_sample(name: &str, sample: T) -> Self {
-        let name: Arc<str> = Arc::from(name);
+        let (last_in, last_out) = triple_buffer::triple_buffer(&sample);
         OutputPort {
             shared: Arc::new(OutputShared {
-                last: Channel::new(
-                    name.clone(),
-                    name.clone(),
-                    ConnPolicy::data(),
-                    &sample,
-                    None,
-                ),
-                last_reader: Mutex::new((false, sample.clone())),
-                sample: Mutex::new(sample),
+                name: Arc::from(name),
                 links: Links::new(),
-                name,
+                sample: Mutex::new(sample),
+                written: AtomicBool::new(false),
+                last: Mutex::new(last_out),
             }),
             conns: Vec::with_capacity(RESERVED_CONNECTIONS),
+            last: last_in,
+            written: false,
         }
     }
 
     /// Sends `value` to every connection. Never blocks; a full buffer drops and counts.
     pub fn write(&mut self, value: &T) {
-        self.shared.links.refresh(&mut self.conns);
-        for c in &self.conns {
+        self.shared.links.refresh(&mut self.conns, |w| &w.ch);
+        for c in &mut self.conns {
             c.push(value);
         }
-        self.shared.last.push(value);
+        self.last.input_buffer_mut().clone_from(value);
+        self.last.publish();
+        if !self.written {
+            self.written = true;
+            self.shared.written.store(true, Ordering::Release);
+        }
     }
 
     /// Replaces the data sample future connections pre-allocate from.
@@ -456,7 +549,12 @@ impl<T: Clone + Send + 'static> OutputPort<T> {
 
     /// Live connections with their counters.
     pub fn connections(&self) -> Vec<ConnectionInfo> {
-        self.shared.links.live().iter().map(|c| c.info()).collect()
+        self.shared.connections()
+    }
+
+    /// Closes connection `id` (or every connection with `None`); returns how many closed.
+    pub fn disconnect(&self, id: Option<u64>) -> usize {
+        self.shared.disconnect(id)
     }
 
     pub(crate) fn shared(&self) -> &Arc<OutputShared<T>> {
@@ -464,17 +562,27 @@ impl<T: Clone + Send + 'static> OutputPort<T> {
     }
 }
 
-pub(crate) struct InputShared<T> {
+pub(crate) struct InputShared<T: Send> {
     pub(crate) name: Arc<str>,
-    links: Links<T>,
+    links: Links<Reader<T>, T>,
     /// Set when the port is an event port of a component: new data wakes its activity.
     pub(crate) waker: OnceLock<Arc<dyn Waker>>,
 }
 
+impl<T: Clone + Send> InputShared<T> {
+    pub(crate) fn connections(&self) -> Vec<ConnectionInfo> {
+        self.links.info()
+    }
+
+    pub(crate) fn disconnect(&self, id: Option<u64>) -> usize {
+        self.links.disconnect(id)
+    }
+}
+
 /// The reading end of a data flow.
-pub struct InputPort<T> {
+pub struct InputPort<T: Send> {
     shared: Arc<InputShared<T>>,
-    conns: Vec<Arc<Channel<T>>>,
+    conns: Vec<Reader<T>>,
     last: T,
     has_last: bool,
 }
@@ -508,8 +616,8 @@ impl<T: Clone + Send + 'static> InputPort<T> {
     /// ([`OldData`](FlowStatus::OldData)), else [`NoData`](FlowStatus::NoData) and `sample`
     /// is left alone. Never blocks.
     pub fn read(&mut self, sample: &mut T) -> FlowStatus {
-        self.shared.links.refresh(&mut self.conns);
-        for c in &self.conns {
+        self.shared.links.refresh(&mut self.conns, |r| &r.ch);
+        for c in &mut self.conns {
             if c.pop_into(&mut self.last) {
                 self.has_last = true;
                 sample.clone_from(&self.last);
@@ -531,7 +639,13 @@ impl<T: Clone + Send + 'static> InputPort<T> {
 
     /// Live connections with their counters.
     pub fn connections(&self) -> Vec<ConnectionInfo> {
-        self.shared.links.live().iter().map(|c| c.info()).collect()
+        self.shared.connections()
+    }
+
+    /// Closes connection `id` (or every connection with `None`); returns how many closed.
+    /// The last sample read stays readable as old data.
+    pub fn disconnect(&self, id: Option<u64>) -> usize {
+        self.shared.disconnect(id)
     }
 
     pub(crate) fn shared(&self) -> &Arc<InputShared<T>> {
@@ -557,72 +671,27 @@ pub(crate) fn connect_shared<T: Clone + Send + 'static>(
     if let ConnKind::Buffer { size: 0 } | ConnKind::CircularBuffer { size: 0 } = policy.kind {
         return Err(ConnectError::ZeroSize);
     }
-    let sample = lock(&out.sample).clone();
-    let ch = Arc::new(Channel::new(
+    let sample = out.sample_clone();
+    let (mut writer, reader) = channel(
         out.name.clone(),
         inp.name.clone(),
         policy,
         &sample,
         inp.waker.get().cloned(),
-    ));
+    );
+    let ch = writer.ch.clone();
     if policy.init
         && let Some(v) = out.last_written()
     {
-        ch.push(&v);
+        // Before either end is handed over, so this thread is the only writer.
+        writer.push(&v);
     }
-    inp.links.offer(&inp.name, &ch)?;
-    if let Err(e) = out.links.offer(&out.name, &ch) {
+    inp.links.offer(&inp.name, &ch, reader)?;
+    if let Err(e) = out.links.offer(&out.name, &ch, writer) {
         ch.closed.store(true, Ordering::Release);
         return Err(e);
     }
     Ok(ch.info())
-}
-
-/// Closes connection `id` of an output port's shared state; true if it was there.
-fn disconnect_links<T: Clone>(links: &Links<T>, id: Option<u64>) -> usize {
-    let mut n = 0;
-    for c in links.live() {
-        if id.is_none_or(|id| c.id == id) {
-            c.closed.store(true, Ordering::Release);
-            n += 1;
-        }
-    }
-    n
-}
-
-impl<T: Clone> OutputShared<T> {
-    pub(crate) fn connections(&self) -> Vec<ConnectionInfo> {
-        self.links.live().iter().map(|c| c.info()).collect()
-    }
-
-    pub(crate) fn disconnect(&self, id: Option<u64>) -> usize {
-        disconnect_links(&self.links, id)
-    }
-}
-
-impl<T: Clone> InputShared<T> {
-    pub(crate) fn connections(&self) -> Vec<ConnectionInfo> {
-        self.links.live().iter().map(|c| c.info()).collect()
-    }
-
-    pub(crate) fn disconnect(&self, id: Option<u64>) -> usize {
-        disconnect_links(&self.links, id)
-    }
-}
-
-impl<T: Clone + Send + 'static> OutputPort<T> {
-    /// Closes connection `id` (or every connection with `None`); returns how many closed.
-    pub fn disconnect(&self, id: Option<u64>) -> usize {
-        self.shared.disconnect(id)
-    }
-}
-
-impl<T: Clone + Send + 'static> InputPort<T> {
-    /// Closes connection `id` (or every connection with `None`); returns how many closed.
-    /// The last sample read stays readable as old data.
-    pub fn disconnect(&self, id: Option<u64>) -> usize {
-        self.shared.disconnect(id)
-    }
 }
 
 #[cfg(test)]

@@ -1,0 +1,271 @@
+//! Activities on real threads: fd wake-up and timeout, overrun counting and health,
+//! SCHED_FIFO fallback, and ThreadScope pulses read back from a sim card's output record.
+
+#![allow(
+    clippy::unwrap_used,
+    reason = "test code: a failed unwrap is a failed test"
+)]
+
+use device_interface::Registry;
+use driver_sim::{OutputWrite, SimCard, SimConfig};
+use rtt::activity::{ActivitySpec, SchedPolicy, ThreadOptions, Timing};
+use rtt::{Component, Context, HookResult, Runtime, RuntimeOptions};
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::os::fd::{AsFd, AsRawFd};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+fn runtime() -> Runtime {
+    Runtime::new(Arc::new(Registry::new()), RuntimeOptions::default()).unwrap()
+}
+
+fn wait_for(what: &str, mut f: impl FnMut() -> bool) {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while !f() {
+        assert!(Instant::now() < deadline, "timed out waiting for {what}");
+        std::thread::sleep(Duration::from_millis(1));
+    }
+}
+
+/// Per step: (the pipe was ready, the timeout fired, the bytes read).
+type Steps = Arc<Mutex<Vec<(bool, bool, Vec<u8>)>>>;
+
+#[test]
+fn fd_activity_wakes_on_data_and_on_timeout() {
+    struct Reader {
+        pipe: std::fs::File,
+        fd: i32,
+        seen: Steps,
+    }
+    impl Component for Reader {
+        fn configure_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+            ctx.activity().watch(self.pipe.as_fd())?;
+            Ok(())
+        }
+        fn update_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+            let ev = ctx.fd_events();
+            let mut data = Vec::new();
+            if ev.is_updated(self.fd) {
+                let mut buf = [0u8; 64];
+                let n = std::io::Read::read(&mut self.pipe, &mut buf)?;
+                data.extend_from_slice(&buf[..n]);
+            }
+            self.seen
+                .lock()
+                .unwrap()
+                .push((ev.is_updated(self.fd), ev.has_timeout(), data));
+            Ok(())
+        }
+    }
+    let (rx, tx) = std::io::pipe().unwrap();
+    let rx: std::fs::File = std::os::fd::OwnedFd::from(rx).into();
+    let mut tx: std::fs::File = std::os::fd::OwnedFd::from(tx).into();
+    let seen = Arc::new(Mutex::new(Vec::new()));
+    let rt = runtime();
+    let s = seen.clone();
+    let fd = rx.as_raw_fd();
+    let t = rt
+        .add(
+            "reader",
+            ActivitySpec::file_descriptor(Some(Duration::from_millis(50))),
+            true,
+            move |_| {
+                Ok(Reader {
+                    pipe: rx,
+                    fd,
+                    seen: s,
+                })
+            },
+        )
+        .unwrap();
+    t.configure().unwrap();
+    t.start().unwrap();
+    tx.write_all(b"hello").unwrap();
+    wait_for("the data step", || {
+        seen.lock()
+            .unwrap()
+            .iter()
+            .any(|(u, _, d)| *u && d == b"hello")
+    });
+    wait_for("a timeout step", || {
+        seen.lock().unwrap().iter().any(|(u, t, _)| !*u && *t)
+    });
+    t.stop().unwrap();
+    let seen = seen.lock().unwrap();
+    assert!(
+        seen.iter().all(|(u, t, _)| !(*u && *t)),
+        "a step is either data or timeout"
+    );
+    assert!(!t.activity().unwatch(999));
+}
+
+struct Sleepy {
+    sleep: Arc<AtomicBool>,
+}
+impl Component for Sleepy {
+    fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
+        if self.sleep.load(Ordering::SeqCst) {
+            std::thread::sleep(Duration::from_millis(6));
+        }
+        Ok(())
+    }
+}
+
+#[test]
+fn overruns_are_counted_and_turn_health_off_then_on() {
+    let rt = runtime();
+    let sleep = Arc::new(AtomicBool::new(true));
+    let s = sleep.clone();
+    let spec = ActivitySpec::Periodic {
+        period: Duration::from_millis(2),
+        thread: ThreadOptions::default(),
+        timing: Timing::Absolute,
+        max_overruns: Some(3),
+    };
+    let t = rt
+        .add("sleepy", spec, false, move |_| Ok(Sleepy { sleep: s }))
+        .unwrap();
+    t.start().unwrap();
+    wait_for("5 overruns", || t.stats().overruns >= 5);
+    assert!(!t.stats().healthy, "more than 3 overruns in a row");
+    sleep.store(false, Ordering::SeqCst);
+    wait_for("health back", || t.stats().healthy);
+    let before = t.stats();
+    std::thread::sleep(Duration::from_millis(20));
+    t.stop().unwrap();
+    let after = t.stats();
+    assert!(after.steps > before.steps);
+    assert!(after.overruns >= 5);
+    assert!(after.step_max_ns >= 6_000_000);
+}
+
+#[test]
+fn fifo_falls_back_to_other_and_still_runs() {
+    let rt = runtime();
+    let spec = ActivitySpec::Periodic {
+        period: Duration::from_millis(1),
+        thread: ThreadOptions {
+            policy: SchedPolicy::Fifo,
+            priority: 80,
+            cpus: vec![0],
+        },
+        timing: Timing::Relative,
+        max_overruns: None,
+    };
+    let t = rt
+        .add("rt", spec, false, |_| {
+            Ok(Sleepy {
+                sleep: Arc::new(AtomicBool::new(false)),
+            })
+        })
+        .unwrap();
+    t.start().unwrap();
+    wait_for("20 steps", || t.stats().steps >= 20);
+    t.stop().unwrap();
+    // Whether SCHED_FIFO was granted depends on the machine; either way it ran, and the
+    // statistics say which.
+    let stats = t.stats();
+    let total: u64 = stats.lateness_histogram.iter().sum();
+    assert_eq!(total, stats.steps);
+    eprintln!("realtime granted: {}", stats.realtime);
+}
+
+#[test]
+fn thread_scope_pulses_each_thread_bit_in_order() {
+    struct Busy(Arc<AtomicU64>);
+    impl Component for Busy {
+        fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
+            self.0.fetch_add(1, Ordering::SeqCst);
+            Ok(())
+        }
+    }
+    let registry = Arc::new(Registry::new());
+    let mut config = SimConfig::demo();
+    config.digital_outputs = 16;
+    config.record_capacity = 1 << 20;
+    let card = SimCard::new(&config, Arc::new(rtt::time::MonotonicClock)).unwrap();
+    card.register(&registry, "sim").unwrap();
+    registry.digital_out().alias("ThreadScope", "sim").unwrap();
+    let rt = Runtime::new(
+        registry.clone(),
+        RuntimeOptions {
+            thread_scope: true,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let steps = Arc::new(AtomicU64::new(0));
+    let mk = |name: &str, spec: ActivitySpec| {
+        let s = steps.clone();
+        rt.add(name, spec, false, move |_| Ok(Busy(s))).unwrap()
+    };
+    let fast = mk("fast", ActivitySpec::periodic(Duration::from_millis(1)));
+    let slow = mk("slow", ActivitySpec::periodic(Duration::from_millis(3)));
+    let evented = mk("evented", ActivitySpec::non_periodic());
+    let slave = mk("slave", ActivitySpec::Slave);
+    assert_eq!(
+        (
+            fast.activity().thread_number(),
+            slow.activity().thread_number(),
+            evented.activity().thread_number(),
+            slave.activity().thread_number()
+        ),
+        (Some(1), Some(2), Some(3), None),
+        "threads numbered in creation order; a slave has no thread"
+    );
+    for t in [&fast, &slow, &evented, &slave] {
+        t.start().unwrap();
+    }
+    for _ in 0..30 {
+        evented.trigger();
+        slave.step().unwrap(); // on the main thread: bit 0
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    for t in [&fast, &slow, &evented, &slave] {
+        t.stop().unwrap();
+    }
+    assert_eq!(card.output_record_dropped(), 0);
+    let mut per_bit: BTreeMap<u32, Vec<bool>> = BTreeMap::new();
+    for e in card.take_output_record() {
+        if let OutputWrite::Bit { bit, value } = e.write {
+            per_bit.entry(bit).or_default().push(value);
+        }
+    }
+    assert_eq!(
+        per_bit.keys().copied().collect::<Vec<_>>(),
+        vec![0, 1, 2, 3],
+        "bits as numbered"
+    );
+    for (bit, values) in &per_bit {
+        assert!(values.len() >= 2, "bit {bit} pulsed");
+        for (i, v) in values.iter().enumerate() {
+            assert_eq!(
+                *v,
+                i % 2 == 0,
+                "bit {bit}: high, low, high, low … never two highs in a row"
+            );
+        }
+        assert_eq!(values.last(), Some(&false), "bit {bit} ends low");
+    }
+    assert_eq!(per_bit[&0].len(), 60, "30 slave steps on the main thread");
+    assert_eq!(rt.thread_scope().errors(), 0);
+}
+
+#[test]
+fn thread_scope_needs_its_output() {
+    let e = Runtime::new(
+        Arc::new(Registry::new()),
+        RuntimeOptions {
+            thread_scope: true,
+            ..Default::default()
+        },
+    )
+    .err()
+    .unwrap();
+    assert_eq!(
+        e.to_string(),
+        "ThreadScope is on, but no DigitalOut named \"ThreadScope\"; registered: none"
+    );
+}

@@ -1,0 +1,237 @@
+//! The real-time paths allocate nothing: port write/read of pre-sized samples, a
+//! ClientThread call, and a whole periodic step (sleep, statistics, ThreadScope, engine,
+//! update). A counting global allocator counts per thread, so other tests running at the
+//! same time cannot disturb the counts.
+
+#![allow(
+    clippy::unwrap_used,
+    reason = "test code: a failed unwrap is a failed test"
+)]
+#![allow(
+    unsafe_code,
+    reason = "a GlobalAlloc implementation is unsafe by definition"
+)]
+
+use device_interface::Registry;
+use driver_sim::{SimCard, SimConfig};
+use rtt::port::{ConnPolicy, FlowStatus, InputPort, OutputPort, connect};
+use rtt::{ActivitySpec, Component, Context, HookResult, Runtime, RuntimeOptions};
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+struct Counting;
+
+thread_local! {
+    static ALLOCATIONS: Cell<u64> = const { Cell::new(0) };
+}
+
+// SAFETY: defers every call to the system allocator unchanged; only counts.
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        let _ = ALLOCATIONS.try_with(|c| c.set(c.get() + 1));
+        // SAFETY: same contract as our caller's.
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        // SAFETY: same contract as our caller's.
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        let _ = ALLOCATIONS.try_with(|c| c.set(c.get() + 1));
+        // SAFETY: same contract as our caller's.
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+fn allocations() -> u64 {
+    ALLOCATIONS.with(Cell::get)
+}
+
+/// Allocations made by `f` on this thread.
+fn count(f: impl FnOnce()) -> u64 {
+    let before = allocations();
+    f();
+    allocations() - before
+}
+
+#[derive(Clone, Default, serde::Serialize, serde::Deserialize)]
+struct Sample64 {
+    values: [u64; 8],
+}
+
+#[test]
+fn the_counter_counts() {
+    assert_eq!(count(|| drop(std::hint::black_box(vec![0u8; 16]))), 1);
+    assert_eq!(count(|| drop(std::hint::black_box(String::from("x")))), 1);
+}
+
+#[test]
+fn port_write_read_allocates_nothing() {
+    for policy in [
+        ConnPolicy::data(),
+        ConnPolicy::buffer(8),
+        ConnPolicy::circular_buffer(4),
+    ] {
+        let mut out = OutputPort::<f64>::new("o");
+        let mut inp = InputPort::<f64>::new("i");
+        connect(&out, &inp, policy).unwrap();
+        let mut x = 0.0;
+        out.write(&1.0); // takes up the connection
+        inp.read(&mut x);
+        let n = count(|| {
+            for i in 0..10_000 {
+                out.write(&f64::from(i));
+                // Buffers fill and drop on purpose: overflow must not allocate either.
+                if i % 3 == 0 {
+                    assert_ne!(inp.read(&mut x), FlowStatus::NoData);
+                }
+            }
+        });
+        assert_eq!(n, 0, "f64 {policy:?}");
+
+        let mut out = OutputPort::<Sample64>::new("o");
+        let mut inp = InputPort::<Sample64>::new("i");
+        connect(&out, &inp, policy).unwrap();
+        let mut s = Sample64::default();
+        out.write(&s);
+        inp.read(&mut s);
+        let n = count(|| {
+            for i in 0..10_000u64 {
+                s.values[0] = i;
+                out.write(&s);
+                inp.read(&mut s);
+            }
+        });
+        assert_eq!(n, 0, "64-byte struct {policy:?}");
+    }
+}
+
+#[test]
+fn pre_sized_vec_samples_allocate_nothing() {
+    for policy in [
+        ConnPolicy::data(),
+        ConnPolicy::buffer(4),
+        ConnPolicy::circular_buffer(2),
+    ] {
+        let sample = vec![0.0f64; 64];
+        let mut out = OutputPort::with_sample("o", sample.clone());
+        let mut inp = InputPort::with_sample("i", sample.clone());
+        connect(&out, &inp, policy).unwrap();
+        let mut got = sample.clone();
+        let mut v = vec![0.0f64; 64];
+        out.write(&v);
+        inp.read(&mut got);
+        let n = count(|| {
+            for i in 0..5_000 {
+                v.truncate(1 + i % 64);
+                v.resize(64 - i % 7, i as f64);
+                out.write(&v);
+                assert_eq!(inp.read(&mut got), FlowStatus::NewData);
+            }
+        });
+        assert_eq!(n, 0, "{policy:?}");
+        assert_eq!(got, v);
+    }
+}
+
+struct Loop {
+    i: InputPort<f64>,
+    o: OutputPort<f64>,
+    scale: rtt::operation::OperationCaller<(f64,), f64>,
+    steps: u64,
+    at: Arc<[AtomicU64; 2]>,
+}
+
+impl Component for Loop {
+    fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
+        let mut x = 0.0;
+        self.i.read(&mut x);
+        let y = self.scale.call((x,)).unwrap_or(0.0);
+        self.o.write(&y);
+        self.steps += 1;
+        // Allocations on this thread, sampled at two steps far apart: everything the
+        // activity does between them (sleep, statistics, ThreadScope, queue, update)
+        // must allocate nothing.
+        match self.steps {
+            20 => self.at[0].store(allocations(), Ordering::SeqCst),
+            220 => self.at[1].store(allocations(), Ordering::SeqCst),
+            _ => {}
+        }
+        Ok(())
+    }
+}
+
+#[test]
+fn client_call_and_periodic_step_allocate_nothing() {
+    let registry = Arc::new(Registry::new());
+    let card = SimCard::new(&SimConfig::demo(), Arc::new(rtt::time::MonotonicClock)).unwrap();
+    card.register(&registry, "sim").unwrap();
+    registry.digital_out().alias("ThreadScope", "sim").unwrap();
+    let rt = Runtime::new(
+        registry,
+        RuntimeOptions {
+            thread_scope: true,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let helper = rt
+        .add("helper", ActivitySpec::Slave, false, |iface| {
+            iface.client_operation("scale", "doubles", &[("x", "")], |(x,): (f64,)| 2.0 * x)?;
+            Ok(Nothing)
+        })
+        .unwrap();
+    let scale = helper.operation::<(f64,), f64>("scale").unwrap();
+    scale.call((1.0,)).unwrap();
+    assert_eq!(
+        count(|| for i in 0..10_000 {
+            scale.call((f64::from(i),)).unwrap();
+        }),
+        0,
+        "ClientThread call"
+    );
+
+    let at = Arc::new([AtomicU64::new(0), AtomicU64::new(0)]);
+    let a = at.clone();
+    let t = rt
+        .add(
+            "loop",
+            ActivitySpec::periodic(Duration::from_millis(1)),
+            false,
+            move |iface| {
+                Ok(Loop {
+                    i: iface.input("in", "")?,
+                    o: iface.output("out", "")?,
+                    scale,
+                    steps: 0,
+                    at: a,
+                })
+            },
+        )
+        .unwrap();
+    let mut w = t.port("in").unwrap().writer(ConnPolicy::data()).unwrap();
+    let mut r = t.port("out").unwrap().reader(ConnPolicy::data()).unwrap();
+    t.start().unwrap();
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while at[1].load(Ordering::SeqCst) == 0 {
+        w.write(serde_json::json!(1.5)).unwrap();
+        r.read();
+        assert!(
+            Instant::now() < deadline,
+            "periodic activity did not reach 220 steps"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    t.stop().unwrap();
+    let (a0, a1) = (at[0].load(Ordering::SeqCst), at[1].load(Ordering::SeqCst));
+    assert_eq!(a1 - a0, 0, "200 periodic steps allocated {} times", a1 - a0);
+}
+
+struct Nothing;
+impl Component for Nothing {}
