@@ -244,6 +244,15 @@ impl Report {
     fn expect(&mut self, rule: Rule, ok: bool, what: impl FnOnce() -> String) {
         self.check(rule, (!ok).then(what));
     }
+
+    /// One check per (method, refused-correctly) pair for channel `c` past the end.
+    fn expect_channel_oor(&mut self, rule: Rule, c: u32, count: u32, checks: &[(&str, bool)]) {
+        for (method, ok) in checks {
+            self.expect(rule, *ok, || {
+                format!("{method}({c}) did not fail with ChannelOutOfRange {{ channel: {c}, count: {count} }}")
+            });
+        }
+    }
 }
 
 impl fmt::Display for Report {
@@ -380,11 +389,7 @@ pub fn check_analog_in(dev: &dyn AnalogIn, mut stimulus: Option<AnalogStimulus<'
             ("raw_range", is_channel_oor(&dev.raw_range(c), c, count)),
             ("resolution", is_channel_oor(&dev.resolution(c), c, count)),
         ];
-        for (method, ok) in checks {
-            report.expect(AiOutOfRange, ok, || {
-                format!("{method}({c}) did not fail with ChannelOutOfRange {{ channel: {c}, count: {count} }}")
-            });
-        }
+        report.expect_channel_oor(AiOutOfRange, c, count, &checks);
     }
 
     for c in 0..count {
@@ -468,11 +473,7 @@ pub fn check_analog_out(dev: &dyn AnalogOut) -> Report {
             ("raw_range", is_channel_oor(&dev.raw_range(c), c, count)),
             ("resolution", is_channel_oor(&dev.resolution(c), c, count)),
         ];
-        for (method, ok) in checks {
-            report.expect(AoOutOfRange, ok, || {
-                format!("{method}({c}) did not fail with ChannelOutOfRange {{ channel: {c}, count: {count} }}")
-            });
-        }
+        report.expect_channel_oor(AoOutOfRange, c, count, &checks);
     }
 
     for c in 0..count {

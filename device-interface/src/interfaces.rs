@@ -141,16 +141,7 @@ pub trait AnalogOut: Device {
     /// (outside [`range`](Self::range), NaN or infinite), and as
     /// [`write_raw`](Self::write_raw).
     fn write(&self, channel: u32, value: f64) -> Result<(), DeviceError> {
-        let scale = self.scale(channel)?;
-        let raw = scale.to_raw(value).ok_or_else(|| {
-            let r = scale.range();
-            DeviceError::ValueOutOfRange {
-                channel,
-                value,
-                lowest: r.lowest,
-                highest: r.highest,
-            }
-        })?;
+        let raw = self.scale(channel)?.to_raw_checked(channel, value)?;
         self.write_raw(channel, raw)
     }
 

@@ -311,6 +311,36 @@ impl Scale {
         Some(self.nearest_raw(value))
     }
 
+    /// [`to_raw`](Self::to_raw) for a write to `channel`: out of range is
+    /// [`DeviceError::ValueOutOfRange`](crate::DeviceError::ValueOutOfRange) naming the channel
+    /// and the range.
+    pub fn to_raw_checked(&self, channel: u32, value: f64) -> Result<i64, crate::DeviceError> {
+        self.to_raw(value).ok_or_else(|| {
+            let r = self.range();
+            crate::DeviceError::ValueOutOfRange {
+                channel,
+                value,
+                lowest: r.lowest,
+                highest: r.highest,
+            }
+        })
+    }
+
+    /// Checks a raw value written to `channel`: outside the raw range is
+    /// [`DeviceError::RawOutOfRange`](crate::DeviceError::RawOutOfRange).
+    pub fn check_raw(&self, channel: u32, raw: i64) -> Result<(), crate::DeviceError> {
+        if self.raw.contains(raw) {
+            Ok(())
+        } else {
+            Err(crate::DeviceError::RawOutOfRange {
+                channel,
+                raw,
+                min: self.raw.min,
+                max: self.raw.max,
+            })
+        }
+    }
+
     /// The raw value nearest to `value`, clamped into the raw range (NaN gives the raw minimum).
     ///
     /// For simulations and loopbacks, where an out-of-range value saturates like a real

@@ -125,13 +125,7 @@ impl SimCard {
         let mut ao = Vec::new();
         for (g, group) in config.analog_out.iter().enumerate() {
             let path = format!("analog_out[{g}]");
-            let scale = group
-                .range
-                .scale(group.raw)
-                .map_err(|source| SimConfigError::Scale {
-                    path: format!("{path}.range"),
-                    source,
-                })?;
+            let scale = group_scale(&path, &group.range, group.raw)?;
             let raw = match group.initial {
                 None => scale.to_raw_saturating(0.0),
                 Some(v) => scale.to_raw(v).ok_or_else(|| SimConfigError::Invalid {
@@ -162,13 +156,7 @@ impl SimCard {
         let mut ai = Vec::new();
         for (g, group) in config.analog_in.iter().enumerate() {
             let path = format!("analog_in[{g}]");
-            let scale = group
-                .range
-                .scale(group.raw)
-                .map_err(|source| SimConfigError::Scale {
-                    path: format!("{path}.range"),
-                    source,
-                })?;
+            let scale = group_scale(&path, &group.range, group.raw)?;
             check_waveform(&format!("{path}.waveform"), &group.waveform, &check_ao)?;
             for _ in 0..group.count {
                 ai.push(AnalogInChannel {
@@ -244,6 +232,17 @@ impl SimCard {
         card.step();
         Ok(card)
     }
+}
+
+fn group_scale(
+    path: &str,
+    range: &crate::config::RangeConfig,
+    raw: device_interface::RawRange,
+) -> Result<Scale, SimConfigError> {
+    range.scale(raw).map_err(|source| SimConfigError::Scale {
+        path: format!("{path}.range"),
+        source,
+    })
 }
 
 fn check_waveform(
@@ -427,15 +426,7 @@ impl SimCard {
     /// [`release_analog_in`](Self::release_analog_in).
     pub fn set_analog_in_raw(&self, channel: u32, raw: i64) -> Result<(), DeviceError> {
         let ch = self.ai_channel(channel)?;
-        let r = ch.scale.raw_range();
-        if !r.contains(raw) {
-            return Err(DeviceError::RawOutOfRange {
-                channel,
-                raw,
-                min: r.min,
-                max: r.max,
-            });
-        }
+        ch.scale.check_raw(channel, raw)?;
         ch.held.store(true, Ordering::Release);
         ch.raw.store(raw, Ordering::Release);
         Ok(())
@@ -444,16 +435,10 @@ impl SimCard {
     /// Sets analog input `channel` to `value` (physical units, rounded to a raw step) and
     /// holds it, as [`set_analog_in_raw`](Self::set_analog_in_raw).
     pub fn set_analog_in(&self, channel: u32, value: f64) -> Result<(), DeviceError> {
-        let scale = self.ai_channel(channel)?.scale;
-        let raw = scale.to_raw(value).ok_or_else(|| {
-            let r = scale.range();
-            DeviceError::ValueOutOfRange {
-                channel,
-                value,
-                lowest: r.lowest,
-                highest: r.highest,
-            }
-        })?;
+        let raw = self
+            .ai_channel(channel)?
+            .scale
+            .to_raw_checked(channel, value)?;
         self.set_analog_in_raw(channel, raw)
     }
 
@@ -653,15 +638,7 @@ impl AnalogOut for SimCard {
 
     fn write_raw(&self, channel: u32, raw: i64) -> Result<(), DeviceError> {
         let ch = self.ao_channel(channel)?;
-        let r = ch.scale.raw_range();
-        if !r.contains(raw) {
-            return Err(DeviceError::RawOutOfRange {
-                channel,
-                raw,
-                min: r.min,
-                max: r.max,
-            });
-        }
+        ch.scale.check_raw(channel, raw)?;
         self.check_fault(false)?;
         ch.raw.store(raw, Ordering::Release);
         self.record(OutputWrite::Analog { channel, raw });
