@@ -526,9 +526,9 @@ impl<T: PortData> DynPort for OutEntry<T> {
                 }
                 Err(ConnectError::TypeMismatch {
                     output: self.shared.name.to_string(),
-                    output_type: std::any::type_name::<T>(),
+                    output_type: std::any::type_name::<T>().to_string(),
                     input: info.name,
-                    input_type: "another type",
+                    input_type: info.type_name,
                 }
                 .into())
             }

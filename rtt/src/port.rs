@@ -134,11 +134,11 @@ pub enum ConnectError {
         /// Output port name.
         output: String,
         /// Its data type.
-        output_type: &'static str,
+        output_type: String,
         /// Input port name.
         input: String,
         /// Its data type.
-        input_type: &'static str,
+        input_type: String,
     },
     /// Both ports are outputs, or both inputs.
     #[error(

@@ -121,7 +121,8 @@ impl<T> Clone for Property<T> {
 }
 
 impl<T: PropertyValue> Property<T> {
-    /// A copy of the value.
+    /// A copy of the value. Lock-free; allocation-free for `Copy` values (so a real-time
+    /// update can read a gain with it).
     pub fn get(&self) -> T {
         (**self.cell.value.load()).clone()
     }

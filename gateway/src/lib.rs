@@ -1,0 +1,30 @@
+//! The hwgw service: a deployment file becomes cards, a device registry, IO components,
+//! user components and connections in an [`rtt`] runtime, served over a control socket.
+//!
+//! - [`config`]: the TOML deployment, parsed strictly, errors located by file, line,
+//!   column and key path;
+//! - [`deploy`]: builds and runs a deployment, and stops it with every output at its safe
+//!   value;
+//! - [`io`]: every device as a component (channels as ports, methods as operations);
+//! - [`components`]: the component types built into the binary;
+//! - [`control`]: the line-delimited JSON control protocol over a Unix socket.
+//!
+//! ```
+//! use hwgw::{config::Deployment, deploy::Gateway};
+//!
+//! let text = hwgw::DEMO;
+//! let d = Deployment::parse(text, "demo.toml")?;
+//! let gw = Gateway::build(&d, "demo.toml", text).expect("the demo is valid");
+//! assert!(gw.summary().contains("component \"follow\""));
+//! # Ok::<(), hwgw::config::ConfigError>(())
+//! ```
+
+pub mod components;
+pub mod config;
+pub mod control;
+pub mod deploy;
+pub mod io;
+
+/// The embedded default deployment (`config/demo.toml`): simulated cards, so a new user
+/// sees values move with no hardware.
+pub const DEMO: &str = include_str!("../../config/demo.toml");

@@ -1,0 +1,275 @@
+//! `hwgw`: run a deployment, check one, or talk to a running gateway.
+
+use clap::{Parser, Subcommand};
+use hwgw::config::Deployment;
+use hwgw::control::{self, ControlServer};
+use hwgw::deploy::Gateway;
+use nix::sys::signal::{SigSet, Signal};
+use serde_json::{Value, json};
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::Arc;
+
+#[derive(Parser)]
+#[command(
+    name = "hwgw",
+    version,
+    about = "Hardware-IO gateway: Orocos device interfaces over Linux buses"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run a deployment (with no file: the embedded demo on simulated cards).
+    Run {
+        /// The deployment file.
+        config: Option<PathBuf>,
+        /// Control socket path (overrides the file's control_socket).
+        #[arg(long)]
+        socket: Option<PathBuf>,
+    },
+    /// Check a deployment file: print every error and exit 1, or exit 0.
+    Check {
+        /// The deployment file.
+        config: PathBuf,
+    },
+    /// List components, or describe one.
+    Ls {
+        /// A component to describe.
+        component: Option<String>,
+        #[arg(long)]
+        socket: Option<PathBuf>,
+    },
+    /// List the devices in the registry.
+    Devices {
+        #[arg(long)]
+        socket: Option<PathBuf>,
+    },
+    /// Read an output port's last value or a property.
+    Get {
+        component: String,
+        /// A port name, or `property:NAME`.
+        name: String,
+        #[arg(long)]
+        socket: Option<PathBuf>,
+    },
+    /// Write an input port or a property (VALUE is JSON; anything else is taken as text).
+    Set {
+        component: String,
+        /// A port name, or `property:NAME`.
+        name: String,
+        value: String,
+        #[arg(long)]
+        socket: Option<PathBuf>,
+    },
+    /// Call an operation (each ARG is JSON; anything else is taken as text).
+    Call {
+        component: String,
+        operation: String,
+        args: Vec<String>,
+        #[arg(long)]
+        socket: Option<PathBuf>,
+    },
+}
+
+fn json_arg(s: &str) -> Value {
+    serde_json::from_str(s).unwrap_or_else(|_| Value::String(s.to_string()))
+}
+
+fn target(name: &str) -> (&'static str, &str) {
+    match name.strip_prefix("property:") {
+        Some(p) => ("property", p),
+        None => ("port", name),
+    }
+}
+
+fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
+        )
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .init();
+    let cli = Cli::parse();
+    let (socket, req) = match cli.command {
+        Command::Run { config, socket } => return run(config, socket),
+        Command::Check { config } => return check(config),
+        Command::Ls {
+            component: None,
+            socket,
+        } => (socket, json!({"cmd": "ls"})),
+        Command::Ls {
+            component: Some(c),
+            socket,
+        } => (socket, json!({"cmd": "describe", "component": c})),
+        Command::Devices { socket } => (socket, json!({"cmd": "devices"})),
+        Command::Get {
+            component,
+            name,
+            socket,
+        } => {
+            let (kind, n) = target(&name);
+            (
+                socket,
+                json!({"cmd": "get", "component": component, kind: n}),
+            )
+        }
+        Command::Set {
+            component,
+            name,
+            value,
+            socket,
+        } => {
+            let (kind, n) = target(&name);
+            (
+                socket,
+                json!({"cmd": "set", "component": component, kind: n, "value": json_arg(&value)}),
+            )
+        }
+        Command::Call {
+            component,
+            operation,
+            args,
+            socket,
+        } => {
+            let args: Vec<Value> = args.iter().map(|a| json_arg(a)).collect();
+            (
+                socket,
+                json!({"cmd": "call", "component": component, "operation": operation, "args": args}),
+            )
+        }
+    };
+    let path = socket.unwrap_or_else(control::default_socket);
+    match control::request(&path, req) {
+        Ok(reply) => match (reply.get("ok"), reply.get("error")) {
+            (Some(v), _) => {
+                println!("{}", serde_json::to_string_pretty(v).unwrap_or_default());
+                ExitCode::SUCCESS
+            }
+            (_, Some(e)) => {
+                eprintln!(
+                    "hwgw: {}",
+                    e.get("message").and_then(Value::as_str).unwrap_or("error")
+                );
+                ExitCode::FAILURE
+            }
+            _ => {
+                eprintln!("hwgw: unexpected reply: {reply}");
+                ExitCode::FAILURE
+            }
+        },
+        Err(e) => {
+            eprintln!(
+                "hwgw: {}: {e} (is hwgw running? `hwgw run` starts it)",
+                path.display()
+            );
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn load(config: Option<&PathBuf>) -> Result<(Deployment, String, String), String> {
+    match config {
+        None => Deployment::parse(hwgw::DEMO, "<embedded demo>")
+            .map(|d| (d, hwgw::DEMO.to_string(), "<embedded demo>".to_string()))
+            .map_err(|e| e.to_string()),
+        Some(p) => Deployment::load(p)
+            .map(|(d, text)| (d, text, p.display().to_string()))
+            .map_err(|e| e.to_string()),
+    }
+}
+
+fn build(config: Option<&PathBuf>) -> Result<(Gateway, Deployment), String> {
+    let (d, text, file) = load(config)?;
+    let gw = Gateway::build(&d, &file, &text).map_err(|problems| {
+        problems
+            .iter()
+            .map(|p| p.to_string())
+            .collect::<Vec<_>>()
+            .join("\n")
+    })?;
+    Ok((gw, d))
+}
+
+fn check(config: PathBuf) -> ExitCode {
+    match build(Some(&config)) {
+        Ok((gw, _)) => {
+            print!("{}", gw.summary());
+            println!("{}: ok", config.display());
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("{e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(config: Option<PathBuf>, socket: Option<PathBuf>) -> ExitCode {
+    // Signals are taken by sigwait below: block them before any thread exists, so every
+    // thread inherits the mask and none is interrupted.
+    let mut signals = SigSet::empty();
+    for s in [Signal::SIGTERM, Signal::SIGINT, Signal::SIGHUP] {
+        signals.add(s);
+    }
+    if let Err(e) = signals.thread_block() {
+        eprintln!("hwgw: cannot block signals: {e}");
+        return ExitCode::FAILURE;
+    }
+    let (gw, d) = match build(config.as_ref()) {
+        Ok(x) => x,
+        Err(e) => {
+            eprintln!("{e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let gw = Arc::new(gw);
+    for line in gw.summary().lines() {
+        tracing::info!("{line}");
+    }
+    let path = socket
+        .or_else(|| d.control_socket.as_ref().map(PathBuf::from))
+        .unwrap_or_else(control::default_socket);
+    let server = match ControlServer::start(gw.clone(), &path) {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("hwgw: control socket {}: {e}", path.display());
+            return ExitCode::FAILURE;
+        }
+    };
+    if let Err(e) = gw.start() {
+        eprintln!("hwgw: {e}");
+        for line in gw.shutdown() {
+            tracing::info!("{line}");
+        }
+        return ExitCode::FAILURE;
+    }
+    tracing::info!("running; control socket {}", server.path().display());
+    loop {
+        match signals.wait() {
+            Ok(Signal::SIGHUP) => {
+                tracing::warn!(
+                    "SIGHUP: reloading is not supported yet; restart hwgw to apply a changed deployment"
+                );
+            }
+            Ok(sig) => {
+                tracing::info!("{sig}: stopping");
+                break;
+            }
+            Err(e) => {
+                tracing::error!("waiting for signals failed: {e}; stopping");
+                break;
+            }
+        }
+    }
+    drop(server);
+    for line in gw.shutdown() {
+        tracing::info!("{line}");
+    }
+    tracing::info!("stopped");
+    ExitCode::SUCCESS
+}

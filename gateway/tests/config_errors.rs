@@ -1,0 +1,123 @@
+//! Broken deployments and the exact error each must produce: file, line, column, key path
+//! and what was expected. The same code path as `hwgw check` and `hwgw run`.
+
+use hwgw::config::Deployment;
+use hwgw::deploy::Gateway;
+
+const CARD: &str = r#"[[card]]
+name = "sim0"
+driver = "sim"
+[card.sim]
+digital_outputs = 8
+[[card.sim.analog_in]]
+range = { lowest = -10.0, highest = 10.0 }
+waveform = { kind = "constant", value = 1.0 }
+[[card.sim.analog_out]]
+range = { lowest = 0.0, highest = 10.0 }
+"#;
+
+/// Every error `text` produces, one per line, or "ok".
+fn errors(text: &str) -> String {
+    let d = match Deployment::parse(text, "t.toml") {
+        Ok(d) => d,
+        Err(e) => return e.to_string(),
+    };
+    match Gateway::build(&d, "t.toml", text) {
+        Ok(_) => "ok".to_string(),
+        Err(problems) => problems
+            .iter()
+            .map(|p| p.to_string())
+            .collect::<Vec<_>>()
+            .join("\n"),
+    }
+}
+
+fn with_card(rest: &str) -> String {
+    format!("{CARD}{rest}")
+}
+
+#[test]
+fn every_broken_config_gets_its_exact_error() {
+    let cases: Vec<(&str, String, &str)> = vec![
+        ("unknown top-level key", "thread_scop = true\n".into(),
+         "t.toml:1:1: thread_scop: unknown field `thread_scop`, expected one of `thread_scope`, `cpu_dma_latency_us`, `control_socket`, `card`, `alias`, `component`, `connection`"),
+        ("wrong type", "thread_scope = \"yes\"\n".into(),
+         "t.toml:1:16: thread_scope: invalid type: string \"yes\", expected a boolean"),
+        ("missing card name", "[[card]]\ndriver = \"sim\"\n".into(),
+         "t.toml:1:1: card[0]: missing field `name`"),
+        ("unknown driver", "[[card]]\nname = \"x\"\ndriver = \"canbus\"\n".into(),
+         "t.toml:3:10: card[0].driver: unknown driver \"canbus\"; this build has: sim"),
+        ("driver section missing", "[[card]]\nname = \"x\"\ndriver = \"sim\"\n".into(),
+         "t.toml:1:1: card[0]: card \"x\" uses driver \"sim\" but has no [card.sim] section"),
+        ("driver refuses its section", "[[card]]\nname = \"x\"\ndriver = \"sim\"\n[card.sim]\n[[card.sim.analog_in]]\nrange = { lowest = 5.0, highest = 1.0 }\nwaveform = { kind = \"constant\", value = 1.0 }\n".into(),
+         "t.toml:4:1: card[0].sim: card \"x\": analog_in[0].range: physical range [5, 1] is invalid: needs finite lowest < highest"),
+        ("unknown key in a driver section", "[[card]]\nname = \"x\"\ndriver = \"sim\"\n[card.sim]\ndigital_input = 8\n".into(),
+         "t.toml:5:1: card[0].sim.digital_input: unknown field `digital_input`, expected one of `seed`, `analog_in`, `analog_out`, `digital_inputs`, `digital_outputs`, `digital_loopback`, `encoder`, `record_capacity`"),
+        ("duplicate card", format!("{CARD}{CARD}"),
+         "t.toml:11:1: card[1].name: card \"sim0\" is defined twice (first as card[0])"),
+        ("zero period", "[[card]]\nname = \"x\"\ndriver = \"sim\"\nperiod_ms = 0\n[card.sim]\n".into(),
+         "t.toml:1:1: card[0].period_ms: 0 ms: expected a period above 0"),
+        ("alias to nothing", with_card("[[alias]]\ninterface = \"digital_out\"\nname = \"ThreadScope\"\ntarget = \"sim9\"\n"),
+         "t.toml:11:1: alias[0]: no DigitalOut named \"sim9\"; registered: sim0"),
+        ("ThreadScope without its output", format!("thread_scope = true\n{CARD}"),
+         "t.toml:1:16: thread_scope: ThreadScope is on, but no DigitalOut named \"ThreadScope\"; registered: sim0 (add an [[alias]] with interface = \"digital_out\" and name = \"ThreadScope\")"),
+        ("unknown component type", with_card("[[component]]\nname = \"c\"\ntype = \"pid\"\nactivity = { type = \"non_periodic\" }\n"),
+         "t.toml:13:8: component[0].type: unknown component type \"pid\"; this build has: blinker, follow"),
+        ("duplicate component", with_card("[[component]]\nname = \"c\"\ntype = \"follow\"\nactivity = { type = \"non_periodic\" }\n[[component]]\nname = \"c\"\ntype = \"follow\"\nactivity = { type = \"non_periodic\" }\n"),
+         "t.toml:16:8: component[1].name: a component named \"c\" already exists"),
+        ("property of the wrong type", with_card("[[component]]\nname = \"b\"\ntype = \"blinker\"\nactivity = { type = \"periodic\", period_ms = 100 }\nproperties = { device = \"sim0\", bit = \"three\" }\n"),
+         "t.toml:15:14: component[0].properties: bit: expected u32: invalid type: string \"three\", expected u32"),
+        ("unknown property", with_card("[[component]]\nname = \"f\"\ntype = \"follow\"\nactivity = { type = \"non_periodic\" }\nproperties = { gian = 2.0 }\n"),
+         "t.toml:15:14: component[0].properties: no property \"gian\"; there are: gain, offset"),
+        ("configure fails: no such device", with_card("[[component]]\nname = \"b\"\ntype = \"blinker\"\nactivity = { type = \"periodic\", period_ms = 100 }\nproperties = { device = \"sim7\", bit = 1 }\n"),
+         "t.toml:12:8: component[0]: component \"b\": configure_hook failed: no DigitalOut named \"sim7\"; registered: sim0"),
+        ("configure fails: no such bit", with_card("[[component]]\nname = \"b\"\ntype = \"blinker\"\nactivity = { type = \"periodic\", period_ms = 100 }\nproperties = { device = \"sim0\", bit = 8 }\n"),
+         "t.toml:12:8: component[0]: component \"b\": configure_hook failed: bit 8 does not exist on \"sim0\" (8 outputs)"),
+        ("connection address without a port", with_card("[[connection]]\nfrom = \"sim0\"\nto = \"sim0.ao.ch0\"\n"),
+         "t.toml:12:8: connection[0].from: \"sim0\": expected \"component.port\""),
+        ("connection to an unknown component", with_card("[[connection]]\nfrom = \"nope.ch0\"\nto = \"sim0.ao.ch0\"\n"),
+         "t.toml:12:8: connection[0].from: no component named \"nope\"; there are: sim0, sim0.ai, sim0.ao, sim0.do"),
+        ("connection to an unknown port", with_card("[[connection]]\nfrom = \"sim0.ai.ch7\"\nto = \"sim0.ao.ch0\"\n"),
+         "t.toml:12:8: connection[0].from: \"sim0.ai\" has no port \"ch7\"; it has: ch0"),
+        ("connection between types", with_card("[[connection]]\nfrom = \"sim0.ai.ch0\"\nto = \"sim0.do.bit0\"\n"),
+         "t.toml:12:8: connection[0]: sim0.ai.ch0 -> sim0.do.bit0: cannot connect \"ch0\" (f64) to \"bit0\" (bool): the types differ"),
+        ("connection from an input", with_card("[[connection]]\nfrom = \"sim0.ao.ch0\"\nto = \"sim0.ao.ch0\"\n"),
+         "t.toml:12:8: connection[0]: sim0.ao.ch0 -> sim0.ao.ch0: cannot connect \"ch0\" to \"ch0\": a connection goes from an output port to an input port"),
+        ("zero-size buffer", with_card("[[connection]]\nfrom = \"sim0.ai.ch0\"\nto = \"sim0.ao.ch0\"\npolicy = { kind = { type = \"buffer\", size = 0 } }\n"),
+         "t.toml:12:8: connection[0]: sim0.ai.ch0 -> sim0.ao.ch0: a buffer connection needs a size of at least 1"),
+        ("unknown activity type", with_card("[[component]]\nname = \"f\"\ntype = \"follow\"\nactivity = { type = \"sometimes\" }\n"),
+         "t.toml:14:21: component[0].activity.type: unknown variant `sometimes`, expected `periodic` or `non_periodic`"),
+        ("negative period", with_card("[[component]]\nname = \"f\"\ntype = \"follow\"\nactivity = { type = \"periodic\", period_ms = -5 }\n"),
+         "t.toml:14:12: component[0].activity.period_ms: -5 ms: expected a period above 0"),
+        ("not TOML", "[[card]\nname = \"x\"\n".into(),
+         "t.toml:1:8: unclosed array table, expected `]`"),
+    ];
+    assert!(cases.len() >= 15);
+    let mut failures = Vec::new();
+    for (what, text, want) in &cases {
+        let got = errors(text);
+        if got != *want {
+            failures.push(format!("{what}:\n  got:  {got}\n  want: {want}"));
+        }
+    }
+    assert!(
+        failures.is_empty(),
+        "{} of {} cases differ:\n{}",
+        failures.len(),
+        cases.len(),
+        failures.join("\n")
+    );
+}
+
+#[test]
+fn the_shipped_examples_are_valid() {
+    assert_eq!(errors(hwgw::DEMO), "ok");
+    let on_disk =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../config/demo.toml"))
+            .unwrap_or_default();
+    assert_eq!(
+        on_disk,
+        hwgw::DEMO,
+        "config/demo.toml is the embedded default"
+    );
+}

@@ -1,0 +1,333 @@
+//! The real `hwgw` binary, over its real control socket: values flowing, one-shot
+//! commands, robustness against bad clients, and a SIGTERM that leaves safe outputs.
+
+#![allow(
+    clippy::unwrap_used,
+    reason = "test code: a failed unwrap is a failed test"
+)]
+
+use serde_json::{Value, json};
+use std::io::{BufRead, BufReader, Write};
+use std::os::unix::net::UnixStream;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+const HWGW: &str = env!("CARGO_BIN_EXE_hwgw");
+
+struct Service {
+    child: Option<Child>,
+    socket: PathBuf,
+    _dir: TempDir,
+}
+
+struct TempDir(PathBuf);
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+fn temp_dir(tag: &str) -> TempDir {
+    let d = std::env::temp_dir().join(format!("hwgw-test-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    TempDir(d)
+}
+
+impl Service {
+    /// Starts `hwgw run` (the embedded default, or `config`) and waits for its socket.
+    fn start(tag: &str, config: Option<&Path>) -> Service {
+        let dir = temp_dir(tag);
+        let socket = dir.0.join("hwgw.sock");
+        let mut cmd = Command::new(HWGW);
+        cmd.arg("run");
+        if let Some(c) = config {
+            cmd.arg(c);
+        }
+        let child = cmd
+            .arg("--socket")
+            .arg(&socket)
+            .env("RUST_LOG", "info")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while UnixStream::connect(&socket).is_err() {
+            assert!(Instant::now() < deadline, "hwgw did not open its socket");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        Service {
+            child: Some(child),
+            socket,
+            _dir: dir,
+        }
+    }
+
+    fn request(&self, req: Value) -> Value {
+        let mut c = UnixStream::connect(&self.socket).unwrap();
+        let mut line = req.to_string();
+        line.push('\n');
+        c.write_all(line.as_bytes()).unwrap();
+        let mut reply = String::new();
+        BufReader::new(c).read_line(&mut reply).unwrap();
+        serde_json::from_str(&reply).unwrap()
+    }
+
+    fn ok(&self, req: Value) -> Value {
+        let r = self.request(req.clone());
+        r.get("ok")
+            .cloned()
+            .unwrap_or_else(|| panic!("{req} -> {r}"))
+    }
+
+    fn cli(&self, args: &[&str]) -> Output {
+        Command::new(HWGW)
+            .args(args)
+            .arg("--socket")
+            .arg(&self.socket)
+            .output()
+            .unwrap()
+    }
+
+    /// SIGTERM, then wait for the exit; returns the output.
+    fn terminate(mut self) -> Output {
+        let child = self.child.take().unwrap();
+        let pid = nix::unistd::Pid::from_raw(child.id() as i32);
+        nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGTERM).unwrap();
+        child.wait_with_output().unwrap()
+    }
+}
+
+impl Drop for Service {
+    fn drop(&mut self) {
+        if let Some(mut c) = self.child.take() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+fn wait_until(what: &str, mut f: impl FnMut() -> bool) {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while !f() {
+        assert!(Instant::now() < deadline, "timed out: {what}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn values_flow_and_sigterm_leaves_outputs_safe() {
+    let svc = Service::start("flow", None);
+    let names: Vec<String> = svc
+        .ok(json!({"cmd": "ls"}))
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["name"].as_str().unwrap().to_string())
+        .collect();
+    for want in [
+        "sim0",
+        "sim0.ai",
+        "sim0.ao",
+        "sim0.di",
+        "sim0.do",
+        "sim0.encoder0",
+        "follow",
+        "blink",
+    ] {
+        assert!(
+            names.contains(&want.to_string()),
+            "{want} missing from {names:?}"
+        );
+    }
+    // A sim input flows through the follow component to the analog output.
+    wait_until("follow wrote", || {
+        svc.ok(json!({"cmd": "get", "component": "follow", "port": "out"})) != Value::Null
+    });
+    let mut matched = 0;
+    for _ in 0..50 {
+        let out = svc
+            .ok(json!({"cmd": "get", "component": "follow", "port": "out"}))
+            .as_f64()
+            .unwrap();
+        let back = svc.ok(
+            json!({"cmd": "call", "component": "sim0.ao", "operation": "read_back", "args": [0]}),
+        )["Ok"]
+            .as_f64()
+            .unwrap();
+        // Equal up to one 16-bit step over 20 V, unless a sample arrived between the reads.
+        if (out - back).abs() <= 20.0 / 65535.0 {
+            matched += 1;
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    assert!(
+        matched >= 25,
+        "follow.out and the analog output agreed only {matched} of 50 times"
+    );
+    let follow_in = svc.ok(json!({"cmd": "describe", "component": "follow"}));
+    assert_eq!(follow_in["properties"][0]["path"], "gain");
+
+    // Set an output through the socket and see it loop back into an input.
+    svc.ok(json!({"cmd": "set", "component": "sim0.do", "port": "bit12", "value": true}));
+    wait_until("DO 12 loops back to DI 12", || {
+        svc.ok(json!({"cmd": "get", "component": "sim0.di", "port": "bit12"})) == json!(true)
+    });
+    // One-shot CLI forms.
+    let out = svc.cli(&["call", "sim0.do", "check_bit", "12"]);
+    assert!(out.status.success(), "{out:?}");
+    assert!(String::from_utf8_lossy(&out.stdout).contains("\"Ok\": true"));
+    let out = svc.cli(&["get", "follow", "property:gain"]);
+    assert_eq!(String::from_utf8_lossy(&out.stdout).trim(), "0.5");
+    let out = svc.cli(&["set", "follow", "property:gain", "0.25"]);
+    assert!(out.status.success());
+    assert_eq!(
+        svc.ok(json!({"cmd": "get", "component": "follow", "property": "gain"})),
+        json!(0.25)
+    );
+    let out = svc.cli(&["get", "follow", "nope"]);
+    assert!(!out.status.success());
+    assert_eq!(
+        String::from_utf8_lossy(&out.stderr).trim(),
+        "hwgw: \"follow\" has no port \"nope\"; it has: in, out"
+    );
+
+    let out = svc.terminate();
+    assert!(out.status.success(), "exit status {:?}", out.status);
+    let log = String::from_utf8_lossy(&out.stderr);
+    // 0 V is not a 16-bit step of -10..10 V: the nearest one is 0.000153 V.
+    assert!(
+        log.contains("card \"sim0\" outputs at stop: analog [0.00015259021896696368, 0.00015259021896696368], digital on []"),
+        "{log}"
+    );
+    assert!(
+        log.contains("SIGTERM: stopping") && log.contains("stopped"),
+        "{log}"
+    );
+}
+
+#[test]
+fn the_socket_survives_bad_clients() {
+    let svc = Service::start("robust", None);
+    let mut c = UnixStream::connect(&svc.socket).unwrap();
+    let mut r = BufReader::new(c.try_clone().unwrap());
+    let mut ask = |text: &[u8]| -> Value {
+        c.write_all(text).unwrap();
+        let mut line = String::new();
+        r.read_line(&mut line).unwrap();
+        serde_json::from_str(&line).unwrap()
+    };
+    let e = ask(b"{not json\n");
+    assert_eq!(e["error"]["kind"], "parse");
+    let e = ask(b"{\"id\": 7, \"cmd\": \"explode\"}\n");
+    assert_eq!(
+        (e["id"].clone(), e["error"]["kind"].clone()),
+        (json!(7), json!("unknown_command"))
+    );
+    let e = ask(b"{\"id\": 8, \"cmd\": \"get\"}\n");
+    assert_eq!(e["error"]["kind"], "bad_request");
+    let e = ask(b"{\"id\": 9, \"cmd\": \"call\", \"component\": \"sim0.ao\", \"operation\": \"write\", \"args\": [0, \"high\"]}\n");
+    assert_eq!(e["error"]["kind"], "failed");
+    let mut huge = vec![b'x'; 200_000];
+    huge.push(b'\n');
+    let e = ask(&huge);
+    assert_eq!(e["error"]["kind"], "too_long");
+    // The same connection still works after all that.
+    let ok = ask(b"{\"id\": 10, \"cmd\": \"ls\"}\n");
+    assert_eq!(ok["id"], 10);
+    assert!(ok["ok"].is_array());
+
+    // A client that disconnects mid-request.
+    for _ in 0..20 {
+        let mut half = UnixStream::connect(&svc.socket).unwrap();
+        half.write_all(b"{\"id\": 1, \"cmd\": \"l").unwrap();
+        drop(half);
+    }
+
+    // 50 concurrent clients, 20 requests each.
+    let start = Instant::now();
+    let clients: Vec<_> = (0..50)
+        .map(|i| {
+            let socket = svc.socket.clone();
+            std::thread::spawn(move || {
+                let mut c = UnixStream::connect(&socket).unwrap();
+                let mut r = BufReader::new(c.try_clone().unwrap());
+                for n in 0..20 {
+                    let id = i * 100 + n;
+                    c.write_all(format!("{{\"id\": {id}, \"cmd\": \"get\", \"component\": \"sim0.ai\", \"port\": \"ch0\"}}\n").as_bytes()).unwrap();
+                    let mut line = String::new();
+                    r.read_line(&mut line).unwrap();
+                    let v: Value = serde_json::from_str(&line).unwrap();
+                    assert_eq!(v["id"], id);
+                    assert!(v["ok"].is_f64(), "{v}");
+                }
+            })
+        })
+        .collect();
+    for c in clients {
+        c.join().unwrap();
+    }
+    let elapsed = start.elapsed();
+    eprintln!(
+        "50 clients x 20 requests answered in {elapsed:?} ({:.0} requests/s)",
+        1000.0 / elapsed.as_secs_f64()
+    );
+    assert!(svc.ok(json!({"cmd": "ls"})).is_array(), "still serving");
+    let out = svc.terminate();
+    assert!(out.status.success());
+}
+
+#[test]
+fn check_accepts_the_demo_and_reports_every_error() {
+    let demo = concat!(env!("CARGO_MANIFEST_DIR"), "/../config/demo.toml");
+    let out = Command::new(HWGW).args(["check", demo]).output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains(": ok"));
+
+    let dir = temp_dir("check");
+    let bad = dir.0.join("bad.toml");
+    std::fs::write(&bad, "[[card]]\nname = \"x\"\ndriver = \"sim\"\n[card.sim]\n[[alias]]\ninterface = \"encoder\"\nname = \"e\"\ntarget = \"none\"\n[[component]]\nname = \"c\"\ntype = \"nope\"\nactivity = { type = \"non_periodic\" }\n").unwrap();
+    let out = Command::new(HWGW)
+        .args(["check"])
+        .arg(&bad)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    let lines: Vec<&str> = err.lines().filter(|l| l.contains("bad.toml:")).collect();
+    assert_eq!(lines.len(), 2, "both problems reported: {err}");
+    assert!(
+        lines[0].ends_with("bad.toml:5:1: alias[0]: no Encoder named \"none\"; registered: none"),
+        "{err}"
+    );
+    assert!(lines[1].ends_with("bad.toml:11:8: component[0].type: unknown component type \"nope\"; this build has: blinker, follow"), "{err}");
+
+    let out = Command::new(HWGW)
+        .args(["check", "/nonexistent.toml"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent.toml: cannot read"));
+}
+
+#[test]
+fn a_second_gateway_on_the_same_socket_is_refused() {
+    let svc = Service::start("twice", None);
+    let out = Command::new(HWGW)
+        .args(["run", "--socket"])
+        .arg(&svc.socket)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("another hwgw is serving this socket"));
+    assert!(
+        svc.ok(json!({"cmd": "ls"})).is_array(),
+        "the first one still serves"
+    );
+}
