@@ -348,6 +348,27 @@ impl Gateway {
         Ok(())
     }
 
+    /// `Ok` while every component that should run is running and every periodic activity
+    /// keeps its period; else what is wrong. This is what feeds the systemd watchdog.
+    pub fn health(&self) -> Result<(), String> {
+        let mut wrong = Vec::new();
+        for (t, start) in self.order.iter().zip(&self.start) {
+            match t.state() {
+                TaskState::Running => {}
+                s if *start => wrong.push(format!("{} is {s}", t.name())),
+                _ => continue,
+            }
+            if !t.stats().healthy {
+                wrong.push(format!("{} overruns its period", t.name()));
+            }
+        }
+        if wrong.is_empty() {
+            Ok(())
+        } else {
+            Err(wrong.join("; "))
+        }
+    }
+
     /// The runtime.
     pub fn runtime(&self) -> &Runtime {
         &self.runtime

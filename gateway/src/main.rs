@@ -5,6 +5,7 @@ use hwgw::config::Deployment;
 use hwgw::control::{self, ControlServer};
 use hwgw::deploy::Gateway;
 use nix::sys::signal::{SigSet, Signal};
+use sd_notify::NotifyState;
 use serde_json::{Value, json};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -86,14 +87,59 @@ fn target(name: &str) -> (&'static str, &str) {
     }
 }
 
-fn main() -> ExitCode {
+/// Logs to the journal when systemd runs us (JOURNAL_STREAM is set), else to stderr.
+fn init_logging() {
+    use tracing_subscriber::prelude::*;
+    let filter =
+        || tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into());
+    if std::env::var_os("JOURNAL_STREAM").is_some()
+        && let Ok(journal) = tracing_journald::layer()
+    {
+        tracing_subscriber::registry()
+            .with(filter())
+            .with(journal.with_field_prefix(None))
+            .init();
+        return;
+    }
     tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
-        )
+        .with_env_filter(filter())
         .with_writer(std::io::stderr)
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .init();
+}
+
+/// Feeds the systemd watchdog every half interval while the gateway is healthy; says why
+/// in STATUS when it is not (once per change).
+fn watchdog(
+    gw: Arc<Gateway>,
+    interval: std::time::Duration,
+    stop: Arc<std::sync::atomic::AtomicBool>,
+) {
+    let mut last: Option<Result<(), String>> = None;
+    while !stop.load(std::sync::atomic::Ordering::Acquire) {
+        let health = gw.health();
+        if last.as_ref() != Some(&health) {
+            match &health {
+                Ok(()) => {
+                    tracing::info!("healthy");
+                    let _ = sd_notify::notify(&[NotifyState::Status("running")]);
+                }
+                Err(why) => {
+                    tracing::error!("unhealthy, not feeding the watchdog: {why}");
+                    let _ = sd_notify::notify(&[NotifyState::Status(&format!("unhealthy: {why}"))]);
+                }
+            }
+            last = Some(health.clone());
+        }
+        if health.is_ok() {
+            let _ = sd_notify::notify(&[NotifyState::Watchdog]);
+        }
+        std::thread::sleep(interval / 2);
+    }
+}
+
+fn main() -> ExitCode {
+    init_logging();
     let cli = Cli::parse();
     let (socket, req) = match cli.command {
         Command::Run { config, socket } => return run(config, socket),
@@ -249,6 +295,20 @@ fn run(config: Option<PathBuf>, socket: Option<PathBuf>) -> ExitCode {
         return ExitCode::FAILURE;
     }
     tracing::info!("running; control socket {}", server.path().display());
+    let status = format!(
+        "running {} components; control socket {}",
+        gw.runtime().components().len(),
+        server.path().display()
+    );
+    if let Err(e) = sd_notify::notify(&[NotifyState::Ready, NotifyState::Status(&status)]) {
+        tracing::warn!("cannot notify systemd: {e}");
+    }
+    let stop_watchdog = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    if let Some(interval) = sd_notify::watchdog_enabled() {
+        tracing::info!("systemd watchdog every {interval:?}, fed while healthy");
+        let (g, s) = (gw.clone(), stop_watchdog.clone());
+        std::thread::spawn(move || watchdog(g, interval, s));
+    }
     loop {
         match signals.wait() {
             Ok(Signal::SIGHUP) => {
@@ -266,6 +326,11 @@ fn run(config: Option<PathBuf>, socket: Option<PathBuf>) -> ExitCode {
             }
         }
     }
+    let _ = sd_notify::notify(&[
+        NotifyState::Stopping,
+        NotifyState::Status("stopping: outputs to safe values"),
+    ]);
+    stop_watchdog.store(true, std::sync::atomic::Ordering::Release);
     drop(server);
     for line in gw.shutdown() {
         tracing::info!("{line}");

@@ -38,6 +38,11 @@ fn temp_dir(tag: &str) -> TempDir {
 impl Service {
     /// Starts `hwgw run` (the embedded default, or `config`) and waits for its socket.
     fn start(tag: &str, config: Option<&Path>) -> Service {
+        Self::start_with(tag, config, &[])
+    }
+
+    /// As [`start`](Self::start), with extra environment variables.
+    fn start_with(tag: &str, config: Option<&Path>, env: &[(&str, &str)]) -> Service {
         let dir = temp_dir(tag);
         let socket = dir.0.join("hwgw.sock");
         let mut cmd = Command::new(HWGW);
@@ -49,6 +54,7 @@ impl Service {
             .arg("--socket")
             .arg(&socket)
             .env("RUST_LOG", "info")
+            .envs(env.iter().copied())
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()
@@ -330,4 +336,110 @@ fn a_second_gateway_on_the_same_socket_is_refused() {
         svc.ok(json!({"cmd": "ls"})).is_array(),
         "the first one still serves"
     );
+}
+
+/// A datagram socket standing in for systemd's notify socket.
+struct Notify {
+    sock: std::os::unix::net::UnixDatagram,
+    path: PathBuf,
+    _dir: TempDir,
+}
+
+impl Notify {
+    fn new(tag: &str) -> Notify {
+        let dir = temp_dir(tag);
+        let path = dir.0.join("notify.sock");
+        let sock = std::os::unix::net::UnixDatagram::bind(&path).unwrap();
+        sock.set_read_timeout(Some(Duration::from_millis(100)))
+            .unwrap();
+        Notify {
+            sock,
+            path,
+            _dir: dir,
+        }
+    }
+
+    /// Messages received within `d`.
+    fn collect(&self, d: Duration) -> Vec<String> {
+        let end = Instant::now() + d;
+        let mut out = Vec::new();
+        let mut buf = [0u8; 4096];
+        while Instant::now() < end {
+            if let Ok(n) = self.sock.recv(&mut buf) {
+                out.push(String::from_utf8_lossy(&buf[..n]).to_string());
+            }
+        }
+        out
+    }
+}
+
+#[test]
+fn systemd_notify_ready_watchdog_and_stopping() {
+    let notify = Notify::new("notify");
+    let svc = Service::start_with(
+        "notify-svc",
+        None,
+        &[
+            ("NOTIFY_SOCKET", notify.path.to_str().unwrap()),
+            ("WATCHDOG_USEC", "200000"),
+        ],
+    );
+    let msgs = notify.collect(Duration::from_millis(1500));
+    assert!(
+        msgs.iter()
+            .any(|m| m.contains("READY=1") && m.contains("STATUS=running")),
+        "{msgs:?}"
+    );
+    let fed = msgs.iter().filter(|m| m.contains("WATCHDOG=1")).count();
+    assert!(
+        fed >= 5,
+        "watchdog fed {fed} times in 1.5 s at a 200 ms interval: {msgs:?}"
+    );
+    let (tx, rx) = std::sync::mpsc::channel();
+    let out = std::thread::scope(|s| {
+        s.spawn(|| {
+            tx.send(notify.collect(Duration::from_millis(1500)))
+                .unwrap()
+        });
+        svc.terminate()
+    });
+    assert!(out.status.success());
+    let msgs = rx.recv().unwrap();
+    assert!(msgs.iter().any(|m| m.contains("STOPPING=1")), "{msgs:?}");
+}
+
+#[test]
+fn an_overrunning_activity_starves_the_watchdog() {
+    let dir = temp_dir("overrun-cfg");
+    let cfg = dir.0.join("overrun.toml");
+    std::fs::write(
+        &cfg,
+        "[[card]]\nname = \"sim0\"\ndriver = \"sim\"\n[card.sim]\ndigital_outputs = 4\n\
+         [[component]]\nname = \"fast\"\ntype = \"blinker\"\n\
+         activity = { type = \"periodic\", period_ms = 0.001, max_overruns = 1 }\n\
+         properties = { device = \"sim0\", bit = 0 }\n",
+    )
+    .unwrap();
+    let notify = Notify::new("notify-overrun");
+    let svc = Service::start_with(
+        "overrun",
+        Some(&cfg),
+        &[
+            ("NOTIFY_SOCKET", notify.path.to_str().unwrap()),
+            ("WATCHDOG_USEC", "200000"),
+        ],
+    );
+    let msgs = notify.collect(Duration::from_millis(2000));
+    let unhealthy = msgs
+        .iter()
+        .position(|m| m.contains("STATUS=unhealthy: fast overruns its period"))
+        .unwrap_or_else(|| panic!("no unhealthy status: {msgs:?}"));
+    assert!(
+        !msgs[unhealthy..].iter().any(|m| m.contains("WATCHDOG=1")),
+        "the watchdog was fed while unhealthy: {msgs:?}"
+    );
+    let described = svc.ok(json!({"cmd": "describe", "component": "fast"}));
+    assert_eq!(described["activity"]["healthy"], json!(false));
+    assert!(described["activity"]["overruns"].as_u64().unwrap() > 0);
+    assert!(svc.terminate().status.success());
 }
