@@ -14,6 +14,8 @@
 //! | `set` | `component`, `port` or `property`, `value` | `null`; a port must be an input port |
 //! | `call` | `component`, `operation`, `args` (array) | the result |
 //! | `configure`, `start`, `stop`, `cleanup`, `recover` | `component` | the new state |
+//! | `status` | — | every device's health and every component's state and timing |
+//! | `watch` | `component`, `port`, optional `count` | a stream: one `{"id", "event": {"status", "value"}}` line per new value (all of them, `count` at most), until the client closes |
 //!
 //! Error kinds: `parse`, `too_long`, `bad_request`, `unknown_command`, `not_found`,
 //! `failed`.
@@ -213,6 +215,14 @@ fn serve_client(gw: &Gateway, conn: UnixStream, stats: &ControlStats) {
                 }
                 match serde_json::from_str::<Value>(&text) {
                     Err(e) => error_reply(Value::Null, Kind::Parse, format!("not JSON: {e}")),
+                    Ok(req) if req.get("cmd").and_then(Value::as_str) == Some("watch") => {
+                        let id = req.get("id").cloned().unwrap_or(Value::Null);
+                        match watch(gw, &req, &id, &mut out) {
+                            // The stream ended because the client went away or had enough.
+                            Ok(()) => return,
+                            Err(Fail(kind, message)) => error_reply(id, kind, message),
+                        }
+                    }
                     Ok(req) => {
                         let id = req.get("id").cloned().unwrap_or(Value::Null);
                         match handle(gw, &req, &mut writers) {
@@ -233,6 +243,110 @@ fn serve_client(gw: &Gateway, conn: UnixStream, stats: &ControlStats) {
             return;
         }
     }
+}
+
+/// Streams new values of an output port to `out` until the client closes or `count`
+/// values were sent. Samples travel through a 256-deep buffer connection, so bursts
+/// between two polls are not lost (overflow is counted on the connection).
+fn watch(gw: &Gateway, req: &Value, id: &Value, out: &mut UnixStream) -> Result<(), Fail> {
+    let t = gw
+        .runtime()
+        .component(field(req, "component")?)
+        .map_err(not_found)?;
+    let port = t.port(field(req, "port")?).map_err(not_found)?;
+    let mut reader = port.reader(ConnPolicy::buffer(256)).map_err(failed)?;
+    let count = req.get("count").and_then(Value::as_u64).unwrap_or(u64::MAX);
+    let mut sent = 0;
+    // Tell the client the watch is in place before any value.
+    let mut line = json!({"id": id, "ok": "watching"}).to_string();
+    line.push('\n');
+    out.write_all(line.as_bytes()).map_err(failed)?;
+    while sent < count {
+        match reader.read() {
+            (rtt::port::FlowStatus::NewData, Some(value)) => {
+                let mut line =
+                    json!({"id": id, "event": {"status": "new_data", "value": value}}).to_string();
+                line.push('\n');
+                if out.write_all(line.as_bytes()).is_err() {
+                    return Ok(());
+                }
+                sent += 1;
+            }
+            _ => {
+                // Nothing new: poll again shortly; notice a client that has gone away.
+                std::thread::sleep(std::time::Duration::from_millis(5));
+                if peer_closed(out) {
+                    return Ok(());
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+/// True when the client closed its end (a peek finds end of stream or an error).
+fn peer_closed(s: &UnixStream) -> bool {
+    use nix::sys::socket::{MsgFlags, recv};
+    use std::os::fd::AsRawFd;
+    let mut b = [0u8; 1];
+    match recv(
+        s.as_raw_fd(),
+        &mut b,
+        MsgFlags::MSG_PEEK | MsgFlags::MSG_DONTWAIT,
+    ) {
+        Ok(0) => true,
+        Ok(_) | Err(nix::Error::EAGAIN) => false,
+        Err(_) => true,
+    }
+}
+
+/// Every device's health and every component's state and activity figures.
+fn status(gw: &Gateway) -> Value {
+    let reg = gw.runtime().registry();
+    let mut devices = Vec::new();
+    for e in reg.entries() {
+        if e.info.alias_of.is_some() {
+            continue;
+        }
+        use device_interface::Interface as I;
+        let n = &e.info.name;
+        let h = match e.interface {
+            I::AnalogIn => reg.analog_in().get(n).map(|d| d.health()),
+            I::AnalogOut => reg.analog_out().get(n).map(|d| d.health()),
+            I::DigitalIn => reg.digital_in().get(n).map(|d| d.health()),
+            I::DigitalOut => reg.digital_out().get(n).map(|d| d.health()),
+            I::Encoder => reg.encoder().get(n).map(|d| d.health()),
+        };
+        if let Some(h) = h {
+            devices.push(json!({
+                "interface": e.interface,
+                "name": n,
+                "status": h.status,
+                "age_s": h.age().map(|a| a.as_secs_f64()),
+                "last_error": h.last_error.map(|e| e.to_string()),
+            }));
+        }
+    }
+    let components: Vec<Value> = gw
+        .runtime()
+        .components()
+        .iter()
+        .map(|t| {
+            let s = t.stats();
+            json!({
+                "name": t.name(),
+                "state": t.state(),
+                "steps": s.steps,
+                "overruns": s.overruns,
+                "healthy": s.healthy,
+                "realtime": s.realtime,
+                "lateness_p99_us": s.lateness_quantile(0.99).as_secs_f64() * 1e6,
+                "step_mean_us": s.step_mean().as_secs_f64() * 1e6,
+                "counters": t.counters(),
+            })
+        })
+        .collect();
+    json!({"health": gw.health().err().unwrap_or_else(|| "ok".into()), "devices": devices, "components": components})
 }
 
 fn error_reply(id: Value, kind: Kind, message: String) -> Value {
@@ -268,6 +382,7 @@ fn handle(
             .map(|t| json!({"name": t.name(), "state": t.state()}))
             .collect()),
         "devices" => Ok(serde_json::to_value(rt.registry().entries()).unwrap_or(Value::Null)),
+        "status" => Ok(status(gw)),
         "describe" => {
             let t = component()?;
             Ok(json!({
@@ -375,4 +490,25 @@ pub fn request(path: &Path, mut request: Value) -> std::io::Result<Value> {
     BufReader::new(conn).read_line(&mut reply)?;
     serde_json::from_str(&reply)
         .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidData, e))
+}
+
+/// Sends `request` and hands every reply line to `each` until it returns false (then
+/// `Ok(false)`) or the server closes the stream (`Ok(true)`).
+pub fn stream(
+    path: &Path,
+    request: Value,
+    mut each: impl FnMut(&Value) -> bool,
+) -> std::io::Result<bool> {
+    let mut conn = UnixStream::connect(path)?;
+    let mut line = request.to_string();
+    line.push('\n');
+    conn.write_all(line.as_bytes())?;
+    for line in BufReader::new(conn).lines() {
+        let v: Value = serde_json::from_str(&line?)
+            .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidData, e))?;
+        if !each(&v) {
+            return Ok(false);
+        }
+    }
+    Ok(true)
 }

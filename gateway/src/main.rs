@@ -44,6 +44,28 @@ enum Command {
         #[arg(long)]
         socket: Option<PathBuf>,
     },
+    /// Device health and component states and timing.
+    Status {
+        #[arg(long)]
+        socket: Option<PathBuf>,
+    },
+    /// Print each new value of an output port as it comes (Ctrl-C to stop).
+    Watch {
+        component: String,
+        port: String,
+        /// Stop after this many values.
+        #[arg(long)]
+        count: Option<u64>,
+        #[arg(long)]
+        socket: Option<PathBuf>,
+    },
+    /// Run a lifecycle command on a component: configure, start, stop, cleanup, recover.
+    Lifecycle {
+        command: String,
+        component: String,
+        #[arg(long)]
+        socket: Option<PathBuf>,
+    },
     /// List the devices in the registry.
     Devices {
         #[arg(long)]
@@ -153,6 +175,25 @@ fn main() -> ExitCode {
             socket,
         } => (socket, json!({"cmd": "describe", "component": c})),
         Command::Devices { socket } => (socket, json!({"cmd": "devices"})),
+        Command::Status { socket } => (socket, json!({"cmd": "status"})),
+        Command::Lifecycle {
+            command,
+            component,
+            socket,
+        } => (socket, json!({"cmd": command, "component": component})),
+        Command::Watch {
+            component,
+            port,
+            count,
+            socket,
+        } => {
+            return watch(
+                socket.unwrap_or_else(control::default_socket),
+                component,
+                port,
+                count,
+            );
+        }
         Command::Get {
             component,
             name,
@@ -213,6 +254,35 @@ fn main() -> ExitCode {
                 "hwgw: {}: {e} (is hwgw running? `hwgw run` starts it)",
                 path.display()
             );
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn watch(path: PathBuf, component: String, port: String, count: Option<u64>) -> ExitCode {
+    let mut req = json!({"id": 1, "cmd": "watch", "component": component, "port": port});
+    if let Some(n) = count {
+        req["count"] = json!(n);
+    }
+    let result = control::stream(&path, req, |line| {
+        match (line.get("event"), line.get("error")) {
+            (Some(ev), _) => println!("{}", ev["value"]),
+            (_, Some(e)) => {
+                eprintln!(
+                    "hwgw: {}",
+                    e.get("message").and_then(Value::as_str).unwrap_or("error")
+                );
+                return false;
+            }
+            _ => {}
+        }
+        true
+    });
+    match result {
+        Ok(true) => ExitCode::SUCCESS,
+        Ok(false) => ExitCode::FAILURE,
+        Err(e) => {
+            eprintln!("hwgw: {}: {e}", path.display());
             ExitCode::FAILURE
         }
     }

@@ -443,3 +443,66 @@ fn an_overrunning_activity_starves_the_watchdog() {
     assert!(described["activity"]["overruns"].as_u64().unwrap() > 0);
     assert!(svc.terminate().status.success());
 }
+
+#[test]
+fn watch_streams_new_values_and_status_reports() {
+    let svc = Service::start("watch", None);
+    // The ramp on analog input 1 changes at every sample: five new values arrive in order.
+    let out = Command::new(HWGW)
+        .args(["watch", "sim0.ai", "ch1", "--count", "5", "--socket"])
+        .arg(&svc.socket)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{out:?}");
+    let values: Vec<f64> = String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(|l| l.parse().unwrap())
+        .collect();
+    assert_eq!(values.len(), 5);
+    assert!(
+        values.windows(2).all(|w| w[1] != w[0]),
+        "new values each time: {values:?}"
+    );
+
+    // A watcher that goes away frees its server thread; the service keeps serving.
+    for _ in 0..10 {
+        let mut c = UnixStream::connect(&svc.socket).unwrap();
+        c.write_all(
+            b"{\"id\": 1, \"cmd\": \"watch\", \"component\": \"blink\", \"port\": \"state\"}\n",
+        )
+        .unwrap();
+        let mut line = String::new();
+        BufReader::new(c.try_clone().unwrap())
+            .read_line(&mut line)
+            .unwrap();
+        assert!(line.contains("watching"), "{line}");
+    }
+    let e = svc.request(json!({"cmd": "watch", "component": "sim0.ao", "port": "ch0"}));
+    assert_eq!(
+        e["error"]["message"],
+        "port \"ch0\" is an input port; watching needs an output port"
+    );
+
+    let st = svc.ok(json!({"cmd": "status"}));
+    assert_eq!(st["health"], "ok");
+    let devices = st["devices"].as_array().unwrap();
+    assert!(
+        devices.iter().all(|d| d["status"] == "online"),
+        "{devices:?}"
+    );
+    let sim0 = st["components"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["name"] == "sim0")
+        .unwrap();
+    assert!(sim0["steps"].as_u64().unwrap() > 0);
+    let out = svc.cli(&["lifecycle", "stop", "blink"]);
+    assert!(
+        String::from_utf8_lossy(&out.stdout).contains("stopped"),
+        "{out:?}"
+    );
+    let st = svc.ok(json!({"cmd": "status"}));
+    assert_eq!(st["health"], "blink is Stopped");
+    assert!(svc.terminate().status.success());
+}
