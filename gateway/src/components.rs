@@ -4,35 +4,85 @@
 //!   `bit`).
 //! - `follow`: `out = in * gain + offset`, from an input port to an output port (connect
 //!   an analog input's port to `in` and `out` to an analog output's port).
+//! - `reporter`: writes chosen ports to a CSV file at its period, every step or only when a
+//!   port has new data (OCL's ReportingComponent).
 //!
-//! A user's own types are registered the same way: a name and a constructor that adds
-//! ports, operations and properties to the interface (see `examples/`).
+//! A user's own types go into a [`ComponentTypes`] beside these, in a binary of their own
+//! that calls [`cli::main`](crate::cli::main) (see `examples/custom-component`).
 
 use device_interface::DigitalOut;
+use rtt::component::DynReader;
 use rtt::component::IntrospectError;
+use rtt::port::ConnPolicy;
 use rtt::port::{FlowStatus, InputPort, OutputPort};
 use rtt::property::Property;
 use rtt::{
     ActivitySpec, Component, Context, HookError, HookResult, Interface, Runtime, RuntimeError,
     TaskContext,
 };
+use std::collections::BTreeMap;
+use std::io::Write;
 use std::sync::Arc;
 
-/// The names of the built-in types.
-pub const TYPES: [&str; 2] = ["blinker", "follow"];
+/// Builds a component of one type: `(runtime, name, activity)` to the new component.
+pub type Constructor = fn(&Runtime, &str, ActivitySpec) -> Result<TaskContext, RuntimeError>;
 
-/// Builds component `name` of type `kind`, or says the type is unknown (`Ok(None)`).
-pub fn build(
-    runtime: &Runtime,
-    name: &str,
-    kind: &str,
-    spec: ActivitySpec,
-) -> Result<Option<TaskContext>, RuntimeError> {
-    Ok(Some(match kind {
-        "blinker" => runtime.add(name, spec, true, Blinker::new)?,
-        "follow" => runtime.add(name, spec, true, Follow::new)?,
-        _ => return Ok(None),
-    }))
+/// Component types by name: what `type = "…"` in a deployment may say.
+#[derive(Clone)]
+pub struct ComponentTypes {
+    types: BTreeMap<String, Constructor>,
+}
+
+impl ComponentTypes {
+    /// No types.
+    pub fn empty() -> Self {
+        ComponentTypes {
+            types: BTreeMap::new(),
+        }
+    }
+
+    /// The types built into hwgw: blinker, follow, reporter.
+    pub fn builtin() -> Self {
+        let mut t = Self::empty();
+        t.types.insert("blinker".into(), |rt, name, spec| {
+            rt.add(name, spec, true, Blinker::new)
+        });
+        t.types.insert("follow".into(), |rt, name, spec| {
+            rt.add(name, spec, true, Follow::new)
+        });
+        t.types.insert("reporter".into(), |rt, name, spec| {
+            rt.add(name, spec, true, Reporter::new)
+        });
+        t
+    }
+
+    /// Adds type `name`; a name already taken is refused (returns false).
+    pub fn register(&mut self, name: &str, constructor: Constructor) -> bool {
+        if self.types.contains_key(name) {
+            return false;
+        }
+        self.types.insert(name.to_string(), constructor);
+        true
+    }
+
+    /// The type names, sorted.
+    pub fn names(&self) -> Vec<&str> {
+        self.types.keys().map(String::as_str).collect()
+    }
+
+    /// Builds component `name` of type `kind`; `Ok(None)` when the type is unknown.
+    pub fn build(
+        &self,
+        runtime: &Runtime,
+        name: &str,
+        kind: &str,
+        spec: ActivitySpec,
+    ) -> Result<Option<TaskContext>, RuntimeError> {
+        match self.types.get(kind) {
+            Some(ctor) => ctor(runtime, name, spec).map(Some),
+            None => Ok(None),
+        }
+    }
 }
 
 /// Toggles a digital output bit each step.
@@ -120,5 +170,109 @@ impl Component for Follow {
                 .write(&(x * self.gain.get() + self.offset.get()));
         }
         Ok(())
+    }
+}
+
+/// Writes chosen ports to a CSV file: a header, then one row per step (or per step with
+/// new data) with the time and every port's latest value. File I/O blocks, so give it a
+/// SCHED_OTHER activity, never a real-time one.
+pub struct Reporter {
+    ports: Property<Vec<String>>,
+    file: Property<String>,
+    only_new: Property<bool>,
+    sources: Vec<Box<dyn DynReader>>,
+    last: Vec<String>,
+    out: Option<std::io::BufWriter<std::fs::File>>,
+    rows: OutputPort<u64>,
+    written: u64,
+}
+
+impl Reporter {
+    fn new(iface: &mut Interface<Reporter>) -> Result<Reporter, IntrospectError> {
+        Ok(Reporter {
+            ports: iface.properties().add(
+                "ports",
+                Vec::new(),
+                "output ports to record, each \"component.port\"",
+            )?,
+            file: iface.properties().add(
+                "file",
+                String::new(),
+                "the CSV file (created or truncated at configure)",
+            )?,
+            only_new: iface.properties().add(
+                "only_new",
+                false,
+                "write a row only when some port has new data",
+            )?,
+            sources: Vec::new(),
+            last: Vec::new(),
+            out: None,
+            rows: iface.output("rows", "rows written so far")?,
+            written: 0,
+        })
+    }
+}
+
+impl Component for Reporter {
+    fn configure_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+        let ports = self.ports.get();
+        if ports.is_empty() {
+            return Err(HookError::new(
+                "property ports is empty: name at least one \"component.port\"",
+            ));
+        }
+        self.sources.clear();
+        for address in &ports {
+            let (comp, port) = crate::config::split_port(address).ok_or_else(|| {
+                HookError::new(format!("{address:?}: expected \"component.port\""))
+            })?;
+            let reader = ctx
+                .peer(comp)?
+                .port(port)?
+                .reader(ConnPolicy::buffer(1024))?;
+            self.sources.push(reader);
+        }
+        let path = self.file.get();
+        let file =
+            std::fs::File::create(&path).map_err(|e| HookError::new(format!("{path}: {e}")))?;
+        let mut out = std::io::BufWriter::new(file);
+        writeln!(out, "time_s,{}", ports.join(","))?;
+        self.out = Some(out);
+        self.last = vec![String::new(); ports.len()];
+        Ok(())
+    }
+
+    fn update_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+        let mut any_new = false;
+        for (src, last) in self.sources.iter_mut().zip(self.last.iter_mut()) {
+            // Drain to the newest sample; a row shows the latest value of each port.
+            while let (rtt::port::FlowStatus::NewData, Some(v)) = src.read() {
+                *last = v.to_string();
+                any_new = true;
+            }
+        }
+        if self.only_new.get() && !any_new {
+            return Ok(());
+        }
+        if let Some(out) = &mut self.out {
+            writeln!(out, "{},{}", ctx.now(), self.last.join(","))?;
+            self.written += 1;
+            self.rows.write(&self.written);
+        }
+        Ok(())
+    }
+
+    fn stop_hook(&mut self, _: &mut Context<'_>) {
+        if let Some(out) = &mut self.out
+            && let Err(e) = out.flush()
+        {
+            tracing::error!("reporter: flushing {}: {e}", self.file.get());
+        }
+    }
+
+    fn cleanup_hook(&mut self, _: &mut Context<'_>) {
+        self.out = None;
+        self.sources.clear();
     }
 }

@@ -79,7 +79,12 @@ pub struct Gateway {
 impl Gateway {
     /// Builds everything in `deployment` (from `file`, whose `text` locates errors). Nothing
     /// is started. Returns every problem found.
-    pub fn build(deployment: &Deployment, file: &str, text: &str) -> Result<Gateway, Vec<Problem>> {
+    pub fn build(
+        deployment: &Deployment,
+        file: &str,
+        text: &str,
+        types: &components::ComponentTypes,
+    ) -> Result<Gateway, Vec<Problem>> {
         let mut problems = Vec::new();
         let at = |path: &[Seg<'_>]| locate_path(file, text, path);
 
@@ -240,7 +245,7 @@ impl Gateway {
                 );
                 continue;
             }
-            let task = match components::build(&runtime, &c.name, &c.kind, c.activity.spec()) {
+            let task = match types.build(&runtime, &c.name, &c.kind, c.activity.spec()) {
                 Ok(Some(t)) => t,
                 Ok(None) => {
                     add(
@@ -250,7 +255,7 @@ impl Gateway {
                         format!(
                             "unknown component type {:?}; this build has: {}",
                             c.kind,
-                            components::TYPES.join(", ")
+                            types.names().join(", ")
                         ),
                     );
                     continue;

@@ -7,18 +7,21 @@
 //!   value;
 //! - [`io`]: every device as a component (channels as ports, methods as operations);
 //! - [`components`]: the component types built into the binary;
-//! - [`control`]: the line-delimited JSON control protocol over a Unix socket.
+//! - [`control`]: the line-delimited JSON control protocol over a Unix socket;
+//! - [`cli`]: the `hwgw` command line, reusable by a binary with its own component types.
 //!
 //! ```
 //! use hwgw::{config::Deployment, deploy::Gateway};
 //!
 //! let text = hwgw::DEMO;
 //! let d = Deployment::parse(text, "demo.toml")?;
-//! let gw = Gateway::build(&d, "demo.toml", text).expect("the demo is valid");
+//! let types = hwgw::components::ComponentTypes::builtin();
+//! let gw = Gateway::build(&d, "demo.toml", text, &types).expect("the demo is valid");
 //! assert!(gw.summary().contains("component \"follow\""));
 //! # Ok::<(), hwgw::config::ConfigError>(())
 //! ```
 
+pub mod cli;
 pub mod components;
 pub mod config;
 pub mod control;

@@ -22,7 +22,12 @@ fn errors(text: &str) -> String {
         Ok(d) => d,
         Err(e) => return e.to_string(),
     };
-    match Gateway::build(&d, "t.toml", text) {
+    match Gateway::build(
+        &d,
+        "t.toml",
+        text,
+        &hwgw::components::ComponentTypes::builtin(),
+    ) {
         Ok(_) => "ok".to_string(),
         Err(problems) => problems
             .iter()
@@ -62,7 +67,7 @@ fn every_broken_config_gets_its_exact_error() {
         ("ThreadScope without its output", format!("thread_scope = true\n{CARD}"),
          "t.toml:1:16: thread_scope: ThreadScope is on, but no DigitalOut named \"ThreadScope\"; registered: sim0 (add an [[alias]] with interface = \"digital_out\" and name = \"ThreadScope\")"),
         ("unknown component type", with_card("[[component]]\nname = \"c\"\ntype = \"pid\"\nactivity = { type = \"non_periodic\" }\n"),
-         "t.toml:13:8: component[0].type: unknown component type \"pid\"; this build has: blinker, follow"),
+         "t.toml:13:8: component[0].type: unknown component type \"pid\"; this build has: blinker, follow, reporter"),
         ("duplicate component", with_card("[[component]]\nname = \"c\"\ntype = \"follow\"\nactivity = { type = \"non_periodic\" }\n[[component]]\nname = \"c\"\ntype = \"follow\"\nactivity = { type = \"non_periodic\" }\n"),
          "t.toml:16:8: component[1].name: a component named \"c\" already exists"),
         ("property of the wrong type", with_card("[[component]]\nname = \"b\"\ntype = \"blinker\"\nactivity = { type = \"periodic\", period_ms = 100 }\nproperties = { device = \"sim0\", bit = \"three\" }\n"),

@@ -223,6 +223,22 @@ impl Context<'_> {
     pub fn activity(&self) -> &Activity {
         &self.core.activity
     }
+
+    /// Another component of the same runtime, by name (for configure-time wiring, as RTT
+    /// peers: a reporter connecting to the ports it records). Not for real-time paths.
+    pub fn peer(&self, name: &str) -> Result<TaskContext, IntrospectError> {
+        let peers = self.core.peers.upgrade();
+        let list = peers.as_ref().map(|p| lock(p).clone()).unwrap_or_default();
+        list.iter()
+            .find(|t| t.name() == name)
+            .cloned()
+            .ok_or_else(|| IntrospectError::NotFound {
+                component: self.core.name.clone(),
+                kind: "peer",
+                name: name.to_string(),
+                known: list.iter().map(|t| t.name().to_string()).collect(),
+            })
+    }
 }
 
 /// Why a lifecycle command was refused.
@@ -828,6 +844,7 @@ pub(crate) struct TaskCore {
     failed_hooks: AtomicU64,
     last_error: Mutex<Option<String>>,
     engine_thread: Mutex<Option<std::thread::ThreadId>>,
+    peers: Weak<Mutex<Vec<TaskContext>>>,
 }
 
 impl TaskCore {
@@ -1000,6 +1017,8 @@ pub(crate) struct TaskSetup {
     pub(crate) clock: Arc<dyn Clock>,
     pub(crate) scope: Arc<ThreadScope>,
     pub(crate) thread_number: Box<dyn FnOnce() -> u32>,
+    /// The runtime's components, weakly: a component must not keep its runtime alive.
+    pub(crate) peers: Weak<Mutex<Vec<TaskContext>>>,
 }
 
 impl TaskContext {
@@ -1056,6 +1075,7 @@ impl TaskContext {
                 failed_hooks: AtomicU64::new(0),
                 last_error: Mutex::new(None),
                 engine_thread: Mutex::new(None),
+                peers: setup.peers,
             }
         });
         if let Some(e) = build_result {

@@ -170,7 +170,7 @@ pub struct Runtime {
     clock: Arc<dyn Clock>,
     scope: Arc<ThreadScope>,
     next_thread: Arc<AtomicU32>,
-    components: Mutex<Vec<TaskContext>>,
+    components: Arc<Mutex<Vec<TaskContext>>>,
     _cpu_latency: Option<std::fs::File>,
 }
 
@@ -194,7 +194,7 @@ impl Runtime {
             clock: options.clock,
             scope: Arc::new(scope),
             next_thread: Arc::new(AtomicU32::new(1)),
-            components: Mutex::new(Vec::new()),
+            components: Arc::new(Mutex::new(Vec::new())),
             _cpu_latency: options.cpu_dma_latency_us.and_then(hold_cpu_latency),
         })
     }
@@ -234,6 +234,7 @@ impl Runtime {
             clock: self.clock.clone(),
             scope: self.scope.clone(),
             thread_number: Box::new(move || next.fetch_add(1, Ordering::Relaxed)),
+            peers: Arc::downgrade(&self.components),
         };
         let task = TaskContext::build(name, spec, needs_configure, setup, build)?;
         components.push(task.clone());
