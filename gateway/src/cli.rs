@@ -47,6 +47,11 @@ enum Command {
         #[arg(long)]
         socket: Option<PathBuf>,
     },
+    /// An interactive console on a running gateway (cd, ls, get, set, call, TAB completion).
+    Browse {
+        #[arg(long)]
+        socket: Option<PathBuf>,
+    },
     /// Device health and component states and timing.
     Status {
         #[arg(long)]
@@ -180,6 +185,16 @@ pub fn main(types: ComponentTypes) -> ExitCode {
         } => (socket, json!({"cmd": "describe", "component": c})),
         Command::Devices { socket } => (socket, json!({"cmd": "devices"})),
         Command::Status { socket } => (socket, json!({"cmd": "status"})),
+        Command::Browse { socket } => {
+            let path = socket.unwrap_or_else(control::default_socket);
+            return match crate::browse::run(path) {
+                Ok(()) => ExitCode::SUCCESS,
+                Err(e) => {
+                    eprintln!("hwgw: {e} (is hwgw running? `hwgw run` starts it)");
+                    ExitCode::FAILURE
+                }
+            };
+        }
         Command::Lifecycle {
             command,
             component,

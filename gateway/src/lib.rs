@@ -8,7 +8,8 @@
 //! - [`io`]: every device as a component (channels as ports, methods as operations);
 //! - [`components`]: the component types built into the binary;
 //! - [`control`]: the line-delimited JSON control protocol over a Unix socket;
-//! - [`cli`]: the `hwgw` command line, reusable by a binary with its own component types.
+//! - [`cli`]: the `hwgw` command line, reusable by a binary with its own component types;
+//! - [`browse`]: `hwgw browse`, the interactive console.
 //!
 //! ```
 //! use hwgw::{config::Deployment, deploy::Gateway};
@@ -21,6 +22,7 @@
 //! # Ok::<(), hwgw::config::ConfigError>(())
 //! ```
 
+pub mod browse;
 pub mod cli;
 pub mod components;
 pub mod config;

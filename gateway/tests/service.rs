@@ -506,3 +506,74 @@ fn watch_streams_new_values_and_status_reports() {
     assert_eq!(st["health"], "blink is Stopped");
     assert!(svc.terminate().status.success());
 }
+
+#[test]
+fn the_browser_navigates_reads_writes_calls_and_completes() {
+    use hwgw::browse::Browser;
+    let svc = Service::start("browse", None);
+    let mut b = Browser::new(svc.socket.clone());
+    assert_eq!(b.prompt(), "hwgw:/> ");
+    assert!(
+        b.execute("ls")
+            .unwrap()
+            .lines()
+            .any(|l| l.starts_with("follow "))
+    );
+    assert_eq!(b.complete("cd fo", 5), (3, vec!["follow".to_string()]));
+    assert_eq!(
+        b.complete("st", 2),
+        (
+            0,
+            vec![
+                "start".to_string(),
+                "status".to_string(),
+                "stop".to_string()
+            ]
+        )
+    );
+    assert_eq!(
+        b.execute("cd nowhere").unwrap(),
+        "error: no component named \"nowhere\"; there are: sim0, sim0.ai, sim0.ao, sim0.di, sim0.do, sim0.encoder0, follow, blink"
+    );
+    assert_eq!(b.execute("cd follow").unwrap(), "");
+    assert_eq!(b.prompt(), "hwgw:/follow> ");
+    let ls = b.execute("ls").unwrap();
+    for want in [
+        "follow [running]",
+        "ports:",
+        "in  in ",
+        "out out",
+        "properties:",
+        "gain",
+    ] {
+        assert!(ls.contains(want), "{want:?} not in:\n{ls}");
+    }
+    assert_eq!(b.complete("get g", 5), (4, vec!["gain".to_string()]));
+    assert_eq!(
+        b.complete("set o", 5),
+        (4, vec!["offset".to_string(), "out".to_string()])
+    );
+    assert_eq!(b.execute("get gain").unwrap(), "0.5");
+    assert_eq!(b.execute("set gain 0.75").unwrap(), "");
+    assert_eq!(b.execute("get gain").unwrap(), "0.75");
+    assert_eq!(b.execute("watch out 3").unwrap().lines().count(), 3);
+    assert_eq!(b.execute("cd ..").unwrap(), "");
+    b.execute("cd sim0.ao");
+    assert!(b.execute("call read_back 0").unwrap().contains("\"Ok\""));
+    assert!(
+        b.execute("read_back 0").unwrap().contains("\"Ok\""),
+        "a bare operation name calls it"
+    );
+    assert_eq!(
+        b.complete("call rea", 8),
+        (5, vec!["read_back".to_string()])
+    );
+    assert!(
+        b.execute("call write 0 \"high\"")
+            .unwrap()
+            .starts_with("error: operation \"write\" takes (u32, f64)")
+    );
+    assert!(b.execute("help").unwrap().contains("watch PORT [N]"));
+    assert_eq!(b.execute("quit"), None);
+    assert!(svc.terminate().status.success());
+}
