@@ -278,6 +278,34 @@ pub fn main(types: ComponentTypes) -> ExitCode {
     }
 }
 
+/// SIGHUP: reads the deployment again and applies what may change at run time.
+fn reload_with(gw: &Gateway, config: Option<&PathBuf>, current: &mut Deployment) {
+    let Some(path) = config else {
+        tracing::warn!("SIGHUP: running the embedded default; there is no file to reload");
+        return;
+    };
+    let new = match Deployment::load(path) {
+        Ok((d, _)) => d,
+        Err(e) => {
+            tracing::error!(
+                "SIGHUP: {} not reloaded, still running the previous version:\n{e}",
+                path.display()
+            );
+            return;
+        }
+    };
+    let (lines, applied) = gw.reload(current, &new);
+    for line in lines {
+        tracing::info!("SIGHUP: {line}");
+    }
+    // What was applied is now current; refused changes stay pending until a restart.
+    for (cur, n) in current.components.iter_mut().zip(&new.components) {
+        if applied.contains(&n.name) {
+            cur.properties = n.properties.clone();
+        }
+    }
+}
+
 fn watch(path: PathBuf, component: String, port: String, count: Option<u64>) -> ExitCode {
     let mut req = json!({"id": 1, "cmd": "watch", "component": component, "port": port});
     if let Some(n) = count {
@@ -358,7 +386,7 @@ fn run(config: Option<PathBuf>, socket: Option<PathBuf>, types: &ComponentTypes)
         eprintln!("hwgw: cannot block signals: {e}");
         return ExitCode::FAILURE;
     }
-    let (gw, d) = match build(config.as_ref(), types) {
+    let (gw, mut d) = match build(config.as_ref(), types) {
         Ok(x) => x,
         Err(e) => {
             eprintln!("{e}");
@@ -403,11 +431,7 @@ fn run(config: Option<PathBuf>, socket: Option<PathBuf>, types: &ComponentTypes)
     }
     loop {
         match signals.wait() {
-            Ok(Signal::SIGHUP) => {
-                tracing::warn!(
-                    "SIGHUP: reloading is not supported yet; restart hwgw to apply a changed deployment"
-                );
-            }
+            Ok(Signal::SIGHUP) => reload_with(&gw, config.as_ref(), &mut d),
             Ok(sig) => {
                 tracing::info!("{sig}: stopping");
                 break;

@@ -35,7 +35,7 @@ use std::path::Path;
 use std::time::Duration;
 
 /// A whole deployment.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Deployment {
     /// Pulse each runtime thread's bit on the DigitalOut aliased "ThreadScope".
@@ -63,7 +63,7 @@ pub struct Deployment {
 }
 
 /// One IO card: a driver and its section.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CardConfig {
     /// The card's name: its devices are registered under it.
@@ -110,7 +110,7 @@ pub enum AliasInterface {
 }
 
 /// Another name for a registered device.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct AliasConfig {
     /// The interface.
@@ -177,7 +177,7 @@ pub fn millis(ms: f64) -> Duration {
 }
 
 /// One component.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ComponentConfig {
     /// Its name.
@@ -200,7 +200,7 @@ fn yes() -> bool {
 }
 
 /// A connection from an output port to an input port, each written `component.port`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ConnectionConfig {
     /// `component.port` of the output.

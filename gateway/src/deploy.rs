@@ -343,6 +343,74 @@ impl Gateway {
         }
     }
 
+    /// Applies the properties of `new` (the deployment file read again) to the running
+    /// components: all-or-nothing per component. Anything else that changed — cards,
+    /// aliases, components, activities, connections — is refused: it needs a restart.
+    /// Returns one line per change, applied or refused, and the components whose new
+    /// properties were applied.
+    pub fn reload(&self, old: &Deployment, new: &Deployment) -> (Vec<String>, Vec<String>) {
+        let mut report = Vec::new();
+        let mut applied_to = Vec::new();
+        let refuse = |what: &str| format!("{what} changed: restart hwgw to apply");
+        if old.cards != new.cards {
+            report.push(refuse("cards"));
+        }
+        if old.aliases != new.aliases {
+            report.push(refuse("aliases"));
+        }
+        if old.connections != new.connections {
+            report.push(refuse("connections"));
+        }
+        if (
+            old.thread_scope,
+            old.cpu_dma_latency_us,
+            &old.control_socket,
+        ) != (
+            new.thread_scope,
+            new.cpu_dma_latency_us,
+            &new.control_socket,
+        ) {
+            report.push(refuse("runtime settings"));
+        }
+        let shape = |c: &crate::config::ComponentConfig| {
+            (c.name.clone(), c.kind.clone(), c.activity.clone(), c.start)
+        };
+        if old.components.iter().map(shape).collect::<Vec<_>>()
+            != new.components.iter().map(shape).collect::<Vec<_>>()
+        {
+            report.push(refuse("components (names, types, activities or start)"));
+            return (report, applied_to);
+        }
+        for (o, n) in old.components.iter().zip(&new.components) {
+            if o.properties == n.properties {
+                continue;
+            }
+            let applied = self
+                .runtime
+                .component(&n.name)
+                .map_err(|e| e.to_string())
+                .and_then(|t| {
+                    t.properties()
+                        .load_toml(&n.properties)
+                        .map_err(|e| e.to_string())
+                });
+            if applied.is_ok() {
+                applied_to.push(n.name.clone());
+            }
+            report.push(match applied {
+                Ok(()) => format!(
+                    "component {:?}: properties reloaded (those read at configure take effect at the next configure)",
+                    n.name
+                ),
+                Err(e) => format!("component {:?}: properties not reloaded: {}", n.name, e.replace('\n', "; ")),
+            });
+        }
+        if report.is_empty() {
+            report.push("nothing changed".into());
+        }
+        (report, applied_to)
+    }
+
     /// Starts the components the deployment asks to start, in order.
     pub fn start(&self) -> Result<(), rtt::component::LifecycleError> {
         for (t, start) in self.order.iter().zip(&self.start) {

@@ -577,3 +577,65 @@ fn the_browser_navigates_reads_writes_calls_and_completes() {
     assert_eq!(b.execute("quit"), None);
     assert!(svc.terminate().status.success());
 }
+
+#[test]
+fn sighup_reloads_properties_and_refuses_structural_changes() {
+    let dir = temp_dir("reload-cfg");
+    let cfg = dir.0.join("gw.toml");
+    let demo = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../config/demo.toml"))
+        .unwrap();
+    std::fs::write(&cfg, &demo).unwrap();
+    let svc = Service::start("reload", Some(&cfg));
+    let pid = nix::unistd::Pid::from_raw(svc.child.as_ref().unwrap().id() as i32);
+    let hup = || nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGHUP).unwrap();
+    let gain = || svc.ok(json!({"cmd": "get", "component": "follow", "property": "gain"}));
+
+    // A property change applies at run time.
+    std::fs::write(
+        &cfg,
+        demo.replace(
+            "properties = { gain = 0.5, offset = 0.0 }",
+            "properties = { gain = 0.9, offset = 0.0 }",
+        ),
+    )
+    .unwrap();
+    hup();
+    wait_until("gain reloaded", || gain() == json!(0.9));
+
+    // A wrong value is refused whole and changes nothing.
+    std::fs::write(
+        &cfg,
+        demo.replace(
+            "properties = { gain = 0.5, offset = 0.0 }",
+            "properties = { gain = \"fast\", offset = 1.0 }",
+        ),
+    )
+    .unwrap();
+    hup();
+    std::thread::sleep(Duration::from_millis(300));
+    assert_eq!(gain(), json!(0.9));
+    assert_eq!(
+        svc.ok(json!({"cmd": "get", "component": "follow", "property": "offset"})),
+        json!(0.0)
+    );
+
+    // A structural change is refused; an unparsable file is refused; the gateway runs on.
+    std::fs::write(&cfg, demo.replace("period_ms = 10 ", "period_ms = 20 ")).unwrap();
+    hup();
+    std::thread::sleep(Duration::from_millis(300));
+    std::fs::write(&cfg, "this is not toml [").unwrap();
+    hup();
+    std::thread::sleep(Duration::from_millis(300));
+    assert!(svc.ok(json!({"cmd": "ls"})).is_array());
+    let out = svc.terminate();
+    assert!(out.status.success());
+    let log = String::from_utf8_lossy(&out.stderr);
+    for want in [
+        "SIGHUP: component \"follow\": properties reloaded",
+        "SIGHUP: component \"follow\": properties not reloaded: gain: expected f64: invalid type: string \"fast\", expected f64",
+        "SIGHUP: cards changed: restart hwgw to apply",
+        "not reloaded, still running the previous version",
+    ] {
+        assert!(log.contains(want), "{want:?} not in the log:\n{log}");
+    }
+}
