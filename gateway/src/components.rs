@@ -198,7 +198,7 @@ impl Reporter {
             file: iface.properties().add(
                 "file",
                 String::new(),
-                "the CSV file (created or truncated at configure)",
+                "the CSV file (created or truncated at start)",
             )?,
             only_new: iface.properties().add(
                 "only_new",
@@ -233,13 +233,23 @@ impl Component for Reporter {
                 .reader(ConnPolicy::buffer(1024))?;
             self.sources.push(reader);
         }
+        if self.file.get().is_empty() {
+            return Err(HookError::new(
+                "property file is empty: name the CSV file to write",
+            ));
+        }
+        self.last = vec![String::new(); ports.len()];
+        Ok(())
+    }
+
+    fn start_hook(&mut self, _: &mut Context<'_>) -> HookResult {
+        // Opened at start, not configure, so `hwgw check` never truncates a report.
         let path = self.file.get();
         let file =
             std::fs::File::create(&path).map_err(|e| HookError::new(format!("{path}: {e}")))?;
         let mut out = std::io::BufWriter::new(file);
-        writeln!(out, "time_s,{}", ports.join(","))?;
+        writeln!(out, "time_s,{}", self.ports.get().join(","))?;
         self.out = Some(out);
-        self.last = vec![String::new(); ports.len()];
         Ok(())
     }
 

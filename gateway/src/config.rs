@@ -84,9 +84,73 @@ pub struct CardConfig {
     /// Digital outputs to leave on when the gateway stops (default: all off).
     #[serde(default)]
     pub safe_digital_out_on: Vec<u32>,
+    /// Names for the card's channels: the IO components' ports are called by them
+    /// (unnamed channels keep `ch0…`/`bit0…`).
+    #[serde(default)]
+    pub names: ChannelNames,
     /// The sim driver's section.
     #[serde(default)]
     pub sim: Option<toml::Spanned<SimConfig>>,
+}
+
+/// Port names for a card's channels, in channel order.
+#[derive(Debug, Clone, Default, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ChannelNames {
+    /// Analog inputs.
+    #[serde(default)]
+    pub analog_in: Vec<String>,
+    /// Analog outputs.
+    #[serde(default)]
+    pub analog_out: Vec<String>,
+    /// Digital inputs.
+    #[serde(default)]
+    pub digital_in: Vec<String>,
+    /// Digital outputs.
+    #[serde(default)]
+    pub digital_out: Vec<String>,
+}
+
+impl ChannelNames {
+    /// The port name of channel `i` of a list: its given name, else `prefix{i}`.
+    pub fn port(names: &[String], prefix: &str, i: u32) -> String {
+        names
+            .get(i as usize)
+            .cloned()
+            .unwrap_or_else(|| format!("{prefix}{i}"))
+    }
+
+    /// Checks the names against the card's channel counts: not more names than channels,
+    /// no empty names, no dots (they separate component and port), no duplicates.
+    /// Errors are (key path under the card, message).
+    pub fn check(&self, counts: [u32; 4]) -> Result<(), (String, String)> {
+        let lists = [
+            ("analog_in", &self.analog_in),
+            ("analog_out", &self.analog_out),
+            ("digital_in", &self.digital_in),
+            ("digital_out", &self.digital_out),
+        ];
+        for ((key, names), count) in lists.into_iter().zip(counts) {
+            if names.len() > count as usize {
+                return Err((
+                    format!("names.{key}"),
+                    format!("{} names for {count} channels", names.len()),
+                ));
+            }
+            for (i, n) in names.iter().enumerate() {
+                if n.is_empty() || n.contains('.') || n.chars().any(char::is_whitespace) {
+                    return Err((
+                        format!("names.{key}[{i}]"),
+                        format!("{n:?} is not a port name (no dots, no spaces, not empty)"),
+                    ));
+                }
+                if names[..i].contains(n) {
+                    return Err((format!("names.{key}[{i}]"), format!("{n:?} is used twice")));
+                }
+            }
+        }
+        Ok(())
+    }
 }
 
 fn default_card_period() -> f64 {

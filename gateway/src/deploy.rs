@@ -6,7 +6,7 @@
 
 use crate::config::{AliasInterface, Deployment, Location, Problem, locate, millis, split_port};
 use crate::{components, io};
-use device_interface::{AnalogOut, DigitalOut, Registry};
+use device_interface::{AnalogIn, AnalogOut, DigitalIn, DigitalOut, Registry};
 use driver_sim::SimCard;
 use rtt::{
     ActivitySpec, Component, Context, HookResult, Runtime, RuntimeOptions, TaskContext, TaskState,
@@ -119,6 +119,21 @@ impl Gateway {
                 ("sim", Some(section)) => {
                     match SimCard::new(section.get_ref(), Arc::new(rtt::time::MonotonicClock)) {
                         Ok(card) => {
+                            let counts = [
+                                AnalogIn::channel_count(&*card),
+                                AnalogOut::channel_count(&*card),
+                                card.input_count(),
+                                DigitalOut::output_count(&*card),
+                            ];
+                            if let Err((key, message)) = c.names.check(counts) {
+                                add(
+                                    &mut problems,
+                                    at(&[Seg::Key("card"), Seg::Index(i), Seg::Key("names")]),
+                                    format!("{path}.{key}"),
+                                    message,
+                                );
+                                continue;
+                            }
                             if let Err(e) = card.register(&registry, &c.name) {
                                 add(&mut problems, here(), format!("{path}.name"), e.to_string());
                             }
@@ -218,7 +233,7 @@ impl Gateway {
                 ),
             }
             let sample = millis(cfg.sample_period_ms.unwrap_or(cfg.period_ms));
-            match io::build(&runtime, &c.name, sample) {
+            match io::build(&runtime, &c.name, sample, &cfg.names) {
                 Ok(ts) => order.extend(ts),
                 Err(e) => add(
                     &mut problems,

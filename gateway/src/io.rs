@@ -9,6 +9,7 @@
 //! Operation results are `{"Ok": value}` or `{"Err": "message"}`: a device error is an
 //! answer, not a failed call.
 
+use crate::config::ChannelNames;
 use device_interface::{AnalogIn, AnalogOut, DigitalIn, DigitalOut, Encoder};
 use rtt::port::{FlowStatus, InputPort, OutputPort};
 use rtt::{ActivitySpec, Component, Context, HookResult, Runtime, RuntimeError, TaskContext};
@@ -117,6 +118,7 @@ pub fn build(
     runtime: &Runtime,
     card: &str,
     sample: Duration,
+    names: &ChannelNames,
 ) -> Result<Vec<TaskContext>, RuntimeError> {
     let registry = runtime.registry().clone();
     let mine = |owner: &str, alias: &Option<String>| owner == card && alias.is_none();
@@ -132,6 +134,7 @@ pub fn build(
                 let Some(device) = registry.analog_in().get(&name) else {
                     continue;
                 };
+                let port_names = names.analog_in.clone();
                 runtime.add(
                     &format!("{name}.ai"),
                     ActivitySpec::periodic(sample),
@@ -141,7 +144,7 @@ pub fn build(
                         let ports = (0..n)
                             .map(|c| {
                                 iface.output(
-                                    &format!("ch{c}"),
+                                    &ChannelNames::port(&port_names, "ch", c),
                                     &format!("analog input {c}, physical units"),
                                 )
                             })
@@ -189,6 +192,7 @@ pub fn build(
                 let Some(device) = registry.analog_out().get(&name) else {
                     continue;
                 };
+                let port_names = names.analog_out.clone();
                 runtime.add(
                     &format!("{name}.ao"),
                     ActivitySpec::non_periodic(),
@@ -198,7 +202,7 @@ pub fn build(
                         let ports = (0..n)
                             .map(|c| {
                                 iface.event_input(
-                                    &format!("ch{c}"),
+                                    &ChannelNames::port(&port_names, "ch", c),
                                     &format!("analog output {c}, physical units"),
                                 )
                             })
@@ -232,6 +236,7 @@ pub fn build(
                 let Some(device) = registry.digital_in().get(&name) else {
                     continue;
                 };
+                let port_names = names.digital_in.clone();
                 runtime.add(
                     &format!("{name}.di"),
                     ActivitySpec::periodic(sample),
@@ -240,7 +245,10 @@ pub fn build(
                         let n = device.input_count();
                         let ports = (0..n)
                             .map(|b| {
-                                iface.output(&format!("bit{b}"), &format!("digital input {b}"))
+                                iface.output(
+                                    &ChannelNames::port(&port_names, "bit", b),
+                                    &format!("digital input {b}"),
+                                )
                             })
                             .collect::<Result<_, _>>()?;
                         let d = device.clone();
@@ -265,6 +273,7 @@ pub fn build(
                 let Some(device) = registry.digital_out().get(&name) else {
                     continue;
                 };
+                let port_names = names.digital_out.clone();
                 runtime.add(
                     &format!("{name}.do"),
                     ActivitySpec::non_periodic(),
@@ -273,8 +282,10 @@ pub fn build(
                         let n = device.output_count();
                         let ports = (0..n)
                             .map(|b| {
-                                iface
-                                    .event_input(&format!("bit{b}"), &format!("digital output {b}"))
+                                iface.event_input(
+                                    &ChannelNames::port(&port_names, "bit", b),
+                                    &format!("digital output {b}"),
+                                )
                             })
                             .collect::<Result<_, _>>()?;
                         let d = device.clone();

@@ -94,6 +94,12 @@ fn every_broken_config_gets_its_exact_error() {
          "t.toml:14:21: component[0].activity.type: unknown variant `sometimes`, expected `periodic` or `non_periodic`"),
         ("negative period", with_card("[[component]]\nname = \"f\"\ntype = \"follow\"\nactivity = { type = \"periodic\", period_ms = -5 }\n"),
          "t.toml:14:12: component[0].activity.period_ms: -5 ms: expected a period above 0"),
+        ("too many channel names", CARD.replace("[card.sim]\n", "[card.names]\nanalog_out = [\"a\", \"b\"]\n[card.sim]\n"),
+         "t.toml:4:1: card[0].names.analog_out: 2 names for 1 channels"),
+        ("a channel name with a dot", CARD.replace("[card.sim]\n", "[card.names]\ndigital_out = [\"pump.1\"]\n[card.sim]\n"),
+         "t.toml:4:1: card[0].names.digital_out[0]: \"pump.1\" is not a port name (no dots, no spaces, not empty)"),
+        ("a channel name twice", CARD.replace("[card.sim]\n", "[card.names]\ndigital_out = [\"p\", \"p\"]\n[card.sim]\n"),
+         "t.toml:4:1: card[0].names.digital_out[1]: \"p\" is used twice"),
         ("not TOML", "[[card]\nname = \"x\"\n".into(),
          "t.toml:1:8: unclosed array table, expected `]`"),
     ];
@@ -117,6 +123,17 @@ fn every_broken_config_gets_its_exact_error() {
 #[test]
 fn the_shipped_examples_are_valid() {
     assert_eq!(errors(hwgw::DEMO), "ok");
+    let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/../config");
+    let mut checked = 0;
+    for entry in std::fs::read_dir(dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "toml") {
+            let text = std::fs::read_to_string(&path).unwrap();
+            assert_eq!(errors(&text), "ok", "{}", path.display());
+            checked += 1;
+        }
+    }
+    assert!(checked >= 2, "config/ ships the demo and the example");
     let on_disk =
         std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../config/demo.toml"))
             .unwrap_or_default();

@@ -639,3 +639,35 @@ fn sighup_reloads_properties_and_refuses_structural_changes() {
         assert!(log.contains(want), "{want:?} not in the log:\n{log}");
     }
 }
+
+#[test]
+fn the_example_deployment_runs_with_named_channels() {
+    let example = Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../config/example.toml"
+    ));
+    let svc = Service::start("example", Some(example));
+    let ports: Vec<String> = svc.ok(json!({"cmd": "describe", "component": "press.ai"}))["ports"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| p["name"].as_str().unwrap().to_string())
+        .collect();
+    assert_eq!(ports, vec!["pressure", "temperature"]);
+    wait_until("valve written", || {
+        svc.ok(json!({"cmd": "get", "component": "valve_loop", "port": "out"})) != Value::Null
+    });
+    // valve = 1.6 mA/bar * pressure + 4 mA, pressure a 5 +- 3 bar sine: 7.2 .. 16.8 mA.
+    let valve = svc
+        .ok(json!({"cmd": "call", "component": "press.ao", "operation": "read_back", "args": [0]}))
+        ["Ok"]
+        .as_f64()
+        .unwrap();
+    assert!((7.0..=17.0).contains(&valve), "valve {valve} mA");
+    let out = svc.terminate();
+    assert!(out.status.success());
+    assert!(
+        String::from_utf8_lossy(&out.stderr)
+            .contains("card \"press\" outputs at stop: analog [4], digital on []")
+    );
+}
