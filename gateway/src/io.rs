@@ -11,8 +11,11 @@
 
 use crate::config::ChannelNames;
 use device_interface::{AnalogIn, AnalogOut, DigitalIn, DigitalOut, Encoder};
+use rtt::component::IntrospectError;
 use rtt::port::{FlowStatus, InputPort, OutputPort};
-use rtt::{ActivitySpec, Component, Context, HookResult, Runtime, RuntimeError, TaskContext};
+use rtt::{
+    ActivitySpec, Component, Context, HookResult, Interface, Runtime, RuntimeError, TaskContext,
+};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -112,23 +115,56 @@ impl Component for EncoderIo {
     }
 }
 
+/// One port per channel, named from `names` (else `prefix{i}`).
+fn ports<T>(
+    n: u32,
+    names: &[String],
+    prefix: &str,
+    doc: &str,
+    mut make: impl FnMut(&str, &str) -> Result<T, IntrospectError>,
+) -> Result<Vec<T>, IntrospectError> {
+    (0..n)
+        .map(|i| make(&ChannelNames::port(names, prefix, i), &format!("{doc} {i}")))
+        .collect()
+}
+
+/// Offers device method `f` as a ClientThread operation: arguments `A`, answer
+/// `{"Ok": r}` or `{"Err": message}`.
+fn device_op<C, D, A, R>(
+    iface: &mut Interface<C>,
+    device: &Arc<D>,
+    name: &str,
+    doc: &str,
+    args: &[(&str, &str)],
+    f: fn(&D, A) -> Result<R, device_interface::DeviceError>,
+) -> Result<(), IntrospectError>
+where
+    C: Component,
+    D: ?Sized + Send + Sync + 'static,
+    A: rtt::operation::Args,
+    R: serde::Serialize + 'static,
+{
+    let d = device.clone();
+    iface.client_operation(name, doc, args, move |a: A| answer(f(&d, a)))
+}
+
 /// Builds the IO components of every device `card` registered, sampling inputs every
-/// `sample`. Returns them in a start order.
+/// `sample`, naming channel ports from `names`. Returns them in a start order.
 pub fn build(
     runtime: &Runtime,
     card: &str,
     sample: Duration,
     names: &ChannelNames,
 ) -> Result<Vec<TaskContext>, RuntimeError> {
+    use device_interface::Interface as I;
     let registry = runtime.registry().clone();
-    let mine = |owner: &str, alias: &Option<String>| owner == card && alias.is_none();
     let mut out = Vec::new();
     for e in registry.entries() {
-        if !mine(&e.info.owner, &e.info.alias_of) {
+        if e.info.owner != card || e.info.alias_of.is_some() {
             continue;
         }
         let name = e.info.name.clone();
-        use device_interface::Interface as I;
+        let ch: &[(&str, &str)] = &[("channel", "")];
         let task = match e.interface {
             I::AnalogIn => {
                 let Some(device) = registry.analog_in().get(&name) else {
@@ -140,45 +176,47 @@ pub fn build(
                     ActivitySpec::periodic(sample),
                     false,
                     move |iface| {
-                        let n = device.channel_count();
-                        let ports = (0..n)
-                            .map(|c| {
-                                iface.output(
-                                    &ChannelNames::port(&port_names, "ch", c),
-                                    &format!("analog input {c}, physical units"),
-                                )
-                            })
-                            .collect::<Result<_, _>>()?;
-                        let d = device.clone();
-                        iface.client_operation(
+                        let ports = ports(
+                            device.channel_count(),
+                            &port_names,
+                            "ch",
+                            "analog input in physical units, channel",
+                            |n, d| iface.output(n, d),
+                        )?;
+                        device_op(
+                            iface,
+                            &device,
                             "read",
                             "reads a channel in physical units",
-                            &[("channel", "")],
-                            move |(c,): (u32,)| answer(d.read(c)),
+                            ch,
+                            |d, (c,): (u32,)| d.read(c),
                         )?;
-                        let d = device.clone();
-                        iface.client_operation(
+                        device_op(
+                            iface,
+                            &device,
                             "read_raw",
                             "reads a channel's raw value",
-                            &[("channel", "")],
-                            move |(c,): (u32,)| answer(d.read_raw(c)),
+                            ch,
+                            |d, (c,): (u32,)| d.read_raw(c),
                         )?;
-                        let d = device.clone();
-                        iface.client_operation(
+                        device_op(
+                            iface,
+                            &device,
                             "range",
                             "lowest, highest and unit of a channel",
-                            &[("channel", "")],
-                            move |(c,): (u32,)| {
-                                answer(d.range(c))
+                            ch,
+                            |d, (c,): (u32,)| {
+                                d.range(c)
                                     .map(|r| (r.lowest, r.highest, r.unit.to_string()))
                             },
                         )?;
-                        let d = device.clone();
-                        iface.client_operation(
+                        device_op(
+                            iface,
+                            &device,
                             "health",
                             "online/stale/offline and sample age",
                             &[],
-                            move |(): ()| health(d.health()),
+                            |d, (): ()| Ok(health(d.health())),
                         )?;
                         Ok(AnalogInIo {
                             device,
@@ -198,35 +236,36 @@ pub fn build(
                     ActivitySpec::non_periodic(),
                     false,
                     move |iface| {
-                        let n = device.channel_count();
-                        let ports = (0..n)
-                            .map(|c| {
-                                iface.event_input(
-                                    &ChannelNames::port(&port_names, "ch", c),
-                                    &format!("analog output {c}, physical units"),
-                                )
-                            })
-                            .collect::<Result<_, _>>()?;
-                        let d = device.clone();
-                        iface.client_operation(
+                        let ports = ports(
+                            device.channel_count(),
+                            &port_names,
+                            "ch",
+                            "analog output in physical units, channel",
+                            |n, d| iface.event_input(n, d),
+                        )?;
+                        device_op(
+                            iface,
+                            &device,
                             "write",
                             "writes a channel in physical units",
                             &[("channel", ""), ("value", "")],
-                            move |(c, v): (u32, f64)| answer(d.write(c, v)),
+                            |d, (c, v): (u32, f64)| d.write(c, v),
                         )?;
-                        let d = device.clone();
-                        iface.client_operation(
+                        device_op(
+                            iface,
+                            &device,
                             "read_back",
                             "the value last written",
-                            &[("channel", "")],
-                            move |(c,): (u32,)| answer(d.read_back(c)),
+                            ch,
+                            |d, (c,): (u32,)| d.read_back(c),
                         )?;
-                        let d = device.clone();
-                        iface.client_operation(
+                        device_op(
+                            iface,
+                            &device,
                             "health",
                             "online/stale/offline and sample age",
                             &[],
-                            move |(): ()| health(d.health()),
+                            |d, (): ()| Ok(health(d.health())),
                         )?;
                         Ok(AnalogOutIo { device, ports })
                     },
@@ -242,28 +281,28 @@ pub fn build(
                     ActivitySpec::periodic(sample),
                     false,
                     move |iface| {
-                        let n = device.input_count();
-                        let ports = (0..n)
-                            .map(|b| {
-                                iface.output(
-                                    &ChannelNames::port(&port_names, "bit", b),
-                                    &format!("digital input {b}"),
-                                )
-                            })
-                            .collect::<Result<_, _>>()?;
-                        let d = device.clone();
-                        iface.client_operation(
+                        let ports = ports(
+                            device.input_count(),
+                            &port_names,
+                            "bit",
+                            "digital input",
+                            |n, d| iface.output(n, d),
+                        )?;
+                        device_op(
+                            iface,
+                            &device,
                             "read_bit",
                             "reads one input",
                             &[("bit", "")],
-                            move |(b,): (u32,)| answer(d.read_bit(b)),
+                            |d, (b,): (u32,)| d.read_bit(b),
                         )?;
-                        let d = device.clone();
-                        iface.client_operation(
+                        device_op(
+                            iface,
+                            &device,
                             "read_sequence",
                             "inputs start..=stop, start at bit 0",
                             &[("start", ""), ("stop", "")],
-                            move |(a, b): (u32, u32)| answer(d.read_sequence(a, b)),
+                            |d, (a, b): (u32, u32)| d.read_sequence(a, b),
                         )?;
                         Ok(DigitalInIo { device, ports })
                     },
@@ -279,42 +318,44 @@ pub fn build(
                     ActivitySpec::non_periodic(),
                     false,
                     move |iface| {
-                        let n = device.output_count();
-                        let ports = (0..n)
-                            .map(|b| {
-                                iface.event_input(
-                                    &ChannelNames::port(&port_names, "bit", b),
-                                    &format!("digital output {b}"),
-                                )
-                            })
-                            .collect::<Result<_, _>>()?;
-                        let d = device.clone();
-                        iface.client_operation(
+                        let ports = ports(
+                            device.output_count(),
+                            &port_names,
+                            "bit",
+                            "digital output",
+                            |n, d| iface.event_input(n, d),
+                        )?;
+                        device_op(
+                            iface,
+                            &device,
                             "set_bit",
                             "sets one output",
                             &[("bit", ""), ("value", "")],
-                            move |(b, v): (u32, bool)| answer(d.set_bit(b, v)),
+                            |d, (b, v): (u32, bool)| d.set_bit(b, v),
                         )?;
-                        let d = device.clone();
-                        iface.client_operation(
+                        device_op(
+                            iface,
+                            &device,
                             "check_bit",
                             "the state an output was set to",
                             &[("bit", "")],
-                            move |(b,): (u32,)| answer(d.check_bit(b)),
+                            |d, (b,): (u32,)| d.check_bit(b),
                         )?;
-                        let d = device.clone();
-                        iface.client_operation(
+                        device_op(
+                            iface,
+                            &device,
                             "set_sequence",
                             "sets outputs start..=stop from a value, bit 0 at start",
                             &[("start", ""), ("stop", ""), ("value", "")],
-                            move |(a, b, v): (u32, u32, u64)| answer(d.set_sequence(a, b, v)),
+                            |d, (a, b, v): (u32, u32, u64)| d.set_sequence(a, b, v),
                         )?;
-                        let d = device.clone();
-                        iface.client_operation(
+                        device_op(
+                            iface,
+                            &device,
                             "check_sequence",
                             "outputs start..=stop, start at bit 0",
                             &[("start", ""), ("stop", "")],
-                            move |(a, b): (u32, u32)| answer(d.check_sequence(a, b)),
+                            |d, (a, b): (u32, u32)| d.check_sequence(a, b),
                         )?;
                         Ok(DigitalOutIo { device, ports })
                     },
@@ -325,19 +366,21 @@ pub fn build(
                     continue;
                 };
                 runtime.add(&name, ActivitySpec::periodic(sample), false, move |iface| {
-                    let d = device.clone();
-                    iface.client_operation(
+                    device_op(
+                        iface,
+                        &device,
                         "set_position",
                         "sets the position within the turn",
                         &[("position", "")],
-                        move |(p,): (i64,)| answer(d.set_position(p)),
+                        |d, (p,): (i64,)| d.set_position(p),
                     )?;
-                    let d = device.clone();
-                    iface.client_operation(
+                    device_op(
+                        iface,
+                        &device,
                         "set_turn",
                         "sets the turn count",
                         &[("turn", "")],
-                        move |(t,): (i64,)| answer(d.set_turn(t)),
+                        |d, (t,): (i64,)| d.set_turn(t),
                     )?;
                     Ok(EncoderIo {
                         position: iface.output("position", "position within the turn")?,
