@@ -1,0 +1,17 @@
+//! Modbus TCP and RTU cards for hwgw.
+//!
+//! This crate grows with the Modbus issue. What is here:
+//! - [`codec`]: values in registers — u16/i16/u32/i32/u64/i64/f32/f64 with word and byte
+//!   order;
+//! - [`plan`]: coalescing a register map into as few reads as the protocol allows.
+//!
+//! ```
+//! use driver_modbus::codec::{Layout, Number, ValueType};
+//!
+//! let l = Layout { ty: ValueType::I32, ..Layout::default() };
+//! assert_eq!(l.decode(&[0xFFFF, 0xFFFE])?, Number::Int(-2));
+//! # Ok::<(), driver_modbus::codec::CodecError>(())
+//! ```
+
+pub mod codec;
+pub mod plan;
