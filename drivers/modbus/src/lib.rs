@@ -3,7 +3,8 @@
 //! This crate grows with the Modbus issue. What is here:
 //! - [`codec`]: values in registers — u16/i16/u32/i32/u64/i64/f32/f64 with word and byte
 //!   order;
-//! - [`plan`]: coalescing a register map into as few reads as the protocol allows.
+//! - [`plan`]: coalescing a register map into as few reads as the protocol allows;
+//! - [`map`]: the register map, and which device channel each point is.
 //!
 //! ```
 //! use driver_modbus::codec::{Layout, Number, ValueType};
@@ -14,4 +15,5 @@
 //! ```
 
 pub mod codec;
+pub mod map;
 pub mod plan;

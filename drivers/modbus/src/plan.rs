@@ -144,6 +144,36 @@ pub enum PlanError {
     },
 }
 
+impl PlanError {
+    /// The same error with its point index mapped through `f` (for callers that plan a
+    /// subset of their points).
+    pub fn renumber(self, f: impl Fn(usize) -> usize) -> Self {
+        match self {
+            PlanError::Empty { point } => PlanError::Empty { point: f(point) },
+            PlanError::PastEnd {
+                point,
+                address,
+                end,
+            } => PlanError::PastEnd {
+                point: f(point),
+                address,
+                end,
+            },
+            PlanError::TooLong {
+                point,
+                count,
+                max,
+                bits,
+            } => PlanError::TooLong {
+                point: f(point),
+                count,
+                max,
+                bits,
+            },
+        }
+    }
+}
+
 /// The reads that cover every span, coalescing spans at most `max_gap` addresses apart
 /// within the protocol's limits. Reads are ordered by table, then address.
 pub fn plan(spans: &[Span], max_gap: u16) -> Result<Vec<Read>, PlanError> {

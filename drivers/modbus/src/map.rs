@@ -1,0 +1,403 @@
+//! The register map: which points a card has, and which device channel each one is.
+//!
+//! Points become channels in map order, per interface:
+//!
+//! | table | point | channel |
+//! |---|---|---|
+//! | coils | — | DigitalOut bit |
+//! | discrete inputs | — | DigitalIn bit |
+//! | input registers | value | AnalogIn channel |
+//! | input or holding registers | `bit = n` | DigitalIn bit (bit n of the register) |
+//! | holding registers | value | AnalogOut channel (AnalogIn with `read_only = true`) |
+//!
+//! An analog point's raw value is the register value for integer types; for `f32`/`f64`
+//! registers it is the register value in thousandths (so `read_raw` stays an integer). The
+//! physical value is `register value * scale + offset`, in `unit`.
+//!
+//! ```
+//! use driver_modbus::map::{Map, PointConfig, Role};
+//!
+//! let points: Vec<PointConfig> = toml::from_str::<toml::Table>(r#"
+//!     [[point]]
+//!     table = "input_registers"
+//!     address = 10
+//!     type = "i16"
+//!     scale = 0.1
+//!     unit = "degC"
+//! "#)?["point"].clone().try_into()?;
+//! let map = Map::new(&points, 0)?;
+//! assert_eq!(map.points()[0].role, Role::AnalogIn);
+//! assert_eq!(map.points()[0].scale.to_physical(-215), -21.5);
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+
+use crate::codec::{ByteOrder, Layout, ValueType, WordOrder};
+use crate::plan::{PlanError, Read, Span, Table, plan};
+use device_interface::{RawRange, Scale, Unit};
+use serde::Deserialize;
+
+/// One point of a register map, as configured.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PointConfig {
+    /// The table.
+    pub table: Table,
+    /// The address, 0-based as on the wire (register 40001 of the old notation is
+    /// holding register 0).
+    pub address: u16,
+    /// Value type of a register point (default u16).
+    #[serde(default, rename = "type")]
+    pub ty: ValueType,
+    /// Word order of a multi-register value.
+    #[serde(default)]
+    pub words: WordOrder,
+    /// Byte order inside each register.
+    #[serde(default)]
+    pub bytes: ByteOrder,
+    /// Physical value = register value * scale + offset.
+    #[serde(default = "one")]
+    pub scale: f64,
+    /// Added after the scale.
+    #[serde(default)]
+    pub offset: f64,
+    /// Unit of the physical value.
+    #[serde(default)]
+    pub unit: String,
+    /// Make this point one bit (0..=15) of a 16-bit register: a DigitalIn.
+    #[serde(default)]
+    pub bit: Option<u8>,
+    /// A holding register read as an input instead of written as an output.
+    #[serde(default)]
+    pub read_only: bool,
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+/// The device interface a point serves.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Role {
+    /// An AnalogIn channel.
+    AnalogIn,
+    /// An AnalogOut channel.
+    AnalogOut,
+    /// A DigitalIn bit.
+    DigitalIn,
+    /// A DigitalOut bit.
+    DigitalOut,
+}
+
+/// A validated point.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Point {
+    /// Its configuration.
+    pub config: PointConfig,
+    /// The interface it serves.
+    pub role: Role,
+    /// Its channel (or bit) number within that interface.
+    pub channel: u32,
+    /// What it occupies on the wire.
+    pub span: Span,
+    /// How its value sits in the registers.
+    pub layout: Layout,
+    /// Raw to physical (analog points; identity for digital ones).
+    pub scale: Scale,
+}
+
+/// Why a map was refused; each names the point.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum MapError {
+    /// A point whose fields do not go together.
+    #[error("point[{point}].{key}: {problem}")]
+    Point {
+        /// Index of the point.
+        point: usize,
+        /// The key at fault.
+        key: &'static str,
+        /// What is wrong.
+        problem: String,
+    },
+    /// The map cannot be read.
+    #[error("{0}")]
+    Plan(#[from] PlanError),
+}
+
+/// Raw values of a float point are thousandths of the register value.
+pub const FLOAT_RAW_PER_UNIT: f64 = 1000.0;
+
+fn raw_range(ty: ValueType) -> RawRange {
+    // The bounds below are all valid ranges; RawRange::new only refuses min >= max.
+    let r = |min: i64, max: i64| RawRange { min, max };
+    match ty {
+        ValueType::U16 => r(0, i64::from(u16::MAX)),
+        ValueType::I16 => r(i64::from(i16::MIN), i64::from(i16::MAX)),
+        ValueType::U32 => r(0, i64::from(u32::MAX)),
+        ValueType::I32 => r(i64::from(i32::MIN), i64::from(i32::MAX)),
+        ValueType::U64 => r(0, i64::MAX),
+        ValueType::I64 => r(i64::MIN, i64::MAX),
+        // ±2^53 thousandths: exact in an f64 both ways.
+        ValueType::F32 | ValueType::F64 => r(-(1 << 53), 1 << 53),
+    }
+}
+
+/// A card's register map: points with their channels, and the reads that poll it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Map {
+    points: Vec<Point>,
+    counts: [u32; 4],
+    reads: Vec<Read>,
+    /// For each read, the indices into `points` it serves.
+    read_points: Vec<Vec<usize>>,
+}
+
+impl Map {
+    /// Validates `configs`, numbers the channels and plans the reads with `max_gap`.
+    pub fn new(configs: &[PointConfig], max_gap: u16) -> Result<Map, MapError> {
+        let mut points = Vec::new();
+        let mut counts = [0u32; 4];
+        for (i, c) in configs.iter().enumerate() {
+            let bad = |key, problem: String| MapError::Point {
+                point: i,
+                key,
+                problem,
+            };
+            let bit_table = c.table.is_bits();
+            if bit_table
+                && (c.ty != ValueType::U16 || c.bit.is_some() || c.scale != 1.0 || c.offset != 0.0)
+            {
+                return Err(bad(
+                    "table",
+                    format!(
+                        "{:?} hold single bits: no type, bit, scale or offset",
+                        c.table
+                    ),
+                ));
+            }
+            if let Some(b) = c.bit {
+                if b > 15 {
+                    return Err(bad("bit", format!("{b}: a register has bits 0..=15")));
+                }
+                if c.ty.registers() != 1 {
+                    return Err(bad(
+                        "bit",
+                        format!("a bit field needs a 16-bit type, not {:?}", c.ty),
+                    ));
+                }
+            }
+            if c.read_only && c.table != Table::HoldingRegisters {
+                return Err(bad(
+                    "read_only",
+                    "only holding registers can be outputs; other tables are read-only already"
+                        .into(),
+                ));
+            }
+            let role = match (c.table, c.bit, c.read_only) {
+                (Table::Coils, _, _) => Role::DigitalOut,
+                (Table::DiscreteInputs, _, _) | (_, Some(_), _) => Role::DigitalIn,
+                (Table::InputRegisters, None, _) | (Table::HoldingRegisters, None, true) => {
+                    Role::AnalogIn
+                }
+                (Table::HoldingRegisters, None, false) => Role::AnalogOut,
+            };
+            let unit = Unit::new(&c.unit).map_err(|e| bad("unit", e.to_string()))?;
+            let factor = if c.ty.is_float() {
+                c.scale / FLOAT_RAW_PER_UNIT
+            } else {
+                c.scale
+            };
+            let scale = Scale::from_factor(raw_range(c.ty), factor, c.offset, unit)
+                .map_err(|e| bad("scale", e.to_string()))?;
+            let slot = match role {
+                Role::AnalogIn => 0,
+                Role::AnalogOut => 1,
+                Role::DigitalIn => 2,
+                Role::DigitalOut => 3,
+            };
+            let channel = counts[slot];
+            counts[slot] += 1;
+            points.push(Point {
+                config: c.clone(),
+                role,
+                channel,
+                span: Span {
+                    table: c.table,
+                    address: c.address,
+                    count: if bit_table {
+                        1
+                    } else {
+                        c.ty.registers() as u16
+                    },
+                },
+                layout: Layout {
+                    ty: c.ty,
+                    words: c.words,
+                    bytes: c.bytes,
+                },
+                scale,
+            });
+        }
+        // Inputs are polled; outputs are written on change (read-back is a later option).
+        let polled: Vec<usize> = (0..points.len())
+            .filter(|&i| matches!(points[i].role, Role::AnalogIn | Role::DigitalIn))
+            .collect();
+        let spans: Vec<Span> = polled.iter().map(|&i| points[i].span).collect();
+        // Errors and reads name points of `spans`: map them back to the map's numbering.
+        let mut reads = plan(&spans, max_gap).map_err(|e| e.renumber(|k| polled[k]))?;
+        let read_points = reads
+            .iter()
+            .map(|r| r.points.iter().map(|&k| polled[k]).collect())
+            .collect();
+        for r in &mut reads {
+            r.points = r.points.iter().map(|&k| polled[k]).collect();
+        }
+        Ok(Map {
+            points,
+            counts,
+            reads,
+            read_points,
+        })
+    }
+
+    /// The points, in map order.
+    pub fn points(&self) -> &[Point] {
+        &self.points
+    }
+
+    /// Channel counts: [AnalogIn, AnalogOut, DigitalIn, DigitalOut].
+    pub fn counts(&self) -> [u32; 4] {
+        self.counts
+    }
+
+    /// The reads one poll makes (their `points` index [`points`](Self::points)).
+    pub fn reads(&self) -> &[Read] {
+        &self.reads
+    }
+
+    /// The points read `i` serves.
+    pub fn read_points(&self, i: usize) -> &[usize] {
+        self.read_points.get(i).map_or(&[], Vec::as_slice)
+    }
+
+    /// The point serving channel `channel` of `role`.
+    pub fn point(&self, role: Role, channel: u32) -> Option<&Point> {
+        self.points
+            .iter()
+            .find(|p| p.role == role && p.channel == channel)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn points(text: &str) -> Vec<PointConfig> {
+        let t: toml::Table = toml::from_str(text).unwrap();
+        t["point"].clone().try_into().unwrap()
+    }
+
+    #[test]
+    fn tables_become_channels_in_map_order() {
+        let map = Map::new(
+            &points(
+                r#"
+                [[point]]
+                table = "holding_registers"
+                address = 0
+                [[point]]
+                table = "input_registers"
+                address = 0
+                type = "f32"
+                [[point]]
+                table = "holding_registers"
+                address = 5
+                read_only = true
+                [[point]]
+                table = "coils"
+                address = 3
+                [[point]]
+                table = "input_registers"
+                address = 9
+                bit = 4
+                [[point]]
+                table = "discrete_inputs"
+                address = 1
+                [[point]]
+                table = "holding_registers"
+                address = 1
+                type = "i32"
+                "#,
+            ),
+            0,
+        )
+        .unwrap();
+        let roles: Vec<(Role, u32)> = map.points().iter().map(|p| (p.role, p.channel)).collect();
+        assert_eq!(
+            roles,
+            vec![
+                (Role::AnalogOut, 0),
+                (Role::AnalogIn, 0),
+                (Role::AnalogIn, 1),
+                (Role::DigitalOut, 0),
+                (Role::DigitalIn, 0),
+                (Role::DigitalIn, 1),
+                (Role::AnalogOut, 1),
+            ]
+        );
+        assert_eq!(map.counts(), [2, 2, 2, 1]);
+        // Only inputs are polled: discrete 1; input registers 0..=1 and 9 (apart); holding 5.
+        let reads: Vec<String> = map.reads().iter().map(|r| r.to_string()).collect();
+        assert_eq!(
+            reads,
+            vec![
+                "FC2 read discrete inputs 1..=1 (1) for points [5]",
+                "FC4 read input registers 0..=1 (2) for points [1]",
+                "FC4 read input registers 9..=9 (1) for points [4]",
+                "FC3 read holding registers 5..=5 (1) for points [2]",
+            ]
+        );
+        assert_eq!(map.read_points(1), &[1]);
+    }
+
+    #[test]
+    fn float_raw_values_are_thousandths() {
+        let map = Map::new(&points("[[point]]\ntable = \"input_registers\"\naddress = 0\ntype = \"f32\"\nscale = 2.0\noffset = 1.0\n"), 0).unwrap();
+        let s = map.points()[0].scale;
+        assert_eq!(s.to_physical(1500), 4.0, "register 1.5 -> 1.5 * 2 + 1");
+        assert!((s.resolution() - 0.002).abs() < 1e-15);
+    }
+
+    #[test]
+    fn bad_points_name_their_key() {
+        let cases = [
+            (
+                "[[point]]\ntable = \"coils\"\naddress = 0\ntype = \"u32\"\n",
+                "point[0].table: Coils hold single bits: no type, bit, scale or offset",
+            ),
+            (
+                "[[point]]\ntable = \"input_registers\"\naddress = 0\nbit = 16\n",
+                "point[0].bit: 16: a register has bits 0..=15",
+            ),
+            (
+                "[[point]]\ntable = \"input_registers\"\naddress = 0\ntype = \"u32\"\nbit = 1\n",
+                "point[0].bit: a bit field needs a 16-bit type, not U32",
+            ),
+            (
+                "[[point]]\ntable = \"input_registers\"\naddress = 0\nread_only = true\n",
+                "point[0].read_only: only holding registers can be outputs; other tables are read-only already",
+            ),
+            (
+                "[[point]]\ntable = \"input_registers\"\naddress = 0\nscale = 0.0\n",
+                "point[0].scale: factor 0 and offset 0 are invalid: needs a finite non-zero factor and a finite offset",
+            ),
+            (
+                "[[point]]\ntable = \"input_registers\"\naddress = 3\n[[point]]\ntable = \"input_registers\"\naddress = 65535\ntype = \"f32\"\n",
+                "point 1: addresses 65535..65537 run past 65535",
+            ),
+        ];
+        for (text, want) in cases {
+            assert_eq!(Map::new(&points(text), 0).unwrap_err().to_string(), want);
+        }
+    }
+}
