@@ -4,7 +4,8 @@
 //! - [`codec`]: values in registers — u16/i16/u32/i32/u64/i64/f32/f64 with word and byte
 //!   order;
 //! - [`plan`]: coalescing a register map into as few reads as the protocol allows;
-//! - [`map`]: the register map, and which device channel each point is.
+//! - [`map`]: the register map, and which device channel each point is;
+//! - [`card`]: a unit's devices — images fed by replies, outputs turned into writes.
 //!
 //! ```
 //! use driver_modbus::codec::{Layout, Number, ValueType};
@@ -14,6 +15,7 @@
 //! # Ok::<(), driver_modbus::codec::CodecError>(())
 //! ```
 
+pub mod card;
 pub mod codec;
 pub mod map;
 pub mod plan;

@@ -10,9 +10,12 @@
 //! | input or holding registers | `bit = n` | DigitalIn bit (bit n of the register) |
 //! | holding registers | value | AnalogOut channel (AnalogIn with `read_only = true`) |
 //!
-//! An analog point's raw value is the register value for integer types; for `f32`/`f64`
-//! registers it is the register value in thousandths (so `read_raw` stays an integer). The
-//! physical value is `register value * scale + offset`, in `unit`.
+//! An analog point's raw value is the register value for integer types. A float register
+//! has no integer value, so its raw value counts steps of `resolution` (default 0.001
+//! register units), over the range the type represents exactly at that step: ±2^23 steps
+//! for `f32` (±8388.608 at the default; choose a coarser resolution for larger values,
+//! which otherwise saturate), ±2^52 for `f64`. The physical value is
+//! `register value * scale + offset`, in `unit`.
 //!
 //! ```
 //! use driver_modbus::map::{Map, PointConfig, Role};
@@ -69,6 +72,9 @@ pub struct PointConfig {
     /// A holding register read as an input instead of written as an output.
     #[serde(default)]
     pub read_only: bool,
+    /// For f32/f64 points: the register-value step one raw count stands for.
+    #[serde(default)]
+    pub resolution: Option<f64>,
 }
 
 fn one() -> f64 {
@@ -103,6 +109,8 @@ pub struct Point {
     pub layout: Layout,
     /// Raw to physical (analog points; identity for digital ones).
     pub scale: Scale,
+    /// For float points, the register value of one raw count (1 for integer points).
+    pub step: f64,
 }
 
 /// Why a map was refused; each names the point.
@@ -124,8 +132,8 @@ pub enum MapError {
     Plan(#[from] PlanError),
 }
 
-/// Raw values of a float point are thousandths of the register value.
-pub const FLOAT_RAW_PER_UNIT: f64 = 1000.0;
+/// The default `resolution` of float points.
+pub const DEFAULT_FLOAT_STEP: f64 = 0.001;
 
 fn raw_range(ty: ValueType) -> RawRange {
     // The bounds below are all valid ranges; RawRange::new only refuses min >= max.
@@ -137,8 +145,10 @@ fn raw_range(ty: ValueType) -> RawRange {
         ValueType::I32 => r(i64::from(i32::MIN), i64::from(i32::MAX)),
         ValueType::U64 => r(0, i64::MAX),
         ValueType::I64 => r(i64::MIN, i64::MAX),
-        // ±2^53 thousandths: exact in an f64 both ways.
-        ValueType::F32 | ValueType::F64 => r(-(1 << 53), 1 << 53),
+        // Steps the type represents exactly: every multiple of the step up to there
+        // survives the round trip through the register (half an ulp < half a step).
+        ValueType::F32 => r(-(1 << 23), 1 << 23),
+        ValueType::F64 => r(-(1 << 52), 1 << 52),
     }
 }
 
@@ -201,12 +211,25 @@ impl Map {
                 }
                 (Table::HoldingRegisters, None, false) => Role::AnalogOut,
             };
-            let unit = Unit::new(&c.unit).map_err(|e| bad("unit", e.to_string()))?;
-            let factor = if c.ty.is_float() {
-                c.scale / FLOAT_RAW_PER_UNIT
-            } else {
-                c.scale
+            let step = match (c.resolution, c.ty.is_float()) {
+                (None, false) => 1.0,
+                (None, true) => DEFAULT_FLOAT_STEP,
+                (Some(r), true) if r.is_finite() && r > 0.0 => r,
+                (Some(r), true) => {
+                    return Err(bad("resolution", format!("{r}: expected a step above 0")));
+                }
+                (Some(_), false) => {
+                    return Err(bad(
+                        "resolution",
+                        format!(
+                            "only float points have a resolution; {:?} counts whole units",
+                            c.ty
+                        ),
+                    ));
+                }
             };
+            let unit = Unit::new(&c.unit).map_err(|e| bad("unit", e.to_string()))?;
+            let factor = c.scale * step;
             let scale = Scale::from_factor(raw_range(c.ty), factor, c.offset, unit)
                 .map_err(|e| bad("scale", e.to_string()))?;
             let slot = match role {
@@ -236,6 +259,7 @@ impl Map {
                     bytes: c.bytes,
                 },
                 scale,
+                step,
             });
         }
         // Inputs are polled; outputs are written on change (read-back is a later option).
@@ -361,16 +385,26 @@ mod tests {
     }
 
     #[test]
-    fn float_raw_values_are_thousandths() {
-        let map = Map::new(&points("[[point]]\ntable = \"input_registers\"\naddress = 0\ntype = \"f32\"\nscale = 2.0\noffset = 1.0\n"), 0).unwrap();
+    fn float_raw_values_count_resolution_steps() {
+        let map = Map::new(&points("[[point]]\ntable = \"input_registers\"\naddress = 0\ntype = \"f32\"\nscale = 2.0\noffset = 1.0\n[[point]]\ntable = \"input_registers\"\naddress = 2\ntype = \"f32\"\nresolution = 0.5\n"), 0).unwrap();
         let s = map.points()[0].scale;
         assert_eq!(s.to_physical(1500), 4.0, "register 1.5 -> 1.5 * 2 + 1");
         assert!((s.resolution() - 0.002).abs() < 1e-15);
+        let coarse = map.points()[1].scale;
+        assert_eq!(coarse.range().highest, 4194304.0, "2^23 steps of 0.5");
     }
 
     #[test]
     fn bad_points_name_their_key() {
         let cases = [
+            (
+                "[[point]]\ntable = \"input_registers\"\naddress = 0\nresolution = 0.1\n",
+                "point[0].resolution: only float points have a resolution; U16 counts whole units",
+            ),
+            (
+                "[[point]]\ntable = \"input_registers\"\naddress = 0\ntype = \"f64\"\nresolution = -1.0\n",
+                "point[0].resolution: -1: expected a step above 0",
+            ),
             (
                 "[[point]]\ntable = \"coils\"\naddress = 0\ntype = \"u32\"\n",
                 "point[0].table: Coils hold single bits: no type, bit, scale or offset",

@@ -1,0 +1,476 @@
+//! A Modbus unit as a card: the device side, between the register map and the poller.
+//!
+//! The device methods keep the real-time contract: they read the input image and update
+//! the output image (atomics only). The poller — the card's bus activity — feeds each read's
+//! reply to [`ModbusCard::apply_read`], reports each poll with
+//! [`poll_succeeded`](ModbusCard::poll_succeeded) or [`poll_failed`](ModbusCard::poll_failed),
+//! and sends what [`take_writes`](ModbusCard::take_writes) returns: changed outputs as
+//! function codes 5/6 (one coil or register) or 15/16 (runs of consecutive addresses).
+
+use crate::codec::Number;
+use crate::map::{Map, Point, Role};
+use crate::plan::Table;
+use arc_swap::ArcSwapOption;
+use device_interface::bits::{BitImage, BitSpan};
+use device_interface::time::{Clock, Timestamp};
+use device_interface::{
+    AnalogIn, AnalogOut, Device, DeviceError, DigitalIn, DigitalOut, Health, Scale, Status,
+};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicI64, AtomicU8, AtomicU64, Ordering};
+
+/// The data of one read's reply.
+#[derive(Debug, Clone, Copy)]
+pub enum ReadData<'a> {
+    /// Registers (function codes 3 and 4), from the read's first address.
+    Registers(&'a [u16]),
+    /// Bits (function codes 1 and 2), from the read's first address.
+    Bits(&'a [bool]),
+}
+
+/// A write to send.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Write {
+    /// Function code 5.
+    Coil {
+        /// Address.
+        address: u16,
+        /// Value.
+        value: bool,
+    },
+    /// Function code 15.
+    Coils {
+        /// First address.
+        address: u16,
+        /// Values from there.
+        values: Vec<bool>,
+    },
+    /// Function code 6.
+    Register {
+        /// Address.
+        address: u16,
+        /// Value.
+        value: u16,
+    },
+    /// Function code 16.
+    Registers {
+        /// First address.
+        address: u16,
+        /// Values from there.
+        values: Vec<u16>,
+    },
+}
+
+/// A reply that does not fit its request.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum ReplyError {
+    /// No such read in the plan.
+    #[error("read {0} is not in the plan")]
+    NoSuchRead(usize),
+    /// Registers for a bit read or bits for a register read.
+    #[error("read {read}: the reply carries the wrong kind of data for {table:?}")]
+    WrongKind {
+        /// The read.
+        read: usize,
+        /// Its table.
+        table: Table,
+    },
+    /// Fewer registers or bits than asked for.
+    #[error("read {read}: {got} values in the reply, {expected} asked for")]
+    Short {
+        /// The read.
+        read: usize,
+        /// Asked for.
+        expected: u16,
+        /// Received.
+        got: usize,
+    },
+    /// A float register holding NaN or infinity: the point keeps its previous value.
+    #[error("point {point}: the register holds {value}, not a number in range")]
+    NotANumber {
+        /// The point.
+        point: usize,
+        /// The value.
+        value: f64,
+    },
+}
+
+const ONLINE: u8 = 0;
+const STALE: u8 = 1;
+const OFFLINE: u8 = 2;
+
+/// One Modbus unit's devices.
+pub struct ModbusCard {
+    map: Map,
+    clock: Arc<dyn Clock>,
+    ai: Box<[AtomicI64]>,
+    ao: Box<[AtomicI64]>,
+    ao_dirty: BitImage,
+    di: BitImage,
+    dout: BitImage,
+    do_dirty: BitImage,
+    status: AtomicU8,
+    /// Time of the last good poll in ns plus one; 0: never.
+    last_good: AtomicU64,
+    last_error: ArcSwapOption<DeviceError>,
+}
+
+fn raw_of(point: &Point, n: Number) -> Option<i64> {
+    let r = point.scale.raw_range();
+    match n {
+        Number::Int(v) => Some(v),
+        Number::UInt(v) => Some(i64::try_from(v).unwrap_or(i64::MAX)),
+        Number::Float(f) if f.is_finite() => {
+            // Saturates at the range the register type represents exactly (see map).
+            Some((f / point.step).round().clamp(r.min as f64, r.max as f64) as i64)
+        }
+        Number::Float(_) => None,
+    }
+}
+
+fn number_of(point: &Point, raw: i64) -> Number {
+    if point.layout.ty.is_float() {
+        Number::Float(raw as f64 * point.step)
+    } else if raw < 0 {
+        Number::Int(raw)
+    } else {
+        Number::UInt(raw as u64)
+    }
+}
+
+impl ModbusCard {
+    /// A card for `map`; offline until its first good poll (start-up never waits for the
+    /// device).
+    pub fn new(map: Map, clock: Arc<dyn Clock>) -> Arc<ModbusCard> {
+        let [ai, ao, di, dout] = map.counts();
+        // Analog images start at the raw value nearest to 0 until the first reply.
+        let image = |role: Role, n: u32| -> Box<[AtomicI64]> {
+            (0..n)
+                .map(|ch| {
+                    AtomicI64::new(
+                        map.point(role, ch)
+                            .map_or(0, |p| p.scale.to_raw_saturating(0.0)),
+                    )
+                })
+                .collect()
+        };
+        Arc::new(ModbusCard {
+            ai: image(Role::AnalogIn, ai),
+            ao: image(Role::AnalogOut, ao),
+            ao_dirty: BitImage::new(ao),
+            di: BitImage::new(di),
+            dout: BitImage::new(dout),
+            do_dirty: BitImage::new(dout),
+            status: AtomicU8::new(OFFLINE),
+            last_good: AtomicU64::new(0),
+            last_error: ArcSwapOption::empty(),
+            map,
+            clock,
+        })
+    }
+
+    /// The register map.
+    pub fn map(&self) -> &Map {
+        &self.map
+    }
+
+    /// Decodes the reply to read `read` of the plan into the input image. A point whose
+    /// value is not a number keeps its previous value; the others are still taken.
+    pub fn apply_read(&self, read: usize, data: ReadData<'_>) -> Result<(), ReplyError> {
+        let r = self
+            .map
+            .reads()
+            .get(read)
+            .ok_or(ReplyError::NoSuchRead(read))?;
+        let got = match data {
+            ReadData::Registers(regs) if !r.table.is_bits() => regs.len(),
+            ReadData::Bits(bits) if r.table.is_bits() => bits.len(),
+            _ => {
+                return Err(ReplyError::WrongKind {
+                    read,
+                    table: r.table,
+                });
+            }
+        };
+        if got < usize::from(r.count) {
+            return Err(ReplyError::Short {
+                read,
+                expected: r.count,
+                got,
+            });
+        }
+        let mut first_error = None;
+        for &pi in self.map.read_points(read) {
+            let p = &self.map.points()[pi];
+            let offset = usize::from(p.span.address - r.start);
+            match (data, p.role) {
+                (ReadData::Bits(bits), _) => {
+                    let _ = self.di.set(p.channel, bits[offset]);
+                }
+                (ReadData::Registers(regs), Role::DigitalIn) => {
+                    let bit = p.config.bit.unwrap_or(0);
+                    let _ = self.di.set(p.channel, regs[offset] >> bit & 1 == 1);
+                }
+                (ReadData::Registers(regs), _) => {
+                    // The reply length was checked, so decoding cannot come up short.
+                    let decoded = p.layout.decode(&regs[offset..]);
+                    let raw = decoded.as_ref().ok().and_then(|n| raw_of(p, *n));
+                    let value = decoded.map_or(f64::NAN, Number::as_f64);
+                    match (raw, self.ai.get(p.channel as usize)) {
+                        (Some(raw), Some(cell)) => cell.store(raw, Ordering::Release),
+                        (Some(_), None) => {}
+                        (None, _) => {
+                            first_error.get_or_insert(ReplyError::NotANumber { point: pi, value });
+                        }
+                    }
+                }
+            }
+        }
+        first_error.map_or(Ok(()), Err)
+    }
+
+    /// Records a complete, good poll: the inputs are fresh and the unit online.
+    pub fn poll_succeeded(&self) {
+        self.last_good.store(
+            self.clock.now().as_nanos().saturating_add(1),
+            Ordering::Release,
+        );
+        self.status.store(ONLINE, Ordering::Release);
+        self.last_error.store(None);
+    }
+
+    /// Records a failed poll: the error, and whether the unit is now `Stale` or `Offline`
+    /// (the poller's policy decides which).
+    pub fn poll_failed(&self, error: DeviceError, status: Status) {
+        self.last_error.store(Some(Arc::new(error)));
+        self.status.store(
+            match status {
+                Status::Online => ONLINE,
+                Status::Stale => STALE,
+                Status::Offline => OFFLINE,
+            },
+            Ordering::Release,
+        );
+    }
+
+    /// The outputs written since the last call, as requests: runs of consecutive
+    /// addresses become one function code 15 or 16 request.
+    pub fn take_writes(&self) -> Vec<Write> {
+        let mut regs: Vec<(u16, u16)> = Vec::new();
+        let mut coils: Vec<(u16, bool)> = Vec::new();
+        for p in self.map.points() {
+            let dirty = match p.role {
+                Role::AnalogOut => &self.ao_dirty,
+                Role::DigitalOut => &self.do_dirty,
+                Role::AnalogIn | Role::DigitalIn => continue,
+            };
+            // Clear first, then read the value: a write after the read marks it again.
+            if !dirty.set(p.channel, false).unwrap_or(false) {
+                continue;
+            }
+            if p.role == Role::DigitalOut {
+                coils.push((p.span.address, self.dout.get(p.channel).unwrap_or(false)));
+                continue;
+            }
+            let raw = self.ao[p.channel as usize].load(Ordering::Acquire);
+            // The raw range is the type's, so encoding cannot fail; skip rather than panic.
+            if let Ok(words) = p.layout.encode(number_of(p, raw)) {
+                for (k, w) in words.as_slice().iter().enumerate() {
+                    regs.push((p.span.address + k as u16, *w));
+                }
+            }
+        }
+        let mut out = Vec::new();
+        regs.sort_by_key(|r| r.0);
+        for run in runs(&regs) {
+            out.push(match run {
+                [(a, v)] => Write::Register {
+                    address: *a,
+                    value: *v,
+                },
+                _ => Write::Registers {
+                    address: run[0].0,
+                    values: run.iter().map(|r| r.1).collect(),
+                },
+            });
+        }
+        coils.sort_by_key(|c| c.0);
+        for run in runs(&coils) {
+            out.push(match run {
+                [(a, v)] => Write::Coil {
+                    address: *a,
+                    value: *v,
+                },
+                _ => Write::Coils {
+                    address: run[0].0,
+                    values: run.iter().map(|c| c.1).collect(),
+                },
+            });
+        }
+        out
+    }
+
+    fn check_input(&self) -> Result<(), DeviceError> {
+        match self.status.load(Ordering::Acquire) {
+            ONLINE => Ok(()),
+            STALE => Err(DeviceError::Stale { age: self.age() }),
+            // Why it is offline is in health().last_error.
+            _ => Err(DeviceError::Offline),
+        }
+    }
+
+    fn check_output(&self) -> Result<(), DeviceError> {
+        if self.status.load(Ordering::Acquire) == OFFLINE {
+            return Err(DeviceError::Offline);
+        }
+        Ok(())
+    }
+
+    fn last_good(&self) -> Option<Timestamp> {
+        match self.last_good.load(Ordering::Acquire) {
+            0 => None,
+            n => Some(Timestamp::from_nanos(n - 1)),
+        }
+    }
+
+    fn age(&self) -> Option<std::time::Duration> {
+        self.last_good().map(|t| self.clock.now().duration_since(t))
+    }
+
+    fn point(&self, role: Role, channel: u32, count: u32) -> Result<&Point, DeviceError> {
+        self.map
+            .point(role, channel)
+            .ok_or(DeviceError::ChannelOutOfRange { channel, count })
+    }
+}
+
+/// Splits sorted (address, value) pairs into runs of consecutive addresses.
+fn runs<T>(items: &[(u16, T)]) -> Vec<&[(u16, T)]> {
+    let mut out = Vec::new();
+    let mut start = 0;
+    for i in 1..=items.len() {
+        if i == items.len() || u32::from(items[i].0) != u32::from(items[i - 1].0) + 1 {
+            if start < i {
+                out.push(&items[start..i]);
+            }
+            start = i;
+        }
+    }
+    out
+}
+
+impl Device for ModbusCard {
+    fn health(&self) -> Health {
+        Health {
+            status: match self.status.load(Ordering::Acquire) {
+                ONLINE => Status::Online,
+                STALE => Status::Stale,
+                _ => Status::Offline,
+            },
+            last_good: self.last_good(),
+            checked_at: self.clock.now(),
+            last_error: self.last_error.load().as_deref().cloned(),
+        }
+    }
+}
+
+impl AnalogIn for ModbusCard {
+    fn channel_count(&self) -> u32 {
+        self.map.counts()[0]
+    }
+
+    fn scale(&self, channel: u32) -> Result<Scale, DeviceError> {
+        Ok(self
+            .point(Role::AnalogIn, channel, self.map.counts()[0])?
+            .scale)
+    }
+
+    fn read_raw(&self, channel: u32) -> Result<i64, DeviceError> {
+        self.point(Role::AnalogIn, channel, self.map.counts()[0])?;
+        self.check_input()?;
+        Ok(self.ai[channel as usize].load(Ordering::Acquire))
+    }
+}
+
+impl AnalogOut for ModbusCard {
+    fn channel_count(&self) -> u32 {
+        self.map.counts()[1]
+    }
+
+    fn scale(&self, channel: u32) -> Result<Scale, DeviceError> {
+        Ok(self
+            .point(Role::AnalogOut, channel, self.map.counts()[1])?
+            .scale)
+    }
+
+    fn write_raw(&self, channel: u32, raw: i64) -> Result<(), DeviceError> {
+        let p = self.point(Role::AnalogOut, channel, self.map.counts()[1])?;
+        p.scale.check_raw(channel, raw)?;
+        self.check_output()?;
+        self.ao[channel as usize].store(raw, Ordering::Release);
+        self.ao_dirty.set(channel, true)?;
+        Ok(())
+    }
+
+    fn read_back_raw(&self, channel: u32) -> Result<i64, DeviceError> {
+        self.point(Role::AnalogOut, channel, self.map.counts()[1])?;
+        Ok(self.ao[channel as usize].load(Ordering::Acquire))
+    }
+}
+
+impl DigitalIn for ModbusCard {
+    fn input_count(&self) -> u32 {
+        self.di.len()
+    }
+
+    fn read_bit(&self, bit: u32) -> Result<bool, DeviceError> {
+        let v = self.di.get(bit)?;
+        self.check_input()?;
+        Ok(v)
+    }
+
+    fn read_sequence(&self, start: u32, stop: u32) -> Result<u64, DeviceError> {
+        let span = BitSpan::new(start, stop, self.di.len())?;
+        self.check_input()?;
+        Ok(self.di.read_span(span))
+    }
+}
+
+impl DigitalOut for ModbusCard {
+    fn output_count(&self) -> u32 {
+        self.dout.len()
+    }
+
+    fn set_bit(&self, bit: u32, value: bool) -> Result<(), DeviceError> {
+        if bit >= self.dout.len() {
+            return Err(DeviceError::BitOutOfRange {
+                bit,
+                count: self.dout.len(),
+            });
+        }
+        self.check_output()?;
+        self.dout.set(bit, value)?;
+        self.do_dirty.set(bit, true)?;
+        Ok(())
+    }
+
+    fn check_bit(&self, bit: u32) -> Result<bool, DeviceError> {
+        self.dout.get(bit)
+    }
+
+    fn set_sequence(&self, start: u32, stop: u32, value: u64) -> Result<(), DeviceError> {
+        let span = BitSpan::new(start, stop, self.dout.len())?;
+        span.check_value(value)?;
+        self.check_output()?;
+        self.dout.write_span(span, value)?;
+        self.do_dirty.write_span(span, span.mask())?;
+        Ok(())
+    }
+
+    fn check_sequence(&self, start: u32, stop: u32) -> Result<u64, DeviceError> {
+        Ok(self
+            .dout
+            .read_span(BitSpan::new(start, stop, self.dout.len())?))
+    }
+}

@@ -1,0 +1,319 @@
+//! The Modbus card's device side against the conformance kit, with a simulated register
+//! memory standing in for the unit: replies decoded into the image, writes coalesced.
+
+#![allow(
+    clippy::unwrap_used,
+    reason = "test code: a failed unwrap is a failed test"
+)]
+
+use device_interface::conformance;
+use device_interface::time::{SimClock, Timestamp};
+use device_interface::{AnalogIn, AnalogOut, Device, DeviceError, DigitalIn, DigitalOut, Status};
+use driver_modbus::card::{ModbusCard, ReadData, ReplyError, Write};
+use driver_modbus::codec::Number;
+use driver_modbus::map::{Map, PointConfig, Role};
+use std::cell::RefCell;
+use std::sync::Arc;
+use std::time::Duration;
+
+const MAP: &str = r#"
+[[point]]
+table = "input_registers"
+address = 0
+type = "i16"
+scale = 0.1
+unit = "degC"
+[[point]]
+table = "input_registers"
+address = 1
+type = "u32"
+words = "low_first"
+[[point]]
+table = "input_registers"
+address = 3
+type = "f32"
+bytes = "swapped"
+unit = "bar"
+[[point]]
+table = "holding_registers"
+address = 100
+type = "i32"
+read_only = true
+[[point]]
+table = "holding_registers"
+address = 10
+scale = 0.01
+unit = "V"
+[[point]]
+table = "holding_registers"
+address = 11
+type = "f32"
+[[point]]
+table = "holding_registers"
+address = 20
+type = "i16"
+[[point]]
+table = "discrete_inputs"
+address = 0
+[[point]]
+table = "discrete_inputs"
+address = 1
+[[point]]
+table = "input_registers"
+address = 40
+bit = 0
+[[point]]
+table = "input_registers"
+address = 40
+bit = 15
+[[point]]
+table = "coils"
+address = 0
+[[point]]
+table = "coils"
+address = 1
+[[point]]
+table = "coils"
+address = 7
+"#;
+
+fn map() -> Map {
+    let t: toml::Table = toml::from_str(MAP).unwrap();
+    let points: Vec<PointConfig> = t["point"].clone().try_into().unwrap();
+    Map::new(&points, 4).unwrap()
+}
+
+/// The unit's memory: what a poll would read.
+struct Unit {
+    registers: [Vec<u16>; 2], // input, holding
+    bits: Vec<bool>,          // discrete inputs
+}
+
+impl Unit {
+    fn new() -> Self {
+        Unit {
+            registers: [vec![0; 256], vec![0; 256]],
+            bits: vec![false; 64],
+        }
+    }
+
+    /// One complete poll of `card` against this memory.
+    fn poll(&self, card: &ModbusCard) {
+        use driver_modbus::plan::Table;
+        for (i, r) in card.map().reads().iter().enumerate() {
+            let (s, e) = (
+                usize::from(r.start),
+                usize::from(r.start) + usize::from(r.count),
+            );
+            let data = match r.table {
+                Table::InputRegisters => ReadData::Registers(&self.registers[0][s..e]),
+                Table::HoldingRegisters => ReadData::Registers(&self.registers[1][s..e]),
+                _ => ReadData::Bits(&self.bits[s..e]),
+            };
+            card.apply_read(i, data).unwrap();
+        }
+        card.poll_succeeded();
+    }
+}
+
+fn card() -> Arc<ModbusCard> {
+    ModbusCard::new(
+        map(),
+        Arc::new(SimClock::new(Timestamp::from_nanos(1_000_000_000))),
+    )
+}
+
+#[test]
+fn conformance_every_rule() {
+    let card = card();
+    let unit = RefCell::new(Unit::new());
+    unit.borrow().poll(&card);
+    let map = map();
+    let mut set_ai = |ch: u32, raw: i64| {
+        let p = map.point(Role::AnalogIn, ch).unwrap();
+        let n = if p.layout.ty.is_float() {
+            Number::Float(raw as f64 * p.step)
+        } else if raw < 0 {
+            Number::Int(raw)
+        } else {
+            Number::UInt(raw as u64)
+        };
+        let regs = p.layout.encode(n).unwrap();
+        let table = if p.config.table == driver_modbus::plan::Table::InputRegisters {
+            0
+        } else {
+            1
+        };
+        let a = usize::from(p.config.address);
+        unit.borrow_mut().registers[table][a..a + regs.as_slice().len()]
+            .copy_from_slice(regs.as_slice());
+        unit.borrow().poll(&card);
+    };
+    conformance::check_analog_in(&*card, Some(&mut set_ai)).assert_complete();
+    let mut set_di = |bit: u32, v: bool| {
+        let p = map.point(Role::DigitalIn, bit).unwrap();
+        let a = usize::from(p.config.address);
+        let mut u = unit.borrow_mut();
+        match p.config.bit {
+            None => u.bits[a] = v,
+            Some(b) => {
+                let reg = &mut u.registers[0][a];
+                *reg = if v { *reg | 1 << b } else { *reg & !(1 << b) };
+            }
+        }
+        drop(u);
+        unit.borrow().poll(&card);
+    };
+    conformance::check_digital_in(&*card, Some(&mut set_di)).assert_complete();
+    conformance::check_analog_out(&*card).assert_complete();
+    conformance::check_digital_out(&*card).assert_complete();
+}
+
+#[test]
+fn replies_decode_every_layout_into_physical_values() {
+    let card = card();
+    let mut unit = Unit::new();
+    unit.registers[0][0] = (-215i16) as u16; // -21.5 degC
+    unit.registers[0][1] = 0x0001; // u32 low word first: 0x0002_0001
+    unit.registers[0][2] = 0x0002;
+    let f = 2.5f32.to_bits();
+    unit.registers[0][3] = ((f >> 16) as u16).swap_bytes();
+    unit.registers[0][4] = (f as u16).swap_bytes();
+    unit.registers[1][100] = 0xFFFF; // i32 -2
+    unit.registers[1][101] = 0xFFFE;
+    unit.bits[1] = true;
+    unit.registers[0][40] = 0x8000; // bit 15 on, bit 0 off
+    unit.poll(&card);
+    assert_eq!(card.read(0).unwrap(), -21.5);
+    assert_eq!(card.read_raw(1).unwrap(), 0x0002_0001);
+    assert_eq!(card.read(2).unwrap(), 2.5);
+    assert_eq!(AnalogIn::range(&*card, 2).unwrap().unit.as_str(), "bar");
+    assert_eq!(card.read(3).unwrap(), -2.0);
+    assert_eq!(card.read_sequence(0, 3).unwrap(), 0b1010);
+}
+
+#[test]
+fn output_writes_become_coalesced_requests() {
+    let card = card();
+    assert!(
+        matches!(card.write(0, 1.0), Err(DeviceError::Offline)),
+        "no writes before the unit answered"
+    );
+    Unit::new().poll(&card);
+    assert!(card.take_writes().is_empty());
+    card.write(0, 2.5).unwrap(); // holding 10, scale 0.01 -> 250
+    card.write(1, 1.5).unwrap(); // holding 11..=12, f32
+    card.write(2, -3.0).unwrap(); // holding 20, i16
+    card.set_bit(0, true).unwrap(); // coil 0
+    card.set_bit(1, true).unwrap(); // coil 1
+    card.set_bit(2, true).unwrap(); // coil 7
+    let f = 1.5f32.to_bits();
+    assert_eq!(
+        card.take_writes(),
+        vec![
+            Write::Registers {
+                address: 10,
+                values: vec![250, (f >> 16) as u16, f as u16]
+            },
+            Write::Register {
+                address: 20,
+                value: (-3i16) as u16
+            },
+            Write::Coils {
+                address: 0,
+                values: vec![true, true]
+            },
+            Write::Coil {
+                address: 7,
+                value: true
+            },
+        ]
+    );
+    assert!(card.take_writes().is_empty(), "each change is sent once");
+    card.set_bit(0, false).unwrap();
+    assert_eq!(
+        card.take_writes(),
+        vec![Write::Coil {
+            address: 0,
+            value: false
+        }]
+    );
+    assert!(
+        card.write(0, 1e9).is_err(),
+        "u16 * 0.01 tops out at 655.35 V"
+    );
+}
+
+#[test]
+fn bad_replies_are_refused_and_counted_by_the_caller() {
+    let card = card();
+    assert_eq!(
+        card.apply_read(99, ReadData::Bits(&[])).unwrap_err(),
+        ReplyError::NoSuchRead(99)
+    );
+    let regs_read = card
+        .map()
+        .reads()
+        .iter()
+        .position(|r| !r.table.is_bits())
+        .unwrap();
+    assert!(matches!(
+        card.apply_read(regs_read, ReadData::Bits(&[true])),
+        Err(ReplyError::WrongKind { .. })
+    ));
+    assert!(matches!(
+        card.apply_read(regs_read, ReadData::Registers(&[1])),
+        Err(ReplyError::Short { .. })
+    ));
+    // A NaN float keeps the point's previous value; the others in the reply are taken.
+    let mut unit = Unit::new();
+    unit.registers[0][0] = 7;
+    let nan = f32::NAN.to_bits();
+    unit.registers[0][3] = ((nan >> 16) as u16).swap_bytes();
+    unit.registers[0][4] = (nan as u16).swap_bytes();
+    let r = card
+        .map()
+        .reads()
+        .iter()
+        .position(|r| r.table == driver_modbus::plan::Table::InputRegisters && r.start == 0)
+        .unwrap();
+    let e = card
+        .apply_read(
+            r,
+            ReadData::Registers(&unit.registers[0][..usize::from(card.map().reads()[r].count)]),
+        )
+        .unwrap_err();
+    assert!(matches!(e, ReplyError::NotANumber { point: 2, .. }), "{e}");
+    card.poll_succeeded();
+    assert_eq!(card.read_raw(0).unwrap(), 7);
+    assert_eq!(card.read(2).unwrap(), 0.0);
+}
+
+#[test]
+fn health_follows_the_poller() {
+    let clock = Arc::new(SimClock::new(Timestamp::from_nanos(5_000_000_000)));
+    let card = ModbusCard::new(map(), clock.clone());
+    assert_eq!(card.health().status, Status::Offline);
+    assert!(
+        matches!(card.read(0), Err(DeviceError::Offline)),
+        "never seen: offline, not a made-up value"
+    );
+    Unit::new().poll(&card);
+    assert_eq!(card.health().status, Status::Online);
+    clock.advance(Duration::from_millis(300));
+    card.poll_failed(
+        DeviceError::bus(std::io::Error::from(std::io::ErrorKind::TimedOut)),
+        Status::Stale,
+    );
+    assert!(
+        matches!(card.read(0), Err(DeviceError::Stale { age: Some(a) }) if a == Duration::from_millis(300))
+    );
+    card.write(0, 1.0).expect("a stale unit still takes writes");
+    card.poll_failed(DeviceError::Offline, Status::Offline);
+    let h = card.health();
+    assert_eq!(
+        (h.status, h.age()),
+        (Status::Offline, Some(Duration::from_millis(300)))
+    );
+    assert!(card.write(0, 1.0).is_err());
+}
