@@ -219,6 +219,9 @@ pub struct Scale {
     at_min: f64,
     /// Physical value at `raw.max` (below `at_min` for a negative factor).
     at_max: f64,
+    /// For a scale built from a factor: (factor, offset), so values are computed the way
+    /// the device documents them, `raw * factor + offset`.
+    factor: Option<(f64, f64)>,
     unit: Unit,
 }
 
@@ -238,6 +241,7 @@ impl Scale {
             raw,
             at_min: lowest,
             at_max: highest,
+            factor: None,
             unit,
         })
     }
@@ -262,6 +266,7 @@ impl Scale {
             raw,
             at_min,
             at_max,
+            factor: Some((factor, offset)),
             unit,
         })
     }
@@ -292,6 +297,10 @@ impl Scale {
 
     /// The physical value of `raw`. Raw values outside the raw range extrapolate linearly.
     pub fn to_physical(&self, raw: i64) -> f64 {
+        if let Some((factor, offset)) = self.factor {
+            // The documented formula, which also gave the range's ends (so they are exact).
+            return raw as f64 * factor + offset;
+        }
         let t = (i128::from(raw) - i128::from(self.raw.min)) as f64 / self.raw.steps();
         // Interpolate from the nearer end so both endpoints come out exactly.
         if t < 0.5 {
@@ -353,6 +362,13 @@ impl Scale {
     }
 
     fn nearest_raw(&self, value: f64) -> i64 {
+        if let Some((factor, offset)) = self.factor {
+            // Rounded and clamped in f64 first, so infinities saturate; `as` then saturates too.
+            let steps = ((value - offset) / factor).round();
+            return self
+                .raw
+                .clamp(steps.clamp(self.raw.min as f64, self.raw.max as f64) as i64);
+        }
         let t = (value - self.at_min) / (self.at_max - self.at_min);
         // Clamped in step space, so infinities saturate and the sum stays within the range.
         let steps = (t * self.raw.steps()).round().clamp(0.0, self.raw.steps());
@@ -397,6 +413,19 @@ mod tests {
                 "{x} -> {back}"
             );
         }
+    }
+
+    #[test]
+    fn factor_scales_compute_as_documented() {
+        // An i16 temperature in tenths: the in-between values are raw * 0.1, not an
+        // interpolation between the ends (which drifts in the last digits).
+        let s = Scale::from_factor(RawRange::signed_bits(16).unwrap(), 0.1, 0.0, v()).unwrap();
+        assert_eq!(s.to_physical(-123), -123.0 * 0.1);
+        assert_eq!(s.to_physical(-123).to_string(), "-12.3");
+        assert_eq!(s.to_raw(-12.3), Some(-123));
+        assert_eq!(s.to_physical(i64::from(i16::MAX)), s.range().highest);
+        assert_eq!(s.to_raw_saturating(f64::INFINITY), i64::from(i16::MAX));
+        assert_eq!(s.to_raw_saturating(f64::NEG_INFINITY), i64::from(i16::MIN));
     }
 
     #[test]

@@ -311,6 +311,33 @@ impl ModbusCard {
         out
     }
 
+    /// Marks the outputs `write` carried as changed again, so the next
+    /// [`take_writes`](Self::take_writes) sends their current values (a failed write is
+    /// retried, never dropped).
+    pub fn retry(&self, write: &Write) {
+        let (coils, start, len) = match write {
+            Write::Coil { address, .. } => (true, *address, 1),
+            Write::Coils { address, values } => (true, *address, values.len()),
+            Write::Register { address, .. } => (false, *address, 1),
+            Write::Registers { address, values } => (false, *address, values.len()),
+        };
+        let end = u32::from(start) + len as u32;
+        for p in self.map.points() {
+            let (p_start, p_end) = (
+                u32::from(p.span.address),
+                u32::from(p.span.address) + u32::from(p.span.count),
+            );
+            if p_start >= end || p_end <= u32::from(start) {
+                continue;
+            }
+            let _ = match (p.role, coils) {
+                (Role::DigitalOut, true) => self.do_dirty.set(p.channel, true),
+                (Role::AnalogOut, false) => self.ao_dirty.set(p.channel, true),
+                _ => continue,
+            };
+        }
+    }
+
     fn check_input(&self) -> Result<(), DeviceError> {
         match self.status.load(Ordering::Acquire) {
             ONLINE => Ok(()),

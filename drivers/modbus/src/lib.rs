@@ -5,7 +5,8 @@
 //!   order;
 //! - [`plan`]: coalescing a register map into as few reads as the protocol allows;
 //! - [`map`]: the register map, and which device channel each point is;
-//! - [`card`]: a unit's devices — images fed by replies, outputs turned into writes.
+//! - [`card`]: a unit's devices — images fed by replies, outputs turned into writes;
+//! - [`line`](mod@line): the poller of one connection and the units on it.
 //!
 //! ```
 //! use driver_modbus::codec::{Layout, Number, ValueType};
@@ -17,5 +18,6 @@
 
 pub mod card;
 pub mod codec;
+pub mod line;
 pub mod map;
 pub mod plan;

@@ -1,0 +1,411 @@
+//! A Modbus line: one connection, one or more units on it, one request outstanding.
+//!
+//! A line is a TCP connection (several units behind one gateway are addressed by unit id)
+//! or, later, an RTU port (multi-drop). Its poller runs on a thread of its own with a
+//! single-threaded tokio runtime: it polls each unit at its period, feeds the replies to
+//! the unit's [`ModbusCard`], sends the unit's changed outputs, and judges the unit's
+//! health:
+//!
+//! - a failed poll keeps the unit online but records why; after `stale_after` failures in a
+//!   row its inputs are stale, after `offline_after` it is offline;
+//! - an offline unit is probed with a backoff that starts at four timeouts and doubles up
+//!   to `backoff_max`, so a dead unit takes at most a quarter of the line's time (less as
+//!   its backoff grows) and the healthy units keep their poll rate;
+//! - a timeout or transport error drops the connection (a late reply must not be taken for
+//!   the next request's) and the line reconnects on the next poll;
+//! - an exception reply surfaces with its code; a write that fails is sent again at the
+//!   next poll, never dropped.
+
+use crate::card::{ModbusCard, ReadData, Write};
+use crate::plan::{Read, Table};
+use device_interface::{DeviceError, Status};
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::Duration;
+use tokio::time::Instant;
+use tokio_modbus::client::{Context, Reader, Writer};
+use tokio_modbus::prelude::SlaveContext;
+use tokio_modbus::{ExceptionCode, Slave};
+
+/// How a unit is polled.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct UnitTiming {
+    /// The unit id (1..=247; 255 or 0 for a device addressed directly over TCP).
+    pub unit: u8,
+    /// Poll period.
+    pub poll: Duration,
+    /// Per-request timeout.
+    pub timeout: Duration,
+    /// Failed polls in a row before the inputs are stale.
+    pub stale_after: u32,
+    /// Failed polls in a row before the unit is offline and backed off.
+    pub offline_after: u32,
+    /// Longest wait between probes of an offline unit.
+    pub backoff_max: Duration,
+}
+
+/// Line diagnostics per unit: what proves a cabling or device fault.
+#[derive(Debug, Default)]
+pub struct UnitStats {
+    /// Requests sent.
+    pub requests: AtomicU64,
+    /// Good replies.
+    pub replies: AtomicU64,
+    /// Requests that timed out.
+    pub timeouts: AtomicU64,
+    /// Exception replies.
+    pub exceptions: AtomicU64,
+    /// Connection failures and broken connections.
+    pub transport_errors: AtomicU64,
+    /// Replies that did not fit their request (short, wrong kind, bad value, wrong unit).
+    pub bad_replies: AtomicU64,
+    /// Writes that failed and will be sent again.
+    pub write_retries: AtomicU64,
+    /// Complete good polls.
+    pub polls: AtomicU64,
+}
+
+/// A unit on a line.
+pub struct LineUnit {
+    /// Its devices.
+    pub card: Arc<ModbusCard>,
+    /// How it is polled.
+    pub timing: UnitTiming,
+    /// Its diagnostics.
+    pub stats: Arc<UnitStats>,
+}
+
+/// Where the line goes.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Transport {
+    /// Modbus TCP to this address.
+    Tcp(SocketAddr),
+}
+
+#[derive(Debug, thiserror::Error)]
+enum PollError {
+    #[error("unit {unit}: no reply to {what} within {timeout:?}")]
+    Timeout {
+        unit: u8,
+        what: String,
+        timeout: Duration,
+    },
+    #[error("unit {unit}: {what}: {source}")]
+    Transport {
+        unit: u8,
+        what: String,
+        source: std::io::Error,
+    },
+    #[error("unit {unit}: {what}: Modbus exception {code:?} ({:#04x})", u8::from(*.code))]
+    Exception {
+        unit: u8,
+        what: String,
+        code: ExceptionCode,
+    },
+    #[error("unit {unit}: {what}: {source}")]
+    BadReply {
+        unit: u8,
+        what: String,
+        source: crate::card::ReplyError,
+    },
+}
+
+impl PollError {
+    /// Whether the connection must be dropped: after a timeout a late reply could be taken
+    /// for the next request's.
+    fn breaks_connection(&self) -> bool {
+        matches!(
+            self,
+            PollError::Timeout { .. } | PollError::Transport { .. }
+        )
+    }
+}
+
+/// A running line; dropping it stops the poller and waits for it.
+pub struct Line {
+    stop: Arc<AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Line {
+    /// Starts polling `units` over `transport` on a thread named `name`.
+    pub fn spawn(name: &str, transport: Transport, units: Vec<LineUnit>) -> std::io::Result<Line> {
+        let stop = Arc::new(AtomicBool::new(false));
+        let s = stop.clone();
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()?;
+        let thread = std::thread::Builder::new()
+            .name(name.chars().take(15).collect())
+            .spawn(move || rt.block_on(run(transport, units, s)))?;
+        Ok(Line {
+            stop,
+            thread: Some(thread),
+        })
+    }
+}
+
+impl Drop for Line {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Release);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+struct UnitState {
+    next: Instant,
+    failures: u32,
+    backoff: Duration,
+}
+
+fn bump(c: &AtomicU64) {
+    c.fetch_add(1, Ordering::Relaxed);
+}
+
+async fn run(transport: Transport, units: Vec<LineUnit>, stop: Arc<AtomicBool>) {
+    let now = Instant::now();
+    let mut states: Vec<UnitState> = units
+        .iter()
+        .map(|u| UnitState {
+            next: now,
+            failures: 0,
+            backoff: first_backoff(&u.timing),
+        })
+        .collect();
+    let mut ctx: Option<Context> = None;
+    while !stop.load(Ordering::Acquire) {
+        let Some((i, due)) = states
+            .iter()
+            .enumerate()
+            .map(|(i, s)| (i, s.next))
+            .min_by_key(|(_, t)| *t)
+        else {
+            return;
+        };
+        // Sleep in short slices so a stop is noticed promptly.
+        let slice = Instant::now() + Duration::from_millis(50);
+        if due > slice {
+            tokio::time::sleep_until(slice).await;
+            continue;
+        }
+        tokio::time::sleep_until(due).await;
+        let (unit, state) = (&units[i], &mut states[i]);
+        let t = unit.timing;
+        let result = poll_unit(&mut ctx, &transport, unit).await;
+        match result {
+            Ok(()) => {
+                unit.card.poll_succeeded();
+                bump(&unit.stats.polls);
+                if state.failures >= t.offline_after {
+                    tracing::info!("modbus unit {}: back online", t.unit);
+                }
+                state.failures = 0;
+                state.backoff = first_backoff(&t);
+                // Keep the grid; after a long stall start from now rather than bursting.
+                state.next = (due + t.poll).max(Instant::now());
+            }
+            Err(e) => {
+                if e.breaks_connection() {
+                    ctx = None;
+                }
+                state.failures += 1;
+                let status = if state.failures >= t.offline_after {
+                    Status::Offline
+                } else if state.failures >= t.stale_after {
+                    Status::Stale
+                } else {
+                    Status::Online
+                };
+                // Log on change, not on every failed poll.
+                if state.failures == 1
+                    || state.failures == t.stale_after
+                    || state.failures == t.offline_after
+                {
+                    tracing::warn!("modbus {e} (failure {} in a row: {status})", state.failures);
+                }
+                unit.card.poll_failed(DeviceError::bus(e), status);
+                if status == Status::Offline {
+                    state.next = Instant::now() + state.backoff;
+                    state.backoff = (state.backoff * 2).min(t.backoff_max);
+                } else {
+                    state.next = (due + t.poll).max(Instant::now());
+                }
+            }
+        }
+    }
+}
+
+/// The first wait before probing an offline unit again: four timeouts (a probe of a dead
+/// unit costs one), at least a poll period, at most `backoff_max`.
+fn first_backoff(t: &UnitTiming) -> Duration {
+    (t.timeout * 4).max(t.poll).min(t.backoff_max.max(t.poll))
+}
+
+fn describe_read(r: &Read) -> String {
+    r.to_string()
+}
+
+async fn poll_unit(
+    ctx: &mut Option<Context>,
+    transport: &Transport,
+    unit: &LineUnit,
+) -> Result<(), PollError> {
+    let t = unit.timing;
+    let stats = &unit.stats;
+    if ctx.is_none() {
+        let Transport::Tcp(addr) = transport;
+        let connected = tokio::time::timeout(
+            t.timeout,
+            tokio_modbus::client::tcp::connect_slave(*addr, Slave(t.unit)),
+        )
+        .await;
+        match connected {
+            Ok(Ok(c)) => *ctx = Some(c),
+            Ok(Err(source)) => {
+                bump(&stats.transport_errors);
+                return Err(PollError::Transport {
+                    unit: t.unit,
+                    what: format!("connecting to {addr}"),
+                    source,
+                });
+            }
+            Err(_) => {
+                bump(&stats.timeouts);
+                return Err(PollError::Timeout {
+                    unit: t.unit,
+                    what: format!("connecting to {addr}"),
+                    timeout: t.timeout,
+                });
+            }
+        }
+    }
+    let Some(c) = ctx.as_mut() else {
+        return Err(PollError::Transport {
+            unit: t.unit,
+            what: "connection".into(),
+            source: std::io::Error::from(std::io::ErrorKind::NotConnected),
+        });
+    };
+    c.set_slave(Slave(t.unit));
+    for (ri, read) in unit.card.map().reads().iter().enumerate() {
+        bump(&stats.requests);
+        let what = || describe_read(read);
+        let reply = tokio::time::timeout(t.timeout, async {
+            match read.table {
+                Table::Coils => c
+                    .read_coils(read.start, read.count)
+                    .await
+                    .map(|r| r.map(Data::Bits)),
+                Table::DiscreteInputs => c
+                    .read_discrete_inputs(read.start, read.count)
+                    .await
+                    .map(|r| r.map(Data::Bits)),
+                Table::InputRegisters => c
+                    .read_input_registers(read.start, read.count)
+                    .await
+                    .map(|r| r.map(Data::Words)),
+                Table::HoldingRegisters => c
+                    .read_holding_registers(read.start, read.count)
+                    .await
+                    .map(|r| r.map(Data::Words)),
+            }
+        })
+        .await;
+        let data = answer(reply, t, stats, what)?;
+        let applied = match &data {
+            Data::Bits(b) => unit.card.apply_read(ri, ReadData::Bits(b)),
+            Data::Words(w) => unit.card.apply_read(ri, ReadData::Registers(w)),
+        };
+        if let Err(source) = applied {
+            bump(&stats.bad_replies);
+            return Err(PollError::BadReply {
+                unit: t.unit,
+                what: what(),
+                source,
+            });
+        }
+        bump(&stats.replies);
+    }
+    let writes = unit.card.take_writes();
+    for (k, w) in writes.iter().enumerate() {
+        bump(&stats.requests);
+        let what = || format!("{w:?}");
+        let sent = tokio::time::timeout(t.timeout, async {
+            match w {
+                Write::Coil { address, value } => c.write_single_coil(*address, *value).await,
+                Write::Coils { address, values } => c.write_multiple_coils(*address, values).await,
+                Write::Register { address, value } => {
+                    c.write_single_register(*address, *value).await
+                }
+                Write::Registers { address, values } => {
+                    c.write_multiple_registers(*address, values).await
+                }
+            }
+        })
+        .await;
+        if let Err(e) = answer(sent, t, stats, what) {
+            // This write and the ones not yet sent go out again at the next poll.
+            for w in &writes[k..] {
+                unit.card.retry(w);
+                bump(&stats.write_retries);
+            }
+            return Err(e);
+        }
+        bump(&stats.replies);
+    }
+    Ok(())
+}
+
+enum Data {
+    Bits(Vec<bool>),
+    Words(Vec<u16>),
+}
+
+type Reply<T> =
+    Result<Result<Result<T, ExceptionCode>, tokio_modbus::Error>, tokio::time::error::Elapsed>;
+
+/// Unwraps the three layers of a reply (timeout, transport, exception), counting each
+/// failure.
+fn answer<T>(
+    reply: Reply<T>,
+    t: UnitTiming,
+    stats: &UnitStats,
+    what: impl Fn() -> String,
+) -> Result<T, PollError> {
+    match reply {
+        Err(_) => {
+            bump(&stats.timeouts);
+            Err(PollError::Timeout {
+                unit: t.unit,
+                what: what(),
+                timeout: t.timeout,
+            })
+        }
+        Ok(Err(e)) => {
+            // A reply from the wrong unit or transaction is a bad reply, not a line fault.
+            let source = std::io::Error::other(e.to_string());
+            if e.to_string().contains("header") {
+                bump(&stats.bad_replies);
+            } else {
+                bump(&stats.transport_errors);
+            }
+            Err(PollError::Transport {
+                unit: t.unit,
+                what: what(),
+                source,
+            })
+        }
+        Ok(Ok(Err(code))) => {
+            bump(&stats.exceptions);
+            Err(PollError::Exception {
+                unit: t.unit,
+                what: what(),
+                code,
+            })
+        }
+        Ok(Ok(Ok(v))) => Ok(v),
+    }
+}

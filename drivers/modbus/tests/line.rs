@@ -1,0 +1,399 @@
+//! The line poller against a real Modbus TCP server (tokio-modbus's, in this process) with
+//! injectable faults: values in and out, exceptions, a silent unit beside a healthy one,
+//! a dropped connection.
+
+#![allow(
+    clippy::unwrap_used,
+    reason = "test code: a failed unwrap is a failed test"
+)]
+
+use device_interface::time::MonotonicClock;
+use device_interface::{AnalogIn, AnalogOut, Device, DigitalIn, DigitalOut, Status};
+use driver_modbus::card::ModbusCard;
+use driver_modbus::line::{Line, LineUnit, Transport, UnitStats, UnitTiming};
+use driver_modbus::map::{Map, PointConfig};
+use std::collections::HashSet;
+use std::future::Future;
+use std::net::SocketAddr;
+use std::pin::Pin;
+use std::sync::atomic::Ordering;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use tokio_modbus::server::tcp::{Server, accept_tcp_connection};
+use tokio_modbus::{ExceptionCode, Request, Response, SlaveRequest};
+
+#[derive(Default)]
+struct Memory {
+    input: Vec<u16>,
+    holding: Vec<u16>,
+    coils: Vec<bool>,
+    discrete: Vec<bool>,
+    /// Units that never answer.
+    silent: HashSet<u8>,
+    /// Answer reads of holding registers with this exception.
+    holding_exception: Option<ExceptionCode>,
+    /// Requests seen, by unit.
+    seen: Vec<u8>,
+}
+
+#[derive(Clone)]
+struct Svc(Arc<Mutex<Memory>>);
+
+impl tokio_modbus::server::Service for Svc {
+    type Request = SlaveRequest<'static>;
+    type Response = Option<Response>;
+    type Exception = ExceptionCode;
+    type Future = Pin<Box<dyn Future<Output = Result<Option<Response>, ExceptionCode>> + Send>>;
+
+    fn call(&self, req: SlaveRequest<'static>) -> Self::Future {
+        let mem = self.0.clone();
+        Box::pin(async move {
+            let mut m = mem.lock().unwrap();
+            m.seen.push(req.slave);
+            if m.silent.contains(&req.slave) {
+                return Ok(None);
+            }
+            let range = |a: u16, n: u16| usize::from(a)..usize::from(a) + usize::from(n);
+            Ok(Some(match req.request {
+                Request::ReadInputRegisters(a, n) => {
+                    Response::ReadInputRegisters(m.input[range(a, n)].to_vec())
+                }
+                Request::ReadHoldingRegisters(a, n) => {
+                    if let Some(code) = m.holding_exception {
+                        return Err(code);
+                    }
+                    Response::ReadHoldingRegisters(m.holding[range(a, n)].to_vec())
+                }
+                Request::ReadCoils(a, n) => Response::ReadCoils(m.coils[range(a, n)].to_vec()),
+                Request::ReadDiscreteInputs(a, n) => {
+                    Response::ReadDiscreteInputs(m.discrete[range(a, n)].to_vec())
+                }
+                Request::WriteSingleCoil(a, v) => {
+                    m.coils[usize::from(a)] = v;
+                    Response::WriteSingleCoil(a, v)
+                }
+                Request::WriteMultipleCoils(a, vs) => {
+                    m.coils[range(a, vs.len() as u16)].copy_from_slice(&vs);
+                    Response::WriteMultipleCoils(a, vs.len() as u16)
+                }
+                Request::WriteSingleRegister(a, v) => {
+                    m.holding[usize::from(a)] = v;
+                    Response::WriteSingleRegister(a, v)
+                }
+                Request::WriteMultipleRegisters(a, vs) => {
+                    m.holding[range(a, vs.len() as u16)].copy_from_slice(&vs);
+                    Response::WriteMultipleRegisters(a, vs.len() as u16)
+                }
+                _ => return Err(ExceptionCode::IllegalFunction),
+            }))
+        })
+    }
+}
+
+/// A server on 127.0.0.1 with its own runtime; stops when dropped.
+struct TestServer {
+    addr: SocketAddr,
+    mem: Arc<Mutex<Memory>>,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl TestServer {
+    fn start() -> TestServer {
+        let mem = Arc::new(Mutex::new(Memory {
+            input: vec![0; 200],
+            holding: vec![0; 200],
+            coils: vec![false; 64],
+            discrete: vec![false; 64],
+            ..Memory::default()
+        }));
+        Self::start_on(mem, "127.0.0.1:0".parse().unwrap())
+    }
+
+    fn start_on(mem: Arc<Mutex<Memory>>, at: SocketAddr) -> TestServer {
+        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+        let (addr_tx, addr_rx) = std::sync::mpsc::channel();
+        let m = mem.clone();
+        let thread = std::thread::spawn(move || {
+            let rt = tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(1)
+                .enable_all()
+                .build()
+                .unwrap();
+            rt.block_on(async move {
+                let listener = tokio::net::TcpListener::bind(at).await.unwrap();
+                addr_tx.send(listener.local_addr().unwrap()).unwrap();
+                let server = Server::new(listener);
+                let svc = Svc(m);
+                let on_connected = |stream, socket_addr| {
+                    let svc = svc.clone();
+                    async move { accept_tcp_connection(stream, socket_addr, |_| Ok(Some(svc.clone()))) }
+                };
+                let abort = async move {
+                    let _ = rx.await;
+                };
+                let _ = server.serve_until(&on_connected, |_| {}, abort).await;
+            });
+        });
+        let addr = addr_rx.recv_timeout(Duration::from_secs(5)).unwrap();
+        TestServer {
+            addr,
+            mem,
+            stop: Some(tx),
+            thread: Some(thread),
+        }
+    }
+}
+
+impl Drop for TestServer {
+    fn drop(&mut self) {
+        if let Some(s) = self.stop.take() {
+            let _ = s.send(());
+        }
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+const MAP: &str = r#"
+[[point]]
+table = "input_registers"
+address = 0
+type = "i16"
+scale = 0.1
+[[point]]
+table = "input_registers"
+address = 1
+type = "f32"
+[[point]]
+table = "holding_registers"
+address = 10
+type = "u16"
+[[point]]
+table = "holding_registers"
+address = 20
+type = "u32"
+read_only = true
+[[point]]
+table = "discrete_inputs"
+address = 3
+[[point]]
+table = "coils"
+address = 5
+[[point]]
+table = "coils"
+address = 6
+"#;
+
+fn card(map_text: &str) -> Arc<ModbusCard> {
+    let t: toml::Table = toml::from_str(map_text).unwrap();
+    let points: Vec<PointConfig> = t["point"].clone().try_into().unwrap();
+    ModbusCard::new(Map::new(&points, 4).unwrap(), Arc::new(MonotonicClock))
+}
+
+fn timing(unit: u8) -> UnitTiming {
+    UnitTiming {
+        unit,
+        poll: Duration::from_millis(20),
+        timeout: Duration::from_millis(100),
+        stale_after: 2,
+        offline_after: 4,
+        backoff_max: Duration::from_millis(800),
+    }
+}
+
+fn wait_until(what: &str, mut f: impl FnMut() -> bool) {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while !f() {
+        assert!(Instant::now() < deadline, "timed out: {what}");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}
+
+#[test]
+fn values_in_and_out_over_tcp() {
+    let server = TestServer::start();
+    {
+        let mut m = server.mem.lock().unwrap();
+        m.input[0] = (-123i16) as u16;
+        let f = 6.25f32.to_bits();
+        m.input[1] = (f >> 16) as u16;
+        m.input[2] = f as u16;
+        m.holding[20] = 0x0001;
+        m.holding[21] = 0x0002;
+        m.discrete[3] = true;
+    }
+    let card = card(MAP);
+    let stats = Arc::new(UnitStats::default());
+    let _line = Line::spawn(
+        "mb-test",
+        Transport::Tcp(server.addr),
+        vec![LineUnit {
+            card: card.clone(),
+            timing: timing(1),
+            stats: stats.clone(),
+        }],
+    )
+    .unwrap();
+    wait_until("online", || card.health().status == Status::Online);
+    assert_eq!(card.read(0).unwrap(), -12.3);
+    assert_eq!(card.read(1).unwrap(), 6.25);
+    assert_eq!(card.read_raw(2).unwrap(), 0x0001_0002);
+    assert!(card.read_bit(0).unwrap());
+
+    card.write(0, 4321.0).unwrap();
+    card.set_bit(0, true).unwrap();
+    card.set_bit(1, true).unwrap();
+    wait_until("writes reach the server", || {
+        let m = server.mem.lock().unwrap();
+        m.holding[10] == 4321 && m.coils[5] && m.coils[6]
+    });
+    assert_eq!(stats.timeouts.load(Ordering::Relaxed), 0);
+    assert_eq!(stats.exceptions.load(Ordering::Relaxed), 0);
+    assert!(stats.polls.load(Ordering::Relaxed) > 0);
+}
+
+#[test]
+fn exceptions_surface_with_their_code_and_make_the_unit_stale_then_offline() {
+    let server = TestServer::start();
+    server.mem.lock().unwrap().holding_exception = Some(ExceptionCode::IllegalDataAddress);
+    let card = card(MAP);
+    let stats = Arc::new(UnitStats::default());
+    let _line = Line::spawn(
+        "mb-test",
+        Transport::Tcp(server.addr),
+        vec![LineUnit {
+            card: card.clone(),
+            timing: timing(1),
+            stats: stats.clone(),
+        }],
+    )
+    .unwrap();
+    wait_until("offline", || stats.exceptions.load(Ordering::Relaxed) >= 4);
+    let h = card.health();
+    assert_eq!(h.status, Status::Offline);
+    let e = h.last_error.unwrap().to_string();
+    assert!(
+        e.contains("Modbus exception IllegalDataAddress (0x02)")
+            && e.contains("FC3 read holding registers 20..=21"),
+        "{e}"
+    );
+    server.mem.lock().unwrap().holding_exception = None;
+    wait_until("back online", || card.health().status == Status::Online);
+    assert_eq!(
+        stats.timeouts.load(Ordering::Relaxed),
+        0,
+        "exceptions are answers, not timeouts"
+    );
+}
+
+#[test]
+fn a_silent_unit_does_not_stall_a_healthy_one_on_the_same_line() {
+    let server = TestServer::start();
+    server.mem.lock().unwrap().silent.insert(2);
+    let healthy = card(MAP);
+    let dead = card(MAP);
+    let (hs, ds) = (
+        Arc::new(UnitStats::default()),
+        Arc::new(UnitStats::default()),
+    );
+    let _line = Line::spawn(
+        "mb-test",
+        Transport::Tcp(server.addr),
+        vec![
+            LineUnit {
+                card: healthy.clone(),
+                timing: timing(1),
+                stats: hs.clone(),
+            },
+            LineUnit {
+                card: dead.clone(),
+                timing: timing(2),
+                stats: ds.clone(),
+            },
+        ],
+    )
+    .unwrap();
+    // Every card starts offline ("never seen"): wait for the dead unit's real failures.
+    wait_until("the dead unit failed into offline", || {
+        ds.timeouts.load(Ordering::Relaxed) >= 4
+    });
+    wait_until("the healthy unit online", || {
+        healthy.health().status == Status::Online
+    });
+    assert_eq!(dead.health().status, Status::Offline);
+    let (polls0, probes0) = (
+        hs.polls.load(Ordering::Relaxed),
+        ds.requests.load(Ordering::Relaxed),
+    );
+    let t0 = Instant::now();
+    let mut always_online = true;
+    let mut seen = std::collections::BTreeMap::new();
+    while t0.elapsed() < Duration::from_millis(2000) {
+        let st = healthy.health().status;
+        *seen.entry(format!("{st:?}")).or_insert(0) += 1;
+        always_online &= st == Status::Online;
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let elapsed = t0.elapsed();
+    let polls = hs.polls.load(Ordering::Relaxed) - polls0;
+    let probes = ds.requests.load(Ordering::Relaxed) - probes0;
+    let nominal = elapsed.as_secs_f64() / 0.020;
+    // A figure, not a timed assertion: printed for the record.
+    eprintln!(
+        "healthy unit: {polls} polls in {elapsed:?} = {:.0}% of its nominal {nominal:.0}; dead unit: {probes} probes",
+        100.0 * polls as f64 / nominal
+    );
+    let c = |a: &std::sync::atomic::AtomicU64| a.load(Ordering::Relaxed);
+    assert!(
+        always_online,
+        "the healthy unit left online ({seen:?}): timeouts {}, transport {}, exceptions {}, bad {}; last error {:?}",
+        c(&hs.timeouts),
+        c(&hs.transport_errors),
+        c(&hs.exceptions),
+        c(&hs.bad_replies),
+        healthy.health().last_error.map(|e| e.to_string())
+    );
+    // Backoff 400 ms doubling to 800 ms: at most one probe per 400 ms, plus one in flight.
+    let max_probes = (elapsed.as_secs_f64() / 0.4).ceil() as u64 + 1;
+    assert!(
+        probes <= max_probes,
+        "the dead unit is backed off, not hammered: {probes} probes > {max_probes}"
+    );
+    assert!(
+        polls as f64 >= 0.5 * nominal,
+        "the healthy unit is not stalled: {polls} polls"
+    );
+}
+
+#[test]
+fn a_lost_connection_is_reconnected() {
+    let server = TestServer::start();
+    let addr = server.addr;
+    let card = card(MAP);
+    let stats = Arc::new(UnitStats::default());
+    let _line = Line::spawn(
+        "mb-test",
+        Transport::Tcp(addr),
+        vec![LineUnit {
+            card: card.clone(),
+            timing: timing(1),
+            stats: stats.clone(),
+        }],
+    )
+    .unwrap();
+    wait_until("online", || card.health().status == Status::Online);
+    let mem = server.mem.clone();
+    drop(server);
+    wait_until("offline without the server", || {
+        card.health().status == Status::Offline
+    });
+    let _again = TestServer::start_on(mem, addr);
+    wait_until("online again by itself", || {
+        card.health().status == Status::Online
+    });
+    assert!(
+        stats.transport_errors.load(Ordering::Relaxed) + stats.timeouts.load(Ordering::Relaxed) > 0
+    );
+}
