@@ -1,0 +1,37 @@
+#!/usr/bin/python3
+"""Starts a pymodbus server (a third-party Modbus implementation) for hwgw's tests.
+
+Usage: pymodbus_server.py tcp PORT
+       pymodbus_server.py rtu DEVICE
+
+Its registers hold known values the tests decode; it serves until killed. Debian's
+python3-pymodbus (3.0) runs under Debian's /usr/bin/python3.
+"""
+import sys
+
+from pymodbus.datastore import ModbusSequentialDataBlock, ModbusServerContext, ModbusSlaveContext
+from pymodbus.server import StartSerialServer, StartTcpServer
+from pymodbus.transaction import ModbusRtuFramer
+
+ir = [0] * 100
+hr = [0] * 100
+di = [False] * 100
+co = [False] * 100
+ir[0] = (-123) & 0xFFFF          # i16, scale 0.1: -12.3
+ir[1], ir[2] = 0x40C8, 0x0000    # f32: 6.25
+hr[20], hr[21] = 0x0001, 0x0002  # u32: 65538
+di[3] = True
+
+store = ModbusSlaveContext(
+    di=ModbusSequentialDataBlock(0, di),
+    co=ModbusSequentialDataBlock(0, co),
+    hr=ModbusSequentialDataBlock(0, hr),
+    ir=ModbusSequentialDataBlock(0, ir),
+    zero_mode=True,  # address n is register n, as on the wire
+)
+context = ModbusServerContext(slaves=store, single=True)
+
+if sys.argv[1] == "tcp":
+    StartTcpServer(context=context, address=("127.0.0.1", int(sys.argv[2])))
+else:
+    StartSerialServer(context=context, framer=ModbusRtuFramer, port=sys.argv[2], baudrate=19200, timeout=0.05)
