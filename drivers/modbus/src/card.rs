@@ -240,18 +240,18 @@ impl ModbusCard {
         self.last_error.store(None);
     }
 
-    /// Records a failed poll: the error, and whether the unit is now `Stale` or `Offline`
-    /// (the poller's policy decides which).
+    /// Records a failed poll: the error, and how bad the poller judges it — `Stale` or
+    /// `Offline` lower the status; `Online` (a failure below the poller's thresholds) keeps
+    /// whatever status the unit had. A failure never makes a unit more online than it was:
+    /// a unit never seen stays offline.
     pub fn poll_failed(&self, error: DeviceError, status: Status) {
         self.last_error.store(Some(Arc::new(error)));
-        self.status.store(
-            match status {
-                Status::Online => ONLINE,
-                Status::Stale => STALE,
-                Status::Offline => OFFLINE,
-            },
-            Ordering::Release,
-        );
+        let worse = match status {
+            Status::Online => return,
+            Status::Stale => STALE,
+            Status::Offline => OFFLINE,
+        };
+        self.status.fetch_max(worse, Ordering::AcqRel);
     }
 
     /// The outputs written since the last call, as requests: runs of consecutive

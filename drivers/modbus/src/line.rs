@@ -1,7 +1,7 @@
 //! A Modbus line: one connection, one or more units on it, one request outstanding.
 //!
 //! A line is a TCP connection (several units behind one gateway are addressed by unit id)
-//! or, later, an RTU port (multi-drop). Its poller runs on a thread of its own with a
+//! or an RTU serial port (several units multi-dropped on it). Its poller runs on a thread of its own with a
 //! single-threaded tokio runtime: it polls each unit at its period, feeds the replies to
 //! the unit's [`ModbusCard`], sends the unit's changed outputs, and judges the unit's
 //! health:
@@ -76,11 +76,75 @@ pub struct LineUnit {
     pub stats: Arc<UnitStats>,
 }
 
+/// Parity of a serial line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Parity {
+    /// Even parity (the Modbus RTU default).
+    #[default]
+    Even,
+    /// Odd parity.
+    Odd,
+    /// No parity (then two stop bits, by the specification; many devices use one).
+    None,
+}
+
+/// A serial line's settings.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Serial {
+    /// The device, e.g. a stable udev name such as /dev/hwgw/line1.
+    pub device: std::path::PathBuf,
+    /// Bits per second.
+    pub baud: u32,
+    /// Parity.
+    pub parity: Parity,
+    /// Stop bits: 1 or 2.
+    pub stop_bits: u8,
+}
+
 /// Where the line goes.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Transport {
-    /// Modbus TCP to this address.
+    /// Modbus TCP to this address; several units behind a gateway by unit id.
     Tcp(SocketAddr),
+    /// Modbus RTU on a serial port; several units multi-dropped by unit id.
+    Rtu(Serial),
+}
+
+impl Transport {
+    fn describe(&self) -> String {
+        match self {
+            Transport::Tcp(a) => a.to_string(),
+            Transport::Rtu(s) => s.device.display().to_string(),
+        }
+    }
+
+    /// Opens the connection (or the port) addressed to `unit`.
+    async fn open(&self, unit: u8) -> std::io::Result<Context> {
+        match self {
+            Transport::Tcp(addr) => {
+                tokio_modbus::client::tcp::connect_slave(*addr, Slave(unit)).await
+            }
+            Transport::Rtu(s) => {
+                use tokio_serial::SerialPortBuilderExt;
+                let stream = tokio_serial::new(s.device.to_string_lossy(), s.baud)
+                    .parity(match s.parity {
+                        Parity::Even => tokio_serial::Parity::Even,
+                        Parity::Odd => tokio_serial::Parity::Odd,
+                        Parity::None => tokio_serial::Parity::None,
+                    })
+                    .stop_bits(if s.stop_bits == 2 {
+                        tokio_serial::StopBits::Two
+                    } else {
+                        tokio_serial::StopBits::One
+                    })
+                    .data_bits(tokio_serial::DataBits::Eight)
+                    .open_native_async()
+                    .map_err(std::io::Error::other)?;
+                Ok(tokio_modbus::client::rtu::attach_slave(stream, Slave(unit)))
+            }
+        }
+    }
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -256,19 +320,16 @@ async fn poll_unit(
     let t = unit.timing;
     let stats = &unit.stats;
     if ctx.is_none() {
-        let Transport::Tcp(addr) = transport;
-        let connected = tokio::time::timeout(
-            t.timeout,
-            tokio_modbus::client::tcp::connect_slave(*addr, Slave(t.unit)),
-        )
-        .await;
-        match connected {
+        // Opening anew also discards whatever a timed-out unit may still send: on RTU a
+        // late reply would otherwise be taken for the next request's.
+        let what = || format!("opening {}", transport.describe());
+        match tokio::time::timeout(t.timeout, transport.open(t.unit)).await {
             Ok(Ok(c)) => *ctx = Some(c),
             Ok(Err(source)) => {
                 bump(&stats.transport_errors);
                 return Err(PollError::Transport {
                     unit: t.unit,
-                    what: format!("connecting to {addr}"),
+                    what: what(),
                     source,
                 });
             }
@@ -276,7 +337,7 @@ async fn poll_unit(
                 bump(&stats.timeouts);
                 return Err(PollError::Timeout {
                     unit: t.unit,
-                    what: format!("connecting to {addr}"),
+                    what: what(),
                     timeout: t.timeout,
                 });
             }

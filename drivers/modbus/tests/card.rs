@@ -309,6 +309,12 @@ fn health_follows_the_poller() {
         matches!(card.read(0), Err(DeviceError::Stale { age: Some(a) }) if a == Duration::from_millis(300))
     );
     card.write(0, 1.0).expect("a stale unit still takes writes");
+    card.poll_failed(DeviceError::Offline, Status::Online);
+    assert_eq!(
+        card.health().status,
+        Status::Stale,
+        "a minor failure does not hide staleness"
+    );
     card.poll_failed(DeviceError::Offline, Status::Offline);
     let h = card.health();
     assert_eq!(

@@ -202,3 +202,130 @@ fn reads_and_writes_against_pymodbus_over_tcp() {
         0
     );
 }
+
+/// A socat pty pair: the line's end and the unit's end.
+struct PtyPair {
+    child: Child,
+    dir: std::path::PathBuf,
+}
+
+impl PtyPair {
+    fn new(tag: &str) -> PtyPair {
+        let dir = std::env::temp_dir().join(format!("hwgw-pty-{tag}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let child = Command::new("socat")
+            .arg(format!(
+                "pty,raw,echo=0,link={}",
+                dir.join("line").display()
+            ))
+            .arg(format!(
+                "pty,raw,echo=0,link={}",
+                dir.join("unit").display()
+            ))
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap_or_else(|e| panic!("cannot run socat (apt-get install socat): {e}"));
+        let pair = PtyPair { child, dir };
+        wait_until("socat's ptys", || {
+            pair.dir.join("line").exists() && pair.dir.join("unit").exists()
+        });
+        pair
+    }
+}
+
+impl Drop for PtyPair {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+#[test]
+fn two_units_multi_dropped_on_an_rtu_line_against_pymodbus() {
+    use driver_modbus::line::{Parity, Serial};
+    let pty = PtyPair::new("rtu");
+    let _peer = Peer(
+        Command::new(PYTHON)
+            .args([SERVER, "rtu", pty.dir.join("unit").to_str().unwrap()])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap_or_else(|e| {
+                panic!("cannot run {PYTHON} (apt-get install python3-pymodbus): {e}")
+            }),
+    );
+    let one = card();
+    let t: toml::Table = toml::from_str(
+        "[[point]]\ntable = \"input_registers\"\naddress = 0\n\
+         [[point]]\ntable = \"holding_registers\"\naddress = 30\ntype = \"i16\"\n\
+         [[point]]\ntable = \"holding_registers\"\naddress = 30\ntype = \"i16\"\nread_only = true\n",
+    )
+    .unwrap();
+    let two = ModbusCard::new(
+        Map::new(
+            &t["point"].clone().try_into::<Vec<PointConfig>>().unwrap(),
+            0,
+        )
+        .unwrap(),
+        Arc::new(MonotonicClock),
+    );
+    let serial = Serial {
+        device: pty.dir.join("line"),
+        baud: 19200,
+        parity: Parity::Even,
+        stop_bits: 1,
+    };
+    let unit = |n: u8| UnitTiming {
+        unit: n,
+        ..timing()
+    };
+    let (s1, s2) = (
+        Arc::new(UnitStats::default()),
+        Arc::new(UnitStats::default()),
+    );
+    let _line = Line::spawn(
+        "mb-rtu",
+        Transport::Rtu(serial),
+        vec![
+            LineUnit {
+                card: one.clone(),
+                timing: unit(1),
+                stats: s1.clone(),
+            },
+            LineUnit {
+                card: two.clone(),
+                timing: unit(2),
+                stats: s2.clone(),
+            },
+        ],
+    )
+    .unwrap();
+    wait_until("both units online", || {
+        one.health().status == Status::Online && two.health().status == Status::Online
+    });
+    assert_eq!(one.read(0).unwrap(), -12.3, "unit 1's registers");
+    assert_eq!(
+        AnalogIn::read_raw(&*two, 0).unwrap(),
+        77,
+        "unit 2's registers, not unit 1's"
+    );
+    two.write(0, -5.0).unwrap();
+    wait_until("unit 2's register changed, read back over RTU", || {
+        AnalogIn::read_raw(&*two, 1).ok() == Some(-5)
+    });
+    assert_eq!(
+        AnalogIn::read_raw(&*one, 0).unwrap(),
+        -123,
+        "unit 1 untouched"
+    );
+    let c = |a: &std::sync::atomic::AtomicU64| a.load(std::sync::atomic::Ordering::Relaxed);
+    eprintln!(
+        "RTU unit 1: {} polls, {} timeouts; unit 2: {} polls, {} timeouts",
+        c(&s1.polls),
+        c(&s1.timeouts),
+        c(&s2.polls),
+        c(&s2.timeouts)
+    );
+}

@@ -4,7 +4,8 @@
 Usage: pymodbus_server.py tcp PORT
        pymodbus_server.py rtu DEVICE
 
-Its registers hold known values the tests decode; it serves until killed. Debian's
+Its registers hold known values the tests decode; on RTU, units 1 and 2 share the line
+with different contents (multi-drop). It serves until killed. Debian's
 python3-pymodbus (3.0) runs under Debian's /usr/bin/python3.
 """
 import sys
@@ -29,9 +30,20 @@ store = ModbusSlaveContext(
     ir=ModbusSequentialDataBlock(0, ir),
     zero_mode=True,  # address n is register n, as on the wire
 )
-context = ModbusServerContext(slaves=store, single=True)
 
 if sys.argv[1] == "tcp":
-    StartTcpServer(context=context, address=("127.0.0.1", int(sys.argv[2])))
+    # Any unit id reaches the one store.
+    StartTcpServer(context=ModbusServerContext(slaves=store, single=True), address=("127.0.0.1", int(sys.argv[2])))
 else:
+    # Multi-drop: units 1 and 2 on one line, with different contents.
+    ir2 = [0] * 100
+    ir2[0] = 77
+    store2 = ModbusSlaveContext(
+        di=ModbusSequentialDataBlock(0, [False] * 100),
+        co=ModbusSequentialDataBlock(0, [False] * 100),
+        hr=ModbusSequentialDataBlock(0, [0] * 100),
+        ir=ModbusSequentialDataBlock(0, ir2),
+        zero_mode=True,
+    )
+    context = ModbusServerContext(slaves={1: store, 2: store2}, single=False)
     StartSerialServer(context=context, framer=ModbusRtuFramer, port=sys.argv[2], baudrate=19200, timeout=0.05)
