@@ -21,3 +21,5 @@ pub mod codec;
 pub mod line;
 pub mod map;
 pub mod plan;
+#[cfg(feature = "test-server")]
+pub mod testing;

@@ -255,7 +255,11 @@ async fn run(transport: Transport, units: Vec<LineUnit>, stop: Arc<AtomicBool>) 
             tokio::time::sleep_until(slice).await;
             continue;
         }
-        tokio::time::sleep_until(due).await;
+        // tokio's timer works in 1 ms ticks: a deadline that has just passed can still wait
+        // for the next tick, so only sleep when the deadline is really ahead.
+        if due > Instant::now() {
+            tokio::time::sleep_until(due).await;
+        }
         let (unit, state) = (&units[i], &mut states[i]);
         let t = unit.timing;
         let result = poll_unit(&mut ctx, &transport, unit).await;

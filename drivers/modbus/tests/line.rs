@@ -12,149 +12,11 @@ use device_interface::{AnalogIn, AnalogOut, Device, DigitalIn, DigitalOut, Statu
 use driver_modbus::card::ModbusCard;
 use driver_modbus::line::{Line, LineUnit, Transport, UnitStats, UnitTiming};
 use driver_modbus::map::{Map, PointConfig};
-use std::collections::HashSet;
-use std::future::Future;
-use std::net::SocketAddr;
-use std::pin::Pin;
+use driver_modbus::testing::TestServer;
+use std::sync::Arc;
 use std::sync::atomic::Ordering;
-use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
-use tokio_modbus::server::tcp::{Server, accept_tcp_connection};
-use tokio_modbus::{ExceptionCode, Request, Response, SlaveRequest};
-
-#[derive(Default)]
-struct Memory {
-    input: Vec<u16>,
-    holding: Vec<u16>,
-    coils: Vec<bool>,
-    discrete: Vec<bool>,
-    /// Units that never answer.
-    silent: HashSet<u8>,
-    /// Answer reads of holding registers with this exception.
-    holding_exception: Option<ExceptionCode>,
-    /// Requests seen, by unit.
-    seen: Vec<u8>,
-}
-
-#[derive(Clone)]
-struct Svc(Arc<Mutex<Memory>>);
-
-impl tokio_modbus::server::Service for Svc {
-    type Request = SlaveRequest<'static>;
-    type Response = Option<Response>;
-    type Exception = ExceptionCode;
-    type Future = Pin<Box<dyn Future<Output = Result<Option<Response>, ExceptionCode>> + Send>>;
-
-    fn call(&self, req: SlaveRequest<'static>) -> Self::Future {
-        let mem = self.0.clone();
-        Box::pin(async move {
-            let mut m = mem.lock().unwrap();
-            m.seen.push(req.slave);
-            if m.silent.contains(&req.slave) {
-                return Ok(None);
-            }
-            let range = |a: u16, n: u16| usize::from(a)..usize::from(a) + usize::from(n);
-            Ok(Some(match req.request {
-                Request::ReadInputRegisters(a, n) => {
-                    Response::ReadInputRegisters(m.input[range(a, n)].to_vec())
-                }
-                Request::ReadHoldingRegisters(a, n) => {
-                    if let Some(code) = m.holding_exception {
-                        return Err(code);
-                    }
-                    Response::ReadHoldingRegisters(m.holding[range(a, n)].to_vec())
-                }
-                Request::ReadCoils(a, n) => Response::ReadCoils(m.coils[range(a, n)].to_vec()),
-                Request::ReadDiscreteInputs(a, n) => {
-                    Response::ReadDiscreteInputs(m.discrete[range(a, n)].to_vec())
-                }
-                Request::WriteSingleCoil(a, v) => {
-                    m.coils[usize::from(a)] = v;
-                    Response::WriteSingleCoil(a, v)
-                }
-                Request::WriteMultipleCoils(a, vs) => {
-                    m.coils[range(a, vs.len() as u16)].copy_from_slice(&vs);
-                    Response::WriteMultipleCoils(a, vs.len() as u16)
-                }
-                Request::WriteSingleRegister(a, v) => {
-                    m.holding[usize::from(a)] = v;
-                    Response::WriteSingleRegister(a, v)
-                }
-                Request::WriteMultipleRegisters(a, vs) => {
-                    m.holding[range(a, vs.len() as u16)].copy_from_slice(&vs);
-                    Response::WriteMultipleRegisters(a, vs.len() as u16)
-                }
-                _ => return Err(ExceptionCode::IllegalFunction),
-            }))
-        })
-    }
-}
-
-/// A server on 127.0.0.1 with its own runtime; stops when dropped.
-struct TestServer {
-    addr: SocketAddr,
-    mem: Arc<Mutex<Memory>>,
-    stop: Option<tokio::sync::oneshot::Sender<()>>,
-    thread: Option<std::thread::JoinHandle<()>>,
-}
-
-impl TestServer {
-    fn start() -> TestServer {
-        let mem = Arc::new(Mutex::new(Memory {
-            input: vec![0; 200],
-            holding: vec![0; 200],
-            coils: vec![false; 64],
-            discrete: vec![false; 64],
-            ..Memory::default()
-        }));
-        Self::start_on(mem, "127.0.0.1:0".parse().unwrap())
-    }
-
-    fn start_on(mem: Arc<Mutex<Memory>>, at: SocketAddr) -> TestServer {
-        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-        let (addr_tx, addr_rx) = std::sync::mpsc::channel();
-        let m = mem.clone();
-        let thread = std::thread::spawn(move || {
-            let rt = tokio::runtime::Builder::new_multi_thread()
-                .worker_threads(1)
-                .enable_all()
-                .build()
-                .unwrap();
-            rt.block_on(async move {
-                let listener = tokio::net::TcpListener::bind(at).await.unwrap();
-                addr_tx.send(listener.local_addr().unwrap()).unwrap();
-                let server = Server::new(listener);
-                let svc = Svc(m);
-                let on_connected = |stream, socket_addr| {
-                    let svc = svc.clone();
-                    async move { accept_tcp_connection(stream, socket_addr, |_| Ok(Some(svc.clone()))) }
-                };
-                let abort = async move {
-                    let _ = rx.await;
-                };
-                let _ = server.serve_until(&on_connected, |_| {}, abort).await;
-            });
-        });
-        let addr = addr_rx.recv_timeout(Duration::from_secs(5)).unwrap();
-        TestServer {
-            addr,
-            mem,
-            stop: Some(tx),
-            thread: Some(thread),
-        }
-    }
-}
-
-impl Drop for TestServer {
-    fn drop(&mut self) {
-        if let Some(s) = self.stop.take() {
-            let _ = s.send(());
-        }
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
-        }
-    }
-}
+use tokio_modbus::ExceptionCode;
 
 const MAP: &str = r#"
 [[point]]
@@ -215,7 +77,7 @@ fn wait_until(what: &str, mut f: impl FnMut() -> bool) {
 fn values_in_and_out_over_tcp() {
     let server = TestServer::start();
     {
-        let mut m = server.mem.lock().unwrap();
+        let mut m = server.memory().lock().unwrap();
         m.input[0] = (-123i16) as u16;
         let f = 6.25f32.to_bits();
         m.input[1] = (f >> 16) as u16;
@@ -228,7 +90,7 @@ fn values_in_and_out_over_tcp() {
     let stats = Arc::new(UnitStats::default());
     let _line = Line::spawn(
         "mb-test",
-        Transport::Tcp(server.addr),
+        Transport::Tcp(server.addr()),
         vec![LineUnit {
             card: card.clone(),
             timing: timing(1),
@@ -246,7 +108,7 @@ fn values_in_and_out_over_tcp() {
     card.set_bit(0, true).unwrap();
     card.set_bit(1, true).unwrap();
     wait_until("writes reach the server", || {
-        let m = server.mem.lock().unwrap();
+        let m = server.memory().lock().unwrap();
         m.holding[10] == 4321 && m.coils[5] && m.coils[6]
     });
     assert_eq!(stats.timeouts.load(Ordering::Relaxed), 0);
@@ -257,12 +119,12 @@ fn values_in_and_out_over_tcp() {
 #[test]
 fn exceptions_surface_with_their_code_and_make_the_unit_stale_then_offline() {
     let server = TestServer::start();
-    server.mem.lock().unwrap().holding_exception = Some(ExceptionCode::IllegalDataAddress);
+    server.memory().lock().unwrap().holding_exception = Some(ExceptionCode::IllegalDataAddress);
     let card = card(MAP);
     let stats = Arc::new(UnitStats::default());
     let _line = Line::spawn(
         "mb-test",
-        Transport::Tcp(server.addr),
+        Transport::Tcp(server.addr()),
         vec![LineUnit {
             card: card.clone(),
             timing: timing(1),
@@ -279,7 +141,7 @@ fn exceptions_surface_with_their_code_and_make_the_unit_stale_then_offline() {
             && e.contains("FC3 read holding registers 20..=21"),
         "{e}"
     );
-    server.mem.lock().unwrap().holding_exception = None;
+    server.memory().lock().unwrap().holding_exception = None;
     wait_until("back online", || card.health().status == Status::Online);
     assert_eq!(
         stats.timeouts.load(Ordering::Relaxed),
@@ -291,7 +153,7 @@ fn exceptions_surface_with_their_code_and_make_the_unit_stale_then_offline() {
 #[test]
 fn a_silent_unit_does_not_stall_a_healthy_one_on_the_same_line() {
     let server = TestServer::start();
-    server.mem.lock().unwrap().silent.insert(2);
+    server.memory().lock().unwrap().silent.insert(2);
     let healthy = card(MAP);
     let dead = card(MAP);
     let (hs, ds) = (
@@ -300,7 +162,7 @@ fn a_silent_unit_does_not_stall_a_healthy_one_on_the_same_line() {
     );
     let _line = Line::spawn(
         "mb-test",
-        Transport::Tcp(server.addr),
+        Transport::Tcp(server.addr()),
         vec![
             LineUnit {
                 card: healthy.clone(),
@@ -370,7 +232,7 @@ fn a_silent_unit_does_not_stall_a_healthy_one_on_the_same_line() {
 #[test]
 fn a_lost_connection_is_reconnected() {
     let server = TestServer::start();
-    let addr = server.addr;
+    let addr = server.addr();
     let card = card(MAP);
     let stats = Arc::new(UnitStats::default());
     let _line = Line::spawn(
@@ -384,7 +246,7 @@ fn a_lost_connection_is_reconnected() {
     )
     .unwrap();
     wait_until("online", || card.health().status == Status::Online);
-    let mem = server.mem.clone();
+    let mem = server.memory().clone();
     drop(server);
     wait_until("offline without the server", || {
         card.health().status == Status::Offline

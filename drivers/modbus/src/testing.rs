@@ -1,0 +1,178 @@
+//! A Modbus TCP server for tests and benchmarks (feature `test-server`): tokio-modbus's
+//! server over an in-memory register table, with injectable faults — silent units and
+//! exception replies — on a thread and runtime of its own.
+//!
+//! ```
+//! use driver_modbus::testing::TestServer;
+//!
+//! let server = TestServer::start();
+//! server.memory().lock().unwrap().input[0] = 42;
+//! // ... point a Line at server.addr() ...
+//! ```
+
+#![allow(
+    clippy::unwrap_used,
+    reason = "test scaffolding: a failed unwrap fails the test that uses it"
+)]
+
+use std::collections::HashSet;
+use std::future::Future;
+use std::net::SocketAddr;
+use std::pin::Pin;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use tokio_modbus::server::tcp::{Server, accept_tcp_connection};
+use tokio_modbus::{ExceptionCode, Request, Response, SlaveRequest};
+
+/// The server's registers and fault switches.
+#[derive(Default)]
+pub struct Memory {
+    /// Input registers.
+    pub input: Vec<u16>,
+    /// Holding registers.
+    pub holding: Vec<u16>,
+    /// Coils.
+    pub coils: Vec<bool>,
+    /// Discrete inputs.
+    pub discrete: Vec<bool>,
+    /// Units that never answer.
+    pub silent: HashSet<u8>,
+    /// Answer reads of holding registers with this exception.
+    pub holding_exception: Option<ExceptionCode>,
+    /// Requests seen, by unit.
+    pub seen: Vec<u8>,
+}
+
+#[derive(Clone)]
+struct Svc(Arc<Mutex<Memory>>);
+
+impl tokio_modbus::server::Service for Svc {
+    type Request = SlaveRequest<'static>;
+    type Response = Option<Response>;
+    type Exception = ExceptionCode;
+    type Future = Pin<Box<dyn Future<Output = Result<Option<Response>, ExceptionCode>> + Send>>;
+
+    fn call(&self, req: SlaveRequest<'static>) -> Self::Future {
+        let mem = self.0.clone();
+        Box::pin(async move {
+            let mut m = mem.lock().unwrap();
+            m.seen.push(req.slave);
+            if m.silent.contains(&req.slave) {
+                return Ok(None);
+            }
+            let range = |a: u16, n: u16| usize::from(a)..usize::from(a) + usize::from(n);
+            Ok(Some(match req.request {
+                Request::ReadInputRegisters(a, n) => {
+                    Response::ReadInputRegisters(m.input[range(a, n)].to_vec())
+                }
+                Request::ReadHoldingRegisters(a, n) => {
+                    if let Some(code) = m.holding_exception {
+                        return Err(code);
+                    }
+                    Response::ReadHoldingRegisters(m.holding[range(a, n)].to_vec())
+                }
+                Request::ReadCoils(a, n) => Response::ReadCoils(m.coils[range(a, n)].to_vec()),
+                Request::ReadDiscreteInputs(a, n) => {
+                    Response::ReadDiscreteInputs(m.discrete[range(a, n)].to_vec())
+                }
+                Request::WriteSingleCoil(a, v) => {
+                    m.coils[usize::from(a)] = v;
+                    Response::WriteSingleCoil(a, v)
+                }
+                Request::WriteMultipleCoils(a, vs) => {
+                    m.coils[range(a, vs.len() as u16)].copy_from_slice(&vs);
+                    Response::WriteMultipleCoils(a, vs.len() as u16)
+                }
+                Request::WriteSingleRegister(a, v) => {
+                    m.holding[usize::from(a)] = v;
+                    Response::WriteSingleRegister(a, v)
+                }
+                Request::WriteMultipleRegisters(a, vs) => {
+                    m.holding[range(a, vs.len() as u16)].copy_from_slice(&vs);
+                    Response::WriteMultipleRegisters(a, vs.len() as u16)
+                }
+                _ => return Err(ExceptionCode::IllegalFunction),
+            }))
+        })
+    }
+}
+
+/// A server on 127.0.0.1 with its own runtime; stops when dropped.
+pub struct TestServer {
+    addr: SocketAddr,
+    mem: Arc<Mutex<Memory>>,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl TestServer {
+    /// A server on a free port with 200 registers and 64 bits of each kind.
+    pub fn start() -> TestServer {
+        let mem = Arc::new(Mutex::new(Memory {
+            input: vec![0; 200],
+            holding: vec![0; 200],
+            coils: vec![false; 64],
+            discrete: vec![false; 64],
+            ..Memory::default()
+        }));
+        Self::start_on(mem, "127.0.0.1:0".parse().unwrap())
+    }
+
+    /// A server on `at` over `mem` (restart one at its old address with its old memory).
+    pub fn start_on(mem: Arc<Mutex<Memory>>, at: SocketAddr) -> TestServer {
+        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+        let (addr_tx, addr_rx) = std::sync::mpsc::channel();
+        let m = mem.clone();
+        let thread = std::thread::spawn(move || {
+            let rt = tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(1)
+                .enable_all()
+                .build()
+                .unwrap();
+            rt.block_on(async move {
+                let listener = tokio::net::TcpListener::bind(at).await.unwrap();
+                addr_tx.send(listener.local_addr().unwrap()).unwrap();
+                let server = Server::new(listener);
+                let svc = Svc(m);
+                let on_connected = |stream, socket_addr| {
+                    let svc = svc.clone();
+                    async move { accept_tcp_connection(stream, socket_addr, |_| Ok(Some(svc.clone()))) }
+                };
+                let abort = async move {
+                    let _ = rx.await;
+                };
+                let _ = server.serve_until(&on_connected, |_| {}, abort).await;
+            });
+        });
+        let addr = addr_rx.recv_timeout(Duration::from_secs(5)).unwrap();
+        TestServer {
+            addr,
+            mem,
+            stop: Some(tx),
+            thread: Some(thread),
+        }
+    }
+}
+
+impl TestServer {
+    /// Where it listens.
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+
+    /// Its registers and fault switches.
+    pub fn memory(&self) -> &Arc<Mutex<Memory>> {
+        &self.mem
+    }
+}
+
+impl Drop for TestServer {
+    fn drop(&mut self) {
+        if let Some(s) = self.stop.take() {
+            let _ = s.send(());
+        }
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
