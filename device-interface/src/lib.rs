@@ -41,5 +41,7 @@ pub use health::{Health, Status};
 pub use interfaces::{
     AnalogIn, AnalogOut, AnalogReference, Device, DigitalIn, DigitalOut, Encoder,
 };
-pub use registry::{Interface, NameInfo, NameServer, Registry, RegistryEntry, RegistryError};
+pub use registry::{
+    CardDevices, Interface, NameInfo, NameServer, Registry, RegistryEntry, RegistryError,
+};
 pub use scale::{AnalogRange, RawRange, Scale, ScaleError, Unit};

@@ -371,6 +371,21 @@ fn check_name(name: &str) -> Result<(), RegistryError> {
     })
 }
 
+/// The devices one card offers, for [`Registry::register_card`].
+#[derive(Default)]
+pub struct CardDevices {
+    /// Its analog inputs, if it has any.
+    pub analog_in: Option<Arc<dyn AnalogIn>>,
+    /// Its analog outputs.
+    pub analog_out: Option<Arc<dyn AnalogOut>>,
+    /// Its digital inputs.
+    pub digital_in: Option<Arc<dyn DigitalIn>>,
+    /// Its digital outputs.
+    pub digital_out: Option<Arc<dyn DigitalOut>>,
+    /// Its encoders, each with the suffix of its name (`card.suffix`).
+    pub encoders: Vec<(String, Arc<dyn Encoder>)>,
+}
+
 /// One name in a [`Registry`] listing.
 #[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
 pub struct RegistryEntry {
@@ -434,6 +449,49 @@ impl Registry {
     /// Encoders by name.
     pub fn encoder(&self) -> &NameServer<dyn Encoder> {
         &self.encoder
+    }
+
+    /// Registers every device of card `name` under `name` (encoders as `name.suffix`),
+    /// owned by `name`. All or nothing: on error, what this call registered is removed again
+    /// and a name held by someone else stays theirs.
+    pub fn register_card(&self, name: &str, devices: CardDevices) -> Result<(), RegistryError> {
+        let mut done: Vec<(Interface, String)> = Vec::new();
+        let result = (|| {
+            if let Some(d) = devices.analog_in {
+                self.analog_in.register(name, name, d)?;
+                done.push((Interface::AnalogIn, name.to_string()));
+            }
+            if let Some(d) = devices.analog_out {
+                self.analog_out.register(name, name, d)?;
+                done.push((Interface::AnalogOut, name.to_string()));
+            }
+            if let Some(d) = devices.digital_in {
+                self.digital_in.register(name, name, d)?;
+                done.push((Interface::DigitalIn, name.to_string()));
+            }
+            if let Some(d) = devices.digital_out {
+                self.digital_out.register(name, name, d)?;
+                done.push((Interface::DigitalOut, name.to_string()));
+            }
+            for (suffix, d) in devices.encoders {
+                let full = format!("{name}.{suffix}");
+                self.encoder.register(&full, name, d)?;
+                done.push((Interface::Encoder, full));
+            }
+            Ok(())
+        })();
+        if result.is_err() {
+            for (interface, n) in done {
+                let _ = match interface {
+                    Interface::AnalogIn => self.analog_in.unregister(&n),
+                    Interface::AnalogOut => self.analog_out.unregister(&n),
+                    Interface::DigitalIn => self.digital_in.unregister(&n),
+                    Interface::DigitalOut => self.digital_out.unregister(&n),
+                    Interface::Encoder => self.encoder.unregister(&n),
+                };
+            }
+        }
+        result
     }
 
     /// Removes everything `owner` registered under every interface (a card going away).

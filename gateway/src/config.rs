@@ -68,7 +68,7 @@ pub struct Deployment {
 pub struct CardConfig {
     /// The card's name: its devices are registered under it.
     pub name: String,
-    /// Which driver runs it: "sim".
+    /// Which driver runs it: "sim" or "modbus".
     pub driver: String,
     /// Period of the card's bus cycle, ms.
     #[serde(default = "default_card_period")]
@@ -91,6 +91,9 @@ pub struct CardConfig {
     /// The sim driver's section.
     #[serde(default)]
     pub sim: Option<toml::Spanned<SimConfig>>,
+    /// The modbus driver's section: the line, the unit, timing and the register map.
+    #[serde(default)]
+    pub modbus: Option<toml::Spanned<driver_modbus::config::ModbusConfig>>,
 }
 
 /// Port names for a card's channels, in channel order.

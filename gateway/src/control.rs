@@ -346,7 +346,12 @@ fn status(gw: &Gateway) -> Value {
             })
         })
         .collect();
-    json!({"health": gw.health().err().unwrap_or_else(|| "ok".into()), "devices": devices, "components": components})
+    json!({
+        "health": gw.health().err().unwrap_or_else(|| "ok".into()),
+        "devices": devices,
+        "cards": gw.card_diagnostics(),
+        "components": components,
+    })
 }
 
 fn error_reply(id: Value, kind: Kind, message: String) -> Value {

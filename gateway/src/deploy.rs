@@ -7,6 +7,8 @@
 use crate::config::{AliasInterface, Deployment, Location, Problem, locate, millis, split_port};
 use crate::{components, io};
 use device_interface::{AnalogIn, AnalogOut, DigitalIn, DigitalOut, Registry};
+use driver_modbus::card::ModbusCard;
+use driver_modbus::line::{Line, LineUnit, Transport, UnitStats, UnitTiming};
 use driver_sim::SimCard;
 use rtt::{
     ActivitySpec, Component, Context, HookResult, Runtime, RuntimeOptions, TaskContext, TaskState,
@@ -48,12 +50,75 @@ fn add(problems: &mut Vec<Problem>, location: Option<Location>, path: String, me
     });
 }
 
-/// The sim card of a deployment, with what it needs at shutdown.
-struct SimCardRt {
+/// What drives a card's bus I/O.
+enum Driver {
+    /// A simulated card, stepped by a periodic cycle component.
+    Sim(Arc<SimCard>),
+    /// A Modbus unit, polled by the line of its transport (started with the gateway).
+    Modbus {
+        card: Arc<ModbusCard>,
+        transport: Transport,
+        timing: UnitTiming,
+        stats: Arc<UnitStats>,
+    },
+}
+
+/// A card of the deployment, with what it needs at shutdown.
+struct CardRt {
     name: String,
-    card: Arc<SimCard>,
+    /// Its index in the deployment's `[[card]]` list.
+    config: usize,
+    driver: Driver,
     safe_analog_out: Vec<f64>,
     safe_digital_out_on: Vec<u32>,
+}
+
+impl CardRt {
+    fn analog_out(&self) -> &dyn AnalogOut {
+        match &self.driver {
+            Driver::Sim(c) => &**c,
+            Driver::Modbus { card, .. } => &**card,
+        }
+    }
+
+    fn digital_out(&self) -> &dyn DigitalOut {
+        match &self.driver {
+            Driver::Sim(c) => &**c,
+            Driver::Modbus { card, .. } => &**card,
+        }
+    }
+
+    fn counts(&self) -> [u32; 4] {
+        match &self.driver {
+            Driver::Sim(c) => [
+                AnalogIn::channel_count(&**c),
+                AnalogOut::channel_count(&**c),
+                c.input_count(),
+                DigitalOut::output_count(&**c),
+            ],
+            Driver::Modbus { card, .. } => card.map().counts(),
+        }
+    }
+}
+
+/// A sim card's devices for the registry (encoders as `card.encoderN`).
+fn sim_devices(card: &Arc<SimCard>) -> device_interface::CardDevices {
+    use device_interface::{CardDevices, DigitalIn, Encoder};
+    CardDevices {
+        analog_in: (AnalogIn::channel_count(&**card) > 0)
+            .then(|| card.clone() as Arc<dyn AnalogIn>),
+        analog_out: (AnalogOut::channel_count(&**card) > 0)
+            .then(|| card.clone() as Arc<dyn AnalogOut>),
+        digital_in: (card.input_count() > 0).then(|| card.clone() as Arc<dyn DigitalIn>),
+        digital_out: (DigitalOut::output_count(&**card) > 0)
+            .then(|| card.clone() as Arc<dyn DigitalOut>),
+        encoders: (0..card.encoder_count())
+            .filter_map(|i| {
+                card.encoder(i)
+                    .map(|e| (format!("encoder{i}"), e as Arc<dyn Encoder>))
+            })
+            .collect(),
+    }
 }
 
 /// Runs a card's bus cycle.
@@ -69,7 +134,9 @@ impl Component for CardCycle {
 /// A built (and possibly running) gateway.
 pub struct Gateway {
     runtime: Runtime,
-    cards: Vec<SimCardRt>,
+    cards: Vec<CardRt>,
+    /// Running Modbus lines (empty until start).
+    lines: std::sync::Mutex<Vec<Line>>,
     /// Components in start order.
     order: Vec<TaskContext>,
     /// Which components the deployment asked to start.
@@ -115,64 +182,97 @@ impl Gateway {
                 );
                 continue;
             }
-            match (c.driver.as_str(), &c.sim) {
-                ("sim", Some(section)) => {
-                    match SimCard::new(section.get_ref(), Arc::new(rtt::time::MonotonicClock)) {
-                        Ok(card) => {
-                            let counts = [
-                                AnalogIn::channel_count(&*card),
-                                AnalogOut::channel_count(&*card),
-                                card.input_count(),
-                                DigitalOut::output_count(&*card),
-                            ];
-                            if let Err((key, message)) = c.names.check(counts) {
-                                add(
-                                    &mut problems,
-                                    at(&[Seg::Key("card"), Seg::Index(i), Seg::Key("names")]),
-                                    format!("{path}.{key}"),
-                                    message,
-                                );
-                                continue;
-                            }
-                            if let Err(e) = card.register(&registry, &c.name) {
-                                add(&mut problems, here(), format!("{path}.name"), e.to_string());
-                            }
-                            let safe = c.safe_analog_out.clone().unwrap_or_else(|| {
-                                (0..AnalogOut::channel_count(&*card))
-                                    .map(|ch| AnalogOut::read_back(&*card, ch).unwrap_or(0.0))
-                                    .collect()
-                            });
-                            cards.push(SimCardRt {
-                                name: c.name.clone(),
-                                card,
-                                safe_analog_out: safe,
-                                safe_digital_out_on: c.safe_digital_out_on.clone(),
-                            });
-                        }
-                        Err(e) => add(
-                            &mut problems,
-                            Some(locate(file, text, section.span().start)),
-                            format!("{path}.sim"),
-                            format!("card {:?}: {e}", c.name),
-                        ),
-                    }
+            let section = |key: &str, span: Option<std::ops::Range<usize>>| {
+                let location = span.map(|sp| locate(file, text, sp.start)).or_else(here);
+                (location, format!("{path}.{key}"))
+            };
+            let built: Result<
+                (Driver, device_interface::CardDevices),
+                (Option<Location>, String, String),
+            > = match (c.driver.as_str(), &c.sim, &c.modbus) {
+                ("sim", Some(sec), _) => {
+                    SimCard::new(sec.get_ref(), Arc::new(rtt::time::MonotonicClock))
+                        .map(|card| {
+                            let devices = sim_devices(&card);
+                            (Driver::Sim(card), devices)
+                        })
+                        .map_err(|e| {
+                            let (l, p) = section("sim", Some(sec.span()));
+                            (l, p, format!("card {:?}: {e}", c.name))
+                        })
                 }
-                ("sim", None) => add(
-                    &mut problems,
+                ("modbus", _, Some(sec)) => {
+                    let m = sec.get_ref();
+                    let (l, p) = section("modbus", Some(sec.span()));
+                    let problem =
+                        |e: String| (l.clone(), p.clone(), format!("card {:?}: {e}", c.name));
+                    m.transport()
+                        .and_then(|t| m.timing().map(|timing| (t, timing)))
+                        .map_err(problem)
+                        .and_then(|(transport, timing)| {
+                            let card = m
+                                .card(Arc::new(rtt::time::MonotonicClock))
+                                .map_err(|e| problem(e.to_string()))?;
+                            let devices = card.devices();
+                            Ok((
+                                Driver::Modbus {
+                                    card,
+                                    transport,
+                                    timing,
+                                    stats: Arc::new(UnitStats::default()),
+                                },
+                                devices,
+                            ))
+                        })
+                }
+                (d @ ("sim" | "modbus"), _, _) => Err((
                     here(),
                     path.clone(),
                     format!(
-                        "card {:?} uses driver \"sim\" but has no [card.sim] section",
+                        "card {:?} uses driver {d:?} but has no [card.{d}] section",
                         c.name
                     ),
-                ),
-                (other, _) => add(
-                    &mut problems,
+                )),
+                (other, _, _) => Err((
                     at(&[Seg::Key("card"), Seg::Index(i), Seg::Key("driver")]),
                     format!("{path}.driver"),
-                    format!("unknown driver {other:?}; this build has: sim"),
-                ),
+                    format!("unknown driver {other:?}; this build has: modbus, sim"),
+                )),
+            };
+            let (driver, devices) = match built {
+                Ok(b) => b,
+                Err((location, key, message)) => {
+                    add(&mut problems, location, key, message);
+                    continue;
+                }
+            };
+            let mut card = CardRt {
+                name: c.name.clone(),
+                config: i,
+                driver,
+                safe_analog_out: Vec::new(),
+                safe_digital_out_on: c.safe_digital_out_on.clone(),
+            };
+            if let Err((key, message)) = c.names.check(card.counts()) {
+                add(
+                    &mut problems,
+                    at(&[Seg::Key("card"), Seg::Index(i), Seg::Key("names")]),
+                    format!("{path}.{key}"),
+                    message,
+                );
+                continue;
             }
+            if let Err(e) = registry.register_card(&c.name, devices) {
+                add(&mut problems, here(), format!("{path}.name"), e.to_string());
+                continue;
+            }
+            card.safe_analog_out = c.safe_analog_out.clone().unwrap_or_else(|| {
+                let ao = card.analog_out();
+                (0..ao.channel_count())
+                    .map(|ch| ao.read_back(ch).unwrap_or(0.0))
+                    .collect()
+            });
+            cards.push(card);
         }
 
         for (i, a) in deployment.aliases.iter().enumerate() {
@@ -213,24 +313,28 @@ impl Gateway {
             }
         };
 
-        // Card cycles, then each card's IO components.
+        // Card cycles (sim cards; a Modbus card's line is its activity), then each card's
+        // IO components.
         let mut order = Vec::new();
-        for (i, c) in cards.iter().enumerate() {
+        for c in &cards {
+            let i = c.config;
             let cfg = &deployment.cards[i];
-            let card = c.card.clone();
-            match runtime.add(
-                &c.name,
-                ActivitySpec::periodic(millis(cfg.period_ms)),
-                false,
-                move |_| Ok(CardCycle(card)),
-            ) {
-                Ok(t) => order.push(t),
-                Err(e) => add(
-                    &mut problems,
-                    at(&[Seg::Key("card"), Seg::Index(i)]),
-                    format!("card[{i}]"),
-                    e.to_string(),
-                ),
+            if let Driver::Sim(sim) = &c.driver {
+                let card = sim.clone();
+                match runtime.add(
+                    &c.name,
+                    ActivitySpec::periodic(millis(cfg.period_ms)),
+                    false,
+                    move |_| Ok(CardCycle(card)),
+                ) {
+                    Ok(t) => order.push(t),
+                    Err(e) => add(
+                        &mut problems,
+                        at(&[Seg::Key("card"), Seg::Index(i)]),
+                        format!("card[{i}]"),
+                        e.to_string(),
+                    ),
+                }
             }
             let sample = millis(cfg.sample_period_ms.unwrap_or(cfg.period_ms));
             match io::build(&runtime, &c.name, sample, &cfg.names) {
@@ -350,6 +454,7 @@ impl Gateway {
             Ok(Gateway {
                 runtime,
                 cards,
+                lines: std::sync::Mutex::new(Vec::new()),
                 order,
                 start,
             })
@@ -426,8 +531,38 @@ impl Gateway {
         (report, applied_to)
     }
 
-    /// Starts the components the deployment asks to start, in order.
+    /// Starts the Modbus lines (cards with the same transport share one), then the
+    /// components the deployment asks to start, in order.
     pub fn start(&self) -> Result<(), rtt::component::LifecycleError> {
+        let mut groups: Vec<(Transport, Vec<LineUnit>)> = Vec::new();
+        for c in &self.cards {
+            if let Driver::Modbus {
+                card,
+                transport,
+                timing,
+                stats,
+            } = &c.driver
+            {
+                let unit = LineUnit {
+                    card: card.clone(),
+                    timing: *timing,
+                    stats: stats.clone(),
+                };
+                match groups.iter_mut().find(|(t, _)| t == transport) {
+                    Some((_, units)) => units.push(unit),
+                    None => groups.push((transport.clone(), vec![unit])),
+                }
+            }
+        }
+        let mut lines = crate::port_lock(&self.lines);
+        for (n, (transport, units)) in groups.into_iter().enumerate() {
+            match Line::spawn(&format!("modbus{n}"), transport.clone(), units) {
+                Ok(line) => lines.push(line),
+                // The cards stay offline and say so; the rest of the gateway runs.
+                Err(e) => tracing::error!("modbus line {transport:?}: cannot start: {e}"),
+            }
+        }
+        drop(lines);
         for (t, start) in self.order.iter().zip(&self.start) {
             if *start && t.state() == TaskState::Stopped {
                 t.start()?;
@@ -457,6 +592,30 @@ impl Gateway {
         }
     }
 
+    /// Per-card bus diagnostics (Modbus line counters), for `status`.
+    pub fn card_diagnostics(&self) -> serde_json::Value {
+        let load = |a: &std::sync::atomic::AtomicU64| a.load(std::sync::atomic::Ordering::Relaxed);
+        self.cards
+            .iter()
+            .map(|c| match &c.driver {
+                Driver::Sim(_) => serde_json::json!({"name": c.name, "driver": "sim"}),
+                Driver::Modbus { stats, timing, .. } => serde_json::json!({
+                    "name": c.name,
+                    "driver": "modbus",
+                    "unit": timing.unit,
+                    "polls": load(&stats.polls),
+                    "requests": load(&stats.requests),
+                    "replies": load(&stats.replies),
+                    "timeouts": load(&stats.timeouts),
+                    "exceptions": load(&stats.exceptions),
+                    "transport_errors": load(&stats.transport_errors),
+                    "bad_replies": load(&stats.bad_replies),
+                    "write_retries": load(&stats.write_retries),
+                }),
+            })
+            .collect()
+    }
+
     /// The runtime.
     pub fn runtime(&self) -> &Runtime {
         &self.runtime
@@ -466,7 +625,26 @@ impl Gateway {
     pub fn summary(&self) -> String {
         let mut s = String::new();
         for c in &self.cards {
-            s.push_str(&format!("card {:?} (sim)\n", c.name));
+            let driver = match &c.driver {
+                Driver::Sim(_) => "sim".to_string(),
+                Driver::Modbus {
+                    transport,
+                    timing,
+                    card,
+                    ..
+                } => format!(
+                    "modbus {transport:?} unit {}, {} reads per poll: {}",
+                    timing.unit,
+                    card.map().reads().len(),
+                    card.map()
+                        .reads()
+                        .iter()
+                        .map(|r| r.to_string())
+                        .collect::<Vec<_>>()
+                        .join("; ")
+                ),
+            };
+            s.push_str(&format!("card {:?} ({driver})\n", c.name));
         }
         for e in self.runtime.registry().entries() {
             let alias = e
@@ -502,39 +680,63 @@ impl Gateway {
                 tracing::warn!("{e}");
             }
         }
-        let mut lines = Vec::new();
         for c in &self.cards {
-            let card = &*c.card;
+            let (ao, dout) = (c.analog_out(), c.digital_out());
             for (ch, v) in c.safe_analog_out.iter().enumerate() {
-                if let Err(e) = AnalogOut::write(card, ch as u32, *v) {
+                if let Err(e) = ao.write(ch as u32, *v) {
                     tracing::error!(
                         "card {:?}: analog output {ch} not at its safe value {v}: {e}",
                         c.name
                     );
                 }
             }
-            for b in 0..DigitalOut::output_count(card) {
-                if let Err(e) = card.set_bit(b, c.safe_digital_out_on.contains(&b)) {
+            for b in 0..dout.output_count() {
+                if let Err(e) = dout.set_bit(b, c.safe_digital_out_on.contains(&b)) {
                     tracing::error!(
                         "card {:?}: digital output {b} not at its safe value: {e}",
                         c.name
                     );
                 }
             }
-            let ao: Vec<String> = (0..AnalogOut::channel_count(card))
+        }
+        // A bus card's safe values only count once its line has sent them.
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(3);
+        for c in &self.cards {
+            if let Driver::Modbus { card, stats, .. } = &c.driver {
+                let polls = stats.polls.load(std::sync::atomic::Ordering::Relaxed);
+                while (card.writes_pending()
+                    || stats.polls.load(std::sync::atomic::Ordering::Relaxed) <= polls)
+                    && std::time::Instant::now() < deadline
+                    && !crate::port_lock(&self.lines).is_empty()
+                {
+                    std::thread::sleep(std::time::Duration::from_millis(5));
+                }
+                if card.writes_pending() {
+                    tracing::error!(
+                        "card {:?}: safe values not confirmed by the unit before stopping",
+                        c.name
+                    );
+                }
+            }
+        }
+        crate::port_lock(&self.lines).clear();
+        let mut lines = Vec::new();
+        for c in &self.cards {
+            let (ao, dout) = (c.analog_out(), c.digital_out());
+            let analog: Vec<String> = (0..ao.channel_count())
                 .map(|ch| {
-                    AnalogOut::read_back(card, ch)
+                    ao.read_back(ch)
                         .map_or_else(|e| e.to_string(), |v| format!("{v}"))
                 })
                 .collect();
-            let on: Vec<String> = (0..DigitalOut::output_count(card))
-                .filter(|b| card.check_bit(*b).unwrap_or(false))
+            let on: Vec<String> = (0..dout.output_count())
+                .filter(|b| dout.check_bit(*b).unwrap_or(false))
                 .map(|b| b.to_string())
                 .collect();
             lines.push(format!(
                 "card {:?} outputs at stop: analog [{}], digital on [{}]",
                 c.name,
-                ao.join(", "),
+                analog.join(", "),
                 on.join(", ")
             ));
         }

@@ -170,6 +170,25 @@ impl ModbusCard {
         })
     }
 
+    /// The card's devices, for [`Registry::register_card`](device_interface::Registry::register_card)
+    /// (only the interfaces its map has channels for).
+    pub fn devices(self: &Arc<Self>) -> device_interface::CardDevices {
+        let [ai, ao, di, dout] = self.map.counts();
+        device_interface::CardDevices {
+            analog_in: (ai > 0).then(|| self.clone() as Arc<dyn AnalogIn>),
+            analog_out: (ao > 0).then(|| self.clone() as Arc<dyn AnalogOut>),
+            digital_in: (di > 0).then(|| self.clone() as Arc<dyn DigitalIn>),
+            digital_out: (dout > 0).then(|| self.clone() as Arc<dyn DigitalOut>),
+            encoders: Vec::new(),
+        }
+    }
+
+    /// True while some output change has not been taken for sending.
+    pub fn writes_pending(&self) -> bool {
+        let any = |img: &BitImage| (0..img.len()).any(|b| img.get(b).unwrap_or(false));
+        any(&self.ao_dirty) || any(&self.do_dirty)
+    }
+
     /// The register map.
     pub fn map(&self) -> &Map {
         &self.map

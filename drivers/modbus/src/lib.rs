@@ -6,7 +6,8 @@
 //! - [`plan`]: coalescing a register map into as few reads as the protocol allows;
 //! - [`map`]: the register map, and which device channel each point is;
 //! - [`card`]: a unit's devices — images fed by replies, outputs turned into writes;
-//! - [`line`](mod@line): the poller of one connection and the units on it.
+//! - [`line`](mod@line): the poller of one connection and the units on it;
+//! - [`config`]: a card's section of a deployment.
 //!
 //! ```
 //! use driver_modbus::codec::{Layout, Number, ValueType};
@@ -18,6 +19,7 @@
 
 pub mod card;
 pub mod codec;
+pub mod config;
 pub mod line;
 pub mod map;
 pub mod plan;

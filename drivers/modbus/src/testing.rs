@@ -130,7 +130,18 @@ impl TestServer {
                 .build()
                 .unwrap();
             rt.block_on(async move {
-                let listener = tokio::net::TcpListener::bind(at).await.unwrap();
+                // Re-binding an old port can race another socket for it: retry a while.
+                let deadline = std::time::Instant::now() + Duration::from_secs(10);
+                let listener = loop {
+                    match tokio::net::TcpListener::bind(at).await {
+                        Ok(l) => break l,
+                        Err(e) if std::time::Instant::now() < deadline => {
+                            let _ = e;
+                            tokio::time::sleep(Duration::from_millis(50)).await;
+                        }
+                        Err(e) => panic!("test server: cannot bind {at}: {e}"),
+                    }
+                };
                 addr_tx.send(listener.local_addr().unwrap()).unwrap();
                 let server = Server::new(listener);
                 let svc = Svc(m);

@@ -41,7 +41,19 @@ fn free_port() -> u16 {
 }
 
 fn start_pymodbus_tcp() -> (Peer, SocketAddr) {
-    let port = free_port();
+    // The free port is released before Python binds it, so another socket can take it in
+    // between: try a few ports.
+    let mut last = String::new();
+    for _ in 0..3 {
+        match try_pymodbus_tcp(free_port()) {
+            Ok(p) => return p,
+            Err(e) => last = e,
+        }
+    }
+    panic!("{last}");
+}
+
+fn try_pymodbus_tcp(port: u16) -> Result<(Peer, SocketAddr), String> {
     let child = Command::new(PYTHON)
         .args([SERVER, "tcp", &port.to_string()])
         .stdout(Stdio::null())
@@ -55,15 +67,16 @@ fn start_pymodbus_tcp() -> (Peer, SocketAddr) {
         if let Ok(Some(status)) = peer.0.try_wait() {
             let mut err = String::new();
             std::io::Read::read_to_string(peer.0.stderr.as_mut().unwrap(), &mut err).unwrap();
-            panic!("the pymodbus server exited ({status}); is python3-pymodbus installed?\n{err}");
+            return Err(format!(
+                "the pymodbus server exited ({status}); is python3-pymodbus installed?\n{err}"
+            ));
         }
-        assert!(
-            Instant::now() < deadline,
-            "the pymodbus server did not listen on {addr}"
-        );
+        if Instant::now() > deadline {
+            return Err(format!("the pymodbus server did not listen on {addr}"));
+        }
         std::thread::sleep(Duration::from_millis(50));
     }
-    (peer, addr)
+    Ok((peer, addr))
 }
 
 const MAP: &str = r#"

@@ -7,8 +7,8 @@ use device_interface::bits::{BitImage, BitSpan};
 use device_interface::encoder::EncoderCounter;
 use device_interface::time::{Clock, Timestamp};
 use device_interface::{
-    AnalogIn, AnalogOut, Device, DeviceError, DigitalIn, DigitalOut, Encoder, Health, Registry,
-    RegistryError, Scale, ScaleError, Status,
+    AnalogIn, AnalogOut, CardDevices, Device, DeviceError, DigitalIn, DigitalOut, Encoder, Health,
+    Registry, RegistryError, Scale, ScaleError, Status,
 };
 use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU8, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -528,70 +528,19 @@ impl SimCard {
         registry: &Registry,
         name: &str,
     ) -> Result<(), RegistryError> {
-        let result = self.register_all(registry, name);
-        if result.is_err() {
-            // Undo only what this call added: a name that was already taken stays with its owner.
-            for n in &self.registered_names(name) {
-                unregister_if_mine(registry, n, name);
-            }
-        }
-        result
-    }
-
-    fn registered_names(&self, name: &str) -> Vec<String> {
-        let mut v = vec![name.to_string()];
-        v.extend((0..self.encoders.len()).map(|i| format!("{name}.encoder{i}")));
-        v
-    }
-
-    fn register_all(
-        self: &Arc<Self>,
-        registry: &Registry,
-        name: &str,
-    ) -> Result<(), RegistryError> {
-        if !self.ai.is_empty() {
-            registry.analog_in().register(name, name, self.clone())?;
-        }
-        if !self.ao.is_empty() {
-            registry.analog_out().register(name, name, self.clone())?;
-        }
-        if !self.di.is_empty() {
-            registry.digital_in().register(name, name, self.clone())?;
-        }
-        if !self.dout.is_empty() {
-            registry.digital_out().register(name, name, self.clone())?;
-        }
-        for i in 0..self.encoders.len() {
-            if let Some(enc) = self.encoder(i) {
-                registry
-                    .encoder()
-                    .register(&format!("{name}.encoder{i}"), name, enc)?;
-            }
-        }
-        Ok(())
-    }
-}
-
-fn unregister_if_mine(registry: &Registry, name: &str, owner: &str) {
-    let mine = |infos: Vec<device_interface::NameInfo>| {
-        infos
-            .iter()
-            .any(|i| i.name == name && i.owner == owner && i.alias_of.is_none())
-    };
-    if mine(registry.analog_in().names()) {
-        let _ = registry.analog_in().unregister(name);
-    }
-    if mine(registry.analog_out().names()) {
-        let _ = registry.analog_out().unregister(name);
-    }
-    if mine(registry.digital_in().names()) {
-        let _ = registry.digital_in().unregister(name);
-    }
-    if mine(registry.digital_out().names()) {
-        let _ = registry.digital_out().unregister(name);
-    }
-    if mine(registry.encoder().names()) {
-        let _ = registry.encoder().unregister(name);
+        let devices = CardDevices {
+            analog_in: (!self.ai.is_empty()).then(|| self.clone() as Arc<dyn AnalogIn>),
+            analog_out: (!self.ao.is_empty()).then(|| self.clone() as Arc<dyn AnalogOut>),
+            digital_in: (!self.di.is_empty()).then(|| self.clone() as Arc<dyn DigitalIn>),
+            digital_out: (!self.dout.is_empty()).then(|| self.clone() as Arc<dyn DigitalOut>),
+            encoders: (0..self.encoders.len())
+                .filter_map(|i| {
+                    self.encoder(i)
+                        .map(|e| (format!("encoder{i}"), e as Arc<dyn Encoder>))
+                })
+                .collect(),
+        };
+        registry.register_card(name, devices)
     }
 }
 

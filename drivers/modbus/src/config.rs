@@ -1,0 +1,177 @@
+//! A Modbus card's section of a hwgw deployment: the line, the unit, timing, the map.
+//!
+//! ```
+//! use driver_modbus::config::ModbusConfig;
+//!
+//! let c: ModbusConfig = toml::from_str(r#"
+//!     transport = { type = "tcp", address = "127.0.0.1:502" }
+//!     unit = 1
+//!     poll_ms = 100
+//!     [[point]]
+//!     table = "input_registers"
+//!     address = 0
+//!     type = "i16"
+//!     scale = 0.1
+//! "#)?;
+//! assert_eq!(c.timing()?.poll.as_millis(), 100);
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+
+use crate::card::ModbusCard;
+use crate::line::{Parity, Serial, Transport, UnitTiming};
+use crate::map::{Map, MapError, PointConfig};
+use device_interface::time::Clock;
+use serde::Deserialize;
+use std::net::ToSocketAddrs;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+
+/// Where a card's line goes.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+pub enum TransportConfig {
+    /// Modbus TCP.
+    Tcp {
+        /// `host:port`.
+        address: String,
+    },
+    /// Modbus RTU on a serial port.
+    Rtu {
+        /// The port, best a stable udev name (`/dev/hwgw/line1`).
+        device: PathBuf,
+        /// Bits per second (default 19200).
+        #[serde(default = "baud")]
+        baud: u32,
+        /// Parity (default even).
+        #[serde(default)]
+        parity: Parity,
+        /// Stop bits, 1 or 2 (default 1).
+        #[serde(default = "one_u8")]
+        stop_bits: u8,
+    },
+}
+
+fn baud() -> u32 {
+    19200
+}
+fn one_u8() -> u8 {
+    1
+}
+
+/// One Modbus unit as a card.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModbusConfig {
+    /// The line. Cards with the same transport share one line (one request outstanding).
+    pub transport: TransportConfig,
+    /// Unit id (default 1).
+    #[serde(default = "one_u8")]
+    pub unit: u8,
+    /// Poll period, ms (default 100).
+    #[serde(default = "poll_ms")]
+    pub poll_ms: f64,
+    /// Per-request timeout, ms (default 500).
+    #[serde(default = "timeout_ms")]
+    pub timeout_ms: f64,
+    /// Failed polls in a row before the inputs are stale (default 3).
+    #[serde(default = "stale_after")]
+    pub stale_after: u32,
+    /// Failed polls in a row before the unit is offline and backed off (default 10).
+    #[serde(default = "offline_after")]
+    pub offline_after: u32,
+    /// Longest wait between probes of an offline unit, ms (default 5000).
+    #[serde(default = "backoff_max_ms")]
+    pub backoff_max_ms: f64,
+    /// Unused addresses a read may span to save a request (default 8; 0 for devices that
+    /// refuse reads of unmapped addresses).
+    #[serde(default = "max_gap")]
+    pub max_gap: u16,
+    /// The register map.
+    #[serde(default, rename = "point")]
+    pub points: Vec<PointConfig>,
+}
+
+fn poll_ms() -> f64 {
+    100.0
+}
+fn timeout_ms() -> f64 {
+    500.0
+}
+fn stale_after() -> u32 {
+    3
+}
+fn offline_after() -> u32 {
+    10
+}
+fn backoff_max_ms() -> f64 {
+    5000.0
+}
+fn max_gap() -> u16 {
+    8
+}
+
+fn ms(key: &str, v: f64) -> Result<Duration, String> {
+    if v.is_finite() && v > 0.0 {
+        Ok(Duration::from_secs_f64(v / 1000.0))
+    } else {
+        Err(format!("{key}: {v} ms: expected a time above 0"))
+    }
+}
+
+impl ModbusConfig {
+    /// The line's transport; a TCP address is resolved now.
+    pub fn transport(&self) -> Result<Transport, String> {
+        match &self.transport {
+            TransportConfig::Tcp { address } => address
+                .to_socket_addrs()
+                .map_err(|e| format!("transport.address: {address:?}: {e}"))?
+                .next()
+                .map(Transport::Tcp)
+                .ok_or_else(|| format!("transport.address: {address:?} resolves to no address")),
+            TransportConfig::Rtu {
+                device,
+                baud,
+                parity,
+                stop_bits,
+            } => {
+                if !matches!(stop_bits, 1 | 2) {
+                    return Err(format!("transport.stop_bits: {stop_bits}: expected 1 or 2"));
+                }
+                Ok(Transport::Rtu(Serial {
+                    device: device.clone(),
+                    baud: *baud,
+                    parity: *parity,
+                    stop_bits: *stop_bits,
+                }))
+            }
+        }
+    }
+
+    /// The unit's timing, checked.
+    pub fn timing(&self) -> Result<UnitTiming, String> {
+        if self.stale_after == 0 || self.offline_after < self.stale_after {
+            return Err(format!(
+                "stale_after {} and offline_after {}: expected 1 <= stale_after <= offline_after",
+                self.stale_after, self.offline_after
+            ));
+        }
+        Ok(UnitTiming {
+            unit: self.unit,
+            poll: ms("poll_ms", self.poll_ms)?,
+            timeout: ms("timeout_ms", self.timeout_ms)?,
+            stale_after: self.stale_after,
+            offline_after: self.offline_after,
+            backoff_max: ms("backoff_max_ms", self.backoff_max_ms)?,
+        })
+    }
+
+    /// The card for this unit, with its time from `clock` (it polls nothing until a
+    /// [`Line`](crate::line::Line) runs it).
+    pub fn card(&self, clock: Arc<dyn Clock>) -> Result<Arc<ModbusCard>, MapError> {
+        Ok(ModbusCard::new(
+            Map::new(&self.points, self.max_gap)?,
+            clock,
+        ))
+    }
+}
