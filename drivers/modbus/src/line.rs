@@ -450,13 +450,13 @@ fn answer<T>(
             })
         }
         Ok(Err(e)) => {
-            // A reply from the wrong unit or transaction is a bad reply, not a line fault.
-            let source = std::io::Error::other(e.to_string());
-            if e.to_string().contains("header") {
-                bump(&stats.bad_replies);
-            } else {
-                bump(&stats.transport_errors);
+            // A reply from the wrong unit or transaction, or with the wrong function code, is
+            // a bad reply, not a line fault.
+            match &e {
+                tokio_modbus::Error::Protocol(_) => bump(&stats.bad_replies),
+                tokio_modbus::Error::Transport(_) => bump(&stats.transport_errors),
             }
+            let source = std::io::Error::other(e.to_string());
             Err(PollError::Transport {
                 unit: t.unit,
                 what: what(),

@@ -259,3 +259,124 @@ fn a_lost_connection_is_reconnected() {
         stats.transport_errors.load(Ordering::Relaxed) + stats.timeouts.load(Ordering::Relaxed) > 0
     );
 }
+
+/// A raw Modbus TCP responder: for each request frame, `reply` returns the bytes to send
+/// (and whether to close the connection afterwards) — for replies no real server sends.
+fn raw_server(reply: fn(&[u8]) -> (Vec<u8>, bool)) -> std::net::SocketAddr {
+    use std::io::{Read, Write};
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = listener.local_addr().unwrap();
+    std::thread::spawn(move || {
+        for conn in listener.incoming() {
+            let Ok(mut conn) = conn else { return };
+            std::thread::spawn(move || {
+                loop {
+                    let mut header = [0u8; 7];
+                    if conn.read_exact(&mut header).is_err() {
+                        return;
+                    }
+                    let len = usize::from(u16::from_be_bytes([header[4], header[5]]));
+                    let mut pdu = vec![0u8; len.saturating_sub(1)];
+                    if conn.read_exact(&mut pdu).is_err() {
+                        return;
+                    }
+                    let mut request = header.to_vec();
+                    request.extend_from_slice(&pdu);
+                    let (bytes, close) = reply(&request);
+                    if conn.write_all(&bytes).is_err() || close {
+                        return;
+                    }
+                }
+            });
+        }
+    });
+    addr
+}
+
+/// A well-formed reply to a read of input registers, all zero, from `unit`.
+fn zeros_from(request: &[u8], unit: u8) -> Vec<u8> {
+    let count = u16::from_be_bytes([request[10], request[11]]);
+    let bytes = (count * 2) as u8;
+    let mut r = request[0..4].to_vec(); // transaction and protocol ids
+    r.extend_from_slice(&(3 + u16::from(bytes)).to_be_bytes());
+    r.push(unit);
+    r.push(request[7]); // function code
+    r.push(bytes);
+    r.extend(std::iter::repeat_n(0u8, usize::from(bytes)));
+    r
+}
+
+const ONE_INPUT: &str = "[[point]]\ntable = \"input_registers\"\naddress = 0\n";
+
+fn line_against(addr: std::net::SocketAddr) -> (Arc<ModbusCard>, Arc<UnitStats>, Line) {
+    let card = card(ONE_INPUT);
+    let stats = Arc::new(UnitStats::default());
+    let line = Line::spawn(
+        "mb-raw",
+        Transport::Tcp(addr),
+        vec![LineUnit {
+            card: card.clone(),
+            timing: timing(1),
+            stats: stats.clone(),
+        }],
+    )
+    .unwrap();
+    (card, stats, line)
+}
+
+#[test]
+fn a_reply_from_the_wrong_unit_is_rejected_and_counted() {
+    let addr = raw_server(|req| (zeros_from(req, req[6].wrapping_add(1)), false));
+    let (card, stats, _line) = line_against(addr);
+    wait_until("bad replies counted", || {
+        stats.bad_replies.load(Ordering::Relaxed) >= 3
+    });
+    assert_ne!(
+        card.health().status,
+        Status::Online,
+        "never online on replies from another unit"
+    );
+    let e = card.health().last_error.unwrap().to_string();
+    eprintln!("wrong unit: {e}");
+    assert_eq!(stats.polls.load(Ordering::Relaxed), 0);
+}
+
+#[test]
+fn a_truncated_frame_is_an_error_not_a_hang() {
+    // The header promises 5 bytes of PDU; 2 arrive, then the connection closes.
+    let addr = raw_server(|req| {
+        let mut r = zeros_from(req, req[6]);
+        r.truncate(9);
+        (r, true)
+    });
+    let (card, stats, _line) = line_against(addr);
+    wait_until("failures counted", || {
+        stats.transport_errors.load(Ordering::Relaxed) + stats.timeouts.load(Ordering::Relaxed) >= 3
+    });
+    assert_ne!(card.health().status, Status::Online);
+    eprintln!("truncated: {}", card.health().last_error.unwrap());
+}
+
+#[test]
+fn a_slow_reply_within_the_timeout_is_fine_and_one_past_it_times_out() {
+    let fast = raw_server(|req| {
+        std::thread::sleep(Duration::from_millis(50)); // timeout is 100 ms
+        (zeros_from(req, req[6]), false)
+    });
+    let (card, stats, line) = line_against(fast);
+    wait_until("online despite the delay", || {
+        card.health().status == Status::Online
+    });
+    assert_eq!(stats.timeouts.load(Ordering::Relaxed), 0);
+    drop(line);
+    let slow = raw_server(|req| {
+        std::thread::sleep(Duration::from_millis(250));
+        (zeros_from(req, req[6]), false)
+    });
+    let (card, stats, _line) = line_against(slow);
+    wait_until("timeouts counted", || {
+        stats.timeouts.load(Ordering::Relaxed) >= 2
+    });
+    assert_ne!(card.health().status, Status::Online);
+    assert_eq!(stats.polls.load(Ordering::Relaxed), 0);
+}
