@@ -63,6 +63,7 @@ fn main() {
             bit: None,
             read_only: true,
             resolution: None,
+            encoder: None,
         })
         .collect();
     let card = ModbusCard::new(Map::new(&points, 0).unwrap(), Arc::new(MonotonicClock));

@@ -96,6 +96,35 @@ pub enum ReplyError {
     },
 }
 
+/// A counter register's encoder state: the software count and the last raw reading.
+struct CounterEncoder {
+    counter: device_interface::encoder::EncoderCounter,
+    /// The last raw counter value; meaningful once `seen`.
+    last: AtomicI64,
+    seen: std::sync::atomic::AtomicBool,
+    /// The counter's width in bits (it wraps at 2^bits).
+    bits: u32,
+}
+
+impl CounterEncoder {
+    /// Takes a new counter reading: advances by the difference since the last one,
+    /// across the counter's wrap (the shorter way round).
+    fn sample(&self, raw: i64) {
+        let prev = self.last.swap(raw, Ordering::AcqRel);
+        if !self.seen.swap(true, Ordering::AcqRel) {
+            return; // the first reading is the baseline
+        }
+        let delta = if self.bits >= 64 {
+            raw.wrapping_sub(prev)
+        } else {
+            let m = 1i128 << self.bits;
+            let d = (i128::from(raw) - i128::from(prev)).rem_euclid(m);
+            (if d >= m / 2 { d - m } else { d }) as i64
+        };
+        self.counter.advance(delta);
+    }
+}
+
 const ONLINE: u8 = 0;
 const STALE: u8 = 1;
 const OFFLINE: u8 = 2;
@@ -110,6 +139,7 @@ pub struct ModbusCard {
     di: BitImage,
     dout: BitImage,
     do_dirty: BitImage,
+    encoders: Box<[CounterEncoder]>,
     status: AtomicU8,
     /// Time of the last good poll in ns plus one; 0: never.
     last_good: AtomicU64,
@@ -159,6 +189,24 @@ impl ModbusCard {
             ai: image(Role::AnalogIn, ai),
             ao: image(Role::AnalogOut, ao),
             ao_dirty: BitImage::new(ao),
+            encoders: map
+                .points()
+                .iter()
+                .filter(|p| p.role == Role::Encoder)
+                .filter_map(|p| {
+                    let e = p.config.encoder?;
+                    Some(CounterEncoder {
+                        counter: device_interface::encoder::EncoderCounter::new(
+                            e.resolution,
+                            e.upcounting,
+                        )
+                        .ok()?,
+                        last: AtomicI64::new(0),
+                        seen: std::sync::atomic::AtomicBool::new(false),
+                        bits: 16 * p.layout.ty.registers() as u32,
+                    })
+                })
+                .collect(),
             di: BitImage::new(di),
             dout: BitImage::new(dout),
             do_dirty: BitImage::new(dout),
@@ -179,7 +227,15 @@ impl ModbusCard {
             analog_out: (ao > 0).then(|| self.clone() as Arc<dyn AnalogOut>),
             digital_in: (di > 0).then(|| self.clone() as Arc<dyn DigitalIn>),
             digital_out: (dout > 0).then(|| self.clone() as Arc<dyn DigitalOut>),
-            encoders: Vec::new(),
+            encoders: (0..self.encoders.len())
+                .map(|index| {
+                    let e: Arc<dyn device_interface::Encoder> = Arc::new(ModbusEncoder {
+                        card: self.clone(),
+                        index,
+                    });
+                    (format!("encoder{index}"), e)
+                })
+                .collect(),
         }
     }
 
@@ -230,6 +286,22 @@ impl ModbusCard {
                 (ReadData::Registers(regs), Role::DigitalIn) => {
                     let bit = p.config.bit.unwrap_or(0);
                     let _ = self.di.set(p.channel, regs[offset] >> bit & 1 == 1);
+                }
+                (ReadData::Registers(regs), Role::Encoder) => {
+                    let raw = p
+                        .layout
+                        .decode(&regs[offset..])
+                        .ok()
+                        .and_then(|n| raw_of(p, n));
+                    match (raw, self.encoders.get(p.channel as usize)) {
+                        (Some(raw), Some(e)) => e.sample(raw),
+                        _ => {
+                            first_error.get_or_insert(ReplyError::NotANumber {
+                                point: pi,
+                                value: f64::NAN,
+                            });
+                        }
+                    }
                 }
                 (ReadData::Registers(regs), _) => {
                     // The reply length was checked, so decoding cannot come up short.
@@ -282,7 +354,7 @@ impl ModbusCard {
             let dirty = match p.role {
                 Role::AnalogOut => &self.ao_dirty,
                 Role::DigitalOut => &self.do_dirty,
-                Role::AnalogIn | Role::DigitalIn => continue,
+                Role::AnalogIn | Role::DigitalIn | Role::Encoder => continue,
             };
             // Clear first, then read the value: a write after the read marks it again.
             if !dirty.set(p.channel, false).unwrap_or(false) {
@@ -518,5 +590,56 @@ impl DigitalOut for ModbusCard {
         Ok(self
             .dout
             .read_span(BitSpan::new(start, stop, self.dout.len())?))
+    }
+}
+
+/// One counter-register encoder of a [`ModbusCard`], as a device of its own.
+pub struct ModbusEncoder {
+    card: Arc<ModbusCard>,
+    index: usize,
+}
+
+impl ModbusEncoder {
+    fn counter(&self) -> &device_interface::encoder::EncoderCounter {
+        // `index` comes from the card's own list, which never changes.
+        &self.card.encoders[self.index].counter
+    }
+}
+
+impl Device for ModbusEncoder {
+    fn health(&self) -> Health {
+        self.card.health()
+    }
+}
+
+impl device_interface::Encoder for ModbusEncoder {
+    fn position(&self) -> Result<i64, DeviceError> {
+        self.card.check_input()?;
+        Ok(self.counter().position())
+    }
+
+    fn turn(&self) -> Result<i64, DeviceError> {
+        self.card.check_input()?;
+        Ok(self.counter().turn())
+    }
+
+    /// Homing is done in the gateway's count, not written to the device's counter.
+    fn set_position(&self, position: i64) -> Result<(), DeviceError> {
+        self.counter().geometry().check_position(position)?;
+        self.card.check_output()?;
+        self.counter().set_position(position)
+    }
+
+    fn set_turn(&self, turn: i64) -> Result<(), DeviceError> {
+        self.card.check_output()?;
+        self.counter().set_turn(turn)
+    }
+
+    fn resolution(&self) -> i64 {
+        self.counter().geometry().resolution()
+    }
+
+    fn upcounting(&self) -> bool {
+        self.counter().geometry().upcounting()
     }
 }

@@ -9,6 +9,7 @@
 //! | input registers | value | AnalogIn channel |
 //! | input or holding registers | `bit = n` | DigitalIn bit (bit n of the register) |
 //! | holding registers | value | AnalogOut channel (AnalogIn with `read_only = true`) |
+//! | input or holding registers | `encoder = { resolution = … }` | an Encoder, turns counted on the counter's wrap |
 //!
 //! An analog point's raw value is the register value for integer types. A float register
 //! has no integer value, so its raw value counts steps of `resolution` (default 0.001
@@ -75,6 +76,25 @@ pub struct PointConfig {
     /// For f32/f64 points: the register-value step one raw count stands for.
     #[serde(default)]
     pub resolution: Option<f64>,
+    /// Make this counter register an Encoder: counts per turn and direction. Turns are
+    /// counted on the counter's wrap at its register width.
+    #[serde(default)]
+    pub encoder: Option<EncoderPoint>,
+}
+
+/// A counter register read as an encoder.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EncoderPoint {
+    /// Counts per turn (negative: positions run from resolution+1 to 0).
+    pub resolution: i64,
+    /// True when counting up is the positive direction (default true).
+    #[serde(default = "yes")]
+    pub upcounting: bool,
+}
+
+fn yes() -> bool {
+    true
 }
 
 fn one() -> f64 {
@@ -92,6 +112,8 @@ pub enum Role {
     DigitalIn,
     /// A DigitalOut bit.
     DigitalOut,
+    /// An Encoder (one per point).
+    Encoder,
 }
 
 /// A validated point.
@@ -156,7 +178,7 @@ fn raw_range(ty: ValueType) -> RawRange {
 #[derive(Debug, Clone, PartialEq)]
 pub struct Map {
     points: Vec<Point>,
-    counts: [u32; 4],
+    counts: [u32; 5],
     reads: Vec<Read>,
     /// For each read, the indices into `points` it serves.
     read_points: Vec<Vec<usize>>,
@@ -166,7 +188,7 @@ impl Map {
     /// Validates `configs`, numbers the channels and plans the reads with `max_gap`.
     pub fn new(configs: &[PointConfig], max_gap: u16) -> Result<Map, MapError> {
         let mut points = Vec::new();
-        let mut counts = [0u32; 4];
+        let mut counts = [0u32; 5];
         for (i, c) in configs.iter().enumerate() {
             let bad = |key, problem: String| MapError::Point {
                 point: i,
@@ -203,7 +225,22 @@ impl Map {
                         .into(),
                 ));
             }
+            if let Some(e) = c.encoder {
+                if c.table.is_bits() || c.bit.is_some() || c.ty.is_float() {
+                    return Err(bad("encoder", "an encoder is an integer counter register: no bit table, bit field or float".into()));
+                }
+                if e.resolution == 0 || e.resolution == i64::MIN {
+                    return Err(bad(
+                        "encoder",
+                        format!(
+                            "resolution {}: expected counts per turn, not 0",
+                            e.resolution
+                        ),
+                    ));
+                }
+            }
             let role = match (c.table, c.bit, c.read_only) {
+                _ if c.encoder.is_some() => Role::Encoder,
                 (Table::Coils, _, _) => Role::DigitalOut,
                 (Table::DiscreteInputs, _, _) | (_, Some(_), _) => Role::DigitalIn,
                 (Table::InputRegisters, None, _) | (Table::HoldingRegisters, None, true) => {
@@ -237,6 +274,7 @@ impl Map {
                 Role::AnalogOut => 1,
                 Role::DigitalIn => 2,
                 Role::DigitalOut => 3,
+                Role::Encoder => 4,
             };
             let channel = counts[slot];
             counts[slot] += 1;
@@ -264,7 +302,12 @@ impl Map {
         }
         // Inputs are polled; outputs are written on change (read-back is a later option).
         let polled: Vec<usize> = (0..points.len())
-            .filter(|&i| matches!(points[i].role, Role::AnalogIn | Role::DigitalIn))
+            .filter(|&i| {
+                matches!(
+                    points[i].role,
+                    Role::AnalogIn | Role::DigitalIn | Role::Encoder
+                )
+            })
             .collect();
         let spans: Vec<Span> = polled.iter().map(|&i| points[i].span).collect();
         // Errors and reads name points of `spans`: map them back to the map's numbering.
@@ -291,7 +334,17 @@ impl Map {
 
     /// Channel counts: [AnalogIn, AnalogOut, DigitalIn, DigitalOut].
     pub fn counts(&self) -> [u32; 4] {
-        self.counts
+        [
+            self.counts[0],
+            self.counts[1],
+            self.counts[2],
+            self.counts[3],
+        ]
+    }
+
+    /// Number of encoders.
+    pub fn encoder_count(&self) -> u32 {
+        self.counts[4]
     }
 
     /// The reads one poll makes (their `points` index [`points`](Self::points)).
@@ -397,6 +450,14 @@ mod tests {
     #[test]
     fn bad_points_name_their_key() {
         let cases = [
+            (
+                "[[point]]\ntable = \"coils\"\naddress = 0\nencoder = { resolution = 100 }\n",
+                "point[0].encoder: an encoder is an integer counter register: no bit table, bit field or float",
+            ),
+            (
+                "[[point]]\ntable = \"input_registers\"\naddress = 0\nencoder = { resolution = 0 }\n",
+                "point[0].encoder: resolution 0: expected counts per turn, not 0",
+            ),
             (
                 "[[point]]\ntable = \"input_registers\"\naddress = 0\nresolution = 0.1\n",
                 "point[0].resolution: only float points have a resolution; U16 counts whole units",

@@ -75,6 +75,17 @@ address = 1
 [[point]]
 table = "coils"
 address = 7
+[[point]]
+table = "input_registers"
+address = 50
+type = "u16"
+encoder = { resolution = 1000 }
+[[point]]
+table = "holding_registers"
+address = 60
+type = "i32"
+read_only = true
+encoder = { resolution = -360, upcounting = false }
 "#;
 
 fn map() -> Map {
@@ -167,6 +178,58 @@ fn conformance_every_rule() {
     conformance::check_digital_in(&*card, Some(&mut set_di)).assert_complete();
     conformance::check_analog_out(&*card).assert_complete();
     conformance::check_digital_out(&*card).assert_complete();
+
+    // Encoders from counter registers: motion is the counter counting, across its wrap.
+    let devices = card.devices();
+    assert_eq!(devices.encoders.len(), 2);
+    for (i, (name, enc)) in devices.encoders.iter().enumerate() {
+        assert_eq!(name, &format!("encoder{i}"));
+        let p = map
+            .points()
+            .iter()
+            .filter(|p| p.role == Role::Encoder)
+            .nth(i)
+            .unwrap();
+        let (table, a) = (
+            if p.config.table == driver_modbus::plan::Table::InputRegisters {
+                0
+            } else {
+                1
+            },
+            usize::from(p.config.address),
+        );
+        let mut motion = |n: i64| {
+            let mut u = unit.borrow_mut();
+            let regs = &mut u.registers[table];
+            if p.layout.ty.registers() == 1 {
+                regs[a] = (i64::from(regs[a]) + n).rem_euclid(1 << 16) as u16;
+            } else {
+                let v = ((u32::from(regs[a]) << 16) | u32::from(regs[a + 1])) as i64 + n;
+                let v = v.rem_euclid(1 << 32) as u32;
+                regs[a] = (v >> 16) as u16;
+                regs[a + 1] = v as u16;
+            }
+            drop(u);
+            unit.borrow().poll(&card);
+        };
+        conformance::check_encoder(&**enc, Some(&mut motion)).assert_complete();
+    }
+}
+
+#[test]
+fn a_counter_encoder_counts_turns_across_the_register_wrap() {
+    let card = card();
+    let mut unit = Unit::new();
+    unit.registers[0][50] = 65_000;
+    unit.poll(&card); // baseline
+    let enc = card.devices().encoders.remove(0).1;
+    assert_eq!((enc.position().unwrap(), enc.turn().unwrap()), (0, 0));
+    unit.registers[0][50] = 700; // +1236 counts across the 16-bit wrap
+    unit.poll(&card);
+    assert_eq!((enc.position().unwrap(), enc.turn().unwrap()), (236, 1));
+    unit.registers[0][50] = 64_000; // -2236 counts back across the wrap
+    unit.poll(&card);
+    assert_eq!((enc.position().unwrap(), enc.turn().unwrap()), (0, -1));
 }
 
 #[test]
