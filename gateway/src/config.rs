@@ -60,6 +60,56 @@ pub struct Deployment {
     /// Port-to-port connections.
     #[serde(default, rename = "connection")]
     pub connections: Vec<ConnectionConfig>,
+    /// Serve chosen devices as a Modbus TCP register table (off when absent).
+    #[serde(default)]
+    pub modbus_server: Option<ModbusServerConfig>,
+}
+
+/// hwgw as a Modbus TCP server.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModbusServerConfig {
+    /// `address:port` to listen on (e.g. 127.0.0.1:5502; 0.0.0.0 only on purpose).
+    pub listen: String,
+    /// The register table.
+    #[serde(default, rename = "register")]
+    pub registers: Vec<ServedRegister>,
+}
+
+/// One entry of the served register table.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ServedRegister {
+    /// The table: input_registers, holding_registers, discrete_inputs or coils.
+    pub table: driver_modbus::plan::Table,
+    /// First address (0-based).
+    pub address: u16,
+    /// The device's registry name.
+    pub device: String,
+    /// Which of its interfaces.
+    pub interface: AliasInterface,
+    /// Channel (or bit).
+    #[serde(default)]
+    pub channel: u32,
+    /// Register type (default u16).
+    #[serde(default, rename = "type")]
+    pub ty: driver_modbus::codec::ValueType,
+    /// Word order.
+    #[serde(default)]
+    pub words: driver_modbus::codec::WordOrder,
+    /// Byte order.
+    #[serde(default)]
+    pub bytes: driver_modbus::codec::ByteOrder,
+    /// Register value = (physical - offset) / scale (default 1).
+    #[serde(default = "one_f64")]
+    pub scale: f64,
+    /// See `scale`.
+    #[serde(default)]
+    pub offset: f64,
+}
+
+fn one_f64() -> f64 {
+    1.0
 }
 
 /// One IO card: a driver and its section.
@@ -160,7 +210,7 @@ fn default_card_period() -> f64 {
     10.0
 }
 
-/// The interface an alias is made under.
+/// A device interface, by name (for aliases and the served register table).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum AliasInterface {

@@ -137,6 +137,10 @@ pub struct Gateway {
     cards: Vec<CardRt>,
     /// Running Modbus lines (empty until start).
     lines: std::sync::Mutex<Vec<Line>>,
+    /// The Modbus server's address and table, if configured.
+    server_table: Option<(std::net::SocketAddr, driver_modbus::server::RegisterTable)>,
+    /// The running Modbus server.
+    server: std::sync::Mutex<Option<driver_modbus::server::ModbusServer>>,
     /// Components in start order.
     order: Vec<TaskContext>,
     /// Which components the deployment asked to start.
@@ -450,11 +454,98 @@ impl Gateway {
             }
         }
 
+        // The Modbus server's table, over the devices registered above.
+        let mut server_table = None;
+        if let Some(ms) = &deployment.modbus_server {
+            let here = |path: &[Seg<'_>]| {
+                let mut full = vec![Seg::Key("modbus_server")];
+                full.extend(path.iter().map(|s| match s {
+                    Seg::Key(k) => Seg::Key(k),
+                    Seg::Index(i) => Seg::Index(*i),
+                }));
+                at(&full)
+            };
+            use std::net::ToSocketAddrs;
+            let listen = ms.listen.to_socket_addrs().ok().and_then(|mut a| a.next());
+            if listen.is_none() {
+                add(
+                    &mut problems,
+                    here(&[Seg::Key("listen")]),
+                    "modbus_server.listen".into(),
+                    format!("{:?}: expected address:port", ms.listen),
+                );
+            }
+            let reg = runtime.registry();
+            let mut entries = Vec::new();
+            for (i, r) in ms.registers.iter().enumerate() {
+                use driver_modbus::server::Source;
+                let found = match r.interface {
+                    AliasInterface::AnalogIn => reg
+                        .analog_in()
+                        .lookup(&r.device)
+                        .map(|d| Source::AnalogIn(d, r.channel)),
+                    AliasInterface::AnalogOut => reg
+                        .analog_out()
+                        .lookup(&r.device)
+                        .map(|d| Source::AnalogOut(d, r.channel)),
+                    AliasInterface::DigitalIn => reg
+                        .digital_in()
+                        .lookup(&r.device)
+                        .map(|d| Source::DigitalIn(d, r.channel)),
+                    AliasInterface::DigitalOut => reg
+                        .digital_out()
+                        .lookup(&r.device)
+                        .map(|d| Source::DigitalOut(d, r.channel)),
+                    AliasInterface::Encoder => {
+                        add(
+                            &mut problems,
+                            here(&[Seg::Key("register"), Seg::Index(i), Seg::Key("interface")]),
+                            format!("modbus_server.register[{i}].interface"),
+                            "encoders are not served yet; serve their IO component's ports instead"
+                                .into(),
+                        );
+                        continue;
+                    }
+                };
+                match found {
+                    Ok(source) => entries.push(driver_modbus::server::Entry {
+                        table: r.table,
+                        address: r.address,
+                        layout: driver_modbus::codec::Layout {
+                            ty: r.ty,
+                            words: r.words,
+                            bytes: r.bytes,
+                        },
+                        scale: r.scale,
+                        offset: r.offset,
+                        source,
+                    }),
+                    Err(e) => add(
+                        &mut problems,
+                        here(&[Seg::Key("register"), Seg::Index(i), Seg::Key("device")]),
+                        format!("modbus_server.register[{i}].device"),
+                        e.to_string(),
+                    ),
+                }
+            }
+            match driver_modbus::server::RegisterTable::new(entries) {
+                Ok(table) => server_table = listen.map(|a| (a, table)),
+                Err(e) => add(
+                    &mut problems,
+                    here(&[Seg::Key("register")]),
+                    "modbus_server.register".into(),
+                    e.to_string(),
+                ),
+            }
+        }
+
         if problems.is_empty() {
             Ok(Gateway {
                 runtime,
                 cards,
                 lines: std::sync::Mutex::new(Vec::new()),
+                server_table,
+                server: std::sync::Mutex::new(None),
                 order,
                 start,
             })
@@ -563,6 +654,12 @@ impl Gateway {
             }
         }
         drop(lines);
+        if let Some((addr, table)) = &self.server_table {
+            match driver_modbus::server::ModbusServer::start(*addr, table.clone()) {
+                Ok(server) => *crate::port_lock(&self.server) = Some(server),
+                Err(e) => tracing::error!("modbus server on {addr}: cannot start: {e}"),
+            }
+        }
         for (t, start) in self.order.iter().zip(&self.start) {
             if *start && t.state() == TaskState::Stopped {
                 t.start()?;
@@ -590,6 +687,11 @@ impl Gateway {
         } else {
             Err(wrong.join("; "))
         }
+    }
+
+    /// Where the Modbus server listens, once started.
+    pub fn modbus_server_addr(&self) -> Option<std::net::SocketAddr> {
+        crate::port_lock(&self.server).as_ref().map(|s| s.addr())
     }
 
     /// Per-card bus diagnostics (Modbus line counters), for `status`.
@@ -673,6 +775,8 @@ impl Gateway {
     /// Stops every component in reverse start order, then drives every output to its safe
     /// value. Returns a line per card with the outputs as left.
     pub fn shutdown(&self) -> Vec<String> {
+        // No client writes may race the safe values.
+        crate::port_lock(&self.server).take();
         for t in self.order.iter().rev() {
             if matches!(t.state(), TaskState::Running | TaskState::RunTimeError)
                 && let Err(e) = t.stop()

@@ -45,7 +45,7 @@ fn with_card(rest: &str) -> String {
 fn every_broken_config_gets_its_exact_error() {
     let cases: Vec<(&str, String, &str)> = vec![
         ("unknown top-level key", "thread_scop = true\n".into(),
-         "t.toml:1:1: thread_scop: unknown field `thread_scop`, expected one of `thread_scope`, `cpu_dma_latency_us`, `control_socket`, `card`, `alias`, `component`, `connection`"),
+         "t.toml:1:1: thread_scop: unknown field `thread_scop`, expected one of `thread_scope`, `cpu_dma_latency_us`, `control_socket`, `card`, `alias`, `component`, `connection`, `modbus_server`"),
         ("wrong type", "thread_scope = \"yes\"\n".into(),
          "t.toml:1:16: thread_scope: invalid type: string \"yes\", expected a boolean"),
         ("missing card name", "[[card]]\ndriver = \"sim\"\n".into(),
@@ -108,6 +108,10 @@ fn every_broken_config_gets_its_exact_error() {
          "t.toml:4:1: card[0].modbus: card \"plc\": poll_ms: 0 ms: expected a time above 0"),
         ("modbus unknown key", "[[card]]\nname = \"plc\"\ndriver = \"modbus\"\n[card.modbus]\ntransport = { type = \"tcp\", address = \"127.0.0.1:502\" }\nslave = 3\n".into(),
          "t.toml:6:1: card[0].modbus.slave: unknown field `slave`, expected one of `transport`, `unit`, `poll_ms`, `timeout_ms`, `stale_after`, `offline_after`, `backoff_max_ms`, `max_gap`, `point`"),
+        ("served device missing", with_card("[modbus_server]\nlisten = \"127.0.0.1:0\"\n[[modbus_server.register]]\ntable = \"coils\"\naddress = 0\ndevice = \"sim9\"\ninterface = \"digital_out\"\n"),
+         "t.toml:16:10: modbus_server.register[0].device: no DigitalOut named \"sim9\"; registered: sim0"),
+        ("served registers overlap", with_card("[modbus_server]\nlisten = \"127.0.0.1:0\"\n[[modbus_server.register]]\ntable = \"input_registers\"\naddress = 0\ndevice = \"sim0\"\ninterface = \"analog_in\"\ntype = \"f32\"\n[[modbus_server.register]]\ntable = \"input_registers\"\naddress = 1\ndevice = \"sim0\"\ninterface = \"analog_in\"\n"),
+         "t.toml:13:1: modbus_server.register: entry 1: InputRegisters 1 is already served by entry 0"),
         ("not TOML", "[[card]\nname = \"x\"\n".into(),
          "t.toml:1:8: unclosed array table, expected `]`"),
     ];

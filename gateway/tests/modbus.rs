@@ -132,3 +132,124 @@ address = 1
         "the unit holds the safe values"
     );
 }
+
+/// mbpoll (a libmodbus master) against `port`: table 0 coils, 1 discrete inputs, 3 input
+/// registers, 4 holding registers; 0-based `address`; `write` values, if any.
+fn mbpoll(port: u16, table: &str, address: u16, write: &[&str]) -> String {
+    let out = std::process::Command::new("mbpoll")
+        .args([
+            "-m",
+            "tcp",
+            "-p",
+            &port.to_string(),
+            "-a",
+            "1",
+            "-t",
+            table,
+            "-r",
+            &address.to_string(),
+            "-0",
+            "-1",
+            "127.0.0.1",
+        ])
+        .args(write)
+        .output()
+        .unwrap_or_else(|e| panic!("cannot run mbpoll (apt-get install mbpoll): {e}"));
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    )
+}
+
+#[test]
+fn mbpoll_reads_and_writes_the_gateways_registers() {
+    let text = r#"
+[[card]]
+name = "sim0"
+driver = "sim"
+period_ms = 5
+[card.sim]
+digital_inputs = 4
+digital_outputs = 4
+digital_loopback = true
+[[card.sim.analog_in]]
+range = { lowest = -10.0, highest = 10.0, unit = "V" }
+waveform = { kind = "loopback", analog_out = 0 }
+[[card.sim.analog_out]]
+range = { lowest = -10.0, highest = 10.0, unit = "V" }
+
+[modbus_server]
+listen = "127.0.0.1:0"
+[[modbus_server.register]]       # the loopback input, in mV
+table = "input_registers"
+address = 0
+device = "sim0"
+interface = "analog_in"
+channel = 0
+type = "i16"
+scale = 0.001
+[[modbus_server.register]]       # the output, in mV
+table = "holding_registers"
+address = 10
+device = "sim0"
+interface = "analog_out"
+channel = 0
+type = "i16"
+scale = 0.001
+[[modbus_server.register]]
+table = "coils"
+address = 0
+device = "sim0"
+interface = "digital_out"
+channel = 2
+[[modbus_server.register]]
+table = "discrete_inputs"
+address = 0
+device = "sim0"
+interface = "digital_in"
+channel = 2
+"#;
+    let d = Deployment::parse(text, "srv.toml").unwrap();
+    let gw = Gateway::build(&d, "srv.toml", text, &ComponentTypes::builtin()).unwrap();
+    gw.start().unwrap();
+    let port = gw.modbus_server_addr().unwrap().port();
+
+    let w = mbpoll(port, "4", 10, &["2500"]);
+    assert!(w.contains("Written 1 references"), "{w}");
+    let ao = gw.runtime().registry().analog_out().lookup("sim0").unwrap();
+    assert!(
+        (ao.read_back(0).unwrap() - 2.5).abs() < 0.001,
+        "the write reached the device"
+    );
+    wait_until("the loopback input follows", || {
+        mbpoll(port, "3", 0, &[]).contains("[0]: \t2500")
+    });
+    let r = mbpoll(port, "4", 10, &[]);
+    assert!(
+        r.contains("[10]: \t2500"),
+        "holding register reads back: {r}"
+    );
+
+    let w = mbpoll(port, "0", 0, &["1"]);
+    assert!(w.contains("Written 1 references"), "{w}");
+    wait_until("the coil loops back to the discrete input", || {
+        mbpoll(port, "1", 0, &[]).contains("[0]: \t1")
+    });
+
+    let e = mbpoll(port, "3", 5, &[]);
+    assert!(
+        e.contains("Illegal data address"),
+        "an unmapped address is an exception: {e}"
+    );
+    let e = mbpoll(port, "4", 10, &["20000"]);
+    assert!(
+        e.contains("Illegal data value"),
+        "20 V is outside -10..10 V: {e}"
+    );
+    assert!(
+        (ao.read_back(0).unwrap() - 2.5).abs() < 0.001,
+        "a refused write changes nothing"
+    );
+    gw.shutdown();
+}

@@ -7,7 +7,8 @@
 //! - [`map`]: the register map, and which device channel each point is;
 //! - [`card`]: a unit's devices — images fed by replies, outputs turned into writes;
 //! - [`line`](mod@line): the poller of one connection and the units on it;
-//! - [`config`]: a card's section of a deployment.
+//! - [`config`]: a card's section of a deployment;
+//! - [`server`]: hwgw as a Modbus TCP server over chosen registry devices.
 //!
 //! ```
 //! use driver_modbus::codec::{Layout, Number, ValueType};
@@ -23,5 +24,6 @@ pub mod config;
 pub mod line;
 pub mod map;
 pub mod plan;
+pub mod server;
 #[cfg(feature = "test-server")]
 pub mod testing;

@@ -1,0 +1,413 @@
+//! hwgw as a Modbus TCP server: chosen devices of the registry as a register table, so a
+//! SCADA system or `mbpoll` can read and write them.
+//!
+//! | table | device | read | write |
+//! |---|---|---|---|
+//! | input registers | AnalogIn / AnalogOut channel | `read` / `read_back` | — |
+//! | holding registers | AnalogOut channel | `read_back` | `write` |
+//! | discrete inputs | DigitalIn / DigitalOut bit | `read_bit` / `check_bit` | — |
+//! | coils | DigitalOut bit | `check_bit` | `set_bit` |
+//!
+//! A register value is `(physical - offset) / scale` in the entry's type and layout.
+//! Unmapped addresses (or a write that covers part of a multi-register value) answer
+//! IllegalDataAddress; a value the device refuses answers IllegalDataValue; a device that
+//! is offline or stale answers ServerDeviceFailure. The server is off unless configured and
+//! listens only where it is told.
+
+use crate::codec::{Layout, Number, ValueType};
+use crate::plan::Table;
+use device_interface::{AnalogIn, AnalogOut, DeviceError, DigitalIn, DigitalOut};
+use std::future::Future;
+use std::net::SocketAddr;
+use std::pin::Pin;
+use std::sync::Arc;
+use tokio_modbus::{ExceptionCode, Request, Response};
+
+/// Where an entry's value comes from (and goes to).
+#[derive(Clone)]
+pub enum Source {
+    /// An analog input channel (read only).
+    AnalogIn(Arc<dyn AnalogIn>, u32),
+    /// An analog output channel (read back; written through holding registers).
+    AnalogOut(Arc<dyn AnalogOut>, u32),
+    /// A digital input bit (read only).
+    DigitalIn(Arc<dyn DigitalIn>, u32),
+    /// A digital output bit (read back; written through coils).
+    DigitalOut(Arc<dyn DigitalOut>, u32),
+}
+
+/// One entry of the register table.
+#[derive(Clone)]
+pub struct Entry {
+    /// The table.
+    pub table: Table,
+    /// First address.
+    pub address: u16,
+    /// Value type and layout (registers only).
+    pub layout: Layout,
+    /// Register value = (physical - offset) / scale.
+    pub scale: f64,
+    /// See `scale`.
+    pub offset: f64,
+    /// The device behind it.
+    pub source: Source,
+}
+
+/// Why a table was refused.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
+pub enum TableError {
+    /// Two entries on one address.
+    #[error("entry {entry}: {table:?} {address} is already served by entry {other}")]
+    Overlap {
+        /// The later entry.
+        entry: usize,
+        /// The earlier one.
+        other: usize,
+        /// Table.
+        table: Table,
+        /// Address.
+        address: u16,
+    },
+    /// A device in a table that cannot carry it.
+    #[error("entry {entry}: {what}")]
+    Mismatch {
+        /// The entry.
+        entry: usize,
+        /// What does not fit.
+        what: String,
+    },
+}
+
+/// The register table the server serves.
+#[derive(Clone)]
+pub struct RegisterTable {
+    entries: Vec<Entry>,
+}
+
+fn width(e: &Entry) -> u16 {
+    if e.table.is_bits() {
+        1
+    } else {
+        e.layout.ty.registers() as u16
+    }
+}
+
+impl RegisterTable {
+    /// Checks `entries`: each device fits its table, no two entries share an address.
+    pub fn new(entries: Vec<Entry>) -> Result<RegisterTable, TableError> {
+        for (i, e) in entries.iter().enumerate() {
+            let ok = matches!(
+                (e.table, &e.source),
+                (
+                    Table::InputRegisters,
+                    Source::AnalogIn(..) | Source::AnalogOut(..)
+                ) | (Table::HoldingRegisters, Source::AnalogOut(..))
+                    | (
+                        Table::DiscreteInputs,
+                        Source::DigitalIn(..) | Source::DigitalOut(..)
+                    )
+                    | (Table::Coils, Source::DigitalOut(..))
+            );
+            if !ok {
+                return Err(TableError::Mismatch {
+                    entry: i,
+                    what: format!(
+                        "{:?} cannot serve this interface (see the table in the docs)",
+                        e.table
+                    ),
+                });
+            }
+            let scale_ok = e.scale.is_finite() && e.scale != 0.0 && e.offset.is_finite();
+            if !e.table.is_bits() && !scale_ok {
+                return Err(TableError::Mismatch {
+                    entry: i,
+                    what: format!(
+                        "scale {} and offset {}: expected a finite non-zero scale",
+                        e.scale, e.offset
+                    ),
+                });
+            }
+            let (s, w) = (u32::from(e.address), u32::from(width(e)));
+            if s + w > 65536 {
+                return Err(TableError::Mismatch {
+                    entry: i,
+                    what: format!("addresses {s}..{} run past 65535", s + w),
+                });
+            }
+            for (j, o) in entries[..i].iter().enumerate() {
+                let (os, ow) = (u32::from(o.address), u32::from(width(o)));
+                if o.table == e.table && s < os + ow && os < s + w {
+                    return Err(TableError::Overlap {
+                        entry: i,
+                        other: j,
+                        table: e.table,
+                        address: e.address,
+                    });
+                }
+            }
+        }
+        Ok(RegisterTable { entries })
+    }
+
+    fn find(&self, table: Table, address: u16) -> Option<&Entry> {
+        self.entries.iter().find(|e| {
+            e.table == table
+                && e.address <= address
+                && u32::from(address) < u32::from(e.address) + u32::from(width(e))
+        })
+    }
+
+    fn read_registers(
+        &self,
+        table: Table,
+        start: u16,
+        count: u16,
+    ) -> Result<Vec<u16>, ExceptionCode> {
+        let mut out = Vec::with_capacity(usize::from(count));
+        let end = u32::from(start) + u32::from(count);
+        let mut a = u32::from(start);
+        while a < end {
+            let e = self
+                .find(table, a as u16)
+                .ok_or(ExceptionCode::IllegalDataAddress)?;
+            let physical = match &e.source {
+                Source::AnalogIn(d, c) => d.read(*c),
+                Source::AnalogOut(d, c) => d.read_back(*c),
+                _ => return Err(ExceptionCode::IllegalDataAddress),
+            }
+            .map_err(device_failure)?;
+            let value = (physical - e.offset) / e.scale;
+            let n = if e.layout.ty.is_float() {
+                Number::Float(value)
+            } else {
+                Number::Int(value.round() as i64)
+            };
+            // A value the register type cannot hold saturates rather than lies.
+            let regs = e
+                .layout
+                .encode(n)
+                .or_else(|_| e.layout.encode(saturate(e.layout.ty, value)))
+                .map_err(|_| ExceptionCode::ServerDeviceFailure)?;
+            for (k, r) in regs.as_slice().iter().enumerate() {
+                let at = u32::from(e.address) + k as u32;
+                if at >= u32::from(start) && at < end {
+                    out.push(*r);
+                }
+            }
+            a = u32::from(e.address) + u32::from(width(e));
+        }
+        Ok(out)
+    }
+
+    fn write_registers(&self, start: u16, values: &[u16]) -> Result<(), ExceptionCode> {
+        let end = u32::from(start) + values.len() as u32;
+        let mut a = u32::from(start);
+        // Check first, write after: a refused part leaves every output as it was.
+        let mut writes = Vec::new();
+        while a < end {
+            let e = self
+                .find(Table::HoldingRegisters, a as u16)
+                .ok_or(ExceptionCode::IllegalDataAddress)?;
+            let w = u32::from(width(e));
+            if u32::from(e.address) != a || a + w > end {
+                return Err(ExceptionCode::IllegalDataAddress); // part of a multi-register value
+            }
+            let i = (a - u32::from(start)) as usize;
+            let n = e
+                .layout
+                .decode(&values[i..i + w as usize])
+                .map_err(|_| ExceptionCode::IllegalDataValue)?;
+            let Source::AnalogOut(d, c) = &e.source else {
+                return Err(ExceptionCode::IllegalDataAddress);
+            };
+            writes.push((d.clone(), *c, n.as_f64() * e.scale + e.offset));
+            a += w;
+        }
+        for (d, c, v) in &writes {
+            d.write(*c, *v).map_err(|err| match err {
+                DeviceError::ValueOutOfRange { .. } | DeviceError::RawOutOfRange { .. } => {
+                    ExceptionCode::IllegalDataValue
+                }
+                other => device_failure(other),
+            })?;
+        }
+        Ok(())
+    }
+
+    fn read_bits(&self, table: Table, start: u16, count: u16) -> Result<Vec<bool>, ExceptionCode> {
+        (u32::from(start)..u32::from(start) + u32::from(count))
+            .map(|a| {
+                let e = self
+                    .find(table, a as u16)
+                    .ok_or(ExceptionCode::IllegalDataAddress)?;
+                match &e.source {
+                    Source::DigitalIn(d, b) => d.read_bit(*b),
+                    Source::DigitalOut(d, b) => d.check_bit(*b),
+                    _ => return Err(ExceptionCode::IllegalDataAddress),
+                }
+                .map_err(device_failure)
+            })
+            .collect()
+    }
+
+    fn write_coils(&self, start: u16, values: &[bool]) -> Result<(), ExceptionCode> {
+        let mut targets = Vec::new();
+        for (i, v) in values.iter().enumerate() {
+            let a = u32::from(start) + i as u32;
+            let e = self
+                .find(Table::Coils, a as u16)
+                .ok_or(ExceptionCode::IllegalDataAddress)?;
+            let Source::DigitalOut(d, b) = &e.source else {
+                return Err(ExceptionCode::IllegalDataAddress);
+            };
+            targets.push((d.clone(), *b, *v));
+        }
+        for (d, b, v) in targets {
+            d.set_bit(b, v).map_err(device_failure)?;
+        }
+        Ok(())
+    }
+
+    /// Answers one request.
+    pub fn answer(&self, req: Request<'_>) -> Result<Response, ExceptionCode> {
+        Ok(match req {
+            Request::ReadInputRegisters(a, n) => {
+                Response::ReadInputRegisters(self.read_registers(Table::InputRegisters, a, n)?)
+            }
+            Request::ReadHoldingRegisters(a, n) => Response::ReadHoldingRegisters(
+                self.read_registers(Table::HoldingRegisters, a, n)?,
+            ),
+            Request::WriteSingleRegister(a, v) => {
+                self.write_registers(a, &[v])?;
+                Response::WriteSingleRegister(a, v)
+            }
+            Request::WriteMultipleRegisters(a, vs) => {
+                self.write_registers(a, &vs)?;
+                Response::WriteMultipleRegisters(a, vs.len() as u16)
+            }
+            Request::ReadCoils(a, n) => Response::ReadCoils(self.read_bits(Table::Coils, a, n)?),
+            Request::ReadDiscreteInputs(a, n) => {
+                Response::ReadDiscreteInputs(self.read_bits(Table::DiscreteInputs, a, n)?)
+            }
+            Request::WriteSingleCoil(a, v) => {
+                self.write_coils(a, &[v])?;
+                Response::WriteSingleCoil(a, v)
+            }
+            Request::WriteMultipleCoils(a, vs) => {
+                self.write_coils(a, &vs)?;
+                Response::WriteMultipleCoils(a, vs.len() as u16)
+            }
+            _ => return Err(ExceptionCode::IllegalFunction),
+        })
+    }
+}
+
+fn device_failure(_: DeviceError) -> ExceptionCode {
+    ExceptionCode::ServerDeviceFailure
+}
+
+fn saturate(ty: ValueType, v: f64) -> Number {
+    let (min, max): (i128, i128) = match ty {
+        ValueType::U16 => (0, i128::from(u16::MAX)),
+        ValueType::I16 => (i128::from(i16::MIN), i128::from(i16::MAX)),
+        ValueType::U32 => (0, i128::from(u32::MAX)),
+        ValueType::I32 => (i128::from(i32::MIN), i128::from(i32::MAX)),
+        ValueType::U64 => (0, i128::from(i64::MAX)),
+        ValueType::I64 => (i128::from(i64::MIN), i128::from(i64::MAX)),
+        ValueType::F32 | ValueType::F64 => return Number::Float(v),
+    };
+    let r = if v.is_nan() {
+        0
+    } else {
+        (v.round() as i128).clamp(min, max)
+    };
+    Number::Int(r as i64)
+}
+
+#[derive(Clone)]
+struct Service(Arc<RegisterTable>);
+
+impl tokio_modbus::server::Service for Service {
+    type Request = Request<'static>;
+    type Response = Response;
+    type Exception = ExceptionCode;
+    type Future = Pin<Box<dyn Future<Output = Result<Response, ExceptionCode>> + Send>>;
+
+    fn call(&self, req: Request<'static>) -> Self::Future {
+        let r = self.0.answer(req);
+        Box::pin(async move { r })
+    }
+}
+
+/// A running server; dropping it stops it.
+pub struct ModbusServer {
+    addr: SocketAddr,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl ModbusServer {
+    /// Serves `table` on `listen` from a thread of its own.
+    pub fn start(listen: SocketAddr, table: RegisterTable) -> std::io::Result<ModbusServer> {
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()?;
+        let listener = rt.block_on(tokio::net::TcpListener::bind(listen))?;
+        let addr = listener.local_addr()?;
+        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+        let table = Arc::new(table);
+        let thread = std::thread::Builder::new()
+            .name("modbus-server".into())
+            .spawn(move || {
+                rt.block_on(async move {
+                    let server = tokio_modbus::server::tcp::Server::new(listener);
+                    let on_connected = |stream, socket_addr| {
+                        let svc = Service(table.clone());
+                        async move {
+                            tokio_modbus::server::tcp::accept_tcp_connection(
+                                stream,
+                                socket_addr,
+                                |_| Ok(Some(svc.clone())),
+                            )
+                        }
+                    };
+                    let abort = async move {
+                        let _ = rx.await;
+                    };
+                    if let Err(e) = server
+                        .serve_until(
+                            &on_connected,
+                            |e| tracing::warn!("modbus server: {e}"),
+                            abort,
+                        )
+                        .await
+                    {
+                        tracing::error!("modbus server on {addr}: {e}");
+                    }
+                });
+            })?;
+        tracing::info!("modbus server listening on {addr}");
+        Ok(ModbusServer {
+            addr,
+            stop: Some(tx),
+            thread: Some(thread),
+        })
+    }
+
+    /// Where it listens.
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+}
+
+impl Drop for ModbusServer {
+    fn drop(&mut self) {
+        if let Some(s) = self.stop.take() {
+            let _ = s.send(());
+        }
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
