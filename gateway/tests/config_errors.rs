@@ -107,7 +107,7 @@ fn every_broken_config_gets_its_exact_error() {
         ("modbus timing refused", "[[card]]\nname = \"plc\"\ndriver = \"modbus\"\n[card.modbus]\ntransport = { type = \"tcp\", address = \"127.0.0.1:502\" }\npoll_ms = 0\n".into(),
          "t.toml:4:1: card[0].modbus: card \"plc\": poll_ms: 0 ms: expected a time above 0"),
         ("modbus unknown key", "[[card]]\nname = \"plc\"\ndriver = \"modbus\"\n[card.modbus]\ntransport = { type = \"tcp\", address = \"127.0.0.1:502\" }\nslave = 3\n".into(),
-         "t.toml:6:1: card[0].modbus.slave: unknown field `slave`, expected one of `transport`, `unit`, `poll_ms`, `timeout_ms`, `stale_after`, `offline_after`, `backoff_max_ms`, `max_gap`, `point`"),
+         "t.toml:6:1: card[0].modbus.slave: unknown field `slave`, expected one of `transport`, `unit`, `poll_ms`, `timeout_ms`, `stale_after`, `offline_after`, `backoff_max_ms`, `max_gap`, `read_back`, `point`"),
         ("served device missing", with_card("[modbus_server]\nlisten = \"127.0.0.1:0\"\n[[modbus_server.register]]\ntable = \"coils\"\naddress = 0\ndevice = \"sim9\"\ninterface = \"digital_out\"\n"),
          "t.toml:16:10: modbus_server.register[0].device: no DigitalOut named \"sim9\"; registered: sim0"),
         ("served registers overlap", with_card("[modbus_server]\nlisten = \"127.0.0.1:0\"\n[[modbus_server.register]]\ntable = \"input_registers\"\naddress = 0\ndevice = \"sim0\"\ninterface = \"analog_in\"\ntype = \"f32\"\n[[modbus_server.register]]\ntable = \"input_registers\"\naddress = 1\ndevice = \"sim0\"\ninterface = \"analog_in\"\n"),

@@ -280,6 +280,12 @@ impl ModbusCard {
             let p = &self.map.points()[pi];
             let offset = usize::from(p.span.address - r.start);
             match (data, p.role) {
+                (ReadData::Bits(bits), Role::DigitalOut) => {
+                    // Read back: the device's state, unless a change is still to be sent.
+                    if !self.do_dirty.get(p.channel).unwrap_or(true) {
+                        let _ = self.dout.set(p.channel, bits[offset]);
+                    }
+                }
                 (ReadData::Bits(bits), _) => {
                     let _ = self.di.set(p.channel, bits[offset]);
                 }
@@ -308,9 +314,14 @@ impl ModbusCard {
                     let decoded = p.layout.decode(&regs[offset..]);
                     let raw = decoded.as_ref().ok().and_then(|n| raw_of(p, *n));
                     let value = decoded.map_or(f64::NAN, Number::as_f64);
-                    match (raw, self.ai.get(p.channel as usize)) {
-                        (Some(raw), Some(cell)) => cell.store(raw, Ordering::Release),
-                        (Some(_), None) => {}
+                    let (image, dirty) = match p.role {
+                        // Read back: the device's value, unless a change is still to be sent.
+                        Role::AnalogOut => (&self.ao, self.ao_dirty.get(p.channel).unwrap_or(true)),
+                        _ => (&self.ai, false),
+                    };
+                    match (raw, image.get(p.channel as usize)) {
+                        (Some(raw), Some(cell)) if !dirty => cell.store(raw, Ordering::Release),
+                        (Some(_), _) => {}
                         (None, _) => {
                             first_error.get_or_insert(ReplyError::NotANumber { point: pi, value });
                         }

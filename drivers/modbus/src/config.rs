@@ -87,6 +87,10 @@ pub struct ModbusConfig {
     /// refuse reads of unmapped addresses).
     #[serde(default = "max_gap")]
     pub max_gap: u16,
+    /// Poll the outputs too (coils, holding-register outputs), so read-back shows what the
+    /// device holds rather than what was last written (default false).
+    #[serde(default)]
+    pub read_back: bool,
     /// The register map.
     #[serde(default, rename = "point")]
     pub points: Vec<PointConfig>,
@@ -170,7 +174,7 @@ impl ModbusConfig {
     /// [`Line`](crate::line::Line) runs it).
     pub fn card(&self, clock: Arc<dyn Clock>) -> Result<Arc<ModbusCard>, MapError> {
         Ok(ModbusCard::new(
-            Map::new(&self.points, self.max_gap)?,
+            Map::with_read_back(&self.points, self.max_gap, self.read_back)?,
             clock,
         ))
     }

@@ -187,6 +187,16 @@ pub struct Map {
 impl Map {
     /// Validates `configs`, numbers the channels and plans the reads with `max_gap`.
     pub fn new(configs: &[PointConfig], max_gap: u16) -> Result<Map, MapError> {
+        Self::with_read_back(configs, max_gap, false)
+    }
+
+    /// As [`new`](Self::new); with `read_back`, outputs (coils, holding-register outputs)
+    /// are polled too, so their images show what the device holds.
+    pub fn with_read_back(
+        configs: &[PointConfig],
+        max_gap: u16,
+        read_back: bool,
+    ) -> Result<Map, MapError> {
         let mut points = Vec::new();
         let mut counts = [0u32; 5];
         for (i, c) in configs.iter().enumerate() {
@@ -300,13 +310,13 @@ impl Map {
                 step,
             });
         }
-        // Inputs are polled; outputs are written on change (read-back is a later option).
+        // Inputs are polled; outputs are written on change, and polled too with read_back.
         let polled: Vec<usize> = (0..points.len())
             .filter(|&i| {
                 matches!(
                     points[i].role,
                     Role::AnalogIn | Role::DigitalIn | Role::Encoder
-                )
+                ) || (read_back && matches!(points[i].role, Role::AnalogOut | Role::DigitalOut))
             })
             .collect();
         let spans: Vec<Span> = polled.iter().map(|&i| points[i].span).collect();

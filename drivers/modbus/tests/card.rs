@@ -386,3 +386,37 @@ fn health_follows_the_poller() {
     );
     assert!(card.write(0, 1.0).is_err());
 }
+
+#[test]
+fn read_back_shows_the_device_but_a_pending_write_wins() {
+    let t: toml::Table = toml::from_str("[[point]]\ntable = \"holding_registers\"\naddress = 0\n[[point]]\ntable = \"coils\"\naddress = 0\n").unwrap();
+    let points: Vec<PointConfig> = t["point"].clone().try_into().unwrap();
+    let card = ModbusCard::new(
+        Map::with_read_back(&points, 0, true).unwrap(),
+        Arc::new(SimClock::new(Timestamp::ZERO)),
+    );
+    let reads = card.map().reads().to_vec();
+    assert_eq!(reads.len(), 2, "outputs are polled with read_back");
+    let coils = reads
+        .iter()
+        .position(|r| r.table == driver_modbus::plan::Table::Coils)
+        .unwrap();
+    let regs = 1 - coils;
+    // The device holds 7 and coil on: read back shows it.
+    card.apply_read(regs, ReadData::Registers(&[7])).unwrap();
+    card.apply_read(coils, ReadData::Bits(&[true])).unwrap();
+    card.poll_succeeded();
+    assert_eq!(AnalogOut::read_back_raw(&*card, 0).unwrap(), 7);
+    assert!(card.check_bit(0).unwrap());
+    // A write not yet sent is not overwritten by the device's old value...
+    card.write_raw(0, 9).unwrap();
+    card.set_bit(0, false).unwrap();
+    card.apply_read(regs, ReadData::Registers(&[7])).unwrap();
+    card.apply_read(coils, ReadData::Bits(&[true])).unwrap();
+    assert_eq!(AnalogOut::read_back_raw(&*card, 0).unwrap(), 9);
+    assert!(!card.check_bit(0).unwrap());
+    // ...and once sent, the device's value is shown again.
+    assert_eq!(card.take_writes().len(), 2);
+    card.apply_read(regs, ReadData::Registers(&[9])).unwrap();
+    assert_eq!(AnalogOut::read_back_raw(&*card, 0).unwrap(), 9);
+}

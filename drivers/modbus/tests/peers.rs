@@ -342,3 +342,109 @@ fn two_units_multi_dropped_on_an_rtu_line_against_pymodbus() {
         c(&s2.timeouts)
     );
 }
+
+#[test]
+fn every_table_and_type_against_pymodbus() {
+    let (_peer, addr) = start_pymodbus_tcp();
+    let t: toml::Table = toml::from_str(
+        r#"
+        [[point]]
+        table = "input_registers"
+        address = 10
+        type = "u16"
+        [[point]]
+        table = "input_registers"
+        address = 11
+        type = "i32"
+        [[point]]
+        table = "input_registers"
+        address = 20
+        type = "u64"
+        [[point]]
+        table = "input_registers"
+        address = 24
+        type = "i64"
+        [[point]]
+        table = "input_registers"
+        address = 30
+        type = "f64"
+        [[point]]
+        table = "input_registers"
+        address = 1
+        type = "f32"
+        [[point]]
+        table = "input_registers"
+        address = 0
+        type = "i16"
+        [[point]]
+        table = "holding_registers"
+        address = 20
+        type = "u32"
+        read_only = true
+        [[point]]
+        table = "input_registers"
+        address = 40
+        bit = 15
+        [[point]]
+        table = "input_registers"
+        address = 40
+        bit = 0
+        [[point]]
+        table = "discrete_inputs"
+        address = 3
+        [[point]]
+        table = "holding_registers"
+        address = 40
+        [[point]]
+        table = "coils"
+        address = 8
+        [[point]]
+        table = "input_registers"
+        address = 10
+        encoder = { resolution = 1000 }
+        "#,
+    )
+    .unwrap();
+    let points: Vec<PointConfig> = t["point"].clone().try_into().unwrap();
+    let map = Map::with_read_back(&points, 4, true).unwrap();
+    let card = ModbusCard::new(map, Arc::new(MonotonicClock));
+    let stats = Arc::new(UnitStats::default());
+    let _line = Line::spawn(
+        "mb-peer",
+        Transport::Tcp(addr),
+        vec![LineUnit {
+            card: card.clone(),
+            timing: timing(),
+            stats,
+        }],
+    )
+    .unwrap();
+    wait_until("online", || card.health().status == Status::Online);
+    let raw = |c: u32| AnalogIn::read_raw(&*card, c).unwrap();
+    assert_eq!(raw(0), 40000, "u16");
+    assert_eq!(raw(1), -70000, "i32");
+    assert_eq!(raw(2), 0x0001_0002_0003_0004, "u64");
+    assert_eq!(raw(3), -5, "i64");
+    assert_eq!(card.read(4).unwrap(), 1.25, "f64");
+    assert_eq!(card.read(5).unwrap(), 6.25, "f32");
+    assert_eq!(card.read(6).unwrap(), -123.0, "i16");
+    assert_eq!(raw(7), 65538, "u32 from holding registers");
+    assert_eq!(
+        card.read_sequence(0, 2).unwrap(),
+        0b101,
+        "bit 15 on, bit 0 off, discrete input 3 on"
+    );
+    // Outputs read back from the device: what it holds, not a default.
+    assert_eq!(
+        AnalogOut::read_back_raw(&*card, 0).unwrap(),
+        1234,
+        "holding register output read back"
+    );
+    assert!(card.check_bit(0).unwrap(), "coil 8 read back on");
+    let enc = card.devices().encoders.remove(0).1;
+    assert_eq!(
+        (enc.position().unwrap(), enc.turn().unwrap()),
+        (0, 0),
+        "a counter's first reading is its baseline"
+    );
+}

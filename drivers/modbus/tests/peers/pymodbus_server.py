@@ -22,6 +22,14 @@ ir[0] = (-123) & 0xFFFF          # i16, scale 0.1: -12.3
 ir[1], ir[2] = 0x40C8, 0x0000    # f32: 6.25
 hr[20], hr[21] = 0x0001, 0x0002  # u32: 65538
 di[3] = True
+ir[10] = 40000                                   # u16
+ir[11], ir[12] = 0xFFFE, 0xEE90                  # i32: -70000
+ir[20:24] = [0x0001, 0x0002, 0x0003, 0x0004]     # u64: 0x0001000200030004
+ir[24:28] = [0xFFFF, 0xFFFF, 0xFFFF, 0xFFFB]     # i64: -5
+ir[30:34] = [0x3FF4, 0x0000, 0x0000, 0x0000]     # f64: 1.25
+ir[40] = 0b1000_0000_0000_0010                   # bits 1 and 15 set
+hr[40] = 1234                                    # an output the device already holds
+co[8] = True                                     # a coil already on
 
 store = ModbusSlaveContext(
     di=ModbusSequentialDataBlock(0, di),
