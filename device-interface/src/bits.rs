@@ -115,6 +115,12 @@ impl BitImage {
         Ok(((bit / 64) as usize, 1u64 << (bit % 64)))
     }
 
+    /// `Ok` when `bit` exists, else [`DeviceError::BitOutOfRange`]: for devices that must
+    /// refuse a bad bit before looking at anything else.
+    pub fn check_bit(&self, bit: u32) -> Result<(), DeviceError> {
+        self.check(bit).map(|_| ())
+    }
+
     /// The value of `bit`.
     pub fn get(&self, bit: u32) -> Result<bool, DeviceError> {
         let (w, m) = self.check(bit)?;

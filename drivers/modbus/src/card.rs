@@ -572,12 +572,7 @@ impl DigitalOut for ModbusCard {
     }
 
     fn set_bit(&self, bit: u32, value: bool) -> Result<(), DeviceError> {
-        if bit >= self.dout.len() {
-            return Err(DeviceError::BitOutOfRange {
-                bit,
-                count: self.dout.len(),
-            });
-        }
+        self.dout.check_bit(bit)?;
         self.check_output()?;
         self.dout.set(bit, value)?;
         self.do_dirty.set(bit, true)?;

@@ -623,12 +623,7 @@ impl DigitalOut for SimCard {
     }
 
     fn set_bit(&self, bit: u32, value: bool) -> Result<(), DeviceError> {
-        if bit >= self.dout.len() {
-            return Err(DeviceError::BitOutOfRange {
-                bit,
-                count: self.dout.len(),
-            });
-        }
+        self.dout.check_bit(bit)?;
         self.check_fault(false)?;
         self.dout.set(bit, value)?;
         self.record(OutputWrite::Bit { bit, value });
