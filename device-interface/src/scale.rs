@@ -177,7 +177,8 @@ impl RawRange {
         }
         Ok(RawRange {
             min: 0,
-            max: (1i64 << bits) - 1,
+            // 2^bits - 1 without overflowing at 63 bits.
+            max: i64::MAX >> (63 - bits),
         })
     }
 
@@ -455,6 +456,10 @@ mod tests {
         assert!(RawRange::new(5, 5).is_err());
         assert!(RawRange::unsigned_bits(0).is_err());
         assert!(RawRange::signed_bits(64).is_err());
+        assert_eq!(RawRange::unsigned_bits(63).unwrap().max, i64::MAX);
+        assert_eq!(RawRange::unsigned_bits(1).unwrap().max, 1);
+        assert_eq!(RawRange::unsigned_bits(16).unwrap().max, 65535);
+        assert_eq!(RawRange::signed_bits(63).unwrap().min, -(1 << 62));
         let r = RawRange::new(0, 1).unwrap();
         assert!(Scale::linear(r, 1.0, 1.0, v()).is_err());
         assert!(Scale::linear(r, f64::NAN, 1.0, v()).is_err());

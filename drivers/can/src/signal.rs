@@ -1,0 +1,379 @@
+//! Signals inside CAN frames, as a DBC file describes them.
+//!
+//! A signal is `length` bits of a frame's payload starting at `start`, in one of the two
+//! DBC byte orders, signed or not, with `physical = raw * factor + offset` (the shared
+//! [`Scale`]). Bit numbering follows DBC files exactly:
+//!
+//! - **Intel** (`@1`, little endian): `start` is the least significant bit, counted from
+//!   bit 0 of byte 0 upwards through the bytes.
+//! - **Motorola** (`@0`, big endian): `start` is the *most* significant bit, numbered
+//!   `byte * 8 + bit` with bit 7 the most significant of its byte; the following bits run
+//!   down to bit 0 of that byte and on at bit 7 of the next byte.
+//!
+//! ```
+//! use driver_can::signal::{ByteOrder, Signal};
+//!
+//! // Engine temperature: one byte at bit 16, degC = raw - 40.
+//! let t = Signal::new(16, 8, ByteOrder::Intel, false, 1.0, -40.0, "degC")?;
+//! assert_eq!(t.decode(&[0, 0, 130, 0, 0, 0, 0, 0])?, 90.0);
+//!
+//! // A Motorola 16-bit value whose most significant bit is bit 7 of byte 0.
+//! let s = Signal::new(7, 16, ByteOrder::Motorola, false, 1.0, 0.0, "")?;
+//! assert_eq!(s.extract(&[0x12, 0x34])?, 0x1234);
+//! # Ok::<(), driver_can::signal::SignalError>(())
+//! ```
+
+use device_interface::{RawRange, Scale, ScaleError, Unit};
+use serde::Deserialize;
+
+/// The DBC byte orders.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ByteOrder {
+    /// Little endian (`@1` in a DBC file).
+    Intel,
+    /// Big endian (`@0` in a DBC file).
+    Motorola,
+}
+
+/// Why a signal is invalid or does not fit a frame.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum SignalError {
+    /// A length outside 1..=64.
+    #[error("a signal is 1 to 64 bits long, not {0}")]
+    Length(u32),
+    /// A start bit past the largest frame (64 bytes).
+    #[error("start bit {0} is past the end of a 64-byte frame")]
+    Start(u32),
+    /// The payload is too short for the signal.
+    #[error("the signal needs {need} bytes of payload, the frame has {got}")]
+    Short {
+        /// Bytes the signal reaches into.
+        need: usize,
+        /// Bytes the frame has.
+        got: usize,
+    },
+    /// A raw value outside the signal's range (when encoding).
+    #[error("raw value {raw} does not fit {length} {} bits", if *.signed { "signed" } else { "unsigned" })]
+    RawOutOfRange {
+        /// The value.
+        raw: i64,
+        /// Signal length.
+        length: u32,
+        /// Signedness.
+        signed: bool,
+    },
+    /// Factor, offset or unit that make no scale.
+    #[error(transparent)]
+    Scale(#[from] ScaleError),
+}
+
+/// One signal of a frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Signal {
+    start: u32,
+    length: u32,
+    order: ByteOrder,
+    signed: bool,
+    scale: Scale,
+    /// Payload bit (as `byte * 8 + bit`, bit 0 the least significant of its byte) of each
+    /// signal bit, most significant first.
+    bits: Vec<u32>,
+}
+
+impl Signal {
+    /// A signal of `length` bits at DBC start bit `start`.
+    pub fn new(
+        start: u32,
+        length: u32,
+        order: ByteOrder,
+        signed: bool,
+        factor: f64,
+        offset: f64,
+        unit: &str,
+    ) -> Result<Signal, SignalError> {
+        if !(1..=64).contains(&length) {
+            return Err(SignalError::Length(length));
+        }
+        if start >= 512 {
+            return Err(SignalError::Start(start));
+        }
+        let bits: Vec<u32> = match order {
+            // LSB at `start`, upwards: most significant first is the reverse.
+            ByteOrder::Intel => (start..start + length).rev().collect(),
+            ByteOrder::Motorola => {
+                let mut v = Vec::with_capacity(length as usize);
+                let mut pos = start;
+                for _ in 0..length {
+                    v.push(pos);
+                    // Down through the byte, then on at the top of the next byte.
+                    pos = if pos.is_multiple_of(8) {
+                        pos + 15
+                    } else {
+                        pos - 1
+                    };
+                }
+                v
+            }
+        };
+        if let Some(&beyond) = bits.iter().find(|&&b| b >= 512) {
+            return Err(SignalError::Start(beyond));
+        }
+        let raw = if signed {
+            if length == 1 {
+                RawRange { min: -1, max: 0 }
+            } else if length == 64 {
+                RawRange {
+                    min: i64::MIN,
+                    max: i64::MAX,
+                }
+            } else {
+                RawRange::signed_bits(length)?
+            }
+        } else if length == 64 {
+            RawRange {
+                min: 0,
+                max: i64::MAX,
+            }
+        } else {
+            RawRange::unsigned_bits(length)?
+        };
+        let scale = Scale::from_factor(raw, factor, offset, Unit::new(unit)?)?;
+        Ok(Signal {
+            start,
+            length,
+            order,
+            signed,
+            scale,
+            bits,
+        })
+    }
+
+    /// The payload bytes the signal reaches into.
+    pub fn bytes_needed(&self) -> usize {
+        self.bits
+            .iter()
+            .map(|b| (b / 8) as usize + 1)
+            .max()
+            .unwrap_or(0)
+    }
+
+    /// The raw-to-physical scale (raw range from length and signedness).
+    pub fn scale(&self) -> &Scale {
+        &self.scale
+    }
+
+    /// DBC start bit, length, byte order, signedness.
+    pub fn layout(&self) -> (u32, u32, ByteOrder, bool) {
+        (self.start, self.length, self.order, self.signed)
+    }
+
+    fn check(&self, len: usize) -> Result<(), SignalError> {
+        let need = self.bytes_needed();
+        if len < need {
+            return Err(SignalError::Short { need, got: len });
+        }
+        Ok(())
+    }
+
+    /// The raw value in `payload` (sign-extended when signed).
+    pub fn extract(&self, payload: &[u8]) -> Result<i64, SignalError> {
+        self.check(payload.len())?;
+        let mut v: u64 = 0;
+        for &b in &self.bits {
+            v = (v << 1) | u64::from(payload[(b / 8) as usize] >> (b % 8) & 1);
+        }
+        Ok(
+            if self.signed && self.length < 64 && v >> (self.length - 1) & 1 == 1 {
+                (v | (u64::MAX << self.length)) as i64
+            } else {
+                v as i64
+            },
+        )
+    }
+
+    /// The physical value in `payload`.
+    pub fn decode(&self, payload: &[u8]) -> Result<f64, SignalError> {
+        Ok(self.scale.to_physical(self.extract(payload)?))
+    }
+
+    /// Writes `raw` into `payload`; the other bits keep their values.
+    pub fn insert(&self, payload: &mut [u8], raw: i64) -> Result<(), SignalError> {
+        self.check(payload.len())?;
+        if !self.scale.raw_range().contains(raw) {
+            return Err(SignalError::RawOutOfRange {
+                raw,
+                length: self.length,
+                signed: self.signed,
+            });
+        }
+        let v = raw as u64;
+        for (i, &b) in self.bits.iter().enumerate() {
+            let bit = v >> (self.length as usize - 1 - i) & 1;
+            let (byte, mask) = ((b / 8) as usize, 1u8 << (b % 8));
+            payload[byte] = if bit == 1 {
+                payload[byte] | mask
+            } else {
+                payload[byte] & !mask
+            };
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sig(start: u32, len: u32, order: ByteOrder, signed: bool) -> Signal {
+        Signal::new(start, len, order, signed, 1.0, 0.0, "").unwrap()
+    }
+
+    #[test]
+    fn intel_bits() {
+        assert_eq!(
+            sig(0, 16, ByteOrder::Intel, false)
+                .extract(&[0x34, 0x12])
+                .unwrap(),
+            0x1234
+        );
+        // 12 bits from bit 4: the high nibble of byte 0 and all of byte 1.
+        assert_eq!(
+            sig(4, 12, ByteOrder::Intel, false)
+                .extract(&[0xA0, 0xBC])
+                .unwrap(),
+            0xBCA
+        );
+        assert_eq!(
+            sig(8, 12, ByteOrder::Intel, true)
+                .extract(&[0x00, 0xFF, 0x0F])
+                .unwrap(),
+            -1
+        );
+        assert_eq!(
+            sig(0, 64, ByteOrder::Intel, false)
+                .extract(&[1, 0, 0, 0, 0, 0, 0, 0x80])
+                .unwrap(),
+            i64::MIN + 1,
+            "all 64 bits"
+        );
+    }
+
+    #[test]
+    fn motorola_bits() {
+        assert_eq!(
+            sig(7, 16, ByteOrder::Motorola, false)
+                .extract(&[0x12, 0x34])
+                .unwrap(),
+            0x1234
+        );
+        // MSB at bit 4 of byte 0: five bits of byte 0, then bits 7..5 of byte 1.
+        assert_eq!(
+            sig(4, 8, ByteOrder::Motorola, false)
+                .extract(&[0x1F, 0xE0])
+                .unwrap(),
+            0xFF
+        );
+        assert_eq!(
+            sig(4, 8, ByteOrder::Motorola, false)
+                .extract(&[0x10, 0x00])
+                .unwrap(),
+            0x80
+        );
+        assert_eq!(
+            sig(23, 12, ByteOrder::Motorola, true)
+                .extract(&[0, 0, 0x80, 0x00])
+                .unwrap(),
+            -2048
+        );
+        assert_eq!(sig(7, 8, ByteOrder::Motorola, false).bytes_needed(), 1);
+        assert_eq!(sig(4, 8, ByteOrder::Motorola, false).bytes_needed(), 2);
+    }
+
+    #[test]
+    fn physical_values_use_factor_and_offset() {
+        let rpm = Signal::new(24, 16, ByteOrder::Intel, false, 0.25, 0.0, "rpm").unwrap();
+        assert_eq!(rpm.decode(&[0, 0, 0, 0x40, 0x1F, 0, 0, 0]).unwrap(), 2000.0);
+        let temp = Signal::new(0, 8, ByteOrder::Intel, true, 0.5, -10.0, "degC").unwrap();
+        assert_eq!(temp.decode(&[0xF6]).unwrap(), -15.0, "raw -10");
+        assert_eq!(temp.scale().range().unit.as_str(), "degC");
+    }
+
+    #[test]
+    fn insert_is_extracts_inverse_and_leaves_other_bits() {
+        let mut seed = 0x9E37_79B9_u64;
+        let mut next = |m: u64| {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 33) % m
+        };
+        for _ in 0..2000 {
+            let order = if next(2) == 0 {
+                ByteOrder::Intel
+            } else {
+                ByteOrder::Motorola
+            };
+            let length = 1 + next(64) as u32;
+            let signed = next(2) == 0 && length > 1;
+            let start = next(64) as u32;
+            let Ok(s) = Signal::new(start, length, order, signed, 1.0, 0.0, "") else {
+                continue;
+            };
+            let mut payload = vec![0u8; s.bytes_needed()];
+            for b in payload.iter_mut() {
+                *b = next(256) as u8;
+            }
+            let before = payload.clone();
+            let r = s.scale().raw_range();
+            let span = (r.max as i128 - r.min as i128 + 1).min(1 << 62) as u64;
+            let raw = (r.min as i128 + i128::from(next(span))) as i64;
+            s.insert(&mut payload, raw).unwrap();
+            assert_eq!(
+                s.extract(&payload).unwrap(),
+                raw,
+                "{order:?} start {start} len {length} signed {signed}"
+            );
+            for (i, (a, b)) in before.iter().zip(&payload).enumerate() {
+                let mine: u8 = s
+                    .bits
+                    .iter()
+                    .filter(|&&bit| (bit / 8) as usize == i)
+                    .fold(0, |m, bit| m | 1 << (bit % 8));
+                assert_eq!(a & !mine, b & !mine, "other bits of byte {i} untouched");
+            }
+        }
+    }
+
+    #[test]
+    fn bad_signals_and_short_frames() {
+        assert_eq!(
+            Signal::new(0, 0, ByteOrder::Intel, false, 1.0, 0.0, "").unwrap_err(),
+            SignalError::Length(0)
+        );
+        assert_eq!(
+            Signal::new(0, 65, ByteOrder::Intel, false, 1.0, 0.0, "").unwrap_err(),
+            SignalError::Length(65)
+        );
+        assert!(
+            Signal::new(0, 8, ByteOrder::Intel, false, 0.0, 0.0, "").is_err(),
+            "zero factor"
+        );
+        let s = sig(60, 8, ByteOrder::Intel, false);
+        assert_eq!(
+            s.extract(&[0; 8]).unwrap_err().to_string(),
+            "the signal needs 9 bytes of payload, the frame has 8"
+        );
+        let mut p = [0u8; 2];
+        assert_eq!(
+            sig(0, 4, ByteOrder::Intel, false)
+                .insert(&mut p, 16)
+                .unwrap_err()
+                .to_string(),
+            "raw value 16 does not fit 4 unsigned bits"
+        );
+        assert!(sig(0, 4, ByteOrder::Intel, true).insert(&mut p, -8).is_ok());
+        assert!(sig(0, 4, ByteOrder::Intel, true).insert(&mut p, 8).is_err());
+    }
+}
