@@ -2,7 +2,9 @@
 //!
 //! This crate grows with the CAN issue. What is here: [`signal`], DBC-model signals in
 //! frame payloads — Intel and Motorola bit numbering, signed values, factor and offset —
-//! which the CAN card will decode received frames with and pack outgoing ones with.
+//! which the CAN card will decode received frames with and pack outgoing ones with; and
+//! [`dbc`], reading messages and signals from a DBC file with errors by file, line and
+//! signal.
 //!
 //! ```
 //! use driver_can::signal::{ByteOrder, Signal};
@@ -14,4 +16,5 @@
 //! # Ok::<(), driver_can::signal::SignalError>(())
 //! ```
 
+pub mod dbc;
 pub mod signal;
