@@ -101,26 +101,6 @@ impl CardRt {
     }
 }
 
-/// A sim card's devices for the registry (encoders as `card.encoderN`).
-fn sim_devices(card: &Arc<SimCard>) -> device_interface::CardDevices {
-    use device_interface::{CardDevices, DigitalIn, Encoder};
-    CardDevices {
-        analog_in: (AnalogIn::channel_count(&**card) > 0)
-            .then(|| card.clone() as Arc<dyn AnalogIn>),
-        analog_out: (AnalogOut::channel_count(&**card) > 0)
-            .then(|| card.clone() as Arc<dyn AnalogOut>),
-        digital_in: (card.input_count() > 0).then(|| card.clone() as Arc<dyn DigitalIn>),
-        digital_out: (DigitalOut::output_count(&**card) > 0)
-            .then(|| card.clone() as Arc<dyn DigitalOut>),
-        encoders: (0..card.encoder_count())
-            .filter_map(|i| {
-                card.encoder(i)
-                    .map(|e| (format!("encoder{i}"), e as Arc<dyn Encoder>))
-            })
-            .collect(),
-    }
-}
-
 /// Runs a card's bus cycle.
 struct CardCycle(Arc<SimCard>);
 
@@ -197,7 +177,7 @@ impl Gateway {
                 ("sim", Some(sec), _) => {
                     SimCard::new(sec.get_ref(), Arc::new(rtt::time::MonotonicClock))
                         .map(|card| {
-                            let devices = sim_devices(&card);
+                            let devices = card.devices();
                             (Driver::Sim(card), devices)
                         })
                         .map_err(|e| {

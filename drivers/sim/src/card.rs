@@ -521,14 +521,10 @@ impl SimCard {
         })
     }
 
-    /// Registers every interface the card has under `name` (`name.encoder0`, `name.encoder1`
-    /// … for encoders), owned by `name`. On error nothing stays registered.
-    pub fn register(
-        self: &Arc<Self>,
-        registry: &Registry,
-        name: &str,
-    ) -> Result<(), RegistryError> {
-        let devices = CardDevices {
+    /// The card's devices, for [`Registry::register_card`]: every interface it has channels
+    /// for, and each encoder as `encoder0`, `encoder1` …
+    pub fn devices(self: &Arc<Self>) -> CardDevices {
+        CardDevices {
             analog_in: (!self.ai.is_empty()).then(|| self.clone() as Arc<dyn AnalogIn>),
             analog_out: (!self.ao.is_empty()).then(|| self.clone() as Arc<dyn AnalogOut>),
             digital_in: (!self.di.is_empty()).then(|| self.clone() as Arc<dyn DigitalIn>),
@@ -539,8 +535,17 @@ impl SimCard {
                         .map(|e| (format!("encoder{i}"), e as Arc<dyn Encoder>))
                 })
                 .collect(),
-        };
-        registry.register_card(name, devices)
+        }
+    }
+
+    /// Registers every interface the card has under `name` (`name.encoder0`, `name.encoder1`
+    /// … for encoders), owned by `name`. On error nothing stays registered.
+    pub fn register(
+        self: &Arc<Self>,
+        registry: &Registry,
+        name: &str,
+    ) -> Result<(), RegistryError> {
+        registry.register_card(name, self.devices())
     }
 }
 
