@@ -40,7 +40,7 @@ use serde::de::DeserializeOwned;
 use serde_json::Value;
 use std::any::Any;
 use std::fmt;
-use std::sync::atomic::{AtomicU8, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU8, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 
 /// The lifecycle states of RTT 2.x.
@@ -983,13 +983,33 @@ impl Engine for TaskCore {
     }
 }
 
-struct EngineRunner(Weak<TaskCore>);
+/// Steps a component's engine. An activity's runner notes its thread at the first step,
+/// so an OwnThread call from that thread is refused, not dead-locked; a slave's runner
+/// (stepped from whatever thread calls `step`) notes nothing.
+struct EngineRunner {
+    core: Weak<TaskCore>,
+    /// True until the engine thread is noted (activity runners only).
+    note_thread: AtomicBool,
+}
+
+impl EngineRunner {
+    fn new(core: &Arc<TaskCore>, note_thread: bool) -> Self {
+        EngineRunner {
+            core: Arc::downgrade(core),
+            note_thread: AtomicBool::new(note_thread),
+        }
+    }
+}
 
 impl Runner for EngineRunner {
     fn step(&self, events: &FdEvents, timing: StepTiming) {
-        if let Some(core) = self.0.upgrade() {
-            core.step(events, timing);
+        let Some(core) = self.core.upgrade() else {
+            return;
+        };
+        if self.note_thread.swap(false, Ordering::Relaxed) {
+            *lock(&core.engine_thread) = Some(std::thread::current().id());
         }
+        core.step(events, timing);
     }
 }
 
@@ -1175,12 +1195,7 @@ impl TaskContext {
             |c, ctx| c.start_hook(ctx),
             TaskState::Running,
         )?;
-        let runner: Arc<dyn Runner> = Arc::new(EngineRunner(Arc::downgrade(&self.core)));
-        let core = self.core.clone();
-        let runner: Arc<dyn Runner> = Arc::new(RecordThread {
-            core: Arc::downgrade(&core),
-            inner: runner,
-        });
+        let runner: Arc<dyn Runner> = Arc::new(EngineRunner::new(&self.core, true));
         if let Err(e) = self.core.activity.start(runner) {
             self.core.set_state(TaskState::Stopped);
             return Err(LifecycleError::Activity {
@@ -1257,7 +1272,7 @@ impl TaskContext {
     /// One step on the calling thread: queued OwnThread calls, then update (or error).
     /// Slave activities only; stepping a stopped component runs only the queue.
     pub fn step(&self) -> Result<(), ActivityError> {
-        let runner = EngineRunner(Arc::downgrade(&self.core));
+        let runner = EngineRunner::new(&self.core, false);
         self.core.activity.step_slave(&runner)
     }
 
@@ -1378,25 +1393,6 @@ pub enum CallOrIntrospect {
     /// The call failed.
     #[error(transparent)]
     Call(#[from] CallError),
-}
-
-/// Notes which thread is the engine's, so an OwnThread call from it is refused, not
-/// dead-locked.
-struct RecordThread {
-    core: Weak<TaskCore>,
-    inner: Arc<dyn Runner>,
-}
-
-impl Runner for RecordThread {
-    fn step(&self, events: &FdEvents, timing: StepTiming) {
-        if let Some(core) = self.core.upgrade()
-            && let Ok(mut t) = core.engine_thread.try_lock()
-            && t.is_none()
-        {
-            *t = Some(std::thread::current().id());
-        }
-        self.inner.step(events, timing);
-    }
 }
 
 /// Stands in for a component whose constructor failed (never runs).
