@@ -77,15 +77,7 @@ impl Browser {
     fn ask(&self, req: Value) -> Result<Value, String> {
         let reply = control::request(&self.socket, req)
             .map_err(|e| format!("{}: {e}", self.socket.display()))?;
-        match (reply.get("ok"), reply.get("error")) {
-            (Some(v), _) => Ok(v.clone()),
-            (_, Some(e)) => Err(e
-                .get("message")
-                .and_then(Value::as_str)
-                .unwrap_or("error")
-                .to_string()),
-            _ => Err(format!("unexpected reply {reply}")),
-        }
+        control::outcome(&reply)
     }
 
     fn component<'a>(&'a self, named: Option<&'a str>) -> Result<&'a str, String> {

@@ -251,20 +251,13 @@ pub fn main(types: ComponentTypes) -> ExitCode {
     };
     let path = socket.unwrap_or_else(control::default_socket);
     match control::request(&path, req) {
-        Ok(reply) => match (reply.get("ok"), reply.get("error")) {
-            (Some(v), _) => {
-                println!("{}", serde_json::to_string_pretty(v).unwrap_or_default());
+        Ok(reply) => match control::outcome(&reply) {
+            Ok(v) => {
+                println!("{}", serde_json::to_string_pretty(&v).unwrap_or_default());
                 ExitCode::SUCCESS
             }
-            (_, Some(e)) => {
-                eprintln!(
-                    "hwgw: {}",
-                    e.get("message").and_then(Value::as_str).unwrap_or("error")
-                );
-                ExitCode::FAILURE
-            }
-            _ => {
-                eprintln!("hwgw: unexpected reply: {reply}");
+            Err(message) => {
+                eprintln!("hwgw: {message}");
                 ExitCode::FAILURE
             }
         },

@@ -481,6 +481,19 @@ fn handle(
     }
 }
 
+/// A reply's outcome: the `ok` value, or the `error` message.
+pub fn outcome(reply: &Value) -> Result<Value, String> {
+    match (reply.get("ok"), reply.get("error")) {
+        (Some(v), _) => Ok(v.clone()),
+        (_, Some(e)) => Err(e
+            .get("message")
+            .and_then(Value::as_str)
+            .unwrap_or("error")
+            .to_string()),
+        _ => Err(format!("unexpected reply: {reply}")),
+    }
+}
+
 /// One request to a running gateway: sends `request` (an `id` is added if missing) and
 /// returns the reply.
 pub fn request(path: &Path, mut request: Value) -> std::io::Result<Value> {
