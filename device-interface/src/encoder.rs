@@ -173,9 +173,69 @@ impl EncoderCounter {
     }
 }
 
+/// An [`EncoderCounter`] fed by readings of a wrapping hardware counter (a Modbus counter
+/// register, a CAN position signal): each reading advances the count by the difference to
+/// the previous one, across the wrap, the shorter way round. The first reading is the
+/// baseline.
+#[derive(Debug)]
+pub struct WrappingCounter {
+    counter: EncoderCounter,
+    last: AtomicI64,
+    seen: std::sync::atomic::AtomicBool,
+    bits: u32,
+}
+
+impl WrappingCounter {
+    /// Follows a `bits`-wide counter (it wraps at 2^bits; 64 for a full `i64`). Errors as
+    /// [`EncoderGeometry::new`].
+    pub fn new(resolution: i64, upcounting: bool, bits: u32) -> Result<Self, DeviceError> {
+        Ok(WrappingCounter {
+            counter: EncoderCounter::new(resolution, upcounting)?,
+            last: AtomicI64::new(0),
+            seen: std::sync::atomic::AtomicBool::new(false),
+            bits: bits.clamp(1, 64),
+        })
+    }
+
+    /// Takes a new counter reading (signed or unsigned, as the counter gives it).
+    pub fn sample(&self, raw: i64) {
+        let prev = self.last.swap(raw, Ordering::AcqRel);
+        if !self.seen.swap(true, Ordering::AcqRel) {
+            return;
+        }
+        let delta = if self.bits >= 64 {
+            raw.wrapping_sub(prev)
+        } else {
+            let m = 1i128 << self.bits;
+            let d = (i128::from(raw) - i128::from(prev)).rem_euclid(m);
+            (if d >= m / 2 { d - m } else { d }) as i64
+        };
+        self.counter.advance(delta);
+    }
+
+    /// The count.
+    pub fn counter(&self) -> &EncoderCounter {
+        &self.counter
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn wrapping_counter_follows_across_the_wrap() {
+        let w = WrappingCounter::new(1000, true, 16).unwrap();
+        w.sample(65_530); // baseline
+        w.sample(4); // +10 across the wrap
+        assert_eq!(w.counter().total(), 10);
+        w.sample(65_534); // -6 back across it
+        assert_eq!(w.counter().total(), 4);
+        let s = WrappingCounter::new(1000, true, 8).unwrap();
+        s.sample(127);
+        s.sample(-128); // signed 8-bit: +1
+        assert_eq!(s.counter().total(), 1);
+    }
 
     #[test]
     fn split_join_round_trip_all_geometries() {

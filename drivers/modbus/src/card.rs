@@ -96,35 +96,6 @@ pub enum ReplyError {
     },
 }
 
-/// A counter register's encoder state: the software count and the last raw reading.
-struct CounterEncoder {
-    counter: device_interface::encoder::EncoderCounter,
-    /// The last raw counter value; meaningful once `seen`.
-    last: AtomicI64,
-    seen: std::sync::atomic::AtomicBool,
-    /// The counter's width in bits (it wraps at 2^bits).
-    bits: u32,
-}
-
-impl CounterEncoder {
-    /// Takes a new counter reading: advances by the difference since the last one,
-    /// across the counter's wrap (the shorter way round).
-    fn sample(&self, raw: i64) {
-        let prev = self.last.swap(raw, Ordering::AcqRel);
-        if !self.seen.swap(true, Ordering::AcqRel) {
-            return; // the first reading is the baseline
-        }
-        let delta = if self.bits >= 64 {
-            raw.wrapping_sub(prev)
-        } else {
-            let m = 1i128 << self.bits;
-            let d = (i128::from(raw) - i128::from(prev)).rem_euclid(m);
-            (if d >= m / 2 { d - m } else { d }) as i64
-        };
-        self.counter.advance(delta);
-    }
-}
-
 const ONLINE: u8 = 0;
 const STALE: u8 = 1;
 const OFFLINE: u8 = 2;
@@ -139,7 +110,7 @@ pub struct ModbusCard {
     di: BitImage,
     dout: BitImage,
     do_dirty: BitImage,
-    encoders: Box<[CounterEncoder]>,
+    encoders: Box<[device_interface::encoder::WrappingCounter]>,
     status: AtomicU8,
     /// Time of the last good poll in ns plus one; 0: never.
     last_good: AtomicU64,
@@ -195,16 +166,12 @@ impl ModbusCard {
                 .filter(|p| p.role == Role::Encoder)
                 .filter_map(|p| {
                     let e = p.config.encoder?;
-                    Some(CounterEncoder {
-                        counter: device_interface::encoder::EncoderCounter::new(
-                            e.resolution,
-                            e.upcounting,
-                        )
-                        .ok()?,
-                        last: AtomicI64::new(0),
-                        seen: std::sync::atomic::AtomicBool::new(false),
-                        bits: 16 * p.layout.ty.registers() as u32,
-                    })
+                    device_interface::encoder::WrappingCounter::new(
+                        e.resolution,
+                        e.upcounting,
+                        16 * p.layout.ty.registers() as u32,
+                    )
+                    .ok()
                 })
                 .collect(),
             di: BitImage::new(di),
@@ -608,7 +575,7 @@ pub struct ModbusEncoder {
 impl ModbusEncoder {
     fn counter(&self) -> &device_interface::encoder::EncoderCounter {
         // `index` comes from the card's own list, which never changes.
-        &self.card.encoders[self.index].counter
+        self.card.encoders[self.index].counter()
     }
 }
 
