@@ -118,7 +118,7 @@ fn one_f64() -> f64 {
 pub struct CardConfig {
     /// The card's name: its devices are registered under it.
     pub name: String,
-    /// Which driver runs it: "sim" or "modbus".
+    /// Which driver runs it: "sim", "modbus" or "socketcan".
     pub driver: String,
     /// Period of the card's bus cycle, ms.
     #[serde(default = "default_card_period")]
@@ -144,6 +144,9 @@ pub struct CardConfig {
     /// The modbus driver's section: the line, the unit, timing and the register map.
     #[serde(default)]
     pub modbus: Option<toml::Spanned<driver_modbus::config::ModbusConfig>>,
+    /// The socketcan driver's section: the interface, a DBC file, rx and tx frames.
+    #[serde(default)]
+    pub socketcan: Option<toml::Spanned<driver_can::map::CanConfig>>,
 }
 
 /// Port names for a card's channels, in channel order.

@@ -61,6 +61,8 @@ enum Driver {
         timing: UnitTiming,
         stats: Arc<UnitStats>,
     },
+    /// A SocketCAN interface, serviced by its bus component (named after the card).
+    Can(Arc<driver_can::card::CanCard>),
 }
 
 /// A card of the deployment, with what it needs at shutdown.
@@ -71,6 +73,8 @@ struct CardRt {
     driver: Driver,
     safe_analog_out: Vec<f64>,
     safe_digital_out_on: Vec<u32>,
+    /// Port names of its channels (given, or from the driver's signal names).
+    names: crate::config::ChannelNames,
 }
 
 impl CardRt {
@@ -78,6 +82,7 @@ impl CardRt {
         match &self.driver {
             Driver::Sim(c) => &**c,
             Driver::Modbus { card, .. } => &**card,
+            Driver::Can(card) => &**card,
         }
     }
 
@@ -85,6 +90,7 @@ impl CardRt {
         match &self.driver {
             Driver::Sim(c) => &**c,
             Driver::Modbus { card, .. } => &**card,
+            Driver::Can(card) => &**card,
         }
     }
 
@@ -97,8 +103,66 @@ impl CardRt {
                 DigitalOut::output_count(&**c),
             ],
             Driver::Modbus { card, .. } => card.map().counts(),
+            Driver::Can(card) => card.map().counts(),
         }
     }
+}
+
+/// Fills the channel names a CAN card's deployment left out with its signal names
+/// (`signal` for one channel, `signal_k` for bit k of a multi-bit digital signal), where
+/// those make port names.
+fn can_names(card: &driver_can::card::CanCard, names: &mut crate::config::ChannelNames) {
+    use driver_can::map::SignalRole;
+    let ok = |n: &str| !n.is_empty() && !n.contains('.') && !n.chars().any(char::is_whitespace);
+    let fill = |list: &mut Vec<String>, frames: &[driver_can::map::MappedFrame], role| {
+        let mut all = Vec::new();
+        for s in frames
+            .iter()
+            .flat_map(|f| &f.signals)
+            .filter(|s| s.role == role)
+        {
+            match s.width() {
+                1 => all.push(s.name.clone()),
+                w => all.extend((0..w).map(|k| format!("{}_{k}", s.name))),
+            }
+        }
+        if list.is_empty() && all.iter().all(|n| ok(n)) && {
+            let mut u = all.clone();
+            u.sort();
+            u.dedup();
+            u.len() == all.len()
+        } {
+            *list = all;
+        }
+    };
+    let map = card.map();
+    fill(&mut names.analog_in, map.rx(), SignalRole::Analog);
+    fill(&mut names.digital_in, map.rx(), SignalRole::Digital);
+    fill(&mut names.analog_out, map.tx(), SignalRole::Analog);
+    fill(&mut names.digital_out, map.tx(), SignalRole::Digital);
+}
+
+fn frame_list(frames: &[driver_can::map::MappedFrame]) -> String {
+    if frames.is_empty() {
+        return "nothing".into();
+    }
+    frames
+        .iter()
+        .map(|f| {
+            let when = match (f.cycle, f.on_change) {
+                (Some(c), true) => format!("every {c:?} and on change"),
+                (Some(c), false) => format!("every {c:?}"),
+                (None, _) => "on change".to_string(),
+            };
+            format!(
+                "{} (id {:#x}, {} signals, {when})",
+                f.name,
+                f.id,
+                f.signals.len()
+            )
+        })
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 /// Runs a card's bus cycle.
@@ -142,6 +206,12 @@ impl Gateway {
         // Cards and their devices.
         let registry = Arc::new(Registry::new());
         let mut cards = Vec::new();
+        // Opened CAN buses, by card index, until their components take them.
+        let mut buses: Vec<(usize, driver_can::bus::CanBus)> = Vec::new();
+        // Files a card names (DBC) are relative to the deployment file.
+        let base = std::path::Path::new(file)
+            .parent()
+            .unwrap_or(std::path::Path::new(""));
         for (i, c) in deployment.cards.iter().enumerate() {
             let here = || at(&[Seg::Key("card"), Seg::Index(i)]);
             let path = format!("card[{i}]");
@@ -174,6 +244,26 @@ impl Gateway {
                 (Driver, device_interface::CardDevices),
                 (Option<Location>, String, String),
             > = match (c.driver.as_str(), &c.sim, &c.modbus) {
+                ("socketcan", _, _) if c.socketcan.is_some() => {
+                    let sec = c.socketcan.as_ref().map(|s| (s.get_ref(), s.span()));
+                    let Some((cfg, span)) = sec else { continue };
+                    let (l, p) = section("socketcan", Some(span));
+                    let problem =
+                        |e: String| (l.clone(), p.clone(), format!("card {:?}: {e}", c.name));
+                    driver_can::map::CanMap::new(cfg, base)
+                        .map_err(|e| problem(e.to_string()))
+                        .and_then(|map| {
+                            let card = driver_can::card::CanCard::new(
+                                map,
+                                Arc::new(rtt::time::MonotonicClock),
+                            );
+                            let bus = driver_can::bus::CanBus::open(card.clone())
+                                .map_err(|e| problem(e.to_string()))?;
+                            buses.push((i, bus));
+                            let devices = card.devices();
+                            Ok((Driver::Can(card), devices))
+                        })
+                }
                 ("sim", Some(sec), _) => {
                     SimCard::new(sec.get_ref(), Arc::new(rtt::time::MonotonicClock))
                         .map(|card| {
@@ -209,7 +299,7 @@ impl Gateway {
                             ))
                         })
                 }
-                (d @ ("sim" | "modbus"), _, _) => Err((
+                (d @ ("sim" | "modbus" | "socketcan"), _, _) => Err((
                     here(),
                     path.clone(),
                     format!(
@@ -220,7 +310,7 @@ impl Gateway {
                 (other, _, _) => Err((
                     at(&[Seg::Key("card"), Seg::Index(i), Seg::Key("driver")]),
                     format!("{path}.driver"),
-                    format!("unknown driver {other:?}; this build has: modbus, sim"),
+                    format!("unknown driver {other:?}; this build has: modbus, sim, socketcan"),
                 )),
             };
             let (driver, devices) = match built {
@@ -236,8 +326,13 @@ impl Gateway {
                 driver,
                 safe_analog_out: Vec::new(),
                 safe_digital_out_on: c.safe_digital_out_on.clone(),
+                names: crate::config::ChannelNames::default(),
             };
-            if let Err((key, message)) = c.names.check(card.counts()) {
+            let mut names = c.names.clone();
+            if let Driver::Can(can) = &card.driver {
+                can_names(can, &mut names);
+            }
+            if let Err((key, message)) = names.check(card.counts()) {
                 add(
                     &mut problems,
                     at(&[Seg::Key("card"), Seg::Index(i), Seg::Key("names")]),
@@ -246,6 +341,7 @@ impl Gateway {
                 );
                 continue;
             }
+            card.names = names;
             if let Err(e) = registry.register_card(&c.name, devices) {
                 add(&mut problems, here(), format!("{path}.name"), e.to_string());
                 continue;
@@ -321,7 +417,24 @@ impl Gateway {
                 }
             }
             let sample = millis(cfg.sample_period_ms.unwrap_or(cfg.period_ms));
-            match io::build(&runtime, &c.name, sample, &cfg.names) {
+            if let Some(k) = buses.iter().position(|(ci, _)| *ci == i) {
+                let (_, bus) = buses.swap_remove(k);
+                match runtime.add(
+                    &c.name,
+                    ActivitySpec::file_descriptor(None),
+                    false,
+                    move |iface| driver_can::component::CanIo::new(bus, iface),
+                ) {
+                    Ok(t) => order.push(t),
+                    Err(e) => add(
+                        &mut problems,
+                        at(&[Seg::Key("card"), Seg::Index(i)]),
+                        format!("card[{i}]"),
+                        e.to_string(),
+                    ),
+                }
+            }
+            match io::build(&runtime, &c.name, sample, &c.names) {
                 Ok(ts) => order.extend(ts),
                 Err(e) => add(
                     &mut problems,
@@ -681,6 +794,12 @@ impl Gateway {
             .iter()
             .map(|c| match &c.driver {
                 Driver::Sim(_) => serde_json::json!({"name": c.name, "driver": "sim"}),
+                Driver::Can(card) => serde_json::json!({
+                    "name": c.name,
+                    "driver": "socketcan",
+                    "interface": card.map().interface(),
+                    "counters": card.counters(),
+                }),
                 Driver::Modbus { stats, timing, .. } => serde_json::json!({
                     "name": c.name,
                     "driver": "modbus",
@@ -709,6 +828,12 @@ impl Gateway {
         for c in &self.cards {
             let driver = match &c.driver {
                 Driver::Sim(_) => "sim".to_string(),
+                Driver::Can(card) => format!(
+                    "socketcan {}: receives {}; sends {}",
+                    card.map().interface(),
+                    frame_list(card.map().rx()),
+                    frame_list(card.map().tx()),
+                ),
                 Driver::Modbus {
                     transport,
                     timing,
@@ -757,12 +882,21 @@ impl Gateway {
     pub fn shutdown(&self) -> Vec<String> {
         // No client writes may race the safe values.
         crate::port_lock(&self.server).take();
-        for t in self.order.iter().rev() {
+        // A CAN card's bus component is what sends its safe values: it stops last.
+        let is_bus = |t: &TaskContext| {
+            self.cards
+                .iter()
+                .any(|c| matches!(c.driver, Driver::Can(_)) && c.name == t.name())
+        };
+        let stop = |t: &TaskContext| {
             if matches!(t.state(), TaskState::Running | TaskState::RunTimeError)
                 && let Err(e) = t.stop()
             {
                 tracing::warn!("{e}");
             }
+        };
+        for t in self.order.iter().rev().filter(|t| !is_bus(t)) {
+            stop(t);
         }
         for c in &self.cards {
             let (ao, dout) = (c.analog_out(), c.digital_out());
@@ -804,6 +938,32 @@ impl Gateway {
             }
         }
         crate::port_lock(&self.lines).clear();
+        for c in &self.cards {
+            if let Driver::Can(card) = &c.driver {
+                let before = card.counters();
+                card.flush();
+                let frames = card.map().tx().len() as u64;
+                while card.link_up()
+                    && {
+                        let now = card.counters();
+                        now.tx_frames + now.tx_errors < before.tx_frames + before.tx_errors + frames
+                    }
+                    && std::time::Instant::now() < deadline
+                    && self
+                        .order
+                        .iter()
+                        .any(|t| t.name() == c.name && t.state() == TaskState::Running)
+                {
+                    std::thread::sleep(std::time::Duration::from_millis(2));
+                }
+                if !card.link_up() {
+                    tracing::error!("card {:?}: link down, safe values not sent", c.name);
+                }
+            }
+        }
+        for t in self.order.iter().rev().filter(|t| is_bus(t)) {
+            stop(t);
+        }
         let mut lines = Vec::new();
         for c in &self.cards {
             let (ao, dout) = (c.analog_out(), c.digital_out());

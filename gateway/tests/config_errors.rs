@@ -16,6 +16,8 @@ waveform = { kind = "constant", value = 1.0 }
 range = { lowest = 0.0, highest = 10.0 }
 "#;
 
+const CAN: &str = "[[card]]\nname = \"can\"\ndriver = \"socketcan\"\n[card.socketcan]\n";
+
 /// Every error `text` produces, one per line, or "ok".
 fn errors(text: &str) -> String {
     let d = match Deployment::parse(text, "t.toml") {
@@ -51,7 +53,21 @@ fn every_broken_config_gets_its_exact_error() {
         ("missing card name", "[[card]]\ndriver = \"sim\"\n".into(),
          "t.toml:1:1: card[0]: missing field `name`"),
         ("unknown driver", "[[card]]\nname = \"x\"\ndriver = \"canbus\"\n".into(),
-         "t.toml:3:10: card[0].driver: unknown driver \"canbus\"; this build has: modbus, sim"),
+         "t.toml:3:10: card[0].driver: unknown driver \"canbus\"; this build has: modbus, sim, socketcan"),
+        ("CAN interface missing", format!("{CAN}interface = \"can7\"\n"),
+         "t.toml:4:1: card[0].socketcan: card \"can\": interface \"can7\": no such network interface (CAN interfaces here: none)"),
+        ("malformed DBC file", format!("{CAN}interface = \"can7\"\ndbc = \"tests/data/broken.dbc\"\n"),
+         "t.toml:4:1: card[0].socketcan: card \"can\": tests/data/broken.dbc:3: signal Speed: byte order in \"0|16@2+\": expected @1 (Intel) or @0 (Motorola)"),
+        ("DBC message missing", format!("{CAN}interface = \"can7\"\ndbc = \"../drivers/can/tests/data/motion.dbc\"\n[[card.socketcan.rx]]\nmessage = \"Motoin\"\n"),
+         "t.toml:4:1: card[0].socketcan: card \"can\": rx[0].message: the DBC file has no message \"Motoin\" (it has: Motion, Temps, Command)"),
+        ("inline signal without a start bit", format!("{CAN}interface = \"can7\"\n[[card.socketcan.rx]]\nid = 0x100\nsignal = [{{ name = \"speed\", length = 16 }}]\n"),
+         "t.toml:4:1: card[0].socketcan: card \"can\": rx[0].signal[0] (speed): an inline signal needs start and length"),
+        ("DBC signal given a scale", format!("{CAN}interface = \"can7\"\ndbc = \"../drivers/can/tests/data/motion.dbc\"\n[[card.socketcan.rx]]\nmessage = \"Motion\"\nsignal = [{{ name = \"Speed\", factor = 2 }}]\n"),
+         "t.toml:4:1: card[0].socketcan: card \"can\": rx[0].signal[0] (Speed): the layout and scale of a DBC signal come from the DBC file; only as, resolution, upcounting and initial can be set here"),
+        ("11-bit id too large", format!("{CAN}interface = \"can7\"\n[[card.socketcan.tx]]\nid = 0x800\ncycle_ms = 10\n"),
+         "t.toml:4:1: card[0].socketcan: card \"can\": tx[0].id: 0x800 does not fit an 11-bit id (largest 0x7ff)"),
+        ("unknown key in the CAN section", format!("{CAN}interface = \"can7\"\nbitrate = 500000\n"),
+         "t.toml:6:1: card[0].socketcan.bitrate: unknown field `bitrate`, expected one of `interface`, `dbc`, `stale_after_cycles`, `link_check_ms`, `rx`, `tx`"),
         ("driver section missing", "[[card]]\nname = \"x\"\ndriver = \"sim\"\n".into(),
          "t.toml:1:1: card[0]: card \"x\" uses driver \"sim\" but has no [card.sim] section"),
         ("driver refuses its section", "[[card]]\nname = \"x\"\ndriver = \"sim\"\n[card.sim]\n[[card.sim.analog_in]]\nrange = { lowest = 5.0, highest = 1.0 }\nwaveform = { kind = \"constant\", value = 1.0 }\n".into(),

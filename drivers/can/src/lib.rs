@@ -1,10 +1,14 @@
 //! SocketCAN cards for hwgw.
 //!
-//! This crate grows with the CAN issue. What is here: [`signal`], DBC-model signals in
-//! frame payloads — Intel and Motorola bit numbering, signed values, factor and offset —
-//! which the CAN card will decode received frames with and pack outgoing ones with; and
-//! [`dbc`], reading messages and signals from a DBC file with errors by file, line and
-//! signal.
+//! - [`signal`]: DBC-model signals in frame payloads (Intel/Motorola, signed, factor,
+//!   offset, limits); [`dbc`]: messages and signals from a DBC file.
+//! - [`map`]: a card's `[card.socketcan]` section resolved into frames and channels.
+//! - [`card`]: the devices (AnalogIn/Out, DigitalIn/Out, Encoder) over those frames, with
+//!   per-frame staleness, link state and bus error counters; no I/O of its own.
+//! - [`bus`]: the socket side — a CAN_RAW socket with kernel filters for exactly the
+//!   mapped ids, error frames, timestamps, cyclic and on-change sending, link loss and
+//!   return — serviced from one file descriptor.
+//! - [`component`]: that bus as an rtt component on a file-descriptor activity.
 //!
 //! ```
 //! use driver_can::signal::{ByteOrder, Signal};
@@ -16,5 +20,9 @@
 //! # Ok::<(), driver_can::signal::SignalError>(())
 //! ```
 
+pub mod bus;
+pub mod card;
+pub mod component;
 pub mod dbc;
+pub mod map;
 pub mod signal;

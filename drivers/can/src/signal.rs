@@ -64,6 +64,14 @@ pub enum SignalError {
         /// Signedness.
         signed: bool,
     },
+    /// A DBC `[min|max]` no raw value of the signal falls into.
+    #[error("no raw value of the signal lies in its range [{min}|{max}]")]
+    Limits {
+        /// Physical minimum.
+        min: f64,
+        /// Physical maximum.
+        max: f64,
+    },
     /// Factor, offset or unit that make no scale.
     #[error(transparent)]
     Scale(#[from] ScaleError),
@@ -76,6 +84,8 @@ pub struct Signal {
     length: u32,
     order: ByteOrder,
     signed: bool,
+    factor: f64,
+    offset: f64,
     scale: Scale,
     /// Payload bit (as `byte * 8 + bit`, bit 0 the least significant of its byte) of each
     /// signal bit, most significant first.
@@ -145,9 +155,60 @@ impl Signal {
             length,
             order,
             signed,
+            factor,
+            offset,
             scale,
             bits,
         })
+    }
+
+    /// The same signal with its raw range narrowed to the raw values whose physical value
+    /// lies in `[min, max]` (a DBC range); `min == max == 0` means "not given", as in DBC
+    /// files, and changes nothing.
+    pub fn with_limits(mut self, min: f64, max: f64) -> Result<Signal, SignalError> {
+        if min == 0.0 && max == 0.0 {
+            return Ok(self);
+        }
+        let bad = SignalError::Limits { min, max };
+        if !(min.is_finite() && max.is_finite() && min <= max) {
+            return Err(bad);
+        }
+        // A raw value within a millionth of a step of the limit counts as on it: DBC
+        // limits are decimal texts of values that are exact in raw steps.
+        let near = |x: f64, up: bool| {
+            let r = x.round();
+            if (x - r).abs() < 1e-6 {
+                r
+            } else if up {
+                x.ceil()
+            } else {
+                x.floor()
+            }
+        };
+        let (a, b) = (
+            (min - self.offset) / self.factor,
+            (max - self.offset) / self.factor,
+        );
+        let (lo, hi) = (near(a.min(b), true), near(a.max(b), false));
+        let full = self.scale.raw_range();
+        let lo = if lo <= full.min as f64 {
+            full.min
+        } else {
+            lo as i64
+        };
+        let hi = if hi >= full.max as f64 {
+            full.max
+        } else {
+            hi as i64
+        };
+        let range = RawRange::new(lo, hi).map_err(|_| bad)?;
+        self.scale = Scale::from_factor(range, self.factor, self.offset, self.scale.unit())?;
+        Ok(self)
+    }
+
+    /// True when the two signals share a payload bit.
+    pub fn overlaps(&self, other: &Signal) -> bool {
+        self.bits.iter().any(|b| other.bits.contains(b))
     }
 
     /// The payload bytes the signal reaches into.
@@ -344,6 +405,35 @@ mod tests {
                 assert_eq!(a & !mine, b & !mine, "other bits of byte {i} untouched");
             }
         }
+    }
+
+    #[test]
+    fn limits_narrow_the_raw_range() {
+        let s = Signal::new(0, 16, ByteOrder::Intel, true, 0.1, 0.0, "Nm").unwrap();
+        let l = s.clone().with_limits(-100.0, 250.5).unwrap();
+        assert_eq!(
+            l.scale().raw_range(),
+            RawRange {
+                min: -1000,
+                max: 2505
+            }
+        );
+        // Negative factor: the limits swap ends in raw.
+        let n = Signal::new(0, 8, ByteOrder::Intel, false, -0.5, 100.0, "").unwrap();
+        let n = n.with_limits(0.0, 50.0).unwrap();
+        assert_eq!(n.scale().raw_range(), RawRange { min: 100, max: 200 });
+        // 0|0 is "no limits"; limits past the raw range keep it.
+        assert_eq!(s.clone().with_limits(0.0, 0.0).unwrap(), s);
+        let w = s.clone().with_limits(-1e9, 1e9).unwrap();
+        assert_eq!(w.scale().raw_range(), s.scale().raw_range());
+        assert!(matches!(
+            s.clone().with_limits(5.0, 1.0),
+            Err(SignalError::Limits { .. })
+        ));
+        assert!(matches!(
+            s.with_limits(1e9, 2e9),
+            Err(SignalError::Limits { .. })
+        ));
     }
 
     #[test]

@@ -488,10 +488,15 @@ pub fn sh(script: &str) -> Result<String, Failed> {
 }
 
 /// The `main` of a kernel test binary: in the guest, runs `trials` as libtest would; on
-/// the host, boots `rig` and runs this binary inside it with the same arguments.
+/// the host, boots `rig` and runs this binary inside it with the same arguments. In the
+/// guest trials run one at a time unless `--test-threads` says otherwise.
 /// Listing (`--list`) happens on the host without a boot.
 pub fn harness(rig: &Rig, trials: Vec<Trial>) -> ExitCode {
-    let args = libtest_mimic::Arguments::from_args();
+    let mut args = libtest_mimic::Arguments::from_args();
+    // One trial at a time: the guest has few CPUs and trials measure timing.
+    if in_guest() && args.test_threads.is_none() {
+        args.test_threads = Some(1);
+    }
     if in_guest() || args.list {
         return libtest_mimic::run(&args, trials).exit_code();
     }

@@ -1,0 +1,545 @@
+//! The socket side of a CAN card, serviced from one file descriptor.
+//!
+//! [`CanBus::open`] binds a CAN_RAW socket (FD-capable) to the card's interface with
+//! kernel filters for exactly the mapped receive ids and every error class, and asks the
+//! kernel for a receive timestamp and a drop count with each frame. [`CanBus::fd`] is an
+//! epoll descriptor that becomes readable when a frame arrives, when a frame is due to be
+//! sent (a timerfd at the next deadline), or when an output changed on an on-change frame;
+//! an rtt file-descriptor activity watches it and calls [`CanBus::service`], which never
+//! blocks.
+//!
+//! The link is watched through the socket's errors and `/sys/class/net/IF`: when it goes
+//! down the card goes offline; when it comes back — even as a new interface of the same
+//! name — the socket is reopened if needed and the card comes back by itself.
+//!
+//! ```no_run
+//! # use std::sync::Arc;
+//! # fn demo(card: Arc<driver_can::card::CanCard>) -> Result<(), driver_can::bus::BusError> {
+//! let mut bus = driver_can::bus::CanBus::open(card)?;
+//! loop {
+//!     // (an fd activity waits for bus.fd() instead)
+//!     std::thread::sleep(std::time::Duration::from_millis(1));
+//!     bus.service(&mut |_frame, _payload, _received| {});
+//! }
+//! # }
+//! ```
+
+use crate::card::{CanCard, ErrorReport, Received};
+use device_interface::DeviceError;
+use device_interface::time::Timestamp;
+use nix::sys::epoll::{Epoll, EpollCreateFlags, EpollEvent, EpollFlags};
+use nix::sys::eventfd::{EfdFlags, EventFd};
+use nix::sys::socket::{ControlMessageOwned, MsgFlags, recvmsg, setsockopt, sockopt};
+use nix::sys::time::TimeSpec;
+use nix::sys::timerfd::{ClockId, Expiration, TimerFd, TimerFlags, TimerSetTimeFlags};
+use socketcan::{CanFdSocket, CanFilter, Socket, SocketOptions};
+use std::os::fd::{AsFd, AsRawFd, BorrowedFd};
+use std::sync::Arc;
+use std::time::Duration;
+
+/// Why a bus could not be opened.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum BusError {
+    /// No network interface of that name.
+    #[error("interface {name:?}: no such network interface (CAN interfaces here: {})", if .available.is_empty() { "none".to_string() } else { .available.join(", ") })]
+    NoInterface {
+        /// The name asked for.
+        name: String,
+        /// The CAN interfaces that exist.
+        available: Vec<String>,
+    },
+    /// The interface is not a CAN interface.
+    #[error("interface {0:?} is not a CAN interface")]
+    NotCan(String),
+    /// FD frames are mapped but the interface is classic CAN only.
+    #[error("interface {name:?} is classic CAN (MTU {mtu}); frame {frame} is a CAN FD frame")]
+    NoFd {
+        /// The interface.
+        name: String,
+        /// Its MTU.
+        mtu: u32,
+        /// A frame that needs FD.
+        frame: String,
+    },
+    /// A system call failed.
+    #[error("interface {name:?}: {what}: {source}")]
+    Os {
+        /// The interface.
+        name: String,
+        /// What was being done.
+        what: &'static str,
+        /// The error.
+        source: std::io::Error,
+    },
+}
+
+const CAN_EFF_FLAG: u32 = 0x8000_0000;
+const CAN_RTR_FLAG: u32 = 0x4000_0000;
+const CAN_ERR_FLAG: u32 = 0x2000_0000;
+const CAN_SFF_MASK: u32 = 0x7FF;
+const CAN_EFF_MASK: u32 = 0x1FFF_FFFF;
+const CAN_ERR_MASK: u32 = 0x1FFF_FFFF;
+/// ARPHRD_CAN, the link type of CAN interfaces in /sys/class/net/IF/type.
+const ARPHRD_CAN: u32 = 280;
+/// Size of a classic `struct can_frame` and of a `struct canfd_frame`.
+const CAN_MTU: usize = 16;
+const CANFD_MTU: usize = 72;
+
+fn sys(iface: &str, file: &str) -> Option<String> {
+    std::fs::read_to_string(format!("/sys/class/net/{iface}/{file}"))
+        .ok()
+        .map(|s| s.trim().to_string())
+}
+
+fn sys_u32(iface: &str, file: &str) -> Option<u32> {
+    let s = sys(iface, file)?;
+    match s.strip_prefix("0x") {
+        Some(hex) => u32::from_str_radix(hex, 16).ok(),
+        None => s.parse().ok(),
+    }
+}
+
+/// The CAN interfaces of this host.
+pub fn can_interfaces() -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir("/sys/class/net")
+        .map(|d| {
+            d.filter_map(|e| e.ok())
+                .map(|e| e.file_name().to_string_lossy().into_owned())
+                .filter(|n| sys_u32(n, "type") == Some(ARPHRD_CAN))
+                .collect()
+        })
+        .unwrap_or_default();
+    v.sort();
+    v
+}
+
+/// The link state and identity of an interface, from sysfs.
+fn link(iface: &str) -> Option<(bool, u32)> {
+    let flags = sys_u32(iface, "flags")?;
+    let index = sys_u32(iface, "ifindex")?;
+    // Administratively up (IFF_UP) with the carrier on: a CAN controller drops its carrier
+    // at bus-off; `carrier` cannot be read while the interface is down.
+    let up = flags & 0x1 != 0 && sys(iface, "carrier").as_deref() == Some("1");
+    Some((up, index))
+}
+
+/// A card's socket, timer and wake-up, behind one epoll descriptor.
+pub struct CanBus {
+    card: Arc<CanCard>,
+    socket: Option<CanFdSocket>,
+    ifindex: u32,
+    epoll: Epoll,
+    timer: TimerFd,
+    wake: Arc<EventFd>,
+    /// Next send time (ns) of each cyclic tx frame.
+    next_tx: Vec<Option<u64>>,
+    next_check: u64,
+    /// The kernel's drop counter as last seen.
+    drops_seen: u32,
+    buf: [u8; 64],
+}
+
+const SOCKET: u64 = 0;
+const TIMER: u64 = 1;
+const WAKE: u64 = 2;
+
+fn now_ns() -> u64 {
+    use device_interface::time::{Clock, MonotonicClock};
+    MonotonicClock.now().as_nanos()
+}
+
+impl CanBus {
+    /// Opens the card's interface. A missing or non-CAN interface, or FD frames on a
+    /// classic interface, are errors; an interface that exists but is down is not (the
+    /// card stays offline until it comes up).
+    pub fn open(card: Arc<CanCard>) -> Result<CanBus, BusError> {
+        let name = card.map().interface().to_string();
+        let os = |what: &'static str| {
+            let name = name.clone();
+            move |source: std::io::Error| BusError::Os {
+                name: name.clone(),
+                what,
+                source,
+            }
+        };
+        let nix_os = |what: &'static str| {
+            let f = os(what);
+            move |e: nix::Error| f(std::io::Error::from(e))
+        };
+        let Some((_, ifindex)) = link(&name) else {
+            return Err(BusError::NoInterface {
+                name,
+                available: can_interfaces(),
+            });
+        };
+        if sys_u32(&name, "type") != Some(ARPHRD_CAN) {
+            return Err(BusError::NotCan(name));
+        }
+        let mtu = sys_u32(&name, "mtu").unwrap_or(0);
+        if mtu as usize != CANFD_MTU
+            && let Some(f) = card.map().rx().iter().chain(card.map().tx()).find(|f| f.fd)
+        {
+            return Err(BusError::NoFd {
+                name,
+                mtu,
+                frame: f.name.clone(),
+            });
+        }
+        let epoll = Epoll::new(EpollCreateFlags::EPOLL_CLOEXEC).map_err(nix_os("epoll_create"))?;
+        let timer = TimerFd::new(
+            ClockId::CLOCK_MONOTONIC,
+            TimerFlags::TFD_NONBLOCK | TimerFlags::TFD_CLOEXEC,
+        )
+        .map_err(nix_os("timerfd_create"))?;
+        let wake = Arc::new(
+            EventFd::from_value_and_flags(0, EfdFlags::EFD_NONBLOCK | EfdFlags::EFD_CLOEXEC)
+                .map_err(nix_os("eventfd"))?,
+        );
+        epoll
+            .add(timer.as_fd(), EpollEvent::new(EpollFlags::EPOLLIN, TIMER))
+            .map_err(nix_os("epoll_ctl"))?;
+        epoll
+            .add(wake.as_fd(), EpollEvent::new(EpollFlags::EPOLLIN, WAKE))
+            .map_err(nix_os("epoll_ctl"))?;
+        let w = wake.clone();
+        card.set_waker(Box::new(move || {
+            let _ = w.write(1);
+        }));
+        let now = now_ns();
+        let next_tx = card
+            .map()
+            .tx()
+            .iter()
+            .map(|f| f.cycle.map(|_| now))
+            .collect();
+        let mut bus = CanBus {
+            card,
+            socket: None,
+            ifindex,
+            epoll,
+            timer,
+            wake,
+            next_tx,
+            next_check: now,
+            drops_seen: 0,
+            buf: [0; 64],
+        };
+        bus.open_socket().map_err(os("open socket"))?;
+        bus.check_link();
+        bus.arm();
+        Ok(bus)
+    }
+
+    fn open_socket(&mut self) -> std::io::Result<()> {
+        if let Some(old) = self.socket.take() {
+            let _ = self.epoll.delete(old.as_fd());
+        }
+        let map = self.card.map();
+        let s = CanFdSocket::open(map.interface())?;
+        let filters: Vec<CanFilter> = map
+            .rx()
+            .iter()
+            .map(|f| {
+                if f.extended {
+                    CanFilter::new(
+                        f.id | CAN_EFF_FLAG,
+                        CAN_EFF_MASK | CAN_EFF_FLAG | CAN_RTR_FLAG,
+                    )
+                } else {
+                    CanFilter::new(f.id, CAN_SFF_MASK | CAN_EFF_FLAG | CAN_RTR_FLAG)
+                }
+            })
+            .collect();
+        s.set_filters(&filters)?;
+        s.set_error_filter(CAN_ERR_MASK)?;
+        s.set_nonblocking(true)?;
+        setsockopt(&s, sockopt::ReceiveTimestampns, &true).map_err(std::io::Error::from)?;
+        setsockopt(&s, sockopt::RxqOvfl, &1).map_err(std::io::Error::from)?;
+        self.epoll
+            .add(s.as_fd(), EpollEvent::new(EpollFlags::EPOLLIN, SOCKET))
+            .map_err(std::io::Error::from)?;
+        self.drops_seen = 0;
+        self.socket = Some(s);
+        Ok(())
+    }
+
+    /// The descriptor to wait on: readable when [`service`](Self::service) has work.
+    pub fn fd(&self) -> BorrowedFd<'_> {
+        self.epoll.0.as_fd()
+    }
+
+    /// The card.
+    pub fn card(&self) -> &Arc<CanCard> {
+        &self.card
+    }
+
+    /// Does what is due without blocking: receives every queued frame (calling
+    /// `on_frame(rx index, payload, kernel receive time)` for each decoded one), sends
+    /// changed and due frames, checks staleness and the link, and re-arms the timer.
+    pub fn service(&mut self, on_frame: &mut dyn FnMut(usize, &[u8], Timestamp)) {
+        // Reading the timer and the eventfd clears their readiness (and so the epoll
+        // set's); the work below looks at everything anyway.
+        let _ = self.timer.wait();
+        let _ = self.wake.read();
+        self.receive(on_frame);
+        let now = now_ns();
+        if now >= self.next_check {
+            self.check_link();
+            self.card.check_stale();
+            self.next_check = now + self.card.map().link_check().as_nanos() as u64;
+        }
+        self.send_due(now);
+        self.arm();
+    }
+
+    fn receive(&mut self, on_frame: &mut dyn FnMut(usize, &[u8], Timestamp)) {
+        let Some(socket) = &self.socket else { return };
+        let fd = socket.as_raw_fd();
+        // The kernel stamps frames with CLOCK_REALTIME; the card's time base is
+        // CLOCK_MONOTONIC. One offset per batch is exact to well under a microsecond.
+        let offset = {
+            let real = nix::time::clock_gettime(nix::time::ClockId::CLOCK_REALTIME)
+                .map(|t| t.tv_sec() as i128 * 1_000_000_000 + t.tv_nsec() as i128)
+                .unwrap_or(0);
+            now_ns() as i128 - real
+        };
+        let mut raw = [0u8; CANFD_MTU];
+        let mut cmsg = nix::cmsg_space!(TimeSpec, u32);
+        loop {
+            let (n, stamp, drops) = {
+                let mut iov = [std::io::IoSliceMut::new(&mut raw)];
+                match recvmsg::<()>(fd, &mut iov, Some(&mut cmsg), MsgFlags::MSG_DONTWAIT) {
+                    Ok(msg) => {
+                        let mut stamp = None;
+                        let mut drops = None;
+                        if let Ok(cmsgs) = msg.cmsgs() {
+                            for c in cmsgs {
+                                match c {
+                                    ControlMessageOwned::ScmTimestampns(t) => {
+                                        stamp = Some(
+                                            t.tv_sec() as i128 * 1_000_000_000
+                                                + t.tv_nsec() as i128,
+                                        )
+                                    }
+                                    ControlMessageOwned::RxqOvfl(d) => drops = Some(d),
+                                    _ => {}
+                                }
+                            }
+                        }
+                        (msg.bytes, stamp, drops)
+                    }
+                    Err(nix::Error::EAGAIN) => break,
+                    Err(nix::Error::EINTR) => continue,
+                    Err(e @ (nix::Error::ENETDOWN | nix::Error::ENODEV)) => {
+                        self.link_lost(e);
+                        break;
+                    }
+                    Err(e) => {
+                        tracing::warn!(interface = %self.card.map().interface(), "recvmsg: {e}");
+                        break;
+                    }
+                }
+            };
+            if let Some(d) = drops {
+                let new = d.wrapping_sub(self.drops_seen);
+                if new > 0 {
+                    self.card.dropped(u64::from(new));
+                }
+                self.drops_seen = d;
+            }
+            let at = match stamp {
+                Some(real) => Timestamp::from_nanos((real + offset).max(0) as u64),
+                None => Timestamp::from_nanos(now_ns()),
+            };
+            if n != CAN_MTU && n != CANFD_MTU {
+                self.card.wrong_kind();
+                continue;
+            }
+            let can_id = u32::from_ne_bytes([raw[0], raw[1], raw[2], raw[3]]);
+            let len = usize::from(raw[4]).min(if n == CAN_MTU { 8 } else { 64 });
+            let data = &raw[8..8 + len];
+            if can_id & CAN_ERR_FLAG != 0 {
+                self.error_frame(can_id, data);
+                continue;
+            }
+            let extended = can_id & CAN_EFF_FLAG != 0;
+            let id = can_id & if extended { CAN_EFF_MASK } else { CAN_SFF_MASK };
+            let fd_frame = n == CANFD_MTU;
+            let expected_fd = self
+                .card
+                .map()
+                .rx()
+                .iter()
+                .find(|f| f.id == id && f.extended == extended)
+                .map(|f| f.fd);
+            if can_id & CAN_RTR_FLAG != 0 || expected_fd.is_some_and(|e| e != fd_frame) {
+                self.card.wrong_kind();
+                continue;
+            }
+            if let Received::Decoded(f) = self.card.receive(id, extended, data, at) {
+                on_frame(f, data, at);
+            }
+        }
+    }
+
+    fn error_frame(&self, can_id: u32, data: &[u8]) {
+        let mut d = [0u8; 8];
+        d[..data.len().min(8)].copy_from_slice(&data[..data.len().min(8)]);
+        let Ok(frame) = socketcan::CanErrorFrame::new_error(can_id & CAN_ERR_MASK, &d) else {
+            self.card.error_frame(ErrorReport::default());
+            return;
+        };
+        let mut r = ErrorReport::default();
+        for cause in frame.into_error().causes() {
+            use socketcan::errors::{ControllerProblems as P, ErrorCause as C};
+            match cause {
+                C::TransmitTimeout => r.tx_timeout = true,
+                C::LostArbitration(_) => r.lost_arbitration = true,
+                C::Controller(p) => {
+                    r.warning |= p.intersects(P::RX_WARNING | P::TX_WARNING);
+                    r.passive |= p.intersects(P::RX_PASSIVE | P::TX_PASSIVE);
+                    r.overflow |= p.intersects(P::RX_OVERFLOW | P::TX_OVERFLOW);
+                    r.active |= p.contains(P::ACTIVE);
+                }
+                C::Protocol { .. } => r.protocol = true,
+                C::Transceiver { .. } => r.transceiver = true,
+                C::NoAck => r.no_ack = true,
+                C::BusOff => r.bus_off = true,
+                C::BusError => r.protocol = true,
+                C::Restarted => r.restarted = true,
+                _ => {}
+            }
+        }
+        self.card.error_frame(r);
+    }
+
+    fn link_lost(&self, e: nix::Error) {
+        if self.card.link_up() {
+            tracing::warn!(interface = %self.card.map().interface(), "link down: {e}");
+        }
+        self.card
+            .set_link(false, Some(DeviceError::bus(std::io::Error::from(e))));
+    }
+
+    fn check_link(&mut self) {
+        let card = self.card.clone();
+        let name = card.map().interface();
+        match link(name) {
+            None => {
+                if self.card.link_up() {
+                    tracing::warn!(interface = %name, "interface gone");
+                }
+                self.card.set_link(
+                    false,
+                    Some(DeviceError::bus(std::io::Error::from(nix::Error::ENODEV))),
+                );
+            }
+            Some((up, index)) => {
+                if index != self.ifindex || self.socket.is_none() {
+                    // A new interface of the same name: the old socket is bound to the
+                    // old index.
+                    self.ifindex = index;
+                    if let Err(e) = self.open_socket() {
+                        tracing::warn!(interface = %name, "cannot reopen: {e}");
+                        self.card.set_link(false, Some(DeviceError::bus(e)));
+                        return;
+                    }
+                }
+                if up != self.card.link_up() {
+                    if up {
+                        tracing::info!(interface = %name, "link up");
+                    } else {
+                        tracing::warn!(interface = %name, "link down");
+                    }
+                }
+                self.card.set_link(
+                    up,
+                    (!up).then(|| DeviceError::bus(std::io::Error::from(nix::Error::ENETDOWN))),
+                );
+            }
+        }
+    }
+
+    fn send_due(&mut self, now: u64) {
+        let frames = self.card.map().tx().len();
+        for t in 0..frames {
+            let cycle = self.card.map().tx()[t].cycle;
+            let due = self.next_tx[t].is_some_and(|d| now >= d);
+            if !(due || self.card.is_dirty(t)) {
+                continue;
+            }
+            if let (true, Some(c)) = (due, cycle) {
+                let c = c.as_nanos() as u64;
+                let mut next = self.next_tx[t].unwrap_or(now) + c;
+                // After a stall, keep the phase but do not send a burst of late frames.
+                if next <= now {
+                    next += (now - next) / c * c + c;
+                }
+                self.next_tx[t] = Some(next);
+            }
+            self.send(t);
+        }
+    }
+
+    fn send(&mut self, t: usize) {
+        let len = self.card.compose(t, &mut self.buf);
+        if !self.card.link_up() {
+            return;
+        }
+        let Some(socket) = &self.socket else { return };
+        let f = &self.card.map().tx()[t];
+        let id: socketcan::Id = if f.extended {
+            match socketcan::ExtendedId::new(f.id) {
+                Some(i) => i.into(),
+                None => return,
+            }
+        } else {
+            match u16::try_from(f.id)
+                .ok()
+                .and_then(socketcan::StandardId::new)
+            {
+                Some(i) => i.into(),
+                None => return,
+            }
+        };
+        let data = &self.buf[..len];
+        let result = if f.fd {
+            use socketcan::EmbeddedFrame;
+            match socketcan::CanFdFrame::new(id, data) {
+                Some(frame) => socket.write_frame(&frame),
+                None => return,
+            }
+        } else {
+            use socketcan::EmbeddedFrame;
+            match socketcan::CanFrame::new(id, data) {
+                Some(frame) => socket.write_frame(&frame),
+                None => return,
+            }
+        };
+        if let Err(e) = &result {
+            tracing::debug!(frame = %f.name, "send failed: {e}");
+            if e.raw_os_error() == Some(nix::Error::ENETDOWN as i32) {
+                self.link_lost(nix::Error::ENETDOWN);
+            }
+        }
+        self.card.sent(result.is_ok());
+    }
+
+    /// Sets the timer to the earliest of the next send and the next check.
+    fn arm(&self) {
+        let next = self
+            .next_tx
+            .iter()
+            .flatten()
+            .copied()
+            .chain([self.next_check])
+            .min()
+            .unwrap_or(self.next_check);
+        let ts = TimeSpec::from_duration(Duration::from_nanos(next.max(1)));
+        let _ = self.timer.set(
+            Expiration::OneShot(ts),
+            TimerSetTimeFlags::TFD_TIMER_ABSTIME,
+        );
+    }
+}

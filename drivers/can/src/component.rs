@@ -1,0 +1,124 @@
+//! A CAN bus as an rtt component on a file-descriptor activity.
+//!
+//! The component watches [`CanBus::fd`] and services the bus on every wake-up: received
+//! frames are decoded into the card's channels (which the gateway's IO components and any
+//! component holding the devices read) and, frame by frame, published on one output port
+//! per received message, so a component can see every frame rather than a sample of them.
+//! An operation `counters` returns the card's counters.
+//!
+//! ```no_run
+//! # use std::sync::Arc;
+//! # fn demo(rt: &rtt::Runtime, card: Arc<driver_can::card::CanCard>) -> Result<(), Box<dyn std::error::Error>> {
+//! let bus = driver_can::bus::CanBus::open(card)?;
+//! let task = rt.add("can0", rtt::ActivitySpec::file_descriptor(None), false, |iface| {
+//!     driver_can::component::CanIo::new(bus, iface)
+//! })?;
+//! task.start()?;
+//! # Ok(()) }
+//! ```
+
+use crate::bus::CanBus;
+use crate::card::CanCounters;
+use rtt::component::IntrospectError;
+use rtt::port::OutputPort;
+use rtt::{Component, Context, HookResult, Interface};
+use serde::{Deserialize, Serialize};
+use std::os::fd::AsRawFd;
+
+/// One received frame as published on its message's port.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct CanMessage {
+    /// When the kernel received it (CLOCK_MONOTONIC, ns).
+    pub received_ns: u64,
+    /// When it was written to the port (CLOCK_MONOTONIC, ns).
+    pub published_ns: u64,
+    /// The physical values of the message's signals, in map order.
+    pub values: Vec<f64>,
+}
+
+/// The bus component.
+pub struct CanIo {
+    bus: CanBus,
+    ports: Vec<OutputPort<CanMessage>>,
+    sample: CanMessage,
+}
+
+impl CanIo {
+    /// Builds the component's interface: port `rx.<message>` per received frame (the DBC
+    /// name, or the id in hex) and the `counters` operation.
+    pub fn new(bus: CanBus, iface: &mut Interface<CanIo>) -> Result<CanIo, IntrospectError> {
+        let card = bus.card().clone();
+        let widest = card
+            .map()
+            .rx()
+            .iter()
+            .map(|f| f.signals.len())
+            .max()
+            .unwrap_or(0);
+        let mut ports = Vec::new();
+        for f in card.map().rx() {
+            let names: Vec<&str> = f.signals.iter().map(|s| s.name.as_str()).collect();
+            ports.push(iface.output_with_sample(
+                &format!("rx.{}", f.name),
+                &format!(
+                    "every received {} frame (id {:#x}): values of {}",
+                    f.name,
+                    f.id,
+                    names.join(", ")
+                ),
+                CanMessage {
+                    values: vec![0.0; f.signals.len()],
+                    ..CanMessage::default()
+                },
+            )?);
+        }
+        let c = card.clone();
+        iface.client_operation(
+            "counters",
+            "frame, error and link counters of the bus",
+            &[],
+            move |()| -> CanCounters { c.counters() },
+        )?;
+        Ok(CanIo {
+            bus,
+            ports,
+            sample: CanMessage {
+                values: Vec::with_capacity(widest),
+                ..CanMessage::default()
+            },
+        })
+    }
+}
+
+impl Component for CanIo {
+    fn start_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+        ctx.activity().watch(self.bus.fd())?;
+        // Send the first cyclic frames and learn the link state at once.
+        self.update_hook(ctx)
+    }
+
+    fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
+        let (ports, sample) = (&mut self.ports, &mut self.sample);
+        let card = self.bus.card().clone();
+        self.bus.service(&mut |f, payload, at| {
+            let Some(port) = ports.get_mut(f) else { return };
+            sample.values.clear();
+            for s in &card.map().rx()[f].signals {
+                sample
+                    .values
+                    .push(s.signal.decode(payload).unwrap_or(f64::NAN));
+            }
+            sample.received_ns = at.as_nanos();
+            sample.published_ns = {
+                use device_interface::time::{Clock, MonotonicClock};
+                MonotonicClock.now().as_nanos()
+            };
+            port.write(sample);
+        });
+        Ok(())
+    }
+
+    fn stop_hook(&mut self, ctx: &mut Context<'_>) {
+        ctx.activity().unwatch(self.bus.fd().as_raw_fd());
+    }
+}

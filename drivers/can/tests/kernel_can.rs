@@ -1,0 +1,418 @@
+//! The CAN card against the real kernel: vcan interfaces in the kernel rig, can-utils as
+//! the peer on the other end. Each trial uses its own interface, so they cannot see each
+//! other's frames.
+#![allow(clippy::unwrap_used, reason = "test code")]
+
+use device_interface::time::MonotonicClock;
+use device_interface::{AnalogIn, AnalogOut, Device, DeviceError, DigitalIn, DigitalOut, Status};
+use driver_can::bus::CanBus;
+use driver_can::card::CanCard;
+use driver_can::component::CanIo;
+use driver_can::map::{CanConfig, CanMap};
+use kernel_rig::{Failed, Rig, Trial, sh};
+use rtt::{ActivitySpec, Runtime, RuntimeOptions, TaskContext};
+use std::process::{Child, Command, Stdio};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data");
+
+/// A card on a fresh vcan, serviced by its component on an fd activity.
+struct Up {
+    card: Arc<CanCard>,
+    task: TaskContext,
+    _rt: Runtime,
+}
+
+fn vcan(iface: &str) -> Result<(), Failed> {
+    sh(&format!(
+        "ip link add {iface} type vcan && ip link set {iface} up"
+    ))?;
+    Ok(())
+}
+
+fn card(iface: &str, body: &str) -> Result<Arc<CanCard>, Failed> {
+    let config: CanConfig = toml::from_str(&format!("interface = \"{iface}\"\n{body}"))?;
+    Ok(CanCard::new(
+        CanMap::new(&config, DATA.as_ref())?,
+        Arc::new(MonotonicClock),
+    ))
+}
+
+fn up(iface: &str, body: &str) -> Result<Up, Failed> {
+    vcan(iface)?;
+    up_on(iface, body)
+}
+
+fn up_on(iface: &str, body: &str) -> Result<Up, Failed> {
+    let card = card(iface, body)?;
+    let bus = CanBus::open(card.clone())?;
+    let rt = Runtime::new(
+        Arc::new(device_interface::Registry::new()),
+        RuntimeOptions::default(),
+    )?;
+    let task = rt.add(
+        iface,
+        ActivitySpec::file_descriptor(None),
+        false,
+        move |i| CanIo::new(bus, i),
+    )?;
+    task.start()?;
+    Ok(Up {
+        card,
+        task,
+        _rt: rt,
+    })
+}
+
+fn wait_until(what: &str, limit: Duration, f: impl Fn() -> bool) -> Result<(), Failed> {
+    let end = Instant::now() + limit;
+    while !f() {
+        if Instant::now() > end {
+            return Err(format!("{what}: not within {limit:?}").into());
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    Ok(())
+}
+
+fn cansend(iface: &str, frame: &str) -> Result<(), Failed> {
+    sh(&format!("cansend {iface} {frame}"))?;
+    Ok(())
+}
+
+/// `candump -L` for `n` frames (or until `timeout_ms` without one).
+fn candump(iface: &str, n: usize, timeout_ms: u32) -> Result<Child, Failed> {
+    let child = Command::new("candump")
+        .args([
+            "-L",
+            "-n",
+            &n.to_string(),
+            "-T",
+            &timeout_ms.to_string(),
+            iface,
+        ])
+        .stdout(Stdio::piped())
+        .spawn()?;
+    // candump must have bound its socket before anything is sent.
+    std::thread::sleep(Duration::from_millis(200));
+    Ok(child)
+}
+
+/// (timestamp s, "ID#DATA") per frame of a `candump -L` log.
+fn dumped(child: Child) -> Result<Vec<(f64, String)>, Failed> {
+    let out = child.wait_with_output()?;
+    let text = String::from_utf8_lossy(&out.stdout);
+    Ok(text
+        .lines()
+        .filter_map(|l| {
+            let mut parts = l.split_whitespace();
+            let t = parts
+                .next()?
+                .trim_matches(|c| c == '(' || c == ')')
+                .parse()
+                .ok()?;
+            let _iface = parts.next()?;
+            Some((t, parts.next()?.to_string()))
+        })
+        .collect())
+}
+
+/// Motion every 20 ms (stale after 60 ms) and Temps with no cycle.
+const MOTION: &str = r#"
+dbc = "motion.dbc"
+[[rx]]
+message = "Motion"
+cycle_ms = 20
+signal = [
+    { name = "Mode", as = "digital" },
+    { name = "Position", as = "encoder", resolution = 1000 },
+]
+[[rx]]
+message = "Temps"
+"#;
+
+fn received_values_are_the_dbc_decoded_ones() -> Result<(), Failed> {
+    // A long cycle: cansend under emulation takes longer than 60 ms.
+    let u = up(
+        "vcan1",
+        &MOTION.replace("cycle_ms = 20", "cycle_ms = 10000"),
+    )?;
+    let c = &u.card;
+    // Speed raw 0x3039; Torque (Motorola, 12-bit signed at bit 23) raw 0xF9C = -100;
+    // Enabled 1 and Mode 5 in byte 4; Position 65530.
+    cansend("vcan1", "100#3930F9C00B00FAFF")?;
+    // Coolant raw 130; Delta (Intel signed 16 at bit 8) raw 0xFB2E = -1234. Extended id.
+    cansend("vcan1", "18FEEE05#822EFB00")?;
+    wait_until("two frames decoded", Duration::from_secs(2), || {
+        c.counters().rx_frames == 2
+    })?;
+    let expect = [
+        ("Speed", 12345.0 * 0.01),
+        ("Torque", -100.0 * 0.5 - 10.0),
+        ("Coolant", 130.0 - 40.0),
+        ("Delta", -1234.0 * 0.1),
+    ];
+    for (ch, (name, v)) in expect.iter().enumerate() {
+        let got = AnalogIn::read(&**c, ch as u32)?;
+        if got != *v {
+            return Err(format!("{name} (AI{ch}): {got}, DBC says {v}").into());
+        }
+    }
+    assert_eq!(c.read_raw(1)?, -100);
+    // DI: Enabled, then Mode's three bits least significant first (5 = 0b101).
+    assert_eq!(c.read_sequence(0, 3)?, 0b1011);
+    let units: Vec<String> = (0..4)
+        .map(|ch| AnalogIn::scale(&**c, ch).unwrap().unit().to_string())
+        .collect();
+    assert_eq!(units, ["m/s", "Nm", "degC", "K"]);
+
+    // The position counter: 65530 was the baseline; +10 across the wrap; +1006 more is a
+    // turn and 16 counts at 1000 counts per turn.
+    let devices = c.devices();
+    let (name, enc) = &devices.encoders[0];
+    assert_eq!(name, "Position");
+    cansend("vcan1", "100#3930F9C00B000400")?;
+    wait_until("frame 3", Duration::from_secs(2), || {
+        c.counters().rx_frames == 3
+    })?;
+    assert_eq!((enc.position()?, enc.turn()?), (10, 0));
+    cansend("vcan1", "100#3930F9C00B00F203")?;
+    wait_until("frame 4", Duration::from_secs(2), || {
+        c.counters().rx_frames == 4
+    })?;
+    assert_eq!((enc.position()?, enc.turn()?), (16, 1));
+    u.task.stop()?;
+    Ok(())
+}
+
+const COMMAND: &str = r#"
+dbc = "motion.dbc"
+[[tx]]
+message = "Command"
+cycle_ms = 10
+"#;
+
+fn sent_frames_have_the_exact_bytes_at_the_cycle_time() -> Result<(), Failed> {
+    let u = up("vcan2", COMMAND)?;
+    let c = &u.card;
+    wait_until("link up", Duration::from_secs(2), || c.link_up())?;
+    // Setpoint -12.3 Nm = raw -123 = 0xFF85, Motorola from bit 7; Run on, Reverse off.
+    c.write(0, -12.3)?;
+    c.set_bit(0, true)?;
+    c.set_bit(1, false)?;
+    std::thread::sleep(Duration::from_millis(50));
+    let frames = dumped(candump("vcan2", 101, 2000)?)?;
+    if frames.len() != 101 {
+        return Err(format!("{} frames dumped, expected 101", frames.len()).into());
+    }
+    if let Some((_, f)) = frames.iter().find(|(_, f)| f != "200#FF850100") {
+        return Err(format!("frame {f}, expected 200#FF850100").into());
+    }
+    let gaps: Vec<f64> = frames.windows(2).map(|w| (w[1].0 - w[0].0) * 1e3).collect();
+    let mean = gaps.iter().sum::<f64>() / gaps.len() as f64;
+    let (min, max) = gaps
+        .iter()
+        .fold((f64::MAX, 0.0f64), |(a, b), &g| (a.min(g), b.max(g)));
+    eprintln!(
+        "cycle of 200#: 100 intervals, mean {mean:.3} ms, min {min:.3} ms, max {max:.3} ms (configured 10 ms)"
+    );
+    // The period is kept on an absolute schedule, so late frames do not shift the mean.
+    if (mean - 10.0).abs() > 0.2 {
+        return Err(format!("mean cycle {mean:.3} ms, configured 10 ms").into());
+    }
+    u.task.stop()?;
+    Ok(())
+}
+
+fn on_change_frames_go_out_at_once() -> Result<(), Failed> {
+    let u = up(
+        "vcan3",
+        r#"
+[[tx]]
+id = 0x201
+length = 2
+signal = [{ name = "level", start = 0, length = 8, min = 0, max = 100 }, { name = "lamp", start = 8, length = 1 }]
+"#,
+    )?;
+    let c = &u.card;
+    wait_until("link up", Duration::from_secs(2), || c.link_up())?;
+    let dump = candump("vcan3", 2, 2000)?;
+    c.write(0, 42.0)?;
+    std::thread::sleep(Duration::from_millis(20));
+    c.set_bit(0, true)?;
+    let frames: Vec<String> = dumped(dump)?.into_iter().map(|(_, f)| f).collect();
+    assert_eq!(frames, ["201#2A00", "201#2A01"]);
+    // Beyond the declared max: refused, nothing sent.
+    assert!(matches!(
+        c.write(0, 101.0),
+        Err(DeviceError::ValueOutOfRange { .. })
+    ));
+    assert_eq!(c.read_back(0)?, 42.0);
+    assert_eq!(c.counters().tx_frames, 2);
+    Ok(())
+}
+
+fn silent_frames_go_stale_and_come_back() -> Result<(), Failed> {
+    let u = up("vcan4", MOTION)?;
+    let c = &u.card;
+    wait_until("link up", Duration::from_secs(2), || c.link_up())?;
+    assert!(matches!(c.read(0), Err(DeviceError::Stale { age: None })));
+    cansend("vcan4", "100#3930F9C00B00FAFF")?;
+    wait_until("fresh", Duration::from_secs(2), || c.read(0).is_ok())?;
+    // cycle 20 ms x 3 missed cycles = 60 ms after the kernel received the frame.
+    wait_until("stale", Duration::from_secs(2), || c.read(0).is_err())?;
+    let age = match c.read(0) {
+        Err(DeviceError::Stale { age: Some(age) }) if age > Duration::from_millis(60) => age,
+        other => return Err(format!("expected stale with an age > 60 ms, got {other:?}").into()),
+    };
+    // The Temps frame has no cycle: it never goes stale once seen, but it was never seen.
+    assert_eq!(c.health().status, Status::Stale);
+    wait_until("stale counted", Duration::from_secs(2), || {
+        c.counters().stale_events == 1
+    })?;
+    cansend("vcan4", "100#3930F9C00B00FAFF")?;
+    wait_until("fresh again", Duration::from_secs(2), || c.read(0).is_ok())?;
+    assert_eq!(c.read(0)?, 123.45);
+    eprintln!("first seen stale at age {age:?} (timeout 60 ms)");
+    Ok(())
+}
+
+fn link_down_and_up_goes_offline_and_back() -> Result<(), Failed> {
+    let u = up("vcan5", COMMAND)?;
+    let c = &u.card;
+    wait_until("link up", Duration::from_secs(2), || c.link_up())?;
+    sh("ip link set vcan5 down")?;
+    wait_until("offline", Duration::from_secs(2), || !c.link_up())?;
+    assert_eq!(c.health().status, Status::Offline);
+    assert!(matches!(c.write(0, 1.0), Err(DeviceError::Offline)));
+    sh("ip link set vcan5 up")?;
+    wait_until("online", Duration::from_secs(2), || c.link_up())?;
+    c.write(0, 1.0)?;
+    let frames = dumped(candump("vcan5", 1, 2000)?)?;
+    assert_eq!(frames.len(), 1, "frames flow again after up");
+    // Deleted and created anew: a new interface index, the socket is reopened.
+    sh("ip link del vcan5")?;
+    wait_until("gone", Duration::from_secs(2), || !c.link_up())?;
+    vcan("vcan5")?;
+    wait_until("back", Duration::from_secs(2), || c.link_up())?;
+    let frames = dumped(candump("vcan5", 1, 2000)?)?;
+    assert_eq!(frames.len(), 1, "frames flow on the new interface");
+    assert!(c.counters().link_down_events >= 2);
+    assert_eq!(u.task.state(), rtt::TaskState::Running);
+    Ok(())
+}
+
+fn bad_frames_are_counted_not_decoded() -> Result<(), Failed> {
+    let u = up("vcan6", MOTION)?;
+    let c = &u.card;
+    wait_until("link up", Duration::from_secs(2), || c.link_up())?;
+    cansend("vcan6", "100#3930")?; // 2 bytes for an 8-byte message
+    cansend("vcan6", "7FF#00")?; // not mapped: the kernel filter drops it
+    cansend("vcan6", "100#R")?; // a remote frame: dropped by the filter too
+    cansend("vcan6", "100##0112233445566778899AABBCC")?; // FD frame on a classic id
+    wait_until("counted", Duration::from_secs(2), || {
+        let k = c.counters();
+        k.rx_bad_length == 1 && k.rx_bad_kind == 1
+    })?;
+    let k = c.counters();
+    assert_eq!((k.rx_frames, k.rx_unknown_id), (0, 0), "{k:?}");
+    assert!(matches!(c.read(0), Err(DeviceError::Stale { age: None })));
+    assert_eq!(u.task.state(), rtt::TaskState::Running);
+    Ok(())
+}
+
+fn missing_and_unsuitable_interfaces_are_clear_errors() -> Result<(), Failed> {
+    vcan("vcan7")?;
+    let e = CanBus::open(card("nosuch0", MOTION)?)
+        .err()
+        .ok_or("opened a missing interface")?;
+    let text = e.to_string();
+    if !(text.contains("\"nosuch0\": no such network interface") && text.contains("vcan7")) {
+        return Err(format!("unclear: {text}").into());
+    }
+    sh("ip link set vcan7 down && ip link set vcan7 mtu 16 && ip link set vcan7 up")?;
+    let fd = "[[rx]]\nid = 0x300\nlength = 64\nfd = true\nsignal = [{ name = \"x\", start = 0, length = 8 }]";
+    let e = CanBus::open(card("vcan7", fd)?)
+        .err()
+        .ok_or("FD frames on a classic interface")?;
+    assert_eq!(
+        e.to_string(),
+        "interface \"vcan7\" is classic CAN (MTU 16); frame 0x300 is a CAN FD frame"
+    );
+    let e = CanBus::open(card("lo", MOTION)?).err().ok_or("opened lo")?;
+    assert_eq!(e.to_string(), "interface \"lo\" is not a CAN interface");
+    Ok(())
+}
+
+fn can_fd_frames_both_ways() -> Result<(), Failed> {
+    let u = up(
+        "vcan8",
+        r#"
+[[rx]]
+id = 0x300
+length = 64
+fd = true
+signal = [{ name = "far", start = 496, length = 16, factor = 0.5 }]
+[[tx]]
+id = 0x301
+length = 12
+fd = true
+signal = [{ name = "out", start = 80, length = 16, signed = true }]
+"#,
+    )?;
+    let c = &u.card;
+    wait_until("link up", Duration::from_secs(2), || c.link_up())?;
+    let payload = format!("{}3412", "00".repeat(62));
+    cansend("vcan8", &format!("300##1{payload}"))?;
+    wait_until("decoded", Duration::from_secs(2), || c.read(0).is_ok())?;
+    assert_eq!(c.read(0)?, f64::from(0x1234) * 0.5);
+    let dump = candump("vcan8", 1, 2000)?;
+    c.write(0, -2.0)?;
+    let frames = dumped(dump)?;
+    // candump shows the FD flags nibble: 4 is CANFD_FDF (an FD frame, no bit-rate switch).
+    assert_eq!(frames[0].1, format!("301##4{}FEFF", "00".repeat(10)));
+    Ok(())
+}
+
+fn main() -> std::process::ExitCode {
+    let rig = Rig::new()
+        .module("vcan")
+        .module("can_raw")
+        .tool("candump", "can-utils");
+    let t = |name: &str, f: fn() -> Result<(), Failed>| Trial::test(name, f);
+    kernel_rig::harness(
+        &rig,
+        vec![
+            t(
+                "received_values_are_the_dbc_decoded_ones",
+                received_values_are_the_dbc_decoded_ones,
+            ),
+            t(
+                "sent_frames_have_the_exact_bytes_at_the_cycle_time",
+                sent_frames_have_the_exact_bytes_at_the_cycle_time,
+            ),
+            t(
+                "on_change_frames_go_out_at_once",
+                on_change_frames_go_out_at_once,
+            ),
+            t(
+                "silent_frames_go_stale_and_come_back",
+                silent_frames_go_stale_and_come_back,
+            ),
+            t(
+                "link_down_and_up_goes_offline_and_back",
+                link_down_and_up_goes_offline_and_back,
+            ),
+            t(
+                "bad_frames_are_counted_not_decoded",
+                bad_frames_are_counted_not_decoded,
+            ),
+            t(
+                "missing_and_unsuitable_interfaces_are_clear_errors",
+                missing_and_unsuitable_interfaces_are_clear_errors,
+            ),
+            t("can_fd_frames_both_ways", can_fd_frames_both_ways),
+        ],
+    )
+}
