@@ -92,6 +92,8 @@ enum Command {
         component: String,
         /// A port name, or `property:NAME`.
         name: String,
+        /// The value (JSON; anything else is taken as text). Negative numbers are values.
+        #[arg(allow_negative_numbers = true)]
         value: String,
         #[arg(long)]
         socket: Option<PathBuf>,
@@ -100,6 +102,8 @@ enum Command {
     Call {
         component: String,
         operation: String,
+        /// Negative numbers are arguments, not options.
+        #[arg(allow_negative_numbers = true)]
         args: Vec<String>,
         #[arg(long)]
         socket: Option<PathBuf>,
