@@ -6,7 +6,7 @@
 use device_interface::time::MonotonicClock;
 use device_interface::{AnalogIn, AnalogOut, Device, DeviceError, DigitalIn, DigitalOut, Status};
 use driver_can::bus::CanBus;
-use driver_can::card::CanCard;
+use driver_can::card::{BusState, CanCard};
 use driver_can::component::CanIo;
 use driver_can::map::{CanConfig, CanMap};
 use kernel_rig::{Failed, Rig, Trial, sh};
@@ -375,11 +375,126 @@ signal = [{ name = "out", start = 80, length = 16, signed = true }]
     Ok(())
 }
 
+fn error_frames_are_decoded_and_counted() -> Result<(), Failed> {
+    // The kernel delivers error frames to sockets that ask for them; cansend can send
+    // one on a vcan (8 id digits with CAN_ERR_FLAG, 0x20000000).
+    let u = up("vcan9", MOTION)?;
+    let c = &u.card;
+    wait_until("link up", Duration::from_secs(2), || c.link_up())?;
+    // CAN_ERR_CRTL with CAN_ERR_CRTL_TX_PASSIVE in data[1].
+    cansend("vcan9", "20000004#0020000000000000")?;
+    wait_until("passive", Duration::from_secs(2), || {
+        c.bus_state() == BusState::ErrorPassive
+    })?;
+    // CAN_ERR_BUSOFF: the card is offline while the controller is off the bus.
+    cansend("vcan9", "20000040#0000000000000000")?;
+    wait_until("bus-off", Duration::from_secs(2), || {
+        c.bus_state() == BusState::BusOff
+    })?;
+    assert_eq!(c.health().status, Status::Offline);
+    let why = c
+        .health()
+        .last_error
+        .map(|e| e.to_string())
+        .unwrap_or_default();
+    assert!(why.contains("BusOff"), "{why}");
+    // CAN_ERR_RESTARTED: error-active again. Then an ack error and a protocol error.
+    cansend("vcan9", "20000100#0000000000000000")?;
+    cansend("vcan9", "20000020#0000000000000000")?;
+    cansend("vcan9", "20000008#0000080000000000")?;
+    wait_until("all counted", Duration::from_secs(2), || {
+        c.counters().error_frames == 5
+    })?;
+    let k = c.counters();
+    assert_eq!(
+        (
+            k.error_passive,
+            k.bus_off,
+            k.restarted,
+            k.no_ack,
+            k.protocol_violations
+        ),
+        (1, 1, 1, 1, 1),
+        "{k:?}"
+    );
+    assert_eq!(c.bus_state(), BusState::ErrorActive);
+    assert_ne!(c.health().status, Status::Offline);
+    Ok(())
+}
+
+/// The two kvaser_pci controllers qemu puts on one emulated bus, brought up at 500 kbit/s
+/// by systemd-networkd from the example in systemd/.
+fn kvaser_controllers_configured_by_networkd() -> Result<(), Failed> {
+    let network = concat!(env!("CARGO_MANIFEST_DIR"), "/../../systemd/80-can0.network");
+    // The card opens can1 before networkd runs: the controller is STOPPED, the card offline.
+    let u = up_on(
+        "can1",
+        r#"
+[[rx]]
+id = 0x123
+length = 2
+signal = [{ name = "x", start = 0, length = 16, signed = true }]
+[[tx]]
+id = 0x321
+length = 1
+signal = [{ name = "y", start = 0, length = 8 }]
+"#,
+    )?;
+    let c = &u.card;
+    assert!(!c.link_up());
+    // networkd waits for udev unless /sys is read-only (as in a container); there is no
+    // udev in the guest.
+    sh(&format!(
+        "mkdir -p /etc/systemd/network /run/systemd/netif/links && \
+         chown -R systemd-network /run/systemd/netif && \
+         cp {network} /etc/systemd/network/80-can0.network && \
+         sed s/can0/can1/ {network} > /etc/systemd/network/80-can1.network && \
+         mount -o remount,ro /sys && \
+         (/lib/systemd/systemd-networkd > /tmp/networkd.log 2>&1 &)"
+    ))?;
+    let came_up = wait_until("can1 up", Duration::from_secs(20), || c.link_up());
+    sh("mount -o remount,rw /sys")?;
+    came_up?;
+    let details = sh("ip -details link show can0")?;
+    for want in [
+        "bitrate 500000",
+        "sample-point 0.875",
+        "restart-ms 100",
+        "ERROR-ACTIVE",
+    ] {
+        if !details.contains(want) {
+            return Err(format!("can0 lacks {want:?}: {details}").into());
+        }
+    }
+    // Frames cross the emulated bus both ways.
+    cansend("can0", "123#FEFF")?;
+    wait_until("received over the bus", Duration::from_secs(2), || {
+        c.read(0).is_ok()
+    })?;
+    assert_eq!(c.read(0)?, -2.0);
+    let dump = candump("can0", 1, 3000)?;
+    c.write(0, 7.0)?;
+    assert_eq!(
+        dumped(dump)?.first().map(|(_, f)| f.as_str()),
+        Some("321#07")
+    );
+    // The controller stopped (ip link down): the card goes offline; back up: online.
+    sh("ip link set can1 down")?;
+    wait_until("offline", Duration::from_secs(2), || !c.link_up())?;
+    sh("ip link set can1 up")?;
+    wait_until("online", Duration::from_secs(2), || c.link_up())?;
+    let _ = sh("pkill -f systemd-networkd");
+    Ok(())
+}
+
 fn main() -> std::process::ExitCode {
     let rig = Rig::new()
         .module("vcan")
         .module("can_raw")
-        .tool("candump", "can-utils");
+        .module("kvaser_pci")
+        .qemu_args(&kernel_rig::KVASER_PAIR)
+        .tool("candump", "can-utils")
+        .tool("/lib/systemd/systemd-networkd", "systemd");
     let t = |name: &str, f: fn() -> Result<(), Failed>| Trial::test(name, f);
     kernel_rig::harness(
         &rig,
@@ -413,6 +528,14 @@ fn main() -> std::process::ExitCode {
                 missing_and_unsuitable_interfaces_are_clear_errors,
             ),
             t("can_fd_frames_both_ways", can_fd_frames_both_ways),
+            t(
+                "error_frames_are_decoded_and_counted",
+                error_frames_are_decoded_and_counted,
+            ),
+            t(
+                "kvaser_controllers_configured_by_networkd",
+                kvaser_controllers_configured_by_networkd,
+            ),
         ],
     )
 }
