@@ -31,7 +31,7 @@
 pub mod cpio;
 pub mod prepare;
 
-pub use libtest_mimic::{Failed, Trial};
+pub use libtest_mimic::{Failed, Measurement, Trial};
 
 use std::ffi::OsString;
 use std::io::{Read, Seek, Write};
