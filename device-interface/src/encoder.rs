@@ -219,6 +219,73 @@ impl WrappingCounter {
     }
 }
 
+/// A card that keeps its encoders' counts in software ([`EncoderCounter`] or
+/// [`WrappingCounter`]) and says when they are current: what [`CardEncoder`] needs to be
+/// an [`Encoder`](crate::Encoder) device.
+pub trait EncoderHost: crate::Device + Send + Sync + 'static {
+    /// The count of encoder `index` (an index the card handed to [`CardEncoder::new`]).
+    fn encoder_counter(&self, index: usize) -> &EncoderCounter;
+    /// `Ok` when encoder `index`'s count is current; else why not (stale, offline).
+    fn check_encoder(&self, index: usize) -> Result<(), DeviceError>;
+    /// `Ok` when the card takes writes (homing an encoder is refused while offline).
+    fn check_writable(&self) -> Result<(), DeviceError>;
+}
+
+/// Encoder `index` of a card, as a device of its own. Homing (`set_position`,
+/// `set_turn`) changes the software count only; nothing is written to the device.
+pub struct CardEncoder<H: EncoderHost> {
+    host: std::sync::Arc<H>,
+    index: usize,
+}
+
+impl<H: EncoderHost> CardEncoder<H> {
+    /// Encoder `index` of `host`.
+    pub fn new(host: std::sync::Arc<H>, index: usize) -> Self {
+        CardEncoder { host, index }
+    }
+
+    fn counter(&self) -> &EncoderCounter {
+        self.host.encoder_counter(self.index)
+    }
+}
+
+impl<H: EncoderHost> crate::Device for CardEncoder<H> {
+    fn health(&self) -> crate::Health {
+        self.host.health()
+    }
+}
+
+impl<H: EncoderHost> crate::Encoder for CardEncoder<H> {
+    fn position(&self) -> Result<i64, DeviceError> {
+        self.host.check_encoder(self.index)?;
+        Ok(self.counter().position())
+    }
+
+    fn turn(&self) -> Result<i64, DeviceError> {
+        self.host.check_encoder(self.index)?;
+        Ok(self.counter().turn())
+    }
+
+    fn set_position(&self, position: i64) -> Result<(), DeviceError> {
+        self.counter().geometry().check_position(position)?;
+        self.host.check_writable()?;
+        self.counter().set_position(position)
+    }
+
+    fn set_turn(&self, turn: i64) -> Result<(), DeviceError> {
+        self.host.check_writable()?;
+        self.counter().set_turn(turn)
+    }
+
+    fn resolution(&self) -> i64 {
+        self.counter().geometry().resolution()
+    }
+
+    fn upcounting(&self) -> bool {
+        self.counter().geometry().upcounting()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -305,10 +305,8 @@ impl CanCard {
                 .map(|(i, s)| {
                     (
                         s.name.clone(),
-                        Arc::new(CanEncoder {
-                            card: self.clone(),
-                            index: i,
-                        }) as Arc<dyn device_interface::Encoder>,
+                        Arc::new(CanEncoder::new(self.clone(), i))
+                            as Arc<dyn device_interface::Encoder>,
                     )
                 })
                 .collect(),
@@ -738,56 +736,18 @@ impl DigitalOut for CanCard {
 }
 
 /// One position-counter signal of a [`CanCard`], as a device of its own.
-pub struct CanEncoder {
-    card: Arc<CanCard>,
-    index: usize,
-}
+pub type CanEncoder = device_interface::encoder::CardEncoder<CanCard>;
 
-impl CanEncoder {
-    fn counter(&self) -> &device_interface::encoder::EncoderCounter {
-        // `index` comes from the card's own list, which never changes.
-        self.card.encoders[self.index].counter()
+impl device_interface::encoder::EncoderHost for CanCard {
+    fn encoder_counter(&self, index: usize) -> &device_interface::encoder::EncoderCounter {
+        self.encoders[index].counter()
     }
 
-    fn check(&self) -> Result<(), DeviceError> {
-        self.card.check_frame(self.card.enc_frame[self.index])
-    }
-}
-
-impl Device for CanEncoder {
-    fn health(&self) -> Health {
-        self.card.health()
-    }
-}
-
-impl device_interface::Encoder for CanEncoder {
-    fn position(&self) -> Result<i64, DeviceError> {
-        self.check()?;
-        Ok(self.counter().position())
+    fn check_encoder(&self, index: usize) -> Result<(), DeviceError> {
+        self.check_frame(self.enc_frame[index])
     }
 
-    fn turn(&self) -> Result<i64, DeviceError> {
-        self.check()?;
-        Ok(self.counter().turn())
-    }
-
-    /// Homing is done in the gateway's count; nothing is sent to the device.
-    fn set_position(&self, position: i64) -> Result<(), DeviceError> {
-        self.counter().geometry().check_position(position)?;
-        self.card.check_link()?;
-        self.counter().set_position(position)
-    }
-
-    fn set_turn(&self, turn: i64) -> Result<(), DeviceError> {
-        self.card.check_link()?;
-        self.counter().set_turn(turn)
-    }
-
-    fn resolution(&self) -> i64 {
-        self.counter().geometry().resolution()
-    }
-
-    fn upcounting(&self) -> bool {
-        self.counter().geometry().upcounting()
+    fn check_writable(&self) -> Result<(), DeviceError> {
+        self.check_link()
     }
 }

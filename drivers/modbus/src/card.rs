@@ -196,10 +196,8 @@ impl ModbusCard {
             digital_out: (dout > 0).then(|| self.clone() as Arc<dyn DigitalOut>),
             encoders: (0..self.encoders.len())
                 .map(|index| {
-                    let e: Arc<dyn device_interface::Encoder> = Arc::new(ModbusEncoder {
-                        card: self.clone(),
-                        index,
-                    });
+                    let e: Arc<dyn device_interface::Encoder> =
+                        Arc::new(ModbusEncoder::new(self.clone(), index));
                     (format!("encoder{index}"), e)
                 })
                 .collect(),
@@ -567,52 +565,18 @@ impl DigitalOut for ModbusCard {
 }
 
 /// One counter-register encoder of a [`ModbusCard`], as a device of its own.
-pub struct ModbusEncoder {
-    card: Arc<ModbusCard>,
-    index: usize,
-}
+pub type ModbusEncoder = device_interface::encoder::CardEncoder<ModbusCard>;
 
-impl ModbusEncoder {
-    fn counter(&self) -> &device_interface::encoder::EncoderCounter {
-        // `index` comes from the card's own list, which never changes.
-        self.card.encoders[self.index].counter()
-    }
-}
-
-impl Device for ModbusEncoder {
-    fn health(&self) -> Health {
-        self.card.health()
-    }
-}
-
-impl device_interface::Encoder for ModbusEncoder {
-    fn position(&self) -> Result<i64, DeviceError> {
-        self.card.check_input()?;
-        Ok(self.counter().position())
+impl device_interface::encoder::EncoderHost for ModbusCard {
+    fn encoder_counter(&self, index: usize) -> &device_interface::encoder::EncoderCounter {
+        self.encoders[index].counter()
     }
 
-    fn turn(&self) -> Result<i64, DeviceError> {
-        self.card.check_input()?;
-        Ok(self.counter().turn())
+    fn check_encoder(&self, _: usize) -> Result<(), DeviceError> {
+        self.check_input()
     }
 
-    /// Homing is done in the gateway's count, not written to the device's counter.
-    fn set_position(&self, position: i64) -> Result<(), DeviceError> {
-        self.counter().geometry().check_position(position)?;
-        self.card.check_output()?;
-        self.counter().set_position(position)
-    }
-
-    fn set_turn(&self, turn: i64) -> Result<(), DeviceError> {
-        self.card.check_output()?;
-        self.counter().set_turn(turn)
-    }
-
-    fn resolution(&self) -> i64 {
-        self.counter().geometry().resolution()
-    }
-
-    fn upcounting(&self) -> bool {
-        self.counter().geometry().upcounting()
+    fn check_writable(&self) -> Result<(), DeviceError> {
+        self.check_output()
     }
 }
