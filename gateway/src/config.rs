@@ -134,6 +134,10 @@ pub struct CardConfig {
     /// Digital outputs to leave on when the gateway stops (default: all off).
     #[serde(default)]
     pub safe_digital_out_on: Vec<u32>,
+    /// Where the card's own activity thread runs (the sim card's cycle, the CAN bus
+    /// component): `{ policy = "fifo", priority = 60, cpus = [1] }`; default SCHED_OTHER.
+    #[serde(default)]
+    pub thread: rtt::ThreadOptions,
     /// Names for the card's channels: the IO components' ports are called by them
     /// (unnamed channels keep `ch0…`/`bit0…`).
     #[serde(default)]

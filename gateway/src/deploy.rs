@@ -403,7 +403,12 @@ impl Gateway {
                 let card = sim.clone();
                 match runtime.add(
                     &c.name,
-                    ActivitySpec::periodic(millis(cfg.period_ms)),
+                    ActivitySpec::Periodic {
+                        period: millis(cfg.period_ms),
+                        thread: cfg.thread.clone(),
+                        timing: rtt::Timing::Absolute,
+                        max_overruns: None,
+                    },
                     false,
                     move |_| Ok(CardCycle(card)),
                 ) {
@@ -421,7 +426,10 @@ impl Gateway {
                 let (_, bus) = buses.swap_remove(k);
                 match runtime.add(
                     &c.name,
-                    ActivitySpec::file_descriptor(None),
+                    ActivitySpec::FileDescriptor {
+                        timeout: None,
+                        thread: deployment.cards[i].thread.clone(),
+                    },
                     false,
                     move |iface| driver_can::component::CanIo::new(bus, iface),
                 ) {

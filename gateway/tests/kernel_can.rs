@@ -2,7 +2,7 @@
 //! over a real vcan, can-utils on the other end, the CLI in between.
 #![allow(clippy::unwrap_used, reason = "test code")]
 
-use kernel_rig::{Failed, Rig, Trial, sh};
+use kernel_rig::{Candump, Failed, Rig, Trial, sh};
 use std::path::PathBuf;
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
@@ -106,22 +106,18 @@ fn wait_for(what: &str, mut f: impl FnMut() -> Result<bool, Failed>) -> Result<(
 }
 
 /// `candump -L` of the frames matching `filter` (`id:mask`), until `n` or 3 s of silence.
-fn candump(filter: &str, n: usize) -> Result<Child, Failed> {
-    let c = Command::new("candump")
-        .args(["-L", "-n", &n.to_string(), "-T", "3000"])
-        .arg(format!("vcan0,{filter}"))
-        .stdout(Stdio::piped())
-        .spawn()?;
-    std::thread::sleep(Duration::from_millis(200));
-    Ok(c)
+fn candump(filter: &str, n: usize) -> Result<Candump, Failed> {
+    Candump::start(&[
+        "-n",
+        &n.to_string(),
+        "-T",
+        "3000",
+        &format!("vcan0,{filter}"),
+    ])
 }
 
-fn frames(c: Child) -> Result<Vec<String>, Failed> {
-    let out = c.wait_with_output()?;
-    Ok(String::from_utf8_lossy(&out.stdout)
-        .lines()
-        .filter_map(|l| l.split_whitespace().nth(2).map(String::from))
-        .collect())
+fn frames(c: Candump) -> Result<Vec<String>, Failed> {
+    Ok(c.frames()?.into_iter().map(|(_, f)| f).collect())
 }
 
 fn hwgw_reads_writes_and_leaves_safe_frames() -> Result<(), Failed> {

@@ -9,11 +9,10 @@ use driver_can::bus::CanBus;
 use driver_can::card::{BusState, CanCard};
 use driver_can::component::CanIo;
 use driver_can::map::{CanConfig, CanMap};
-use kernel_rig::{Failed, Rig, Trial, sh};
+use kernel_rig::{Candump, Failed, Rig, Trial, sh, wait_until};
 use rtt::{ActivitySpec, Runtime, RuntimeOptions, TaskContext};
-use std::process::{Child, Command, Stdio};
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data");
 
@@ -65,57 +64,18 @@ fn up_on(iface: &str, body: &str) -> Result<Up, Failed> {
     })
 }
 
-fn wait_until(what: &str, limit: Duration, f: impl Fn() -> bool) -> Result<(), Failed> {
-    let end = Instant::now() + limit;
-    while !f() {
-        if Instant::now() > end {
-            return Err(format!("{what}: not within {limit:?}").into());
-        }
-        std::thread::sleep(Duration::from_millis(2));
-    }
-    Ok(())
-}
-
 fn cansend(iface: &str, frame: &str) -> Result<(), Failed> {
     sh(&format!("cansend {iface} {frame}"))?;
     Ok(())
 }
 
 /// `candump -L` for `n` frames (or until `timeout_ms` without one).
-fn candump(iface: &str, n: usize, timeout_ms: u32) -> Result<Child, Failed> {
-    let child = Command::new("candump")
-        .args([
-            "-L",
-            "-n",
-            &n.to_string(),
-            "-T",
-            &timeout_ms.to_string(),
-            iface,
-        ])
-        .stdout(Stdio::piped())
-        .spawn()?;
-    // candump must have bound its socket before anything is sent.
-    std::thread::sleep(Duration::from_millis(200));
-    Ok(child)
+fn candump(iface: &str, n: usize, timeout_ms: u32) -> Result<Candump, Failed> {
+    Candump::start(&["-n", &n.to_string(), "-T", &timeout_ms.to_string(), iface])
 }
 
-/// (timestamp s, "ID#DATA") per frame of a `candump -L` log.
-fn dumped(child: Child) -> Result<Vec<(f64, String)>, Failed> {
-    let out = child.wait_with_output()?;
-    let text = String::from_utf8_lossy(&out.stdout);
-    Ok(text
-        .lines()
-        .filter_map(|l| {
-            let mut parts = l.split_whitespace();
-            let t = parts
-                .next()?
-                .trim_matches(|c| c == '(' || c == ')')
-                .parse()
-                .ok()?;
-            let _iface = parts.next()?;
-            Some((t, parts.next()?.to_string()))
-        })
-        .collect())
+fn dumped(c: Candump) -> Result<Vec<(f64, String)>, Failed> {
+    c.frames()
 }
 
 /// Motion every 20 ms (stale after 60 ms) and Temps with no cycle.
