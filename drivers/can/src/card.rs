@@ -9,7 +9,7 @@
 //! ([`CanCard::counters`]).
 //!
 //! ```
-//! use device_interface::{AnalogIn, time::{SimClock, Timestamp}};
+//! use device_interface::{AnalogIn, time::{Clock, SimClock, Timestamp}};
 //! use driver_can::{card::CanCard, map::{CanConfig, CanMap}};
 //! use std::sync::Arc;
 //!
