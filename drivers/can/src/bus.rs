@@ -27,7 +27,7 @@
 use crate::card::{CanCard, ErrorReport, Received};
 use device_interface::DeviceError;
 use device_interface::time::Timestamp;
-use nix::sys::epoll::{Epoll, EpollCreateFlags, EpollEvent, EpollFlags};
+use nix::sys::epoll::{Epoll, EpollCreateFlags, EpollEvent, EpollFlags, EpollTimeout};
 use nix::sys::eventfd::{EfdFlags, EventFd};
 use nix::sys::socket::{ControlMessageOwned, MsgFlags, recvmsg, setsockopt, sockopt};
 use nix::sys::time::TimeSpec;
@@ -138,6 +138,9 @@ pub struct CanBus {
     /// The kernel's drop counter as last seen.
     drops_seen: u32,
     buf: [u8; 64],
+    /// Room for the timestamp and drop-count control messages (allocated once, not per
+    /// receive).
+    cmsg: Vec<u8>,
 }
 
 const SOCKET: u64 = 0;
@@ -224,6 +227,7 @@ impl CanBus {
             next_check: now,
             drops_seen: 0,
             buf: [0; 64],
+            cmsg: nix::cmsg_space!(TimeSpec, u32),
         };
         bus.open_socket().map_err(os("open socket"))?;
         bus.check_link();
@@ -278,11 +282,28 @@ impl CanBus {
     /// `on_frame(rx index, payload, kernel receive time)` for each decoded one), sends
     /// changed and due frames, checks staleness and the link, and re-arms the timer.
     pub fn service(&mut self, on_frame: &mut dyn FnMut(usize, &[u8], Timestamp)) {
-        // Reading the timer and the eventfd clears their readiness (and so the epoll
-        // set's); the work below looks at everything anyway.
-        let _ = self.timer.wait();
-        let _ = self.wake.read();
-        self.receive(on_frame);
+        // Which of the three is ready: one epoll_wait instead of a blind read of each.
+        // Reading the timer and the eventfd clears their readiness (and the set's).
+        let mut events = [EpollEvent::empty(); 3];
+        let n = self
+            .epoll
+            .wait(&mut events, EpollTimeout::ZERO)
+            .unwrap_or(0);
+        let mut socket = n == 0; // called without readiness (at start): look anyway
+        for e in &events[..n] {
+            match e.data() {
+                TIMER => {
+                    let _ = self.timer.wait();
+                }
+                WAKE => {
+                    let _ = self.wake.read();
+                }
+                _ => socket = true,
+            }
+        }
+        if socket {
+            self.receive(on_frame);
+        }
         let now = now_ns();
         if now >= self.next_check {
             self.check_link();
@@ -294,6 +315,20 @@ impl CanBus {
     }
 
     fn receive(&mut self, on_frame: &mut dyn FnMut(usize, &[u8], Timestamp)) {
+        let mut cmsg = std::mem::take(&mut self.cmsg);
+        self.receive_into(&mut cmsg, on_frame);
+        self.cmsg = cmsg;
+    }
+
+    #[allow(
+        clippy::ptr_arg,
+        reason = "nix's recvmsg takes the control buffer as a Vec"
+    )]
+    fn receive_into(
+        &mut self,
+        cmsg: &mut Vec<u8>,
+        on_frame: &mut dyn FnMut(usize, &[u8], Timestamp),
+    ) {
         let Some(socket) = &self.socket else { return };
         let fd = socket.as_raw_fd();
         // The kernel stamps frames with CLOCK_REALTIME; the card's time base is
@@ -305,11 +340,10 @@ impl CanBus {
             now_ns() as i128 - real
         };
         let mut raw = [0u8; CANFD_MTU];
-        let mut cmsg = nix::cmsg_space!(TimeSpec, u32);
         loop {
             let (n, stamp, drops) = {
                 let mut iov = [std::io::IoSliceMut::new(&mut raw)];
-                match recvmsg::<()>(fd, &mut iov, Some(&mut cmsg), MsgFlags::MSG_DONTWAIT) {
+                match recvmsg::<()>(fd, &mut iov, Some(cmsg), MsgFlags::MSG_DONTWAIT) {
                     Ok(msg) => {
                         let mut stamp = None;
                         let mut drops = None;
