@@ -506,9 +506,12 @@ impl CanBus {
             if let (true, Some(c)) = (due, cycle) {
                 let c = c.as_nanos() as u64;
                 let mut next = self.next_tx[t].unwrap_or(now) + c;
-                // After a stall, keep the phase but do not send a burst of late frames.
+                // After a stall, keep the phase but do not send a burst of late frames;
+                // the cycles left out are counted.
                 if next <= now {
-                    next += (now - next) / c * c + c;
+                    let skipped = (now - next) / c + 1;
+                    next += skipped * c;
+                    self.card.skipped(skipped);
                 }
                 self.next_tx[t] = Some(next);
             }

@@ -110,6 +110,9 @@ pub struct CanCounters {
     pub tx_frames: u64,
     /// Sends that failed (buffer full, link down, controller off).
     pub tx_errors: u64,
+    /// Cycles of cyclic frames left out because the bus thread woke too late for them
+    /// (the schedule keeps its phase instead of sending a burst).
+    pub tx_skipped_cycles: u64,
     /// Times a received frame went stale.
     pub stale_events: u64,
     /// Times the link went down.
@@ -152,6 +155,7 @@ struct Counters {
     rx_dropped: AtomicU64,
     tx_frames: AtomicU64,
     tx_errors: AtomicU64,
+    tx_skipped_cycles: AtomicU64,
     stale_events: AtomicU64,
     link_down_events: AtomicU64,
     error_frames: AtomicU64,
@@ -414,6 +418,13 @@ impl CanCard {
         });
     }
 
+    /// Counts cyclic sends left out after a late wake-up.
+    pub fn skipped(&self, cycles: u64) {
+        self.counters
+            .tx_skipped_cycles
+            .fetch_add(cycles, Ordering::Relaxed);
+    }
+
     /// Reports the link state; `why` is kept as the last error when it goes down.
     pub fn set_link(&self, up: bool, why: Option<DeviceError>) {
         let was = self.link_up.swap(up, Ordering::AcqRel);
@@ -505,6 +516,7 @@ impl CanCard {
             rx_dropped: l(&c.rx_dropped),
             tx_frames: l(&c.tx_frames),
             tx_errors: l(&c.tx_errors),
+            tx_skipped_cycles: l(&c.tx_skipped_cycles),
             stale_events: l(&c.stale_events),
             link_down_events: l(&c.link_down_events),
             error_frames: l(&c.error_frames),
