@@ -296,3 +296,95 @@ mod tests {
         assert_eq!(on, vec![1, 69]);
     }
 }
+
+/// A card whose digital inputs are a [`BitImage`] its bus side keeps current; with this
+/// it is a [`DigitalIn`](crate::DigitalIn) (bits and spans checked, then the card's own
+/// freshness check, then the image read).
+pub trait DigitalInputImage: crate::Device + Send + Sync {
+    /// The input bits.
+    fn inputs(&self) -> &BitImage;
+    /// `Ok` when the bits of `span` can be read now; else why not (stale, offline).
+    fn check_inputs(&self, span: BitSpan) -> Result<(), DeviceError>;
+}
+
+impl<T: DigitalInputImage> crate::DigitalIn for T {
+    fn input_count(&self) -> u32 {
+        self.inputs().len()
+    }
+
+    fn read_bit(&self, bit: u32) -> Result<bool, DeviceError> {
+        let v = self.inputs().get(bit)?;
+        self.check_inputs(BitSpan::new(bit, bit, self.inputs().len())?)?;
+        Ok(v)
+    }
+
+    fn read_sequence(&self, start: u32, stop: u32) -> Result<u64, DeviceError> {
+        let span = BitSpan::new(start, stop, self.inputs().len())?;
+        self.check_inputs(span)?;
+        Ok(self.inputs().read_span(span))
+    }
+}
+
+/// What a [`DigitalOutputImage`] card was just asked to write (after the image took it).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Written {
+    /// One bit.
+    Bit {
+        /// The bit.
+        bit: u32,
+        /// Its new value.
+        value: bool,
+    },
+    /// A span, bit 0 of `value` at its start.
+    Span {
+        /// The bits.
+        span: BitSpan,
+        /// Their new values.
+        value: u64,
+    },
+}
+
+/// A card whose digital outputs are a [`BitImage`] its bus side sends; with this it is a
+/// [`DigitalOut`](crate::DigitalOut): bits, spans and values checked, then the card's
+/// writability, then the image written, then the card told (to mark, wake, record).
+pub trait DigitalOutputImage: crate::Device + Send + Sync {
+    /// The output bits.
+    fn outputs(&self) -> &BitImage;
+    /// `Ok` when the card takes writes now (not offline).
+    fn check_outputs_writable(&self) -> Result<(), DeviceError>;
+    /// Called after each accepted write.
+    fn outputs_written(&self, written: Written);
+}
+
+impl<T: DigitalOutputImage> crate::DigitalOut for T {
+    fn output_count(&self) -> u32 {
+        self.outputs().len()
+    }
+
+    fn set_bit(&self, bit: u32, value: bool) -> Result<(), DeviceError> {
+        self.outputs().check_bit(bit)?;
+        self.check_outputs_writable()?;
+        self.outputs().set(bit, value)?;
+        self.outputs_written(Written::Bit { bit, value });
+        Ok(())
+    }
+
+    fn check_bit(&self, bit: u32) -> Result<bool, DeviceError> {
+        self.outputs().get(bit)
+    }
+
+    fn set_sequence(&self, start: u32, stop: u32, value: u64) -> Result<(), DeviceError> {
+        let span = BitSpan::new(start, stop, self.outputs().len())?;
+        span.check_value(value)?;
+        self.check_outputs_writable()?;
+        self.outputs().write_span(span, value)?;
+        self.outputs_written(Written::Span { span, value });
+        Ok(())
+    }
+
+    fn check_sequence(&self, start: u32, stop: u32) -> Result<u64, DeviceError> {
+        Ok(self
+            .outputs()
+            .read_span(BitSpan::new(start, stop, self.outputs().len())?))
+    }
+}

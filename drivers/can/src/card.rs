@@ -687,48 +687,35 @@ impl AnalogOut for CanCard {
     }
 }
 
-impl DigitalIn for CanCard {
-    fn input_count(&self) -> u32 {
-        self.di.len()
+impl device_interface::bits::DigitalInputImage for CanCard {
+    fn inputs(&self) -> &BitImage {
+        &self.di
     }
 
-    fn read_bit(&self, bit: u32) -> Result<bool, DeviceError> {
-        let v = self.di.get(bit)?;
-        self.check_frame(self.di_frame[bit as usize])?;
-        Ok(v)
-    }
-
-    fn read_sequence(&self, start: u32, stop: u32) -> Result<u64, DeviceError> {
-        let span = BitSpan::new(start, stop, self.di.len())?;
-        for b in start..=stop {
+    fn check_inputs(&self, span: BitSpan) -> Result<(), DeviceError> {
+        // Each bit is as fresh as the frame it came in.
+        for b in span.start()..=span.stop() {
             self.check_frame(self.di_frame[b as usize])?;
         }
-        Ok(self.di.read_span(span))
+        Ok(())
     }
 }
 
-impl DigitalOut for CanCard {
-    fn output_count(&self) -> u32 {
-        self.dout.len()
+impl device_interface::bits::DigitalOutputImage for CanCard {
+    fn outputs(&self) -> &BitImage {
+        &self.dout
     }
 
-    fn set_bit(&self, bit: u32, value: bool) -> Result<(), DeviceError> {
-        self.dout.check_bit(bit)?;
-        self.check_link()?;
-        self.dout.set(bit, value)?;
-        self.output(self.do_frame[bit as usize]);
-        Ok(())
+    fn check_outputs_writable(&self) -> Result<(), DeviceError> {
+        self.check_link()
     }
 
-    fn check_bit(&self, bit: u32) -> Result<bool, DeviceError> {
-        self.dout.get(bit)
-    }
-
-    fn set_sequence(&self, start: u32, stop: u32, value: u64) -> Result<(), DeviceError> {
-        let span = BitSpan::new(start, stop, self.dout.len())?;
-        span.check_value(value)?;
-        self.check_link()?;
-        self.dout.write_span(span, value)?;
+    fn outputs_written(&self, written: device_interface::bits::Written) {
+        use device_interface::bits::Written;
+        let (start, stop) = match written {
+            Written::Bit { bit, .. } => (bit, bit),
+            Written::Span { span, .. } => (span.start(), span.stop()),
+        };
         let mut last = None;
         for b in start..=stop {
             let f = self.do_frame[b as usize];
@@ -737,13 +724,6 @@ impl DigitalOut for CanCard {
                 last = Some(f);
             }
         }
-        Ok(())
-    }
-
-    fn check_sequence(&self, start: u32, stop: u32) -> Result<u64, DeviceError> {
-        Ok(self
-            .dout
-            .read_span(BitSpan::new(start, stop, self.dout.len())?))
     }
 }
 

@@ -513,54 +513,32 @@ impl AnalogOut for ModbusCard {
     }
 }
 
-impl DigitalIn for ModbusCard {
-    fn input_count(&self) -> u32 {
-        self.di.len()
+impl device_interface::bits::DigitalInputImage for ModbusCard {
+    fn inputs(&self) -> &BitImage {
+        &self.di
     }
 
-    fn read_bit(&self, bit: u32) -> Result<bool, DeviceError> {
-        let v = self.di.get(bit)?;
-        self.check_input()?;
-        Ok(v)
-    }
-
-    fn read_sequence(&self, start: u32, stop: u32) -> Result<u64, DeviceError> {
-        let span = BitSpan::new(start, stop, self.di.len())?;
-        self.check_input()?;
-        Ok(self.di.read_span(span))
+    fn check_inputs(&self, _: BitSpan) -> Result<(), DeviceError> {
+        self.check_input()
     }
 }
 
-impl DigitalOut for ModbusCard {
-    fn output_count(&self) -> u32 {
-        self.dout.len()
+impl device_interface::bits::DigitalOutputImage for ModbusCard {
+    fn outputs(&self) -> &BitImage {
+        &self.dout
     }
 
-    fn set_bit(&self, bit: u32, value: bool) -> Result<(), DeviceError> {
-        self.dout.check_bit(bit)?;
-        self.check_output()?;
-        self.dout.set(bit, value)?;
-        self.do_dirty.set(bit, true)?;
-        Ok(())
+    fn check_outputs_writable(&self) -> Result<(), DeviceError> {
+        self.check_output()
     }
 
-    fn check_bit(&self, bit: u32) -> Result<bool, DeviceError> {
-        self.dout.get(bit)
-    }
-
-    fn set_sequence(&self, start: u32, stop: u32, value: u64) -> Result<(), DeviceError> {
-        let span = BitSpan::new(start, stop, self.dout.len())?;
-        span.check_value(value)?;
-        self.check_output()?;
-        self.dout.write_span(span, value)?;
-        self.do_dirty.write_span(span, span.mask())?;
-        Ok(())
-    }
-
-    fn check_sequence(&self, start: u32, stop: u32) -> Result<u64, DeviceError> {
-        Ok(self
-            .dout
-            .read_span(BitSpan::new(start, stop, self.dout.len())?))
+    fn outputs_written(&self, written: device_interface::bits::Written) {
+        use device_interface::bits::Written;
+        // The spans were checked against the same length: these cannot fail.
+        let _ = match written {
+            Written::Bit { bit, .. } => self.do_dirty.set(bit, true).map(|_| ()),
+            Written::Span { span, .. } => self.do_dirty.write_span(span, span.mask()),
+        };
     }
 }
 

@@ -604,54 +604,35 @@ impl AnalogOut for SimCard {
     }
 }
 
-impl DigitalIn for SimCard {
-    fn input_count(&self) -> u32 {
-        self.di.len()
+impl device_interface::bits::DigitalInputImage for SimCard {
+    fn inputs(&self) -> &BitImage {
+        &self.di
     }
 
-    fn read_bit(&self, bit: u32) -> Result<bool, DeviceError> {
-        let v = self.di.get(bit)?;
-        self.check_fault(true)?;
-        Ok(v)
-    }
-
-    fn read_sequence(&self, start: u32, stop: u32) -> Result<u64, DeviceError> {
-        let span = BitSpan::new(start, stop, self.di.len())?;
-        self.check_fault(true)?;
-        Ok(self.di.read_span(span))
+    fn check_inputs(&self, _: BitSpan) -> Result<(), DeviceError> {
+        self.check_fault(true)
     }
 }
 
-impl DigitalOut for SimCard {
-    fn output_count(&self) -> u32 {
-        self.dout.len()
+impl device_interface::bits::DigitalOutputImage for SimCard {
+    fn outputs(&self) -> &BitImage {
+        &self.dout
     }
 
-    fn set_bit(&self, bit: u32, value: bool) -> Result<(), DeviceError> {
-        self.dout.check_bit(bit)?;
-        self.check_fault(false)?;
-        self.dout.set(bit, value)?;
-        self.record(OutputWrite::Bit { bit, value });
-        Ok(())
+    fn check_outputs_writable(&self) -> Result<(), DeviceError> {
+        self.check_fault(false)
     }
 
-    fn check_bit(&self, bit: u32) -> Result<bool, DeviceError> {
-        self.dout.get(bit)
-    }
-
-    fn set_sequence(&self, start: u32, stop: u32, value: u64) -> Result<(), DeviceError> {
-        let span = BitSpan::new(start, stop, self.dout.len())?;
-        span.check_value(value)?;
-        self.check_fault(false)?;
-        self.dout.write_span(span, value)?;
-        self.record(OutputWrite::Sequence { start, stop, value });
-        Ok(())
-    }
-
-    fn check_sequence(&self, start: u32, stop: u32) -> Result<u64, DeviceError> {
-        Ok(self
-            .dout
-            .read_span(BitSpan::new(start, stop, self.dout.len())?))
+    fn outputs_written(&self, written: device_interface::bits::Written) {
+        use device_interface::bits::Written;
+        self.record(match written {
+            Written::Bit { bit, value } => OutputWrite::Bit { bit, value },
+            Written::Span { span, value } => OutputWrite::Sequence {
+                start: span.start(),
+                stop: span.stop(),
+                value,
+            },
+        });
     }
 }
 
