@@ -399,19 +399,12 @@ impl CanBus {
             }
             let extended = can_id & CAN_EFF_FLAG != 0;
             let id = can_id & if extended { CAN_EFF_MASK } else { CAN_SFF_MASK };
-            let fd_frame = n == CANFD_MTU;
-            let expected_fd = self
-                .card
-                .map()
-                .rx()
-                .iter()
-                .find(|f| f.id == id && f.extended == extended)
-                .map(|f| f.fd);
-            if can_id & CAN_RTR_FLAG != 0 || expected_fd.is_some_and(|e| e != fd_frame) {
+            if can_id & CAN_RTR_FLAG != 0 {
                 self.card.wrong_kind();
                 continue;
             }
-            if let Received::Decoded(f) = self.card.receive(id, extended, data, at) {
+            if let Received::Decoded(f) = self.card.receive(id, extended, n == CANFD_MTU, data, at)
+            {
                 on_frame(f, data, at);
             }
         }

@@ -23,7 +23,7 @@
 //! let clock = Arc::new(SimClock::new(Timestamp::from_nanos(1)));
 //! let card = CanCard::new(CanMap::new(&config, ".".as_ref())?, clock.clone());
 //! card.set_link(true, None);
-//! card.receive(0x100, false, &[0xF4, 0x01], clock.now()); // raw 500
+//! card.receive(0x100, false, false, &[0xF4, 0x01], clock.now()); // raw 500
 //! assert_eq!(card.read(0)?, 10.0);
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
@@ -192,6 +192,9 @@ pub enum Received {
     UnknownId,
     /// A mapped id with the wrong payload length (counted, not decoded).
     BadLength,
+    /// A mapped id as a CAN FD frame where a classic one is mapped, or the reverse
+    /// (counted, not decoded).
+    BadKind,
 }
 
 /// The devices of one CAN interface.
@@ -200,14 +203,16 @@ pub struct CanCard {
     clock: Arc<dyn Clock>,
     rx: Box<[RxState]>,
     ai: Box<[AtomicI64]>,
-    /// The rx frame of each analog input, digital input bit and encoder.
-    ai_frame: Box<[u32]>,
+    /// The (rx frame, signal) of each analog input; the rx frame of each digital input
+    /// bit and encoder; the (tx frame, signal) of each analog output, the tx frame of
+    /// each digital output bit.
+    ai_at: Box<[(u32, u32)]>,
     di: BitImage,
     di_frame: Box<[u32]>,
     encoders: Box<[WrappingCounter]>,
     enc_frame: Box<[u32]>,
     ao: Box<[AtomicI64]>,
-    ao_frame: Box<[u32]>,
+    ao_at: Box<[(u32, u32)]>,
     dout: BitImage,
     do_frame: Box<[u32]>,
     tx_dirty: Box<[AtomicBool]>,
@@ -222,25 +227,29 @@ impl CanCard {
     /// The devices of `map`; offline until the bus side reports the link up.
     pub fn new(map: CanMap, clock: Arc<dyn Clock>) -> Arc<CanCard> {
         let [ai, ao, di, dout] = map.counts();
-        let mut ai_frame = vec![0; ai as usize];
+        let mut ai_at = vec![(0, 0); ai as usize];
         let mut di_frame = vec![0; di as usize];
         let mut enc_frame = vec![0; map.encoder_count() as usize];
-        let mut ao_frame = vec![0; ao as usize];
+        let mut ao_at = vec![(0, 0); ao as usize];
         let mut do_frame = vec![0; dout as usize];
         let ao_init: Vec<AtomicI64> = (0..ao).map(|_| AtomicI64::new(0)).collect();
         let dout_image = BitImage::new(dout);
         for (dir, frames) in [(false, map.rx()), (true, map.tx())] {
             for (f, frame) in frames.iter().enumerate() {
-                for s in &frame.signals {
+                for (k, s) in frame.signals.iter().enumerate() {
                     let (from, to) = (s.channel as usize, (s.channel + s.width()) as usize);
                     let table = match (s.role, dir) {
-                        (SignalRole::Analog, false) => &mut ai_frame,
+                        (SignalRole::Analog, false) => {
+                            ai_at[from] = (f as u32, k as u32);
+                            continue;
+                        }
+                        (SignalRole::Analog, true) => {
+                            ao_at[from] = (f as u32, k as u32);
+                            ao_init[from].store(s.initial_raw, Ordering::Relaxed);
+                            continue;
+                        }
                         (SignalRole::Digital, false) => &mut di_frame,
                         (SignalRole::Encoder, _) => &mut enc_frame,
-                        (SignalRole::Analog, true) => {
-                            ao_init[from].store(s.initial_raw, Ordering::Relaxed);
-                            &mut ao_frame
-                        }
                         (SignalRole::Digital, true) => {
                             for k in 0..s.width() {
                                 let _ = dout_image.set(s.channel + k, s.initial_raw >> k & 1 == 1);
@@ -269,13 +278,13 @@ impl CanCard {
                 })
                 .collect(),
             ai: (0..ai).map(|_| AtomicI64::new(0)).collect(),
-            ai_frame: ai_frame.into(),
+            ai_at: ai_at.into(),
             di: BitImage::new(di),
             di_frame: di_frame.into(),
             encoders,
             enc_frame: enc_frame.into(),
             ao: ao_init.into(),
-            ao_frame: ao_frame.into(),
+            ao_at: ao_at.into(),
             dout: dout_image,
             do_frame: do_frame.into(),
             tx_dirty: map.tx().iter().map(|_| AtomicBool::new(false)).collect(),
@@ -323,8 +332,16 @@ impl CanCard {
         let _ = self.waker.set(wake);
     }
 
-    /// Decodes a received frame's payload into the channels, timestamped `at`.
-    pub fn receive(&self, id: u32, extended: bool, data: &[u8], at: Timestamp) -> Received {
+    /// Decodes a received frame's payload into the channels, timestamped `at`; `fd` says
+    /// whether it came as a CAN FD frame.
+    pub fn receive(
+        &self,
+        id: u32,
+        extended: bool,
+        fd: bool,
+        data: &[u8],
+        at: Timestamp,
+    ) -> Received {
         let Some(f) = self
             .map
             .rx()
@@ -335,6 +352,10 @@ impl CanCard {
             return Received::UnknownId;
         };
         let frame = &self.map.rx()[f];
+        if frame.fd != fd {
+            bump(&self.counters.rx_bad_kind);
+            return Received::BadKind;
+        }
         if data.len() != frame.length {
             bump(&self.counters.rx_bad_length);
             return Received::BadLength;
@@ -367,7 +388,7 @@ impl CanCard {
         Received::Decoded(f)
     }
 
-    /// Counts a frame of the wrong kind for its id (remote, FD for classic or the reverse).
+    /// Counts a frame of a kind the card never decodes (a remote frame, an unknown size).
     pub fn wrong_kind(&self) {
         bump(&self.counters.rx_bad_kind);
     }
@@ -596,18 +617,21 @@ impl CanCard {
         }
     }
 
+    /// Where analog `channel` sits: (frame, signal) in the rx or tx frames.
+    fn analog_at(&self, tx: bool, channel: u32) -> Result<(u32, u32), DeviceError> {
+        let at = if tx { &self.ao_at } else { &self.ai_at };
+        at.get(channel as usize)
+            .copied()
+            .ok_or(DeviceError::ChannelOutOfRange {
+                channel,
+                count: at.len() as u32,
+            })
+    }
+
     fn scale_of(&self, tx: bool, channel: u32) -> Result<Scale, DeviceError> {
-        let (frames, count) = if tx {
-            (self.map.tx(), self.map.counts()[1])
-        } else {
-            (self.map.rx(), self.map.counts()[0])
-        };
-        frames
-            .iter()
-            .flat_map(|f| &f.signals)
-            .find(|s| s.role == SignalRole::Analog && s.channel == channel)
-            .map(|s| *s.signal.scale())
-            .ok_or(DeviceError::ChannelOutOfRange { channel, count })
+        let (f, k) = self.analog_at(tx, channel)?;
+        let frames = if tx { self.map.tx() } else { self.map.rx() };
+        Ok(*frames[f as usize].signals[k as usize].signal.scale())
     }
 }
 
@@ -652,12 +676,7 @@ impl AnalogIn for CanCard {
     }
 
     fn read_raw(&self, channel: u32) -> Result<i64, DeviceError> {
-        let Some(&f) = self.ai_frame.get(channel as usize) else {
-            return Err(DeviceError::ChannelOutOfRange {
-                channel,
-                count: self.map.counts()[0],
-            });
-        };
+        let (f, _) = self.analog_at(false, channel)?;
         self.check_frame(f)?;
         Ok(self.ai[channel as usize].load(Ordering::Acquire))
     }
@@ -677,12 +696,12 @@ impl AnalogOut for CanCard {
         scale.check_raw(channel, raw)?;
         self.check_link()?;
         self.ao[channel as usize].store(raw, Ordering::Release);
-        self.output(self.ao_frame[channel as usize]);
+        self.output(self.ao_at[channel as usize].0);
         Ok(())
     }
 
     fn read_back_raw(&self, channel: u32) -> Result<i64, DeviceError> {
-        self.scale_of(true, channel)?;
+        self.analog_at(true, channel)?;
         Ok(self.ao[channel as usize].load(Ordering::Acquire))
     }
 }

@@ -39,6 +39,9 @@ pub struct CanMessage {
 /// The bus component.
 pub struct CanIo {
     bus: CanBus,
+    /// The bus's card, held apart so a step need not clone it to decode while the bus
+    /// is borrowed.
+    card: std::sync::Arc<crate::card::CanCard>,
     ports: Vec<OutputPort<CanMessage>>,
     sample: CanMessage,
 }
@@ -81,6 +84,7 @@ impl CanIo {
         )?;
         Ok(CanIo {
             bus,
+            card,
             ports,
             sample: CanMessage {
                 values: Vec::with_capacity(widest),
@@ -98,8 +102,7 @@ impl Component for CanIo {
     }
 
     fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
-        let (ports, sample) = (&mut self.ports, &mut self.sample);
-        let card = self.bus.card().clone();
+        let (ports, sample, card) = (&mut self.ports, &mut self.sample, &self.card);
         self.bus.service(&mut |f, payload, at| {
             let Some(port) = ports.get_mut(f) else { return };
             sample.values.clear();

@@ -349,11 +349,6 @@ impl CanMap {
             .flat_map(|f| &f.signals)
             .filter(|s| s.role == SignalRole::Encoder)
     }
-
-    /// Whether any frame is a CAN FD frame.
-    pub fn needs_fd(&self) -> bool {
-        self.rx.iter().chain(&self.tx).any(|f| f.fd)
-    }
 }
 
 fn frame(

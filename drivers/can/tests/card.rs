@@ -53,7 +53,13 @@ fn conformance_every_rule() {
     let resend = |f: usize| {
         let frame = &map.rx()[f];
         let data = images.borrow()[f];
-        card.receive(frame.id, frame.extended, &data[..frame.length], clock.now());
+        card.receive(
+            frame.id,
+            frame.extended,
+            frame.fd,
+            &data[..frame.length],
+            clock.now(),
+        );
     };
     for f in 0..map.rx().len() {
         resend(f);
@@ -113,8 +119,8 @@ fn outputs_pack_into_frames_and_staleness_is_per_frame() {
     // lamps bit 0 is payload bit 0, lamps bit 39 is payload bit 39 (byte 4, bit 7).
     assert_eq!(buf[..8], [0x01, 0, 0, 0, 0x80, 0xF8, 0xFF, 0]);
     // Motion has a 10 ms cycle (stale after 30 ms); Temps has none.
-    card.receive(0x100, false, &[0; 8], clock.now());
-    card.receive(0x18FE_EE05, true, &[0; 4], clock.now());
+    card.receive(0x100, false, false, &[0; 8], clock.now());
+    card.receive(0x18FE_EE05, true, false, &[0; 4], clock.now());
     assert!(card.read(0).is_ok());
     clock.advance(Duration::from_millis(31));
     assert!(matches!(card.read(0), Err(DeviceError::Stale { .. })));
