@@ -243,10 +243,9 @@ impl Gateway {
             let built: Result<
                 (Driver, device_interface::CardDevices),
                 (Option<Location>, String, String),
-            > = match (c.driver.as_str(), &c.sim, &c.modbus) {
-                ("socketcan", _, _) if c.socketcan.is_some() => {
-                    let sec = c.socketcan.as_ref().map(|s| (s.get_ref(), s.span()));
-                    let Some((cfg, span)) = sec else { continue };
+            > = match (c.driver.as_str(), &c.sim, &c.modbus, &c.socketcan) {
+                ("socketcan", _, _, Some(sec)) => {
+                    let (cfg, span) = (sec.get_ref(), sec.span());
                     let (l, p) = section("socketcan", Some(span));
                     let problem =
                         |e: String| (l.clone(), p.clone(), format!("card {:?}: {e}", c.name));
@@ -264,7 +263,7 @@ impl Gateway {
                             Ok((Driver::Can(card), devices))
                         })
                 }
-                ("sim", Some(sec), _) => {
+                ("sim", Some(sec), _, _) => {
                     SimCard::new(sec.get_ref(), Arc::new(rtt::time::MonotonicClock))
                         .map(|card| {
                             let devices = card.devices();
@@ -275,7 +274,7 @@ impl Gateway {
                             (l, p, format!("card {:?}: {e}", c.name))
                         })
                 }
-                ("modbus", _, Some(sec)) => {
+                ("modbus", _, Some(sec), _) => {
                     let m = sec.get_ref();
                     let (l, p) = section("modbus", Some(sec.span()));
                     let problem =
@@ -299,7 +298,7 @@ impl Gateway {
                             ))
                         })
                 }
-                (d @ ("sim" | "modbus" | "socketcan"), _, _) => Err((
+                (d @ ("sim" | "modbus" | "socketcan"), _, _, _) => Err((
                     here(),
                     path.clone(),
                     format!(
@@ -307,7 +306,7 @@ impl Gateway {
                         c.name
                     ),
                 )),
-                (other, _, _) => Err((
+                (other, _, _, _) => Err((
                     at(&[Seg::Key("card"), Seg::Index(i), Seg::Key("driver")]),
                     format!("{path}.driver"),
                     format!("unknown driver {other:?}; this build has: modbus, sim, socketcan"),
@@ -428,7 +427,7 @@ impl Gateway {
                     &c.name,
                     ActivitySpec::FileDescriptor {
                         timeout: None,
-                        thread: deployment.cards[i].thread.clone(),
+                        thread: cfg.thread.clone(),
                     },
                     false,
                     move |iface| driver_can::component::CanIo::new(bus, iface),
@@ -948,14 +947,9 @@ impl Gateway {
         crate::port_lock(&self.lines).clear();
         for c in &self.cards {
             if let Driver::Can(card) = &c.driver {
-                let before = card.counters();
                 card.flush();
-                let frames = card.map().tx().len() as u64;
                 while card.link_up()
-                    && {
-                        let now = card.counters();
-                        now.tx_frames + now.tx_errors < before.tx_frames + before.tx_errors + frames
-                    }
+                    && card.sends_pending()
                     && std::time::Instant::now() < deadline
                     && self
                         .order

@@ -423,6 +423,11 @@ impl CanCard {
         frame.length
     }
 
+    /// True while some tx frame waits to be sent (after an on-change write or a flush).
+    pub fn sends_pending(&self) -> bool {
+        self.tx_dirty.iter().any(|d| d.load(Ordering::Acquire))
+    }
+
     /// True when tx frame `tx` waits to be sent because an output of it changed.
     pub fn is_dirty(&self, tx: usize) -> bool {
         self.tx_dirty
