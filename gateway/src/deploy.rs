@@ -423,15 +423,8 @@ impl Gateway {
             let sample = millis(cfg.sample_period_ms.unwrap_or(cfg.period_ms));
             if let Some(k) = buses.iter().position(|(ci, _)| *ci == i) {
                 let (_, bus) = buses.swap_remove(k);
-                match runtime.add(
-                    &c.name,
-                    ActivitySpec::FileDescriptor {
-                        timeout: None,
-                        thread: cfg.thread.clone(),
-                    },
-                    false,
-                    move |iface| driver_can::component::CanIo::new(bus, iface),
-                ) {
+                match driver_can::component::CanIo::add(&runtime, &c.name, bus, cfg.thread.clone())
+                {
                     Ok(t) => order.push(t),
                     Err(e) => add(
                         &mut problems,

@@ -85,12 +85,7 @@ signal = [
         Arc::new(device_interface::Registry::new()),
         RuntimeOptions::default(),
     )?;
-    let can = rt.add(
-        "can",
-        ActivitySpec::file_descriptor(None),
-        false,
-        move |i| CanIo::new(bus, i),
-    )?;
+    let can = CanIo::add(&rt, "can", bus, Default::default())?;
     let count = Arc::new(AtomicU64::new(0));
     let latency = Arc::new(Mutex::new(Vec::with_capacity(200_000)));
     let (c2, l2) = (count.clone(), latency.clone());

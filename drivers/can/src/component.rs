@@ -10,9 +10,7 @@
 //! # use std::sync::Arc;
 //! # fn demo(rt: &rtt::Runtime, card: Arc<driver_can::card::CanCard>) -> Result<(), Box<dyn std::error::Error>> {
 //! let bus = driver_can::bus::CanBus::open(card)?;
-//! let task = rt.add("can0", rtt::ActivitySpec::file_descriptor(None), false, |iface| {
-//!     driver_can::component::CanIo::new(bus, iface)
-//! })?;
+//! let task = driver_can::component::CanIo::add(rt, "can0", bus, Default::default())?;
 //! task.start()?;
 //! # Ok(()) }
 //! ```
@@ -47,6 +45,25 @@ pub struct CanIo {
 }
 
 impl CanIo {
+    /// Adds `bus` to `runtime` as component `name` on a file-descriptor activity of its
+    /// own, its thread placed by `thread`; not started.
+    pub fn add(
+        runtime: &rtt::Runtime,
+        name: &str,
+        bus: CanBus,
+        thread: rtt::ThreadOptions,
+    ) -> Result<rtt::TaskContext, rtt::RuntimeError> {
+        runtime.add(
+            name,
+            rtt::ActivitySpec::FileDescriptor {
+                timeout: None,
+                thread,
+            },
+            false,
+            move |iface| CanIo::new(bus, iface),
+        )
+    }
+
     /// Builds the component's interface: port `rx.<message>` per received frame (the DBC
     /// name, or the id in hex) and the `counters` operation.
     pub fn new(bus: CanBus, iface: &mut Interface<CanIo>) -> Result<CanIo, IntrospectError> {

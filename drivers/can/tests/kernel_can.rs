@@ -10,7 +10,7 @@ use driver_can::card::{BusState, CanCard};
 use driver_can::component::CanIo;
 use driver_can::map::{CanConfig, CanMap};
 use kernel_rig::{Candump, Failed, Rig, Trial, sh, wait_until};
-use rtt::{ActivitySpec, Runtime, RuntimeOptions, TaskContext};
+use rtt::{Runtime, RuntimeOptions, TaskContext};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -50,12 +50,7 @@ fn up_on(iface: &str, body: &str) -> Result<Up, Failed> {
         Arc::new(device_interface::Registry::new()),
         RuntimeOptions::default(),
     )?;
-    let task = rt.add(
-        iface,
-        ActivitySpec::file_descriptor(None),
-        false,
-        move |i| CanIo::new(bus, i),
-    )?;
+    let task = CanIo::add(&rt, iface, bus, Default::default())?;
     task.start()?;
     Ok(Up {
         card,
