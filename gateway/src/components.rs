@@ -17,8 +17,8 @@ use rtt::port::ConnPolicy;
 use rtt::port::{FlowStatus, InputPort, OutputPort};
 use rtt::property::Property;
 use rtt::{
-    ActivitySpec, Component, Context, HookError, HookResult, Interface, Runtime, RuntimeError,
-    TaskContext,
+    ActivitySpec, Component, Context, HookError, HookResult, InterfaceBuilder, Runtime,
+    RuntimeError, TaskContext,
 };
 use std::collections::BTreeMap;
 use std::io::Write;
@@ -45,13 +45,13 @@ impl ComponentTypes {
     pub fn builtin() -> Self {
         let mut t = Self::empty();
         t.types.insert("blinker".into(), |rt, name, spec| {
-            rt.add(name, spec, true, Blinker::new)
+            rt.add(name, spec, rtt::InitialState::PreOperational, Blinker::new)
         });
         t.types.insert("follow".into(), |rt, name, spec| {
-            rt.add(name, spec, true, Follow::new)
+            rt.add(name, spec, rtt::InitialState::PreOperational, Follow::new)
         });
         t.types.insert("reporter".into(), |rt, name, spec| {
-            rt.add(name, spec, true, Reporter::new)
+            rt.add(name, spec, rtt::InitialState::PreOperational, Reporter::new)
         });
         t
     }
@@ -95,7 +95,7 @@ pub struct Blinker {
 }
 
 impl Blinker {
-    fn new(iface: &mut Interface<Blinker>) -> Result<Blinker, IntrospectError> {
+    fn new(iface: &mut InterfaceBuilder<Blinker>) -> Result<Blinker, IntrospectError> {
         Ok(Blinker {
             device_name: iface.properties().add(
                 "device",
@@ -150,7 +150,7 @@ pub struct Follow {
 }
 
 impl Follow {
-    fn new(iface: &mut Interface<Follow>) -> Result<Follow, IntrospectError> {
+    fn new(iface: &mut InterfaceBuilder<Follow>) -> Result<Follow, IntrospectError> {
         Ok(Follow {
             input: iface.event_input("in", "the value followed")?,
             output: iface.output("out", "in * gain + offset")?,
@@ -188,7 +188,7 @@ pub struct Reporter {
 }
 
 impl Reporter {
-    fn new(iface: &mut Interface<Reporter>) -> Result<Reporter, IntrospectError> {
+    fn new(iface: &mut InterfaceBuilder<Reporter>) -> Result<Reporter, IntrospectError> {
         Ok(Reporter {
             ports: iface.properties().add(
                 "ports",

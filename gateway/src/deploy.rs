@@ -408,7 +408,7 @@ impl Gateway {
                         timing: rtt::Timing::Absolute,
                         max_overruns: None,
                     },
-                    false,
+                    rtt::InitialState::Stopped,
                     move |_| Ok(CardCycle(card)),
                 ) {
                     Ok(t) => order.push(t),
@@ -738,7 +738,7 @@ impl Gateway {
                 }
             }
         }
-        let mut lines = crate::port_lock(&self.lines);
+        let mut lines = rtt::lock(&self.lines);
         for (n, (transport, units)) in groups.into_iter().enumerate() {
             match Line::spawn(&format!("modbus{n}"), transport.clone(), units) {
                 Ok(line) => lines.push(line),
@@ -749,7 +749,7 @@ impl Gateway {
         drop(lines);
         if let Some((addr, table)) = &self.server_table {
             match driver_modbus::server::ModbusServer::start(*addr, table.clone()) {
-                Ok(server) => *crate::port_lock(&self.server) = Some(server),
+                Ok(server) => *rtt::lock(&self.server) = Some(server),
                 Err(e) => tracing::error!("modbus server on {addr}: cannot start: {e}"),
             }
         }
@@ -784,7 +784,7 @@ impl Gateway {
 
     /// Where the Modbus server listens, once started.
     pub fn modbus_server_addr(&self) -> Option<std::net::SocketAddr> {
-        crate::port_lock(&self.server).as_ref().map(|s| s.addr())
+        rtt::lock(&self.server).as_ref().map(|s| s.addr())
     }
 
     /// Per-card bus diagnostics (Modbus line counters), for `status`.
@@ -881,7 +881,7 @@ impl Gateway {
     /// value. Returns a line per card with the outputs as left.
     pub fn shutdown(&self) -> Vec<String> {
         // No client writes may race the safe values.
-        crate::port_lock(&self.server).take();
+        rtt::lock(&self.server).take();
         // A CAN card's bus component is what sends its safe values: it stops last.
         let is_bus = |t: &TaskContext| {
             self.cards
@@ -925,7 +925,7 @@ impl Gateway {
                 while (card.writes_pending()
                     || stats.polls.load(std::sync::atomic::Ordering::Relaxed) <= polls)
                     && std::time::Instant::now() < deadline
-                    && !crate::port_lock(&self.lines).is_empty()
+                    && !rtt::lock(&self.lines).is_empty()
                 {
                     std::thread::sleep(std::time::Duration::from_millis(5));
                 }
@@ -937,7 +937,7 @@ impl Gateway {
                 }
             }
         }
-        crate::port_lock(&self.lines).clear();
+        rtt::lock(&self.lines).clear();
         for c in &self.cards {
             if let Driver::Can(card) = &c.driver {
                 card.flush();

@@ -14,7 +14,8 @@ use device_interface::{AnalogIn, AnalogOut, DigitalIn, DigitalOut, Encoder};
 use rtt::component::IntrospectError;
 use rtt::port::{FlowStatus, InputPort, OutputPort};
 use rtt::{
-    ActivitySpec, Component, Context, HookResult, Interface, Runtime, RuntimeError, TaskContext,
+    ActivitySpec, Component, Context, HookResult, InterfaceBuilder, Runtime, RuntimeError,
+    TaskContext,
 };
 use std::sync::Arc;
 use std::time::Duration;
@@ -131,7 +132,7 @@ fn ports<T>(
 /// Offers device method `f` as a ClientThread operation: arguments `A`, answer
 /// `{"Ok": r}` or `{"Err": message}`.
 fn device_op<C, D, A, R>(
-    iface: &mut Interface<C>,
+    iface: &mut InterfaceBuilder<C>,
     device: &Arc<D>,
     name: &str,
     doc: &str,
@@ -174,7 +175,7 @@ pub fn build(
                 runtime.add(
                     &format!("{name}.ai"),
                     ActivitySpec::periodic(sample),
-                    false,
+                    rtt::InitialState::Stopped,
                     move |iface| {
                         let ports = ports(
                             device.channel_count(),
@@ -234,7 +235,7 @@ pub fn build(
                 runtime.add(
                     &format!("{name}.ao"),
                     ActivitySpec::non_periodic(),
-                    false,
+                    rtt::InitialState::Stopped,
                     move |iface| {
                         let ports = ports(
                             device.channel_count(),
@@ -279,7 +280,7 @@ pub fn build(
                 runtime.add(
                     &format!("{name}.di"),
                     ActivitySpec::periodic(sample),
-                    false,
+                    rtt::InitialState::Stopped,
                     move |iface| {
                         let ports = ports(
                             device.input_count(),
@@ -316,7 +317,7 @@ pub fn build(
                 runtime.add(
                     &format!("{name}.do"),
                     ActivitySpec::non_periodic(),
-                    false,
+                    rtt::InitialState::Stopped,
                     move |iface| {
                         let ports = ports(
                             device.output_count(),
@@ -365,29 +366,34 @@ pub fn build(
                 let Some(device) = registry.encoder().get(&name) else {
                     continue;
                 };
-                runtime.add(&name, ActivitySpec::periodic(sample), false, move |iface| {
-                    device_op(
-                        iface,
-                        &device,
-                        "set_position",
-                        "sets the position within the turn",
-                        &[("position", "")],
-                        |d, (p,): (i64,)| d.set_position(p),
-                    )?;
-                    device_op(
-                        iface,
-                        &device,
-                        "set_turn",
-                        "sets the turn count",
-                        &[("turn", "")],
-                        |d, (t,): (i64,)| d.set_turn(t),
-                    )?;
-                    Ok(EncoderIo {
-                        position: iface.output("position", "position within the turn")?,
-                        turn: iface.output("turn", "turns")?,
-                        device,
-                    })
-                })?
+                runtime.add(
+                    &name,
+                    ActivitySpec::periodic(sample),
+                    rtt::InitialState::Stopped,
+                    move |iface| {
+                        device_op(
+                            iface,
+                            &device,
+                            "set_position",
+                            "sets the position within the turn",
+                            &[("position", "")],
+                            |d, (p,): (i64,)| d.set_position(p),
+                        )?;
+                        device_op(
+                            iface,
+                            &device,
+                            "set_turn",
+                            "sets the turn count",
+                            &[("turn", "")],
+                            |d, (t,): (i64,)| d.set_turn(t),
+                        )?;
+                        Ok(EncoderIo {
+                            position: iface.output("position", "position within the turn")?,
+                            turn: iface.output("turn", "turns")?,
+                            device,
+                        })
+                    },
+                )?
             }
         };
         out.push(task);

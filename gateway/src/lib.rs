@@ -33,8 +33,3 @@ pub mod io;
 /// The embedded default deployment (`config/demo.toml`): simulated cards, so a new user
 /// sees values move with no hardware.
 pub const DEMO: &str = include_str!("../../config/demo.toml");
-
-/// Locks a mutex whose data stays consistent across a panic (lists of handles).
-pub(crate) fn port_lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|p| p.into_inner())
-}

@@ -97,7 +97,9 @@ fn run_rtt(loops: u64, fifo: bool, priority: i32) -> Figures {
     };
     let h = hist.clone();
     let t = rt
-        .add("jitter", spec, false, move |_| Ok(Probe { hist: h }))
+        .add("jitter", spec, rtt::InitialState::Stopped, move |_| {
+            Ok(Probe { hist: h })
+        })
         .unwrap();
     t.start().unwrap();
     while t.stats().steps < loops {

@@ -73,10 +73,15 @@ impl Component for Nothing {}
 fn client_thread_call(b: Bencher) {
     let rt = Runtime::new(Arc::new(Registry::new()), RuntimeOptions::default()).unwrap();
     let t = rt
-        .add("c", ActivitySpec::Slave, false, |iface| {
-            iface.client_operation("add", "", &[], |(a, b): (f64, f64)| a + b)?;
-            Ok(Nothing)
-        })
+        .add(
+            "c",
+            ActivitySpec::Slave,
+            rtt::InitialState::Stopped,
+            |iface| {
+                iface.client_operation("add", "", &[], |(a, b): (f64, f64)| a + b)?;
+                Ok(Nothing)
+            },
+        )
         .unwrap();
     let op = t.operation::<(f64, f64), f64>("add").unwrap();
     b.bench_local(|| black_box(op.call(black_box((1.0, 2.0)))));
@@ -95,13 +100,18 @@ impl Component for Count {}
 fn own_thread_call_round_trip(b: Bencher) {
     let rt = Runtime::new(Arc::new(Registry::new()), RuntimeOptions::default()).unwrap();
     let t = rt
-        .add("c", ActivitySpec::non_periodic(), false, |iface| {
-            iface.own_operation("add", "", &[], |c: &mut Count, (n,): (i64,)| {
-                c.0 += n;
-                c.0
-            })?;
-            Ok(Count(0))
-        })
+        .add(
+            "c",
+            ActivitySpec::non_periodic(),
+            rtt::InitialState::Stopped,
+            |iface| {
+                iface.own_operation("add", "", &[], |c: &mut Count, (n,): (i64,)| {
+                    c.0 += n;
+                    c.0
+                })?;
+                Ok(Count(0))
+            },
+        )
         .unwrap();
     t.start().unwrap();
     let op = t.operation::<(i64,), i64>("add").unwrap();

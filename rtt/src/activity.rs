@@ -538,7 +538,7 @@ impl Activity {
                 what: "epoll_ctl(add)",
                 source,
             })?;
-        crate::port::lock(&state.watched).push((user, dup));
+        crate::lock::lock(&state.watched).push((user, dup));
         Ok(())
     }
 
@@ -547,7 +547,7 @@ impl Activity {
         let Some(state) = &self.shared.fd else {
             return false;
         };
-        let mut w = crate::port::lock(&state.watched);
+        let mut w = crate::lock::lock(&state.watched);
         let Some(i) = w.iter().position(|(u, _)| *u == fd) else {
             return false;
         };
@@ -575,7 +575,7 @@ impl Activity {
                         .thread
                         .store(Some(Arc::new(h.thread().clone())));
                 }
-                *crate::port::lock(&self.handle) = Some(h);
+                *crate::lock::lock(&self.handle) = Some(h);
                 Ok(())
             }
             Err(e) => {
@@ -594,7 +594,7 @@ impl Activity {
         if let Some(t) = self.shared.signal.thread.load().as_deref() {
             t.unpark();
         }
-        let handle = crate::port::lock(&self.handle).take();
+        let handle = crate::lock::lock(&self.handle).take();
         if let Some(h) = handle
             && h.thread().id() != std::thread::current().id()
         {

@@ -163,9 +163,9 @@ struct Slot<R> {
 
 impl<R> Slot<R> {
     fn complete(&self, r: Result<R, CallError>) {
-        *crate::port::lock(&self.result) = Some(r);
+        *crate::lock::lock(&self.result) = Some(r);
         self.done.store(true, Ordering::Release);
-        if let Some(t) = crate::port::lock(&self.waiter).as_ref() {
+        if let Some(t) = crate::lock::lock(&self.waiter).as_ref() {
             t.unpark();
         }
     }
@@ -213,7 +213,7 @@ impl<R> SendHandle<R> {
             HandleState::Ready(r) => r,
             HandleState::Taken => Err(CallError::AlreadyCollected),
             HandleState::Pending(slot) => {
-                *crate::port::lock(&slot.waiter) = Some(std::thread::current());
+                *crate::lock::lock(&slot.waiter) = Some(std::thread::current());
                 let backoff = crossbeam_utils::Backoff::new();
                 while !slot.done.load(Ordering::Acquire) {
                     if backoff.is_completed() {
@@ -223,7 +223,7 @@ impl<R> SendHandle<R> {
                         backoff.snooze();
                     }
                 }
-                crate::port::lock(&slot.result)
+                crate::lock::lock(&slot.result)
                     .take()
                     .unwrap_or(Err(CallError::AlreadyCollected))
             }
@@ -241,7 +241,7 @@ impl<R> SendHandle<R> {
             match std::mem::replace(&mut self.state, HandleState::Taken) {
                 HandleState::Ready(r) => r,
                 HandleState::Taken => Err(CallError::AlreadyCollected),
-                HandleState::Pending(slot) => crate::port::lock(&slot.result)
+                HandleState::Pending(slot) => crate::lock::lock(&slot.result)
                     .take()
                     .unwrap_or(Err(CallError::AlreadyCollected)),
             },

@@ -39,6 +39,7 @@
 //! ```
 
 use crate::activity::Waker;
+use crate::lock::lock;
 use crossbeam_queue::ArrayQueue;
 use serde::{Deserialize, Serialize};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -437,12 +438,6 @@ impl<E, T> Links<E, T> {
         }
         local.retain(|e| !channel(e).is_closed());
     }
-}
-
-pub(crate) fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    // Every value guarded in this crate stays consistent across a panic (plain lists and
-    // samples), so a poisoned lock is still usable.
-    m.lock().unwrap_or_else(|p| p.into_inner())
 }
 
 /// How many connections a port holds before taking up one more allocates.

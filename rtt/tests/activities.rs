@@ -70,7 +70,7 @@ fn fd_activity_wakes_on_data_and_on_timeout() {
         .add(
             "reader",
             ActivitySpec::file_descriptor(Some(Duration::from_millis(50))),
-            true,
+            rtt::InitialState::PreOperational,
             move |_| {
                 Ok(Reader {
                     pipe: rx,
@@ -125,7 +125,9 @@ fn overruns_are_counted_and_turn_health_off_then_on() {
         max_overruns: Some(3),
     };
     let t = rt
-        .add("sleepy", spec, false, move |_| Ok(Sleepy { sleep: s }))
+        .add("sleepy", spec, rtt::InitialState::Stopped, move |_| {
+            Ok(Sleepy { sleep: s })
+        })
         .unwrap();
     t.start().unwrap();
     wait_for("5 overruns", || t.stats().overruns >= 5);
@@ -157,7 +159,7 @@ fn refused_fifo_falls_back_to_other_and_still_runs() {
     // Priority 100 is outside SCHED_FIFO's 1..=99: the kernel refuses it even for root,
     // so this exercises the fallback on every machine.
     let refused = rt
-        .add("refused", fifo(100), false, |_| {
+        .add("refused", fifo(100), rtt::InitialState::Stopped, |_| {
             Ok(Sleepy {
                 sleep: Arc::new(AtomicBool::new(false)),
             })
@@ -202,7 +204,8 @@ fn thread_scope_pulses_each_thread_bit_in_order() {
     let steps = Arc::new(AtomicU64::new(0));
     let mk = |name: &str, spec: ActivitySpec| {
         let s = steps.clone();
-        rt.add(name, spec, false, move |_| Ok(Busy(s))).unwrap()
+        rt.add(name, spec, rtt::InitialState::Stopped, move |_| Ok(Busy(s)))
+            .unwrap()
     };
     let fast = mk("fast", ActivitySpec::periodic(Duration::from_millis(1)));
     let slow = mk("slow", ActivitySpec::periodic(Duration::from_millis(3)));

@@ -101,7 +101,12 @@ fn scripted(rt: &Runtime, name: &str) -> (TaskContext, Arc<Script>) {
     let script = Arc::new(Script::default());
     let s = script.clone();
     let task = rt
-        .add(name, ActivitySpec::Slave, true, move |_| Ok(Scripted(s)))
+        .add(
+            name,
+            ActivitySpec::Slave,
+            rtt::InitialState::PreOperational,
+            move |_| Ok(Scripted(s)),
+        )
         .unwrap();
     (task, script)
 }
@@ -344,7 +349,12 @@ fn component_names_are_unique_and_listed() {
     scripted(&rt, "a");
     let s = Arc::new(Script::default());
     let e = rt
-        .add("a", ActivitySpec::Slave, false, move |_| Ok(Scripted(s)))
+        .add(
+            "a",
+            ActivitySpec::Slave,
+            rtt::InitialState::Stopped,
+            move |_| Ok(Scripted(s)),
+        )
         .unwrap_err();
     assert_eq!(e.to_string(), "a component named \"a\" already exists");
     let e = rt.component("b").unwrap_err();

@@ -182,10 +182,15 @@ fn client_call_and_periodic_step_allocate_nothing() {
     )
     .unwrap();
     let helper = rt
-        .add("helper", ActivitySpec::Slave, false, |iface| {
-            iface.client_operation("scale", "doubles", &[("x", "")], |(x,): (f64,)| 2.0 * x)?;
-            Ok(Nothing)
-        })
+        .add(
+            "helper",
+            ActivitySpec::Slave,
+            rtt::InitialState::Stopped,
+            |iface| {
+                iface.client_operation("scale", "doubles", &[("x", "")], |(x,): (f64,)| 2.0 * x)?;
+                Ok(Nothing)
+            },
+        )
         .unwrap();
     let scale = helper.operation::<(f64,), f64>("scale").unwrap();
     scale.call((1.0,)).unwrap();
@@ -203,7 +208,7 @@ fn client_call_and_periodic_step_allocate_nothing() {
         .add(
             "loop",
             ActivitySpec::periodic(Duration::from_millis(1)),
-            false,
+            rtt::InitialState::Stopped,
             move |iface| {
                 Ok(Loop {
                     i: iface.input("in", "")?,

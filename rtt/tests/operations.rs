@@ -52,7 +52,7 @@ fn counter(rt: &Runtime, name: &str, spec: ActivitySpec) -> (TaskContext, Arc<Se
     let seen = Arc::new(Seen::default());
     let s = seen.clone();
     let t = rt
-        .add(name, spec, false, move |iface| {
+        .add(name, spec, rtt::InitialState::Stopped, move |iface| {
             let s2 = s.clone();
             iface.own_operation(
                 "add",
@@ -331,11 +331,16 @@ fn components_connect_by_name_and_types_are_checked() {
     }
     impl Component for Other {}
     let o = rt
-        .add("o", ActivitySpec::Slave, false, |iface| {
-            Ok(Other {
-                _i: iface.input("in", "text")?,
-            })
-        })
+        .add(
+            "o",
+            ActivitySpec::Slave,
+            rtt::InitialState::Stopped,
+            |iface| {
+                Ok(Other {
+                    _i: iface.input("in", "text")?,
+                })
+            },
+        )
         .unwrap();
     let e = a
         .port("out")
@@ -372,12 +377,17 @@ fn event_ports_wake_a_non_periodic_component() {
     }
     let rt = runtime();
     let t = rt
-        .add("echo", ActivitySpec::non_periodic(), false, |iface| {
-            Ok(Echo {
-                i: iface.event_input("in", "wakes me")?,
-                o: iface.output("out", "echo")?,
-            })
-        })
+        .add(
+            "echo",
+            ActivitySpec::non_periodic(),
+            rtt::InitialState::Stopped,
+            |iface| {
+                Ok(Echo {
+                    i: iface.event_input("in", "wakes me")?,
+                    o: iface.output("out", "echo")?,
+                })
+            },
+        )
         .unwrap();
     let port_in = t.port("in").unwrap();
     let mut w = port_in.writer(ConnPolicy::buffer(16)).unwrap();

@@ -89,17 +89,22 @@ signal = [
     let count = Arc::new(AtomicU64::new(0));
     let latency = Arc::new(Mutex::new(Vec::with_capacity(200_000)));
     let (c2, l2) = (count.clone(), latency.clone());
-    let sink = rt.add("sink", ActivitySpec::non_periodic(), false, move |i| {
-        Ok(Sink {
-            input: i.event_input("in", "messages")?,
-            sample: CanMessage {
-                values: Vec::with_capacity(4),
-                ..CanMessage::default()
-            },
-            count: c2,
-            latency: l2,
-        })
-    })?;
+    let sink = rt.add(
+        "sink",
+        ActivitySpec::non_periodic(),
+        rtt::InitialState::Stopped,
+        move |i| {
+            Ok(Sink {
+                input: i.event_input("in", "messages")?,
+                sample: CanMessage {
+                    values: Vec::with_capacity(4),
+                    ..CanMessage::default()
+                },
+                count: c2,
+                latency: l2,
+            })
+        },
+    )?;
     can.port("rx.0x100")?
         .connect_to(&*sink.port("in")?, ConnPolicy::buffer(65_536))?;
     sink.start()?;

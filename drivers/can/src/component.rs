@@ -19,7 +19,7 @@ use crate::bus::CanBus;
 use crate::card::CanCounters;
 use rtt::component::IntrospectError;
 use rtt::port::OutputPort;
-use rtt::{Component, Context, HookResult, Interface};
+use rtt::{Component, Context, HookResult, InterfaceBuilder};
 use serde::{Deserialize, Serialize};
 use std::os::fd::AsRawFd;
 
@@ -59,14 +59,14 @@ impl CanIo {
                 timeout: None,
                 thread,
             },
-            false,
+            rtt::InitialState::Stopped,
             move |iface| CanIo::new(bus, iface),
         )
     }
 
     /// Builds the component's interface: port `rx.<message>` per received frame (the DBC
     /// name, or the id in hex) and the `counters` operation.
-    pub fn new(bus: CanBus, iface: &mut Interface<CanIo>) -> Result<CanIo, IntrospectError> {
+    pub fn new(bus: CanBus, iface: &mut InterfaceBuilder<CanIo>) -> Result<CanIo, IntrospectError> {
         let card = bus.card().clone();
         let widest = card
             .map()

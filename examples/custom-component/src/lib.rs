@@ -14,7 +14,7 @@ use hwgw::components::ComponentTypes;
 use rtt::component::IntrospectError;
 use rtt::port::{FlowStatus, InputPort, OutputPort};
 use rtt::property::Property;
-use rtt::{Component, Context, HookError, HookResult, Interface};
+use rtt::{Component, Context, HookError, HookResult, InterfaceBuilder};
 
 /// A comparator with hysteresis.
 pub struct Threshold {
@@ -26,7 +26,7 @@ pub struct Threshold {
 }
 
 impl Threshold {
-    fn new(iface: &mut Interface<Threshold>) -> Result<Threshold, IntrospectError> {
+    fn new(iface: &mut InterfaceBuilder<Threshold>) -> Result<Threshold, IntrospectError> {
         // An operation other components and the CLI can call: the current state.
         iface.own_operation(
             "is_on",
@@ -77,7 +77,12 @@ impl Component for Threshold {
 pub fn types() -> ComponentTypes {
     let mut t = ComponentTypes::builtin();
     t.register("threshold", |rt, name, spec| {
-        rt.add(name, spec, true, Threshold::new)
+        rt.add(
+            name,
+            spec,
+            rtt::InitialState::PreOperational,
+            Threshold::new,
+        )
     });
     t
 }

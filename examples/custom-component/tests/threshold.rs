@@ -60,7 +60,7 @@ fn the_builtin_types_are_still_there_and_names_are_unique() {
     assert!(!t.register("follow", |rt, name, spec| rt.add(
         name,
         spec,
-        false,
+        rtt::InitialState::Stopped,
         |_| Ok(Nothing)
     )));
 }

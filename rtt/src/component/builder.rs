@@ -1,0 +1,245 @@
+//! The interface a component declares when it is built: ports, operations, properties
+//! and attributes, each named and documented.
+
+use super::dynport::{DynPort, InEntry, OutEntry};
+use crate::activity::Waker;
+use crate::error::IntrospectError;
+use crate::info::PortData;
+use crate::operation::{
+    ArgInfo, Args, ClientOp, DynOperation, Engine, ExecutionThread, OperationCaller,
+    OperationEntry, OperationInfo, OwnOp,
+};
+use crate::port::{InputPort, OutputPort};
+use crate::property::PropertyBag;
+use device_interface::Registry;
+use serde::Serialize;
+use std::sync::{Arc, Weak};
+
+/// What a built interface holds, for the component's core.
+pub(crate) struct BuiltInterface {
+    pub(crate) ports: Vec<Arc<dyn DynPort>>,
+    pub(crate) operations: Vec<Arc<dyn DynOperation>>,
+    pub(crate) properties: PropertyBag,
+    pub(crate) attributes: PropertyBag,
+}
+
+/// Builds a component's interface: handed to the component's constructor.
+pub struct InterfaceBuilder<C> {
+    name: String,
+    engine: Weak<dyn Engine>,
+    waker: Arc<dyn Waker>,
+    ports: Vec<Arc<dyn DynPort>>,
+    operations: Vec<Arc<dyn DynOperation>>,
+    properties: PropertyBag,
+    attributes: PropertyBag,
+    registry: Arc<Registry>,
+    _component: std::marker::PhantomData<fn(&mut C)>,
+}
+
+impl<C: Send + 'static> InterfaceBuilder<C> {
+    pub(crate) fn new(
+        name: &str,
+        engine: Weak<dyn Engine>,
+        waker: Arc<dyn Waker>,
+        registry: Arc<Registry>,
+    ) -> Self {
+        InterfaceBuilder {
+            name: name.to_string(),
+            engine,
+            waker,
+            ports: Vec::new(),
+            operations: Vec::new(),
+            properties: PropertyBag::new("properties"),
+            attributes: PropertyBag::new("attributes"),
+            registry,
+            _component: std::marker::PhantomData,
+        }
+    }
+
+    /// What was built: ports, operations, properties and attributes.
+    pub(crate) fn into_parts(self) -> BuiltInterface {
+        BuiltInterface {
+            ports: self.ports,
+            operations: self.operations,
+            properties: self.properties,
+            attributes: self.attributes,
+        }
+    }
+
+    fn check_port_name(&self, name: &str) -> Result<(), IntrospectError> {
+        if self.ports.iter().any(|p| p.info().name == name) {
+            return Err(IntrospectError::Duplicate {
+                component: self.name.clone(),
+                kind: "port",
+                name: name.to_string(),
+            });
+        }
+        Ok(())
+    }
+
+    /// Adds an output port with `T::default()` as its data sample.
+    pub fn output<T: PortData + Default>(
+        &mut self,
+        name: &str,
+        doc: &str,
+    ) -> Result<OutputPort<T>, IntrospectError> {
+        self.output_with_sample(name, doc, T::default())
+    }
+
+    /// Adds an output port whose connections pre-allocate copies of `sample`.
+    pub fn output_with_sample<T: PortData>(
+        &mut self,
+        name: &str,
+        doc: &str,
+        sample: T,
+    ) -> Result<OutputPort<T>, IntrospectError> {
+        self.check_port_name(name)?;
+        let port = OutputPort::with_sample(name, sample);
+        self.ports.push(Arc::new(OutEntry {
+            shared: port.shared().clone(),
+            doc: doc.to_string(),
+        }));
+        Ok(port)
+    }
+
+    /// Adds an input port with `T::default()` as its sample.
+    pub fn input<T: PortData + Default>(
+        &mut self,
+        name: &str,
+        doc: &str,
+    ) -> Result<InputPort<T>, IntrospectError> {
+        self.input_with_sample(name, doc, T::default(), false)
+    }
+
+    /// Adds an event input port: new data on it wakes a non-periodic or file-descriptor
+    /// activity.
+    pub fn event_input<T: PortData + Default>(
+        &mut self,
+        name: &str,
+        doc: &str,
+    ) -> Result<InputPort<T>, IntrospectError> {
+        self.input_with_sample(name, doc, T::default(), true)
+    }
+
+    /// Adds an input port keeping its sample in a copy of `sample`.
+    pub fn input_with_sample<T: PortData>(
+        &mut self,
+        name: &str,
+        doc: &str,
+        sample: T,
+        event: bool,
+    ) -> Result<InputPort<T>, IntrospectError> {
+        self.check_port_name(name)?;
+        let port = InputPort::with_sample(name, sample.clone());
+        if event {
+            let _ = port.shared().waker.set(self.waker.clone());
+        }
+        self.ports.push(Arc::new(InEntry {
+            shared: port.shared().clone(),
+            doc: doc.to_string(),
+            sample,
+            event,
+        }));
+        Ok(port)
+    }
+
+    fn add_operation<A: Args, R: Serialize + 'static>(
+        &mut self,
+        name: &str,
+        doc: &str,
+        args: &[(&str, &str)],
+        thread: ExecutionThread,
+        inner: Arc<dyn crate::operation::Invoke<A, R>>,
+    ) -> Result<(), IntrospectError> {
+        if self.operations.iter().any(|o| o.info().name == name) {
+            return Err(IntrospectError::Duplicate {
+                component: self.name.clone(),
+                kind: "operation",
+                name: name.to_string(),
+            });
+        }
+        let info = OperationInfo {
+            name: name.to_string(),
+            doc: doc.to_string(),
+            args: A::type_names()
+                .into_iter()
+                .enumerate()
+                .map(|(i, t)| {
+                    let (n, d) = args.get(i).copied().unwrap_or(("", ""));
+                    ArgInfo {
+                        name: if n.is_empty() {
+                            format!("arg{i}")
+                        } else {
+                            n.to_string()
+                        },
+                        doc: d.to_string(),
+                        type_name: t.to_string(),
+                    }
+                })
+                .collect(),
+            result: std::any::type_name::<R>().to_string(),
+            thread,
+        };
+        self.operations.push(Arc::new(OperationEntry {
+            info,
+            caller: OperationCaller {
+                name: Arc::from(name),
+                inner,
+            },
+        }));
+        Ok(())
+    }
+
+    /// Adds an operation run in the caller's thread. `args` documents the arguments as
+    /// (name, doc) pairs, in order.
+    pub fn client_operation<A: Args, R: Serialize + 'static>(
+        &mut self,
+        name: &str,
+        doc: &str,
+        args: &[(&str, &str)],
+        f: impl Fn(A) -> R + Send + Sync + 'static,
+    ) -> Result<(), IntrospectError> {
+        let inner = Arc::new(ClientOp {
+            name: Arc::from(name),
+            f,
+        });
+        self.add_operation(name, doc, args, ExecutionThread::ClientThread, inner)
+    }
+
+    /// Adds an operation run in the component's own thread, with `&mut` access to it.
+    pub fn own_operation<A: Args, R: Serialize + Send + 'static>(
+        &mut self,
+        name: &str,
+        doc: &str,
+        args: &[(&str, &str)],
+        f: impl Fn(&mut C, A) -> R + Send + Sync + 'static,
+    ) -> Result<(), IntrospectError> {
+        let inner: Arc<dyn crate::operation::Invoke<A, R>> = Arc::new(OwnOp {
+            name: Arc::from(name),
+            f: Arc::new(f),
+            engine: self.engine.clone(),
+            _component: std::marker::PhantomData,
+        });
+        self.add_operation(name, doc, args, ExecutionThread::OwnThread, inner)
+    }
+
+    /// The component's properties (configuration).
+    pub fn properties(&self) -> &PropertyBag {
+        &self.properties
+    }
+
+    /// The component's attributes (run-time values).
+    pub fn attributes(&self) -> &PropertyBag {
+        &self.attributes
+    }
+
+    /// The device registry.
+    pub fn registry(&self) -> &Arc<Registry> {
+        &self.registry
+    }
+
+    /// The component's name.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+}

@@ -1,0 +1,244 @@
+//! The type-erased port layer: every port of a component reachable by name, read and
+//! written as JSON values, connected without knowing its type at compile time.
+
+use crate::error::IntrospectError;
+use crate::info::{Direction, PortData, PortInfo};
+use crate::port::{
+    ConnPolicy, ConnectError, ConnectionInfo, FlowStatus, InputPort, InputShared, OutputPort,
+    OutputShared, connect_shared,
+};
+use serde_json::Value;
+use std::any::Any;
+use std::sync::Arc;
+
+/// Reads a port's data as dynamically typed values (made by [`DynPort::reader`]).
+pub trait DynReader: Send {
+    /// The next sample, as [`InputPort::read`] gives it, serialised.
+    fn read(&mut self) -> (FlowStatus, Option<Value>);
+}
+
+/// Writes dynamically typed values into an input port (made by [`DynPort::writer`]).
+pub trait DynWriter: Send {
+    /// Converts `value` to the port's type and writes it.
+    fn write(&mut self, value: Value) -> Result<(), IntrospectError>;
+}
+
+/// A port of any type and direction, reachable by name.
+pub trait DynPort: Send + Sync {
+    /// Name, doc, direction, type.
+    fn info(&self) -> PortInfo;
+    /// Live connections and their counters.
+    fn connections(&self) -> Vec<ConnectionInfo>;
+    /// An output port's last written value (`None` before the first write).
+    fn last_value(&self) -> Result<Option<Value>, IntrospectError>;
+    /// A new connection from this output port to a reader of serialised values.
+    fn reader(&self, policy: ConnPolicy) -> Result<Box<dyn DynReader>, IntrospectError>;
+    /// A new connection from a writer of serialised values to this input port.
+    fn writer(&self, policy: ConnPolicy) -> Result<Box<dyn DynWriter>, IntrospectError>;
+    /// Connects this output port to `input`.
+    fn connect_to(
+        &self,
+        input: &dyn DynPort,
+        policy: ConnPolicy,
+    ) -> Result<ConnectionInfo, IntrospectError>;
+    /// Closes connection `id`, or all with `None`; returns how many.
+    fn disconnect(&self, id: Option<u64>) -> usize;
+    /// For typed downcasts.
+    fn as_any(&self) -> &dyn Any;
+}
+
+/// An output port as the dynamic layer holds it.
+pub(crate) struct OutEntry<T: Send> {
+    pub(crate) shared: Arc<OutputShared<T>>,
+    pub(crate) doc: String,
+}
+
+/// An input port as the dynamic layer holds it.
+pub(crate) struct InEntry<T: Send> {
+    pub(crate) shared: Arc<InputShared<T>>,
+    pub(crate) doc: String,
+    pub(crate) sample: T,
+    pub(crate) event: bool,
+}
+
+fn direction_error(port: &str, actual: Direction, what: &'static str) -> IntrospectError {
+    let needed = match actual {
+        Direction::Input => Direction::Output,
+        Direction::Output => Direction::Input,
+    };
+    IntrospectError::Direction {
+        port: port.to_string(),
+        actual,
+        needed,
+        what,
+    }
+}
+
+struct ValueReader<T: Send> {
+    port: InputPort<T>,
+    sample: T,
+}
+
+impl<T: PortData> DynReader for ValueReader<T> {
+    fn read(&mut self) -> (FlowStatus, Option<Value>) {
+        match self.port.read(&mut self.sample) {
+            FlowStatus::NoData => (FlowStatus::NoData, None),
+            s => (s, serde_json::to_value(&self.sample).ok()),
+        }
+    }
+}
+
+struct ValueWriter<T: Send> {
+    port: OutputPort<T>,
+    what: String,
+}
+
+impl<T: PortData> DynWriter for ValueWriter<T> {
+    fn write(&mut self, value: Value) -> Result<(), IntrospectError> {
+        let v: T = serde_json::from_value(value).map_err(|e| IntrospectError::BadValue {
+            what: self.what.clone(),
+            expected: std::any::type_name::<T>().to_string(),
+            detail: e.to_string(),
+        })?;
+        self.port.write(&v);
+        Ok(())
+    }
+}
+
+impl<T: PortData> DynPort for OutEntry<T> {
+    fn info(&self) -> PortInfo {
+        PortInfo {
+            name: self.shared.name.to_string(),
+            doc: self.doc.clone(),
+            direction: Direction::Output,
+            type_name: std::any::type_name::<T>().to_string(),
+            event: false,
+        }
+    }
+
+    fn connections(&self) -> Vec<ConnectionInfo> {
+        self.shared.connections()
+    }
+
+    fn last_value(&self) -> Result<Option<Value>, IntrospectError> {
+        Ok(self
+            .shared
+            .last_written()
+            .and_then(|v| serde_json::to_value(&v).ok()))
+    }
+
+    fn reader(&self, policy: ConnPolicy) -> Result<Box<dyn DynReader>, IntrospectError> {
+        let sample = match self.shared.last_written() {
+            Some(v) => v,
+            None => self.shared.sample_clone(),
+        };
+        let port = InputPort::with_sample(&format!("{}.reader", self.shared.name), sample.clone());
+        connect_shared(&self.shared, port.shared(), policy)?;
+        Ok(Box::new(ValueReader { port, sample }))
+    }
+
+    fn writer(&self, _policy: ConnPolicy) -> Result<Box<dyn DynWriter>, IntrospectError> {
+        Err(direction_error(
+            &self.shared.name,
+            Direction::Output,
+            "writing",
+        ))
+    }
+
+    fn connect_to(
+        &self,
+        input: &dyn DynPort,
+        policy: ConnPolicy,
+    ) -> Result<ConnectionInfo, IntrospectError> {
+        match input.as_any().downcast_ref::<InEntry<T>>() {
+            Some(inp) => Ok(connect_shared(&self.shared, &inp.shared, policy)?),
+            None => {
+                let info = input.info();
+                if info.direction == Direction::Output {
+                    return Err(ConnectError::Direction {
+                        from: self.shared.name.to_string(),
+                        to: info.name,
+                    }
+                    .into());
+                }
+                Err(ConnectError::TypeMismatch {
+                    output: self.shared.name.to_string(),
+                    output_type: std::any::type_name::<T>().to_string(),
+                    input: info.name,
+                    input_type: info.type_name,
+                }
+                .into())
+            }
+        }
+    }
+
+    fn disconnect(&self, id: Option<u64>) -> usize {
+        self.shared.disconnect(id)
+    }
+
+    fn as_any(&self) -> &dyn Any {
+        self
+    }
+}
+
+impl<T: PortData> DynPort for InEntry<T> {
+    fn info(&self) -> PortInfo {
+        PortInfo {
+            name: self.shared.name.to_string(),
+            doc: self.doc.clone(),
+            direction: Direction::Input,
+            type_name: std::any::type_name::<T>().to_string(),
+            event: self.event,
+        }
+    }
+
+    fn connections(&self) -> Vec<ConnectionInfo> {
+        self.shared.connections()
+    }
+
+    fn last_value(&self) -> Result<Option<Value>, IntrospectError> {
+        Err(direction_error(
+            &self.shared.name,
+            Direction::Input,
+            "reading a last value",
+        ))
+    }
+
+    fn reader(&self, _policy: ConnPolicy) -> Result<Box<dyn DynReader>, IntrospectError> {
+        Err(direction_error(
+            &self.shared.name,
+            Direction::Input,
+            "watching",
+        ))
+    }
+
+    fn writer(&self, policy: ConnPolicy) -> Result<Box<dyn DynWriter>, IntrospectError> {
+        let port =
+            OutputPort::with_sample(&format!("{}.writer", self.shared.name), self.sample.clone());
+        connect_shared(port.shared(), &self.shared, policy)?;
+        Ok(Box::new(ValueWriter {
+            port,
+            what: format!("port {:?}", self.shared.name),
+        }))
+    }
+
+    fn connect_to(
+        &self,
+        input: &dyn DynPort,
+        _policy: ConnPolicy,
+    ) -> Result<ConnectionInfo, IntrospectError> {
+        Err(ConnectError::Direction {
+            from: self.shared.name.to_string(),
+            to: input.info().name,
+        }
+        .into())
+    }
+
+    fn disconnect(&self, id: Option<u64>) -> usize {
+        self.shared.disconnect(id)
+    }
+
+    fn as_any(&self) -> &dyn Any {
+        self
+    }
+}

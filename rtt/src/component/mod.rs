@@ -1,0 +1,669 @@
+//! Components: the [`Component`] hooks, the [`TaskContext`] that runs them through the RTT
+//! 2.x lifecycle, and the interface (ports, operations, properties, attributes) it exposes
+//! by name.
+//!
+//! ```text
+//!            configure            start
+//! PreOperational ──► Stopped ───────────► Running ◄──┐ recover
+//!        ▲  cleanup    ▲  ◄─────────────   │  error  │
+//!        └─────────────┘      stop         ▼         │
+//!                      ▲              RunTimeError ──┘
+//!            recover   │
+//!                  Exception ◄── a hook failed or panicked ──► FatalError (the exception
+//!                                                             handling itself panicked)
+//! ```
+//!
+//! `configure` and `start` hooks that return an error refuse the transition (the state
+//! stays); an `update` hook that returns an error, and any hook that panics, put the
+//! component in Exception (its stop hook runs if it was running). The panic is caught and
+//! reported; the process and the other components keep running.
+
+mod builder;
+mod dynport;
+mod lookup;
+
+pub use crate::error::{CallOrIntrospect, IntrospectError, LifecycleError, RuntimeError};
+pub use crate::info::{Direction, PortData, PortInfo};
+pub use crate::state::{InitialState, TaskState};
+pub use builder::InterfaceBuilder;
+pub use dynport::{DynPort, DynReader, DynWriter};
+
+use crate::activity::{
+    Activity, ActivityError, ActivitySpec, ActivityStats, FdEvents, Runner, StepTiming,
+};
+use crate::lock::lock;
+use crate::operation::{CallError, DynOperation, Engine, Message};
+use crate::property::PropertyBag;
+use crate::scope::ThreadScope;
+use crate::state::StateCell;
+use crossbeam_queue::SegQueue;
+use device_interface::Registry;
+use device_interface::time::{Clock, Timestamp};
+use serde::Serialize;
+use std::any::Any;
+use std::fmt;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, Weak};
+
+/// Why a hook failed: a message (any error converts into one).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct HookError(pub String);
+
+impl fmt::Display for HookError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl<E: std::error::Error> From<E> for HookError {
+    fn from(e: E) -> Self {
+        HookError(e.to_string())
+    }
+}
+
+impl HookError {
+    /// A hook error with `message`.
+    pub fn new(message: impl Into<String>) -> Self {
+        HookError(message.into())
+    }
+}
+
+/// What a hook returns.
+pub type HookResult = Result<(), HookError>;
+
+/// The hooks a component implements; every one has a default that does nothing.
+///
+/// `update_hook` runs on the component's activity thread and must keep the real-time
+/// contract: no blocking, no allocation.
+pub trait Component: Send + 'static {
+    /// PreOperational/Stopped → Stopped. An error keeps the state.
+    fn configure_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+        let _ = ctx;
+        Ok(())
+    }
+    /// Stopped → Running. An error keeps the state.
+    fn start_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+        let _ = ctx;
+        Ok(())
+    }
+    /// One step while Running. An error puts the component in Exception; call
+    /// [`Context::error`] instead to go to RunTimeError and keep stepping.
+    fn update_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+        let _ = ctx;
+        Ok(())
+    }
+    /// One step while in RunTimeError (instead of `update_hook`); call
+    /// [`Context::recover`] when the condition is gone.
+    fn error_hook(&mut self, ctx: &mut Context<'_>) {
+        let _ = ctx;
+    }
+    /// Running/RunTimeError → Stopped, and on the way into Exception.
+    fn stop_hook(&mut self, ctx: &mut Context<'_>) {
+        let _ = ctx;
+    }
+    /// Stopped → PreOperational.
+    fn cleanup_hook(&mut self, ctx: &mut Context<'_>) {
+        let _ = ctx;
+    }
+    /// On entering Exception.
+    fn exception_hook(&mut self, ctx: &mut Context<'_>) {
+        let _ = ctx;
+    }
+}
+
+trait ErasedComponent: Component {
+    fn as_any_mut(&mut self) -> &mut dyn Any;
+}
+
+impl<C: Component> ErasedComponent for C {
+    fn as_any_mut(&mut self) -> &mut dyn Any {
+        self
+    }
+}
+
+/// What a hook can see and ask for.
+pub struct Context<'a> {
+    core: &'a TaskCore,
+    events: &'a FdEvents,
+    timing: StepTiming,
+    error_requested: bool,
+    recover_requested: bool,
+}
+
+impl Context<'_> {
+    /// The component's name.
+    pub fn name(&self) -> &str {
+        &self.core.name
+    }
+
+    /// The component's state.
+    pub fn state(&self) -> TaskState {
+        self.core.state()
+    }
+
+    /// The device registry: look devices up by name here.
+    pub fn registry(&self) -> &Arc<Registry> {
+        &self.core.registry
+    }
+
+    /// The runtime's clock.
+    pub fn now(&self) -> Timestamp {
+        self.core.clock.now()
+    }
+
+    /// From `update_hook`: go to RunTimeError after this step (the error hook then runs
+    /// instead of update until [`recover`](Self::recover)).
+    pub fn error(&mut self) {
+        self.error_requested = true;
+    }
+
+    /// From `error_hook`: return to Running after this step.
+    pub fn recover(&mut self) {
+        self.recover_requested = true;
+    }
+
+    /// For a file-descriptor activity: which descriptors woke this step, or the timeout.
+    pub fn fd_events(&self) -> &FdEvents {
+        self.events
+    }
+
+    /// When this step was due and when it began (for a lifecycle hook: when it was called).
+    pub fn timing(&self) -> StepTiming {
+        self.timing
+    }
+
+    /// The component's activity (to watch file descriptors, read statistics).
+    pub fn activity(&self) -> &Activity {
+        &self.core.activity
+    }
+
+    /// Another component of the same runtime, by name (for configure-time wiring, as RTT
+    /// peers: a reporter connecting to the ports it records). Not for real-time paths.
+    pub fn peer(&self, name: &str) -> Result<TaskContext, IntrospectError> {
+        let peers = self.core.peers.upgrade();
+        let list = peers.as_ref().map(|p| lock(p).clone()).unwrap_or_default();
+        list.iter()
+            .find(|t| t.name() == name)
+            .cloned()
+            .ok_or_else(|| IntrospectError::NotFound {
+                component: self.core.name.clone(),
+                kind: "peer",
+                name: name.to_string(),
+                known: list.iter().map(|t| t.name().to_string()).collect(),
+            })
+    }
+}
+
+/// Error and step counters of a component.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct TaskCounters {
+    /// Times it went to RunTimeError.
+    pub runtime_errors: u64,
+    /// Times it went to Exception.
+    pub exceptions: u64,
+    /// Hooks that returned an error or panicked.
+    pub failed_hooks: u64,
+    /// The last failure message.
+    pub last_error: Option<String>,
+}
+
+pub(crate) struct TaskCore {
+    name: String,
+    state: StateCell,
+    component: Mutex<Box<dyn ErasedComponent>>,
+    queue: SegQueue<Message>,
+    activity: Activity,
+    ports: Vec<Arc<dyn DynPort>>,
+    operations: Vec<Arc<dyn DynOperation>>,
+    properties: PropertyBag,
+    attributes: PropertyBag,
+    registry: Arc<Registry>,
+    clock: Arc<dyn Clock>,
+    runtime_errors: AtomicU64,
+    exceptions: AtomicU64,
+    failed_hooks: AtomicU64,
+    last_error: Mutex<Option<String>>,
+    engine_thread: Mutex<Option<std::thread::ThreadId>>,
+    peers: Weak<Mutex<Vec<TaskContext>>>,
+}
+
+impl TaskCore {
+    fn state(&self) -> TaskState {
+        self.state.get()
+    }
+
+    fn set_state(&self, s: TaskState) {
+        self.state.set(s);
+    }
+
+    fn record_failure(&self, message: String) {
+        self.failed_hooks.fetch_add(1, Ordering::Relaxed);
+        *lock(&self.last_error) = Some(message);
+    }
+
+    /// Runs a hook with panics caught. `Ok(r)` or the panic message.
+    fn run_hook<R>(
+        &self,
+        comp: &mut dyn ErasedComponent,
+        events: &FdEvents,
+        timing: StepTiming,
+        f: impl FnOnce(&mut dyn ErasedComponent, &mut Context<'_>) -> R,
+    ) -> (Result<R, String>, bool, bool) {
+        let mut ctx = Context {
+            core: self,
+            events,
+            timing,
+            error_requested: false,
+            recover_requested: false,
+        };
+        let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(comp, &mut ctx)))
+            .map_err(|p| {
+                p.downcast_ref::<&str>()
+                    .map(|s| s.to_string())
+                    .or_else(|| p.downcast_ref::<String>().cloned())
+                    .unwrap_or_else(|| "(no message)".into())
+            });
+        (r, ctx.error_requested, ctx.recover_requested)
+    }
+
+    /// Enters Exception from any state: exception hook, then the stop hook if it was
+    /// running. A panic in either goes to FatalError.
+    fn enter_exception(&self, comp: &mut dyn ErasedComponent, reason: String) -> TaskState {
+        let was_running = matches!(self.state(), TaskState::Running | TaskState::RunTimeError);
+        tracing::error!(component = %self.name, "entering Exception: {reason}");
+        self.record_failure(reason);
+        self.exceptions.fetch_add(1, Ordering::Relaxed);
+        self.set_state(TaskState::Exception);
+        self.activity.stop();
+        let events = FdEvents::default();
+        let timing = StepTiming::default();
+        let (r, _, _) = self.run_hook(comp, &events, timing, |c, ctx| c.exception_hook(ctx));
+        let r = r.and_then(|()| {
+            if was_running {
+                self.run_hook(comp, &events, timing, |c, ctx| c.stop_hook(ctx))
+                    .0
+            } else {
+                Ok(())
+            }
+        });
+        if let Err(msg) = r {
+            tracing::error!(component = %self.name, "handling the exception panicked: {msg}; FatalError");
+            self.record_failure(msg);
+            self.set_state(TaskState::FatalError);
+        }
+        self.drain_queue();
+        self.state()
+    }
+
+    /// Drops queued OwnThread calls: their callers get `Cancelled`.
+    fn drain_queue(&self) {
+        while self.queue.pop().is_some() {}
+    }
+
+    fn step(&self, events: &FdEvents, timing: StepTiming) {
+        let mut guard = lock(&self.component);
+        let comp: &mut dyn ErasedComponent = &mut **guard;
+        while let Some(msg) = self.queue.pop() {
+            msg(comp.as_any_mut());
+        }
+        match self.state() {
+            TaskState::Running => {
+                let (r, error, _) =
+                    self.run_hook(comp, events, timing, |c, ctx| c.update_hook(ctx));
+                match r {
+                    Ok(Ok(())) if error => {
+                        self.runtime_errors.fetch_add(1, Ordering::Relaxed);
+                        self.set_state(TaskState::RunTimeError);
+                    }
+                    Ok(Ok(())) => {}
+                    Ok(Err(e)) => {
+                        self.enter_exception(comp, format!("update failed: {e}"));
+                    }
+                    Err(panic) => {
+                        self.enter_exception(comp, format!("update panicked: {panic}"));
+                    }
+                }
+            }
+            TaskState::RunTimeError => {
+                let (r, _, recover) =
+                    self.run_hook(comp, events, timing, |c, ctx| c.error_hook(ctx));
+                match r {
+                    Ok(()) if recover => self.set_state(TaskState::Running),
+                    Ok(()) => {}
+                    Err(panic) => {
+                        self.enter_exception(comp, format!("error hook panicked: {panic}"));
+                    }
+                }
+            }
+            _ => {}
+        }
+    }
+}
+
+impl Engine for TaskCore {
+    fn submit(&self, operation: &str, msg: Message) -> Result<(), CallError> {
+        let state = self.state();
+        if !self.activity.is_running()
+            || !matches!(state, TaskState::Running | TaskState::RunTimeError)
+        {
+            return Err(CallError::NotRunning {
+                operation: operation.to_string(),
+                component: self.name.clone(),
+                state: state.to_string(),
+            });
+        }
+        if *lock(&self.engine_thread) == Some(std::thread::current().id()) {
+            return Err(CallError::Reentrant {
+                operation: operation.to_string(),
+            });
+        }
+        self.queue.push(msg);
+        self.activity.trigger();
+        Ok(())
+    }
+}
+
+/// Steps a component's engine. An activity's runner notes its thread at the first step,
+/// so an OwnThread call from that thread is refused, not dead-locked; a slave's runner
+/// (stepped from whatever thread calls `step`) notes nothing.
+struct EngineRunner {
+    core: Weak<TaskCore>,
+    /// True until the engine thread is noted (activity runners only).
+    note_thread: AtomicBool,
+}
+
+impl EngineRunner {
+    fn new(core: &Arc<TaskCore>, note_thread: bool) -> Self {
+        EngineRunner {
+            core: Arc::downgrade(core),
+            note_thread: AtomicBool::new(note_thread),
+        }
+    }
+}
+
+impl Runner for EngineRunner {
+    fn step(&self, events: &FdEvents, timing: StepTiming) {
+        let Some(core) = self.core.upgrade() else {
+            return;
+        };
+        if self.note_thread.swap(false, Ordering::Relaxed) {
+            *lock(&core.engine_thread) = Some(std::thread::current().id());
+        }
+        core.step(events, timing);
+    }
+}
+
+/// A component in the runtime: its lifecycle, activity and interface. Cheap to clone;
+/// every clone is the same component.
+#[derive(Clone)]
+pub struct TaskContext {
+    core: Arc<TaskCore>,
+}
+
+impl fmt::Debug for TaskContext {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "TaskContext({:?}, {})",
+            self.core.name,
+            self.core.state()
+        )
+    }
+}
+
+/// Everything needed to build a [`TaskContext`] besides the component.
+pub(crate) struct TaskSetup {
+    pub(crate) registry: Arc<Registry>,
+    pub(crate) clock: Arc<dyn Clock>,
+    pub(crate) scope: Arc<ThreadScope>,
+    pub(crate) thread_number: Box<dyn FnOnce() -> u32>,
+    /// The runtime's components, weakly: a component must not keep its runtime alive.
+    pub(crate) peers: Weak<Mutex<Vec<TaskContext>>>,
+}
+
+impl TaskContext {
+    pub(crate) fn build<C: Component>(
+        name: &str,
+        spec: ActivitySpec,
+        initial: InitialState,
+        setup: TaskSetup,
+        build: impl FnOnce(&mut InterfaceBuilder<C>) -> Result<C, IntrospectError>,
+    ) -> Result<TaskContext, RuntimeError> {
+        let activity =
+            Activity::new(spec, name, setup.scope, setup.thread_number).map_err(|e| {
+                RuntimeError::Activity {
+                    component: name.to_string(),
+                    source: Arc::new(e),
+                }
+            })?;
+        let waker = activity.waker();
+        let mut build_result = None;
+        let core = Arc::new_cyclic(|weak: &Weak<TaskCore>| {
+            let engine: Weak<dyn Engine> = weak.clone();
+            let mut iface = InterfaceBuilder::new(name, engine, waker, setup.registry.clone());
+            let component: Box<dyn ErasedComponent> = match build(&mut iface) {
+                Ok(c) => Box::new(c),
+                Err(e) => {
+                    build_result = Some(e);
+                    Box::new(Placeholder)
+                }
+            };
+            let iface = iface.into_parts();
+            TaskCore {
+                name: name.to_string(),
+                state: StateCell::new(TaskState::Init),
+                component: Mutex::new(component),
+                queue: SegQueue::new(),
+                activity,
+                ports: iface.ports,
+                operations: iface.operations,
+                properties: iface.properties,
+                attributes: iface.attributes,
+                registry: setup.registry,
+                clock: setup.clock,
+                runtime_errors: AtomicU64::new(0),
+                exceptions: AtomicU64::new(0),
+                failed_hooks: AtomicU64::new(0),
+                last_error: Mutex::new(None),
+                engine_thread: Mutex::new(None),
+                peers: setup.peers,
+            }
+        });
+        if let Some(e) = build_result {
+            return Err(RuntimeError::Build {
+                component: name.to_string(),
+                source: e,
+            });
+        }
+        core.set_state(initial.into());
+        Ok(TaskContext { core })
+    }
+
+    /// The component's name.
+    pub fn name(&self) -> &str {
+        &self.core.name
+    }
+
+    /// The lifecycle state.
+    pub fn state(&self) -> TaskState {
+        self.core.state()
+    }
+
+    fn illegal(&self, command: &'static str) -> LifecycleError {
+        LifecycleError::Illegal {
+            component: self.core.name.clone(),
+            command,
+            state: self.state(),
+        }
+    }
+
+    /// Runs a transition hook under the component lock; a panic enters Exception.
+    fn hook(
+        &self,
+        command: &'static str,
+        allowed: &[TaskState],
+        hook: &'static str,
+        f: impl FnOnce(&mut dyn ErasedComponent, &mut Context<'_>) -> HookResult,
+        success: TaskState,
+    ) -> Result<(), LifecycleError> {
+        let mut guard = lock(&self.core.component);
+        if !allowed.contains(&self.state()) {
+            return Err(self.illegal(command));
+        }
+        let comp: &mut dyn ErasedComponent = &mut **guard;
+        match self
+            .core
+            .run_hook(comp, &FdEvents::default(), StepTiming::default(), f)
+            .0
+        {
+            Ok(Ok(())) => {
+                self.core.set_state(success);
+                Ok(())
+            }
+            Ok(Err(e)) => {
+                self.core.record_failure(format!("{hook} failed: {e}"));
+                Err(LifecycleError::HookFailed {
+                    component: self.core.name.clone(),
+                    hook,
+                    message: e.0,
+                })
+            }
+            Err(panic) => {
+                let state = self
+                    .core
+                    .enter_exception(comp, format!("{hook} panicked: {panic}"));
+                Err(LifecycleError::HookPanicked {
+                    component: self.core.name.clone(),
+                    hook,
+                    message: panic,
+                    state,
+                })
+            }
+        }
+    }
+
+    /// PreOperational or Stopped → Stopped, via the configure hook.
+    pub fn configure(&self) -> Result<(), LifecycleError> {
+        self.hook(
+            "configure",
+            &[TaskState::PreOperational, TaskState::Stopped],
+            "configure_hook",
+            |c, ctx| c.configure_hook(ctx),
+            TaskState::Stopped,
+        )
+    }
+
+    /// Stopped → Running: the start hook, then the activity starts.
+    pub fn start(&self) -> Result<(), LifecycleError> {
+        self.hook(
+            "start",
+            &[TaskState::Stopped],
+            "start_hook",
+            |c, ctx| c.start_hook(ctx),
+            TaskState::Running,
+        )?;
+        let runner: Arc<dyn Runner> = Arc::new(EngineRunner::new(&self.core, true));
+        if let Err(e) = self.core.activity.start(runner) {
+            self.core.set_state(TaskState::Stopped);
+            return Err(LifecycleError::Activity {
+                component: self.core.name.clone(),
+                source: Arc::new(e),
+            });
+        }
+        Ok(())
+    }
+
+    /// Running or RunTimeError → Stopped: the activity stops (pending OwnThread calls are
+    /// cancelled), then the stop hook runs.
+    pub fn stop(&self) -> Result<(), LifecycleError> {
+        if !matches!(self.state(), TaskState::Running | TaskState::RunTimeError) {
+            return Err(self.illegal("stop"));
+        }
+        // Stop the thread first, without holding the component: its step needs it.
+        self.core.activity.stop();
+        *lock(&self.core.engine_thread) = None;
+        self.core.drain_queue();
+        self.hook(
+            "stop",
+            &[TaskState::Running, TaskState::RunTimeError],
+            "stop_hook",
+            |c, ctx| {
+                c.stop_hook(ctx);
+                Ok(())
+            },
+            TaskState::Stopped,
+        )
+    }
+
+    /// Stopped → PreOperational, via the cleanup hook.
+    pub fn cleanup(&self) -> Result<(), LifecycleError> {
+        self.hook(
+            "cleanup",
+            &[TaskState::Stopped],
+            "cleanup_hook",
+            |c, ctx| {
+                c.cleanup_hook(ctx);
+                Ok(())
+            },
+            TaskState::PreOperational,
+        )
+    }
+
+    /// RunTimeError → Running; Exception → Stopped.
+    pub fn recover(&self) -> Result<(), LifecycleError> {
+        let _guard = lock(&self.core.component);
+        match self.state() {
+            TaskState::RunTimeError => self.core.set_state(TaskState::Running),
+            TaskState::Exception => self.core.set_state(TaskState::Stopped),
+            _ => return Err(self.illegal("recover")),
+        }
+        Ok(())
+    }
+
+    /// Running → RunTimeError, from outside the component.
+    pub fn error(&self) -> Result<(), LifecycleError> {
+        let _guard = lock(&self.core.component);
+        if self.state() != TaskState::Running {
+            return Err(self.illegal("error"));
+        }
+        self.core.runtime_errors.fetch_add(1, Ordering::Relaxed);
+        self.core.set_state(TaskState::RunTimeError);
+        Ok(())
+    }
+
+    /// Asks a non-periodic or file-descriptor activity for a step.
+    pub fn trigger(&self) {
+        self.core.activity.trigger();
+    }
+
+    /// One step on the calling thread: queued OwnThread calls, then update (or error).
+    /// Slave activities only; stepping a stopped component runs only the queue.
+    pub fn step(&self) -> Result<(), ActivityError> {
+        let runner = EngineRunner::new(&self.core, false);
+        self.core.activity.step_slave(&runner)
+    }
+
+    /// The activity.
+    pub fn activity(&self) -> &Activity {
+        &self.core.activity
+    }
+
+    /// The activity's statistics.
+    pub fn stats(&self) -> ActivityStats {
+        self.core.activity.stats()
+    }
+
+    /// Error counters and the last error.
+    pub fn counters(&self) -> TaskCounters {
+        TaskCounters {
+            runtime_errors: self.core.runtime_errors.load(Ordering::Relaxed),
+            exceptions: self.core.exceptions.load(Ordering::Relaxed),
+            failed_hooks: self.core.failed_hooks.load(Ordering::Relaxed),
+            last_error: lock(&self.core.last_error).clone(),
+        }
+    }
+}
+
+/// Stands in for a component whose constructor failed (never runs).
+struct Placeholder;
+impl Component for Placeholder {}

@@ -1,0 +1,172 @@
+//! The runtime's errors: building components, lifecycle commands, lookups by name.
+
+use crate::activity::ActivityError;
+use crate::info::Direction;
+use crate::operation::CallError;
+use crate::port::ConnectError;
+use crate::property::PropertyError;
+use crate::state::TaskState;
+use device_interface::RegistryError;
+use std::sync::Arc;
+
+/// Why the runtime could not do what was asked.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum RuntimeError {
+    /// ThreadScope is on but no DigitalOut is registered as "ThreadScope".
+    #[error("ThreadScope is on, but {0}")]
+    ThreadScope(#[source] RegistryError),
+    /// Two components with one name.
+    #[error("a component named {0:?} already exists")]
+    Duplicate(String),
+    /// No component of that name.
+    #[error("no component named {name:?}; there are: {}", if .known.is_empty() { "none".to_string() } else { .known.join(", ") })]
+    NotFound {
+        /// The name asked for.
+        name: String,
+        /// The components that exist.
+        known: Vec<String>,
+    },
+    /// The component's activity could not be made.
+    #[error("component {component:?}: {source}")]
+    Activity {
+        /// The component.
+        component: String,
+        /// Why.
+        #[source]
+        source: Arc<ActivityError>,
+    },
+    /// The component's constructor failed.
+    #[error("component {component:?}: {source}")]
+    Build {
+        /// The component.
+        component: String,
+        /// Why.
+        #[source]
+        source: IntrospectError,
+    },
+}
+
+/// Why a lifecycle command was refused.
+#[derive(Debug, Clone, thiserror::Error)]
+#[non_exhaustive]
+pub enum LifecycleError {
+    /// The command is not allowed in the current state.
+    #[error("component {component:?}: cannot {command} in state {state}")]
+    Illegal {
+        /// The component.
+        component: String,
+        /// The command.
+        command: &'static str,
+        /// The state it is in.
+        state: TaskState,
+    },
+    /// The hook returned an error; the state did not change.
+    #[error("component {component:?}: {hook} failed: {message}")]
+    HookFailed {
+        /// The component.
+        component: String,
+        /// The hook.
+        hook: &'static str,
+        /// Its error.
+        message: String,
+    },
+    /// The hook panicked; the component went to Exception (or FatalError).
+    #[error("component {component:?}: {hook} panicked: {message}; now in {state}")]
+    HookPanicked {
+        /// The component.
+        component: String,
+        /// The hook.
+        hook: &'static str,
+        /// The panic message.
+        message: String,
+        /// The state it ended in.
+        state: TaskState,
+    },
+    /// The activity could not start.
+    #[error("component {component:?}: {source}")]
+    Activity {
+        /// The component.
+        component: String,
+        /// The activity error.
+        #[source]
+        source: Arc<ActivityError>,
+    },
+}
+
+/// Why something was not found or did not fit in a component's interface.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
+pub enum IntrospectError {
+    /// No such port, operation or component.
+    #[error("{component:?} has no {kind} {name:?}; it has: {}", if .known.is_empty() { "none".to_string() } else { .known.join(", ") })]
+    NotFound {
+        /// The component (or "runtime").
+        component: String,
+        /// "port", "operation", "component".
+        kind: &'static str,
+        /// The name asked for.
+        name: String,
+        /// The names that exist.
+        known: Vec<String>,
+    },
+    /// A name used twice in one interface.
+    #[error("{component:?} already has a {kind} named {name:?}")]
+    Duplicate {
+        /// The component.
+        component: String,
+        /// "port", "operation".
+        kind: &'static str,
+        /// The name.
+        name: String,
+    },
+    /// A typed lookup with the wrong types.
+    #[error("{what} is {actual}, not {asked}")]
+    WrongType {
+        /// What was looked up.
+        what: String,
+        /// Its actual type.
+        actual: String,
+        /// The type asked for.
+        asked: String,
+    },
+    /// A dynamically typed value that does not fit.
+    #[error("{what}: expected {expected}: {detail}")]
+    BadValue {
+        /// What was written.
+        what: String,
+        /// The expected type.
+        expected: String,
+        /// What was wrong.
+        detail: String,
+    },
+    /// An operation on a port of the wrong direction.
+    #[error("port {port:?} is an {actual} port; {what} needs an {needed} port")]
+    Direction {
+        /// The port.
+        port: String,
+        /// Its direction.
+        actual: Direction,
+        /// The direction needed.
+        needed: Direction,
+        /// What was attempted.
+        what: &'static str,
+    },
+    /// Connecting failed.
+    #[error(transparent)]
+    Connect(#[from] ConnectError),
+    /// A property could not be added, found or set.
+    #[error(transparent)]
+    Property(#[from] PropertyError),
+}
+
+/// Either a lookup or a call failed.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum CallOrIntrospect {
+    /// The lookup failed.
+    #[error(transparent)]
+    Introspect(#[from] IntrospectError),
+    /// The call failed.
+    #[error(transparent)]
+    Call(#[from] CallError),
+}
