@@ -518,6 +518,34 @@ impl Registry {
         out
     }
 
+    /// Makes `alias` another name, under `interface`, for the device registered there as
+    /// `target` (see [`NameServer::alias`]).
+    pub fn alias(
+        &self,
+        interface: Interface,
+        alias: &str,
+        target: &str,
+    ) -> Result<(), RegistryError> {
+        match interface {
+            Interface::AnalogIn => self.analog_in.alias(alias, target),
+            Interface::AnalogOut => self.analog_out.alias(alias, target),
+            Interface::DigitalIn => self.digital_in.alias(alias, target),
+            Interface::DigitalOut => self.digital_out.alias(alias, target),
+            Interface::Encoder => self.encoder.alias(alias, target),
+        }
+    }
+
+    /// The health of the device named `name` under `interface`, if there is one.
+    pub fn health(&self, interface: Interface, name: &str) -> Option<crate::Health> {
+        match interface {
+            Interface::AnalogIn => self.analog_in.get(name).map(|d| d.health()),
+            Interface::AnalogOut => self.analog_out.get(name).map(|d| d.health()),
+            Interface::DigitalIn => self.digital_in.get(name).map(|d| d.health()),
+            Interface::DigitalOut => self.digital_out.get(name).map(|d| d.health()),
+            Interface::Encoder => self.encoder.get(name).map(|d| d.health()),
+        }
+    }
+
     /// Every name under every interface, by interface then name.
     pub fn entries(&self) -> Vec<RegistryEntry> {
         let per = [

@@ -2,10 +2,10 @@
 //! running gateway. A user's own binary with extra component types is
 //! `fn main() -> ExitCode { hwgw::cli::main(my_types) }`.
 
-use crate::components::ComponentTypes;
 use crate::config::Deployment;
 use crate::control::{self, ControlServer};
 use crate::deploy::Gateway;
+use crate::types::Types;
 use clap::{Parser, Subcommand};
 use nix::sys::signal::{SigSet, Signal};
 use sd_notify::NotifyState;
@@ -173,7 +173,7 @@ fn watchdog(
 }
 
 /// Runs the command line with component `types` available to deployments.
-pub fn main(types: ComponentTypes) -> ExitCode {
+pub fn main(types: Types) -> ExitCode {
     init_logging();
     let cli = Cli::parse();
     let (socket, req) = match cli.command {
@@ -343,10 +343,7 @@ fn load(config: Option<&PathBuf>) -> Result<(Deployment, String, String), String
     }
 }
 
-fn build(
-    config: Option<&PathBuf>,
-    types: &ComponentTypes,
-) -> Result<(Gateway, Deployment), String> {
+fn build(config: Option<&PathBuf>, types: &Types) -> Result<(Gateway, Deployment), String> {
     let (d, text, file) = load(config)?;
     let gw = Gateway::build(&d, &file, &text, types).map_err(|problems| {
         problems
@@ -358,7 +355,7 @@ fn build(
     Ok((gw, d))
 }
 
-fn check(config: PathBuf, types: &ComponentTypes) -> ExitCode {
+fn check(config: PathBuf, types: &Types) -> ExitCode {
     match build(Some(&config), types) {
         Ok((gw, _)) => {
             print!("{}", gw.summary());
@@ -372,7 +369,7 @@ fn check(config: PathBuf, types: &ComponentTypes) -> ExitCode {
     }
 }
 
-fn run(config: Option<PathBuf>, socket: Option<PathBuf>, types: &ComponentTypes) -> ExitCode {
+fn run(config: Option<PathBuf>, socket: Option<PathBuf>, types: &Types) -> ExitCode {
     // Signals are taken by sigwait below: block them before any thread exists, so every
     // thread inherits the mask and none is interrupted.
     let mut signals = SigSet::empty();

@@ -1,10 +1,12 @@
 //! The deployment file: cards, aliases, ThreadScope, components and connections, in TOML.
 //!
 //! Parsing is strict — unknown keys are errors — and every error names the file, line,
-//! column and key path and says what was expected.
+//! column and key path and says what was expected. A card's driver section
+//! (`[card.<driver>]`) is kept as written here and parsed by its driver when the gateway is
+//! built, so drivers from other crates bring their own section types.
 //! [`Gateway::build`](crate::deploy::Gateway::build) then validates what the types cannot:
-//! unique names, known drivers and component types, properties, connection ends that
-//! exist — with the same locations.
+//! unique names, known drivers and component types, driver sections, properties,
+//! connection ends that exist — with the same locations.
 //!
 //! ```
 //! use hwgw::config::Deployment;
@@ -27,9 +29,14 @@
 //! # Ok::<(), hwgw::config::ConfigError>(())
 //! ```
 
-use driver_sim::SimConfig;
+pub use crate::problems::{Location, Problem};
+pub use driver_api::ChannelNames;
+
+use crate::problems::Source;
 use rtt::port::ConnPolicy;
 use serde::Deserialize;
+use serde::de::{self, MapAccess, Visitor};
+use std::collections::BTreeMap;
 use std::fmt;
 use std::path::Path;
 use std::time::Duration;
@@ -62,154 +69,110 @@ pub struct Deployment {
     pub connections: Vec<ConnectionConfig>,
     /// Serve chosen devices as a Modbus TCP register table (off when absent).
     #[serde(default)]
-    pub modbus_server: Option<ModbusServerConfig>,
-}
-
-/// hwgw as a Modbus TCP server.
-#[derive(Debug, Clone, PartialEq, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ModbusServerConfig {
-    /// `address:port` to listen on (e.g. 127.0.0.1:5502; 0.0.0.0 only on purpose).
-    pub listen: String,
-    /// The register table.
-    #[serde(default, rename = "register")]
-    pub registers: Vec<ServedRegister>,
-}
-
-/// One entry of the served register table.
-#[derive(Debug, Clone, PartialEq, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ServedRegister {
-    /// The table: input_registers, holding_registers, discrete_inputs or coils.
-    pub table: driver_modbus::plan::Table,
-    /// First address (0-based).
-    pub address: u16,
-    /// The device's registry name.
-    pub device: String,
-    /// Which of its interfaces.
-    pub interface: AliasInterface,
-    /// Channel (or bit).
-    #[serde(default)]
-    pub channel: u32,
-    /// Register type (default u16).
-    #[serde(default, rename = "type")]
-    pub ty: driver_modbus::codec::ValueType,
-    /// Word order.
-    #[serde(default)]
-    pub words: driver_modbus::codec::WordOrder,
-    /// Byte order.
-    #[serde(default)]
-    pub bytes: driver_modbus::codec::ByteOrder,
-    /// Register value = (physical - offset) / scale (default 1).
-    #[serde(default = "one_f64")]
-    pub scale: f64,
-    /// See `scale`.
-    #[serde(default)]
-    pub offset: f64,
-}
-
-fn one_f64() -> f64 {
-    1.0
+    pub modbus_server: Option<driver_modbus::served::ServerConfig>,
 }
 
 /// One IO card: a driver and its section.
-#[derive(Debug, Clone, PartialEq, Deserialize)]
-#[serde(deny_unknown_fields)]
+///
+/// Besides the keys below a card has exactly one more: its driver's section,
+/// `[card.<driver>]`, kept in [`sections`](Self::sections) as written.
+#[derive(Debug, Clone, PartialEq)]
 pub struct CardConfig {
     /// The card's name: its devices are registered under it.
     pub name: String,
-    /// Which driver runs it: "sim", "modbus" or "socketcan".
+    /// Which driver runs it: one of the driver types of the build ("sim", "modbus",
+    /// "socketcan", or a user's).
     pub driver: String,
     /// Period of the card's bus cycle, ms.
-    #[serde(default = "default_card_period")]
     pub period_ms: f64,
     /// Period at which IO components sample the card's inputs into ports, ms (default: the
     /// card's period).
-    #[serde(default)]
     pub sample_period_ms: Option<f64>,
     /// Analog output values to drive when the gateway stops (default: each channel's
     /// initial value).
-    #[serde(default)]
     pub safe_analog_out: Option<Vec<f64>>,
     /// Digital outputs to leave on when the gateway stops (default: all off).
-    #[serde(default)]
     pub safe_digital_out_on: Vec<u32>,
-    /// Where the card's own activity thread runs (the sim card's cycle, the CAN bus
-    /// component): `{ policy = "fifo", priority = 60, cpus = [1] }`; default SCHED_OTHER.
-    #[serde(default)]
+    /// Where the card's own activity thread runs (its bus component):
+    /// `{ policy = "fifo", priority = 60, cpus = [1] }`; default SCHED_OTHER.
     pub thread: rtt::ThreadOptions,
     /// Names for the card's channels: the IO components' ports are called by them
-    /// (unnamed channels keep `ch0…`/`bit0…`).
-    #[serde(default)]
+    /// (unnamed channels keep `ch0…`/`bit0…`, or the driver's names).
     pub names: ChannelNames,
-    /// The sim driver's section.
-    #[serde(default)]
-    pub sim: Option<toml::Spanned<SimConfig>>,
-    /// The modbus driver's section: the line, the unit, timing and the register map.
-    #[serde(default)]
-    pub modbus: Option<toml::Spanned<driver_modbus::config::ModbusConfig>>,
-    /// The socketcan driver's section: the interface, a DBC file, rx and tx frames.
-    #[serde(default)]
-    pub socketcan: Option<toml::Spanned<driver_can::map::CanConfig>>,
+    /// Every other key of the card, as written: its driver's section (`sim = {…}`,
+    /// `[card.modbus]`), and anything else, which the build refuses.
+    pub sections: BTreeMap<String, toml::Value>,
 }
 
-/// Port names for a card's channels, in channel order.
-#[derive(Debug, Clone, Default, PartialEq, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ChannelNames {
-    /// Analog inputs.
-    #[serde(default)]
-    pub analog_in: Vec<String>,
-    /// Analog outputs.
-    #[serde(default)]
-    pub analog_out: Vec<String>,
-    /// Digital inputs.
-    #[serde(default)]
-    pub digital_in: Vec<String>,
-    /// Digital outputs.
-    #[serde(default)]
-    pub digital_out: Vec<String>,
+/// The keys of a card besides its driver section.
+pub const CARD_KEYS: [&str; 8] = [
+    "name",
+    "driver",
+    "period_ms",
+    "sample_period_ms",
+    "safe_analog_out",
+    "safe_digital_out_on",
+    "thread",
+    "names",
+];
+
+impl<'de> Deserialize<'de> for CardConfig {
+    fn deserialize<D: de::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        d.deserialize_map(CardVisitor)
+    }
 }
 
-impl ChannelNames {
-    /// The port name of channel `i` of a list: its given name, else `prefix{i}`.
-    pub fn port(names: &[String], prefix: &str, i: u32) -> String {
-        names
-            .get(i as usize)
-            .cloned()
-            .unwrap_or_else(|| format!("{prefix}{i}"))
+struct CardVisitor;
+
+/// Sets a field once; a key given twice is an error.
+fn once<T, E: de::Error>(slot: &mut Option<T>, key: &'static str, value: T) -> Result<(), E> {
+    if slot.is_some() {
+        return Err(E::duplicate_field(key));
+    }
+    *slot = Some(value);
+    Ok(())
+}
+
+impl<'de> Visitor<'de> for CardVisitor {
+    type Value = CardConfig;
+
+    fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str("a card table")
     }
 
-    /// Checks the names against the card's channel counts: not more names than channels,
-    /// no empty names, no dots (they separate component and port), no duplicates.
-    /// Errors are (key path under the card, message).
-    pub fn check(&self, counts: [u32; 4]) -> Result<(), (String, String)> {
-        let lists = [
-            ("analog_in", &self.analog_in),
-            ("analog_out", &self.analog_out),
-            ("digital_in", &self.digital_in),
-            ("digital_out", &self.digital_out),
-        ];
-        for ((key, names), count) in lists.into_iter().zip(counts) {
-            if names.len() > count as usize {
-                return Err((
-                    format!("names.{key}"),
-                    format!("{} names for {count} channels", names.len()),
-                ));
-            }
-            for (i, n) in names.iter().enumerate() {
-                if n.is_empty() || n.contains('.') || n.chars().any(char::is_whitespace) {
-                    return Err((
-                        format!("names.{key}[{i}]"),
-                        format!("{n:?} is not a port name (no dots, no spaces, not empty)"),
-                    ));
+    fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<CardConfig, A::Error> {
+        let (mut name, mut driver, mut period, mut sample) = (None, None, None, None);
+        let (mut safe_ao, mut safe_do, mut thread, mut names) = (None, None, None, None);
+        let mut sections = BTreeMap::new();
+        while let Some(key) = map.next_key::<String>()? {
+            match key.as_str() {
+                "name" => once(&mut name, "name", map.next_value()?)?,
+                "driver" => once(&mut driver, "driver", map.next_value()?)?,
+                "period_ms" => once(&mut period, "period_ms", map.next_value()?)?,
+                "sample_period_ms" => once(&mut sample, "sample_period_ms", map.next_value()?)?,
+                "safe_analog_out" => once(&mut safe_ao, "safe_analog_out", map.next_value()?)?,
+                "safe_digital_out_on" => {
+                    once(&mut safe_do, "safe_digital_out_on", map.next_value()?)?
                 }
-                if names[..i].contains(n) {
-                    return Err((format!("names.{key}[{i}]"), format!("{n:?} is used twice")));
+                "thread" => once(&mut thread, "thread", map.next_value()?)?,
+                "names" => once(&mut names, "names", map.next_value()?)?,
+                _ => {
+                    let value: toml::Value = map.next_value()?;
+                    sections.insert(key, value);
                 }
             }
         }
-        Ok(())
+        Ok(CardConfig {
+            name: name.ok_or_else(|| de::Error::missing_field("name"))?,
+            driver: driver.ok_or_else(|| de::Error::missing_field("driver"))?,
+            period_ms: period.unwrap_or_else(default_card_period),
+            sample_period_ms: sample,
+            safe_analog_out: safe_ao,
+            safe_digital_out_on: safe_do.unwrap_or_default(),
+            thread: thread.unwrap_or_default(),
+            names: names.unwrap_or_default(),
+            sections,
+        })
     }
 }
 
@@ -217,28 +180,12 @@ fn default_card_period() -> f64 {
     10.0
 }
 
-/// A device interface, by name (for aliases and the served register table).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum AliasInterface {
-    /// AnalogIn.
-    AnalogIn,
-    /// AnalogOut.
-    AnalogOut,
-    /// DigitalIn.
-    DigitalIn,
-    /// DigitalOut.
-    DigitalOut,
-    /// Encoder.
-    Encoder,
-}
-
 /// Another name for a registered device.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct AliasConfig {
     /// The interface.
-    pub interface: AliasInterface,
+    pub interface: device_interface::Interface,
     /// The new name.
     pub name: String,
     /// The device it stands for.
@@ -343,59 +290,6 @@ pub fn split_port(address: &str) -> Option<(&str, &str)> {
         .filter(|(c, p)| !c.is_empty() && !p.is_empty())
 }
 
-/// Where in a file something is.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Location {
-    /// The file.
-    pub file: String,
-    /// Line, from 1.
-    pub line: usize,
-    /// Column, from 1.
-    pub column: usize,
-}
-
-impl fmt::Display for Location {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "{}:{}:{}", self.file, self.line, self.column)
-    }
-}
-
-/// Line and column (from 1) of byte `offset` in `text`.
-pub fn locate(file: &str, text: &str, offset: usize) -> Location {
-    let before = &text[..offset.min(text.len())];
-    let line = before.matches('\n').count() + 1;
-    let column = before.rsplit('\n').next().map_or(0, |l| l.chars().count()) + 1;
-    Location {
-        file: file.to_string(),
-        line,
-        column,
-    }
-}
-
-/// One problem in a deployment file.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Problem {
-    /// Where, when known.
-    pub location: Option<Location>,
-    /// Key path, e.g. `card[0].sim.analog_in[1].range`.
-    pub path: String,
-    /// What is wrong and what was expected.
-    pub message: String,
-}
-
-impl fmt::Display for Problem {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        if let Some(l) = &self.location {
-            write!(f, "{l}: ")?;
-        }
-        if self.path.is_empty() {
-            write!(f, "{}", self.message)
-        } else {
-            write!(f, "{}: {}", self.path, self.message)
-        }
-    }
-}
-
 /// Why a deployment file was refused: every problem found.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum ConfigError {
@@ -436,9 +330,12 @@ impl Deployment {
 
     /// Parses deployment `text`, naming it `file` in errors.
     pub fn parse(text: &str, file: &str) -> Result<Deployment, ConfigError> {
+        let source = Source::new(file, text);
+        let locate =
+            |span: Option<std::ops::Range<usize>>| span.map(|s| source.locate_offset(s.start));
         let de = toml::de::Deserializer::parse(text).map_err(|e| {
             ConfigError::Invalid(vec![Problem {
-                location: e.span().map(|s| locate(file, text, s.start)),
+                location: locate(e.span()),
                 path: String::new(),
                 message: e.message().trim().to_string(),
             }])
@@ -451,7 +348,7 @@ impl Deployment {
                 .replace(".$__serde_spanned_private_value", "");
             let inner = e.into_inner();
             ConfigError::Invalid(vec![Problem {
-                location: inner.span().map(|s| locate(file, text, s.start)),
+                location: locate(inner.span()),
                 path: if path == "." { String::new() } else { path },
                 message: inner.message().trim().to_string(),
             }])

@@ -308,16 +308,8 @@ fn status(gw: &Gateway) -> Value {
         if e.info.alias_of.is_some() {
             continue;
         }
-        use device_interface::Interface as I;
         let n = &e.info.name;
-        let h = match e.interface {
-            I::AnalogIn => reg.analog_in().get(n).map(|d| d.health()),
-            I::AnalogOut => reg.analog_out().get(n).map(|d| d.health()),
-            I::DigitalIn => reg.digital_in().get(n).map(|d| d.health()),
-            I::DigitalOut => reg.digital_out().get(n).map(|d| d.health()),
-            I::Encoder => reg.encoder().get(n).map(|d| d.health()),
-        };
-        if let Some(h) = h {
+        if let Some(h) = reg.health(e.interface, n) {
             devices.push(json!({
                 "interface": e.interface,
                 "name": n,
@@ -349,7 +341,7 @@ fn status(gw: &Gateway) -> Value {
     json!({
         "health": gw.health().err().unwrap_or_else(|| "ok".into()),
         "devices": devices,
-        "cards": gw.card_diagnostics(),
+        "cards": gw.card_status(),
         "components": components,
     })
 }

@@ -1,79 +1,296 @@
 //! IO components: every registered device as a component, like OCL's IOComponent.
 //!
 //! Inputs (AnalogIn, DigitalIn, Encoder) are sampled into output ports at a period; outputs
-//! (AnalogOut, DigitalOut) are written from event input ports as soon as new data arrives.
-//! Each device's methods are operations. Names: `<device>.ai`, `.ao`, `.di`, `.do` for the
-//! channel interfaces and `<encoder name>` for an encoder; ports `ch0…`, `bit0…`,
-//! `position`/`turn`.
+//! (AnalogOut, DigitalOut) are written from event input ports as soon as new data arrives,
+//! and those ports read back the device's output (`hwgw get sim0.ao ch0`). Each device's
+//! methods are operations. Names: `<device>.ai`, `.ao`, `.di`, `.do` for the channel
+//! interfaces and `<encoder name>` for an encoder; ports `ch0…`, `bit0…` (or the card's
+//! channel names), `position`/`turn`.
 //!
 //! Operation results are `{"Ok": value}` or `{"Err": "message"}`: a device error is an
 //! answer, not a failed call.
 
 use crate::config::ChannelNames;
-use device_interface::{AnalogIn, AnalogOut, DigitalIn, DigitalOut, Encoder};
-use rtt::component::IntrospectError;
+use device_interface::{
+    AnalogIn, AnalogOut, DeviceError, DigitalIn, DigitalOut, Encoder, Health, Interface,
+};
+use rtt::component::{IntrospectError, PortData};
 use rtt::port::{FlowStatus, InputPort, OutputPort};
 use rtt::{
-    ActivitySpec, Component, Context, HookResult, InterfaceBuilder, Runtime, RuntimeError,
-    TaskContext,
+    ActivitySpec, Component, Context, HookResult, InitialState, InterfaceBuilder, Runtime,
+    RuntimeError, TaskContext,
 };
 use std::sync::Arc;
 use std::time::Duration;
 
-type Answer<T> = Result<T, String>;
-
-fn answer<T>(r: Result<T, device_interface::DeviceError>) -> Answer<T> {
-    r.map_err(|e| e.to_string())
+/// A channel interface seen from its IO component: how many channels, how a channel is
+/// read (inputs) or written and read back (outputs), and which methods become operations.
+trait Channels: Send + Sync + 'static {
+    /// What a channel carries.
+    type Value: PortData + Default + Copy;
+    /// Component name suffix: `ai`, `ao`, `di`, `do`.
+    const SUFFIX: &'static str;
+    /// Port name prefix for unnamed channels.
+    const PREFIX: &'static str;
+    /// Port documentation, before the channel number.
+    const DOC: &'static str;
+    /// Number of channels.
+    fn count(&self) -> u32;
+    /// Reads channel `c` (an input), or reads back what it was set to (an output).
+    fn get(&self, c: u32) -> Result<Self::Value, DeviceError>;
+    /// Adds the device's methods as operations.
+    fn operations<C: Send + 'static>(
+        d: &Arc<Self>,
+        iface: &mut InterfaceBuilder<C>,
+    ) -> Result<(), IntrospectError>;
 }
 
-struct AnalogInIo {
-    device: Arc<dyn AnalogIn>,
-    ports: Vec<OutputPort<f64>>,
-    errors: u64,
+/// An output channel interface: its channels are written.
+trait Writable: Channels {
+    /// Writes channel `c`.
+    fn put(&self, c: u32, v: Self::Value) -> Result<(), DeviceError>;
 }
 
-impl Component for AnalogInIo {
+/// Offers device method `f` as a ClientThread operation: arguments `A`, answer
+/// `{"Ok": r}` or `{"Err": message}`.
+fn device_op<C, D, A, R>(
+    iface: &mut InterfaceBuilder<C>,
+    device: &Arc<D>,
+    name: &str,
+    doc: &str,
+    args: &[(&str, &str)],
+    f: fn(&D, A) -> Result<R, DeviceError>,
+) -> Result<(), IntrospectError>
+where
+    C: Send + 'static,
+    D: ?Sized + Send + Sync + 'static,
+    A: rtt::operation::Args,
+    R: serde::Serialize + 'static,
+{
+    let d = device.clone();
+    iface.client_operation(name, doc, args, move |a: A| {
+        f(&d, a).map_err(|e| e.to_string())
+    })
+}
+
+fn health(h: Health) -> (String, Option<f64>, Option<String>) {
+    (
+        h.status.to_string(),
+        h.age().map(|a| a.as_secs_f64()),
+        h.last_error.map(|e| e.to_string()),
+    )
+}
+
+const CH: &[(&str, &str)] = &[("channel", "")];
+
+impl Channels for dyn AnalogIn {
+    type Value = f64;
+    const SUFFIX: &'static str = "ai";
+    const PREFIX: &'static str = "ch";
+    const DOC: &'static str = "analog input in physical units, channel";
+    fn count(&self) -> u32 {
+        self.channel_count()
+    }
+    fn get(&self, c: u32) -> Result<f64, DeviceError> {
+        self.read(c)
+    }
+    fn operations<C: Send + 'static>(
+        d: &Arc<Self>,
+        i: &mut InterfaceBuilder<C>,
+    ) -> Result<(), IntrospectError> {
+        device_op(
+            i,
+            d,
+            "read",
+            "reads a channel in physical units",
+            CH,
+            |d, (c,)| d.read(c),
+        )?;
+        device_op(
+            i,
+            d,
+            "read_raw",
+            "reads a channel's raw value",
+            CH,
+            |d, (c,)| d.read_raw(c),
+        )?;
+        device_op(
+            i,
+            d,
+            "range",
+            "lowest, highest and unit of a channel",
+            CH,
+            |d, (c,)| {
+                d.range(c)
+                    .map(|r| (r.lowest, r.highest, r.unit.to_string()))
+            },
+        )?;
+        device_op(
+            i,
+            d,
+            "health",
+            "online/stale/offline and sample age",
+            &[],
+            |d, ()| Ok(health(d.health())),
+        )
+    }
+}
+
+impl Channels for dyn AnalogOut {
+    type Value = f64;
+    const SUFFIX: &'static str = "ao";
+    const PREFIX: &'static str = "ch";
+    const DOC: &'static str = "analog output in physical units, channel";
+    fn count(&self) -> u32 {
+        self.channel_count()
+    }
+    fn get(&self, c: u32) -> Result<f64, DeviceError> {
+        self.read_back(c)
+    }
+    fn operations<C: Send + 'static>(
+        d: &Arc<Self>,
+        i: &mut InterfaceBuilder<C>,
+    ) -> Result<(), IntrospectError> {
+        let write_args = &[("channel", ""), ("value", "")];
+        device_op(
+            i,
+            d,
+            "write",
+            "writes a channel in physical units",
+            write_args,
+            |d, (c, v)| d.write(c, v),
+        )?;
+        device_op(
+            i,
+            d,
+            "read_back",
+            "the value last written",
+            CH,
+            |d, (c,)| d.read_back(c),
+        )?;
+        device_op(
+            i,
+            d,
+            "health",
+            "online/stale/offline and sample age",
+            &[],
+            |d, ()| Ok(health(d.health())),
+        )
+    }
+}
+
+impl Channels for dyn DigitalIn {
+    type Value = bool;
+    const SUFFIX: &'static str = "di";
+    const PREFIX: &'static str = "bit";
+    const DOC: &'static str = "digital input";
+    fn count(&self) -> u32 {
+        self.input_count()
+    }
+    fn get(&self, b: u32) -> Result<bool, DeviceError> {
+        self.read_bit(b)
+    }
+    fn operations<C: Send + 'static>(
+        d: &Arc<Self>,
+        i: &mut InterfaceBuilder<C>,
+    ) -> Result<(), IntrospectError> {
+        device_op(
+            i,
+            d,
+            "read_bit",
+            "reads one input",
+            &[("bit", "")],
+            |d, (b,)| d.read_bit(b),
+        )?;
+        let span = &[("start", ""), ("stop", "")];
+        device_op(
+            i,
+            d,
+            "read_sequence",
+            "inputs start..=stop, start at bit 0",
+            span,
+            |d, (a, b)| d.read_sequence(a, b),
+        )
+    }
+}
+
+impl Channels for dyn DigitalOut {
+    type Value = bool;
+    const SUFFIX: &'static str = "do";
+    const PREFIX: &'static str = "bit";
+    const DOC: &'static str = "digital output";
+    fn count(&self) -> u32 {
+        self.output_count()
+    }
+    fn get(&self, b: u32) -> Result<bool, DeviceError> {
+        self.check_bit(b)
+    }
+    fn operations<C: Send + 'static>(
+        d: &Arc<Self>,
+        i: &mut InterfaceBuilder<C>,
+    ) -> Result<(), IntrospectError> {
+        let bit = &[("bit", "")];
+        let span = &[("start", ""), ("stop", "")];
+        device_op(
+            i,
+            d,
+            "set_bit",
+            "sets one output",
+            &[("bit", ""), ("value", "")],
+            |d, (b, v)| d.set_bit(b, v),
+        )?;
+        device_op(
+            i,
+            d,
+            "check_bit",
+            "the state an output was set to",
+            bit,
+            |d, (b,)| d.check_bit(b),
+        )?;
+        let seq = &[("start", ""), ("stop", ""), ("value", "")];
+        device_op(
+            i,
+            d,
+            "set_sequence",
+            "sets outputs start..=stop from a value, bit 0 at start",
+            seq,
+            |d, (a, b, v)| d.set_sequence(a, b, v),
+        )?;
+        device_op(
+            i,
+            d,
+            "check_sequence",
+            "outputs start..=stop, start at bit 0",
+            span,
+            |d, (a, b)| d.check_sequence(a, b),
+        )
+    }
+}
+
+impl Writable for dyn AnalogOut {
+    fn put(&self, c: u32, v: f64) -> Result<(), DeviceError> {
+        self.write(c, v)
+    }
+}
+
+impl Writable for dyn DigitalOut {
+    fn put(&self, b: u32, v: bool) -> Result<(), DeviceError> {
+        self.set_bit(b, v)
+    }
+}
+
+/// Samples a device's inputs into one output port per channel, every period.
+struct Sampled<D: ?Sized + Channels> {
+    device: Arc<D>,
+    ports: Vec<OutputPort<D::Value>>,
+}
+
+impl<D: ?Sized + Channels> Component for Sampled<D> {
     fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
         for (c, port) in self.ports.iter_mut().enumerate() {
             // A stale or offline input is not written: readers see old data, and the
             // device's health says why.
-            match self.device.read(c as u32) {
-                Ok(v) => port.write(&v),
-                Err(_) => self.errors += 1,
-            }
-        }
-        Ok(())
-    }
-}
-
-struct AnalogOutIo {
-    device: Arc<dyn AnalogOut>,
-    ports: Vec<InputPort<f64>>,
-}
-
-impl Component for AnalogOutIo {
-    fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
-        let mut v = 0.0;
-        for (c, port) in self.ports.iter_mut().enumerate() {
-            if port.read(&mut v) == FlowStatus::NewData
-                && let Err(e) = self.device.write(c as u32, v)
-            {
-                tracing::warn!("analog output {c}: {v} not written: {e}");
-            }
-        }
-        Ok(())
-    }
-}
-
-struct DigitalInIo {
-    device: Arc<dyn DigitalIn>,
-    ports: Vec<OutputPort<bool>>,
-}
-
-impl Component for DigitalInIo {
-    fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
-        for (b, port) in self.ports.iter_mut().enumerate() {
-            if let Ok(v) = self.device.read_bit(b as u32) {
+            if let Ok(v) = self.device.get(c as u32) {
                 port.write(&v);
             }
         }
@@ -81,25 +298,83 @@ impl Component for DigitalInIo {
     }
 }
 
-struct DigitalOutIo {
-    device: Arc<dyn DigitalOut>,
-    ports: Vec<InputPort<bool>>,
+/// Writes a device's outputs from one event input port per channel, as data arrives.
+struct Driven<D: ?Sized + Writable> {
+    device: Arc<D>,
+    ports: Vec<InputPort<D::Value>>,
 }
 
-impl Component for DigitalOutIo {
+impl<D: ?Sized + Writable> Component for Driven<D> {
     fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
-        let mut v = false;
-        for (b, port) in self.ports.iter_mut().enumerate() {
+        let mut v = D::Value::default();
+        for (c, port) in self.ports.iter_mut().enumerate() {
             if port.read(&mut v) == FlowStatus::NewData
-                && let Err(e) = self.device.set_bit(b as u32, v)
+                && let Err(e) = self.device.put(c as u32, v)
             {
-                tracing::warn!("digital output {b}: not set: {e}");
+                tracing::warn!("{} output {c}: not written: {e}", D::SUFFIX);
             }
         }
         Ok(())
     }
 }
 
+/// The sampling IO component of input device `name`.
+fn sampled<D: ?Sized + Channels>(
+    runtime: &Runtime,
+    name: &str,
+    device: Arc<D>,
+    names: &[String],
+    sample: Duration,
+) -> Result<TaskContext, RuntimeError> {
+    let names = names.to_vec();
+    let component = format!("{name}.{}", D::SUFFIX);
+    runtime.add(
+        &component,
+        ActivitySpec::periodic(sample),
+        InitialState::Stopped,
+        move |iface| {
+            let ports = (0..device.count())
+                .map(|c| {
+                    let port = ChannelNames::port(&names, D::PREFIX, c);
+                    iface.output(&port, &format!("{} {c}", D::DOC))
+                })
+                .collect::<Result<_, _>>()?;
+            D::operations(&device, iface)?;
+            Ok(Sampled { device, ports })
+        },
+    )
+}
+
+/// The driving IO component of output device `name`; its ports read the outputs back.
+fn driven<D: ?Sized + Writable>(
+    runtime: &Runtime,
+    name: &str,
+    device: Arc<D>,
+    names: &[String],
+) -> Result<TaskContext, RuntimeError> {
+    let names = names.to_vec();
+    let component = format!("{name}.{}", D::SUFFIX);
+    runtime.add(
+        &component,
+        ActivitySpec::non_periodic(),
+        InitialState::Stopped,
+        move |iface| {
+            let ports = (0..device.count())
+                .map(|c| {
+                    let port = ChannelNames::port(&names, D::PREFIX, c);
+                    let d = device.clone();
+                    iface.event_input_with_read_back(&port, &format!("{} {c}", D::DOC), move || {
+                        d.get(c).ok()
+                    })
+                })
+                .collect::<Result<_, _>>()?;
+            D::operations(&device, iface)?;
+            Ok(Driven { device, ports })
+        },
+    )
+}
+
+/// Samples an encoder's position and turn.
 struct EncoderIo {
     device: Arc<dyn Encoder>,
     position: OutputPort<i64>,
@@ -116,37 +391,41 @@ impl Component for EncoderIo {
     }
 }
 
-/// One port per channel, named from `names` (else `prefix{i}`).
-fn ports<T>(
-    n: u32,
-    names: &[String],
-    prefix: &str,
-    doc: &str,
-    mut make: impl FnMut(&str, &str) -> Result<T, IntrospectError>,
-) -> Result<Vec<T>, IntrospectError> {
-    (0..n)
-        .map(|i| make(&ChannelNames::port(names, prefix, i), &format!("{doc} {i}")))
-        .collect()
-}
-
-/// Offers device method `f` as a ClientThread operation: arguments `A`, answer
-/// `{"Ok": r}` or `{"Err": message}`.
-fn device_op<C, D, A, R>(
-    iface: &mut InterfaceBuilder<C>,
-    device: &Arc<D>,
+fn encoder(
+    runtime: &Runtime,
     name: &str,
-    doc: &str,
-    args: &[(&str, &str)],
-    f: fn(&D, A) -> Result<R, device_interface::DeviceError>,
-) -> Result<(), IntrospectError>
-where
-    C: Component,
-    D: ?Sized + Send + Sync + 'static,
-    A: rtt::operation::Args,
-    R: serde::Serialize + 'static,
-{
-    let d = device.clone();
-    iface.client_operation(name, doc, args, move |a: A| answer(f(&d, a)))
+    device: Arc<dyn Encoder>,
+    sample: Duration,
+) -> Result<TaskContext, RuntimeError> {
+    runtime.add(
+        name,
+        ActivitySpec::periodic(sample),
+        InitialState::Stopped,
+        move |i| {
+            let d = &device;
+            device_op(
+                i,
+                d,
+                "set_position",
+                "sets the position within the turn",
+                &[("position", "")],
+                |d, (p,)| d.set_position(p),
+            )?;
+            device_op(
+                i,
+                d,
+                "set_turn",
+                "sets the turn count",
+                &[("turn", "")],
+                |d, (t,)| d.set_turn(t),
+            )?;
+            Ok(EncoderIo {
+                position: i.output("position", "position within the turn")?,
+                turn: i.output("turn", "turns")?,
+                device,
+            })
+        },
+    )
 }
 
 /// Builds the IO components of every device `card` registered, sampling inputs every
@@ -157,254 +436,38 @@ pub fn build(
     sample: Duration,
     names: &ChannelNames,
 ) -> Result<Vec<TaskContext>, RuntimeError> {
-    use device_interface::Interface as I;
     let registry = runtime.registry().clone();
     let mut out = Vec::new();
     for e in registry.entries() {
         if e.info.owner != card || e.info.alias_of.is_some() {
             continue;
         }
-        let name = e.info.name.clone();
-        let ch: &[(&str, &str)] = &[("channel", "")];
+        let n = e.info.name.as_str();
         let task = match e.interface {
-            I::AnalogIn => {
-                let Some(device) = registry.analog_in().get(&name) else {
-                    continue;
-                };
-                let port_names = names.analog_in.clone();
-                runtime.add(
-                    &format!("{name}.ai"),
-                    ActivitySpec::periodic(sample),
-                    rtt::InitialState::Stopped,
-                    move |iface| {
-                        let ports = ports(
-                            device.channel_count(),
-                            &port_names,
-                            "ch",
-                            "analog input in physical units, channel",
-                            |n, d| iface.output(n, d),
-                        )?;
-                        device_op(
-                            iface,
-                            &device,
-                            "read",
-                            "reads a channel in physical units",
-                            ch,
-                            |d, (c,): (u32,)| d.read(c),
-                        )?;
-                        device_op(
-                            iface,
-                            &device,
-                            "read_raw",
-                            "reads a channel's raw value",
-                            ch,
-                            |d, (c,): (u32,)| d.read_raw(c),
-                        )?;
-                        device_op(
-                            iface,
-                            &device,
-                            "range",
-                            "lowest, highest and unit of a channel",
-                            ch,
-                            |d, (c,): (u32,)| {
-                                d.range(c)
-                                    .map(|r| (r.lowest, r.highest, r.unit.to_string()))
-                            },
-                        )?;
-                        device_op(
-                            iface,
-                            &device,
-                            "health",
-                            "online/stale/offline and sample age",
-                            &[],
-                            |d, (): ()| Ok(health(d.health())),
-                        )?;
-                        Ok(AnalogInIo {
-                            device,
-                            ports,
-                            errors: 0,
-                        })
-                    },
-                )?
-            }
-            I::AnalogOut => {
-                let Some(device) = registry.analog_out().get(&name) else {
-                    continue;
-                };
-                let port_names = names.analog_out.clone();
-                runtime.add(
-                    &format!("{name}.ao"),
-                    ActivitySpec::non_periodic(),
-                    rtt::InitialState::Stopped,
-                    move |iface| {
-                        let ports = ports(
-                            device.channel_count(),
-                            &port_names,
-                            "ch",
-                            "analog output in physical units, channel",
-                            |n, d| iface.event_input(n, d),
-                        )?;
-                        device_op(
-                            iface,
-                            &device,
-                            "write",
-                            "writes a channel in physical units",
-                            &[("channel", ""), ("value", "")],
-                            |d, (c, v): (u32, f64)| d.write(c, v),
-                        )?;
-                        device_op(
-                            iface,
-                            &device,
-                            "read_back",
-                            "the value last written",
-                            ch,
-                            |d, (c,): (u32,)| d.read_back(c),
-                        )?;
-                        device_op(
-                            iface,
-                            &device,
-                            "health",
-                            "online/stale/offline and sample age",
-                            &[],
-                            |d, (): ()| Ok(health(d.health())),
-                        )?;
-                        Ok(AnalogOutIo { device, ports })
-                    },
-                )?
-            }
-            I::DigitalIn => {
-                let Some(device) = registry.digital_in().get(&name) else {
-                    continue;
-                };
-                let port_names = names.digital_in.clone();
-                runtime.add(
-                    &format!("{name}.di"),
-                    ActivitySpec::periodic(sample),
-                    rtt::InitialState::Stopped,
-                    move |iface| {
-                        let ports = ports(
-                            device.input_count(),
-                            &port_names,
-                            "bit",
-                            "digital input",
-                            |n, d| iface.output(n, d),
-                        )?;
-                        device_op(
-                            iface,
-                            &device,
-                            "read_bit",
-                            "reads one input",
-                            &[("bit", "")],
-                            |d, (b,): (u32,)| d.read_bit(b),
-                        )?;
-                        device_op(
-                            iface,
-                            &device,
-                            "read_sequence",
-                            "inputs start..=stop, start at bit 0",
-                            &[("start", ""), ("stop", "")],
-                            |d, (a, b): (u32, u32)| d.read_sequence(a, b),
-                        )?;
-                        Ok(DigitalInIo { device, ports })
-                    },
-                )?
-            }
-            I::DigitalOut => {
-                let Some(device) = registry.digital_out().get(&name) else {
-                    continue;
-                };
-                let port_names = names.digital_out.clone();
-                runtime.add(
-                    &format!("{name}.do"),
-                    ActivitySpec::non_periodic(),
-                    rtt::InitialState::Stopped,
-                    move |iface| {
-                        let ports = ports(
-                            device.output_count(),
-                            &port_names,
-                            "bit",
-                            "digital output",
-                            |n, d| iface.event_input(n, d),
-                        )?;
-                        device_op(
-                            iface,
-                            &device,
-                            "set_bit",
-                            "sets one output",
-                            &[("bit", ""), ("value", "")],
-                            |d, (b, v): (u32, bool)| d.set_bit(b, v),
-                        )?;
-                        device_op(
-                            iface,
-                            &device,
-                            "check_bit",
-                            "the state an output was set to",
-                            &[("bit", "")],
-                            |d, (b,): (u32,)| d.check_bit(b),
-                        )?;
-                        device_op(
-                            iface,
-                            &device,
-                            "set_sequence",
-                            "sets outputs start..=stop from a value, bit 0 at start",
-                            &[("start", ""), ("stop", ""), ("value", "")],
-                            |d, (a, b, v): (u32, u32, u64)| d.set_sequence(a, b, v),
-                        )?;
-                        device_op(
-                            iface,
-                            &device,
-                            "check_sequence",
-                            "outputs start..=stop, start at bit 0",
-                            &[("start", ""), ("stop", "")],
-                            |d, (a, b): (u32, u32)| d.check_sequence(a, b),
-                        )?;
-                        Ok(DigitalOutIo { device, ports })
-                    },
-                )?
-            }
-            I::Encoder => {
-                let Some(device) = registry.encoder().get(&name) else {
-                    continue;
-                };
-                runtime.add(
-                    &name,
-                    ActivitySpec::periodic(sample),
-                    rtt::InitialState::Stopped,
-                    move |iface| {
-                        device_op(
-                            iface,
-                            &device,
-                            "set_position",
-                            "sets the position within the turn",
-                            &[("position", "")],
-                            |d, (p,): (i64,)| d.set_position(p),
-                        )?;
-                        device_op(
-                            iface,
-                            &device,
-                            "set_turn",
-                            "sets the turn count",
-                            &[("turn", "")],
-                            |d, (t,): (i64,)| d.set_turn(t),
-                        )?;
-                        Ok(EncoderIo {
-                            position: iface.output("position", "position within the turn")?,
-                            turn: iface.output("turn", "turns")?,
-                            device,
-                        })
-                    },
-                )?
-            }
+            Interface::AnalogIn => registry
+                .analog_in()
+                .get(n)
+                .map(|d| sampled(runtime, n, d, &names.analog_in, sample)),
+            Interface::DigitalIn => registry
+                .digital_in()
+                .get(n)
+                .map(|d| sampled(runtime, n, d, &names.digital_in, sample)),
+            Interface::AnalogOut => registry
+                .analog_out()
+                .get(n)
+                .map(|d| driven(runtime, n, d, &names.analog_out)),
+            Interface::DigitalOut => registry
+                .digital_out()
+                .get(n)
+                .map(|d| driven(runtime, n, d, &names.digital_out)),
+            Interface::Encoder => registry
+                .encoder()
+                .get(n)
+                .map(|d| encoder(runtime, n, d, sample)),
         };
-        out.push(task);
+        if let Some(t) = task {
+            out.push(t?);
+        }
     }
     Ok(out)
-}
-
-fn health(h: device_interface::Health) -> (String, Option<f64>, Option<String>) {
-    (
-        h.status.to_string(),
-        h.age().map(|a| a.as_secs_f64()),
-        h.last_error.map(|e| e.to_string()),
-    )
 }

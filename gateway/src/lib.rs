@@ -1,10 +1,12 @@
 //! The hwgw service: a deployment file becomes cards, a device registry, IO components,
 //! user components and connections in an [`rtt`] runtime, served over a control socket.
 //!
-//! - [`config`]: the TOML deployment, parsed strictly, errors located by file, line,
-//!   column and key path;
-//! - [`deploy`]: builds and runs a deployment, and stops it with every output at its safe
-//!   value;
+//! - [`config`]: the TOML deployment, parsed strictly; [`problems`]: every error located
+//!   by file, line, column and key path;
+//! - [`types`]: what a deployment may name — [`components`] (component types) and
+//!   [`drivers`] (bus drivers, plug-ins of [`driver_api`]);
+//! - [`deploy`]: a built gateway: started, watched, stopped with every output at its safe
+//!   value (built in phases by the `build` module);
 //! - [`io`]: every device as a component (channels as ports, methods as operations);
 //! - [`components`]: the component types built into the binary;
 //! - [`control`]: the line-delimited JSON control protocol over a Unix socket;
@@ -16,19 +18,23 @@
 //!
 //! let text = hwgw::DEMO;
 //! let d = Deployment::parse(text, "demo.toml")?;
-//! let types = hwgw::components::ComponentTypes::builtin();
+//! let types = hwgw::types::Types::builtin();
 //! let gw = Gateway::build(&d, "demo.toml", text, &types).expect("the demo is valid");
 //! assert!(gw.summary().contains("component \"follow\""));
 //! # Ok::<(), hwgw::config::ConfigError>(())
 //! ```
 
 pub mod browse;
+mod build;
 pub mod cli;
 pub mod components;
 pub mod config;
 pub mod control;
 pub mod deploy;
+pub mod drivers;
 pub mod io;
+pub mod problems;
+pub mod types;
 
 /// The embedded default deployment (`config/demo.toml`): simulated cards, so a new user
 /// sees values move with no hardware.

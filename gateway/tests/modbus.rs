@@ -7,7 +7,6 @@
 )]
 
 use driver_modbus::testing::TestServer;
-use hwgw::components::ComponentTypes;
 use hwgw::config::Deployment;
 use hwgw::deploy::Gateway;
 use rtt::port::ConnPolicy;
@@ -75,7 +74,7 @@ address = 1
         server.addr()
     );
     let d = Deployment::parse(&text, "plc.toml").unwrap();
-    let gw = Gateway::build(&d, "plc.toml", &text, &ComponentTypes::builtin()).unwrap();
+    let gw = Gateway::build(&d, "plc.toml", &text, &hwgw::types::Types::builtin()).unwrap();
     assert!(
         gw.summary().contains("card \"plc\" (modbus Tcp("),
         "{}",
@@ -112,10 +111,11 @@ address = 1
         let m = server.memory().lock().unwrap();
         m.holding[10] == 42 && m.coils[0]
     });
-    let diag = gw.card_diagnostics();
+    let diag = gw.card_status();
+    let counters = &diag[0].status.counters;
     assert!(
-        diag[0]["polls"].as_u64().unwrap() > 0 && diag[0]["timeouts"] == 0,
-        "{diag}"
+        counters["polls"].as_u64().unwrap() > 0 && counters["timeouts"] == 0,
+        "{diag:?}"
     );
 
     // Stopping drives the outputs to their safe values *on the unit*: 1.5 bar, pump off,
@@ -211,9 +211,10 @@ interface = "digital_in"
 channel = 2
 "#;
     let d = Deployment::parse(text, "srv.toml").unwrap();
-    let gw = Gateway::build(&d, "srv.toml", text, &ComponentTypes::builtin()).unwrap();
+    let gw = Gateway::build(&d, "srv.toml", text, &hwgw::types::Types::builtin()).unwrap();
     gw.start().unwrap();
-    let port = gw.modbus_server_addr().unwrap().port();
+    let addr: std::net::SocketAddr = gw.server_address("modbus_server").unwrap().parse().unwrap();
+    let port = addr.port();
 
     let w = mbpoll(port, "4", 10, &["2500"]);
     assert!(w.contains("Written 1 references"), "{w}");

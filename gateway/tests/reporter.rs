@@ -5,7 +5,6 @@
     reason = "test code: a failed unwrap is a failed test"
 )]
 
-use hwgw::components::ComponentTypes;
 use hwgw::config::Deployment;
 use hwgw::deploy::Gateway;
 use std::time::Duration;
@@ -42,7 +41,7 @@ fn records_ports_to_csv() {
     let csv = dir.join("rec.csv");
     let text = deployment(&csv, "");
     let d = Deployment::parse(&text, "r.toml").unwrap();
-    let gw = Gateway::build(&d, "r.toml", &text, &ComponentTypes::builtin()).unwrap();
+    let gw = Gateway::build(&d, "r.toml", &text, &hwgw::types::Types::builtin()).unwrap();
     gw.start().unwrap();
     std::thread::sleep(Duration::from_millis(400));
     gw.shutdown();
@@ -82,12 +81,12 @@ fn a_reporter_naming_a_missing_port_fails_to_configure() {
     let dir = std::env::temp_dir();
     let text = deployment(&dir.join("never.csv"), "").replace("sim0.di.bit1", "sim0.di.bit9");
     let d = Deployment::parse(&text, "r.toml").unwrap();
-    let problems = Gateway::build(&d, "r.toml", &text, &ComponentTypes::builtin())
+    let problems = Gateway::build(&d, "r.toml", &text, &hwgw::types::Types::builtin())
         .err()
         .unwrap();
     assert_eq!(problems.len(), 1);
     assert_eq!(
         problems[0].to_string(),
-        "r.toml:15:8: component[0]: component \"rec\": configure_hook failed: \"sim0.di\" has no port \"bit9\"; it has: bit0, bit1"
+        "r.toml:14:1: component[0]: component \"rec\": configure_hook failed: \"sim0.di\" has no port \"bit9\"; it has: bit0, bit1"
     );
 }

@@ -6,8 +6,9 @@
 //! - **Non-periodic**: a thread of its own sleeps until woken — by an event port receiving
 //!   data, an OwnThread operation being queued, or `trigger()`.
 //! - **File descriptor**: a thread of its own waits in epoll on watched descriptors (CAN
-//!   sockets, serial ports, GPIO line events) with a timeout; the step sees which
-//!   descriptors are ready or that the timeout passed.
+//!   sockets, serial ports, GPIO line events) with a timeout, and for a deadline the
+//!   component sets with [`Activity::wake_at`] (the next poll of a bus); the step sees which
+//!   descriptors are ready, that the deadline came, or that the timeout passed.
 //! - **Slave**: no thread; stepped explicitly. Every deterministic test uses it.
 //!
 //! Each keeps statistics: steps, a histogram of wake-up lateness, step duration, overruns.
@@ -19,6 +20,7 @@ use arc_swap::ArcSwapOption;
 use device_interface::time::{Clock, MonotonicClock, Timestamp};
 use nix::sys::epoll::{Epoll, EpollCreateFlags, EpollEvent, EpollFlags, EpollTimeout};
 use nix::sys::eventfd::{EfdFlags, EventFd};
+use nix::sys::timerfd::{ClockId, Expiration, TimerFd, TimerFlags, TimerSetTimeFlags};
 use serde::{Deserialize, Serialize};
 use std::os::fd::{AsFd, AsRawFd, BorrowedFd, OwnedFd, RawFd};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -156,6 +158,9 @@ pub enum ActivityError {
     /// A period of zero.
     #[error("a periodic activity needs a period above zero")]
     ZeroPeriod,
+    /// `wake_at` on an activity that is not a file-descriptor activity.
+    #[error("only a file-descriptor activity wakes at a deadline")]
+    NoDeadline,
 }
 
 /// The descriptors that were ready for one step of a file-descriptor activity.
@@ -164,6 +169,7 @@ pub struct FdEvents {
     ready: [RawFd; FdEvents::MAX],
     count: usize,
     timeout: bool,
+    deadline: bool,
 }
 
 impl Default for FdEvents {
@@ -172,6 +178,7 @@ impl Default for FdEvents {
             ready: [-1; FdEvents::MAX],
             count: 0,
             timeout: false,
+            deadline: false,
         }
     }
 }
@@ -188,6 +195,11 @@ impl FdEvents {
     /// True when the step came from the timeout, not from a descriptor.
     pub fn has_timeout(&self) -> bool {
         self.timeout
+    }
+
+    /// True when the deadline set with [`Activity::wake_at`] came.
+    pub fn deadline_passed(&self) -> bool {
+        self.deadline
     }
 
     /// The ready descriptors.
@@ -386,6 +398,8 @@ impl Signal {
 struct FdState {
     epoll: Epoll,
     wake: EventFd,
+    /// One-shot deadline set by `wake_at` (absolute CLOCK_MONOTONIC).
+    timer: TimerFd,
     /// (fd as the user knows it, our duplicate registered with epoll)
     watched: Mutex<Vec<(RawFd, OwnedFd)>>,
 }
@@ -448,14 +462,35 @@ impl Activity {
                         source,
                     })?;
                 epoll
-                    .add(wake.as_fd(), EpollEvent::new(EpollFlags::EPOLLIN, u64::MAX))
+                    .add(
+                        wake.as_fd(),
+                        EpollEvent::new(EpollFlags::EPOLLIN, WAKE_EVENT),
+                    )
                     .map_err(|source| ActivityError::Fd {
                         what: "epoll_ctl(eventfd)",
+                        source,
+                    })?;
+                let timer = TimerFd::new(
+                    ClockId::CLOCK_MONOTONIC,
+                    TimerFlags::TFD_NONBLOCK | TimerFlags::TFD_CLOEXEC,
+                )
+                .map_err(|source| ActivityError::Fd {
+                    what: "timerfd_create",
+                    source,
+                })?;
+                epoll
+                    .add(
+                        timer.as_fd(),
+                        EpollEvent::new(EpollFlags::EPOLLIN, DEADLINE_EVENT),
+                    )
+                    .map_err(|source| ActivityError::Fd {
+                        what: "epoll_ctl(timerfd)",
                         source,
                     })?;
                 Some(FdState {
                     epoll,
                     wake,
+                    timer,
                     watched: Mutex::new(Vec::new()),
                 })
             }
@@ -540,6 +575,29 @@ impl Activity {
             })?;
         crate::lock::lock(&state.watched).push((user, dup));
         Ok(())
+    }
+
+    /// Asks a file-descriptor activity for a step at `at` (the monotonic clock), replacing
+    /// any deadline set before; a time already past steps at once. The step reports it with
+    /// [`FdEvents::deadline_passed`]. One system call; callable from the activity's own step.
+    pub fn wake_at(&self, at: Timestamp) -> Result<(), ActivityError> {
+        let state = self.shared.fd.as_ref().ok_or(ActivityError::NoDeadline)?;
+        // A zero it_value would disarm the timer: the earliest deadline is 1 ns.
+        let ns = at.as_nanos().max(1);
+        let ts = nix::sys::time::TimeSpec::new(
+            (ns / 1_000_000_000) as libc::time_t,
+            (ns % 1_000_000_000) as libc::c_long,
+        );
+        state
+            .timer
+            .set(
+                Expiration::OneShot(ts),
+                TimerSetTimeFlags::TFD_TIMER_ABSTIME,
+            )
+            .map_err(|source| ActivityError::Fd {
+                what: "timerfd_settime",
+                source,
+            })
     }
 
     /// Stops watching `fd`; true if it was watched.
@@ -628,6 +686,11 @@ impl Drop for Activity {
         self.stop();
     }
 }
+
+/// epoll data of the activity's own eventfd (`trigger`, stop).
+const WAKE_EVENT: u64 = u64::MAX;
+/// epoll data of the activity's deadline timer (`wake_at`).
+const DEADLINE_EVENT: u64 = u64::MAX - 1;
 
 static RT_WARNED: AtomicBool = AtomicBool::new(false);
 
@@ -798,8 +861,12 @@ fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                     ..FdEvents::default()
                 };
                 for ev in &ready[..n] {
-                    if ev.data() == u64::MAX {
+                    if ev.data() == WAKE_EVENT {
                         let _ = fd.wake.read();
+                    } else if ev.data() == DEADLINE_EVENT {
+                        // Reading clears the expiry; a re-armed timer may already be unread.
+                        let _ = fd.timer.wait();
+                        events.deadline = true;
                     } else if events.count < FdEvents::MAX {
                         events.ready[events.count] = ev.data() as RawFd;
                         events.count += 1;

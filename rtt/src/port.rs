@@ -562,9 +562,24 @@ pub(crate) struct InputShared<T: Send> {
     links: Links<Reader<T>, T>,
     /// Set when the port is an event port of a component: new data wakes its activity.
     pub(crate) waker: OnceLock<Arc<dyn Waker>>,
+    /// Set at the first new sample read: the last read value below is real.
+    received: AtomicBool,
+    /// The reading half of the last sample the owner read, for introspection.
+    last: Mutex<triple_buffer::Output<T>>,
 }
 
 impl<T: Clone + Send> InputShared<T> {
+    /// The last new sample the port's owner read, if any. Not for real-time paths (locks,
+    /// clones).
+    pub(crate) fn last_read(&self) -> Option<T> {
+        if !self.received.load(Ordering::Acquire) {
+            return None;
+        }
+        let mut last = lock(&self.last);
+        last.update();
+        Some(last.output_buffer().clone())
+    }
+
     pub(crate) fn connections(&self) -> Vec<ConnectionInfo> {
         self.links.info()
     }
@@ -580,6 +595,8 @@ pub struct InputPort<T: Send> {
     conns: Vec<Reader<T>>,
     last: T,
     has_last: bool,
+    /// Publishes each new sample for [`InputShared::last_read`].
+    published: triple_buffer::Input<T>,
 }
 
 impl<T: Clone + Send + 'static> InputPort<T> {
@@ -594,15 +611,19 @@ impl<T: Clone + Send + 'static> InputPort<T> {
     /// An input port named `name` keeping its last sample in a copy of `sample`: size a `Vec`
     /// sample to the longest value read and reading never allocates.
     pub fn with_sample(name: &str, sample: T) -> Self {
+        let (published, last) = triple_buffer::triple_buffer(&sample);
         InputPort {
             shared: Arc::new(InputShared {
                 name: Arc::from(name),
                 links: Links::new(),
                 waker: OnceLock::new(),
+                received: AtomicBool::new(false),
+                last: Mutex::new(last),
             }),
             conns: Vec::with_capacity(RESERVED_CONNECTIONS),
             last: sample,
             has_last: false,
+            published,
         }
     }
 
@@ -614,8 +635,13 @@ impl<T: Clone + Send + 'static> InputPort<T> {
         self.shared.links.refresh(&mut self.conns, |r| &r.ch);
         for c in &mut self.conns {
             if c.pop_into(&mut self.last) {
-                self.has_last = true;
                 sample.clone_from(&self.last);
+                self.published.input_buffer_mut().clone_from(&self.last);
+                self.published.publish();
+                if !self.has_last {
+                    self.has_last = true;
+                    self.shared.received.store(true, Ordering::Release);
+                }
                 return FlowStatus::NewData;
             }
         }

@@ -141,6 +141,8 @@ pub struct CanBus {
     /// Room for the timestamp and drop-count control messages (allocated once, not per
     /// receive).
     cmsg: Vec<u8>,
+    /// The physical values of the frame just received (room for the widest rx frame).
+    values: Vec<f64>,
 }
 
 const SOCKET: u64 = 0;
@@ -216,6 +218,13 @@ impl CanBus {
             .iter()
             .map(|f| f.cycle.map(|_| now))
             .collect();
+        let widest = card
+            .map()
+            .rx()
+            .iter()
+            .map(|f| f.signals.len())
+            .max()
+            .unwrap_or(0);
         let mut bus = CanBus {
             card,
             socket: None,
@@ -228,6 +237,7 @@ impl CanBus {
             drops_seen: 0,
             buf: [0; 64],
             cmsg: nix::cmsg_space!(TimeSpec, u32),
+            values: Vec::with_capacity(widest),
         };
         bus.open_socket().map_err(os("open socket"))?;
         bus.check_link();
@@ -279,9 +289,10 @@ impl CanBus {
     }
 
     /// Does what is due without blocking: receives every queued frame (calling
-    /// `on_frame(rx index, payload, kernel receive time)` for each decoded one), sends
+    /// `on_frame(rx index, its signals' physical values, kernel receive time)` for each
+    /// decoded one), sends
     /// changed and due frames, checks staleness and the link, and re-arms the timer.
-    pub fn service(&mut self, on_frame: &mut dyn FnMut(usize, &[u8], Timestamp)) {
+    pub fn service(&mut self, on_frame: &mut dyn FnMut(usize, &[f64], Timestamp)) {
         // Which of the three is ready: one epoll_wait instead of a blind read of each.
         // Reading the timer and the eventfd clears their readiness (and the set's).
         let mut events = [EpollEvent::empty(); 3];
@@ -314,7 +325,7 @@ impl CanBus {
         self.arm();
     }
 
-    fn receive(&mut self, on_frame: &mut dyn FnMut(usize, &[u8], Timestamp)) {
+    fn receive(&mut self, on_frame: &mut dyn FnMut(usize, &[f64], Timestamp)) {
         let mut cmsg = std::mem::take(&mut self.cmsg);
         self.receive_into(&mut cmsg, on_frame);
         self.cmsg = cmsg;
@@ -327,7 +338,7 @@ impl CanBus {
     fn receive_into(
         &mut self,
         cmsg: &mut Vec<u8>,
-        on_frame: &mut dyn FnMut(usize, &[u8], Timestamp),
+        on_frame: &mut dyn FnMut(usize, &[f64], Timestamp),
     ) {
         let Some(socket) = &self.socket else { return };
         let fd = socket.as_raw_fd();
@@ -403,9 +414,15 @@ impl CanBus {
                 self.card.wrong_kind();
                 continue;
             }
-            if let Received::Decoded(f) = self.card.receive(id, extended, n == CANFD_MTU, data, at)
-            {
-                on_frame(f, data, at);
+            if let Received::Decoded(f) = self.card.receive_with_values(
+                id,
+                extended,
+                n == CANFD_MTU,
+                data,
+                at,
+                &mut self.values,
+            ) {
+                on_frame(f, &self.values, at);
             }
         }
     }

@@ -342,6 +342,35 @@ impl CanCard {
         data: &[u8],
         at: Timestamp,
     ) -> Received {
+        self.receive_into(id, extended, fd, data, at, None)
+    }
+
+    /// As [`receive`](Self::receive), and for a decoded frame also the physical value of each
+    /// of its signals, in map order, into `values` (cleared first; NaN for a signal that
+    /// cannot be read): each signal is extracted once, for the image and the values alike.
+    /// Allocation-free once `values` holds the widest frame's signals.
+    pub fn receive_with_values(
+        &self,
+        id: u32,
+        extended: bool,
+        fd: bool,
+        data: &[u8],
+        at: Timestamp,
+        values: &mut Vec<f64>,
+    ) -> Received {
+        values.clear();
+        self.receive_into(id, extended, fd, data, at, Some(values))
+    }
+
+    fn receive_into(
+        &self,
+        id: u32,
+        extended: bool,
+        fd: bool,
+        data: &[u8],
+        at: Timestamp,
+        mut values: Option<&mut Vec<f64>>,
+    ) -> Received {
         let Some(f) = self
             .map
             .rx()
@@ -363,8 +392,14 @@ impl CanCard {
         for s in &frame.signals {
             // The length was checked against the map, which checked every signal fits.
             let Ok(raw) = s.signal.extract(data) else {
+                if let Some(v) = values.as_deref_mut() {
+                    v.push(f64::NAN);
+                }
                 continue;
             };
+            if let Some(v) = values.as_deref_mut() {
+                v.push(s.signal.scale().to_physical(raw));
+            }
             if !s.signal.scale().raw_range().contains(raw) {
                 bump(&self.counters.rx_out_of_range);
             }

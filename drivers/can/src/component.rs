@@ -37,9 +37,6 @@ pub struct CanMessage {
 /// The bus component.
 pub struct CanIo {
     bus: CanBus,
-    /// The bus's card, held apart so a step need not clone it to decode while the bus
-    /// is borrowed.
-    card: std::sync::Arc<crate::card::CanCard>,
     ports: Vec<OutputPort<CanMessage>>,
     sample: CanMessage,
 }
@@ -101,7 +98,6 @@ impl CanIo {
         )?;
         Ok(CanIo {
             bus,
-            card,
             ports,
             sample: CanMessage {
                 values: Vec::with_capacity(widest),
@@ -119,15 +115,12 @@ impl Component for CanIo {
     }
 
     fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
-        let (ports, sample, card) = (&mut self.ports, &mut self.sample, &self.card);
-        self.bus.service(&mut |f, payload, at| {
+        let (ports, sample) = (&mut self.ports, &mut self.sample);
+        self.bus.service(&mut |f, values, at| {
             let Some(port) = ports.get_mut(f) else { return };
+            // The card decoded the frame once, for its channels and these values alike.
             sample.values.clear();
-            for s in &card.map().rx()[f].signals {
-                sample
-                    .values
-                    .push(s.signal.decode(payload).unwrap_or(f64::NAN));
-            }
+            sample.values.extend_from_slice(values);
             sample.received_ns = at.as_nanos();
             sample.published_ns = {
                 use device_interface::time::{Clock, MonotonicClock};

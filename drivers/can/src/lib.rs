@@ -25,4 +25,5 @@ pub mod card;
 pub mod component;
 pub mod dbc;
 pub mod map;
+pub mod plugin;
 pub mod signal;

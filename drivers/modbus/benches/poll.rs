@@ -12,9 +12,10 @@
 use device_interface::time::MonotonicClock;
 use device_interface::{Device, Status};
 use driver_modbus::card::ModbusCard;
-use driver_modbus::line::{Line, LineUnit, Transport, UnitStats, UnitTiming};
+use driver_modbus::line::{LineUnit, Transport, UnitStats, UnitTiming};
 use driver_modbus::map::{Map, PointConfig};
 use driver_modbus::plan::Table;
+use driver_modbus::testing::TestLine;
 use driver_modbus::testing::TestServer;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
@@ -76,7 +77,7 @@ fn main() {
         offline_after: 10,
         backoff_max: Duration::from_secs(1),
     };
-    let line = Line::spawn(
+    let line = TestLine::spawn(
         "mb-bench",
         Transport::Tcp(addr),
         vec![LineUnit {

@@ -20,10 +20,13 @@
 
 pub mod card;
 pub mod codec;
+pub mod component;
 pub mod config;
 pub mod line;
 pub mod map;
 pub mod plan;
+pub mod plugin;
+pub mod served;
 pub mod server;
 #[cfg(feature = "test-server")]
 pub mod testing;

@@ -1,10 +1,10 @@
 //! A Modbus line: one connection, one or more units on it, one request outstanding.
 //!
 //! A line is a TCP connection (several units behind one gateway are addressed by unit id)
-//! or an RTU serial port (several units multi-dropped on it). Its poller runs on a thread of its own with a
-//! single-threaded tokio runtime: it polls each unit at its period, feeds the replies to
-//! the unit's [`ModbusCard`], sends the unit's changed outputs, and judges the unit's
-//! health:
+//! or an RTU serial port (several units multi-dropped on it). Its poller (the
+//! [`LineIo`](crate::component::LineIo) component, on an rtt activity of its own) polls each
+//! unit at its period, feeds the replies to the unit's [`ModbusCard`], sends the unit's
+//! changed outputs, and judges the unit's health:
 //!
 //! - a failed poll keeps the unit online but records why; after `stale_after` failures in a
 //!   row its inputs are stale, after `offline_after` it is offline;
@@ -18,12 +18,12 @@
 
 use crate::card::{ModbusCard, ReadData, Write};
 use crate::plan::{Read, Table};
+use device_interface::time::Timestamp;
 use device_interface::{DeviceError, Status};
 use std::net::SocketAddr;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
-use tokio::time::Instant;
 use tokio_modbus::client::{Context, Reader, Writer};
 use tokio_modbus::prelude::SlaveContext;
 use tokio_modbus::{ExceptionCode, Slave};
@@ -64,6 +64,53 @@ pub struct UnitStats {
     pub write_retries: AtomicU64,
     /// Complete good polls.
     pub polls: AtomicU64,
+}
+
+/// A snapshot of one unit's [`UnitStats`], for status reports and the line's `counters`
+/// operation.
+#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct UnitCounters {
+    /// The unit id.
+    pub unit: u8,
+    /// Complete good polls.
+    pub polls: u64,
+    /// Requests sent.
+    pub requests: u64,
+    /// Good replies.
+    pub replies: u64,
+    /// Requests that timed out.
+    pub timeouts: u64,
+    /// Exception replies.
+    pub exceptions: u64,
+    /// Connection failures and broken connections.
+    pub transport_errors: u64,
+    /// Replies that did not fit their request.
+    pub bad_replies: u64,
+    /// Writes that failed and will be sent again.
+    pub write_retries: u64,
+}
+
+impl UnitCounters {
+    /// The counters of unit `unit` now.
+    pub fn from_stats(unit: u8, s: &UnitStats) -> UnitCounters {
+        let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        UnitCounters {
+            unit,
+            polls: load(&s.polls),
+            requests: load(&s.requests),
+            replies: load(&s.replies),
+            timeouts: load(&s.timeouts),
+            exceptions: load(&s.exceptions),
+            transport_errors: load(&s.transport_errors),
+            bad_replies: load(&s.bad_replies),
+            write_retries: load(&s.write_retries),
+        }
+    }
+
+    /// The counters of a unit on a line.
+    pub fn of(u: &LineUnit) -> UnitCounters {
+        Self::from_stats(u.timing.unit, &u.stats)
+    }
 }
 
 /// A unit on a line.
@@ -186,121 +233,79 @@ impl PollError {
     }
 }
 
-/// A running line; dropping it stops the poller and waits for it.
-pub struct Line {
-    stop: Arc<AtomicBool>,
-    thread: Option<std::thread::JoinHandle<()>>,
+/// Where a unit is in its schedule.
+pub(crate) struct UnitState {
+    /// When its next poll is due (CLOCK_MONOTONIC).
+    pub(crate) next: Timestamp,
+    /// Failed polls in a row.
+    pub(crate) failures: u32,
+    /// The wait before the next probe while offline.
+    pub(crate) backoff: Duration,
 }
 
-impl Line {
-    /// Starts polling `units` over `transport` on a thread named `name`.
-    pub fn spawn(name: &str, transport: Transport, units: Vec<LineUnit>) -> std::io::Result<Line> {
-        let stop = Arc::new(AtomicBool::new(false));
-        let s = stop.clone();
-        let rt = tokio::runtime::Builder::new_current_thread()
-            .enable_all()
-            .build()?;
-        let thread = std::thread::Builder::new()
-            .name(name.chars().take(15).collect())
-            .spawn(move || rt.block_on(run(transport, units, s)))?;
-        Ok(Line {
-            stop,
-            thread: Some(thread),
-        })
-    }
-}
-
-impl Drop for Line {
-    fn drop(&mut self) {
-        self.stop.store(true, Ordering::Release);
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
+impl UnitState {
+    pub(crate) fn new(t: &UnitTiming, now: Timestamp) -> Self {
+        UnitState {
+            next: now,
+            failures: 0,
+            backoff: first_backoff(t),
         }
     }
-}
-
-struct UnitState {
-    next: Instant,
-    failures: u32,
-    backoff: Duration,
 }
 
 fn bump(c: &AtomicU64) {
     c.fetch_add(1, Ordering::Relaxed);
 }
 
-async fn run(transport: Transport, units: Vec<LineUnit>, stop: Arc<AtomicBool>) {
-    let now = Instant::now();
-    let mut states: Vec<UnitState> = units
-        .iter()
-        .map(|u| UnitState {
-            next: now,
-            failures: 0,
-            backoff: first_backoff(&u.timing),
-        })
-        .collect();
-    let mut ctx: Option<Context> = None;
-    while !stop.load(Ordering::Acquire) {
-        let Some((i, due)) = states
-            .iter()
-            .enumerate()
-            .map(|(i, s)| (i, s.next))
-            .min_by_key(|(_, t)| *t)
-        else {
-            return;
-        };
-        // Sleep in short slices so a stop is noticed promptly.
-        let slice = Instant::now() + Duration::from_millis(50);
-        if due > slice {
-            tokio::time::sleep_until(slice).await;
-            continue;
-        }
-        // tokio's timer works in 1 ms ticks: a deadline that has just passed can still wait
-        // for the next tick, so only sleep when the deadline is really ahead.
-        if due > Instant::now() {
-            tokio::time::sleep_until(due).await;
-        }
-        let (unit, state) = (&units[i], &mut states[i]);
-        let t = unit.timing;
-        let result = poll_unit(&mut ctx, &transport, unit).await;
-        match result {
-            Ok(()) => {
-                unit.card.poll_succeeded();
-                bump(&unit.stats.polls);
-                if state.failures >= t.offline_after {
-                    tracing::info!("modbus unit {}: back online", t.unit);
-                }
-                state.failures = 0;
-                state.backoff = first_backoff(&t);
-                // Keep the grid; after a long stall start from now rather than bursting.
-                state.next = (due + t.poll).max(Instant::now());
+/// Polls `unit` once (reads, then its pending writes) and moves its schedule on: the next
+/// poll one period after the due time (from now after a stall, never a burst), or a
+/// growing backoff once the unit is offline. `due` is when this poll was due.
+pub(crate) async fn poll_and_schedule(
+    ctx: &mut Option<Context>,
+    transport: &Transport,
+    unit: &LineUnit,
+    state: &mut UnitState,
+    due: Timestamp,
+    now: &dyn Fn() -> Timestamp,
+) {
+    let t = unit.timing;
+    match poll_unit(ctx, transport, unit).await {
+        Ok(()) => {
+            unit.card.poll_succeeded();
+            bump(&unit.stats.polls);
+            if state.failures >= t.offline_after {
+                tracing::info!("modbus unit {}: back online", t.unit);
             }
-            Err(e) => {
-                if e.breaks_connection() {
-                    ctx = None;
-                }
-                state.failures += 1;
-                let status = if state.failures >= t.offline_after {
-                    Status::Offline
-                } else if state.failures >= t.stale_after {
-                    Status::Stale
-                } else {
-                    Status::Online
-                };
-                // Log on change, not on every failed poll.
-                if state.failures == 1
-                    || state.failures == t.stale_after
-                    || state.failures == t.offline_after
-                {
-                    tracing::warn!("modbus {e} (failure {} in a row: {status})", state.failures);
-                }
-                unit.card.poll_failed(DeviceError::bus(e), status);
-                if status == Status::Offline {
-                    state.next = Instant::now() + state.backoff;
-                    state.backoff = (state.backoff * 2).min(t.backoff_max);
-                } else {
-                    state.next = (due + t.poll).max(Instant::now());
-                }
+            state.failures = 0;
+            state.backoff = first_backoff(&t);
+            // Keep the grid; after a long stall start from now rather than bursting.
+            state.next = due.saturating_add(t.poll).max(now());
+        }
+        Err(e) => {
+            if e.breaks_connection() {
+                *ctx = None;
+            }
+            state.failures += 1;
+            let status = if state.failures >= t.offline_after {
+                Status::Offline
+            } else if state.failures >= t.stale_after {
+                Status::Stale
+            } else {
+                Status::Online
+            };
+            // Log on change, not on every failed poll.
+            if state.failures == 1
+                || state.failures == t.stale_after
+                || state.failures == t.offline_after
+            {
+                tracing::warn!("modbus {e} (failure {} in a row: {status})", state.failures);
+            }
+            unit.card.poll_failed(DeviceError::bus(e), status);
+            if status == Status::Offline {
+                state.next = now().saturating_add(state.backoff);
+                state.backoff = (state.backoff * 2).min(t.backoff_max);
+            } else {
+                state.next = due.saturating_add(t.poll).max(now());
             }
         }
     }

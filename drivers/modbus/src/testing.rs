@@ -7,7 +7,7 @@
 //!
 //! let server = TestServer::start();
 //! server.memory().lock().unwrap().input[0] = 42;
-//! // ... point a Line at server.addr() ...
+//! // ... point a line (TestLine::spawn) at server.addr() ...
 //! ```
 
 #![allow(
@@ -185,5 +185,44 @@ impl Drop for TestServer {
         if let Some(t) = self.thread.take() {
             let _ = t.join();
         }
+    }
+}
+
+/// A Modbus line polling on a runtime of its own, for tests and benchmarks: the
+/// [`LineIo`](crate::component::LineIo) component, started. Dropping it stops the line
+/// (after the poll under way).
+pub struct TestLine {
+    _runtime: rtt::Runtime,
+    task: rtt::TaskContext,
+}
+
+impl TestLine {
+    /// Starts polling `units` over `transport` as component `name`.
+    pub fn spawn(
+        name: &str,
+        transport: crate::line::Transport,
+        units: Vec<crate::line::LineUnit>,
+    ) -> Result<TestLine, Box<dyn std::error::Error>> {
+        let runtime = rtt::Runtime::new(
+            Arc::new(device_interface::Registry::new()),
+            rtt::RuntimeOptions::default(),
+        )?;
+        let task = crate::component::LineIo::add(
+            &runtime,
+            name,
+            transport,
+            units,
+            rtt::ThreadOptions::default(),
+        )?;
+        task.start()?;
+        Ok(TestLine {
+            _runtime: runtime,
+            task,
+        })
+    }
+
+    /// The line's component.
+    pub fn task(&self) -> &rtt::TaskContext {
+        &self.task
     }
 }

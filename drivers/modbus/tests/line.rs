@@ -10,8 +10,9 @@
 use device_interface::time::MonotonicClock;
 use device_interface::{AnalogIn, AnalogOut, Device, DigitalIn, DigitalOut, Status};
 use driver_modbus::card::ModbusCard;
-use driver_modbus::line::{Line, LineUnit, Transport, UnitStats, UnitTiming};
+use driver_modbus::line::{LineUnit, Transport, UnitStats, UnitTiming};
 use driver_modbus::map::{Map, PointConfig};
+use driver_modbus::testing::TestLine;
 use driver_modbus::testing::TestServer;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
@@ -88,7 +89,7 @@ fn values_in_and_out_over_tcp() {
     }
     let card = card(MAP);
     let stats = Arc::new(UnitStats::default());
-    let _line = Line::spawn(
+    let _line = TestLine::spawn(
         "mb-test",
         Transport::Tcp(server.addr()),
         vec![LineUnit {
@@ -122,7 +123,7 @@ fn exceptions_surface_with_their_code_and_make_the_unit_stale_then_offline() {
     server.memory().lock().unwrap().holding_exception = Some(ExceptionCode::IllegalDataAddress);
     let card = card(MAP);
     let stats = Arc::new(UnitStats::default());
-    let _line = Line::spawn(
+    let _line = TestLine::spawn(
         "mb-test",
         Transport::Tcp(server.addr()),
         vec![LineUnit {
@@ -160,7 +161,7 @@ fn a_silent_unit_does_not_stall_a_healthy_one_on_the_same_line() {
         Arc::new(UnitStats::default()),
         Arc::new(UnitStats::default()),
     );
-    let _line = Line::spawn(
+    let _line = TestLine::spawn(
         "mb-test",
         Transport::Tcp(server.addr()),
         vec![
@@ -235,7 +236,7 @@ fn a_lost_connection_is_reconnected() {
     let addr = server.addr();
     let card = card(MAP);
     let stats = Arc::new(UnitStats::default());
-    let _line = Line::spawn(
+    let _line = TestLine::spawn(
         "mb-test",
         Transport::Tcp(addr),
         vec![LineUnit {
@@ -308,10 +309,10 @@ fn zeros_from(request: &[u8], unit: u8) -> Vec<u8> {
 
 const ONE_INPUT: &str = "[[point]]\ntable = \"input_registers\"\naddress = 0\n";
 
-fn line_against(addr: std::net::SocketAddr) -> (Arc<ModbusCard>, Arc<UnitStats>, Line) {
+fn line_against(addr: std::net::SocketAddr) -> (Arc<ModbusCard>, Arc<UnitStats>, TestLine) {
     let card = card(ONE_INPUT);
     let stats = Arc::new(UnitStats::default());
-    let line = Line::spawn(
+    let line = TestLine::spawn(
         "mb-raw",
         Transport::Tcp(addr),
         vec![LineUnit {

@@ -11,8 +11,9 @@
 use device_interface::time::MonotonicClock;
 use device_interface::{AnalogIn, AnalogOut, Device, DigitalIn, DigitalOut, Status};
 use driver_modbus::card::ModbusCard;
-use driver_modbus::line::{Line, LineUnit, Transport, UnitStats, UnitTiming};
+use driver_modbus::line::{LineUnit, Transport, UnitStats, UnitTiming};
 use driver_modbus::map::{Map, PointConfig};
+use driver_modbus::testing::TestLine;
 use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::process::{Child, Command, Stdio};
 use std::sync::Arc;
@@ -168,7 +169,7 @@ fn reads_and_writes_against_pymodbus_over_tcp() {
     let (_peer, addr) = start_pymodbus_tcp();
     let card = card();
     let stats = Arc::new(UnitStats::default());
-    let _line = Line::spawn(
+    let _line = TestLine::spawn(
         "mb-peer",
         Transport::Tcp(addr),
         vec![LineUnit {
@@ -298,7 +299,7 @@ fn two_units_multi_dropped_on_an_rtu_line_against_pymodbus() {
         Arc::new(UnitStats::default()),
         Arc::new(UnitStats::default()),
     );
-    let _line = Line::spawn(
+    let _line = TestLine::spawn(
         "mb-rtu",
         Transport::Rtu(serial),
         vec![
@@ -409,7 +410,7 @@ fn every_table_and_type_against_pymodbus() {
     let map = Map::with_read_back(&points, 4, true).unwrap();
     let card = ModbusCard::new(map, Arc::new(MonotonicClock));
     let stats = Arc::new(UnitStats::default());
-    let _line = Line::spawn(
+    let _line = TestLine::spawn(
         "mb-peer",
         Transport::Tcp(addr),
         vec![LineUnit {

@@ -39,6 +39,7 @@
 
 mod card;
 pub mod config;
+pub mod plugin;
 mod record;
 
 pub use card::{SimCard, SimConfigError, SimEncoder, SimFault};

@@ -10,7 +10,7 @@
 //! cargo run -p hwgw-example-custom -- run examples/custom-component/threshold.toml
 //! ```
 
-use hwgw::components::ComponentTypes;
+use hwgw::types::Types;
 use rtt::component::IntrospectError;
 use rtt::port::{FlowStatus, InputPort, OutputPort};
 use rtt::property::Property;
@@ -74,9 +74,9 @@ impl Component for Threshold {
 }
 
 /// hwgw's built-in types plus `threshold`.
-pub fn types() -> ComponentTypes {
-    let mut t = ComponentTypes::builtin();
-    t.register("threshold", |rt, name, spec| {
+pub fn types() -> Types {
+    let mut t = Types::builtin();
+    t.components.register("threshold", |rt, name, spec| {
         rt.add(
             name,
             spec,

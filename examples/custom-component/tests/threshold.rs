@@ -52,7 +52,7 @@ fn threshold_switches_the_digital_output_both_ways() {
 
 #[test]
 fn the_builtin_types_are_still_there_and_names_are_unique() {
-    let mut t = hwgw_example_custom::types();
+    let mut t = hwgw_example_custom::types().components;
     assert_eq!(
         t.names(),
         vec!["blinker", "follow", "reporter", "threshold"]

@@ -1,7 +1,7 @@
 //! The interface a component declares when it is built: ports, operations, properties
 //! and attributes, each named and documented.
 
-use super::dynport::{DynPort, InEntry, OutEntry};
+use super::dynport::{DynPort, InEntry, OutEntry, ReadBack};
 use crate::activity::Waker;
 use crate::error::IntrospectError;
 use crate::info::PortData;
@@ -121,6 +121,18 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
         self.input_with_sample(name, doc, T::default(), true)
     }
 
+    /// Adds an event input port that drives something whose current value can be read
+    /// back (a device output): its value, as the control socket's `get` shows it, is
+    /// `read_back()` rather than the last sample read.
+    pub fn event_input_with_read_back<T: PortData + Default>(
+        &mut self,
+        name: &str,
+        doc: &str,
+        read_back: impl Fn() -> Option<T> + Send + Sync + 'static,
+    ) -> Result<InputPort<T>, IntrospectError> {
+        self.add_input(name, doc, T::default(), true, Some(Box::new(read_back)))
+    }
+
     /// Adds an input port keeping its sample in a copy of `sample`.
     pub fn input_with_sample<T: PortData>(
         &mut self,
@@ -128,6 +140,17 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
         doc: &str,
         sample: T,
         event: bool,
+    ) -> Result<InputPort<T>, IntrospectError> {
+        self.add_input(name, doc, sample, event, None)
+    }
+
+    fn add_input<T: PortData>(
+        &mut self,
+        name: &str,
+        doc: &str,
+        sample: T,
+        event: bool,
+        read_back: Option<ReadBack<T>>,
     ) -> Result<InputPort<T>, IntrospectError> {
         self.check_port_name(name)?;
         let port = InputPort::with_sample(name, sample.clone());
@@ -139,6 +162,7 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
             doc: doc.to_string(),
             sample,
             event,
+            read_back,
         }));
         Ok(port)
     }

@@ -29,7 +29,9 @@ pub trait DynPort: Send + Sync {
     fn info(&self) -> PortInfo;
     /// Live connections and their counters.
     fn connections(&self) -> Vec<ConnectionInfo>;
-    /// An output port's last written value (`None` before the first write).
+    /// The port's current value: an output port's last written value; an input port's
+    /// read-back of what it drives when it has one (a device output), else the last new
+    /// sample its component read. `None` before there is one.
     fn last_value(&self) -> Result<Option<Value>, IntrospectError>;
     /// A new connection from this output port to a reader of serialised values.
     fn reader(&self, policy: ConnPolicy) -> Result<Box<dyn DynReader>, IntrospectError>;
@@ -53,12 +55,16 @@ pub(crate) struct OutEntry<T: Send> {
     pub(crate) doc: String,
 }
 
+/// Reads back what an input port drives (a device output's current value).
+pub(crate) type ReadBack<T> = Box<dyn Fn() -> Option<T> + Send + Sync>;
+
 /// An input port as the dynamic layer holds it.
 pub(crate) struct InEntry<T: Send> {
     pub(crate) shared: Arc<InputShared<T>>,
     pub(crate) doc: String,
     pub(crate) sample: T,
     pub(crate) event: bool,
+    pub(crate) read_back: Option<ReadBack<T>>,
 }
 
 fn direction_error(port: &str, actual: Direction, what: &'static str) -> IntrospectError {
@@ -197,11 +203,11 @@ impl<T: PortData> DynPort for InEntry<T> {
     }
 
     fn last_value(&self) -> Result<Option<Value>, IntrospectError> {
-        Err(direction_error(
-            &self.shared.name,
-            Direction::Input,
-            "reading a last value",
-        ))
+        let v = match &self.read_back {
+            Some(f) => f(),
+            None => self.shared.last_read(),
+        };
+        Ok(v.and_then(|v| serde_json::to_value(&v).ok()))
     }
 
     fn reader(&self, _policy: ConnPolicy) -> Result<Box<dyn DynReader>, IntrospectError> {

@@ -1,0 +1,92 @@
+//! The [`Card`] trait: one built card, whatever its bus.
+
+use device_interface::CardDevices;
+use serde::{Deserialize, Serialize};
+use std::time::Instant;
+
+use crate::names::ChannelNames;
+
+/// A card's bus status for `hwgw status`: where it is and its counters.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct CardStatus {
+    /// Where the card is on its bus: an interface, an address and unit, a port.
+    pub bus: String,
+    /// The driver's counters and bus state, by name (a serialised snapshot struct).
+    pub counters: serde_json::Map<String, serde_json::Value>,
+}
+
+impl CardStatus {
+    /// A status at `bus` with the fields of `snapshot` (any struct that serialises to a
+    /// map) as its counters.
+    pub fn new(bus: impl Into<String>, snapshot: &impl Serialize) -> CardStatus {
+        let counters = match serde_json::to_value(snapshot) {
+            Ok(serde_json::Value::Object(m)) => m,
+            Ok(other) => {
+                let mut m = serde_json::Map::new();
+                m.insert("value".into(), other);
+                m
+            }
+            Err(e) => {
+                let mut m = serde_json::Map::new();
+                m.insert("error".into(), serde_json::Value::String(e.to_string()));
+                m
+            }
+        };
+        CardStatus {
+            bus: bus.into(),
+            counters,
+        }
+    }
+}
+
+/// One built card of a deployment.
+///
+/// Built by its driver's [`BuildFn`](crate::BuildFn) without starting anything (so `hwgw
+/// check` runs the same code as `hwgw run`); the gateway then registers its devices, asks
+/// for its bus side, and at stop drives its outputs to their safe values.
+///
+/// Real-time contract: these methods are called by the gateway at build, start, status and
+/// stop time, never from a real-time path; the devices they hand out keep the device
+/// interfaces' contract (non-blocking, bounded, allocation-free).
+pub trait Card: Send + Sync {
+    /// The card's devices, registered under the card's name (encoders as
+    /// `card.<suffix>`). Called once, at build.
+    fn devices(&self) -> CardDevices;
+
+    /// Port names for channels the deployment's `[card.names]` leaves unnamed (e.g. signal
+    /// names from a CAN database). Names must be unique per list, without dots or spaces;
+    /// give none rather than bad ones. Default: none.
+    fn channel_names(&self) -> ChannelNames {
+        ChannelNames::default()
+    }
+
+    /// Adds the card's bus side to `runtime`: the component(s) doing its bus I/O, on their
+    /// own activities, not started. `name` is the card's name (a bus component is usually
+    /// named after it). The gateway starts them before the IO components and stops them
+    /// last. Default: none (a card whose devices do their own I/O).
+    fn add_bus(
+        &self,
+        runtime: &rtt::Runtime,
+        name: &str,
+    ) -> Result<Vec<rtt::TaskContext>, rtt::RuntimeError> {
+        let _ = (runtime, name);
+        Ok(Vec::new())
+    }
+
+    /// One line for the start-up log: what the card talks to and what it maps.
+    fn summary(&self) -> String;
+
+    /// Its bus status and counters, now. Default: none.
+    fn status(&self) -> CardStatus {
+        CardStatus::default()
+    }
+
+    /// At stop, after the gateway wrote the safe values to the card's outputs and while its
+    /// bus side still runs: waits, until `deadline` at the latest, for them to reach the
+    /// hardware (sent, acknowledged). `Err` says why they may not have. Default: nothing
+    /// to wait for.
+    fn settle(&self, deadline: Instant) -> Result<(), String> {
+        let _ = deadline;
+        Ok(())
+    }
+}

@@ -1,0 +1,61 @@
+//! The contract between a bus driver and the hwgw gateway.
+//!
+//! A driver is a function from its typed section of a deployment (`[card.<driver>]`) and a
+//! [`CardContext`] to a built [`Card`]: one trait object that gives the gateway everything
+//! it needs, whatever the bus.
+//!
+//! - its devices, registered under the card's name ([`Card::devices`]);
+//! - names for its channels where the bus has better ones than `ch0…` ([`Card::channel_names`]);
+//! - its bus side: the component(s) that do the bus I/O on rtt activities ([`Card::add_bus`]);
+//! - its status and counters as one serialisable snapshot ([`Card::status`]);
+//! - a one-line summary for the start-up log ([`Card::summary`]);
+//! - how the safe values, once written to its outputs, reach the hardware ([`Card::settle`]).
+//!
+//! A [`Server`] is the other plug-in shape: something served beside the cards (hwgw as a
+//! Modbus TCP server), started with the gateway and stopped first at stop.
+//!
+//! At stop the gateway stops every other component, writes each card's safe values through
+//! its [`AnalogOut`](device_interface::AnalogOut) and [`DigitalOut`](device_interface::DigitalOut)
+//! devices, lets every card settle them while its bus side still runs, and only then stops
+//! the bus sides: a bus component always stops last.
+//!
+//! A driver lives in a crate of its own (it depends on this crate, `rtt` and
+//! `device-interface`, never on the gateway or on another driver) and is registered in the
+//! gateway's `DriverTypes` under its name — by hwgw for the drivers it ships, by a user's
+//! binary for their own.
+//!
+//! ```
+//! use driver_api::{Card, CardContext, CardError};
+//! use device_interface::CardDevices;
+//!
+//! /// A card with nothing on it (a real one holds its devices and bus).
+//! struct Empty;
+//!
+//! impl Card for Empty {
+//!     fn devices(&self) -> CardDevices {
+//!         CardDevices::default()
+//!     }
+//!     fn summary(&self) -> String {
+//!         "nothing".into()
+//!     }
+//! }
+//!
+//! /// The driver: its section type and its build function.
+//! #[derive(serde::Deserialize)]
+//! #[serde(deny_unknown_fields)]
+//! struct EmptyConfig {}
+//!
+//! fn build(_: &EmptyConfig, _: &mut CardContext<'_>) -> Result<Box<dyn Card>, CardError> {
+//!     Ok(Box::new(Empty))
+//! }
+//! ```
+
+mod card;
+mod context;
+mod names;
+mod server;
+
+pub use card::{Card, CardStatus};
+pub use context::{BuildFn, CardContext, CardError};
+pub use names::{ChannelNames, NamesError, is_port_name};
+pub use server::Server;

@@ -1,0 +1,18 @@
+//! The [`Server`] trait: something the gateway serves beside its cards (hwgw as a Modbus
+//! TCP server over chosen devices), built over the registry with the deployment, started
+//! with the gateway, stopped first at stop so no client write races the safe values.
+
+/// A server of a deployment.
+pub trait Server: Send + Sync {
+    /// Its deployment key, e.g. `modbus_server`.
+    fn name(&self) -> &str;
+
+    /// Starts serving; returns where it listens.
+    fn start(&self) -> Result<String, String>;
+
+    /// Stops serving (closing its clients' connections) and waits for that; idempotent.
+    fn stop(&self);
+
+    /// Where it listens while running.
+    fn address(&self) -> Option<String>;
+}

@@ -1,0 +1,158 @@
+//! The SocketCAN card as an hwgw driver plug-in (`driver = "socketcan"`, section
+//! [`CanConfig`]).
+//!
+//! Building opens the interface (a missing one is an error `hwgw check` reports); the bus
+//! side is the [`CanIo`] component named after the card. Channels take their signals'
+//! names as port names. At stop the card sends every tx frame once more, carrying the safe
+//! values, before its bus component stops.
+
+use crate::bus::CanBus;
+use crate::card::CanCard;
+use crate::component::CanIo;
+use crate::map::{CanConfig, MappedFrame, SignalRole};
+use device_interface::CardDevices;
+use driver_api::{Card, CardContext, CardError, CardStatus, ChannelNames, is_port_name};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+/// A CAN card of a deployment.
+struct CanPlugin {
+    card: Arc<CanCard>,
+    /// The opened bus, until its component takes it.
+    bus: Mutex<Option<CanBus>>,
+    thread: rtt::ThreadOptions,
+    /// The bus component, once added.
+    task: Mutex<Option<rtt::TaskContext>>,
+}
+
+/// Builds a CAN card from its section: the map (DBC files relative to the deployment),
+/// the card, and its interface opened.
+pub fn build(config: &CanConfig, ctx: &mut CardContext<'_>) -> Result<Box<dyn Card>, CardError> {
+    let map = crate::map::CanMap::new(config, ctx.base()).map_err(CardError::new)?;
+    let card = CanCard::new(map, ctx.clock());
+    let bus = CanBus::open(card.clone()).map_err(CardError::new)?;
+    Ok(Box::new(CanPlugin {
+        card,
+        bus: Mutex::new(Some(bus)),
+        thread: ctx.thread().clone(),
+        task: Mutex::new(None),
+    }))
+}
+
+/// The port names of one role's signals in `frames` (`signal`, or `signal_k` for bit k of
+/// a multi-bit digital signal); none when they would not all be distinct port names.
+fn signal_names(frames: &[MappedFrame], role: SignalRole) -> Vec<String> {
+    let mut all = Vec::new();
+    for s in frames
+        .iter()
+        .flat_map(|f| &f.signals)
+        .filter(|s| s.role == role)
+    {
+        match s.width() {
+            1 => all.push(s.name.clone()),
+            w => all.extend((0..w).map(|k| format!("{}_{k}", s.name))),
+        }
+    }
+    let mut unique = all.clone();
+    unique.sort();
+    unique.dedup();
+    if unique.len() == all.len() && all.iter().all(|n| is_port_name(n)) {
+        all
+    } else {
+        Vec::new()
+    }
+}
+
+fn frame_list(frames: &[MappedFrame]) -> String {
+    if frames.is_empty() {
+        return "nothing".into();
+    }
+    frames
+        .iter()
+        .map(|f| {
+            let when = match (f.cycle, f.on_change) {
+                (Some(c), true) => format!("every {c:?} and on change"),
+                (Some(c), false) => format!("every {c:?}"),
+                (None, _) => "on change".to_string(),
+            };
+            format!(
+                "{} (id {:#x}, {} signals, {when})",
+                f.name,
+                f.id,
+                f.signals.len()
+            )
+        })
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+impl CanPlugin {
+    fn bus_running(&self) -> bool {
+        rtt::lock(&self.task)
+            .as_ref()
+            .is_some_and(|t| t.state() == rtt::TaskState::Running)
+    }
+}
+
+impl Card for CanPlugin {
+    fn devices(&self) -> CardDevices {
+        self.card.devices()
+    }
+
+    fn channel_names(&self) -> ChannelNames {
+        let map = self.card.map();
+        ChannelNames {
+            analog_in: signal_names(map.rx(), SignalRole::Analog),
+            digital_in: signal_names(map.rx(), SignalRole::Digital),
+            analog_out: signal_names(map.tx(), SignalRole::Analog),
+            digital_out: signal_names(map.tx(), SignalRole::Digital),
+        }
+    }
+
+    fn add_bus(
+        &self,
+        runtime: &rtt::Runtime,
+        name: &str,
+    ) -> Result<Vec<rtt::TaskContext>, rtt::RuntimeError> {
+        let Some(bus) = rtt::lock(&self.bus).take() else {
+            // Already added once: the bus belongs to that component.
+            return Ok(Vec::new());
+        };
+        let task = CanIo::add(runtime, name, bus, self.thread.clone())?;
+        *rtt::lock(&self.task) = Some(task.clone());
+        Ok(vec![task])
+    }
+
+    fn summary(&self) -> String {
+        let map = self.card.map();
+        format!(
+            "{}: receives {}; sends {}",
+            map.interface(),
+            frame_list(map.rx()),
+            frame_list(map.tx()),
+        )
+    }
+
+    fn status(&self) -> CardStatus {
+        CardStatus::new(self.card.map().interface(), &self.card.counters())
+    }
+
+    fn settle(&self, deadline: Instant) -> Result<(), String> {
+        // Every tx frame goes out once more, with the safe values in it.
+        self.card.flush();
+        while self.card.link_up()
+            && self.card.sends_pending()
+            && Instant::now() < deadline
+            && self.bus_running()
+        {
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        if !self.card.link_up() {
+            return Err("link down, safe values not sent".into());
+        }
+        if self.card.sends_pending() {
+            return Err("safe values not sent before stopping".into());
+        }
+        Ok(())
+    }
+}

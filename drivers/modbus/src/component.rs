@@ -1,0 +1,141 @@
+//! A Modbus line as an rtt component: [`LineIo`] polls the units of one connection on a
+//! file-descriptor activity of its own, woken at each unit's next due time.
+//!
+//! Each step polls the units that are due, in order, one request outstanding at a time
+//! (each bounded by its unit's timeout), then sets the activity's next wake-up to the
+//! earliest next poll. A stop waits for the poll under way. An operation `counters`
+//! returns every unit's line diagnostics.
+//!
+//! ```no_run
+//! # use std::sync::Arc;
+//! # use driver_modbus::line::{LineUnit, Transport};
+//! # fn demo(rt: &rtt::Runtime, units: Vec<LineUnit>) -> Result<(), Box<dyn std::error::Error>> {
+//! let transport = Transport::Tcp("127.0.0.1:502".parse()?);
+//! let line = driver_modbus::component::LineIo::add(rt, "plc", transport, units, Default::default())?;
+//! line.start()?;
+//! # Ok(()) }
+//! ```
+
+use crate::line::{LineUnit, Transport, UnitCounters, UnitState, poll_and_schedule};
+use device_interface::time::{Clock, MonotonicClock, Timestamp};
+use rtt::component::IntrospectError;
+use rtt::{Component, Context, HookError, HookResult, InterfaceBuilder};
+use std::sync::Arc;
+
+/// The poller of one Modbus line.
+pub struct LineIo {
+    transport: Transport,
+    units: Arc<Vec<LineUnit>>,
+    states: Vec<UnitState>,
+    /// The connection, while open.
+    client: Option<tokio_modbus::client::Context>,
+    /// The single-threaded tokio runtime the transactions run on (made at start).
+    tokio: Option<tokio::runtime::Runtime>,
+}
+
+fn now() -> Timestamp {
+    MonotonicClock.now()
+}
+
+impl LineIo {
+    /// Adds the line over `transport` polling `units` to `runtime` as component `name`, on a
+    /// file-descriptor activity of its own placed by `thread`; not started.
+    pub fn add(
+        runtime: &rtt::Runtime,
+        name: &str,
+        transport: Transport,
+        units: Vec<LineUnit>,
+        thread: rtt::ThreadOptions,
+    ) -> Result<rtt::TaskContext, rtt::RuntimeError> {
+        runtime.add(
+            name,
+            rtt::ActivitySpec::FileDescriptor {
+                timeout: None,
+                thread,
+            },
+            rtt::InitialState::Stopped,
+            move |iface| LineIo::new(transport, units, iface),
+        )
+    }
+
+    /// Builds the component's interface: the `counters` operation.
+    pub fn new(
+        transport: Transport,
+        units: Vec<LineUnit>,
+        iface: &mut InterfaceBuilder<LineIo>,
+    ) -> Result<LineIo, IntrospectError> {
+        let units = Arc::new(units);
+        let u = units.clone();
+        iface.client_operation(
+            "counters",
+            "line diagnostics of every unit on the line: requests, replies, timeouts, exceptions, transport errors, bad replies, write retries, polls",
+            &[],
+            move |()| -> Vec<UnitCounters> { u.iter().map(UnitCounters::of).collect() },
+        )?;
+        let t0 = now();
+        Ok(LineIo {
+            transport,
+            states: units
+                .iter()
+                .map(|u| UnitState::new(&u.timing, t0))
+                .collect(),
+            units,
+            client: None,
+            tokio: None,
+        })
+    }
+}
+
+impl Component for LineIo {
+    fn start_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+        if self.tokio.is_none() {
+            self.tokio = Some(
+                tokio::runtime::Builder::new_current_thread()
+                    .enable_all()
+                    .build()
+                    .map_err(|e| HookError::new(format!("cannot make the line's runtime: {e}")))?,
+            );
+        }
+        let t0 = now();
+        for (s, u) in self.states.iter_mut().zip(self.units.iter()) {
+            *s = UnitState::new(&u.timing, t0);
+        }
+        ctx.activity().wake_at(t0)?;
+        Ok(())
+    }
+
+    fn update_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+        let Some(tokio) = &self.tokio else {
+            return Ok(());
+        };
+        // Poll every unit that is due now, earliest first; a unit that falls due while
+        // another is polled waits for the next step (which comes at once).
+        let started = now();
+        while let Some((i, due)) = self
+            .states
+            .iter()
+            .enumerate()
+            .map(|(i, s)| (i, s.next))
+            .filter(|(_, due)| *due <= started)
+            .min_by_key(|(_, due)| *due)
+        {
+            tokio.block_on(poll_and_schedule(
+                &mut self.client,
+                &self.transport,
+                &self.units[i],
+                &mut self.states[i],
+                due,
+                &now,
+            ));
+        }
+        if let Some(next) = self.states.iter().map(|s| s.next).min() {
+            ctx.activity().wake_at(next)?;
+        }
+        Ok(())
+    }
+
+    fn stop_hook(&mut self, _: &mut Context<'_>) {
+        // A new start opens the connection anew.
+        self.client = None;
+    }
+}

@@ -1,0 +1,378 @@
+//! [`Gateway::build`](crate::deploy::Gateway::build) in phases: cards, aliases, runtime,
+//! bus sides and IO components, user components, connections, servers. Each phase reports
+//! through one [`Problems`] collector, keyed by the path of what is wrong.
+
+use crate::config::{CARD_KEYS, CardConfig, Deployment, millis, split_port};
+use crate::deploy::{CardRt, Gateway};
+use crate::drivers::SectionError;
+use crate::io;
+use crate::problems::{KeyPath, Problem, Problems, Source};
+use crate::types::Types;
+use device_interface::Registry;
+use driver_api::CardContext;
+use rtt::component::DynPort;
+use rtt::{Runtime, RuntimeOptions, TaskContext, TaskState};
+use std::any::{Any, TypeId};
+use std::collections::HashMap;
+use std::path::Path;
+use std::sync::Arc;
+
+/// One build under way.
+struct Build<'d, 's, 'a> {
+    d: &'d Deployment,
+    types: &'d Types,
+    problems: Problems<'s, 'a>,
+    /// Files a card names (DBC) are relative to the deployment file.
+    base: &'d Path,
+}
+
+impl Gateway {
+    /// Builds everything in `deployment` (from `file`, whose `text` locates errors) with
+    /// the component and driver `types`. Nothing is started. Returns every problem found.
+    pub fn build(
+        deployment: &Deployment,
+        file: &str,
+        text: &str,
+        types: &Types,
+    ) -> Result<Gateway, Vec<Problem>> {
+        build(deployment, file, text, types)
+    }
+}
+
+fn build(d: &Deployment, file: &str, text: &str, types: &Types) -> Result<Gateway, Vec<Problem>> {
+    let source = Source::new(file, text);
+    let base = Path::new(file).parent().unwrap_or(Path::new(""));
+    let mut b = Build {
+        d,
+        types,
+        problems: Problems::new(&source),
+        base,
+    };
+    let registry = Arc::new(Registry::new());
+    let mut cards = b.cards(&registry);
+    b.aliases(&registry);
+    let Some(runtime) = b.runtime(registry) else {
+        return Err(b.problems.into_vec());
+    };
+    let mut order = b.bus_and_io(&runtime, &mut cards);
+    let mut start = vec![true; order.len()];
+    b.components(&runtime, &mut order, &mut start);
+    b.connections(&runtime);
+    let servers = b.servers(&runtime);
+    if !b.problems.is_empty() {
+        return Err(b.problems.into_vec());
+    }
+    Ok(Gateway::new(runtime, cards, servers, order, start))
+}
+
+impl Build<'_, '_, '_> {
+    /// Every card: checked, built by its driver, its devices registered.
+    fn cards(&mut self, registry: &Registry) -> Vec<CardRt> {
+        let mut shared: HashMap<TypeId, Box<dyn Any + Send>> = HashMap::new();
+        let mut cards = Vec::new();
+        for (i, c) in self.d.cards.iter().enumerate() {
+            let at = KeyPath::top("card").index(i);
+            if let Some(first) = self.d.cards[..i].iter().position(|o| o.name == c.name) {
+                let msg = format!(
+                    "card {:?} is defined twice (first as card[{first}])",
+                    c.name
+                );
+                self.problems.at(&at.key("name"), msg);
+                continue;
+            }
+            if !(c.period_ms.is_finite() && c.period_ms > 0.0) {
+                let msg = format!("{} ms: expected a period above 0", c.period_ms);
+                self.problems.at(&at.key("period_ms"), msg);
+                continue;
+            }
+            let Some(card) = self.card(&at, c, &mut shared) else {
+                continue;
+            };
+            if let Some(rt) = self.register(&at, c, card, registry) {
+                cards.push(rt);
+            }
+        }
+        cards
+    }
+
+    /// Builds card `c` from its driver section.
+    fn card(
+        &mut self,
+        at: &KeyPath,
+        c: &CardConfig,
+        shared: &mut HashMap<TypeId, Box<dyn Any + Send>>,
+    ) -> Option<Box<dyn driver_api::Card>> {
+        let drivers = &self.types.drivers;
+        let Some(driver) = drivers.get(&c.driver) else {
+            let msg = format!(
+                "unknown driver {:?}; this build has: {}",
+                c.driver,
+                drivers.names().join(", ")
+            );
+            self.problems.at(&at.key("driver"), msg);
+            return None;
+        };
+        let mut ok = true;
+        for key in c.sections.keys().filter(|k| **k != c.driver) {
+            ok = false;
+            let msg = if drivers.contains(key) {
+                format!(
+                    "card {:?} uses driver {:?}: a [card.{key}] section belongs to driver {key:?}",
+                    c.name, c.driver
+                )
+            } else {
+                format!(
+                    "unknown key {key:?}; a card has {}, and its driver's section [card.{}]",
+                    CARD_KEYS.join(", "),
+                    c.driver
+                )
+            };
+            self.problems.at_key(&at.key(key), msg);
+        }
+        let section_path = at.key(&c.driver);
+        let Some(section) = self.problems.source().value(&section_path) else {
+            let msg = format!(
+                "card {:?} uses driver {:?} but has no [card.{}] section",
+                c.name, c.driver, c.driver
+            );
+            self.problems.at(at, msg);
+            return None;
+        };
+        if !ok {
+            return None;
+        }
+        let mut ctx = CardContext::new(
+            &c.name,
+            millis(c.period_ms),
+            &c.thread,
+            self.base,
+            Arc::new(rtt::time::MonotonicClock),
+            shared,
+        );
+        match driver.build(section.clone(), &mut ctx) {
+            Ok(card) => Some(card),
+            Err(SectionError::Parse {
+                path,
+                span,
+                message,
+            }) => {
+                self.problems
+                    .at_span(&section_path.join(&path), span, message);
+                None
+            }
+            Err(SectionError::Card(e)) => {
+                let path = match &e.key {
+                    Some(k) => section_path.join(k),
+                    None => section_path,
+                };
+                self.problems
+                    .at(&path, format!("card {:?}: {}", c.name, e.message));
+                None
+            }
+        }
+    }
+
+    /// Registers a built card's devices and settles its channel names and safe values.
+    fn register(
+        &mut self,
+        at: &KeyPath,
+        c: &CardConfig,
+        card: Box<dyn driver_api::Card>,
+        registry: &Registry,
+    ) -> Option<CardRt> {
+        let devices = card.devices();
+        let count = |n: Option<u32>| n.unwrap_or(0);
+        let counts = [
+            count(devices.analog_in.as_ref().map(|d| d.channel_count())),
+            count(devices.analog_out.as_ref().map(|d| d.channel_count())),
+            count(devices.digital_in.as_ref().map(|d| d.input_count())),
+            count(devices.digital_out.as_ref().map(|d| d.output_count())),
+        ];
+        let names = c.names.clone().or(card.channel_names());
+        if let Err(e) = names.check(counts) {
+            self.problems.at(&at.key("names").join(&e.key), e.message);
+            return None;
+        }
+        let analog_out = devices.analog_out.clone();
+        let digital_out = devices.digital_out.clone();
+        if let Err(e) = registry.register_card(&c.name, devices) {
+            self.problems.at(&at.key("name"), e);
+            return None;
+        }
+        let safe_analog_out = c.safe_analog_out.clone().unwrap_or_else(|| {
+            analog_out.as_ref().map_or_else(Vec::new, |ao| {
+                (0..ao.channel_count())
+                    .map(|ch| ao.read_back(ch).unwrap_or(0.0))
+                    .collect()
+            })
+        });
+        Some(CardRt {
+            name: c.name.clone(),
+            config: at.clone(),
+            driver: c.driver.clone(),
+            card,
+            analog_out,
+            digital_out,
+            safe_analog_out,
+            safe_digital_out_on: c.safe_digital_out_on.clone(),
+            names,
+            bus: Vec::new(),
+        })
+    }
+
+    fn aliases(&mut self, registry: &Registry) {
+        for (i, a) in self.d.aliases.iter().enumerate() {
+            if let Err(e) = registry.alias(a.interface, &a.name, &a.target) {
+                self.problems.at(&KeyPath::top("alias").index(i), e);
+            }
+        }
+    }
+
+    fn runtime(&mut self, registry: Arc<Registry>) -> Option<Runtime> {
+        let options = RuntimeOptions {
+            thread_scope: self.d.thread_scope,
+            cpu_dma_latency_us: self.d.cpu_dma_latency_us,
+            ..RuntimeOptions::default()
+        };
+        match Runtime::new(registry, options) {
+            Ok(r) => Some(r),
+            Err(e) => {
+                let msg = format!(
+                    "{e} (add an [[alias]] with interface = \"digital_out\" and name = \"ThreadScope\")"
+                );
+                self.problems.at(&KeyPath::top("thread_scope"), msg);
+                None
+            }
+        }
+    }
+
+    /// Each card's bus side, then its IO components; returns them in start order.
+    fn bus_and_io(&mut self, runtime: &Runtime, cards: &mut [CardRt]) -> Vec<TaskContext> {
+        let mut order = Vec::new();
+        for c in cards.iter_mut() {
+            let cfg = &self.d.cards.iter().find(|k| k.name == c.name);
+            let Some(cfg) = cfg else { continue };
+            match c.card.add_bus(runtime, &c.name) {
+                Ok(tasks) => {
+                    c.bus = tasks.clone();
+                    order.extend(tasks);
+                }
+                Err(e) => self.problems.at(&c.config, e),
+            }
+            let sample = millis(cfg.sample_period_ms.unwrap_or(cfg.period_ms));
+            match io::build(runtime, &c.name, sample, &c.names) {
+                Ok(ts) => order.extend(ts),
+                Err(e) => self.problems.at(&c.config, e),
+            }
+        }
+        order
+    }
+
+    /// User components: built, properties set, configured.
+    fn components(
+        &mut self,
+        runtime: &Runtime,
+        order: &mut Vec<TaskContext>,
+        start: &mut Vec<bool>,
+    ) {
+        let types = &self.types.components;
+        for (i, c) in self.d.components.iter().enumerate() {
+            let at = KeyPath::top("component").index(i);
+            if let crate::config::ActivityConfig::Periodic { period_ms, .. } = c.activity
+                && !(period_ms.is_finite() && period_ms > 0.0)
+            {
+                let msg = format!("{period_ms} ms: expected a period above 0");
+                self.problems.at(&at.key("activity").key("period_ms"), msg);
+                continue;
+            }
+            let task = match types.build(runtime, &c.name, &c.kind, c.activity.spec()) {
+                Ok(Some(t)) => t,
+                Ok(None) => {
+                    let msg = format!(
+                        "unknown component type {:?}; this build has: {}",
+                        c.kind,
+                        types.names().join(", ")
+                    );
+                    self.problems.at(&at.key("type"), msg);
+                    continue;
+                }
+                Err(e) => {
+                    self.problems.at(&at.key("name"), e);
+                    continue;
+                }
+            };
+            if let Err(e) = task.properties().load_toml(&c.properties) {
+                for line in e.to_string().lines() {
+                    self.problems.at(&at.key("properties"), line);
+                }
+                continue;
+            }
+            if task.state() == TaskState::PreOperational
+                && let Err(e) = task.configure()
+            {
+                self.problems.at(&at, e);
+                continue;
+            }
+            order.push(task);
+            start.push(c.start);
+        }
+    }
+
+    fn connections(&mut self, runtime: &Runtime) {
+        for (i, c) in self.d.connections.iter().enumerate() {
+            let at = KeyPath::top("connection").index(i);
+            let from = self.port_end(runtime, &at.key("from"), &c.from);
+            let to = self.port_end(runtime, &at.key("to"), &c.to);
+            if let (Some(from), Some(to)) = (from, to)
+                && let Err(e) = from.connect_to(&*to, c.policy)
+            {
+                self.problems
+                    .at(&at, format!("{} -> {}: {e}", c.from, c.to));
+            }
+        }
+    }
+
+    /// The port `address` (`component.port`) names, or a problem at `at`.
+    fn port_end(
+        &mut self,
+        runtime: &Runtime,
+        at: &KeyPath,
+        address: &str,
+    ) -> Option<Arc<dyn DynPort>> {
+        let Some((comp, port)) = split_port(address) else {
+            self.problems
+                .at(at, format!("{address:?}: expected \"component.port\""));
+            return None;
+        };
+        let found = runtime
+            .component(comp)
+            .map_err(|e| e.to_string())
+            .and_then(|t| t.port(port).map_err(|e| e.to_string()));
+        match found {
+            Ok(p) => Some(p),
+            Err(e) => {
+                self.problems.at(at, e);
+                None
+            }
+        }
+    }
+
+    /// The servers: the Modbus server's table, over the devices registered above.
+    fn servers(&mut self, runtime: &Runtime) -> Vec<Box<dyn driver_api::Server>> {
+        let Some(ms) = self.d.modbus_server.as_ref() else {
+            return Vec::new();
+        };
+        match ms.table(runtime.registry()) {
+            Ok((listen, table)) => vec![Box::new(driver_modbus::served::TableServer::new(
+                listen, table,
+            ))],
+            Err(problems) => {
+                let at = KeyPath::top("modbus_server");
+                for p in problems {
+                    self.problems.at(&at.join(&p.key), p.message);
+                }
+                Vec::new()
+            }
+        }
+    }
+}
