@@ -2,10 +2,11 @@
 //! over a real vcan, can-utils on the other end, the CLI in between.
 #![allow(clippy::unwrap_used, reason = "test code")]
 
-use kernel_rig::{Candump, Failed, Rig, Trial, sh};
+use kernel_rig::{Failed, Trial, sh};
 use std::path::PathBuf;
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
+use testkit::Candump;
 
 const HWGW: &str = env!("CARGO_BIN_EXE_hwgw");
 const CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../config/can.toml");
@@ -94,26 +95,28 @@ impl Drop for Gateway {
     }
 }
 
+/// Waits until `f` says yes; its errors end the wait.
 fn wait_for(what: &str, mut f: impl FnMut() -> Result<bool, Failed>) -> Result<(), Failed> {
-    let end = Instant::now() + Duration::from_secs(10);
-    while !f()? {
-        if Instant::now() > end {
-            return Err(format!("timed out: {what}").into());
+    let mut error = None;
+    testkit::wait_for(what, testkit::wait::PATIENCE, || match f() {
+        Ok(done) => done,
+        Err(e) => {
+            error = Some(e);
+            true
         }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    Ok(())
+    })?;
+    error.map_or(Ok(()), Err)
 }
 
 /// `candump -L` of the frames matching `filter` (`id:mask`), until `n` or 3 s of silence.
 fn candump(filter: &str, n: usize) -> Result<Candump, Failed> {
-    Candump::start(&[
+    Ok(Candump::start(&[
         "-n",
         &n.to_string(),
         "-T",
         "3000",
         &format!("vcan0,{filter}"),
-    ])
+    ])?)
 }
 
 fn frames(c: Candump) -> Result<Vec<String>, Failed> {
@@ -176,10 +179,7 @@ fn hwgw_reads_writes_and_leaves_safe_frames() -> Result<(), Failed> {
 }
 
 fn main() -> std::process::ExitCode {
-    let rig = Rig::new()
-        .module("vcan")
-        .module("can_raw")
-        .tool("candump", "can-utils");
+    let rig = testkit::rig::vcan();
     kernel_rig::harness(
         &rig,
         vec![Trial::test(

@@ -11,15 +11,8 @@ use hwgw::config::Deployment;
 use hwgw::deploy::Gateway;
 use rtt::port::ConnPolicy;
 use serde_json::json;
-use std::time::{Duration, Instant};
-
-fn wait_until(what: &str, mut f: impl FnMut() -> bool) {
-    let deadline = Instant::now() + Duration::from_secs(10);
-    while !f() {
-        assert!(Instant::now() < deadline, "timed out: {what}");
-        std::thread::sleep(Duration::from_millis(10));
-    }
-}
+use testkit::mbpoll::Mbpoll;
+use testkit::wait_until;
 
 #[test]
 fn a_modbus_card_in_a_deployment() {
@@ -136,30 +129,14 @@ address = 1
 /// mbpoll (a libmodbus master) against `port`: table 0 coils, 1 discrete inputs, 3 input
 /// registers, 4 holding registers; 0-based `address`; `write` values, if any.
 fn mbpoll(port: u16, table: &str, address: u16, write: &[&str]) -> String {
-    let out = std::process::Command::new("mbpoll")
-        .args([
-            "-m",
-            "tcp",
-            "-p",
-            &port.to_string(),
-            "-a",
-            "1",
-            "-t",
-            table,
-            "-r",
-            &address.to_string(),
-            "-0",
-            "-1",
-            "127.0.0.1",
-        ])
-        .args(write)
-        .output()
-        .unwrap_or_else(|e| panic!("cannot run mbpoll (apt-get install mbpoll): {e}"));
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    )
+    Mbpoll {
+        port,
+        table,
+        address,
+        count: None,
+        write,
+    }
+    .run()
 }
 
 #[test]

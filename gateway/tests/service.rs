@@ -12,6 +12,7 @@ use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
+use testkit::wait_until;
 
 const HWGW: &str = env!("CARGO_BIN_EXE_hwgw");
 
@@ -112,14 +113,6 @@ impl Drop for Service {
             let _ = c.kill();
             let _ = c.wait();
         }
-    }
-}
-
-fn wait_until(what: &str, mut f: impl FnMut() -> bool) {
-    let deadline = Instant::now() + Duration::from_secs(10);
-    while !f() {
-        assert!(Instant::now() < deadline, "timed out: {what}");
-        std::thread::sleep(Duration::from_millis(20));
     }
 }
 

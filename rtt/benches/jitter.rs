@@ -115,6 +115,7 @@ fn run_rtt(loops: u64, fifo: bool, priority: i32) -> Figures {
 }
 
 fn run_cyclictest(loops: u64, fifo: bool, priority: i32) -> Result<Figures, String> {
+    testkit::peers::require(&testkit::peers::CYCLICTEST).map_err(|e| e.to_string())?;
     let prio = if fifo { priority } else { 0 };
     let out = Command::new("cyclictest")
         .args([
@@ -131,9 +132,7 @@ fn run_cyclictest(loops: u64, fifo: bool, priority: i32) -> Result<Figures, Stri
             vec!["--policy=other"]
         })
         .output()
-        .map_err(|e| {
-            format!("cannot run cyclictest ({e}); install it: apt-get install rt-tests")
-        })?;
+        .map_err(|e| format!("cannot run cyclictest: {e}"))?;
     if !out.status.success() {
         return Err(format!(
             "cyclictest failed: {}",

@@ -13,7 +13,7 @@ use driver_can::bus::CanBus;
 use driver_can::card::CanCard;
 use driver_can::component::{CanIo, CanMessage};
 use driver_can::map::{CanConfig, CanMap};
-use kernel_rig::{Failed, Rig, Trial, sh};
+use kernel_rig::{Failed, Trial, sh};
 use rtt::port::{ConnPolicy, FlowStatus, InputPort};
 use rtt::{ActivitySpec, Component, Context, HookResult, Runtime, RuntimeOptions};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -126,14 +126,11 @@ signal = [
         count.store(0, Ordering::Relaxed);
         let drops_before = card.counters().rx_dropped;
         latency.lock().unwrap().clear();
-        let dump = std::process::Command::new("sh")
-            .arg("-c")
-            .arg(format!(
-                "candump -n {frames} -T 3000 {iface} > /tmp/candump.log; wc -l < /tmp/candump.log"
-            ))
-            .stdout(std::process::Stdio::piped())
-            .spawn()?;
-        std::thread::sleep(Duration::from_millis(300));
+        let log = "/tmp/candump.log";
+        let dump = testkit::Candump::start_logging(
+            &["-n", &frames.to_string(), "-T", "3000", iface],
+            std::fs::File::create(log)?,
+        )?;
         // The reference reader: a bare blocking socket read, timestamps as ours.
         let reference = if rate == 1000 {
             Some(reference_reader(iface, frames)?)
@@ -143,9 +140,8 @@ signal = [
         let start = Instant::now();
         send(&sender, rate, frames)?;
         let offered = frames as f64 / start.elapsed().as_secs_f64();
-        let theirs: u64 = String::from_utf8_lossy(&dump.wait_with_output()?.stdout)
-            .trim()
-            .parse()?;
+        dump.finish()?;
+        let theirs = std::fs::read_to_string(log)?.lines().count() as u64;
         let end = Instant::now() + Duration::from_secs(3);
         while count.load(Ordering::Relaxed) < frames && Instant::now() < end {
             std::thread::sleep(Duration::from_millis(10));
@@ -247,10 +243,7 @@ fn reference_reader(
 }
 
 fn main() -> std::process::ExitCode {
-    let rig = Rig::new()
-        .module("vcan")
-        .module("can_raw")
-        .tool("candump", "can-utils");
+    let rig = testkit::rig::vcan();
     kernel_rig::harness(
         &rig,
         vec![Trial::bench("can_rx", |test_mode| {

@@ -9,10 +9,11 @@ use driver_can::bus::CanBus;
 use driver_can::card::{BusState, CanCard};
 use driver_can::component::CanIo;
 use driver_can::map::{CanConfig, CanMap};
-use kernel_rig::{Candump, Failed, Rig, Trial, sh, wait_until};
+use kernel_rig::{Failed, Trial, sh};
 use rtt::{Runtime, RuntimeOptions, TaskContext};
 use std::sync::Arc;
 use std::time::Duration;
+use testkit::{Candump, wait_for as wait_until};
 
 const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data");
 
@@ -66,11 +67,17 @@ fn cansend(iface: &str, frame: &str) -> Result<(), Failed> {
 
 /// `candump -L` for `n` frames (or until `timeout_ms` without one).
 fn candump(iface: &str, n: usize, timeout_ms: u32) -> Result<Candump, Failed> {
-    Candump::start(&["-n", &n.to_string(), "-T", &timeout_ms.to_string(), iface])
+    Ok(Candump::start(&[
+        "-n",
+        &n.to_string(),
+        "-T",
+        &timeout_ms.to_string(),
+        iface,
+    ])?)
 }
 
 fn dumped(c: Candump) -> Result<Vec<(f64, String)>, Failed> {
-    c.frames()
+    Ok(c.frames()?)
 }
 
 /// Motion every 20 ms (stale after 60 ms) and Temps with no cycle.
@@ -445,12 +452,9 @@ signal = [{ name = "y", start = 0, length = 8 }]
 }
 
 fn main() -> std::process::ExitCode {
-    let rig = Rig::new()
-        .module("vcan")
-        .module("can_raw")
+    let rig = testkit::rig::vcan()
         .module("kvaser_pci")
         .qemu_args(&kernel_rig::KVASER_PAIR)
-        .tool("candump", "can-utils")
         .tool("/lib/systemd/systemd-networkd", "systemd");
     let t = |name: &str, f: fn() -> Result<(), Failed>| Trial::test(name, f);
     kernel_rig::harness(

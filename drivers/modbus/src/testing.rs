@@ -226,3 +226,14 @@ impl TestLine {
         &self.task
     }
 }
+
+/// A card over the register map in `map` (TOML with `[[point]]` tables, as a card's
+/// section has them), coalescing reads across gaps of up to `max_gap` addresses.
+pub fn card(map: &str, max_gap: u16) -> Arc<crate::card::ModbusCard> {
+    let t: toml::Table = toml::from_str(map).unwrap();
+    let points: Vec<crate::map::PointConfig> = t["point"].clone().try_into().unwrap();
+    crate::card::ModbusCard::new(
+        crate::map::Map::new(&points, max_gap).unwrap(),
+        Arc::new(device_interface::time::MonotonicClock),
+    )
+}

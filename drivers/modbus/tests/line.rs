@@ -7,52 +7,20 @@
     reason = "test code: a failed unwrap is a failed test"
 )]
 
-use device_interface::time::MonotonicClock;
 use device_interface::{AnalogIn, AnalogOut, Device, DigitalIn, DigitalOut, Status};
 use driver_modbus::card::ModbusCard;
 use driver_modbus::line::{LineUnit, Transport, UnitStats, UnitTiming};
-use driver_modbus::map::{Map, PointConfig};
 use driver_modbus::testing::TestLine;
 use driver_modbus::testing::TestServer;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
+use testkit::fixtures::MODBUS_MAP;
+use testkit::wait_until;
 use tokio_modbus::ExceptionCode;
 
-const MAP: &str = r#"
-[[point]]
-table = "input_registers"
-address = 0
-type = "i16"
-scale = 0.1
-[[point]]
-table = "input_registers"
-address = 1
-type = "f32"
-[[point]]
-table = "holding_registers"
-address = 10
-type = "u16"
-[[point]]
-table = "holding_registers"
-address = 20
-type = "u32"
-read_only = true
-[[point]]
-table = "discrete_inputs"
-address = 3
-[[point]]
-table = "coils"
-address = 5
-[[point]]
-table = "coils"
-address = 6
-"#;
-
 fn card(map_text: &str) -> Arc<ModbusCard> {
-    let t: toml::Table = toml::from_str(map_text).unwrap();
-    let points: Vec<PointConfig> = t["point"].clone().try_into().unwrap();
-    ModbusCard::new(Map::new(&points, 4).unwrap(), Arc::new(MonotonicClock))
+    driver_modbus::testing::card(map_text, 4)
 }
 
 fn timing(unit: u8) -> UnitTiming {
@@ -63,14 +31,6 @@ fn timing(unit: u8) -> UnitTiming {
         stale_after: 2,
         offline_after: 4,
         backoff_max: Duration::from_millis(800),
-    }
-}
-
-fn wait_until(what: &str, mut f: impl FnMut() -> bool) {
-    let deadline = Instant::now() + Duration::from_secs(10);
-    while !f() {
-        assert!(Instant::now() < deadline, "timed out: {what}");
-        std::thread::sleep(Duration::from_millis(10));
     }
 }
 
@@ -87,7 +47,7 @@ fn values_in_and_out_over_tcp() {
         m.holding[21] = 0x0002;
         m.discrete[3] = true;
     }
-    let card = card(MAP);
+    let card = card(MODBUS_MAP);
     let stats = Arc::new(UnitStats::default());
     let _line = TestLine::spawn(
         "mb-test",
@@ -121,7 +81,7 @@ fn values_in_and_out_over_tcp() {
 fn exceptions_surface_with_their_code_and_make_the_unit_stale_then_offline() {
     let server = TestServer::start();
     server.memory().lock().unwrap().holding_exception = Some(ExceptionCode::IllegalDataAddress);
-    let card = card(MAP);
+    let card = card(MODBUS_MAP);
     let stats = Arc::new(UnitStats::default());
     let _line = TestLine::spawn(
         "mb-test",
@@ -155,8 +115,8 @@ fn exceptions_surface_with_their_code_and_make_the_unit_stale_then_offline() {
 fn a_silent_unit_does_not_stall_a_healthy_one_on_the_same_line() {
     let server = TestServer::start();
     server.memory().lock().unwrap().silent.insert(2);
-    let healthy = card(MAP);
-    let dead = card(MAP);
+    let healthy = card(MODBUS_MAP);
+    let dead = card(MODBUS_MAP);
     let (hs, ds) = (
         Arc::new(UnitStats::default()),
         Arc::new(UnitStats::default()),
@@ -234,7 +194,7 @@ fn a_silent_unit_does_not_stall_a_healthy_one_on_the_same_line() {
 fn a_lost_connection_is_reconnected() {
     let server = TestServer::start();
     let addr = server.addr();
-    let card = card(MAP);
+    let card = card(MODBUS_MAP);
     let stats = Arc::new(UnitStats::default());
     let _line = TestLine::spawn(
         "mb-test",

@@ -1,7 +1,7 @@
 //! Against Modbus implementations we did not write: a pymodbus server (Debian's
 //! python3-pymodbus) as the unit, and mbpoll (a libmodbus master) to check independently
-//! that our writes landed. These tests fail — they do not skip — when the peers are missing;
-//! `.ci/run` installs them.
+//! that our writes landed. The peers are installed by the tests when missing
+//! (`testkit::peers`); a test that cannot have them fails, naming the packages.
 
 #![allow(
     clippy::unwrap_used,
@@ -18,8 +18,11 @@ use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::process::{Child, Command, Stdio};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
+use testkit::fixtures::MODBUS_MAP;
+use testkit::mbpoll::Mbpoll;
+use testkit::peers::{PYMODBUS, PYTHON, SOCAT, ensure};
+use testkit::wait_until;
 
-const PYTHON: &str = "/usr/bin/python3";
 const SERVER: &str = concat!(
     env!("CARGO_MANIFEST_DIR"),
     "/tests/peers/pymodbus_server.py"
@@ -55,12 +58,13 @@ fn start_pymodbus_tcp() -> (Peer, SocketAddr) {
 }
 
 fn try_pymodbus_tcp(port: u16) -> Result<(Peer, SocketAddr), String> {
+    ensure(&PYMODBUS);
     let child = Command::new(PYTHON)
         .args([SERVER, "tcp", &port.to_string()])
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
         .spawn()
-        .unwrap_or_else(|e| panic!("cannot run {PYTHON} (apt-get install python3-pymodbus): {e}"));
+        .unwrap_or_else(|e| panic!("cannot run {PYTHON}: {e}"));
     let mut peer = Peer(child);
     let addr: SocketAddr = format!("127.0.0.1:{port}").parse().unwrap();
     let deadline = Instant::now() + Duration::from_secs(20);
@@ -80,43 +84,8 @@ fn try_pymodbus_tcp(port: u16) -> Result<(Peer, SocketAddr), String> {
     Ok((peer, addr))
 }
 
-const MAP: &str = r#"
-[[point]]
-table = "input_registers"
-address = 0
-type = "i16"
-scale = 0.1
-[[point]]
-table = "input_registers"
-address = 1
-type = "f32"
-[[point]]
-table = "holding_registers"
-address = 10
-[[point]]
-table = "holding_registers"
-address = 11
-type = "i32"
-[[point]]
-table = "holding_registers"
-address = 20
-type = "u32"
-read_only = true
-[[point]]
-table = "discrete_inputs"
-address = 3
-[[point]]
-table = "coils"
-address = 5
-[[point]]
-table = "coils"
-address = 6
-"#;
-
 fn card() -> Arc<ModbusCard> {
-    let t: toml::Table = toml::from_str(MAP).unwrap();
-    let points: Vec<PointConfig> = t["point"].clone().try_into().unwrap();
-    ModbusCard::new(Map::new(&points, 4).unwrap(), Arc::new(MonotonicClock))
+    driver_modbus::testing::card(MODBUS_MAP, 4)
 }
 
 fn timing() -> UnitTiming {
@@ -130,38 +99,17 @@ fn timing() -> UnitTiming {
     }
 }
 
-fn wait_until(what: &str, mut f: impl FnMut() -> bool) {
-    let deadline = Instant::now() + Duration::from_secs(20);
-    while !f() {
-        assert!(Instant::now() < deadline, "timed out: {what}");
-        std::thread::sleep(Duration::from_millis(20));
-    }
-}
-
 /// mbpoll's one-shot read of `count` items of `table` (0: coils, 4: holding registers)
-/// from 0-based `address`; returns its stdout.
+/// from 0-based `address`.
 fn mbpoll(port: u16, table: &str, address: u16, count: u16) -> String {
-    let out = Command::new("mbpoll")
-        .args([
-            "-m",
-            "tcp",
-            "-p",
-            &port.to_string(),
-            "-a",
-            "1",
-            "-t",
-            table,
-            "-r",
-            &address.to_string(),
-            "-c",
-            &count.to_string(),
-            "-0",
-            "-1",
-            "127.0.0.1",
-        ])
-        .output()
-        .unwrap_or_else(|e| panic!("cannot run mbpoll (apt-get install mbpoll): {e}"));
-    String::from_utf8_lossy(&out.stdout).to_string()
+    Mbpoll {
+        port,
+        table,
+        address,
+        count: Some(count),
+        write: &[],
+    }
+    .run()
 }
 
 #[test]
@@ -225,6 +173,7 @@ struct PtyPair {
 
 impl PtyPair {
     fn new(tag: &str) -> PtyPair {
+        ensure(&SOCAT);
         let dir = std::env::temp_dir().join(format!("hwgw-pty-{tag}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();
@@ -239,7 +188,7 @@ impl PtyPair {
             ))
             .stderr(Stdio::null())
             .spawn()
-            .unwrap_or_else(|e| panic!("cannot run socat (apt-get install socat): {e}"));
+            .unwrap_or_else(|e| panic!("cannot run socat: {e}"));
         let pair = PtyPair { child, dir };
         wait_until("socat's ptys", || {
             pair.dir.join("line").exists() && pair.dir.join("unit").exists()
@@ -260,15 +209,14 @@ impl Drop for PtyPair {
 fn two_units_multi_dropped_on_an_rtu_line_against_pymodbus() {
     use driver_modbus::line::{Parity, Serial};
     let pty = PtyPair::new("rtu");
+    ensure(&PYMODBUS);
     let _peer = Peer(
         Command::new(PYTHON)
             .args([SERVER, "rtu", pty.dir.join("unit").to_str().unwrap()])
             .stdout(Stdio::null())
             .stderr(Stdio::null())
             .spawn()
-            .unwrap_or_else(|e| {
-                panic!("cannot run {PYTHON} (apt-get install python3-pymodbus): {e}")
-            }),
+            .unwrap_or_else(|e| panic!("cannot run {PYTHON}: {e}")),
     );
     let one = card();
     let t: toml::Table = toml::from_str(

@@ -530,57 +530,6 @@ pub fn sh(script: &str) -> Result<String, Failed> {
     Ok(String::from_utf8_lossy(&out.stdout).into_owned())
 }
 
-/// Polls `f` every 2 ms until it holds; fails naming `what` after `limit`.
-pub fn wait_until(what: &str, limit: Duration, mut f: impl FnMut() -> bool) -> Result<(), Failed> {
-    let end = Instant::now() + limit;
-    while !f() {
-        if Instant::now() > end {
-            return Err(format!("{what}: not within {limit:?}").into());
-        }
-        std::thread::sleep(Duration::from_millis(2));
-    }
-    Ok(())
-}
-
-/// can-utils' `candump -L` running in the background (the third-party peer of CAN tests).
-pub struct Candump(std::process::Child);
-
-impl Candump {
-    /// Starts `candump -L ARGS` (e.g. `["-n", "5", "-T", "2000", "vcan0,200:7FF"]`) and
-    /// waits until it has surely bound its socket.
-    pub fn start(args: &[&str]) -> Result<Candump, Failed> {
-        let child = Command::new("candump")
-            .arg("-L")
-            .args(args)
-            .stdout(Stdio::piped())
-            .spawn()
-            .map_err(|e| format!("candump: {e}"))?;
-        std::thread::sleep(Duration::from_millis(200));
-        Ok(Candump(child))
-    }
-
-    /// Waits for candump to end; each frame as (timestamp in s, `ID#DATA`).
-    pub fn frames(self) -> Result<Vec<(f64, String)>, Failed> {
-        let out = self
-            .0
-            .wait_with_output()
-            .map_err(|e| format!("candump: {e}"))?;
-        Ok(String::from_utf8_lossy(&out.stdout)
-            .lines()
-            .filter_map(|l| {
-                let mut parts = l.split_whitespace();
-                let t = parts
-                    .next()?
-                    .trim_matches(|c| c == '(' || c == ')')
-                    .parse()
-                    .ok()?;
-                let _interface = parts.next()?;
-                Some((t, parts.next()?.to_string()))
-            })
-            .collect())
-    }
-}
-
 /// The `main` of a kernel test binary: in the guest, runs `trials` as libtest would; on
 /// the host, boots `rig` and runs this binary inside it with the same arguments. In the
 /// guest trials run one at a time unless `--test-threads` says otherwise.

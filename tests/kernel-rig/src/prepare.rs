@@ -42,7 +42,8 @@ pub struct Kernel {
     pub initramfs: PathBuf,
 }
 
-fn which(cmd: &str) -> bool {
+/// True when `cmd` is on the PATH (or in /usr/sbin, /sbin).
+pub fn which(cmd: &str) -> bool {
     std::env::var_os("PATH")
         .map(|p| std::env::split_paths(&p).any(|d| d.join(cmd).is_file()))
         .unwrap_or(false)
@@ -84,15 +85,27 @@ fn is_root() -> bool {
     nix::unistd::geteuid().is_root()
 }
 
-fn apt_install(packages: &[&str]) -> Result<(), RigError> {
+/// Installs the Debian `packages` (as root, with apt; `--no-install-recommends`, so name
+/// every package needed). Installs from concurrent test processes take turns (a lock file
+/// under the temporary directory); a failed install is tried once more after
+/// `apt-get update`.
+pub fn apt_install(packages: &[&str]) -> Result<(), RigError> {
     if !is_root() || !which("apt-get") {
         return Err(RigError::Missing(format!(
-            "the rig needs the Debian packages {} (install them as root: apt-get install {})",
+            "the Debian packages {} are needed (install them as root: apt-get install {})",
             packages.join(", "),
             packages.join(" ")
         )));
     }
-    eprintln!("kernel-rig: installing {}", packages.join(" "));
+    let lock_path = std::env::temp_dir().join("hwgw-apt.lock");
+    let lock = std::fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&lock_path)
+        .map_err(|e| RigError::io(&lock_path, e))?;
+    lock.lock().map_err(|e| RigError::io(&lock_path, e))?;
+    eprintln!("installing {}", packages.join(" "));
     let install = || {
         run(Command::new("apt-get")
             .args(["install", "-y", "-q", "--no-install-recommends"])

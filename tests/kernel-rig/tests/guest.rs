@@ -1,7 +1,7 @@
 //! The rig itself, inside its guest: the right kernel, the host's files, a writable
 //! overlay, modules on demand, and can-utils talking over a real vcan.
 
-use kernel_rig::{Failed, Rig, Trial, sh};
+use kernel_rig::{Failed, Trial, sh};
 
 fn kernel_is_the_rigs() -> Result<(), Failed> {
     let want = std::fs::read_to_string(kernel_rig::rig_dir().join("kernel/version"))?;
@@ -24,19 +24,18 @@ fn host_root_is_shared_under_a_writable_overlay() -> Result<(), Failed> {
 
 fn vcan_frames_cross_between_can_utils() -> Result<(), Failed> {
     sh("ip link add rigtest0 type vcan && ip link set rigtest0 up")?;
-    let out = sh("candump -n 1 -T 5000 rigtest0 > /tmp/dump & sleep 0.3; \
-         cansend rigtest0 123#DEADBEEF; wait; cat /tmp/dump")?;
-    if !out.contains("123   [4]  DE AD BE EF") {
-        return Err(format!("candump saw {out:?}").into());
+    // The capture is listening when it returns: the frame cannot come too early.
+    let dump = testkit::Candump::start(&["-n", "1", "-T", "5000", "rigtest0"])?;
+    sh("cansend rigtest0 123#DEADBEEF")?;
+    let frames = dump.frames()?;
+    if frames.iter().map(|(_, f)| f.as_str()).ne(["123#DEADBEEF"]) {
+        return Err(format!("candump saw {frames:?}").into());
     }
     Ok(())
 }
 
 fn main() -> std::process::ExitCode {
-    let rig = Rig::new()
-        .module("vcan")
-        .module("can_raw")
-        .tool("candump", "can-utils");
+    let rig = testkit::rig::vcan();
     kernel_rig::harness(
         &rig,
         vec![

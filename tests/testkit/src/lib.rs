@@ -1,5 +1,22 @@
 //! What hwgw's tests share, so no test file carries its own copy.
 //!
+//! - [`peers`]: the third-party programs the tests talk to, declared in one place and
+//!   installed on demand (the suite passes on a fresh machine, or fails naming the
+//!   package — it never skips);
+//! - [`wait`]: waiting for a condition with a deadline;
+//! - [`candump`]: a CAN capture that is listening before it returns;
+//! - [`mbpoll`]: the libmodbus master as a one-shot check;
+//! - [`fixtures`]: shared test data (a Modbus register map);
+//! - [`rig`]: kernel rig presets (vcan);
 //! - [`layout`]: checks of the source tree's shape (module cycles, function lengths).
 
+pub mod candump;
+pub mod fixtures;
 pub mod layout;
+pub mod mbpoll;
+pub mod peers;
+pub mod rig;
+pub mod wait;
+
+pub use candump::Candump;
+pub use wait::{wait_for, wait_until};

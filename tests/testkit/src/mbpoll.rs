@@ -1,0 +1,44 @@
+//! mbpoll, a libmodbus master: the independent check that a Modbus server (ours, or one
+//! our client talks to) holds what it should.
+
+use crate::peers::{MBPOLL, ensure};
+use std::process::Command;
+
+/// One mbpoll transaction against unit 1 on 127.0.0.1:`port`.
+#[derive(Debug, Clone, Copy)]
+pub struct Mbpoll<'a> {
+    /// TCP port.
+    pub port: u16,
+    /// mbpoll's table: 0 coils, 1 discrete inputs, 3 input registers, 4 holding registers.
+    pub table: &'a str,
+    /// First address, 0-based.
+    pub address: u16,
+    /// Items to read (mbpoll's default, 1, when `None`).
+    pub count: Option<u16>,
+    /// Values to write (a read when empty).
+    pub write: &'a [&'a str],
+}
+
+impl Mbpoll<'_> {
+    /// Runs it once (`-1`, 0-based addresses `-0`); returns its standard output followed by
+    /// its standard error. Fails the test when mbpoll cannot be had.
+    pub fn run(&self) -> String {
+        ensure(&MBPOLL);
+        let mut cmd = Command::new("mbpoll");
+        cmd.args(["-m", "tcp", "-p", &self.port.to_string(), "-a", "1"])
+            .args(["-t", self.table, "-r", &self.address.to_string()]);
+        if let Some(n) = self.count {
+            cmd.args(["-c", &n.to_string()]);
+        }
+        let out = cmd
+            .args(["-0", "-1", "127.0.0.1"])
+            .args(self.write)
+            .output()
+            .unwrap_or_else(|e| panic!("cannot run mbpoll: {e}"));
+        format!(
+            "{}{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        )
+    }
+}

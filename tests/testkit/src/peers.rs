@@ -1,0 +1,125 @@
+//! The third-party programs hwgw's tests run as peers, declared in one place, and installed
+//! by the tests themselves when missing: a test that needs a peer calls [`require`] (or
+//! [`ensure`]) first. As root with apt, a missing peer is installed with exactly the
+//! Debian packages it needs; otherwise — or when installing fails — the test fails (never
+//! skips) naming the packages.
+
+use std::process::Command;
+
+/// Debian's Python, the one Debian's python3-* packages install for (a `python3` earlier
+/// on the PATH, such as pyenv's, does not see them).
+pub const PYTHON: &str = "/usr/bin/python3";
+
+/// How to tell a peer is there.
+#[derive(Debug, Clone, Copy)]
+pub enum Probe {
+    /// A command on the PATH (or in /usr/sbin, /sbin).
+    Command(&'static str),
+    /// Python modules that must import in [`PYTHON`] (comma-separated, as `import` takes
+    /// them).
+    Python(&'static str),
+}
+
+/// A third-party peer of the tests.
+#[derive(Debug, Clone, Copy)]
+pub struct Peer {
+    /// What it is, for messages.
+    pub name: &'static str,
+    /// How to tell it is installed.
+    pub probe: Probe,
+    /// The Debian packages it takes, including what its package only *Recommends* but the
+    /// tests need (installs are made with `--no-install-recommends`).
+    pub packages: &'static [&'static str],
+}
+
+/// A Modbus TCP/RTU server from Debian's pymodbus. Its package imports `serial` and
+/// `serial_asyncio`, which it only Recommends.
+pub const PYMODBUS: Peer = Peer {
+    name: "pymodbus",
+    probe: Probe::Python("pymodbus, serial, serial_asyncio"),
+    packages: &[
+        "python3-pymodbus",
+        "python3-serial",
+        "python3-serial-asyncio",
+    ],
+};
+
+/// mbpoll, a libmodbus master.
+pub const MBPOLL: Peer = Peer {
+    name: "mbpoll",
+    probe: Probe::Command("mbpoll"),
+    packages: &["mbpoll"],
+};
+
+/// socat, for pty pairs.
+pub const SOCAT: Peer = Peer {
+    name: "socat",
+    probe: Probe::Command("socat"),
+    packages: &["socat"],
+};
+
+/// can-utils: candump, cansend, cangen.
+pub const CAN_UTILS: Peer = Peer {
+    name: "can-utils",
+    probe: Probe::Command("candump"),
+    packages: &["can-utils"],
+};
+
+/// cyclictest, the wake-up latency reference of the jitter benchmark.
+pub const CYCLICTEST: Peer = Peer {
+    name: "cyclictest",
+    probe: Probe::Command("cyclictest"),
+    packages: &["rt-tests"],
+};
+
+/// Why a peer is not there.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error(
+    "{peer} is missing and could not be installed: {why} (install the Debian packages: apt-get install {packages})"
+)]
+pub struct PeerError {
+    /// The peer.
+    pub peer: &'static str,
+    /// Its packages, space-separated.
+    pub packages: String,
+    /// What went wrong.
+    pub why: String,
+}
+
+/// True when `peer` is installed.
+pub fn present(peer: &Peer) -> bool {
+    match peer.probe {
+        Probe::Command(c) => kernel_rig::prepare::which(c),
+        Probe::Python(modules) => Command::new(PYTHON)
+            .args(["-c", &format!("import {modules}")])
+            .output()
+            .is_ok_and(|o| o.status.success()),
+    }
+}
+
+/// Makes sure `peer` is installed: installs its packages when it is missing (as root,
+/// with apt), then checks again.
+pub fn require(peer: &Peer) -> Result<(), PeerError> {
+    if present(peer) {
+        return Ok(());
+    }
+    let error = |why: String| PeerError {
+        peer: peer.name,
+        packages: peer.packages.join(" "),
+        why,
+    };
+    kernel_rig::prepare::apt_install(peer.packages).map_err(|e| error(e.to_string()))?;
+    if present(peer) {
+        Ok(())
+    } else {
+        Err(error("installed, but still not usable".into()))
+    }
+}
+
+/// [`require`], failing the test with its error.
+#[track_caller]
+pub fn ensure(peer: &Peer) {
+    if let Err(e) = require(peer) {
+        panic!("{e}");
+    }
+}
