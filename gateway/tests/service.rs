@@ -10,115 +10,27 @@ use serde_json::{Value, json};
 use std::io::{BufRead, BufReader, Write};
 use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 use testkit::wait_until;
+use testkit::{Service, TempDir};
 
 const HWGW: &str = env!("CARGO_BIN_EXE_hwgw");
 
-struct Service {
-    child: Option<Child>,
-    socket: PathBuf,
-    _dir: TempDir,
+/// `hwgw run` on the embedded default (or `config`), on a socket of its own.
+fn start(tag: &str, config: Option<&Path>) -> Service {
+    start_with(tag, config, &[])
 }
 
-struct TempDir(PathBuf);
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
-
-fn temp_dir(tag: &str) -> TempDir {
-    let d = std::env::temp_dir().join(format!("hwgw-test-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    TempDir(d)
-}
-
-impl Service {
-    /// Starts `hwgw run` (the embedded default, or `config`) and waits for its socket.
-    fn start(tag: &str, config: Option<&Path>) -> Service {
-        Self::start_with(tag, config, &[])
-    }
-
-    /// As [`start`](Self::start), with extra environment variables.
-    fn start_with(tag: &str, config: Option<&Path>, env: &[(&str, &str)]) -> Service {
-        let dir = temp_dir(tag);
-        let socket = dir.0.join("hwgw.sock");
-        let mut cmd = Command::new(HWGW);
-        cmd.arg("run");
-        if let Some(c) = config {
-            cmd.arg(c);
-        }
-        let child = cmd
-            .arg("--socket")
-            .arg(&socket)
-            .env("RUST_LOG", "info")
-            .envs(env.iter().copied())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap();
-        let deadline = Instant::now() + Duration::from_secs(20);
-        while UnixStream::connect(&socket).is_err() {
-            assert!(Instant::now() < deadline, "hwgw did not open its socket");
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        Service {
-            child: Some(child),
-            socket,
-            _dir: dir,
-        }
-    }
-
-    fn request(&self, req: Value) -> Value {
-        let mut c = UnixStream::connect(&self.socket).unwrap();
-        let mut line = req.to_string();
-        line.push('\n');
-        c.write_all(line.as_bytes()).unwrap();
-        let mut reply = String::new();
-        BufReader::new(c).read_line(&mut reply).unwrap();
-        serde_json::from_str(&reply).unwrap()
-    }
-
-    fn ok(&self, req: Value) -> Value {
-        let r = self.request(req.clone());
-        r.get("ok")
-            .cloned()
-            .unwrap_or_else(|| panic!("{req} -> {r}"))
-    }
-
-    fn cli(&self, args: &[&str]) -> Output {
-        Command::new(HWGW)
-            .args(args)
-            .arg("--socket")
-            .arg(&self.socket)
-            .output()
-            .unwrap()
-    }
-
-    /// SIGTERM, then wait for the exit; returns the output.
-    fn terminate(mut self) -> Output {
-        let child = self.child.take().unwrap();
-        let pid = nix::unistd::Pid::from_raw(child.id() as i32);
-        nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGTERM).unwrap();
-        child.wait_with_output().unwrap()
-    }
-}
-
-impl Drop for Service {
-    fn drop(&mut self) {
-        if let Some(mut c) = self.child.take() {
-            let _ = c.kill();
-            let _ = c.wait();
-        }
-    }
+/// As [`start`], with extra environment variables.
+fn start_with(tag: &str, config: Option<&Path>, env: &[(&str, &str)]) -> Service {
+    let args: Vec<&Path> = config.into_iter().collect();
+    Service::start(HWGW, tag, &args, env).unwrap()
 }
 
 #[test]
 fn values_flow_and_sigterm_leaves_outputs_safe() {
-    let svc = Service::start("flow", None);
+    let svc = start("flow", None);
     let names: Vec<String> = svc
         .ok(json!({"cmd": "ls"}))
         .as_array()
@@ -195,7 +107,7 @@ fn values_flow_and_sigterm_leaves_outputs_safe() {
 
     let out = svc.terminate();
     assert!(out.status.success(), "exit status {:?}", out.status);
-    let log = String::from_utf8_lossy(&out.stderr);
+    let log = out.log.clone();
     // 0 V is not a 16-bit step of -10..10 V: the nearest one is 0.000153 V.
     assert!(
         log.contains("card \"sim0\" outputs at stop: analog [0.00015259021896696368, 0.00015259021896696368], digital on []"),
@@ -209,7 +121,7 @@ fn values_flow_and_sigterm_leaves_outputs_safe() {
 
 #[test]
 fn the_socket_survives_bad_clients() {
-    let svc = Service::start("robust", None);
+    let svc = start("robust", None);
     let mut c = UnixStream::connect(&svc.socket).unwrap();
     let mut r = BufReader::new(c.try_clone().unwrap());
     let mut ask = |text: &[u8]| -> Value {
@@ -289,8 +201,8 @@ fn check_accepts_the_demo_and_reports_every_error() {
     );
     assert!(String::from_utf8_lossy(&out.stdout).contains(": ok"));
 
-    let dir = temp_dir("check");
-    let bad = dir.0.join("bad.toml");
+    let dir = TempDir::new("check");
+    let bad = dir.path().join("bad.toml");
     std::fs::write(&bad, "[[card]]\nname = \"x\"\ndriver = \"sim\"\n[card.sim]\n[[alias]]\ninterface = \"encoder\"\nname = \"e\"\ntarget = \"none\"\n[[component]]\nname = \"c\"\ntype = \"nope\"\nactivity = { type = \"non_periodic\" }\n").unwrap();
     let out = Command::new(HWGW)
         .args(["check"])
@@ -317,7 +229,7 @@ fn check_accepts_the_demo_and_reports_every_error() {
 
 #[test]
 fn a_second_gateway_on_the_same_socket_is_refused() {
-    let svc = Service::start("twice", None);
+    let svc = start("twice", None);
     let out = Command::new(HWGW)
         .args(["run", "--socket"])
         .arg(&svc.socket)
@@ -340,8 +252,8 @@ struct Notify {
 
 impl Notify {
     fn new(tag: &str) -> Notify {
-        let dir = temp_dir(tag);
-        let path = dir.0.join("notify.sock");
+        let dir = TempDir::new(tag);
+        let path = dir.path().join("notify.sock");
         let sock = std::os::unix::net::UnixDatagram::bind(&path).unwrap();
         sock.set_read_timeout(Some(Duration::from_millis(100)))
             .unwrap();
@@ -369,7 +281,7 @@ impl Notify {
 #[test]
 fn systemd_notify_ready_watchdog_and_stopping() {
     let notify = Notify::new("notify");
-    let svc = Service::start_with(
+    let svc = start_with(
         "notify-svc",
         None,
         &[
@@ -403,8 +315,8 @@ fn systemd_notify_ready_watchdog_and_stopping() {
 
 #[test]
 fn an_overrunning_activity_starves_the_watchdog() {
-    let dir = temp_dir("overrun-cfg");
-    let cfg = dir.0.join("overrun.toml");
+    let dir = TempDir::new("overrun-cfg");
+    let cfg = dir.path().join("overrun.toml");
     std::fs::write(
         &cfg,
         "[[card]]\nname = \"sim0\"\ndriver = \"sim\"\n[card.sim]\ndigital_outputs = 4\n\
@@ -414,7 +326,7 @@ fn an_overrunning_activity_starves_the_watchdog() {
     )
     .unwrap();
     let notify = Notify::new("notify-overrun");
-    let svc = Service::start_with(
+    let svc = start_with(
         "overrun",
         Some(&cfg),
         &[
@@ -439,7 +351,7 @@ fn an_overrunning_activity_starves_the_watchdog() {
 
 #[test]
 fn watch_streams_new_values_and_status_reports() {
-    let svc = Service::start("watch", None);
+    let svc = start("watch", None);
     // The ramp on analog input 1 changes at every sample: five new values arrive in order.
     let out = Command::new(HWGW)
         .args(["watch", "sim0.ai", "ch1", "--count", "5", "--socket"])
@@ -503,7 +415,7 @@ fn watch_streams_new_values_and_status_reports() {
 #[test]
 fn the_browser_navigates_reads_writes_calls_and_completes() {
     use hwgw::browse::Browser;
-    let svc = Service::start("browse", None);
+    let svc = start("browse", None);
     let mut b = Browser::new(svc.socket.clone());
     assert_eq!(b.prompt(), "hwgw:/> ");
     assert!(
@@ -573,13 +485,13 @@ fn the_browser_navigates_reads_writes_calls_and_completes() {
 
 #[test]
 fn sighup_reloads_properties_and_refuses_structural_changes() {
-    let dir = temp_dir("reload-cfg");
-    let cfg = dir.0.join("gw.toml");
+    let dir = TempDir::new("reload-cfg");
+    let cfg = dir.path().join("gw.toml");
     let demo = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../config/demo.toml"))
         .unwrap();
     std::fs::write(&cfg, &demo).unwrap();
-    let svc = Service::start("reload", Some(&cfg));
-    let pid = nix::unistd::Pid::from_raw(svc.child.as_ref().unwrap().id() as i32);
+    let svc = start("reload", Some(&cfg));
+    let pid = nix::unistd::Pid::from_raw(svc.pid().unwrap() as i32);
     let hup = || nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGHUP).unwrap();
     let gain = || svc.ok(json!({"cmd": "get", "component": "follow", "property": "gain"}));
 
@@ -622,7 +534,7 @@ fn sighup_reloads_properties_and_refuses_structural_changes() {
     assert!(svc.ok(json!({"cmd": "ls"})).is_array());
     let out = svc.terminate();
     assert!(out.status.success());
-    let log = String::from_utf8_lossy(&out.stderr);
+    let log = out.log.clone();
     for want in [
         "SIGHUP: component \"follow\": properties reloaded",
         "SIGHUP: component \"follow\": properties not reloaded: gain: expected f64: invalid type: string \"fast\", expected f64",
@@ -639,7 +551,7 @@ fn the_example_deployment_runs_with_named_channels() {
         env!("CARGO_MANIFEST_DIR"),
         "/../config/example.toml"
     ));
-    let svc = Service::start("example", Some(example));
+    let svc = start("example", Some(example));
     let ports: Vec<String> = svc.ok(json!({"cmd": "describe", "component": "press.ai"}))["ports"]
         .as_array()
         .unwrap()
@@ -660,7 +572,8 @@ fn the_example_deployment_runs_with_named_channels() {
     let out = svc.terminate();
     assert!(out.status.success());
     assert!(
-        String::from_utf8_lossy(&out.stderr)
+        out.log
+            .clone()
             .contains("card \"press\" outputs at stop: analog [4], digital on []")
     );
 }

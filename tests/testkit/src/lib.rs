@@ -8,6 +8,7 @@
 //! - [`mbpoll`]: the libmodbus master as a one-shot check;
 //! - [`fixtures`]: shared test data (a Modbus register map);
 //! - [`rig`]: kernel rig presets (vcan);
+//! - [`service`]: an `hwgw` binary running a deployment on a socket of its own;
 //! - [`layout`]: checks of the source tree's shape (module cycles, function lengths).
 
 pub mod candump;
@@ -16,7 +17,9 @@ pub mod layout;
 pub mod mbpoll;
 pub mod peers;
 pub mod rig;
+pub mod service;
 pub mod wait;
 
 pub use candump::Candump;
+pub use service::{Service, TempDir};
 pub use wait::{wait_for, wait_until};

@@ -1,0 +1,197 @@
+//! An `hwgw` binary running a deployment on a control socket of its own, as an operator
+//! would run it: started, asked over its socket and its CLI, stopped with SIGTERM.
+
+use serde_json::Value;
+use std::ffi::OsStr;
+use std::io::{BufRead, BufReader, Write};
+use std::os::unix::net::UnixStream;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Output, Stdio};
+use std::time::{Duration, Instant};
+
+/// A directory of its own under the temporary directory, removed when dropped.
+pub struct TempDir(PathBuf);
+
+impl TempDir {
+    /// A new, empty directory named after `tag` and this process.
+    pub fn new(tag: &str) -> TempDir {
+        let d = std::env::temp_dir().join(format!("hwgw-test-{tag}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        if let Err(e) = std::fs::create_dir_all(&d) {
+            panic!("{}: {e}", d.display());
+        }
+        TempDir(d)
+    }
+
+    /// Its path.
+    pub fn path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// How a stopped service ended.
+#[derive(Debug)]
+pub struct Stopped {
+    /// Its exit status.
+    pub status: ExitStatus,
+    /// Everything it logged (its standard error).
+    pub log: String,
+}
+
+/// A running `hwgw run` (or a user's binary built on `hwgw::cli::main`).
+pub struct Service {
+    child: Option<Child>,
+    bin: PathBuf,
+    /// Its control socket.
+    pub socket: PathBuf,
+    log: PathBuf,
+    dir: TempDir,
+}
+
+/// How long a service may take to open its socket.
+const START: Duration = Duration::from_secs(30);
+
+impl Service {
+    /// Starts `BIN run ARGS --socket <a socket of its own>` (ARGS: a deployment file, or
+    /// nothing for the embedded default) with extra environment `env`, logging to a file,
+    /// and returns once its socket answers.
+    pub fn start<S: AsRef<OsStr>>(
+        bin: &str,
+        tag: &str,
+        args: &[S],
+        env: &[(&str, &str)],
+    ) -> Result<Service, String> {
+        let dir = TempDir::new(tag);
+        let socket = dir.path().join("hwgw.sock");
+        let log = dir.path().join("hwgw.log");
+        let log_file =
+            std::fs::File::create(&log).map_err(|e| format!("{}: {e}", log.display()))?;
+        let child = Command::new(bin)
+            .arg("run")
+            .args(args)
+            .arg("--socket")
+            .arg(&socket)
+            .env("RUST_LOG", "info")
+            .envs(env.iter().copied())
+            .stdout(Stdio::null())
+            .stderr(log_file)
+            .spawn()
+            .map_err(|e| format!("{bin}: {e}"))?;
+        let mut svc = Service {
+            child: Some(child),
+            bin: PathBuf::from(bin),
+            socket,
+            log,
+            dir,
+        };
+        let end = Instant::now() + START;
+        while UnixStream::connect(&svc.socket).is_err() {
+            if let Some(Ok(Some(status))) = svc.child.as_mut().map(|c| c.try_wait()) {
+                return Err(format!("{bin} exited ({status}): {}", svc.log_text()));
+            }
+            if Instant::now() > end {
+                return Err(format!("{bin} did not open its socket: {}", svc.log_text()));
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        Ok(svc)
+    }
+
+    /// Its scratch directory (removed with it).
+    pub fn dir(&self) -> &Path {
+        self.dir.path()
+    }
+
+    /// Its process id.
+    pub fn pid(&self) -> Option<u32> {
+        self.child.as_ref().map(Child::id)
+    }
+
+    /// What it logged so far.
+    pub fn log_text(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    /// One request line over the socket; the reply line.
+    pub fn request(&self, req: Value) -> Value {
+        let mut c = UnixStream::connect(&self.socket)
+            .unwrap_or_else(|e| panic!("{}: {e}", self.socket.display()));
+        let _ = c.set_read_timeout(Some(Duration::from_secs(30)));
+        let mut line = req.to_string();
+        line.push('\n');
+        c.write_all(line.as_bytes())
+            .unwrap_or_else(|e| panic!("sending {req}: {e}"));
+        let mut reply = String::new();
+        BufReader::new(c)
+            .read_line(&mut reply)
+            .unwrap_or_else(|e| panic!("reply to {req}: {e}"));
+        serde_json::from_str(&reply).unwrap_or_else(|e| panic!("reply to {req}: {e}: {reply:?}"))
+    }
+
+    /// The `ok` of a request's reply; panics on an error reply.
+    pub fn ok(&self, req: Value) -> Value {
+        let r = self.request(req.clone());
+        r.get("ok")
+            .cloned()
+            .unwrap_or_else(|| panic!("{req} -> {r}"))
+    }
+
+    /// `BIN ARGS --socket <its socket>`.
+    pub fn cli(&self, args: &[&str]) -> Output {
+        Command::new(&self.bin)
+            .args(args)
+            .arg("--socket")
+            .arg(&self.socket)
+            .output()
+            .unwrap_or_else(|e| panic!("{}: {e}", self.bin.display()))
+    }
+
+    /// The standard output of `BIN ARGS`, which must succeed.
+    pub fn out(&self, args: &[&str]) -> Result<String, String> {
+        let o = self.cli(args);
+        if !o.status.success() {
+            return Err(format!(
+                "{} {}: {}",
+                self.bin.display(),
+                args.join(" "),
+                String::from_utf8_lossy(&o.stderr)
+            ));
+        }
+        Ok(String::from_utf8_lossy(&o.stdout).trim().to_string())
+    }
+
+    /// Sends `signal` and waits for the exit.
+    pub fn stop_with(mut self, signal: nix::sys::signal::Signal) -> Stopped {
+        let mut child = self
+            .child
+            .take()
+            .unwrap_or_else(|| panic!("already stopped"));
+        let pid = nix::unistd::Pid::from_raw(child.id() as i32);
+        let _ = nix::sys::signal::kill(pid, signal);
+        let status = child.wait().unwrap_or_else(|e| panic!("waiting: {e}"));
+        Stopped {
+            status,
+            log: self.log_text(),
+        }
+    }
+
+    /// SIGTERM, then wait for the exit.
+    pub fn terminate(self) -> Stopped {
+        self.stop_with(nix::sys::signal::Signal::SIGTERM)
+    }
+}
+
+impl Drop for Service {
+    fn drop(&mut self) {
+        if let Some(mut c) = self.child.take() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
