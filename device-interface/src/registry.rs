@@ -124,7 +124,7 @@ fn known_text(known: &[String]) -> String {
 }
 
 /// One registered name, as listed by [`NameServer::names`].
-#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct NameInfo {
     /// The name.
     pub name: String,
@@ -387,7 +387,7 @@ pub struct CardDevices {
 }
 
 /// One name in a [`Registry`] listing.
-#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct RegistryEntry {
     /// Which interface the name is served under.
     pub interface: Interface,

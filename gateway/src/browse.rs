@@ -18,8 +18,10 @@
 //! [`Browser`] holds the logic (a command line in, text out, completion candidates) so it can
 //! be tested without a terminal; [`run`] is the terminal loop around it.
 
-use crate::control;
-use serde_json::{Value, json};
+use crate::cli::{json_arg, port_values, target};
+use crate::client::Client;
+use crate::protocol::{ComponentEntry, Description, Request, StatusReport, Target};
+use crate::table;
 use std::cell::RefCell;
 use std::path::PathBuf;
 
@@ -30,7 +32,7 @@ const COMMANDS: [(&str, &str); 14] = [
         "list components, or the current component's interface",
     ),
     ("cd", "cd NAME enters a component; cd .. or cd / goes back"),
-    ("get", "get NAME: an output port's last value or a property"),
+    ("get", "get NAME: a port's current value or a property"),
     (
         "set",
         "set NAME VALUE: write an input port or a property (VALUE is JSON)",
@@ -43,7 +45,10 @@ const COMMANDS: [(&str, &str); 14] = [
         "watch",
         "watch PORT [N]: print the next N (default 10) new values",
     ),
-    ("status", "device health and component timing"),
+    (
+        "status",
+        "device health, card counters and component timing",
+    ),
     ("devices", "every device name in the registry"),
     ("start", "start the current (or named) component"),
     ("stop", "stop the current (or named) component"),
@@ -55,18 +60,23 @@ const COMMANDS: [(&str, &str); 14] = [
 
 /// The console's state: where it is and how to reach the gateway.
 pub struct Browser {
-    socket: PathBuf,
+    client: Client,
     cwd: Option<String>,
 }
 
-fn pretty(v: &Value) -> String {
+fn pretty(v: &serde_json::Value) -> String {
     serde_json::to_string_pretty(v).unwrap_or_default()
 }
 
 impl Browser {
     /// A console on the gateway at `socket`, at the top.
     pub fn new(socket: PathBuf) -> Self {
-        Browser { socket, cwd: None }
+        Self::with_client(Client::new(socket))
+    }
+
+    /// A console through `client`, at the top.
+    pub fn with_client(client: Client) -> Self {
+        Browser { client, cwd: None }
     }
 
     /// The prompt: `hwgw:/> ` or `hwgw:/COMPONENT> `.
@@ -74,10 +84,8 @@ impl Browser {
         format!("hwgw:/{}> ", self.cwd.as_deref().unwrap_or(""))
     }
 
-    fn ask(&self, req: Value) -> Result<Value, String> {
-        let reply = control::request(&self.socket, req)
-            .map_err(|e| format!("{}: {e}", self.socket.display()))?;
-        control::outcome(&reply)
+    fn ask(&self, req: &Request) -> Result<serde_json::Value, String> {
+        self.client.request(req).map_err(|e| e.to_string())
     }
 
     fn component<'a>(&'a self, named: Option<&'a str>) -> Result<&'a str, String> {
@@ -86,15 +94,22 @@ impl Browser {
             .ok_or_else(|| "no component: cd into one or name it".to_string())
     }
 
-    fn describe(&self, c: &str) -> Result<Value, String> {
-        self.ask(json!({"cmd": "describe", "component": c}))
+    fn describe(&self, c: &str) -> Result<Description, String> {
+        self.client
+            .typed(&Request::Describe {
+                component: c.to_string(),
+            })
+            .map_err(|e| e.to_string())
     }
 
-    /// Whether `name` in component `c` is a property (else a port).
-    fn is_property(&self, c: &str, name: &str) -> Result<bool, String> {
+    /// `name` in component `c` as a property when it is one, else as a port.
+    fn target(&self, c: &str, name: &str) -> Result<Target, String> {
         let d = self.describe(c)?;
-        let props = d["properties"].as_array().cloned().unwrap_or_default();
-        Ok(props.iter().any(|p| p["path"] == name))
+        Ok(if d.properties.iter().any(|p| p.path == name) {
+            Target::Property(name.to_string())
+        } else {
+            target(name)
+        })
     }
 
     /// Runs one command line; returns the text to show, or `None` to leave.
@@ -132,27 +147,25 @@ impl Browser {
                     .and_then(|n| self.watch(port, n)),
                 _ => Err("usage: watch PORT [N]".into()),
             },
-            "status" => self.ask(json!({"cmd": "status"})).map(|v| pretty(&v)),
-            "devices" => self.ask(json!({"cmd": "devices"})).map(|v| {
-                v.as_array()
-                    .map(|a| {
-                        a.iter()
-                            .map(|d| {
-                                format!(
-                                    "{:<12} {}",
-                                    d["interface"].as_str().unwrap_or(""),
-                                    d["name"].as_str().unwrap_or("")
-                                )
-                            })
-                            .collect::<Vec<_>>()
-                            .join("\n")
-                    })
-                    .unwrap_or_default()
-            }),
-            "start" | "stop" | "configure" | "recover" | "cleanup" => self
-                .component(args.first().copied())
-                .and_then(|c| self.ask(json!({"cmd": cmd, "component": c})))
-                .map(|v| v.as_str().unwrap_or("").to_string()),
+            "status" => self
+                .client
+                .typed::<StatusReport>(&Request::Status)
+                .map(|s| table::status(&s))
+                .map_err(|e| e.to_string()),
+            "devices" => self
+                .client
+                .typed::<crate::protocol::DeviceList>(&Request::Devices)
+                .map(|d| table::devices(&d))
+                .map_err(|e| e.to_string()),
+            "start" | "stop" | "configure" | "recover" | "cleanup" => {
+                self.component(args.first().copied()).and_then(|c| {
+                    let req = serde_json::from_value::<Request>(
+                        serde_json::json!({"cmd": cmd, "component": c}),
+                    )
+                    .map_err(|e| e.to_string())?;
+                    self.ask(&req).map(|v| v.as_str().unwrap_or("").to_string())
+                })
+            }
             // In a component, a bare operation name calls it.
             op if self.cwd.is_some() => self.call(op, args),
             other => Err(format!("unknown command {other:?}; type help")),
@@ -165,80 +178,13 @@ impl Browser {
 
     fn ls(&self, named: Option<&str>) -> Result<String, String> {
         let Some(c) = named.or(self.cwd.as_deref()) else {
-            let list = self.ask(json!({"cmd": "ls"}))?;
-            return Ok(list
-                .as_array()
-                .map(|a| {
-                    a.iter()
-                        .map(|c| {
-                            format!(
-                                "{:<24} {}",
-                                c["name"].as_str().unwrap_or(""),
-                                c["state"].as_str().unwrap_or("")
-                            )
-                        })
-                        .collect::<Vec<_>>()
-                        .join("\n")
-                })
-                .unwrap_or_default());
+            let list: Vec<ComponentEntry> =
+                self.client.typed(&Request::Ls).map_err(|e| e.to_string())?;
+            return Ok(table::components(&list));
         };
         let d = self.describe(c)?;
-        let mut out = vec![format!("{c} [{}]", d["state"].as_str().unwrap_or(""))];
-        out.push("ports:".into());
-        for p in d["ports"].as_array().into_iter().flatten() {
-            let name = p["name"].as_str().unwrap_or("");
-            let value = if p["direction"] == "output" {
-                self.ask(json!({"cmd": "get", "component": c, "port": name}))
-                    .map(|v| v.to_string())
-                    .unwrap_or_default()
-            } else {
-                String::new()
-            };
-            out.push(format!(
-                "  {:<3} {:<16} {:<8} {:<12} {}",
-                if p["direction"] == "output" {
-                    "out"
-                } else {
-                    "in"
-                },
-                name,
-                p["type_name"].as_str().unwrap_or(""),
-                value,
-                p["doc"].as_str().unwrap_or("")
-            ));
-        }
-        out.push("operations:".into());
-        for o in d["operations"].as_array().into_iter().flatten() {
-            let args: Vec<String> = o["args"]
-                .as_array()
-                .into_iter()
-                .flatten()
-                .map(|a| {
-                    format!(
-                        "{}: {}",
-                        a["name"].as_str().unwrap_or(""),
-                        a["type_name"].as_str().unwrap_or("")
-                    )
-                })
-                .collect();
-            out.push(format!(
-                "  {}({}) -> {}  {}",
-                o["name"].as_str().unwrap_or(""),
-                args.join(", "),
-                o["result"].as_str().unwrap_or(""),
-                o["doc"].as_str().unwrap_or("")
-            ));
-        }
-        out.push("properties:".into());
-        for p in d["properties"].as_array().into_iter().flatten() {
-            out.push(format!(
-                "  {:<16} = {:<12} {}",
-                p["path"].as_str().unwrap_or(""),
-                p["value"].to_string(),
-                p["doc"].as_str().unwrap_or("")
-            ));
-        }
-        Ok(out.join("\n"))
+        let values = port_values(&self.client, c, &d);
+        Ok(table::description(&d, &values))
     }
 
     fn cd(&mut self, to: Option<&str>) -> Result<String, String> {
@@ -257,61 +203,45 @@ impl Browser {
 
     fn get(&self, name: &str) -> Result<String, String> {
         let c = self.component(None)?;
-        let key = if self.is_property(c, name)? {
-            "property"
-        } else {
-            "port"
-        };
-        self.ask(json!({"cmd": "get", "component": c, key: name}))
-            .map(|v| pretty(&v))
+        let target = self.target(c, name)?;
+        self.ask(&Request::Get {
+            component: c.to_string(),
+            target,
+        })
+        .map(|v| pretty(&v))
     }
 
     fn set(&self, name: &str, value: &str) -> Result<String, String> {
         let c = self.component(None)?;
-        let key = if self.is_property(c, name)? {
-            "property"
-        } else {
-            "port"
-        };
-        let v: Value =
-            serde_json::from_str(value).unwrap_or_else(|_| Value::String(value.to_string()));
-        self.ask(json!({"cmd": "set", "component": c, key: name, "value": v}))
-            .map(|_| String::new())
+        let target = self.target(c, name)?;
+        self.ask(&Request::Set {
+            component: c.to_string(),
+            target,
+            value: json_arg(value),
+        })
+        .map(|_| String::new())
     }
 
     fn call(&self, op: &str, args: &[&str]) -> Result<String, String> {
         let c = self.component(None)?;
-        let args: Vec<Value> = args
-            .iter()
-            .map(|a| serde_json::from_str(a).unwrap_or_else(|_| Value::String(a.to_string())))
-            .collect();
-        self.ask(json!({"cmd": "call", "component": c, "operation": op, "args": args}))
-            .map(|v| pretty(&v))
+        self.ask(&Request::Call {
+            component: c.to_string(),
+            operation: op.to_string(),
+            args: args.iter().map(|a| json_arg(a)).collect(),
+        })
+        .map(|v| pretty(&v))
     }
 
     fn watch(&self, port: &str, n: u64) -> Result<String, String> {
         let c = self.component(None)?;
         let mut lines = Vec::new();
-        let mut error = None;
-        control::stream(
-            &self.socket,
-            json!({"id": 1, "cmd": "watch", "component": c, "port": port, "count": n}),
-            |v| {
-                if let Some(e) = v.get("error") {
-                    error = Some(e["message"].as_str().unwrap_or("error").to_string());
-                    return false;
-                }
-                if let Some(ev) = v.get("event") {
-                    lines.push(ev["value"].to_string());
-                }
+        self.client
+            .watch(c, port, Some(n), None, |v| {
+                lines.push(v.to_string());
                 true
-            },
-        )
-        .map_err(|e| e.to_string())?;
-        match error {
-            Some(e) => Err(e),
-            None => Ok(lines.join("\n")),
-        }
+            })
+            .map_err(|e| e.to_string())?;
+        Ok(lines.join("\n"))
     }
 
     /// Completion candidates for the word ending at `pos` in `line`: (start of the word,
@@ -321,19 +251,17 @@ impl Browser {
         let start = head.rfind(char::is_whitespace).map_or(0, |i| i + 1);
         let word = &head[start..];
         let before: Vec<&str> = head[..start].split_whitespace().collect();
+        let commands = || COMMANDS.iter().map(|(c, _)| c.to_string());
         let names: Vec<String> = match (before.as_slice(), self.cwd.as_deref()) {
-            ([], None) => COMMANDS.iter().map(|(c, _)| c.to_string()).collect(),
-            ([], Some(c)) => {
-                let mut v: Vec<String> = COMMANDS.iter().map(|(c, _)| c.to_string()).collect();
-                v.extend(self.names(c, &["operations"]));
-                v
-            }
+            ([], None) => commands().collect(),
+            ([], Some(c)) => commands()
+                .chain(self.names(c, false, true, false))
+                .collect(),
             (["cd"] | ["ls"] | ["start"] | ["stop"] | ["configure"] | ["recover"], _) => {
                 self.components()
             }
-            (["get"], Some(c)) | (["watch"], Some(c)) => self.names(c, &["ports", "properties"]),
-            (["set"], Some(c)) => self.names(c, &["ports", "properties"]),
-            (["call"], Some(c)) => self.names(c, &["operations"]),
+            (["get"] | ["watch"] | ["set"], Some(c)) => self.names(c, true, false, true),
+            (["call"], Some(c)) => self.names(c, false, true, false),
             _ => Vec::new(),
         };
         let mut hits: Vec<String> = names.into_iter().filter(|n| n.starts_with(word)).collect();
@@ -343,32 +271,26 @@ impl Browser {
     }
 
     fn components(&self) -> Vec<String> {
-        self.ask(json!({"cmd": "ls"}))
-            .ok()
-            .and_then(|v| {
-                v.as_array().map(|a| {
-                    a.iter()
-                        .filter_map(|c| c["name"].as_str().map(String::from))
-                        .collect()
-                })
-            })
+        self.client
+            .typed::<Vec<ComponentEntry>>(&Request::Ls)
+            .map(|l| l.into_iter().map(|c| c.name).collect())
             .unwrap_or_default()
     }
 
-    fn names(&self, c: &str, sections: &[&str]) -> Vec<String> {
+    /// Names in component `c`: its ports, operations and properties, as asked.
+    fn names(&self, c: &str, ports: bool, operations: bool, properties: bool) -> Vec<String> {
         let Ok(d) = self.describe(c) else {
             return Vec::new();
         };
         let mut out = Vec::new();
-        for s in sections {
-            let key = if *s == "properties" { "path" } else { "name" };
-            out.extend(
-                d[*s]
-                    .as_array()
-                    .into_iter()
-                    .flatten()
-                    .filter_map(|x| x[key].as_str().map(String::from)),
-            );
+        if ports {
+            out.extend(d.ports.into_iter().map(|p| p.name));
+        }
+        if operations {
+            out.extend(d.operations.into_iter().map(|o| o.name));
+        }
+        if properties {
+            out.extend(d.properties.into_iter().map(|p| p.path));
         }
         out
     }
@@ -402,10 +324,10 @@ fn history_file() -> Option<PathBuf> {
 }
 
 /// The interactive loop on a terminal.
-pub fn run(socket: PathBuf) -> Result<(), String> {
-    let browser = Browser::new(socket);
+pub fn run(client: Client) -> Result<(), String> {
+    let browser = Browser::with_client(client);
     // Fail early, with a clear message, when nobody is listening.
-    browser.ask(json!({"cmd": "ls"}))?;
+    browser.ask(&Request::Ls)?;
     let mut editor = rustyline::Editor::<Helper, rustyline::history::DefaultHistory>::new()
         .map_err(|e| e.to_string())?;
     editor.set_helper(Some(Helper(RefCell::new(browser))));

@@ -1,4 +1,5 @@
-//! The control socket: line-delimited JSON over a Unix domain socket.
+//! The control socket: line-delimited JSON over a Unix domain socket, typed by
+//! [`crate::protocol`].
 //!
 //! Each request is one JSON object on one line with an `id` (echoed back) and a `cmd`;
 //! each reply is one line: `{"id": …, "ok": …}` or `{"id": …, "error": {"kind": …,
@@ -10,12 +11,16 @@
 //! | `ls` | — | `[{"name", "state"}]` of every component |
 //! | `describe` | `component` | ports, operations, properties, attributes, state, counters, activity statistics |
 //! | `devices` | — | every registry name: interface, name, owner, alias_of |
-//! | `get` | `component` and `port` or `property` | the output port's last value, or the property's value |
+//! | `status` | — | health, every device's health, every card's bus counters, every component's state and timing |
+//! | `get` | `component` and `port` or `property` | an output port's last value, an input port's read-back (a device output) or last value read, or the property's value |
 //! | `set` | `component`, `port` or `property`, `value` | `null`; a port must be an input port |
 //! | `call` | `component`, `operation`, `args` (array) | the result |
-//! | `configure`, `start`, `stop`, `cleanup`, `recover` | `component` | the new state |
-//! | `status` | — | every device's health and every component's state and timing |
-//! | `watch` | `component`, `port`, optional `count` | a stream: one `{"id", "event": {"status", "value"}}` line per new value (all of them, `count` at most), until the client closes |
+//! | `configure` | `component` | the new state |
+//! | `start` | `component` | the new state |
+//! | `stop` | `component` | the new state |
+//! | `cleanup` | `component` | the new state |
+//! | `recover` | `component` | the new state |
+//! | `watch` | `component`, `port`, optional `count` | `"watching"`, then a stream: one `{"id", "event": {"status", "value"}}` line per new value (all of them, `count` at most), until the client closes |
 //!
 //! Error kinds: `parse`, `too_long`, `bad_request`, `unknown_command`, `not_found`,
 //! `failed`.
@@ -26,6 +31,10 @@
 //! ```
 
 use crate::deploy::Gateway;
+use crate::protocol::{
+    Body, ComponentEntry, ComponentStatus, Description, DeviceStatus, ErrorKind, Event, Reply,
+    Request, StatusReport, Target,
+};
 use rtt::component::DynWriter;
 use rtt::port::ConnPolicy;
 use serde_json::{Value, json};
@@ -52,32 +61,6 @@ pub fn default_socket() -> PathBuf {
         None => PathBuf::from(format!("/tmp/hwgw-{uid}.sock")),
     }
 }
-
-/// Error reply kinds.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Kind {
-    Parse,
-    TooLong,
-    BadRequest,
-    UnknownCommand,
-    NotFound,
-    Failed,
-}
-
-impl Kind {
-    fn as_str(self) -> &'static str {
-        match self {
-            Kind::Parse => "parse",
-            Kind::TooLong => "too_long",
-            Kind::BadRequest => "bad_request",
-            Kind::UnknownCommand => "unknown_command",
-            Kind::NotFound => "not_found",
-            Kind::Failed => "failed",
-        }
-    }
-}
-
-struct Fail(Kind, String);
 
 /// Counters of the control server.
 #[derive(Debug, Default)]
@@ -203,9 +186,9 @@ fn serve_client(gw: &Gateway, conn: UnixStream, stats: &ControlStats) {
     loop {
         let reply = match read_line(&mut reader, &mut buf) {
             Ok(None) | Err(_) => return,
-            Ok(Some(Err(()))) => error_reply(
+            Ok(Some(Err(()))) => Reply::error(
                 Value::Null,
-                Kind::TooLong,
+                ErrorKind::TooLong,
                 format!("request longer than {MAX_LINE} bytes"),
             ),
             Ok(Some(Ok(()))) => {
@@ -213,61 +196,115 @@ fn serve_client(gw: &Gateway, conn: UnixStream, stats: &ControlStats) {
                 if text.trim().is_empty() {
                     continue;
                 }
-                match serde_json::from_str::<Value>(&text) {
-                    Err(e) => error_reply(Value::Null, Kind::Parse, format!("not JSON: {e}")),
-                    Ok(req) if req.get("cmd").and_then(Value::as_str) == Some("watch") => {
-                        let id = req.get("id").cloned().unwrap_or(Value::Null);
-                        match watch(gw, &req, &id, &mut out) {
-                            // The stream ended because the client went away or had enough.
-                            Ok(()) => return,
-                            Err(Fail(kind, message)) => error_reply(id, kind, message),
-                        }
-                    }
-                    Ok(req) => {
-                        let id = req.get("id").cloned().unwrap_or(Value::Null);
-                        match handle(gw, &req, &mut writers) {
-                            Ok(v) => json!({"id": id, "ok": v}),
-                            Err(Fail(kind, message)) => error_reply(id, kind, message),
-                        }
-                    }
+                match parse(&text) {
+                    Err(reply) => reply,
+                    Ok((
+                        id,
+                        Request::Watch {
+                            component,
+                            port,
+                            count,
+                        },
+                    )) => match watch(gw, &component, &port, count, &id, &mut out) {
+                        // The stream ended because the client went away or had enough.
+                        Ok(()) => return,
+                        Err(Fail(kind, message)) => Reply::error(id, kind, message),
+                    },
+                    Ok((id, req)) => match handle(gw, &req, &mut writers) {
+                        Ok(v) => Reply {
+                            id,
+                            body: Body::Ok(v),
+                        },
+                        Err(Fail(kind, message)) => Reply::error(id, kind, message),
+                    },
                 }
             }
         };
         stats.requests.fetch_add(1, Ordering::Relaxed);
-        if reply.get("error").is_some() {
+        if matches!(reply.body, Body::Error(_)) {
             stats.errors.fetch_add(1, Ordering::Relaxed);
         }
-        let mut line = reply.to_string();
-        line.push('\n');
-        if out.write_all(line.as_bytes()).is_err() {
+        if send(&mut out, &reply).is_err() {
             return;
         }
+    }
+}
+
+fn send(out: &mut UnixStream, reply: &Reply) -> std::io::Result<()> {
+    let mut line = serde_json::to_string(reply).map_err(std::io::Error::other)?;
+    line.push('\n');
+    out.write_all(line.as_bytes())
+}
+
+/// A request line as its `id` and [`Request`], or the error reply.
+fn parse(text: &str) -> Result<(Value, Request), Reply> {
+    let mut v: Value = serde_json::from_str(text)
+        .map_err(|e| Reply::error(Value::Null, ErrorKind::Parse, format!("not JSON: {e}")))?;
+    let Some(obj) = v.as_object_mut() else {
+        return Err(Reply::error(
+            Value::Null,
+            ErrorKind::BadRequest,
+            "a request is a JSON object",
+        ));
+    };
+    let id = obj.remove("id").unwrap_or(Value::Null);
+    let cmd = match obj.get("cmd") {
+        Some(Value::String(c)) => c.clone(),
+        _ => {
+            return Err(Reply::error(
+                id,
+                ErrorKind::BadRequest,
+                "missing string field \"cmd\"",
+            ));
+        }
+    };
+    if !crate::protocol::COMMANDS.iter().any(|c| c.cmd == cmd) {
+        let message = format!("unknown command {cmd:?}; commands: {}", Request::names());
+        return Err(Reply::error(id, ErrorKind::UnknownCommand, message));
+    }
+    match serde_json::from_value(v) {
+        Ok(req) => Ok((id, req)),
+        Err(e) => Err(Reply::error(
+            id,
+            ErrorKind::BadRequest,
+            format!("{cmd}: {e}"),
+        )),
     }
 }
 
 /// Streams new values of an output port to `out` until the client closes or `count`
 /// values were sent. Samples travel through a 256-deep buffer connection, so bursts
 /// between two polls are not lost (overflow is counted on the connection).
-fn watch(gw: &Gateway, req: &Value, id: &Value, out: &mut UnixStream) -> Result<(), Fail> {
-    let t = gw
-        .runtime()
-        .component(field(req, "component")?)
-        .map_err(not_found)?;
-    let port = t.port(field(req, "port")?).map_err(not_found)?;
+fn watch(
+    gw: &Gateway,
+    component: &str,
+    port: &str,
+    count: Option<u64>,
+    id: &Value,
+    out: &mut UnixStream,
+) -> Result<(), Fail> {
+    let t = gw.runtime().component(component).map_err(not_found)?;
+    let port = t.port(port).map_err(not_found)?;
     let mut reader = port.reader(ConnPolicy::buffer(256)).map_err(failed)?;
-    let count = req.get("count").and_then(Value::as_u64).unwrap_or(u64::MAX);
+    let count = count.unwrap_or(u64::MAX);
     let mut sent = 0;
     // Tell the client the watch is in place before any value.
-    let mut line = json!({"id": id, "ok": "watching"}).to_string();
-    line.push('\n');
-    out.write_all(line.as_bytes()).map_err(failed)?;
+    let ack = Reply {
+        id: id.clone(),
+        body: Body::Ok(json!("watching")),
+    };
+    send(out, &ack).map_err(failed)?;
     while sent < count {
         match reader.read() {
             (rtt::port::FlowStatus::NewData, Some(value)) => {
-                let mut line =
-                    json!({"id": id, "event": {"status": "new_data", "value": value}}).to_string();
-                line.push('\n');
-                if out.write_all(line.as_bytes()).is_err() {
+                let event = Reply {
+                    id: id.clone(),
+                    body: Body::Event(Event {
+                        status: rtt::port::FlowStatus::NewData,
+                        value,
+                    }),
+                };
+                if send(out, &event).is_err() {
                     return Ok(());
                 }
                 sent += 1;
@@ -300,225 +337,170 @@ fn peer_closed(s: &UnixStream) -> bool {
     }
 }
 
-/// Every device's health and every component's state and activity figures.
-fn status(gw: &Gateway) -> Value {
+/// Every device's health, every card's bus counters, and every component's state and
+/// activity figures.
+fn status(gw: &Gateway) -> StatusReport {
     let reg = gw.runtime().registry();
-    let mut devices = Vec::new();
-    for e in reg.entries() {
-        if e.info.alias_of.is_some() {
-            continue;
-        }
-        let n = &e.info.name;
-        if let Some(h) = reg.health(e.interface, n) {
-            devices.push(json!({
-                "interface": e.interface,
-                "name": n,
-                "status": h.status,
-                "age_s": h.age().map(|a| a.as_secs_f64()),
-                "last_error": h.last_error.map(|e| e.to_string()),
-            }));
-        }
-    }
-    let components: Vec<Value> = gw
+    let devices = reg
+        .entries()
+        .into_iter()
+        .filter(|e| e.info.alias_of.is_none())
+        .filter_map(|e| {
+            let h = reg.health(e.interface, &e.info.name)?;
+            Some(DeviceStatus {
+                interface: e.interface,
+                status: h.status,
+                age_s: h.age().map(|a| a.as_secs_f64()),
+                last_error: h.last_error.map(|e| e.to_string()),
+                name: e.info.name,
+            })
+        })
+        .collect();
+    let components = gw
         .runtime()
         .components()
         .iter()
         .map(|t| {
             let s = t.stats();
-            json!({
-                "name": t.name(),
-                "state": t.state(),
-                "steps": s.steps,
-                "overruns": s.overruns,
-                "healthy": s.healthy,
-                "realtime": s.realtime,
-                "lateness_p99_us": s.lateness_quantile(0.99).as_secs_f64() * 1e6,
-                "step_mean_us": s.step_mean().as_secs_f64() * 1e6,
-                "counters": t.counters(),
-            })
+            ComponentStatus {
+                name: t.name().to_string(),
+                state: t.state(),
+                steps: s.steps,
+                overruns: s.overruns,
+                healthy: s.healthy,
+                realtime: s.realtime,
+                lateness_p99_us: s.lateness_quantile(0.99).as_secs_f64() * 1e6,
+                step_mean_us: s.step_mean().as_secs_f64() * 1e6,
+                counters: t.counters(),
+            }
         })
         .collect();
-    json!({
-        "health": gw.health().err().unwrap_or_else(|| "ok".into()),
-        "devices": devices,
-        "cards": gw.card_status(),
-        "components": components,
-    })
+    StatusReport {
+        health: gw.health().err().unwrap_or_else(|| "ok".into()),
+        devices,
+        cards: gw.card_status(),
+        components,
+    }
 }
 
-fn error_reply(id: Value, kind: Kind, message: String) -> Value {
-    json!({"id": id, "error": {"kind": kind.as_str(), "message": message}})
-}
-
-fn field<'a>(req: &'a Value, name: &str) -> Result<&'a str, Fail> {
-    req.get(name)
-        .and_then(Value::as_str)
-        .ok_or_else(|| Fail(Kind::BadRequest, format!("missing string field {name:?}")))
-}
+/// Why a request failed: its kind and message.
+struct Fail(ErrorKind, String);
 
 fn not_found(e: impl std::fmt::Display) -> Fail {
-    Fail(Kind::NotFound, e.to_string())
+    Fail(ErrorKind::NotFound, e.to_string())
 }
 
 fn failed(e: impl std::fmt::Display) -> Fail {
-    Fail(Kind::Failed, e.to_string())
+    Fail(ErrorKind::Failed, e.to_string())
+}
+
+fn to_value(v: impl serde::Serialize) -> Result<Value, Fail> {
+    serde_json::to_value(v).map_err(failed)
 }
 
 fn handle(
     gw: &Gateway,
-    req: &Value,
+    req: &Request,
     writers: &mut HashMap<(String, String), Box<dyn DynWriter>>,
 ) -> Result<Value, Fail> {
-    let cmd = field(req, "cmd")?;
     let rt = gw.runtime();
-    let component = || rt.component(field(req, "component")?).map_err(not_found);
-    match cmd {
-        "ls" => Ok(rt
-            .components()
-            .iter()
-            .map(|t| json!({"name": t.name(), "state": t.state()}))
-            .collect()),
-        "devices" => Ok(serde_json::to_value(rt.registry().entries()).unwrap_or(Value::Null)),
-        "status" => Ok(status(gw)),
-        "describe" => {
-            let t = component()?;
-            Ok(json!({
-                "name": t.name(),
-                "state": t.state(),
-                "ports": t.ports(),
-                "operations": t.operations(),
-                "properties": t.properties().list(),
-                "attributes": t.attributes().list(),
-                "counters": t.counters(),
-                "activity": t.stats(),
-            }))
-        }
-        "get" => {
-            let t = component()?;
-            if let Some(port) = req.get("port").and_then(Value::as_str) {
-                let p = t.port(port).map_err(not_found)?;
-                p.last_value()
-                    .map_err(failed)
-                    .map(|v| v.unwrap_or(Value::Null))
-            } else if let Some(prop) = req.get("property").and_then(Value::as_str) {
-                t.properties().get_value(prop).map_err(not_found)
-            } else {
-                Err(Fail(
-                    Kind::BadRequest,
-                    "get needs \"port\" or \"property\"".into(),
-                ))
-            }
-        }
-        "set" => {
-            let t = component()?;
-            let value = req
-                .get("value")
-                .cloned()
-                .ok_or_else(|| Fail(Kind::BadRequest, "set needs \"value\"".into()))?;
-            if let Some(port) = req.get("port").and_then(Value::as_str) {
-                let key = (t.name().to_string(), port.to_string());
-                if !writers.contains_key(&key) {
-                    let p = t.port(port).map_err(not_found)?;
-                    writers.insert(
-                        key.clone(),
-                        p.writer(ConnPolicy::buffer(16)).map_err(failed)?,
-                    );
-                }
-                match writers.get_mut(&key) {
-                    Some(w) => w.write(value).map_err(failed).map(|()| Value::Null),
-                    None => Err(failed("writer vanished")),
-                }
-            } else if let Some(prop) = req.get("property").and_then(Value::as_str) {
-                t.properties()
-                    .set_value(prop, value)
-                    .map_err(failed)
-                    .map(|()| Value::Null)
-            } else {
-                Err(Fail(
-                    Kind::BadRequest,
-                    "set needs \"port\" or \"property\"".into(),
-                ))
-            }
-        }
-        "call" => {
-            let t = component()?;
-            let op = field(req, "operation")?;
-            let args = match req.get("args") {
-                None => Vec::new(),
-                Some(Value::Array(a)) => a.clone(),
-                Some(_) => return Err(Fail(Kind::BadRequest, "\"args\" must be an array".into())),
-            };
-            t.call_value(op, args).map_err(|e| match e {
-                rtt::component::CallOrIntrospect::Introspect(e) => not_found(e),
-                rtt::component::CallOrIntrospect::Call(e) => failed(e),
+    let component = |name: &str| rt.component(name).map_err(not_found);
+    match req {
+        Request::Ls => to_value(
+            rt.components()
+                .iter()
+                .map(|t| ComponentEntry {
+                    name: t.name().to_string(),
+                    state: t.state(),
+                })
+                .collect::<Vec<_>>(),
+        ),
+        Request::Devices => to_value(rt.registry().entries()),
+        Request::Status => to_value(status(gw)),
+        Request::Describe { component: c } => {
+            let t = component(c)?;
+            to_value(Description {
+                name: t.name().to_string(),
+                state: t.state(),
+                ports: t.ports(),
+                operations: t.operations(),
+                properties: t.properties().list(),
+                attributes: t.attributes().list(),
+                counters: t.counters(),
+                activity: t.stats(),
             })
         }
-        "configure" | "start" | "stop" | "cleanup" | "recover" => {
-            let t = component()?;
-            let r = match cmd {
-                "configure" => t.configure(),
-                "start" => t.start(),
-                "stop" => t.stop(),
-                "cleanup" => t.cleanup(),
-                _ => t.recover(),
-            };
-            r.map_err(failed).map(|()| json!(t.state()))
+        Request::Get {
+            component: c,
+            target: Target::Port(port),
+        } => {
+            let p = component(c)?.port(port).map_err(not_found)?;
+            p.last_value()
+                .map_err(failed)
+                .map(|v| v.unwrap_or(Value::Null))
         }
-        other => Err(Fail(
-            Kind::UnknownCommand,
-            format!(
-                "unknown command {other:?}; commands: ls, describe, devices, get, set, call, configure, start, stop, cleanup, recover"
-            ),
+        Request::Get {
+            component: c,
+            target: Target::Property(prop),
+        } => component(c)?
+            .properties()
+            .get_value(prop)
+            .map_err(not_found),
+        Request::Set {
+            component: c,
+            target: Target::Port(port),
+            value,
+        } => {
+            let t = component(c)?;
+            let key = (t.name().to_string(), port.clone());
+            if !writers.contains_key(&key) {
+                let p = t.port(port).map_err(not_found)?;
+                writers.insert(
+                    key.clone(),
+                    p.writer(ConnPolicy::buffer(16)).map_err(failed)?,
+                );
+            }
+            match writers.get_mut(&key) {
+                Some(w) => w.write(value.clone()).map_err(failed).map(|()| Value::Null),
+                None => Err(failed("writer vanished")),
+            }
+        }
+        Request::Set {
+            component: c,
+            target: Target::Property(prop),
+            value,
+        } => component(c)?
+            .properties()
+            .set_value(prop, value.clone())
+            .map_err(failed)
+            .map(|()| Value::Null),
+        Request::Call {
+            component: c,
+            operation,
+            args,
+        } => component(c)?
+            .call_value(operation, args.clone())
+            .map_err(|e| match e {
+                rtt::component::CallOrIntrospect::Introspect(e) => not_found(e),
+                rtt::component::CallOrIntrospect::Call(e) => failed(e),
+            }),
+        Request::Configure { component: c } => lifecycle(component(c)?, |t| t.configure()),
+        Request::Start { component: c } => lifecycle(component(c)?, |t| t.start()),
+        Request::Stop { component: c } => lifecycle(component(c)?, |t| t.stop()),
+        Request::Cleanup { component: c } => lifecycle(component(c)?, |t| t.cleanup()),
+        Request::Recover { component: c } => lifecycle(component(c)?, |t| t.recover()),
+        Request::Watch { .. } => Err(Fail(
+            ErrorKind::BadRequest,
+            "watch streams: it is served on its own".into(),
         )),
     }
 }
 
-/// A reply's outcome: the `ok` value, or the `error` message.
-pub fn outcome(reply: &Value) -> Result<Value, String> {
-    match (reply.get("ok"), reply.get("error")) {
-        (Some(v), _) => Ok(v.clone()),
-        (_, Some(e)) => Err(e
-            .get("message")
-            .and_then(Value::as_str)
-            .unwrap_or("error")
-            .to_string()),
-        _ => Err(format!("unexpected reply: {reply}")),
-    }
-}
-
-/// One request to a running gateway: sends `request` (an `id` is added if missing) and
-/// returns the reply.
-pub fn request(path: &Path, mut request: Value) -> std::io::Result<Value> {
-    if let Value::Object(m) = &mut request {
-        m.entry("id").or_insert(json!(1));
-    }
-    let mut conn = UnixStream::connect(path)?;
-    let mut line = request.to_string();
-    line.push('\n');
-    conn.write_all(line.as_bytes())?;
-    let mut reply = String::new();
-    BufReader::new(conn).read_line(&mut reply)?;
-    serde_json::from_str(&reply)
-        .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidData, e))
-}
-
-/// Sends `request` and hands every reply line to `each` until it returns false (then
-/// `Ok(false)`) or the server closes the stream (`Ok(true)`).
-pub fn stream(
-    path: &Path,
-    request: Value,
-    mut each: impl FnMut(&Value) -> bool,
-) -> std::io::Result<bool> {
-    let mut conn = UnixStream::connect(path)?;
-    let mut line = request.to_string();
-    line.push('\n');
-    conn.write_all(line.as_bytes())?;
-    for line in BufReader::new(conn).lines() {
-        let v: Value = serde_json::from_str(&line?)
-            .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidData, e))?;
-        if !each(&v) {
-            return Ok(false);
-        }
-    }
-    Ok(true)
+/// Runs a lifecycle command; the answer is the new state.
+fn lifecycle(
+    t: rtt::TaskContext,
+    f: impl FnOnce(&rtt::TaskContext) -> Result<(), rtt::component::LifecycleError>,
+) -> Result<Value, Fail> {
+    f(&t).map_err(failed)?;
+    to_value(t.state())
 }

@@ -9,8 +9,10 @@
 //!   value (built in phases by the `build` module);
 //! - [`io`]: every device as a component (channels as ports, methods as operations);
 //! - [`components`]: the component types built into the binary;
-//! - [`control`]: the line-delimited JSON control protocol over a Unix socket;
-//! - [`cli`]: the `hwgw` command line, reusable by a binary with its own component types;
+//! - [`protocol`]: the control protocol's typed requests and replies; [`control`]: its
+//!   server on a Unix socket; [`client`]: its client, with a timeout on every reply;
+//! - [`cli`]: the `hwgw` command line, reusable by a binary with its own types; [`serve`]:
+//!   `hwgw run` and `hwgw check`; [`table`]: what the CLI prints for people;
 //! - [`browse`]: `hwgw browse`, the interactive console.
 //!
 //! ```
@@ -27,6 +29,7 @@
 pub mod browse;
 mod build;
 pub mod cli;
+pub mod client;
 pub mod components;
 pub mod config;
 pub mod control;
@@ -34,6 +37,9 @@ pub mod deploy;
 pub mod drivers;
 pub mod io;
 pub mod problems;
+pub mod protocol;
+pub mod serve;
+pub mod table;
 pub mod types;
 
 /// The embedded default deployment (`config/demo.toml`): simulated cards, so a new user

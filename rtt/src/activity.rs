@@ -212,7 +212,7 @@ impl FdEvents {
 pub const HISTOGRAM_BUCKETS: usize = 40;
 
 /// A snapshot of an activity's statistics.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct ActivityStats {
     /// Steps run.
     pub steps: u64,

@@ -5,7 +5,7 @@ use serde::de::DeserializeOwned;
 use std::fmt;
 
 /// Data direction of a port.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Direction {
     /// An input port.
@@ -28,7 +28,7 @@ pub trait PortData: Clone + Send + Sync + Serialize + DeserializeOwned + 'static
 impl<T: Clone + Send + Sync + Serialize + DeserializeOwned + 'static> PortData for T {}
 
 /// A port, as listed.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, serde::Deserialize)]
 pub struct PortInfo {
     /// Name.
     pub name: String,

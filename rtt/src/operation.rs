@@ -19,7 +19,7 @@ use std::sync::{Arc, Mutex, Weak};
 use std::time::Duration;
 
 /// Which thread runs an operation.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ExecutionThread {
     /// The caller's thread, at once.
@@ -89,7 +89,7 @@ pub enum CallError {
 }
 
 /// One argument, as documented.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, serde::Deserialize)]
 pub struct ArgInfo {
     /// Name.
     pub name: String,
@@ -100,7 +100,7 @@ pub struct ArgInfo {
 }
 
 /// An operation, as listed.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, serde::Deserialize)]
 pub struct OperationInfo {
     /// Name.
     pub name: String,

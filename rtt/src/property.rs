@@ -89,7 +89,7 @@ fn list(v: &[String]) -> String {
 }
 
 /// One property or attribute, as listed.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
 pub struct PropertyInfo {
     /// Dotted path.
     pub path: String,

@@ -74,6 +74,13 @@ impl Card for SimPlugin {
             self.period
         )
     }
+
+    fn status(&self) -> driver_api::CardStatus {
+        driver_api::CardStatus {
+            bus: "simulated".into(),
+            counters: Default::default(),
+        }
+    }
 }
 
 #[cfg(test)]

@@ -195,7 +195,7 @@ impl Context<'_> {
 }
 
 /// Error and step counters of a component.
-#[derive(Debug, Clone, Default, Serialize)]
+#[derive(Debug, Clone, Default, Serialize, serde::Deserialize)]
 pub struct TaskCounters {
     /// Times it went to RunTimeError.
     pub runtime_errors: u64,

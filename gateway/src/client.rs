@@ -1,0 +1,211 @@
+//! The client side of the control socket: one typed request and its reply, or a stream of
+//! watched values, never waiting without a limit for a reply.
+
+use crate::protocol::{Body, ErrorBody, Reply, Request};
+use serde::de::DeserializeOwned;
+use serde_json::Value;
+use std::io::{BufRead, BufReader, Write};
+use std::os::unix::net::UnixStream;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+/// How long a client waits for a reply unless told otherwise.
+pub const DEFAULT_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// Why a request got no answer.
+#[derive(Debug, thiserror::Error)]
+pub enum ClientError {
+    /// The socket could not be reached.
+    #[error("{path}: {source} (is hwgw running? `hwgw run` starts it)")]
+    Connect {
+        /// The socket.
+        path: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// No reply within the timeout.
+    #[error("{path}: no reply within {after:?}")]
+    Timeout {
+        /// The socket.
+        path: PathBuf,
+        /// The timeout.
+        after: Duration,
+    },
+    /// The connection failed mid-way.
+    #[error("{path}: {source}")]
+    Io {
+        /// The socket.
+        path: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// The reply was not a reply.
+    #[error("{path}: unexpected reply: {detail}")]
+    BadReply {
+        /// The socket.
+        path: PathBuf,
+        /// What was wrong with it.
+        detail: String,
+    },
+    /// The gateway answered with an error.
+    #[error("{}", .0.message)]
+    Refused(ErrorBody),
+}
+
+/// A client of one gateway's control socket.
+#[derive(Debug, Clone)]
+pub struct Client {
+    path: PathBuf,
+    timeout: Duration,
+}
+
+impl Client {
+    /// A client of the socket at `path`, waiting [`DEFAULT_TIMEOUT`] for replies.
+    pub fn new(path: impl Into<PathBuf>) -> Client {
+        Client {
+            path: path.into(),
+            timeout: DEFAULT_TIMEOUT,
+        }
+    }
+
+    /// The same client waiting `timeout` for replies.
+    pub fn with_timeout(mut self, timeout: Duration) -> Client {
+        self.timeout = timeout;
+        self
+    }
+
+    /// The socket.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    fn io(&self, source: std::io::Error) -> ClientError {
+        if matches!(
+            source.kind(),
+            std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+        ) {
+            ClientError::Timeout {
+                path: self.path.clone(),
+                after: self.timeout,
+            }
+        } else {
+            ClientError::Io {
+                path: self.path.clone(),
+                source,
+            }
+        }
+    }
+
+    /// Connects and sends `req`; the reading half comes back.
+    fn send(&self, req: &Request) -> Result<BufReader<UnixStream>, ClientError> {
+        let mut conn = UnixStream::connect(&self.path).map_err(|source| ClientError::Connect {
+            path: self.path.clone(),
+            source,
+        })?;
+        conn.set_read_timeout(Some(self.timeout))
+            .and_then(|()| conn.set_write_timeout(Some(self.timeout)))
+            .map_err(|e| self.io(e))?;
+        let mut v = serde_json::to_value(req).map_err(|e| self.bad(e))?;
+        if let Value::Object(m) = &mut v {
+            m.insert("id".into(), Value::from(1));
+        }
+        let mut line = v.to_string();
+        line.push('\n');
+        conn.write_all(line.as_bytes()).map_err(|e| self.io(e))?;
+        Ok(BufReader::new(conn))
+    }
+
+    fn bad(&self, detail: impl std::fmt::Display) -> ClientError {
+        ClientError::BadReply {
+            path: self.path.clone(),
+            detail: detail.to_string(),
+        }
+    }
+
+    /// Reads one reply line.
+    fn reply(&self, r: &mut BufReader<UnixStream>) -> Result<Reply, ClientError> {
+        let mut line = String::new();
+        let n = r.read_line(&mut line).map_err(|e| self.io(e))?;
+        if n == 0 {
+            return Err(self.bad("the gateway closed the connection"));
+        }
+        serde_json::from_str(&line).map_err(|e| self.bad(format!("{e}: {}", line.trim())))
+    }
+
+    /// Sends `req` and returns the reply's `ok` value.
+    pub fn request(&self, req: &Request) -> Result<Value, ClientError> {
+        let mut r = self.send(req)?;
+        match self.reply(&mut r)?.body {
+            Body::Ok(v) => Ok(v),
+            Body::Error(e) => Err(ClientError::Refused(e)),
+            Body::Event(_) => Err(self.bad("an event where a reply was due")),
+        }
+    }
+
+    /// Sends `req` and returns the reply's `ok` value as `T`.
+    pub fn typed<T: DeserializeOwned>(&self, req: &Request) -> Result<T, ClientError> {
+        let v = self.request(req)?;
+        serde_json::from_value(v).map_err(|e| self.bad(e))
+    }
+
+    /// Watches an output port: `each` gets every new value until it returns false (then
+    /// `Ok(false)`) or the gateway ends the stream (`Ok(true)`). The acknowledgement comes
+    /// within the timeout; the values come when they come (`event_timeout` bounds the wait
+    /// for each, if given).
+    pub fn watch(
+        &self,
+        component: &str,
+        port: &str,
+        count: Option<u64>,
+        event_timeout: Option<Duration>,
+        mut each: impl FnMut(&Value) -> bool,
+    ) -> Result<bool, ClientError> {
+        let req = Request::Watch {
+            component: component.into(),
+            port: port.into(),
+            count,
+        };
+        let mut r = self.send(&req)?;
+        match self.reply(&mut r)?.body {
+            Body::Ok(_) => {}
+            Body::Error(e) => return Err(ClientError::Refused(e)),
+            Body::Event(_) => return Err(self.bad("an event before the acknowledgement")),
+        }
+        r.get_ref()
+            .set_read_timeout(event_timeout)
+            .map_err(|e| self.io(e))?;
+        loop {
+            let mut line = String::new();
+            match r.read_line(&mut line) {
+                Ok(0) => return Ok(true),
+                Ok(_) => {}
+                Err(e) => {
+                    return Err(match event_timeout {
+                        Some(after)
+                            if matches!(
+                                e.kind(),
+                                std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                            ) =>
+                        {
+                            ClientError::Timeout {
+                                path: self.path.clone(),
+                                after,
+                            }
+                        }
+                        _ => self.io(e),
+                    });
+                }
+            }
+            let reply: Reply = serde_json::from_str(&line).map_err(|e| self.bad(e))?;
+            match reply.body {
+                Body::Event(ev) => {
+                    if !each(&ev.value) {
+                        return Ok(false);
+                    }
+                }
+                Body::Error(e) => return Err(ClientError::Refused(e)),
+                Body::Ok(_) => {}
+            }
+        }
+    }
+}

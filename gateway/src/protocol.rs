@@ -1,0 +1,462 @@
+//! The control protocol's messages, typed: one [`Request`] and one [`Reply`] for the
+//! server, the one-shot CLI and `hwgw browse`, and the typed answers of the commands
+//! that list things. The wire format is line-delimited JSON (see [`crate::control`]);
+//! the command table of the documentation and the "unknown command" error both come from
+//! [`COMMANDS`], so they cannot drift from the code.
+
+use crate::deploy::CardReport;
+use device_interface::{Interface, RegistryEntry, Status};
+use rtt::TaskState;
+use rtt::activity::ActivityStats;
+use rtt::component::{PortInfo, TaskCounters};
+use rtt::operation::OperationInfo;
+use rtt::port::FlowStatus;
+use rtt::property::PropertyInfo;
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+
+/// A port or a property of a component.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Target {
+    /// A port, by name.
+    Port(String),
+    /// A property, by its dotted path.
+    Property(String),
+}
+
+/// One request, tagged by `cmd` on the wire.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "cmd", rename_all = "snake_case")]
+pub enum Request {
+    /// Every component and its state.
+    Ls,
+    /// One component's interface, state and timing.
+    Describe {
+        /// The component.
+        component: String,
+    },
+    /// Every name in the device registry.
+    Devices,
+    /// Device health, cards' bus counters, component states and timing.
+    Status,
+    /// A port's current value or a property's value.
+    Get {
+        /// The component.
+        component: String,
+        /// `"port": NAME` or `"property": PATH`.
+        #[serde(flatten)]
+        target: Target,
+    },
+    /// Writes an input port or a property.
+    Set {
+        /// The component.
+        component: String,
+        /// `"port": NAME` or `"property": PATH`.
+        #[serde(flatten)]
+        target: Target,
+        /// The value, as JSON.
+        value: Value,
+    },
+    /// Calls an operation.
+    Call {
+        /// The component.
+        component: String,
+        /// The operation.
+        operation: String,
+        /// Its arguments, as JSON.
+        #[serde(default)]
+        args: Vec<Value>,
+    },
+    /// Lifecycle: configure.
+    Configure {
+        /// The component.
+        component: String,
+    },
+    /// Lifecycle: start.
+    Start {
+        /// The component.
+        component: String,
+    },
+    /// Lifecycle: stop.
+    Stop {
+        /// The component.
+        component: String,
+    },
+    /// Lifecycle: cleanup.
+    Cleanup {
+        /// The component.
+        component: String,
+    },
+    /// Lifecycle: recover.
+    Recover {
+        /// The component.
+        component: String,
+    },
+    /// Streams the new values of an output port.
+    Watch {
+        /// The component.
+        component: String,
+        /// The output port.
+        port: String,
+        /// At most this many values (default: until the client closes).
+        #[serde(default)]
+        count: Option<u64>,
+    },
+}
+
+/// One command of the protocol: its name, its fields, and what `ok` holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Command {
+    /// `cmd`.
+    pub cmd: &'static str,
+    /// The other fields.
+    pub fields: &'static str,
+    /// The reply.
+    pub ok: &'static str,
+}
+
+/// Every command, in the order the documentation lists them.
+pub const COMMANDS: [Command; 13] = [
+    Command {
+        cmd: "ls",
+        fields: "—",
+        ok: "`[{\"name\", \"state\"}]` of every component",
+    },
+    Command {
+        cmd: "describe",
+        fields: "`component`",
+        ok: "ports, operations, properties, attributes, state, counters, activity statistics",
+    },
+    Command {
+        cmd: "devices",
+        fields: "—",
+        ok: "every registry name: interface, name, owner, alias_of",
+    },
+    Command {
+        cmd: "status",
+        fields: "—",
+        ok: "health, every device's health, every card's bus counters, every component's state and timing",
+    },
+    Command {
+        cmd: "get",
+        fields: "`component` and `port` or `property`",
+        ok: "an output port's last value, an input port's read-back (a device output) or last value read, or the property's value",
+    },
+    Command {
+        cmd: "set",
+        fields: "`component`, `port` or `property`, `value`",
+        ok: "`null`; a port must be an input port",
+    },
+    Command {
+        cmd: "call",
+        fields: "`component`, `operation`, `args` (array)",
+        ok: "the result",
+    },
+    Command {
+        cmd: "configure",
+        fields: "`component`",
+        ok: "the new state",
+    },
+    Command {
+        cmd: "start",
+        fields: "`component`",
+        ok: "the new state",
+    },
+    Command {
+        cmd: "stop",
+        fields: "`component`",
+        ok: "the new state",
+    },
+    Command {
+        cmd: "cleanup",
+        fields: "`component`",
+        ok: "the new state",
+    },
+    Command {
+        cmd: "recover",
+        fields: "`component`",
+        ok: "the new state",
+    },
+    Command {
+        cmd: "watch",
+        fields: "`component`, `port`, optional `count`",
+        ok: "`\"watching\"`, then a stream: one `{\"id\", \"event\": {\"status\", \"value\"}}` line per new value (all of them, `count` at most), until the client closes",
+    },
+];
+
+impl Request {
+    /// The command's name on the wire.
+    pub fn cmd(&self) -> &'static str {
+        match self {
+            Request::Ls => "ls",
+            Request::Describe { .. } => "describe",
+            Request::Devices => "devices",
+            Request::Status => "status",
+            Request::Get { .. } => "get",
+            Request::Set { .. } => "set",
+            Request::Call { .. } => "call",
+            Request::Configure { .. } => "configure",
+            Request::Start { .. } => "start",
+            Request::Stop { .. } => "stop",
+            Request::Cleanup { .. } => "cleanup",
+            Request::Recover { .. } => "recover",
+            Request::Watch { .. } => "watch",
+        }
+    }
+
+    /// The command names, comma-separated (for errors and help).
+    pub fn names() -> String {
+        COMMANDS
+            .iter()
+            .map(|c| c.cmd)
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+
+    /// The documentation's command table, in Markdown.
+    pub fn table() -> String {
+        let mut t = String::from("| cmd | fields | ok |\n|---|---|---|\n");
+        for c in COMMANDS {
+            t.push_str(&format!("| `{}` | {} | {} |\n", c.cmd, c.fields, c.ok));
+        }
+        t
+    }
+}
+
+/// Error reply kinds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ErrorKind {
+    /// The line is not JSON.
+    Parse,
+    /// The line is longer than the server takes.
+    TooLong,
+    /// A field is missing or of the wrong type.
+    BadRequest,
+    /// `cmd` names no command.
+    UnknownCommand,
+    /// No such component, port, property or operation.
+    NotFound,
+    /// The command was refused or failed.
+    Failed,
+}
+
+impl std::fmt::Display for ErrorKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let s = serde_json::to_value(self)
+            .ok()
+            .and_then(|v| v.as_str().map(String::from))
+            .unwrap_or_default();
+        f.write_str(&s)
+    }
+}
+
+/// An error reply's body.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ErrorBody {
+    /// What kind of error.
+    pub kind: ErrorKind,
+    /// What is wrong, naming what exists where something was not found.
+    pub message: String,
+}
+
+/// One value of a watched port.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Event {
+    /// Always new data.
+    pub status: FlowStatus,
+    /// The value.
+    pub value: Value,
+}
+
+/// What a reply carries.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Body {
+    /// The answer.
+    Ok(Value),
+    /// Why there is none.
+    Error(ErrorBody),
+    /// A watched value.
+    Event(Event),
+}
+
+/// One reply line: the request's `id` echoed, and the body.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Reply {
+    /// The request's `id` (null when the request had none or was not JSON).
+    #[serde(default)]
+    pub id: Value,
+    /// The answer, error or event.
+    #[serde(flatten)]
+    pub body: Body,
+}
+
+impl Reply {
+    /// An error reply.
+    pub fn error(id: Value, kind: ErrorKind, message: impl Into<String>) -> Reply {
+        Reply {
+            id,
+            body: Body::Error(ErrorBody {
+                kind,
+                message: message.into(),
+            }),
+        }
+    }
+}
+
+/// A component in `ls`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ComponentEntry {
+    /// Its name.
+    pub name: String,
+    /// Its state.
+    pub state: TaskState,
+}
+
+/// A component in `describe`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Description {
+    /// Its name.
+    pub name: String,
+    /// Its state.
+    pub state: TaskState,
+    /// Its ports.
+    pub ports: Vec<PortInfo>,
+    /// Its operations.
+    pub operations: Vec<OperationInfo>,
+    /// Its properties.
+    pub properties: Vec<PropertyInfo>,
+    /// Its attributes.
+    pub attributes: Vec<PropertyInfo>,
+    /// Error counters.
+    pub counters: TaskCounters,
+    /// Activity statistics.
+    pub activity: ActivityStats,
+}
+
+/// A device in `status`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DeviceStatus {
+    /// The interface it is served under.
+    pub interface: Interface,
+    /// Its name.
+    pub name: String,
+    /// Online, stale or offline.
+    pub status: Status,
+    /// Age of its last good sample, s.
+    pub age_s: Option<f64>,
+    /// Its last error.
+    pub last_error: Option<String>,
+}
+
+/// A component in `status`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ComponentStatus {
+    /// Its name.
+    pub name: String,
+    /// Its state.
+    pub state: TaskState,
+    /// Steps run.
+    pub steps: u64,
+    /// Overruns.
+    pub overruns: u64,
+    /// False while its activity overruns more than it may.
+    pub healthy: bool,
+    /// True when its thread got real-time scheduling.
+    pub realtime: bool,
+    /// 99th percentile of wake-up lateness, µs.
+    pub lateness_p99_us: f64,
+    /// Mean step duration, µs.
+    pub step_mean_us: f64,
+    /// Error counters.
+    pub counters: TaskCounters,
+}
+
+/// The answer to `status`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct StatusReport {
+    /// `ok`, or what is wrong (what the systemd watchdog is fed by).
+    pub health: String,
+    /// Every device (aliases left out).
+    pub devices: Vec<DeviceStatus>,
+    /// Every card's bus and counters.
+    pub cards: Vec<CardReport>,
+    /// Every component.
+    pub components: Vec<ComponentStatus>,
+}
+
+/// The answer to `devices`.
+pub type DeviceList = Vec<RegistryEntry>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    /// A request of each documented command, as a client would send it.
+    fn sample(cmd: &str) -> Value {
+        match cmd {
+            "ls" | "devices" | "status" => json!({"cmd": cmd}),
+            "get" | "watch" => json!({"cmd": cmd, "component": "c", "port": "p"}),
+            "set" => json!({"cmd": cmd, "component": "c", "port": "p", "value": 1}),
+            "call" => json!({"cmd": cmd, "component": "c", "operation": "o", "args": [1]}),
+            _ => json!({"cmd": cmd, "component": "c"}),
+        }
+    }
+
+    #[test]
+    fn every_command_parses_and_names_itself() {
+        let mut seen = std::collections::BTreeSet::new();
+        for c in COMMANDS {
+            let r: Request =
+                serde_json::from_value(sample(c.cmd)).unwrap_or_else(|e| panic!("{}: {e}", c.cmd));
+            assert_eq!(r.cmd(), c.cmd);
+            assert!(seen.insert(c.cmd), "{} twice", c.cmd);
+        }
+    }
+
+    #[test]
+    fn the_documented_table_is_the_table() {
+        let doc = include_str!("control.rs");
+        for line in Request::table().lines() {
+            assert!(
+                doc.contains(&format!("//! {line}")),
+                "control.rs's documentation lacks the line:\n//! {line}\n(it must show Request::table())"
+            );
+        }
+    }
+
+    #[test]
+    fn replies_keep_their_wire_format() {
+        let ok = Reply {
+            id: json!(7),
+            body: Body::Ok(json!(2.5)),
+        };
+        assert_eq!(
+            serde_json::to_value(&ok).unwrap(),
+            json!({"id": 7, "ok": 2.5})
+        );
+        let e = Reply::error(json!(1), ErrorKind::NotFound, "no");
+        assert_eq!(
+            serde_json::to_value(&e).unwrap(),
+            json!({"id": 1, "error": {"kind": "not_found", "message": "no"}})
+        );
+        let back: Reply = serde_json::from_value(
+            json!({"id": 1, "error": {"kind": "not_found", "message": "no"}}),
+        )
+        .unwrap();
+        assert_eq!(back, e);
+        let get: Request =
+            serde_json::from_value(json!({"cmd": "get", "component": "a", "property": "gain"}))
+                .unwrap();
+        assert_eq!(
+            get,
+            Request::Get {
+                component: "a".into(),
+                target: Target::Property("gain".into())
+            }
+        );
+    }
+}

@@ -1,0 +1,190 @@
+//! `hwgw run` and `hwgw check`: a deployment loaded, built, served on its control socket,
+//! watched by systemd, reloaded on SIGHUP and stopped on SIGTERM/SIGINT with every output
+//! at its safe value.
+
+use crate::config::Deployment;
+use crate::control::{self, ControlServer};
+use crate::deploy::Gateway;
+use crate::types::Types;
+use nix::sys::signal::{SigSet, Signal};
+use sd_notify::NotifyState;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::Arc;
+
+/// Feeds the systemd watchdog every half interval while the gateway is healthy; says why
+/// in STATUS when it is not (once per change).
+fn watchdog(
+    gw: Arc<Gateway>,
+    interval: std::time::Duration,
+    stop: Arc<std::sync::atomic::AtomicBool>,
+) {
+    let mut last: Option<Result<(), String>> = None;
+    while !stop.load(std::sync::atomic::Ordering::Acquire) {
+        let health = gw.health();
+        if last.as_ref() != Some(&health) {
+            match &health {
+                Ok(()) => {
+                    tracing::info!("healthy");
+                    let _ = sd_notify::notify(&[NotifyState::Status("running")]);
+                }
+                Err(why) => {
+                    tracing::error!("unhealthy, not feeding the watchdog: {why}");
+                    let _ = sd_notify::notify(&[NotifyState::Status(&format!("unhealthy: {why}"))]);
+                }
+            }
+            last = Some(health.clone());
+        }
+        if health.is_ok() {
+            let _ = sd_notify::notify(&[NotifyState::Watchdog]);
+        }
+        std::thread::sleep(interval / 2);
+    }
+}
+
+/// SIGHUP: reads the deployment again and applies what may change at run time.
+fn reload_with(gw: &Gateway, config: Option<&PathBuf>, current: &mut Deployment) {
+    let Some(path) = config else {
+        tracing::warn!("SIGHUP: running the embedded default; there is no file to reload");
+        return;
+    };
+    let new = match Deployment::load(path) {
+        Ok((d, _)) => d,
+        Err(e) => {
+            tracing::error!(
+                "SIGHUP: {} not reloaded, still running the previous version:\n{e}",
+                path.display()
+            );
+            return;
+        }
+    };
+    let (lines, applied) = gw.reload(current, &new);
+    for line in lines {
+        tracing::info!("SIGHUP: {line}");
+    }
+    // What was applied is now current; refused changes stay pending until a restart.
+    for (cur, n) in current.components.iter_mut().zip(&new.components) {
+        if applied.contains(&n.name) {
+            cur.properties = n.properties.clone();
+        }
+    }
+}
+
+fn load(config: Option<&PathBuf>) -> Result<(Deployment, String, String), String> {
+    match config {
+        None => Deployment::parse(crate::DEMO, "<embedded demo>")
+            .map(|d| (d, crate::DEMO.to_string(), "<embedded demo>".to_string()))
+            .map_err(|e| e.to_string()),
+        Some(p) => Deployment::load(p)
+            .map(|(d, text)| (d, text, p.display().to_string()))
+            .map_err(|e| e.to_string()),
+    }
+}
+
+fn build(config: Option<&PathBuf>, types: &Types) -> Result<(Gateway, Deployment), String> {
+    let (d, text, file) = load(config)?;
+    let gw = Gateway::build(&d, &file, &text, types).map_err(|problems| {
+        problems
+            .iter()
+            .map(|p| p.to_string())
+            .collect::<Vec<_>>()
+            .join("\n")
+    })?;
+    Ok((gw, d))
+}
+
+/// `hwgw check CONFIG`: every problem, or the summary and `ok`.
+pub fn check(config: PathBuf, types: &Types) -> ExitCode {
+    match build(Some(&config), types) {
+        Ok((gw, _)) => {
+            print!("{}", gw.summary());
+            println!("{}: ok", config.display());
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("{e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// `hwgw run [CONFIG]`: runs until SIGTERM or SIGINT.
+pub fn run(config: Option<PathBuf>, socket: Option<PathBuf>, types: &Types) -> ExitCode {
+    // Signals are taken by sigwait below: block them before any thread exists, so every
+    // thread inherits the mask and none is interrupted.
+    let mut signals = SigSet::empty();
+    for s in [Signal::SIGTERM, Signal::SIGINT, Signal::SIGHUP] {
+        signals.add(s);
+    }
+    if let Err(e) = signals.thread_block() {
+        eprintln!("hwgw: cannot block signals: {e}");
+        return ExitCode::FAILURE;
+    }
+    let (gw, mut d) = match build(config.as_ref(), types) {
+        Ok(x) => x,
+        Err(e) => {
+            eprintln!("{e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let gw = Arc::new(gw);
+    for line in gw.summary().lines() {
+        tracing::info!("{line}");
+    }
+    let path = socket
+        .or_else(|| d.control_socket.as_ref().map(PathBuf::from))
+        .unwrap_or_else(control::default_socket);
+    let server = match ControlServer::start(gw.clone(), &path) {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("hwgw: control socket {}: {e}", path.display());
+            return ExitCode::FAILURE;
+        }
+    };
+    if let Err(e) = gw.start() {
+        eprintln!("hwgw: {e}");
+        for line in gw.shutdown() {
+            tracing::info!("{line}");
+        }
+        return ExitCode::FAILURE;
+    }
+    tracing::info!("running; control socket {}", server.path().display());
+    let status = format!(
+        "running {} components; control socket {}",
+        gw.runtime().components().len(),
+        server.path().display()
+    );
+    if let Err(e) = sd_notify::notify(&[NotifyState::Ready, NotifyState::Status(&status)]) {
+        tracing::warn!("cannot notify systemd: {e}");
+    }
+    let stop_watchdog = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    if let Some(interval) = sd_notify::watchdog_enabled() {
+        tracing::info!("systemd watchdog every {interval:?}, fed while healthy");
+        let (g, s) = (gw.clone(), stop_watchdog.clone());
+        std::thread::spawn(move || watchdog(g, interval, s));
+    }
+    loop {
+        match signals.wait() {
+            Ok(Signal::SIGHUP) => reload_with(&gw, config.as_ref(), &mut d),
+            Ok(sig) => {
+                tracing::info!("{sig}: stopping");
+                break;
+            }
+            Err(e) => {
+                tracing::error!("waiting for signals failed: {e}; stopping");
+                break;
+            }
+        }
+    }
+    let _ = sd_notify::notify(&[
+        NotifyState::Stopping,
+        NotifyState::Status("stopping: outputs to safe values"),
+    ]);
+    stop_watchdog.store(true, std::sync::atomic::Ordering::Release);
+    drop(server);
+    for line in gw.shutdown() {
+        tracing::info!("{line}");
+    }
+    tracing::info!("stopped");
+    ExitCode::SUCCESS
+}
