@@ -16,17 +16,10 @@ use std::os::fd::{AsFd, AsRawFd};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
+use testkit::wait_until as wait_for;
 
 fn runtime() -> Runtime {
     Runtime::new(Arc::new(Registry::new()), RuntimeOptions::default()).unwrap()
-}
-
-fn wait_for(what: &str, mut f: impl FnMut() -> bool) {
-    let deadline = Instant::now() + Duration::from_secs(10);
-    while !f() {
-        assert!(Instant::now() < deadline, "timed out waiting for {what}");
-        std::thread::sleep(Duration::from_millis(1));
-    }
 }
 
 /// Per step: (the pipe was ready, the timeout fired, the bytes read).
@@ -112,6 +105,88 @@ impl Component for Sleepy {
         Ok(())
     }
 }
+
+/// Steps only at the deadlines it sets itself: each deadline step asks for the next one
+/// `gap` later.
+struct Ticker {
+    gap: Duration,
+    steps: Arc<Mutex<Vec<(Instant, bool)>>>,
+}
+
+impl Component for Ticker {
+    fn start_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+        use rtt::time::{Clock, MonotonicClock};
+        ctx.activity()
+            .wake_at(MonotonicClock.now().saturating_add(self.gap))?;
+        Ok(())
+    }
+
+    fn update_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+        use rtt::time::{Clock, MonotonicClock};
+        let deadline = ctx.fd_events().deadline_passed();
+        self.steps.lock().unwrap().push((Instant::now(), deadline));
+        if deadline {
+            ctx.activity()
+                .wake_at(MonotonicClock.now().saturating_add(self.gap))?;
+        }
+        Ok(())
+    }
+}
+
+#[test]
+fn fd_activity_wakes_at_the_deadlines_its_component_sets() {
+    let rt = runtime();
+    let steps = Arc::new(Mutex::new(Vec::new()));
+    let s = steps.clone();
+    let gap = Duration::from_millis(20);
+    let t = rt
+        .add(
+            "ticker",
+            ActivitySpec::file_descriptor(None),
+            rtt::InitialState::Stopped,
+            move |_| Ok(Ticker { gap, steps: s }),
+        )
+        .unwrap();
+    let started = Instant::now();
+    t.start().unwrap();
+    wait_for("five deadline steps", || steps.lock().unwrap().len() >= 5);
+    t.stop().unwrap();
+    let steps = steps.lock().unwrap().clone();
+    assert!(
+        steps.iter().all(|(_, d)| *d),
+        "every step came from its deadline"
+    );
+    // A timer never fires early: each step at least one gap after the previous.
+    let mut last = started;
+    for (at, _) in &steps {
+        assert!(
+            at.duration_since(last) >= gap,
+            "a step {:?} after the one before",
+            at.duration_since(last)
+        );
+        last = *at;
+    }
+    // A deadline already past steps at once.
+    assert!(t.activity().wake_at(rtt::time::Timestamp::ZERO).is_ok());
+    let periodic = rt
+        .add(
+            "p",
+            ActivitySpec::periodic(gap),
+            rtt::InitialState::Stopped,
+            |_| Ok(Nothing),
+        )
+        .unwrap();
+    assert!(
+        periodic
+            .activity()
+            .wake_at(rtt::time::Timestamp::ZERO)
+            .is_err(),
+        "only a file-descriptor activity has deadlines"
+    );
+}
+
+struct Nothing;
+impl Component for Nothing {}
 
 #[test]
 fn overruns_are_counted_and_turn_health_off_then_on() {
