@@ -12,7 +12,7 @@
 
 use crate::config::ChannelNames;
 use device_interface::{
-    AnalogIn, AnalogOut, DeviceError, DigitalIn, DigitalOut, Encoder, Health, Interface,
+    AnalogIn, AnalogOut, Device, DeviceError, DigitalIn, DigitalOut, Encoder, Health, Interface,
 };
 use rtt::component::{IntrospectError, PortData};
 use rtt::port::{FlowStatus, InputPort, OutputPort};
@@ -25,7 +25,7 @@ use std::time::Duration;
 
 /// A channel interface seen from its IO component: how many channels, how a channel is
 /// read (inputs) or written and read back (outputs), and which methods become operations.
-trait Channels: Send + Sync + 'static {
+trait Channels: Device + Send + Sync + 'static {
     /// What a channel carries.
     type Value: PortData + Default + Copy;
     /// Component name suffix: `ai`, `ao`, `di`, `do`.
@@ -81,6 +81,22 @@ fn health(h: Health) -> (String, Option<f64>, Option<String>) {
     )
 }
 
+/// Offers the device's health as an operation (every IO component has it).
+fn health_op<C, D>(iface: &mut InterfaceBuilder<C>, device: &Arc<D>) -> Result<(), IntrospectError>
+where
+    C: Send + 'static,
+    D: ?Sized + Device + 'static,
+{
+    device_op(
+        iface,
+        device,
+        "health",
+        "online/stale/offline, sample age and last error",
+        &[],
+        |d, ()| Ok(health(d.health())),
+    )
+}
+
 const CH: &[(&str, &str)] = &[("channel", "")];
 
 impl Channels for dyn AnalogIn {
@@ -124,14 +140,6 @@ impl Channels for dyn AnalogIn {
                 d.range(c)
                     .map(|r| (r.lowest, r.highest, r.unit.to_string()))
             },
-        )?;
-        device_op(
-            i,
-            d,
-            "health",
-            "online/stale/offline and sample age",
-            &[],
-            |d, ()| Ok(health(d.health())),
         )
     }
 }
@@ -167,14 +175,6 @@ impl Channels for dyn AnalogOut {
             "the value last written",
             CH,
             |d, (c,)| d.read_back(c),
-        )?;
-        device_op(
-            i,
-            d,
-            "health",
-            "online/stale/offline and sample age",
-            &[],
-            |d, ()| Ok(health(d.health())),
         )
     }
 }
@@ -419,6 +419,7 @@ fn encoder(
                 &[("turn", "")],
                 |d, (t,)| d.set_turn(t),
             )?;
+            health_op(i, d)?;
             Ok(EncoderIo {
                 position: i.output("position", "position within the turn")?,
                 turn: i.output("turn", "turns")?,

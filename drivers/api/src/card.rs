@@ -90,3 +90,36 @@ pub trait Card: Send + Sync {
         Ok(())
     }
 }
+
+/// The bus side of a card stepped once per `period`: a component named `name` on a
+/// periodic activity (absolute timing, placed by `thread`) calling `step` each period.
+/// What a simulated card or a card polled on a fixed cycle needs; `step` runs on the
+/// activity's thread and keeps the real-time contract. Returns it as [`Card::add_bus`] does.
+pub fn periodic_bus(
+    runtime: &rtt::Runtime,
+    name: &str,
+    period: std::time::Duration,
+    thread: rtt::ThreadOptions,
+    step: impl FnMut() + Send + 'static,
+) -> Result<Vec<rtt::TaskContext>, rtt::RuntimeError> {
+    let spec = rtt::ActivitySpec::Periodic {
+        period,
+        thread,
+        timing: rtt::Timing::Absolute,
+        max_overruns: None,
+    };
+    let task = runtime.add(name, spec, rtt::InitialState::Stopped, move |_| {
+        Ok(Cycle(Box::new(step)))
+    })?;
+    Ok(vec![task])
+}
+
+/// Calls its step each period.
+struct Cycle(Box<dyn FnMut() + Send>);
+
+impl rtt::Component for Cycle {
+    fn update_hook(&mut self, _: &mut rtt::Context<'_>) -> rtt::HookResult {
+        (self.0)();
+        Ok(())
+    }
+}

@@ -55,7 +55,7 @@ mod context;
 mod names;
 mod server;
 
-pub use card::{Card, CardStatus};
+pub use card::{Card, CardStatus, periodic_bus};
 pub use context::{BuildFn, CardContext, CardError};
 pub use names::{ChannelNames, NamesError, is_port_name};
 pub use server::Server;

@@ -218,13 +218,7 @@ impl CanBus {
             .iter()
             .map(|f| f.cycle.map(|_| now))
             .collect();
-        let widest = card
-            .map()
-            .rx()
-            .iter()
-            .map(|f| f.signals.len())
-            .max()
-            .unwrap_or(0);
+        let widest = card.map().widest_rx();
         let mut bus = CanBus {
             card,
             socket: None,

@@ -65,13 +65,7 @@ impl CanIo {
     /// name, or the id in hex) and the `counters` operation.
     pub fn new(bus: CanBus, iface: &mut InterfaceBuilder<CanIo>) -> Result<CanIo, IntrospectError> {
         let card = bus.card().clone();
-        let widest = card
-            .map()
-            .rx()
-            .iter()
-            .map(|f| f.signals.len())
-            .max()
-            .unwrap_or(0);
+        let widest = card.map().widest_rx();
         let mut ports = Vec::new();
         for f in card.map().rx() {
             let names: Vec<&str> = f.signals.iter().map(|s| s.name.as_str()).collect();

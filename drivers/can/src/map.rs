@@ -327,6 +327,11 @@ impl CanMap {
         &self.rx
     }
 
+    /// The most signals any received frame has.
+    pub fn widest_rx(&self) -> usize {
+        self.rx.iter().map(|f| f.signals.len()).max().unwrap_or(0)
+    }
+
     /// Sent frames.
     pub fn tx(&self) -> &[MappedFrame] {
         &self.tx

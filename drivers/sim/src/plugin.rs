@@ -1,12 +1,11 @@
 //! The simulated card as an hwgw driver plug-in (`driver = "sim"`, section [`SimConfig`]):
-//! its bus side is a periodic cycle component, named after the card, that steps the
-//! simulation at the card's period.
+//! its bus side is a periodic cycle component ([`driver_api::periodic_bus`]), named after
+//! the card, that steps the simulation at the card's period.
 
 use crate::card::SimCard;
 use crate::config::SimConfig;
 use device_interface::{AnalogIn, AnalogOut, CardDevices, DigitalIn, DigitalOut};
 use driver_api::{Card, CardContext, CardError};
-use rtt::{Component, Context, HookResult};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -27,16 +26,6 @@ pub fn build(config: &SimConfig, ctx: &mut CardContext<'_>) -> Result<Box<dyn Ca
     }))
 }
 
-/// Steps a sim card once per period: the card's simulated bus cycle.
-pub struct CardCycle(pub Arc<SimCard>);
-
-impl Component for CardCycle {
-    fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
-        self.0.step();
-        Ok(())
-    }
-}
-
 impl Card for SimPlugin {
     fn devices(&self) -> CardDevices {
         self.card.devices()
@@ -48,18 +37,8 @@ impl Card for SimPlugin {
         name: &str,
     ) -> Result<Vec<rtt::TaskContext>, rtt::RuntimeError> {
         let card = self.card.clone();
-        let task = runtime.add(
-            name,
-            rtt::ActivitySpec::Periodic {
-                period: self.period,
-                thread: self.thread.clone(),
-                timing: rtt::Timing::Absolute,
-                max_overruns: None,
-            },
-            rtt::InitialState::Stopped,
-            move |_| Ok(CardCycle(card)),
-        )?;
-        Ok(vec![task])
+        let step = move || card.step();
+        driver_api::periodic_bus(runtime, name, self.period, self.thread.clone(), step)
     }
 
     fn summary(&self) -> String {

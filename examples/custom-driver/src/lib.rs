@@ -23,7 +23,6 @@ use device_interface::{
 };
 use driver_api::{Card, CardContext, CardError, CardStatus};
 use hwgw::types::Types;
-use rtt::{Component, Context, HookResult};
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicI64, AtomicU64, Ordering};
@@ -224,16 +223,6 @@ impl DigitalOutputImage for Loopback {
     fn outputs_written(&self, _: Written) {}
 }
 
-/// The bus side: copies outputs to inputs once per period.
-struct Cycle(Arc<Loopback>);
-
-impl Component for Cycle {
-    fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
-        self.0.cycle();
-        Ok(())
-    }
-}
-
 /// A loopback card of a deployment.
 struct LoopbackCard {
     card: Arc<Loopback>,
@@ -252,16 +241,8 @@ impl Card for LoopbackCard {
         name: &str,
     ) -> Result<Vec<rtt::TaskContext>, rtt::RuntimeError> {
         let card = self.card.clone();
-        let spec = rtt::ActivitySpec::Periodic {
-            period: self.period,
-            thread: self.thread.clone(),
-            timing: rtt::Timing::Absolute,
-            max_overruns: None,
-        };
-        let task = runtime.add(name, spec, rtt::InitialState::Stopped, move |_| {
-            Ok(Cycle(card))
-        })?;
-        Ok(vec![task])
+        let step = move || card.cycle();
+        driver_api::periodic_bus(runtime, name, self.period, self.thread.clone(), step)
     }
 
     fn summary(&self) -> String {
