@@ -64,10 +64,16 @@ rm -f "$root.debootstrap.log"
 echo "deb $mirror $suite main" >"$root/etc/apt/sources.list"
 echo "deb $mirror $suite-updates main" >>"$root/etc/apt/sources.list"
 cp /etc/resolv.conf "$root/etc/resolv.conf"
-# How this machine reaches its mirror (proxies, date checks) — not what it has installed.
+# How this machine reaches its registries — apt's proxy and date settings, the local CAs
+# of a TLS-inspecting egress (ca-certificates, which .ci/run installs, adds them to the
+# bundle) — not anything it has installed.
 for f in /etc/apt/apt.conf.d/*; do
   if grep -q '^Acquire::' "$f" 2>/dev/null; then cp "$f" "$root/etc/apt/apt.conf.d/"; fi
 done
+if compgen -G "/usr/local/share/ca-certificates/*.crt" >/dev/null; then
+  mkdir -p "$root/usr/local/share/ca-certificates"
+  cp /usr/local/share/ca-certificates/*.crt "$root/usr/local/share/ca-certificates/"
+fi
 echo "fresh-root: root ready after $(( $(date +%s) - start )) s: $(chroot "$root" dpkg-query -W | wc -l) packages"
 
 mount -t proc proc "$root/proc"; mounts+=("$root/proc")
