@@ -3,7 +3,6 @@
 #![allow(clippy::unwrap_used, reason = "test code")]
 
 use kernel_rig::{Failed, Trial, sh};
-use std::time::Duration;
 use testkit::Candump;
 use testkit::Service;
 
@@ -80,7 +79,11 @@ fn hwgw_reads_writes_and_leaves_safe_frames() -> Result<(), Failed> {
     // hwgw set -> the Command frame, every 10 ms, with the exact bytes.
     out(&gw, &["set", "can.ao", "Setpoint", "-12.3"])?;
     out(&gw, &["set", "can.do", "Run", "true"])?;
-    std::thread::sleep(Duration::from_millis(100));
+    // Both reached the card (read back through the ports) before the capture starts.
+    wait_for("the setpoint and Run on the card", || {
+        Ok(out(&gw, &["get", "can.ao", "Setpoint"])? == "-12.3"
+            && out(&gw, &["get", "can.do", "Run"])? == "true")
+    })?;
     let got = frames(candump("200:7FF", 5)?)?;
     assert_eq!(got, vec!["200#FF850100"; 5]);
 

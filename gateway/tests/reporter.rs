@@ -7,7 +7,6 @@
 
 use hwgw::config::Deployment;
 use hwgw::deploy::Gateway;
-use std::time::Duration;
 
 fn deployment(file: &std::path::Path, extra: &str) -> String {
     format!(
@@ -43,13 +42,14 @@ fn records_ports_to_csv() {
     let d = Deployment::parse(&text, "r.toml").unwrap();
     let gw = Gateway::build(&d, "r.toml", &text, &hwgw::types::Types::builtin()).unwrap();
     gw.start().unwrap();
-    std::thread::sleep(Duration::from_millis(400));
+    let rec = gw.runtime().component("rec").unwrap();
+    testkit::wait_until("a dozen reporter steps", || rec.stats().steps >= 12);
     gw.shutdown();
     let content = std::fs::read_to_string(&csv).unwrap();
     let mut lines = content.lines();
     assert_eq!(lines.next(), Some("time_s,sim0.ai.ch0,sim0.di.bit1"));
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
-    assert!(rows.len() >= 10, "{} rows in 400 ms at 10 ms", rows.len());
+    assert!(rows.len() >= 10, "{} rows after 12 steps", rows.len());
     let mut times = Vec::new();
     let mut ramp = Vec::new();
     // A port that has not delivered yet leaves its cell empty; after that, every row is full.

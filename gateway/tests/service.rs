@@ -517,7 +517,9 @@ fn sighup_reloads_properties_and_refuses_structural_changes() {
     )
     .unwrap();
     hup();
-    std::thread::sleep(Duration::from_millis(300));
+    wait_until("the refusal logged", || {
+        svc.log_text().contains("properties not reloaded")
+    });
     assert_eq!(gain(), json!(0.9));
     assert_eq!(
         svc.ok(json!({"cmd": "get", "component": "follow", "property": "offset"})),
@@ -527,10 +529,16 @@ fn sighup_reloads_properties_and_refuses_structural_changes() {
     // A structural change is refused; an unparsable file is refused; the gateway runs on.
     std::fs::write(&cfg, demo.replace("period_ms = 10 ", "period_ms = 20 ")).unwrap();
     hup();
-    std::thread::sleep(Duration::from_millis(300));
+    wait_until("the structural change refused", || {
+        svc.log_text()
+            .contains("cards changed: restart hwgw to apply")
+    });
     std::fs::write(&cfg, "this is not toml [").unwrap();
     hup();
-    std::thread::sleep(Duration::from_millis(300));
+    wait_until("the unparsable file refused", || {
+        svc.log_text()
+            .contains("not reloaded, still running the previous version")
+    });
     assert!(svc.ok(json!({"cmd": "ls"})).is_array());
     let out = svc.terminate();
     assert!(out.status.success());

@@ -202,8 +202,12 @@ signal = [{ name = "level", start = 0, length = 8, min = 0, max = 100 }, { name 
     let c = &u.card;
     wait_until("link up", Duration::from_secs(2), || c.link_up())?;
     let dump = candump("vcan3", 2, 2000)?;
+    let sent = c.counters().tx_frames;
     c.write(0, 42.0)?;
-    std::thread::sleep(Duration::from_millis(20));
+    // The first change went out on its own before the second is made.
+    wait_until("the first frame sent", Duration::from_secs(2), || {
+        c.counters().tx_frames > sent
+    })?;
     c.set_bit(0, true)?;
     let frames: Vec<String> = dumped(dump)?.into_iter().map(|(_, f)| f).collect();
     assert_eq!(frames, ["201#2A00", "201#2A01"]);

@@ -53,6 +53,10 @@ impl Candump {
         let end = Instant::now() + START;
         while !waiting(child.id()) {
             if let Ok(Some(status)) = child.try_wait() {
+                if status.success() {
+                    // It listened, and already got all it was asked for.
+                    break;
+                }
                 let mut err = String::new();
                 if let Some(e) = child.stderr.as_mut() {
                     let _ = std::io::Read::read_to_string(e, &mut err);
