@@ -171,7 +171,7 @@ impl ModbusConfig {
     }
 
     /// The card for this unit, with its time from `clock` (it polls nothing until a
-    /// [`Line`](crate::line::Line) runs it).
+    /// [`LineIo`](crate::component::LineIo) polls it).
     pub fn card(&self, clock: Arc<dyn Clock>) -> Result<Arc<ModbusCard>, MapError> {
         Ok(ModbusCard::new(
             Map::with_read_back(&self.points, self.max_gap, self.read_back)?,
