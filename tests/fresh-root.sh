@@ -61,8 +61,15 @@ echo "fresh-root: debootstrap --variant=minbase $suite from $mirror into $root"
 debootstrap --variant=minbase "$suite" "$root" "$mirror" >"$root.debootstrap.log" 2>&1 \
   || { tail -n 30 "$root.debootstrap.log" >&2; exit 1; }
 rm -f "$root.debootstrap.log"
-echo "deb $mirror $suite main" >"$root/etc/apt/sources.list"
-echo "deb $mirror $suite-updates main" >>"$root/etc/apt/sources.list"
+# The machine's own Debian suites (bookworm-security carries the 6.12 kernel the rig
+# boots); third-party sources of the image are left out.
+if [ -f /etc/apt/sources.list.d/debian.sources ]; then
+  : >"$root/etc/apt/sources.list"
+  cp /etc/apt/sources.list.d/debian.sources "$root/etc/apt/sources.list.d/"
+else
+  for s in "$suite" "$suite-updates"; do echo "deb $mirror $s main"; done >"$root/etc/apt/sources.list"
+  echo "deb ${mirror%/debian}/debian-security $suite-security main" >>"$root/etc/apt/sources.list"
+fi
 cp /etc/resolv.conf "$root/etc/resolv.conf"
 # How this machine reaches its registries — apt's proxy and date settings, the local CAs
 # of a TLS-inspecting egress (ca-certificates, which .ci/run installs, adds them to the
