@@ -18,9 +18,8 @@
 //! [`Browser`] holds the logic (a command line in, text out, completion candidates) so it can
 //! be tested without a terminal; [`run`] is the terminal loop around it.
 
-use crate::cli::{json_arg, port_values, target};
 use crate::client::Client;
-use crate::protocol::{ComponentEntry, Description, Request, StatusReport, Target};
+use crate::protocol::{ComponentEntry, Description, Request, StatusReport, Target, json_arg};
 use crate::table;
 use std::cell::RefCell;
 use std::path::PathBuf;
@@ -108,7 +107,7 @@ impl Browser {
         Ok(if d.properties.iter().any(|p| p.path == name) {
             Target::Property(name.to_string())
         } else {
-            target(name)
+            Target::from_name(name)
         })
     }
 
@@ -183,7 +182,7 @@ impl Browser {
             return Ok(table::components(&list));
         };
         let d = self.describe(c)?;
-        let values = port_values(&self.client, c, &d);
+        let values = self.client.port_values(c, &d);
         Ok(table::description(&d, &values))
     }
 

@@ -5,7 +5,7 @@
 //! `fn main() -> ExitCode { hwgw::cli::main(my_types) }`.
 
 use crate::client::{Client, ClientError};
-use crate::protocol::{ComponentEntry, Description, Request, StatusReport, Target};
+use crate::protocol::{ComponentEntry, Description, Request, StatusReport, Target, json_arg};
 use crate::table;
 use crate::types::Types;
 use clap::{Parser, Subcommand};
@@ -91,19 +91,6 @@ enum Command {
         #[arg(allow_negative_numbers = true)]
         args: Vec<String>,
     },
-}
-
-/// A command-line argument as JSON, or as text when it is not JSON.
-pub fn json_arg(s: &str) -> Value {
-    serde_json::from_str(s).unwrap_or_else(|_| Value::String(s.to_string()))
-}
-
-/// `NAME` as a port, `property:NAME` as a property.
-pub fn target(name: &str) -> Target {
-    match name.strip_prefix("property:") {
-        Some(p) => Target::Property(p.to_string()),
-        None => Target::Port(name.to_string()),
-    }
 }
 
 /// Logs to the journal when systemd runs us (JOURNAL_STREAM is set), else to stderr.
@@ -209,7 +196,7 @@ fn one_shot(client: &Client, command: Command, json: bool) -> Result<Option<Stri
                 pretty(&client.request(&req)?)
             } else {
                 let d: Description = client.typed(&req)?;
-                let values = port_values(client, &c, &d);
+                let values = client.port_values(&c, &d);
                 table::description(&d, &values)
             }
         }
@@ -261,7 +248,7 @@ fn one_shot(client: &Client, command: Command, json: bool) -> Result<Option<Stri
         }
         Command::Get { component, name } => pretty(&client.request(&Request::Get {
             component,
-            target: target(&name),
+            target: Target::from_name(&name),
         })?),
         Command::Set {
             component,
@@ -269,7 +256,7 @@ fn one_shot(client: &Client, command: Command, json: bool) -> Result<Option<Stri
             value,
         } => pretty(&client.request(&Request::Set {
             component,
-            target: target(&name),
+            target: Target::from_name(&name),
             value: json_arg(&value),
         })?),
         Command::Call {
@@ -286,20 +273,4 @@ fn one_shot(client: &Client, command: Command, json: bool) -> Result<Option<Stri
         }
     };
     Ok(Some(text))
-}
-
-/// The current value of each of `d`'s ports (none where it has none yet).
-pub fn port_values(client: &Client, component: &str, d: &Description) -> Vec<Option<Value>> {
-    d.ports
-        .iter()
-        .map(|p| {
-            client
-                .request(&Request::Get {
-                    component: component.to_string(),
-                    target: Target::Port(p.name.clone()),
-                })
-                .ok()
-                .filter(|v| !v.is_null())
-        })
-        .collect()
 }

@@ -1,7 +1,7 @@
 //! The client side of the control socket: one typed request and its reply, or a stream of
 //! watched values, never waiting without a limit for a reply.
 
-use crate::protocol::{Body, ErrorBody, Reply, Request};
+use crate::protocol::{Body, Description, ErrorBody, Reply, Request, Target};
 use serde::de::DeserializeOwned;
 use serde_json::Value;
 use std::io::{BufRead, BufReader, Write};
@@ -207,5 +207,20 @@ impl Client {
                 Body::Ok(_) => {}
             }
         }
+    }
+
+    /// The current value of each of `d`'s ports (none where it has none yet).
+    pub fn port_values(&self, component: &str, d: &Description) -> Vec<Option<Value>> {
+        d.ports
+            .iter()
+            .map(|p| {
+                self.request(&Request::Get {
+                    component: component.to_string(),
+                    target: Target::Port(p.name.clone()),
+                })
+                .ok()
+                .filter(|v| !v.is_null())
+            })
+            .collect()
     }
 }

@@ -25,6 +25,21 @@ pub enum Target {
     Property(String),
 }
 
+impl Target {
+    /// A name as people write it: `NAME` is a port, `property:NAME` a property.
+    pub fn from_name(name: &str) -> Target {
+        match name.strip_prefix("property:") {
+            Some(p) => Target::Property(p.to_string()),
+            None => Target::Port(name.to_string()),
+        }
+    }
+}
+
+/// A value as people type it: JSON, or text when it is not JSON (`set x on` sets "on").
+pub fn json_arg(s: &str) -> Value {
+    serde_json::from_str(s).unwrap_or_else(|_| Value::String(s.to_string()))
+}
+
 /// One request, tagged by `cmd` on the wire.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "cmd", rename_all = "snake_case")]
