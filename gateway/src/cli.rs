@@ -24,7 +24,8 @@ use std::time::Duration;
 struct Cli {
     #[command(subcommand)]
     command: Command,
-    /// Control socket path (default: /run/hwgw/hwgw.sock as root, else a per-user path).
+    /// Control socket path (default: the service's /run/hwgw/hwgw.sock, or a user's own;
+    /// see `hwgw::socket`).
     #[arg(long, global = true)]
     socket: Option<PathBuf>,
     /// Print the gateway's answer as JSON (for scripts) instead of a table.
@@ -132,7 +133,7 @@ pub fn main(types: Types) -> ExitCode {
     let path = cli
         .socket
         .clone()
-        .unwrap_or_else(crate::control::default_socket);
+        .unwrap_or_else(crate::socket::default_client_socket);
     let mut client = Client::new(path.clone());
     if let Some(s) = cli.timeout {
         match Duration::try_from_secs_f64(s) {

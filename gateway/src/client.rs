@@ -15,6 +15,9 @@ pub const DEFAULT_TIMEOUT: Duration = Duration::from_secs(10);
 /// Why a request got no answer.
 #[derive(Debug, thiserror::Error)]
 pub enum ClientError {
+    /// The socket is not one to trust.
+    #[error(transparent)]
+    Untrusted(#[from] crate::socket::SocketError),
     /// The socket could not be reached.
     #[error("{path}: {source} (is hwgw running? `hwgw run` starts it)")]
     Connect {
@@ -98,6 +101,7 @@ impl Client {
 
     /// Connects and sends `req`; the reading half comes back.
     fn send(&self, req: &Request) -> Result<BufReader<UnixStream>, ClientError> {
+        crate::socket::check_owner(&self.path)?;
         let mut conn = UnixStream::connect(&self.path).map_err(|source| ClientError::Connect {
             path: self.path.clone(),
             source,

@@ -51,10 +51,17 @@ pub struct Deployment {
     /// Hold CPU wake-up latency at this many µs while running (`/dev/cpu_dma_latency`).
     #[serde(default)]
     pub cpu_dma_latency_us: Option<u32>,
-    /// Path of the control socket (default: /run/hwgw/hwgw.sock as root, else a per-user
-    /// runtime path).
+    /// Path of the control socket (default: the service's /run/hwgw/hwgw.sock, else a
+    /// per-user path; see [`crate::socket`]).
     #[serde(default)]
     pub control_socket: Option<String>,
+    /// Most control clients connected at once (default 64, 1 to 1024).
+    #[serde(default)]
+    pub control_clients: Option<u32>,
+    /// Seconds a control client may stay silent before it is disconnected (default 600,
+    /// 1 to 86400).
+    #[serde(default)]
+    pub control_idle_s: Option<f64>,
     /// IO cards.
     #[serde(default, rename = "card")]
     pub cards: Vec<CardConfig>,

@@ -5,6 +5,10 @@
 //! each reply is one line: `{"id": …, "ok": …}` or `{"id": …, "error": {"kind": …,
 //! "message": …}}`. A malformed, unknown or oversized request gets an error reply and the
 //! connection stays open; every client has its own thread, so a slow one delays nobody.
+//! The server takes a bounded number of clients (`busy` beyond), closes a client that
+//! sends nothing for the idle timeout, and backs off when the process is out of file
+//! descriptors rather than spinning. Where the socket goes and who may use it:
+//! [`crate::socket`].
 //!
 //! | cmd | fields | ok |
 //! |---|---|---|
@@ -23,7 +27,8 @@
 //! | `watch` | `component`, `port`, optional `count` | `"watching"`, then a stream: one `{"id", "event": {"status", "value"}}` line per new value (all of them, `count` at most), until the client closes |
 //!
 //! Error kinds: `parse`, `too_long`, `bad_request`, `unknown_command`, `not_found`,
-//! `failed`.
+//! `failed`, `busy` (too many clients), `stopping` (the gateway is stopping: no request is
+//! carried out once its outputs are going to their safe values).
 //!
 //! ```text
 //! $ echo '{"id":1,"cmd":"get","component":"sim0.ai","port":"ch3"}' | socat - UNIX:/run/hwgw/hwgw.sock
@@ -31,34 +36,54 @@
 //! ```
 
 use crate::deploy::Gateway;
-use crate::protocol::{
-    Body, ComponentEntry, ComponentStatus, Description, DeviceStatus, ErrorKind, Event, Reply,
-    Request, StatusReport, Target,
-};
+use crate::protocol::{Body, ErrorKind, Event, Reply, Request};
+use crate::requests::{Fail, failed, handle, not_found};
+use crate::socket::{Bound, SocketError};
 use rtt::component::DynWriter;
 use rtt::port::ConnPolicy;
 use serde_json::{Value, json};
 use std::collections::HashMap;
 use std::io::{BufRead, BufReader, Read, Write};
-use std::os::unix::fs::PermissionsExt;
-use std::os::unix::net::{UnixListener, UnixStream};
-use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::os::fd::AsFd;
+use std::os::unix::net::UnixStream;
+use std::path::Path;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::Duration;
 
 /// Longest request line accepted, bytes.
 pub const MAX_LINE: usize = 64 * 1024;
 
-/// The default socket path: /run/hwgw/hwgw.sock for root (the service), else
-/// `$XDG_RUNTIME_DIR/hwgw.sock`, else /tmp/hwgw-UID.sock.
-pub fn default_socket() -> PathBuf {
-    let uid = nix::unistd::getuid();
-    if uid.is_root() {
-        return PathBuf::from("/run/hwgw/hwgw.sock");
+/// How many clients the server takes at once, and how long one may stay silent.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Limits {
+    /// Clients connected at once (each is a thread and a file descriptor).
+    pub clients: usize,
+    /// A client that sends nothing this long is disconnected (a watch is not idle).
+    pub idle: Duration,
+}
+
+impl Limits {
+    /// The limits a deployment sets (`control_clients`, `control_idle_s`; checked when
+    /// it is built), the defaults for the rest.
+    pub fn of(d: &crate::config::Deployment) -> Limits {
+        let def = Limits::default();
+        Limits {
+            clients: d.control_clients.map_or(def.clients, |n| n as usize),
+            idle: d
+                .control_idle_s
+                .and_then(|s| Duration::try_from_secs_f64(s).ok())
+                .unwrap_or(def.idle),
+        }
     }
-    match std::env::var_os("XDG_RUNTIME_DIR") {
-        Some(dir) => Path::new(&dir).join("hwgw.sock"),
-        None => PathBuf::from(format!("/tmp/hwgw-{uid}.sock")),
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits {
+            clients: 64,
+            idle: Duration::from_secs(600),
+        }
     }
 }
 
@@ -67,79 +92,202 @@ pub fn default_socket() -> PathBuf {
 pub struct ControlStats {
     /// Clients accepted.
     pub clients: AtomicU64,
+    /// Clients turned away for the client limit.
+    pub refused: AtomicU64,
+    /// Clients disconnected for staying silent.
+    pub idle_closed: AtomicU64,
     /// Requests answered.
     pub requests: AtomicU64,
     /// Requests answered with an error.
     pub errors: AtomicU64,
+    /// Times accepting failed for want of file descriptors or memory.
+    pub accept_failures: AtomicU64,
 }
 
-/// The running control server; dropping it stops accepting and removes the socket.
+/// What the accept loop and the clients share.
+struct Shared {
+    gw: Arc<Gateway>,
+    stats: ControlStats,
+    limits: Limits,
+    /// Set when the server closes: no request is carried out after it.
+    closing: AtomicBool,
+    /// Held shared by every request being carried out; [`ControlServer::close`] takes it
+    /// exclusively, so it returns only once none is left.
+    gate: RwLock<()>,
+    /// The connected clients, to disconnect them at close.
+    clients: Mutex<HashMap<u64, UnixStream>>,
+    next_id: AtomicU64,
+}
+
+/// The running control server; [`close`](ControlServer::close) (or dropping it) stops
+/// accepting, waits for the requests under way, disconnects every client and removes the
+/// socket it made.
 pub struct ControlServer {
-    path: PathBuf,
-    stop: Arc<AtomicBool>,
-    stats: Arc<ControlStats>,
+    bound: Bound,
+    shared: Arc<Shared>,
+    accept: Option<std::thread::JoinHandle<()>>,
 }
 
 impl ControlServer {
-    /// Binds `path` (mode 0660; its directory is created; a stale socket is replaced) and
-    /// serves `gateway` on it from a thread of its own.
-    pub fn start(gateway: Arc<Gateway>, path: &Path) -> std::io::Result<ControlServer> {
-        if let Some(dir) = path.parent() {
-            std::fs::create_dir_all(dir)?;
-        }
-        if path.exists() {
-            if UnixStream::connect(path).is_ok() {
-                return Err(std::io::Error::new(
-                    std::io::ErrorKind::AddrInUse,
-                    format!("{}: another hwgw is serving this socket", path.display()),
-                ));
-            }
-            std::fs::remove_file(path)?;
-        }
-        let listener = UnixListener::bind(path)?;
-        std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o660))?;
-        let stop = Arc::new(AtomicBool::new(false));
-        let stats = Arc::new(ControlStats::default());
-        let (s, st) = (stop.clone(), stats.clone());
-        std::thread::Builder::new()
+    /// Binds `path` safely (see [`crate::socket::bind`]) and serves `gateway` on it from a
+    /// thread of its own, within `limits`.
+    pub fn start(
+        gateway: Arc<Gateway>,
+        path: &Path,
+        limits: Limits,
+    ) -> Result<ControlServer, SocketError> {
+        let bound = crate::socket::bind(path)?;
+        let shared = Arc::new(Shared {
+            gw: gateway,
+            stats: ControlStats::default(),
+            limits,
+            closing: AtomicBool::new(false),
+            gate: RwLock::new(()),
+            clients: Mutex::new(HashMap::new()),
+            next_id: AtomicU64::new(1),
+        });
+        let listener = bound
+            .listener
+            .try_clone()
+            .map_err(|source| SocketError::Io {
+                path: path.to_path_buf(),
+                source,
+            })?;
+        let s = shared.clone();
+        let accept = std::thread::Builder::new()
             .name("hwgw-control".into())
-            .spawn(move || {
-                for conn in listener.incoming() {
-                    if s.load(Ordering::Acquire) {
-                        break;
-                    }
-                    let Ok(conn) = conn else { continue };
-                    st.clients.fetch_add(1, Ordering::Relaxed);
-                    let (gw, st2) = (gateway.clone(), st.clone());
-                    let _ = std::thread::Builder::new()
-                        .name("hwgw-client".into())
-                        .spawn(move || serve_client(&gw, conn, &st2));
-                }
+            .spawn(move || accept_loop(&s, &listener))
+            .map_err(|source| SocketError::Io {
+                path: path.to_path_buf(),
+                source,
             })?;
         Ok(ControlServer {
-            path: path.to_path_buf(),
-            stop,
-            stats,
+            bound,
+            shared,
+            accept: Some(accept),
         })
     }
 
     /// The socket path.
     pub fn path(&self) -> &Path {
-        &self.path
+        &self.bound.path
     }
 
     /// Counters.
     pub fn stats(&self) -> &ControlStats {
-        &self.stats
+        &self.shared.stats
+    }
+
+    /// Stops serving: no new request is carried out, the ones under way finish, every
+    /// client is disconnected, the socket is removed. Idempotent.
+    pub fn close(&mut self) {
+        self.shared.closing.store(true, Ordering::Release);
+        drop(self.shared.gate.write().unwrap_or_else(|p| p.into_inner()));
+        for (_, c) in rtt::lock(&self.shared.clients).drain() {
+            let _ = c.shutdown(std::net::Shutdown::Both);
+        }
+        if let Some(t) = self.accept.take() {
+            let _ = t.join();
+        }
+        self.bound.remove();
     }
 }
 
 impl Drop for ControlServer {
     fn drop(&mut self) {
-        self.stop.store(true, Ordering::Release);
-        // Wake the accept loop so it sees the flag.
-        let _ = UnixStream::connect(&self.path);
-        let _ = std::fs::remove_file(&self.path);
+        self.close();
+    }
+}
+
+/// Accepts clients until closing; out of file descriptors it backs off (up to a second)
+/// and tries again, logging once per episode.
+fn accept_loop(shared: &Arc<Shared>, listener: &std::os::unix::net::UnixListener) {
+    use nix::poll::{PollFd, PollFlags, PollTimeout, poll};
+    let mut backoff = Duration::from_millis(10);
+    let mut starved = false;
+    while !shared.closing.load(Ordering::Acquire) {
+        let mut fds = [PollFd::new(listener.as_fd(), PollFlags::POLLIN)];
+        match poll(&mut fds, PollTimeout::from(100u16)) {
+            Ok(0) | Err(nix::Error::EINTR) => continue,
+            Ok(_) => {}
+            Err(e) => {
+                tracing::error!("control socket: poll: {e}");
+                std::thread::sleep(backoff);
+                continue;
+            }
+        }
+        match listener.accept() {
+            Ok((conn, _)) => {
+                if starved {
+                    tracing::info!("control socket: accepting clients again");
+                    starved = false;
+                }
+                backoff = Duration::from_millis(10);
+                admit(shared, conn);
+            }
+            Err(e)
+                if matches!(
+                    e.raw_os_error(),
+                    Some(libc::EMFILE | libc::ENFILE | libc::ENOBUFS | libc::ENOMEM)
+                ) =>
+            {
+                shared.stats.accept_failures.fetch_add(1, Ordering::Relaxed);
+                if !starved {
+                    tracing::error!(
+                        "control socket: cannot accept: {e}; backing off until clients leave"
+                    );
+                    starved = true;
+                }
+                std::thread::sleep(backoff);
+                backoff = (backoff * 2).min(Duration::from_secs(1));
+            }
+            Err(e)
+                if e.kind() == std::io::ErrorKind::Interrupted
+                    || e.kind() == std::io::ErrorKind::WouldBlock => {}
+            Err(e) => tracing::warn!("control socket: accept: {e}"),
+        }
+    }
+}
+
+/// Serves a new client on a thread of its own, or turns it away beyond the limit.
+fn admit(shared: &Arc<Shared>, conn: UnixStream) {
+    let id = shared.next_id.fetch_add(1, Ordering::Relaxed);
+    {
+        let mut clients = rtt::lock(&shared.clients);
+        if shared.closing.load(Ordering::Acquire) {
+            return;
+        }
+        if clients.len() >= shared.limits.clients {
+            shared.stats.refused.fetch_add(1, Ordering::Relaxed);
+            let mut conn = conn;
+            let _ = conn.set_write_timeout(Some(Duration::from_millis(100)));
+            let busy = Reply::error(
+                Value::Null,
+                ErrorKind::Busy,
+                format!(
+                    "{} clients are connected, the most this gateway takes; try again later",
+                    shared.limits.clients
+                ),
+            );
+            let _ = send(&mut conn, &busy);
+            return;
+        }
+        let Ok(clone) = conn.try_clone() else {
+            return;
+        };
+        clients.insert(id, clone);
+    }
+    shared.stats.clients.fetch_add(1, Ordering::Relaxed);
+    let s = shared.clone();
+    let spawned = std::thread::Builder::new()
+        .name("hwgw-client".into())
+        .spawn(move || {
+            serve_client(&s, conn);
+            rtt::lock(&s.clients).remove(&id);
+        });
+    if spawned.is_err() {
+        tracing::warn!("control socket: cannot start a client thread");
+        rtt::lock(&shared.clients).remove(&id);
     }
 }
 
@@ -176,16 +324,28 @@ fn read_line(r: &mut impl BufRead, buf: &mut Vec<u8>) -> std::io::Result<Option<
     }
 }
 
-fn serve_client(gw: &Gateway, conn: UnixStream, stats: &ControlStats) {
+fn serve_client(shared: &Shared, conn: UnixStream) {
+    let _ = conn.set_read_timeout(Some(shared.limits.idle));
     let Ok(mut out) = conn.try_clone() else {
         return;
     };
+    let _ = out.set_write_timeout(Some(shared.limits.idle));
     let mut reader = BufReader::new(conn.take(u64::MAX));
     let mut writers: HashMap<(String, String), Box<dyn DynWriter>> = HashMap::new();
     let mut buf = Vec::new();
+    let stats = &shared.stats;
     loop {
         let reply = match read_line(&mut reader, &mut buf) {
-            Ok(None) | Err(_) => return,
+            Ok(None) => return,
+            Err(e) => {
+                if matches!(
+                    e.kind(),
+                    std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                ) {
+                    stats.idle_closed.fetch_add(1, Ordering::Relaxed);
+                }
+                return;
+            }
             Ok(Some(Err(()))) => Reply::error(
                 Value::Null,
                 ErrorKind::TooLong,
@@ -205,18 +365,12 @@ fn serve_client(gw: &Gateway, conn: UnixStream, stats: &ControlStats) {
                             port,
                             count,
                         },
-                    )) => match watch(gw, &component, &port, count, &id, &mut out) {
+                    )) => match watch(shared, &component, &port, count, &id, &mut out) {
                         // The stream ended because the client went away or had enough.
                         Ok(()) => return,
                         Err(Fail(kind, message)) => Reply::error(id, kind, message),
                     },
-                    Ok((id, req)) => match handle(gw, &req, &mut writers) {
-                        Ok(v) => Reply {
-                            id,
-                            body: Body::Ok(v),
-                        },
-                        Err(Fail(kind, message)) => Reply::error(id, kind, message),
-                    },
+                    Ok((id, req)) => carry_out(shared, id, &req, &mut writers),
                 }
             }
         };
@@ -227,6 +381,36 @@ fn serve_client(gw: &Gateway, conn: UnixStream, stats: &ControlStats) {
         if send(&mut out, &reply).is_err() {
             return;
         }
+    }
+}
+
+/// One request, carried out under the gate: never once the server is closing.
+fn carry_out(
+    shared: &Shared,
+    id: Value,
+    req: &Request,
+    writers: &mut HashMap<(String, String), Box<dyn DynWriter>>,
+) -> Reply {
+    let stopping = || {
+        Reply::error(
+            id.clone(),
+            ErrorKind::Stopping,
+            "the gateway is stopping: its outputs are going to their safe values",
+        )
+    };
+    if shared.closing.load(Ordering::Acquire) {
+        return stopping();
+    }
+    let _open = shared.gate.read().unwrap_or_else(|p| p.into_inner());
+    if shared.closing.load(Ordering::Acquire) {
+        return stopping();
+    }
+    match handle(&shared.gw, req, writers) {
+        Ok(v) => Reply {
+            id,
+            body: Body::Ok(v),
+        },
+        Err(Fail(kind, message)) => Reply::error(id, kind, message),
     }
 }
 
@@ -276,14 +460,18 @@ fn parse(text: &str) -> Result<(Value, Request), Reply> {
 /// values were sent. Samples travel through a 256-deep buffer connection, so bursts
 /// between two polls are not lost (overflow is counted on the connection).
 fn watch(
-    gw: &Gateway,
+    shared: &Shared,
     component: &str,
     port: &str,
     count: Option<u64>,
     id: &Value,
     out: &mut UnixStream,
 ) -> Result<(), Fail> {
-    let t = gw.runtime().component(component).map_err(not_found)?;
+    let t = shared
+        .gw
+        .runtime()
+        .component(component)
+        .map_err(not_found)?;
     let port = t.port(port).map_err(not_found)?;
     let mut reader = port.reader(ConnPolicy::buffer(256)).map_err(failed)?;
     let count = count.unwrap_or(u64::MAX);
@@ -294,7 +482,7 @@ fn watch(
         body: Body::Ok(json!("watching")),
     };
     send(out, &ack).map_err(failed)?;
-    while sent < count {
+    while sent < count && !shared.closing.load(Ordering::Acquire) {
         match reader.read() {
             (rtt::port::FlowStatus::NewData, Some(value)) => {
                 let event = Reply {
@@ -335,172 +523,4 @@ fn peer_closed(s: &UnixStream) -> bool {
         Ok(_) | Err(nix::Error::EAGAIN) => false,
         Err(_) => true,
     }
-}
-
-/// Every device's health, every card's bus counters, and every component's state and
-/// activity figures.
-fn status(gw: &Gateway) -> StatusReport {
-    let reg = gw.runtime().registry();
-    let devices = reg
-        .entries()
-        .into_iter()
-        .filter(|e| e.info.alias_of.is_none())
-        .filter_map(|e| {
-            let h = reg.health(e.interface, &e.info.name)?;
-            Some(DeviceStatus {
-                interface: e.interface,
-                status: h.status,
-                age_s: h.age().map(|a| a.as_secs_f64()),
-                last_error: h.last_error.map(|e| e.to_string()),
-                name: e.info.name,
-            })
-        })
-        .collect();
-    let components = gw
-        .runtime()
-        .components()
-        .iter()
-        .map(|t| {
-            let s = t.stats();
-            ComponentStatus {
-                name: t.name().to_string(),
-                state: t.state(),
-                steps: s.steps,
-                overruns: s.overruns,
-                healthy: s.healthy,
-                realtime: s.realtime,
-                lateness_p99_us: s.lateness_quantile(0.99).as_secs_f64() * 1e6,
-                step_mean_us: s.step_mean().as_secs_f64() * 1e6,
-                counters: t.counters(),
-            }
-        })
-        .collect();
-    StatusReport {
-        health: gw.health().err().unwrap_or_else(|| "ok".into()),
-        devices,
-        cards: gw.card_status(),
-        components,
-    }
-}
-
-/// Why a request failed: its kind and message.
-struct Fail(ErrorKind, String);
-
-fn not_found(e: impl std::fmt::Display) -> Fail {
-    Fail(ErrorKind::NotFound, e.to_string())
-}
-
-fn failed(e: impl std::fmt::Display) -> Fail {
-    Fail(ErrorKind::Failed, e.to_string())
-}
-
-fn to_value(v: impl serde::Serialize) -> Result<Value, Fail> {
-    serde_json::to_value(v).map_err(failed)
-}
-
-fn handle(
-    gw: &Gateway,
-    req: &Request,
-    writers: &mut HashMap<(String, String), Box<dyn DynWriter>>,
-) -> Result<Value, Fail> {
-    let rt = gw.runtime();
-    let component = |name: &str| rt.component(name).map_err(not_found);
-    match req {
-        Request::Ls => to_value(
-            rt.components()
-                .iter()
-                .map(|t| ComponentEntry {
-                    name: t.name().to_string(),
-                    state: t.state(),
-                })
-                .collect::<Vec<_>>(),
-        ),
-        Request::Devices => to_value(rt.registry().entries()),
-        Request::Status => to_value(status(gw)),
-        Request::Describe { component: c } => {
-            let t = component(c)?;
-            to_value(Description {
-                name: t.name().to_string(),
-                state: t.state(),
-                ports: t.ports(),
-                operations: t.operations(),
-                properties: t.properties().list(),
-                attributes: t.attributes().list(),
-                counters: t.counters(),
-                activity: t.stats(),
-            })
-        }
-        Request::Get {
-            component: c,
-            target: Target::Port(port),
-        } => {
-            let p = component(c)?.port(port).map_err(not_found)?;
-            p.last_value()
-                .map_err(failed)
-                .map(|v| v.unwrap_or(Value::Null))
-        }
-        Request::Get {
-            component: c,
-            target: Target::Property(prop),
-        } => component(c)?
-            .properties()
-            .get_value(prop)
-            .map_err(not_found),
-        Request::Set {
-            component: c,
-            target: Target::Port(port),
-            value,
-        } => {
-            let t = component(c)?;
-            let key = (t.name().to_string(), port.clone());
-            if !writers.contains_key(&key) {
-                let p = t.port(port).map_err(not_found)?;
-                writers.insert(
-                    key.clone(),
-                    p.writer(ConnPolicy::buffer(16)).map_err(failed)?,
-                );
-            }
-            match writers.get_mut(&key) {
-                Some(w) => w.write(value.clone()).map_err(failed).map(|()| Value::Null),
-                None => Err(failed("writer vanished")),
-            }
-        }
-        Request::Set {
-            component: c,
-            target: Target::Property(prop),
-            value,
-        } => component(c)?
-            .properties()
-            .set_value(prop, value.clone())
-            .map_err(failed)
-            .map(|()| Value::Null),
-        Request::Call {
-            component: c,
-            operation,
-            args,
-        } => component(c)?
-            .call_value(operation, args.clone())
-            .map_err(|e| match e {
-                rtt::component::CallOrIntrospect::Introspect(e) => not_found(e),
-                rtt::component::CallOrIntrospect::Call(e) => failed(e),
-            }),
-        Request::Configure { component: c } => lifecycle(component(c)?, |t| t.configure()),
-        Request::Start { component: c } => lifecycle(component(c)?, |t| t.start()),
-        Request::Stop { component: c } => lifecycle(component(c)?, |t| t.stop()),
-        Request::Cleanup { component: c } => lifecycle(component(c)?, |t| t.cleanup()),
-        Request::Recover { component: c } => lifecycle(component(c)?, |t| t.recover()),
-        Request::Watch { .. } => Err(Fail(
-            ErrorKind::BadRequest,
-            "watch streams: it is served on its own".into(),
-        )),
-    }
-}
-
-/// Runs a lifecycle command; the answer is the new state.
-fn lifecycle(
-    t: rtt::TaskContext,
-    f: impl FnOnce(&rtt::TaskContext) -> Result<(), rtt::component::LifecycleError>,
-) -> Result<Value, Fail> {
-    f(&t).map_err(failed)?;
-    to_value(t.state())
 }

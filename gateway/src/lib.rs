@@ -10,7 +10,8 @@
 //! - [`io`]: every device as a component (channels as ports, methods as operations);
 //! - [`components`]: the component types built into the binary;
 //! - [`protocol`]: the control protocol's typed requests and replies; [`control`]: its
-//!   server on a Unix socket; [`client`]: its client, with a timeout on every reply;
+//!   server on a Unix socket (requests carried out by the `requests` module), placed and
+//!   guarded by [`socket`]; [`client`]: its client, with a timeout on every reply;
 //! - [`cli`]: the `hwgw` command line, reusable by a binary with its own types; [`serve`]:
 //!   `hwgw run` and `hwgw check`; [`table`]: what the CLI prints for people;
 //! - [`browse`]: `hwgw browse`, the interactive console.
@@ -38,7 +39,9 @@ pub mod drivers;
 pub mod io;
 pub mod problems;
 pub mod protocol;
+mod requests;
 pub mod serve;
+pub mod socket;
 pub mod table;
 pub mod types;
 

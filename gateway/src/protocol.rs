@@ -255,6 +255,10 @@ pub enum ErrorKind {
     NotFound,
     /// The command was refused or failed.
     Failed,
+    /// The gateway serves as many clients as it takes; try again later.
+    Busy,
+    /// The gateway is stopping: no request is carried out any more.
+    Stopping,
 }
 
 impl std::fmt::Display for ErrorKind {

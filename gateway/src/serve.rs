@@ -3,7 +3,7 @@
 //! at its safe value.
 
 use crate::config::Deployment;
-use crate::control::{self, ControlServer};
+use crate::control::ControlServer;
 use crate::deploy::Gateway;
 use crate::types::Types;
 use nix::sys::signal::{SigSet, Signal};
@@ -108,18 +108,44 @@ pub fn check(config: PathBuf, types: &Types) -> ExitCode {
     }
 }
 
-/// `hwgw run [CONFIG]`: runs until SIGTERM or SIGINT.
-pub fn run(config: Option<PathBuf>, socket: Option<PathBuf>, types: &Types) -> ExitCode {
-    // Signals are taken by sigwait below: block them before any thread exists, so every
-    // thread inherits the mask and none is interrupted.
+/// The signals that stop the gateway with its outputs safe: every one whose default is to
+/// end the process and that a process may handle (SIGKILL and SIGSTOP it may not; faults
+/// such as SIGSEGV are not requests to stop).
+const STOPPING: [Signal; 12] = [
+    Signal::SIGTERM,
+    Signal::SIGINT,
+    Signal::SIGQUIT,
+    Signal::SIGUSR1,
+    Signal::SIGUSR2,
+    Signal::SIGALRM,
+    Signal::SIGVTALRM,
+    Signal::SIGPROF,
+    Signal::SIGXCPU,
+    Signal::SIGXFSZ,
+    Signal::SIGIO,
+    Signal::SIGPWR,
+];
+
+/// Blocks the stopping signals and SIGHUP in this thread (before any other exists, so every
+/// thread inherits the mask and none is interrupted); they are taken by `sigwait`.
+fn block_signals() -> nix::Result<SigSet> {
     let mut signals = SigSet::empty();
-    for s in [Signal::SIGTERM, Signal::SIGINT, Signal::SIGHUP] {
+    for s in STOPPING.into_iter().chain([Signal::SIGHUP]) {
         signals.add(s);
     }
-    if let Err(e) = signals.thread_block() {
-        eprintln!("hwgw: cannot block signals: {e}");
-        return ExitCode::FAILURE;
-    }
+    signals.thread_block()?;
+    Ok(signals)
+}
+
+/// `hwgw run [CONFIG]`: runs until a stopping signal.
+pub fn run(config: Option<PathBuf>, socket: Option<PathBuf>, types: &Types) -> ExitCode {
+    let signals = match block_signals() {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("hwgw: cannot block signals: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
     let (gw, mut d) = match build(config.as_ref(), types) {
         Ok(x) => x,
         Err(e) => {
@@ -133,16 +159,17 @@ pub fn run(config: Option<PathBuf>, socket: Option<PathBuf>, types: &Types) -> E
     }
     let path = socket
         .or_else(|| d.control_socket.as_ref().map(PathBuf::from))
-        .unwrap_or_else(control::default_socket);
-    let server = match ControlServer::start(gw.clone(), &path) {
+        .unwrap_or_else(crate::socket::default_server_socket);
+    let mut server = match ControlServer::start(gw.clone(), &path, crate::control::Limits::of(&d)) {
         Ok(s) => s,
         Err(e) => {
-            eprintln!("hwgw: control socket {}: {e}", path.display());
+            eprintln!("hwgw: control socket: {e}");
             return ExitCode::FAILURE;
         }
     };
     if let Err(e) = gw.start() {
         eprintln!("hwgw: {e}");
+        server.close();
         for line in gw.shutdown() {
             tracing::info!("{line}");
         }
@@ -181,7 +208,9 @@ pub fn run(config: Option<PathBuf>, socket: Option<PathBuf>, types: &Types) -> E
         NotifyState::Status("stopping: outputs to safe values"),
     ]);
     stop_watchdog.store(true, std::sync::atomic::Ordering::Release);
-    drop(server);
+    // No client request may race the safe values: the server waits for the ones under way
+    // and disconnects every client before the gateway stops.
+    server.close();
     for line in gw.shutdown() {
         tracing::info!("{line}");
     }

@@ -47,7 +47,7 @@ fn with_card(rest: &str) -> String {
 fn every_broken_config_gets_its_exact_error() {
     let cases: Vec<(&str, String, &str)> = vec![
         ("unknown top-level key", "thread_scop = true\n".into(),
-         "t.toml:1:1: thread_scop: unknown field `thread_scop`, expected one of `thread_scope`, `cpu_dma_latency_us`, `control_socket`, `card`, `alias`, `component`, `connection`, `modbus_server`"),
+         "t.toml:1:1: thread_scop: unknown field `thread_scop`, expected one of `thread_scope`, `cpu_dma_latency_us`, `control_socket`, `control_clients`, `control_idle_s`, `card`, `alias`, `component`, `connection`, `modbus_server`"),
         ("wrong type", "thread_scope = \"yes\"\n".into(),
          "t.toml:1:16: thread_scope: invalid type: string \"yes\", expected a boolean"),
         ("missing card name", "[[card]]\ndriver = \"sim\"\n".into(),

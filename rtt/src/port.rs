@@ -249,6 +249,25 @@ pub(crate) struct Reader<T: Send> {
     latest: Option<triple_buffer::Output<T>>,
 }
 
+// An end that goes away closes its connection, so the other end lets go of it at its next
+// read or write (a flag: no allocation, no lock on either side). A closed writer also wakes
+// an event port's component, so it lets go at once rather than at its next wake-up.
+impl<T: Send> Drop for Writer<T> {
+    fn drop(&mut self) {
+        if !self.ch.closed.swap(true, Ordering::AcqRel)
+            && let Some(w) = &self.ch.waker
+        {
+            w.wake();
+        }
+    }
+}
+
+impl<T: Send> Drop for Reader<T> {
+    fn drop(&mut self) {
+        self.ch.closed.store(true, Ordering::Release);
+    }
+}
+
 /// Makes a connection and its two ends.
 fn channel<T: Clone + Send>(
     from: Arc<str>,
@@ -391,13 +410,34 @@ impl<E, T> Links<E, T> {
         }
     }
 
-    fn offer(&self, port: &str, ch: &Arc<Channel<T>>, end: E) -> Result<(), ConnectError> {
-        self.pending
-            .push(end)
-            .map_err(|_| ConnectError::TooManyPending {
+    fn offer(
+        &self,
+        port: &str,
+        ch: &Arc<Channel<T>>,
+        end: E,
+        channel: impl Fn(&E) -> &Channel<T>,
+    ) -> Result<(), ConnectError> {
+        let end = match self.pending.push(end) {
+            Ok(()) => None,
+            Err(end) => {
+                // Full of ends the owner has not taken up: let go of those already closed
+                // (their other end went away), then try once more.
+                for _ in 0..self.pending.len() {
+                    if let Some(e) = self.pending.pop()
+                        && !channel(&e).is_closed()
+                    {
+                        let _ = self.pending.push(e);
+                    }
+                }
+                self.pending.push(end).err()
+            }
+        };
+        if end.is_some() {
+            return Err(ConnectError::TooManyPending {
                 port: port.to_string(),
                 limit: PENDING,
-            })?;
+            });
+        }
         let mut all = lock(&self.all);
         all.retain(|w| w.strong_count() > 0);
         all.push(Arc::downgrade(ch));
@@ -707,8 +747,8 @@ pub(crate) fn connect_shared<T: Clone + Send + 'static>(
         // Before either end is handed over, so this thread is the only writer.
         writer.push(&v);
     }
-    inp.links.offer(&inp.name, &ch, reader)?;
-    if let Err(e) = out.links.offer(&out.name, &ch, writer) {
+    inp.links.offer(&inp.name, &ch, reader, |r| &r.ch)?;
+    if let Err(e) = out.links.offer(&out.name, &ch, writer, |w| &w.ch) {
         ch.closed.store(true, Ordering::Release);
         return Err(e);
     }
@@ -813,6 +853,43 @@ mod tests {
         got.sort();
         assert_eq!(got, vec![1, 2, 10]);
         assert_eq!(drain(&mut i2), vec![1, 2]);
+    }
+
+    #[test]
+    fn an_end_that_goes_away_closes_its_connection() {
+        let mut out = OutputPort::<i32>::new("out");
+        let readers: Vec<InputPort<i32>> = (0..50)
+            .map(|i| {
+                let inp = InputPort::new(&format!("in{i}"));
+                connect(&out, &inp, ConnPolicy::buffer(4)).unwrap();
+                inp
+            })
+            .collect();
+        out.write(&1);
+        assert_eq!(out.connections().len(), 50);
+        drop(readers);
+        assert!(
+            out.connections().is_empty(),
+            "closed connections are not listed"
+        );
+        out.write(&2);
+        assert!(
+            out.conns.is_empty(),
+            "the writer let go of every closed connection"
+        );
+
+        let mut inp = InputPort::<i32>::new("in");
+        for _ in 0..10 {
+            let w = OutputPort::<i32>::new("w");
+            connect(&w, &inp, ConnPolicy::data()).unwrap();
+            drop(w);
+        }
+        let mut x = 0;
+        assert_eq!(inp.read(&mut x), FlowStatus::NoData);
+        assert!(
+            inp.conns.is_empty(),
+            "the reader let go of every closed connection"
+        );
     }
 
     #[test]

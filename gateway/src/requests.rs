@@ -1,0 +1,180 @@
+//! What each control request does: the commands of [`crate::protocol`] carried out on a
+//! gateway.
+
+use crate::deploy::Gateway;
+use crate::protocol::{
+    ComponentEntry, ComponentStatus, Description, DeviceStatus, ErrorKind, Request, StatusReport,
+    Target,
+};
+use rtt::component::DynWriter;
+use rtt::port::ConnPolicy;
+use serde_json::Value;
+use std::collections::HashMap;
+
+/// Every device's health, every card's bus counters, and every component's state and
+/// activity figures.
+fn status(gw: &Gateway) -> StatusReport {
+    let reg = gw.runtime().registry();
+    let devices = reg
+        .entries()
+        .into_iter()
+        .filter(|e| e.info.alias_of.is_none())
+        .filter_map(|e| {
+            let h = reg.health(e.interface, &e.info.name)?;
+            Some(DeviceStatus {
+                interface: e.interface,
+                status: h.status,
+                age_s: h.age().map(|a| a.as_secs_f64()),
+                last_error: h.last_error.map(|e| e.to_string()),
+                name: e.info.name,
+            })
+        })
+        .collect();
+    let components = gw
+        .runtime()
+        .components()
+        .iter()
+        .map(|t| {
+            let s = t.stats();
+            ComponentStatus {
+                name: t.name().to_string(),
+                state: t.state(),
+                steps: s.steps,
+                overruns: s.overruns,
+                healthy: s.healthy,
+                realtime: s.realtime,
+                lateness_p99_us: s.lateness_quantile(0.99).as_secs_f64() * 1e6,
+                step_mean_us: s.step_mean().as_secs_f64() * 1e6,
+                counters: t.counters(),
+            }
+        })
+        .collect();
+    StatusReport {
+        health: gw.health().err().unwrap_or_else(|| "ok".into()),
+        devices,
+        cards: gw.card_status(),
+        components,
+    }
+}
+
+/// Why a request failed: its kind and message.
+pub(crate) struct Fail(pub(crate) ErrorKind, pub(crate) String);
+
+pub(crate) fn not_found(e: impl std::fmt::Display) -> Fail {
+    Fail(ErrorKind::NotFound, e.to_string())
+}
+
+pub(crate) fn failed(e: impl std::fmt::Display) -> Fail {
+    Fail(ErrorKind::Failed, e.to_string())
+}
+
+fn to_value(v: impl serde::Serialize) -> Result<Value, Fail> {
+    serde_json::to_value(v).map_err(failed)
+}
+
+pub(crate) fn handle(
+    gw: &Gateway,
+    req: &Request,
+    writers: &mut HashMap<(String, String), Box<dyn DynWriter>>,
+) -> Result<Value, Fail> {
+    let rt = gw.runtime();
+    let component = |name: &str| rt.component(name).map_err(not_found);
+    match req {
+        Request::Ls => to_value(
+            rt.components()
+                .iter()
+                .map(|t| ComponentEntry {
+                    name: t.name().to_string(),
+                    state: t.state(),
+                })
+                .collect::<Vec<_>>(),
+        ),
+        Request::Devices => to_value(rt.registry().entries()),
+        Request::Status => to_value(status(gw)),
+        Request::Describe { component: c } => {
+            let t = component(c)?;
+            to_value(Description {
+                name: t.name().to_string(),
+                state: t.state(),
+                ports: t.ports(),
+                operations: t.operations(),
+                properties: t.properties().list(),
+                attributes: t.attributes().list(),
+                counters: t.counters(),
+                activity: t.stats(),
+            })
+        }
+        Request::Get {
+            component: c,
+            target: Target::Port(port),
+        } => {
+            let p = component(c)?.port(port).map_err(not_found)?;
+            p.last_value()
+                .map_err(failed)
+                .map(|v| v.unwrap_or(Value::Null))
+        }
+        Request::Get {
+            component: c,
+            target: Target::Property(prop),
+        } => component(c)?
+            .properties()
+            .get_value(prop)
+            .map_err(not_found),
+        Request::Set {
+            component: c,
+            target: Target::Port(port),
+            value,
+        } => {
+            let t = component(c)?;
+            let key = (t.name().to_string(), port.clone());
+            if !writers.contains_key(&key) {
+                let p = t.port(port).map_err(not_found)?;
+                writers.insert(
+                    key.clone(),
+                    p.writer(ConnPolicy::buffer(16)).map_err(failed)?,
+                );
+            }
+            match writers.get_mut(&key) {
+                Some(w) => w.write(value.clone()).map_err(failed).map(|()| Value::Null),
+                None => Err(failed("writer vanished")),
+            }
+        }
+        Request::Set {
+            component: c,
+            target: Target::Property(prop),
+            value,
+        } => component(c)?
+            .properties()
+            .set_value(prop, value.clone())
+            .map_err(failed)
+            .map(|()| Value::Null),
+        Request::Call {
+            component: c,
+            operation,
+            args,
+        } => component(c)?
+            .call_value(operation, args.clone())
+            .map_err(|e| match e {
+                rtt::component::CallOrIntrospect::Introspect(e) => not_found(e),
+                rtt::component::CallOrIntrospect::Call(e) => failed(e),
+            }),
+        Request::Configure { component: c } => lifecycle(component(c)?, |t| t.configure()),
+        Request::Start { component: c } => lifecycle(component(c)?, |t| t.start()),
+        Request::Stop { component: c } => lifecycle(component(c)?, |t| t.stop()),
+        Request::Cleanup { component: c } => lifecycle(component(c)?, |t| t.cleanup()),
+        Request::Recover { component: c } => lifecycle(component(c)?, |t| t.recover()),
+        Request::Watch { .. } => Err(Fail(
+            ErrorKind::BadRequest,
+            "watch streams: it is served on its own".into(),
+        )),
+    }
+}
+
+/// Runs a lifecycle command; the answer is the new state.
+fn lifecycle(
+    t: rtt::TaskContext,
+    f: impl FnOnce(&rtt::TaskContext) -> Result<(), rtt::component::LifecycleError>,
+) -> Result<Value, Fail> {
+    f(&t).map_err(failed)?;
+    to_value(t.state())
+}
