@@ -104,6 +104,13 @@ pub enum DeviceError {
     /// The device does not answer: link down, unplugged, or never seen.
     #[error("device is offline")]
     Offline,
+    /// The output is held where it is: its owner (the gateway, stopping and driving its
+    /// outputs to their safe values) takes no writes now.
+    #[error("output held: {reason}")]
+    Held {
+        /// Why.
+        reason: &'static str,
+    },
     /// The device is reachable in principle but its inputs have not been refreshed in time.
     #[error("inputs are stale: last good sample {}", age_text(*.age))]
     Stale {

@@ -2,20 +2,61 @@
 //! bus sides and IO components, user components, connections, servers. Each phase reports
 //! through one [`Problems`] collector, keyed by the path of what is wrong.
 
-use crate::config::{CARD_KEYS, CardConfig, Deployment, millis, split_port};
+use crate::config::{CARD_KEYS, CardConfig, ChannelNames, Deployment, millis, split_port};
 use crate::deploy::{CardRt, Gateway};
 use crate::drivers::SectionError;
-use crate::io;
+use crate::outputs::{CardOutputs, OutputSpec};
 use crate::problems::{KeyPath, Problem, Problems, Source};
 use crate::types::Types;
+use crate::{checks, io};
 use device_interface::Registry;
 use driver_api::CardContext;
 use rtt::component::DynPort;
-use rtt::{Runtime, RuntimeOptions, TaskContext, TaskState};
+use rtt::{ActivitySpec, InitialState, Runtime, RuntimeOptions, TaskContext, TaskState};
 use std::any::{Any, TypeId};
 use std::collections::HashMap;
 use std::path::Path;
 use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
+
+/// The output watchdog's component name.
+pub const OUTPUT_WATCHDOG: &str = "output_watchdog";
+
+/// Applies the output policy's watchdog to the cards that need it, every 10 ms.
+struct OutputWatchdog {
+    cards: Vec<Arc<CardOutputs>>,
+    components: HashMap<String, TaskContext>,
+}
+
+impl rtt::Component for OutputWatchdog {
+    fn update_hook(&mut self, ctx: &mut rtt::Context<'_>) -> rtt::HookResult {
+        let now = ctx.timing().started.as_nanos();
+        let state = |name: &str| self.components.get(name).map(TaskContext::state);
+        for c in &self.cards {
+            c.watch(now, &state);
+        }
+        Ok(())
+    }
+}
+
+/// Notes the component of `from` (`component.port`) as a writer of the card output behind
+/// `to`, when `to` is a port of a card's output IO component (`card.ao.*`, `card.do.*`).
+fn note_writer(cards: &mut [CardRt], from: &str, to: &str) {
+    let (Some((writer, _)), Some((component, port))) = (split_port(from), split_port(to)) else {
+        return;
+    };
+    let Some(card) = component
+        .strip_suffix(".ao")
+        .or_else(|| component.strip_suffix(".do"))
+    else {
+        return;
+    };
+    if let Some(c) = cards.iter_mut().find(|c| c.name == card)
+        && let Some(outputs) = Arc::get_mut(&mut c.outputs)
+    {
+        outputs.add_writer(port, writer);
+    }
+}
 
 /// One build under way.
 struct Build<'d, 's, 'a> {
@@ -24,6 +65,8 @@ struct Build<'d, 's, 'a> {
     problems: Problems<'s, 'a>,
     /// Files a card names (DBC) are relative to the deployment file.
     base: &'d Path,
+    /// The gateway's stop flag: once set, the guarded outputs refuse writes.
+    held: Arc<AtomicBool>,
 }
 
 impl Gateway {
@@ -47,7 +90,11 @@ fn build(d: &Deployment, file: &str, text: &str, types: &Types) -> Result<Gatewa
         types,
         problems: Problems::new(&source),
         base,
+        held: Arc::new(AtomicBool::new(false)),
     };
+    for (key, message) in checks::control(d) {
+        b.problems.at(&KeyPath::top(&key), message);
+    }
     let registry = Arc::new(Registry::new());
     let mut cards = b.cards(&registry);
     b.aliases(&registry);
@@ -57,12 +104,16 @@ fn build(d: &Deployment, file: &str, text: &str, types: &Types) -> Result<Gatewa
     let mut order = b.bus_and_io(&runtime, &mut cards);
     let mut start = vec![true; order.len()];
     b.components(&runtime, &mut order, &mut start);
-    b.connections(&runtime);
+    b.connections(&runtime, &mut cards);
+    if let Some(w) = b.output_watchdog(&runtime, &cards) {
+        order.push(w);
+        start.push(true);
+    }
     let servers = b.servers(&runtime);
     if !b.problems.is_empty() {
         return Err(b.problems.into_vec());
     }
-    Ok(Gateway::new(runtime, cards, servers, order, start))
+    Ok(Gateway::new(runtime, cards, servers, order, start, b.held))
 }
 
 impl Build<'_, '_, '_> {
@@ -80,9 +131,16 @@ impl Build<'_, '_, '_> {
                 self.problems.at(&at.key("name"), msg);
                 continue;
             }
-            if !(c.period_ms.is_finite() && c.period_ms > 0.0) {
-                let msg = format!("{} ms: expected a period above 0", c.period_ms);
+            if let Err(msg) = checks::period(c.period_ms) {
                 self.problems.at(&at.key("period_ms"), msg);
+                continue;
+            }
+            if let Some(Err(msg)) = c.sample_period_ms.map(checks::period) {
+                self.problems.at(&at.key("sample_period_ms"), msg);
+                continue;
+            }
+            if let Err(msg) = c.thread.check() {
+                self.problems.at(&at.key("thread"), msg);
                 continue;
             }
             let Some(card) = self.card(&at, c, &mut shared) else {
@@ -193,28 +251,53 @@ impl Build<'_, '_, '_> {
             self.problems.at(&at.key("names").join(&e.key), e.message);
             return None;
         }
-        let analog_out = devices.analog_out.clone();
-        let digital_out = devices.digital_out.clone();
+        let ports = |list: &[String], prefix: &str, n: u32| -> Vec<String> {
+            (0..n)
+                .map(|i| ChannelNames::port(list, prefix, i))
+                .collect()
+        };
+        let spec = OutputSpec {
+            config: &c.outputs,
+            safe_analog_out: c.safe_analog_out.as_deref(),
+            safe_digital_out_on: c.safe_digital_out_on.as_deref(),
+            analog_ports: ports(&names.analog_out, "ch", counts[1]),
+            digital_ports: ports(&names.digital_out, "bit", counts[3]),
+        };
+        let mut devices = devices;
+        let outputs = match CardOutputs::new(
+            &c.name,
+            devices.analog_out.take(),
+            devices.digital_out.take(),
+            &spec,
+            &self.held,
+        ) {
+            Ok(o) => o,
+            Err(problems) => {
+                for (key, message) in problems {
+                    self.problems.at(&at.join(&key), message);
+                }
+                return None;
+            }
+        };
+        // The registry hands out the guarded outputs: every write is seen, none after stop.
+        devices.analog_out = outputs.analog_device();
+        devices.digital_out = outputs.digital_device();
         if let Err(e) = registry.register_card(&c.name, devices) {
             self.problems.at(&at.key("name"), e);
             return None;
         }
-        let safe_analog_out = c.safe_analog_out.clone().unwrap_or_else(|| {
-            analog_out.as_ref().map_or_else(Vec::new, |ao| {
-                (0..ao.channel_count())
-                    .map(|ch| ao.read_back(ch).unwrap_or(0.0))
-                    .collect()
-            })
-        });
         Some(CardRt {
             name: c.name.clone(),
+            index: self
+                .d
+                .cards
+                .iter()
+                .position(|k| std::ptr::eq(k, c))
+                .unwrap_or(0),
             config: at.clone(),
             driver: c.driver.clone(),
             card,
-            analog_out,
-            digital_out,
-            safe_analog_out,
-            safe_digital_out_on: c.safe_digital_out_on.clone(),
+            outputs: Arc::new(outputs),
             names,
             bus: Vec::new(),
         })
@@ -250,8 +333,9 @@ impl Build<'_, '_, '_> {
     fn bus_and_io(&mut self, runtime: &Runtime, cards: &mut [CardRt]) -> Vec<TaskContext> {
         let mut order = Vec::new();
         for c in cards.iter_mut() {
-            let cfg = &self.d.cards.iter().find(|k| k.name == c.name);
-            let Some(cfg) = cfg else { continue };
+            let Some(cfg) = self.d.cards.get(c.index) else {
+                continue;
+            };
             match c.card.add_bus(runtime, &c.name) {
                 Ok(tasks) => {
                     c.bus = tasks.clone();
@@ -279,10 +363,16 @@ impl Build<'_, '_, '_> {
         for (i, c) in self.d.components.iter().enumerate() {
             let at = KeyPath::top("component").index(i);
             if let crate::config::ActivityConfig::Periodic { period_ms, .. } = c.activity
-                && !(period_ms.is_finite() && period_ms > 0.0)
+                && let Err(msg) = checks::period(period_ms)
             {
-                let msg = format!("{period_ms} ms: expected a period above 0");
                 self.problems.at(&at.key("activity").key("period_ms"), msg);
+                continue;
+            }
+            if let ActivitySpec::Periodic { thread, .. } | ActivitySpec::NonPeriodic { thread } =
+                &c.activity.spec()
+                && let Err(msg) = thread.check()
+            {
+                self.problems.at(&at.key("activity"), msg);
                 continue;
             }
             let task = match types.build(runtime, &c.name, &c.kind, c.activity.spec()) {
@@ -318,16 +408,53 @@ impl Build<'_, '_, '_> {
         }
     }
 
-    fn connections(&mut self, runtime: &Runtime) {
+    fn connections(&mut self, runtime: &Runtime, cards: &mut [CardRt]) {
+        for (i, msg) in checks::spin_loops(&self.d.connections, runtime) {
+            self.problems.at(&KeyPath::top("connection").index(i), msg);
+        }
         for (i, c) in self.d.connections.iter().enumerate() {
             let at = KeyPath::top("connection").index(i);
             let from = self.port_end(runtime, &at.key("from"), &c.from);
             let to = self.port_end(runtime, &at.key("to"), &c.to);
-            if let (Some(from), Some(to)) = (from, to)
-                && let Err(e) = from.connect_to(&*to, c.policy)
-            {
-                self.problems
-                    .at(&at, format!("{} -> {}: {e}", c.from, c.to));
+            if let (Some(from), Some(to)) = (from, to) {
+                match from.connect_to(&*to, c.policy) {
+                    Err(e) => self
+                        .problems
+                        .at(&at, format!("{} -> {}: {e}", c.from, c.to)),
+                    Ok(_) => note_writer(cards, &c.from, &c.to),
+                }
+            }
+        }
+    }
+
+    /// The output watchdog, when some card's outputs need one: a periodic component that
+    /// applies [`CardOutputs::watch`].
+    fn output_watchdog(&mut self, runtime: &Runtime, cards: &[CardRt]) -> Option<TaskContext> {
+        let watched: Vec<Arc<CardOutputs>> = cards
+            .iter()
+            .filter(|c| c.outputs.watched())
+            .map(|c| c.outputs.clone())
+            .collect();
+        if watched.is_empty() {
+            return None;
+        }
+        let components: HashMap<String, TaskContext> = runtime
+            .components()
+            .into_iter()
+            .map(|t| (t.name().to_string(), t))
+            .collect();
+        let spec = ActivitySpec::periodic(std::time::Duration::from_millis(10));
+        let task = runtime.add(OUTPUT_WATCHDOG, spec, InitialState::Stopped, move |_| {
+            Ok(OutputWatchdog {
+                cards: watched,
+                components,
+            })
+        });
+        match task {
+            Ok(t) => Some(t),
+            Err(e) => {
+                self.problems.at(&KeyPath::root(), e);
+                None
             }
         }
     }

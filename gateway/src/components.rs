@@ -85,6 +85,41 @@ impl ComponentTypes {
     }
 }
 
+/// Whether `path` can be written at start without touching it now (`hwgw check` never
+/// creates or truncates a report): a regular file that can be opened for writing, or a
+/// new file in an existing directory this process may write to.
+fn writable(path: &std::path::Path) -> Result<(), HookError> {
+    let show = path.display();
+    match std::fs::metadata(path) {
+        Ok(m) if !m.is_file() => Err(HookError::new(format!(
+            "{show}: not a regular file; the report needs a file of its own"
+        ))),
+        Ok(_) => std::fs::OpenOptions::new()
+            .append(true)
+            .open(path)
+            .map(drop)
+            .map_err(|e| HookError::new(format!("{show}: cannot write: {e}"))),
+        Err(_) => {
+            let dir = match path.parent() {
+                Some(d) if !d.as_os_str().is_empty() => d,
+                _ => std::path::Path::new("."),
+            };
+            if !dir.is_dir() {
+                return Err(HookError::new(format!(
+                    "{show}: the directory {} does not exist",
+                    dir.display()
+                )));
+            }
+            nix::unistd::access(dir, nix::unistd::AccessFlags::W_OK).map_err(|e| {
+                HookError::new(format!(
+                    "{show}: cannot create it in {}: {e}",
+                    dir.display()
+                ))
+            })
+        }
+    }
+}
+
 /// Toggles a digital output bit each step.
 pub struct Blinker {
     device_name: Property<String>,
@@ -238,6 +273,7 @@ impl Component for Reporter {
                 "property file is empty: name the CSV file to write",
             ));
         }
+        writable(std::path::Path::new(&self.file.get()))?;
         self.last = vec![String::new(); ports.len()];
         Ok(())
     }

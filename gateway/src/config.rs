@@ -95,11 +95,15 @@ pub struct CardConfig {
     /// Period at which IO components sample the card's inputs into ports, ms (default: the
     /// card's period).
     pub sample_period_ms: Option<f64>,
-    /// Analog output values to drive when the gateway stops (default: each channel's
-    /// initial value).
+    /// Safe values of the analog outputs, channel by channel (shorthand for
+    /// `[card.outputs] safe`).
     pub safe_analog_out: Option<Vec<f64>>,
-    /// Digital outputs to leave on when the gateway stops (default: all off).
-    pub safe_digital_out_on: Vec<u32>,
+    /// Digital outputs whose safe value is on; given, every other digital output's safe
+    /// value is off (shorthand for `[card.outputs] safe`).
+    pub safe_digital_out_on: Option<Vec<u32>>,
+    /// The output policy: safe values or `"keep"` by port, the default, the output
+    /// watchdog (see [`crate::outputs`]).
+    pub outputs: crate::outputs::OutputsConfig,
     /// Where the card's own activity thread runs (its bus component):
     /// `{ policy = "fifo", priority = 60, cpus = [1] }`; default SCHED_OTHER.
     pub thread: rtt::ThreadOptions,
@@ -112,13 +116,14 @@ pub struct CardConfig {
 }
 
 /// The keys of a card besides its driver section.
-pub const CARD_KEYS: [&str; 8] = [
+pub const CARD_KEYS: [&str; 9] = [
     "name",
     "driver",
     "period_ms",
     "sample_period_ms",
     "safe_analog_out",
     "safe_digital_out_on",
+    "outputs",
     "thread",
     "names",
 ];
@@ -150,6 +155,7 @@ impl<'de> Visitor<'de> for CardVisitor {
     fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<CardConfig, A::Error> {
         let (mut name, mut driver, mut period, mut sample) = (None, None, None, None);
         let (mut safe_ao, mut safe_do, mut thread, mut names) = (None, None, None, None);
+        let mut outputs = None;
         let mut sections = BTreeMap::new();
         while let Some(key) = map.next_key::<String>()? {
             match key.as_str() {
@@ -161,6 +167,7 @@ impl<'de> Visitor<'de> for CardVisitor {
                 "safe_digital_out_on" => {
                     once(&mut safe_do, "safe_digital_out_on", map.next_value()?)?
                 }
+                "outputs" => once(&mut outputs, "outputs", map.next_value()?)?,
                 "thread" => once(&mut thread, "thread", map.next_value()?)?,
                 "names" => once(&mut names, "names", map.next_value()?)?,
                 _ => {
@@ -175,7 +182,8 @@ impl<'de> Visitor<'de> for CardVisitor {
             period_ms: period.unwrap_or_else(default_card_period),
             sample_period_ms: sample,
             safe_analog_out: safe_ao,
-            safe_digital_out_on: safe_do.unwrap_or_default(),
+            safe_digital_out_on: safe_do,
+            outputs: outputs.unwrap_or_default(),
             thread: thread.unwrap_or_default(),
             names: names.unwrap_or_default(),
             sections,
@@ -249,9 +257,10 @@ impl ActivityConfig {
     }
 }
 
-/// A duration from milliseconds (negative and NaN count as zero; `check` refuses them).
+/// A duration from milliseconds (negative and NaN count as zero, too large as the longest
+/// duration; the build refuses them all: see [`crate::checks::period`]).
 pub fn millis(ms: f64) -> Duration {
-    Duration::from_secs_f64((ms / 1000.0).max(0.0))
+    Duration::try_from_secs_f64((ms / 1000.0).max(0.0)).unwrap_or(Duration::MAX)
 }
 
 /// One component.

@@ -6,12 +6,13 @@
 //! would, each located in the file.
 
 use crate::config::{ChannelNames, Deployment};
+use crate::outputs::{CardOutputs, OutputReport};
 use crate::problems::KeyPath;
-use device_interface::{AnalogOut, DigitalOut};
 use driver_api::{Card, CardStatus, Server};
 use rtt::{Runtime, TaskContext, TaskState};
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 /// How long the cards may take at stop to get their safe values to the hardware.
@@ -23,11 +24,11 @@ pub(crate) struct CardRt {
     /// Its key path in the deployment (`card[i]`).
     pub(crate) config: KeyPath,
     pub(crate) driver: String,
+    /// Its index in the deployment's `[[card]]` list.
+    pub(crate) index: usize,
     pub(crate) card: Box<dyn Card>,
-    pub(crate) analog_out: Option<Arc<dyn AnalogOut>>,
-    pub(crate) digital_out: Option<Arc<dyn DigitalOut>>,
-    pub(crate) safe_analog_out: Vec<f64>,
-    pub(crate) safe_digital_out_on: Vec<u32>,
+    /// Its outputs under the output policy.
+    pub(crate) outputs: Arc<CardOutputs>,
     /// Port names of its channels (given, or from the driver).
     pub(crate) names: ChannelNames,
     /// Its bus-side components.
@@ -44,6 +45,8 @@ pub struct CardReport {
     /// Its bus and counters.
     #[serde(flatten)]
     pub status: CardStatus,
+    /// Its outputs: how many hwgw wrote, watchdog trips.
+    pub outputs: OutputReport,
 }
 
 /// A built (and possibly running) gateway.
@@ -56,6 +59,8 @@ pub struct Gateway {
     order: Vec<TaskContext>,
     /// Which components the deployment asked to start.
     start: Vec<bool>,
+    /// Set when the stop begins: the guarded outputs refuse every write from then on.
+    held: Arc<AtomicBool>,
 }
 
 impl Gateway {
@@ -65,6 +70,7 @@ impl Gateway {
         servers: Vec<Box<dyn Server>>,
         order: Vec<TaskContext>,
         start: Vec<bool>,
+        held: Arc<AtomicBool>,
     ) -> Gateway {
         Gateway {
             runtime,
@@ -72,6 +78,7 @@ impl Gateway {
             servers,
             order,
             start,
+            held,
         }
     }
 
@@ -198,6 +205,7 @@ impl Gateway {
                 name: c.name.clone(),
                 driver: c.driver.clone(),
                 status: c.card.status(),
+                outputs: c.outputs.report(),
             })
             .collect()
     }
@@ -249,7 +257,8 @@ impl Gateway {
     /// output to its safe value, lets each card get them to the hardware, then stops the bus
     /// sides. Returns a line per card with the outputs as left.
     pub fn shutdown(&self) -> Vec<String> {
-        // No client writes may race the safe values.
+        // From here on only the safe values are written: every other write is refused.
+        self.held.store(true, Ordering::Release);
         for s in &self.servers {
             s.stop();
         }
@@ -264,7 +273,7 @@ impl Gateway {
             stop(t);
         }
         for c in &self.cards {
-            c.drive_safe_values();
+            c.outputs.drive_safe();
         }
         let deadline = Instant::now() + SETTLE;
         for c in &self.cards {
@@ -280,33 +289,9 @@ impl Gateway {
 }
 
 impl CardRt {
-    /// Writes every output's safe value.
-    fn drive_safe_values(&self) {
-        if let Some(ao) = &self.analog_out {
-            for (ch, v) in self.safe_analog_out.iter().enumerate() {
-                if let Err(e) = ao.write(ch as u32, *v) {
-                    tracing::error!(
-                        "card {:?}: analog output {ch} not at its safe value {v}: {e}",
-                        self.name
-                    );
-                }
-            }
-        }
-        if let Some(dout) = &self.digital_out {
-            for b in 0..dout.output_count() {
-                if let Err(e) = dout.set_bit(b, self.safe_digital_out_on.contains(&b)) {
-                    tracing::error!(
-                        "card {:?}: digital output {b} not at its safe value: {e}",
-                        self.name
-                    );
-                }
-            }
-        }
-    }
-
     /// `card "x" outputs at stop: analog [..], digital on [..]`.
     fn outputs_line(&self) -> String {
-        let analog: Vec<String> = self.analog_out.as_ref().map_or_else(Vec::new, |ao| {
+        let analog: Vec<String> = self.outputs.analog_device().map_or_else(Vec::new, |ao| {
             (0..ao.channel_count())
                 .map(|ch| {
                     ao.read_back(ch)
@@ -314,7 +299,7 @@ impl CardRt {
                 })
                 .collect()
         });
-        let on: Vec<String> = self.digital_out.as_ref().map_or_else(Vec::new, |d| {
+        let on: Vec<String> = self.outputs.digital_device().map_or_else(Vec::new, |d| {
             (0..d.output_count())
                 .filter(|b| d.check_bit(*b).unwrap_or(false))
                 .map(|b| b.to_string())

@@ -49,6 +49,8 @@ trait Channels: Device + Send + Sync + 'static {
 trait Writable: Channels {
     /// Writes channel `c`.
     fn put(&self, c: u32, v: Self::Value) -> Result<(), DeviceError>;
+    /// `Ok` when channel `c` would take `v` (in range; the channel exists).
+    fn accepts(&self, c: u32, v: Self::Value) -> Result<(), DeviceError>;
 }
 
 /// Offers device method `f` as a ClientThread operation: arguments `A`, answer
@@ -271,13 +273,23 @@ impl Writable for dyn AnalogOut {
     fn put(&self, c: u32, v: f64) -> Result<(), DeviceError> {
         self.write(c, v)
     }
+    fn accepts(&self, c: u32, v: f64) -> Result<(), DeviceError> {
+        self.scale(c)?.to_raw_checked(c, v).map(|_| ())
+    }
 }
 
 impl Writable for dyn DigitalOut {
     fn put(&self, b: u32, v: bool) -> Result<(), DeviceError> {
         self.set_bit(b, v)
     }
+    fn accepts(&self, b: u32, _: bool) -> Result<(), DeviceError> {
+        self.check_bit(b).map(|_| ())
+    }
 }
+
+/// Consecutive overruns after which a sampling IO component reports itself unhealthy (and
+/// the systemd watchdog stops being fed).
+pub const MAX_OVERRUNS: u32 = 10;
 
 /// Samples a device's inputs into one output port per channel, every period.
 struct Sampled<D: ?Sized + Channels> {
@@ -302,16 +314,52 @@ impl<D: ?Sized + Channels> Component for Sampled<D> {
 struct Driven<D: ?Sized + Writable> {
     device: Arc<D>,
     ports: Vec<InputPort<D::Value>>,
+    /// Refused writes: counted, logged at most once a second.
+    refused: u64,
+    logged: u64,
+    last_log: Option<std::time::Instant>,
+}
+
+impl<D: ?Sized + Writable> Driven<D> {
+    /// Notes a refused write; says so in the log now and then, not once per sample.
+    fn refused(&mut self, c: usize, e: &DeviceError) {
+        self.refused += 1;
+        let now = std::time::Instant::now();
+        if self
+            .last_log
+            .is_none_or(|t| now.duration_since(t) >= Duration::from_secs(1))
+        {
+            let more = self.refused - self.logged - 1;
+            let also = if more > 0 {
+                format!(" ({more} more refused since the last report)")
+            } else {
+                String::new()
+            };
+            tracing::warn!("{} output {c}: not written: {e}{also}", D::SUFFIX);
+            self.logged = self.refused;
+            self.last_log = Some(now);
+        }
+    }
 }
 
 impl<D: ?Sized + Writable> Component for Driven<D> {
+    fn start_hook(&mut self, _: &mut Context<'_>) -> HookResult {
+        // What was written into the ports while the component did not run is dropped, not
+        // applied late: an output follows what is written while it runs.
+        let mut v = D::Value::default();
+        for port in &mut self.ports {
+            while port.read(&mut v) == FlowStatus::NewData {}
+        }
+        Ok(())
+    }
+
     fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
         let mut v = D::Value::default();
-        for (c, port) in self.ports.iter_mut().enumerate() {
-            if port.read(&mut v) == FlowStatus::NewData
+        for c in 0..self.ports.len() {
+            if self.ports[c].read(&mut v) == FlowStatus::NewData
                 && let Err(e) = self.device.put(c as u32, v)
             {
-                tracing::warn!("{} output {c}: not written: {e}", D::SUFFIX);
+                self.refused(c, &e);
             }
         }
         Ok(())
@@ -328,24 +376,27 @@ fn sampled<D: ?Sized + Channels>(
 ) -> Result<TaskContext, RuntimeError> {
     let names = names.to_vec();
     let component = format!("{name}.{}", D::SUFFIX);
-    runtime.add(
-        &component,
-        ActivitySpec::periodic(sample),
-        InitialState::Stopped,
-        move |iface| {
-            let ports = (0..device.count())
-                .map(|c| {
-                    let port = ChannelNames::port(&names, D::PREFIX, c);
-                    iface.output(&port, &format!("{} {c}", D::DOC))
-                })
-                .collect::<Result<_, _>>()?;
-            D::operations(&device, iface)?;
-            Ok(Sampled { device, ports })
-        },
-    )
+    let spec = ActivitySpec::Periodic {
+        period: sample,
+        thread: rtt::ThreadOptions::default(),
+        timing: rtt::Timing::Absolute,
+        max_overruns: Some(MAX_OVERRUNS),
+    };
+    runtime.add(&component, spec, InitialState::Stopped, move |iface| {
+        let ports = (0..device.count())
+            .map(|c| {
+                let port = ChannelNames::port(&names, D::PREFIX, c);
+                iface.output(&port, &format!("{} {c}", D::DOC))
+            })
+            .collect::<Result<_, _>>()?;
+        D::operations(&device, iface)?;
+        health_op(iface, &device)?;
+        Ok(Sampled { device, ports })
+    })
 }
 
-/// The driving IO component of output device `name`; its ports read the outputs back.
+/// The driving IO component of output device `name`; its ports read the outputs back and
+/// refuse, when written from outside, what the device would refuse.
 fn driven<D: ?Sized + Writable>(
     runtime: &Runtime,
     name: &str,
@@ -362,14 +413,24 @@ fn driven<D: ?Sized + Writable>(
             let ports = (0..device.count())
                 .map(|c| {
                     let port = ChannelNames::port(&names, D::PREFIX, c);
-                    let d = device.clone();
-                    iface.event_input_with_read_back(&port, &format!("{} {c}", D::DOC), move || {
-                        d.get(c).ok()
-                    })
+                    let (d, k) = (device.clone(), device.clone());
+                    iface.event_input_driving(
+                        &port,
+                        &format!("{} {c}", D::DOC),
+                        move || d.get(c).ok(),
+                        move |v| k.accepts(c, *v).map_err(|e| e.to_string()),
+                    )
                 })
                 .collect::<Result<_, _>>()?;
             D::operations(&device, iface)?;
-            Ok(Driven { device, ports })
+            health_op(iface, &device)?;
+            Ok(Driven {
+                device,
+                ports,
+                refused: 0,
+                logged: 0,
+                last_log: None,
+            })
         },
     )
 }

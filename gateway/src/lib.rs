@@ -8,6 +8,8 @@
 //! - [`deploy`]: a built gateway: started, watched, stopped with every output at its safe
 //!   value (built in phases by the `build` module);
 //! - [`io`]: every device as a component (channels as ports, methods as operations);
+//! - [`outputs`]: the output policy — safe values, `keep`, the output watchdog — and the
+//!   guards that refuse writes once the gateway stops;
 //! - [`components`]: the component types built into the binary;
 //! - [`protocol`]: the control protocol's typed requests and replies; [`control`]: its
 //!   server on a Unix socket (requests carried out by the `requests` module), placed and
@@ -29,6 +31,7 @@
 
 pub mod browse;
 mod build;
+pub mod checks;
 pub mod cli;
 pub mod client;
 pub mod components;
@@ -37,6 +40,7 @@ pub mod control;
 pub mod deploy;
 pub mod drivers;
 pub mod io;
+pub mod outputs;
 pub mod problems;
 pub mod protocol;
 mod requests;

@@ -202,6 +202,38 @@ fn prepare_dir(dir: &Path, mode: u32, service: bool) -> Result<(), SocketError> 
     Ok(())
 }
 
+/// What `hwgw check` can tell about a socket path without touching it: nothing that is not
+/// a socket of this user's at the path, and no unsafe directory above it.
+pub fn check_path(path: &Path) -> Result<(), SocketError> {
+    if let Some(dir) = path
+        .parent()
+        .filter(|d| d.exists() && !d.as_os_str().is_empty())
+    {
+        let service = is_service_path(path);
+        prepare_dir(dir, if service { 0o750 } else { 0o700 }, service)?;
+    }
+    match std::fs::symlink_metadata(path) {
+        Err(_) => Ok(()),
+        Ok(m) => {
+            use std::os::unix::fs::FileTypeExt;
+            if !m.file_type().is_socket() {
+                return Err(SocketError::NotASocket {
+                    path: path.to_path_buf(),
+                });
+            }
+            let me = Uid::effective().as_raw();
+            if m.uid() != me {
+                return Err(SocketError::NotOurs {
+                    path: path.to_path_buf(),
+                    owner: m.uid(),
+                    me,
+                });
+            }
+            Ok(())
+        }
+    }
+}
+
 /// What is at `path` now, if it may be bound: nothing, or a stale socket of this user's
 /// (removed). Anything else is refused and left as it is.
 fn clear_stale(path: &Path) -> Result<(), SocketError> {

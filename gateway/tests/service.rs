@@ -438,7 +438,7 @@ fn the_browser_navigates_reads_writes_calls_and_completes() {
     );
     assert_eq!(
         b.execute("cd nowhere").unwrap(),
-        "error: no component named \"nowhere\"; there are: sim0, sim0.ai, sim0.ao, sim0.di, sim0.do, sim0.encoder0, follow, blink"
+        "error: no component named \"nowhere\"; there are: sim0, sim0.ai, sim0.ao, sim0.di, sim0.do, sim0.encoder0, follow, blink, output_watchdog"
     );
     assert_eq!(b.execute("cd follow").unwrap(), "");
     assert_eq!(b.prompt(), "hwgw:/follow> ");

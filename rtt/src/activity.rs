@@ -102,6 +102,40 @@ pub enum ActivitySpec {
     Slave,
 }
 
+/// The longest period a periodic activity takes.
+pub const MAX_PERIOD: Duration = Duration::from_secs(86_400);
+
+impl ThreadOptions {
+    /// Checks the options against what the system can do: a SCHED_FIFO priority of 1 to
+    /// 99, CPUs this machine has.
+    pub fn check(&self) -> Result<(), String> {
+        if self.policy == SchedPolicy::Fifo && !(1..=99).contains(&self.priority) {
+            return Err(format!(
+                "priority {}: SCHED_FIFO takes 1 to 99",
+                self.priority
+            ));
+        }
+        let configured = cpus_configured();
+        for &c in &self.cpus {
+            if c >= configured {
+                return Err(format!(
+                    "cpu {c} does not exist (this machine has {configured}: 0..={})",
+                    configured.saturating_sub(1)
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// CPUs this machine has configured (online or not).
+fn cpus_configured() -> usize {
+    match nix::unistd::sysconf(nix::unistd::SysconfVar::_NPROCESSORS_CONF) {
+        Ok(Some(n)) if n > 0 => usize::try_from(n).unwrap_or(1),
+        _ => std::thread::available_parallelism().map_or(1, usize::from),
+    }
+}
+
 impl ActivitySpec {
     /// A periodic activity at `period`, SCHED_OTHER, absolute timing.
     pub fn periodic(period: Duration) -> Self {
@@ -158,6 +192,12 @@ pub enum ActivityError {
     /// A period of zero.
     #[error("a periodic activity needs a period above zero")]
     ZeroPeriod,
+    /// A period longer than a day.
+    #[error("a period of {0:?} is too long (at most a day)")]
+    PeriodTooLong(Duration),
+    /// Thread options that cannot be had.
+    #[error("{0}")]
+    Thread(String),
     /// `wake_at` on an activity that is not a file-descriptor activity.
     #[error("only a file-descriptor activity wakes at a deadline")]
     NoDeadline,
@@ -443,10 +483,22 @@ impl Activity {
         scope: Arc<ThreadScope>,
         thread_number: impl FnOnce() -> u32,
     ) -> Result<Self, ActivityError> {
-        if let ActivitySpec::Periodic { period, .. } = &spec
-            && period.is_zero()
-        {
-            return Err(ActivityError::ZeroPeriod);
+        if let ActivitySpec::Periodic { period, .. } = &spec {
+            if period.is_zero() {
+                return Err(ActivityError::ZeroPeriod);
+            }
+            if *period > MAX_PERIOD {
+                return Err(ActivityError::PeriodTooLong(*period));
+            }
+        }
+        let thread = match &spec {
+            ActivitySpec::Periodic { thread, .. }
+            | ActivitySpec::NonPeriodic { thread }
+            | ActivitySpec::FileDescriptor { thread, .. } => Some(thread),
+            ActivitySpec::Slave => None,
+        };
+        if let Some(t) = thread {
+            t.check().map_err(ActivityError::Thread)?;
         }
         let fd = match &spec {
             ActivitySpec::FileDescriptor { .. } => {

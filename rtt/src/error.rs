@@ -140,6 +140,15 @@ pub enum IntrospectError {
         /// What was wrong.
         detail: String,
     },
+    /// A value that fits the port's type but that the port refuses (a device output's
+    /// range).
+    #[error("{what}: {detail}")]
+    Refused {
+        /// What was written.
+        what: String,
+        /// Why it was refused.
+        detail: String,
+    },
     /// An operation on a port of the wrong direction.
     #[error("port {port:?} is an {actual} port; {what} needs an {needed} port")]
     Direction {

@@ -164,7 +164,18 @@ pub enum ConnectError {
     /// A buffer policy with a size of zero.
     #[error("a buffer connection needs a size of at least 1")]
     ZeroSize,
+    /// A buffer policy larger than a connection may pre-allocate.
+    #[error("a buffer connection of {size} samples is too large (at most {max})")]
+    TooLarge {
+        /// The size asked for.
+        size: usize,
+        /// The most a connection takes.
+        max: usize,
+    },
 }
+
+/// The most samples a buffer connection holds: each is allocated when it is made.
+pub const MAX_BUFFER: usize = 1 << 20;
 
 /// Counters of one connection.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize)]
@@ -206,7 +217,10 @@ pub(crate) struct Channel<T> {
     /// The sample pool of a buffer connection; `None` for a data connection, whose triple
     /// buffer halves live in the two ends.
     queues: Option<Queues<T>>,
+    /// Closed for good: disconnected, or its reader went away. Neither end uses it again.
     closed: AtomicBool,
+    /// Its writer went away: the reader still takes what was written, then lets go.
+    writer_gone: AtomicBool,
     written: AtomicU64,
     read: AtomicU64,
     dropped: AtomicU64,
@@ -222,6 +236,11 @@ struct Queues<T> {
 impl<T> Channel<T> {
     fn is_closed(&self) -> bool {
         self.closed.load(Ordering::Acquire)
+    }
+
+    /// True when the connection carries nothing any more: closed, or its writer gone.
+    fn is_finished(&self) -> bool {
+        self.is_closed() || self.writer_gone.load(Ordering::Acquire)
     }
 
     fn info(&self) -> ConnectionInfo {
@@ -249,12 +268,14 @@ pub(crate) struct Reader<T: Send> {
     latest: Option<triple_buffer::Output<T>>,
 }
 
-// An end that goes away closes its connection, so the other end lets go of it at its next
-// read or write (a flag: no allocation, no lock on either side). A closed writer also wakes
-// an event port's component, so it lets go at once rather than at its next wake-up.
+// An end that goes away ends its connection, so the other end lets go of it (a flag: no
+// allocation, no lock on either side). A reader that goes away closes it: the writer lets
+// go at its next write. A writer that goes away leaves what it wrote to be read: the reader
+// lets go once it has taken it; the writer wakes an event port's component so that happens
+// at once rather than at its next wake-up.
 impl<T: Send> Drop for Writer<T> {
     fn drop(&mut self) {
-        if !self.ch.closed.swap(true, Ordering::AcqRel)
+        if !self.ch.writer_gone.swap(true, Ordering::AcqRel)
             && let Some(w) = &self.ch.waker
         {
             w.wake();
@@ -298,6 +319,7 @@ fn channel<T: Clone + Send>(
         policy,
         queues,
         closed: AtomicBool::new(false),
+        writer_gone: AtomicBool::new(false),
         written: AtomicU64::new(0),
         read: AtomicU64::new(0),
         dropped: AtomicU64::new(0),
@@ -363,6 +385,22 @@ impl<T: Clone + Send> Writer<T> {
 }
 
 impl<T: Clone + Send> Reader<T> {
+    /// True when nothing more will come: closed, or the writer gone and all it wrote taken.
+    fn is_done(&self) -> bool {
+        let ch = &*self.ch;
+        if ch.is_closed() {
+            return true;
+        }
+        if !ch.writer_gone.load(Ordering::Acquire) {
+            return false;
+        }
+        match (&self.latest, &ch.queues) {
+            (Some(out), _) => !out.updated(),
+            (None, Some(q)) => q.full.is_empty(),
+            (None, None) => true,
+        }
+    }
+
     /// Reader side: copies the next sample into `into`, if there is one.
     fn pop_into(&mut self, into: &mut T) -> bool {
         let ch = &*self.ch;
@@ -424,7 +462,7 @@ impl<E, T> Links<E, T> {
                 // (their other end went away), then try once more.
                 for _ in 0..self.pending.len() {
                     if let Some(e) = self.pending.pop()
-                        && !channel(&e).is_closed()
+                        && !channel(&e).is_finished()
                     {
                         let _ = self.pending.push(e);
                     }
@@ -448,7 +486,7 @@ impl<E, T> Links<E, T> {
         lock(&self.all)
             .iter()
             .filter_map(Weak::upgrade)
-            .filter(|c| !c.is_closed())
+            .filter(|c| !c.is_finished())
             .collect()
     }
 
@@ -467,8 +505,8 @@ impl<E, T> Links<E, T> {
         n
     }
 
-    /// Owner side: takes up pending ends and forgets closed connections.
-    fn refresh(&self, local: &mut Vec<E>, channel: impl Fn(&E) -> &Channel<T>) {
+    /// Owner side: takes up pending ends and forgets the ends `done` says are done.
+    fn refresh(&self, local: &mut Vec<E>, done: impl Fn(&E) -> bool) {
         if !self.pending.is_empty() {
             while let Some(end) = self.pending.pop() {
                 // Capacity is reserved when the port is made; beyond it this allocates
@@ -476,7 +514,7 @@ impl<E, T> Links<E, T> {
                 local.push(end);
             }
         }
-        local.retain(|e| !channel(e).is_closed());
+        local.retain(|e| !done(e));
     }
 }
 
@@ -555,7 +593,9 @@ impl<T: Clone + Send + 'static> OutputPort<T> {
 
     /// Sends `value` to every connection. Never blocks; a full buffer drops and counts.
     pub fn write(&mut self, value: &T) {
-        self.shared.links.refresh(&mut self.conns, |w| &w.ch);
+        self.shared
+            .links
+            .refresh(&mut self.conns, |w| w.ch.is_closed());
         for c in &mut self.conns {
             c.push(value);
         }
@@ -672,7 +712,7 @@ impl<T: Clone + Send + 'static> InputPort<T> {
     /// ([`OldData`](FlowStatus::OldData)), else [`NoData`](FlowStatus::NoData) and `sample`
     /// is left alone. Never blocks.
     pub fn read(&mut self, sample: &mut T) -> FlowStatus {
-        self.shared.links.refresh(&mut self.conns, |r| &r.ch);
+        self.shared.links.refresh(&mut self.conns, Reader::is_done);
         for c in &mut self.conns {
             if c.pop_into(&mut self.last) {
                 sample.clone_from(&self.last);
@@ -729,8 +769,16 @@ pub(crate) fn connect_shared<T: Clone + Send + 'static>(
     inp: &Arc<InputShared<T>>,
     policy: ConnPolicy,
 ) -> Result<ConnectionInfo, ConnectError> {
-    if let ConnKind::Buffer { size: 0 } | ConnKind::CircularBuffer { size: 0 } = policy.kind {
-        return Err(ConnectError::ZeroSize);
+    if let ConnKind::Buffer { size } | ConnKind::CircularBuffer { size } = policy.kind {
+        if size == 0 {
+            return Err(ConnectError::ZeroSize);
+        }
+        if size > MAX_BUFFER {
+            return Err(ConnectError::TooLarge {
+                size,
+                max: MAX_BUFFER,
+            });
+        }
     }
     let sample = out.sample_clone();
     let (mut writer, reader) = channel(

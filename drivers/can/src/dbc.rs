@@ -73,6 +73,9 @@ pub struct DbcError {
     pub problem: String,
 }
 
+/// The largest DBC file read, bytes (16 MiB; real ones are well under a megabyte).
+pub const MAX_DBC_BYTES: u64 = 16 << 20;
+
 /// The messages of a DBC file.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct Dbc {
@@ -87,12 +90,32 @@ impl Dbc {
     /// Reads `path`.
     pub fn load(path: &std::path::Path) -> Result<Dbc, DbcError> {
         let file = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|e| DbcError {
+        let fail = |problem: String| DbcError {
             file: file.clone(),
             line: 0,
             signal: None,
-            problem: format!("cannot read: {e}"),
-        })?;
+            problem,
+        };
+        // A DBC file is text of bounded size: not a device, a pipe or a directory.
+        let meta = std::fs::metadata(path).map_err(|e| fail(format!("cannot read: {e}")))?;
+        if !meta.is_file() {
+            return Err(fail("not a regular file (a DBC file is text)".into()));
+        }
+        if meta.len() > MAX_DBC_BYTES {
+            return Err(fail(format!(
+                "{} bytes: a DBC file is at most {MAX_DBC_BYTES} bytes",
+                meta.len()
+            )));
+        }
+        let mut text = String::new();
+        std::io::Read::read_to_string(
+            &mut std::io::Read::take(
+                std::fs::File::open(path).map_err(|e| fail(format!("cannot read: {e}")))?,
+                MAX_DBC_BYTES,
+            ),
+            &mut text,
+        )
+        .map_err(|e| fail(format!("cannot read: {e}")))?;
         Self::parse(&file, &text)
     }
 

@@ -28,15 +28,30 @@ struct CanPlugin {
 /// Builds a CAN card from its section: the map (DBC files relative to the deployment),
 /// the card, and its interface opened.
 pub fn build(config: &CanConfig, ctx: &mut CardContext<'_>) -> Result<Box<dyn Card>, CardError> {
-    let map = crate::map::CanMap::new(config, ctx.base()).map_err(CardError::new)?;
+    let map = crate::map::CanMap::new(config, ctx.base()).map_err(keyed)?;
     let card = CanCard::new(map, ctx.clock());
-    let bus = CanBus::open(card.clone()).map_err(CardError::new)?;
+    let bus = CanBus::open(card.clone()).map_err(|e| CardError::at("interface", e))?;
     Ok(Box::new(CanPlugin {
         card,
         bus: Mutex::new(Some(bus)),
         thread: ctx.thread().clone(),
         task: Mutex::new(None),
     }))
+}
+
+/// A map error as the key it is about and what is wrong: `rx[0].signal[2] (Speed)` is
+/// key `rx[0].signal[2]`, the signal's name going with the message.
+fn keyed(e: crate::map::MapError) -> CardError {
+    match e {
+        crate::map::MapError::Setting { path, message } => match path.split_once(" (") {
+            Some((key, name)) => {
+                let name = name.trim_end_matches(')');
+                CardError::at(key, format!("signal {name}: {message}"))
+            }
+            None => CardError::at(path, message),
+        },
+        crate::map::MapError::Dbc(e) => CardError::at("dbc", e),
+    }
 }
 
 /// The port names of one role's signals in `frames` (`signal`, or `signal_k` for bit k of

@@ -21,6 +21,7 @@ use crate::card::ModbusCard;
 use crate::line::{Parity, Serial, Transport, UnitTiming};
 use crate::map::{Map, MapError, PointConfig};
 use device_interface::time::Clock;
+use driver_api::CardError;
 use serde::Deserialize;
 use std::net::ToSocketAddrs;
 use std::path::PathBuf;
@@ -115,24 +116,36 @@ fn max_gap() -> u16 {
     8
 }
 
-fn ms(key: &str, v: f64) -> Result<Duration, String> {
-    if v.is_finite() && v > 0.0 {
-        Ok(Duration::from_secs_f64(v / 1000.0))
+/// The longest time a section may give, ms (a day).
+const MAX_MS: f64 = 86_400_000.0;
+
+fn ms(key: &str, v: f64) -> Result<Duration, CardError> {
+    if !(v.is_finite() && v > 0.0) {
+        Err(CardError::at(
+            key,
+            format!("{v} ms: expected a time above 0"),
+        ))
+    } else if v > MAX_MS {
+        Err(CardError::at(
+            key,
+            format!("{v:e} ms: expected at most {MAX_MS} ms (a day)"),
+        ))
     } else {
-        Err(format!("{key}: {v} ms: expected a time above 0"))
+        Ok(Duration::from_secs_f64(v / 1000.0))
     }
 }
 
 impl ModbusConfig {
     /// The line's transport; a TCP address is resolved now.
-    pub fn transport(&self) -> Result<Transport, String> {
+    pub fn transport(&self) -> Result<Transport, CardError> {
+        let key = "transport.address";
         match &self.transport {
             TransportConfig::Tcp { address } => address
                 .to_socket_addrs()
-                .map_err(|e| format!("transport.address: {address:?}: {e}"))?
+                .map_err(|e| CardError::at(key, format!("{address:?}: {e}")))?
                 .next()
                 .map(Transport::Tcp)
-                .ok_or_else(|| format!("transport.address: {address:?} resolves to no address")),
+                .ok_or_else(|| CardError::at(key, format!("{address:?} resolves to no address"))),
             TransportConfig::Rtu {
                 device,
                 baud,
@@ -140,7 +153,16 @@ impl ModbusConfig {
                 stop_bits,
             } => {
                 if !matches!(stop_bits, 1 | 2) {
-                    return Err(format!("transport.stop_bits: {stop_bits}: expected 1 or 2"));
+                    return Err(CardError::at(
+                        "transport.stop_bits",
+                        format!("{stop_bits}: expected 1 or 2"),
+                    ));
+                }
+                if !(50..=4_000_000).contains(baud) {
+                    return Err(CardError::at(
+                        "transport.baud",
+                        format!("{baud}: expected 50 to 4000000 bits per second"),
+                    ));
                 }
                 Ok(Transport::Rtu(Serial {
                     device: device.clone(),
@@ -153,11 +175,14 @@ impl ModbusConfig {
     }
 
     /// The unit's timing, checked.
-    pub fn timing(&self) -> Result<UnitTiming, String> {
+    pub fn timing(&self) -> Result<UnitTiming, CardError> {
         if self.stale_after == 0 || self.offline_after < self.stale_after {
-            return Err(format!(
-                "stale_after {} and offline_after {}: expected 1 <= stale_after <= offline_after",
-                self.stale_after, self.offline_after
+            return Err(CardError::at(
+                "stale_after",
+                format!(
+                    "stale_after {} and offline_after {}: expected 1 <= stale_after <= offline_after",
+                    self.stale_after, self.offline_after
+                ),
             ));
         }
         Ok(UnitTiming {

@@ -228,6 +228,23 @@ impl Map {
                     ));
                 }
             }
+            // Every point, read or only written, must fit the 65536 addresses of its table.
+            let width = if bit_table {
+                1
+            } else {
+                c.ty.registers() as u32
+            };
+            if u32::from(c.address) + width > 65_536 {
+                return Err(bad(
+                    "address",
+                    format!(
+                        "{}: a {:?} point of {width} {} runs past address 65535",
+                        c.address,
+                        c.ty,
+                        if bit_table { "bit" } else { "registers" }
+                    ),
+                ));
+            }
             if c.read_only && c.table != Table::HoldingRegisters {
                 return Err(bad(
                     "read_only",
@@ -498,7 +515,7 @@ mod tests {
             ),
             (
                 "[[point]]\ntable = \"input_registers\"\naddress = 3\n[[point]]\ntable = \"input_registers\"\naddress = 65535\ntype = \"f32\"\n",
-                "point 1: addresses 65535..65537 run past 65535",
+                "point[1].address: 65535: a F32 point of 2 registers runs past address 65535",
             ),
         ];
         for (text, want) in cases {

@@ -43,9 +43,16 @@ struct ModbusPlugin {
 /// Builds a Modbus card from its section: the unit's map and timing, on the line of its
 /// transport (shared with the cards before it on the same transport).
 pub fn build(config: &ModbusConfig, ctx: &mut CardContext<'_>) -> Result<Box<dyn Card>, CardError> {
-    let transport = config.transport().map_err(CardError::new)?;
-    let timing = config.timing().map_err(CardError::new)?;
-    let card = config.card(ctx.clock()).map_err(CardError::new)?;
+    let transport = config.transport()?;
+    let timing = config.timing()?;
+    let card = config.card(ctx.clock()).map_err(|e| match &e {
+        crate::map::MapError::Point {
+            point,
+            key,
+            problem,
+        } => CardError::at(format!("point[{point}].{key}"), problem),
+        _ => CardError::new(e),
+    })?;
     let stats = Arc::new(UnitStats::default());
     let thread = ctx.thread().clone();
     let unit = LineUnit {

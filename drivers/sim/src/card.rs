@@ -46,6 +46,26 @@ pub enum SimConfigError {
     },
 }
 
+impl SimConfigError {
+    /// The key path under the section the error is about, and what is wrong with it.
+    pub fn at(&self) -> (&str, String) {
+        match self {
+            SimConfigError::Scale { path, source } => (path, source.to_string()),
+            SimConfigError::NoSuchAnalogOut {
+                path,
+                channel,
+                count,
+            } => (
+                path,
+                format!(
+                    "analog output {channel} does not exist (the card has {count} analog outputs)"
+                ),
+            ),
+            SimConfigError::Invalid { path, problem } => (path, problem.clone()),
+        }
+    }
+}
+
 /// A fault to simulate, set with [`SimCard::set_fault`].
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum SimFault {
@@ -119,9 +139,50 @@ pub struct SimCard {
     record: Option<OutputRecord>,
 }
 
+/// The most channels (or bits, or encoders) of each kind a simulated card has, and the
+/// longest output record: bounds on what a section can make it allocate.
+pub const MAX_CHANNELS: u32 = 65_536;
+/// See [`MAX_CHANNELS`].
+pub const MAX_RECORD: usize = 1 << 20;
+
+/// Refuses a section that would make the card allocate without bound.
+fn check_sizes(config: &SimConfig) -> Result<(), SimConfigError> {
+    let too_many = |path: String, n: u64| {
+        (n > u64::from(MAX_CHANNELS)).then(|| SimConfigError::Invalid {
+            path,
+            problem: format!("{n}: at most {MAX_CHANNELS}"),
+        })
+    };
+    let groups = |g: &mut dyn Iterator<Item = u32>| g.map(u64::from).sum::<u64>();
+    let checks = [
+        too_many(
+            "analog_in".into(),
+            groups(&mut config.analog_in.iter().map(|g| g.count)),
+        ),
+        too_many(
+            "analog_out".into(),
+            groups(&mut config.analog_out.iter().map(|g| g.count)),
+        ),
+        too_many("digital_inputs".into(), u64::from(config.digital_inputs)),
+        too_many("digital_outputs".into(), u64::from(config.digital_outputs)),
+        too_many("encoder".into(), config.encoder.len() as u64),
+    ];
+    if let Some(e) = checks.into_iter().flatten().next() {
+        return Err(e);
+    }
+    if config.record_capacity > MAX_RECORD {
+        return Err(SimConfigError::Invalid {
+            path: "record_capacity".into(),
+            problem: format!("{}: at most {MAX_RECORD}", config.record_capacity),
+        });
+    }
+    Ok(())
+}
+
 impl SimCard {
     /// Builds a card from `config`, with its time from `clock`, and takes its first sample.
     pub fn new(config: &SimConfig, clock: Arc<dyn Clock>) -> Result<Arc<SimCard>, SimConfigError> {
+        check_sizes(config)?;
         let mut ao = Vec::new();
         for (g, group) in config.analog_out.iter().enumerate() {
             let path = format!("analog_out[{g}]");

@@ -18,7 +18,10 @@ struct SimPlugin {
 
 /// Builds a sim card from its section.
 pub fn build(config: &SimConfig, ctx: &mut CardContext<'_>) -> Result<Box<dyn Card>, CardError> {
-    let card = SimCard::new(config, ctx.clock()).map_err(CardError::new)?;
+    let card = SimCard::new(config, ctx.clock()).map_err(|e| {
+        let (key, message) = e.at();
+        CardError::at(key, message)
+    })?;
     Ok(Box::new(SimPlugin {
         card,
         period: ctx.period(),

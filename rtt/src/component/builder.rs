@@ -1,7 +1,7 @@
 //! The interface a component declares when it is built: ports, operations, properties
 //! and attributes, each named and documented.
 
-use super::dynport::{DynPort, InEntry, OutEntry, ReadBack};
+use super::dynport::{Check, DynPort, InEntry, OutEntry, ReadBack};
 use crate::activity::Waker;
 use crate::error::IntrospectError;
 use crate::info::PortData;
@@ -123,14 +123,24 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
 
     /// Adds an event input port that drives something whose current value can be read
     /// back (a device output): its value, as the control socket's `get` shows it, is
-    /// `read_back()` rather than the last sample read.
-    pub fn event_input_with_read_back<T: PortData + Default>(
+    /// `read_back()` rather than the last sample read; a value written through the dynamic
+    /// layer (`set`) must pass `check` first.
+    pub fn event_input_driving<T: PortData + Default>(
         &mut self,
         name: &str,
         doc: &str,
         read_back: impl Fn() -> Option<T> + Send + Sync + 'static,
+        check: impl Fn(&T) -> Result<(), String> + Send + Sync + 'static,
     ) -> Result<InputPort<T>, IntrospectError> {
-        self.add_input(name, doc, T::default(), true, Some(Box::new(read_back)))
+        let check: Check<T> = Arc::new(check);
+        self.add_input(
+            name,
+            doc,
+            T::default(),
+            true,
+            Some(Box::new(read_back)),
+            Some(check),
+        )
     }
 
     /// Adds an input port keeping its sample in a copy of `sample`.
@@ -141,7 +151,7 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
         sample: T,
         event: bool,
     ) -> Result<InputPort<T>, IntrospectError> {
-        self.add_input(name, doc, sample, event, None)
+        self.add_input(name, doc, sample, event, None, None)
     }
 
     fn add_input<T: PortData>(
@@ -151,6 +161,7 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
         sample: T,
         event: bool,
         read_back: Option<ReadBack<T>>,
+        check: Option<Check<T>>,
     ) -> Result<InputPort<T>, IntrospectError> {
         self.check_port_name(name)?;
         let port = InputPort::with_sample(name, sample.clone());
@@ -163,6 +174,7 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
             sample,
             event,
             read_back,
+            check,
         }));
         Ok(port)
     }

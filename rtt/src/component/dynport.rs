@@ -7,6 +7,7 @@ use crate::port::{
     ConnPolicy, ConnectError, ConnectionInfo, FlowStatus, InputPort, InputShared, OutputPort,
     OutputShared, connect_shared,
 };
+use serde::Serialize;
 use serde_json::Value;
 use std::any::Any;
 use std::sync::Arc;
@@ -55,8 +56,26 @@ pub(crate) struct OutEntry<T: Send> {
     pub(crate) doc: String,
 }
 
+/// A port's value as JSON. A number that is not finite becomes the string `"NaN"`,
+/// `"inf"` or `"-inf"`: JSON has no such numbers, and `null` means "no data yet".
+pub fn to_json<T: Serialize + 'static>(v: &T) -> Option<Value> {
+    let any = v as &dyn Any;
+    let f = any
+        .downcast_ref::<f64>()
+        .copied()
+        .or_else(|| any.downcast_ref::<f32>().map(|f| f64::from(*f)));
+    match f {
+        Some(f) if !f.is_finite() => Some(Value::String(f.to_string())),
+        _ => serde_json::to_value(v).ok(),
+    }
+}
+
 /// Reads back what an input port drives (a device output's current value).
 pub(crate) type ReadBack<T> = Box<dyn Fn() -> Option<T> + Send + Sync>;
+
+/// Checks a value written into an input port through the dynamic layer before it is
+/// written (a device output's range): `Err` says why it is refused.
+pub(crate) type Check<T> = Arc<dyn Fn(&T) -> Result<(), String> + Send + Sync>;
 
 /// An input port as the dynamic layer holds it.
 pub(crate) struct InEntry<T: Send> {
@@ -65,6 +84,7 @@ pub(crate) struct InEntry<T: Send> {
     pub(crate) sample: T,
     pub(crate) event: bool,
     pub(crate) read_back: Option<ReadBack<T>>,
+    pub(crate) check: Option<Check<T>>,
 }
 
 fn direction_error(port: &str, actual: Direction, what: &'static str) -> IntrospectError {
@@ -89,7 +109,7 @@ impl<T: PortData> DynReader for ValueReader<T> {
     fn read(&mut self) -> (FlowStatus, Option<Value>) {
         match self.port.read(&mut self.sample) {
             FlowStatus::NoData => (FlowStatus::NoData, None),
-            s => (s, serde_json::to_value(&self.sample).ok()),
+            s => (s, to_json(&self.sample)),
         }
     }
 }
@@ -97,6 +117,7 @@ impl<T: PortData> DynReader for ValueReader<T> {
 struct ValueWriter<T: Send> {
     port: OutputPort<T>,
     what: String,
+    check: Option<Check<T>>,
 }
 
 impl<T: PortData> DynWriter for ValueWriter<T> {
@@ -106,6 +127,12 @@ impl<T: PortData> DynWriter for ValueWriter<T> {
             expected: std::any::type_name::<T>().to_string(),
             detail: e.to_string(),
         })?;
+        if let Some(check) = &self.check {
+            check(&v).map_err(|detail| IntrospectError::Refused {
+                what: self.what.clone(),
+                detail,
+            })?;
+        }
         self.port.write(&v);
         Ok(())
     }
@@ -127,10 +154,7 @@ impl<T: PortData> DynPort for OutEntry<T> {
     }
 
     fn last_value(&self) -> Result<Option<Value>, IntrospectError> {
-        Ok(self
-            .shared
-            .last_written()
-            .and_then(|v| serde_json::to_value(&v).ok()))
+        Ok(self.shared.last_written().and_then(|v| to_json(&v)))
     }
 
     fn reader(&self, policy: ConnPolicy) -> Result<Box<dyn DynReader>, IntrospectError> {
@@ -207,7 +231,7 @@ impl<T: PortData> DynPort for InEntry<T> {
             Some(f) => f(),
             None => self.shared.last_read(),
         };
-        Ok(v.and_then(|v| serde_json::to_value(&v).ok()))
+        Ok(v.and_then(|v| to_json(&v)))
     }
 
     fn reader(&self, _policy: ConnPolicy) -> Result<Box<dyn DynReader>, IntrospectError> {
@@ -225,6 +249,7 @@ impl<T: PortData> DynPort for InEntry<T> {
         Ok(Box::new(ValueWriter {
             port,
             what: format!("port {:?}", self.shared.name),
+            check: self.check.clone(),
         }))
     }
 
