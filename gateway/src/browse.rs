@@ -283,7 +283,7 @@ impl Browser {
         };
         let mut out = Vec::new();
         if ports {
-            out.extend(d.ports.into_iter().map(|p| p.name));
+            out.extend(d.ports.into_iter().map(|p| p.info.name));
         }
         if operations {
             out.extend(d.operations.into_iter().map(|o| o.name));

@@ -119,6 +119,23 @@ struct Shared {
     next_id: AtomicU64,
 }
 
+impl Shared {
+    /// The counters, for `status`.
+    fn report(&self) -> crate::protocol::ControlReport {
+        let s = &self.stats;
+        let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        crate::protocol::ControlReport {
+            connected: rtt::lock(&self.clients).len() as u64,
+            clients: load(&s.clients),
+            refused: load(&s.refused),
+            idle_closed: load(&s.idle_closed),
+            requests: load(&s.requests),
+            errors: load(&s.errors),
+            accept_failures: load(&s.accept_failures),
+        }
+    }
+}
+
 /// The running control server; [`close`](ControlServer::close) (or dropping it) stops
 /// accepting, waits for the requests under way, disconnects every client and removes the
 /// socket it made.
@@ -405,7 +422,7 @@ fn carry_out(
     if shared.closing.load(Ordering::Acquire) {
         return stopping();
     }
-    match handle(&shared.gw, req, writers) {
+    match handle(&shared.gw, shared.report(), req, writers) {
         Ok(v) => Reply {
             id,
             body: Body::Ok(v),

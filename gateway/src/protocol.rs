@@ -342,7 +342,7 @@ pub struct Description {
     /// Its state.
     pub state: TaskState,
     /// Its ports.
-    pub ports: Vec<PortInfo>,
+    pub ports: Vec<PortEntry>,
     /// Its operations.
     pub operations: Vec<OperationInfo>,
     /// Its properties.
@@ -353,6 +353,42 @@ pub struct Description {
     pub counters: TaskCounters,
     /// Activity statistics.
     pub activity: ActivityStats,
+}
+
+/// A port in `describe`: what it is, and how many connections it has now.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct PortEntry {
+    /// Name, doc, direction, type.
+    #[serde(flatten)]
+    pub info: PortInfo,
+    /// Live connections.
+    pub connections: usize,
+}
+
+impl std::ops::Deref for PortEntry {
+    type Target = PortInfo;
+    fn deref(&self) -> &PortInfo {
+        &self.info
+    }
+}
+
+/// The control server's counters in `status`.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ControlReport {
+    /// Clients connected now.
+    pub connected: u64,
+    /// Clients accepted since start.
+    pub clients: u64,
+    /// Clients turned away for the client limit.
+    pub refused: u64,
+    /// Clients disconnected for staying silent.
+    pub idle_closed: u64,
+    /// Requests answered.
+    pub requests: u64,
+    /// Requests answered with an error.
+    pub errors: u64,
+    /// Times accepting failed for want of file descriptors or memory.
+    pub accept_failures: u64,
 }
 
 /// A device in `status`.
@@ -404,6 +440,9 @@ pub struct StatusReport {
     pub cards: Vec<CardReport>,
     /// Every component.
     pub components: Vec<ComponentStatus>,
+    /// The control server.
+    #[serde(default)]
+    pub control: ControlReport,
 }
 
 /// The answer to `devices`.

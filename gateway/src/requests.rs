@@ -3,8 +3,8 @@
 
 use crate::deploy::Gateway;
 use crate::protocol::{
-    ComponentEntry, ComponentStatus, Description, DeviceStatus, ErrorKind, Request, StatusReport,
-    Target,
+    ComponentEntry, ComponentStatus, ControlReport, Description, DeviceStatus, ErrorKind,
+    PortEntry, Request, StatusReport, Target,
 };
 use rtt::component::DynWriter;
 use rtt::port::ConnPolicy;
@@ -13,7 +13,7 @@ use std::collections::HashMap;
 
 /// Every device's health, every card's bus counters, and every component's state and
 /// activity figures.
-fn status(gw: &Gateway) -> StatusReport {
+fn status(gw: &Gateway, control: ControlReport) -> StatusReport {
     let reg = gw.runtime().registry();
     let devices = reg
         .entries()
@@ -54,6 +54,7 @@ fn status(gw: &Gateway) -> StatusReport {
         devices,
         cards: gw.card_status(),
         components,
+        control,
     }
 }
 
@@ -74,6 +75,7 @@ fn to_value(v: impl serde::Serialize) -> Result<Value, Fail> {
 
 pub(crate) fn handle(
     gw: &Gateway,
+    control: ControlReport,
     req: &Request,
     writers: &mut HashMap<(String, String), Box<dyn DynWriter>>,
 ) -> Result<Value, Fail> {
@@ -90,13 +92,20 @@ pub(crate) fn handle(
                 .collect::<Vec<_>>(),
         ),
         Request::Devices => to_value(rt.registry().entries()),
-        Request::Status => to_value(status(gw)),
+        Request::Status => to_value(status(gw, control)),
         Request::Describe { component: c } => {
             let t = component(c)?;
             to_value(Description {
                 name: t.name().to_string(),
                 state: t.state(),
-                ports: t.ports(),
+                ports: t
+                    .ports()
+                    .into_iter()
+                    .map(|info| PortEntry {
+                        connections: t.port(&info.name).map_or(0, |p| p.connections().len()),
+                        info,
+                    })
+                    .collect(),
                 operations: t.operations(),
                 properties: t.properties().list(),
                 attributes: t.attributes().list(),

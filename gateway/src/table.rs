@@ -161,6 +161,12 @@ pub fn status(s: &StatusReport) -> String {
         ],
         &components,
     ));
+    out.push(String::new());
+    let c = &s.control;
+    out.push(format!(
+        "control socket: {} clients connected ({} since start, {} turned away, {} idle closed), {} requests ({} errors), {} accept failures",
+        c.connected, c.clients, c.refused, c.idle_closed, c.requests, c.errors, c.accept_failures
+    ));
     out.join("\n")
 }
 
@@ -180,9 +186,14 @@ pub fn description(d: &Description, values: &[Option<Value>]) -> String {
             rtt::component::Direction::Output => "out",
             rtt::component::Direction::Input => "in",
         };
+        let links = match p.connections {
+            0 => String::new(),
+            1 => "1 connection".to_string(),
+            n => format!("{n} connections"),
+        };
         out.push(format!(
-            "  {:<3} {:<16} {:<8} {:<12} {}",
-            dir, p.name, p.type_name, value, p.doc
+            "  {:<3} {:<16} {:<8} {:<12} {:<14} {}",
+            dir, p.name, p.type_name, value, links, p.doc
         ));
     }
     out.push("operations:".into());
