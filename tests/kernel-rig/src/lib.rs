@@ -137,6 +137,7 @@ pub struct Rig {
     memory_mb: u32,
     cpus: u32,
     timeout: Duration,
+    systemd: bool,
 }
 
 impl Default for Rig {
@@ -169,7 +170,17 @@ impl Rig {
             // vCPUs); one vCPU never showed it.
             cpus: 1,
             timeout,
+            systemd: false,
         }
+    }
+
+    /// Boots the guest with the host's systemd as PID 1 (journald, udevd, the basic
+    /// system), the command running as a oneshot service: for tests of units as an
+    /// operator would run them. Installs the host's `systemd` and `udev` if missing.
+    pub fn systemd(mut self) -> Rig {
+        self.systemd = true;
+        self.tool("/lib/systemd/systemd", "systemd")
+            .tool("udevadm", "udev")
     }
 
     /// Loads `module` (with its dependencies) in the guest before the command runs.
@@ -334,11 +345,12 @@ impl Rig {
     fn write_script(&self, run: &RunDir, mode: &str, command: &str) -> Result<(), RigError> {
         let cwd = std::env::current_dir().map_err(|e| RigError::io(Path::new("."), e))?;
         let vars = format!(
-            "RUN={}\nMODULES={}\nSETUP={}\nMODE={mode}\nCWD={}\n{command}",
+            "RUN={}\nMODULES={}\nSETUP={}\nMODE={mode}\nCWD={}\nSYSTEMD={}\n{command}",
             quote(&run.path.to_string_lossy()),
             quote(&self.modules.join(" ")),
             quote(&self.setup.join("\n")),
             quote(&cwd.to_string_lossy()),
+            u8::from(self.systemd),
         );
         let script = include_str!("../guest/guest.sh.in").replace("@VARS@", &vars);
         let path = run.path.join("guest.sh");
@@ -368,9 +380,14 @@ impl Rig {
             .arg(&kernel.initramfs)
             .arg("-append")
             .arg(format!(
-                "console=ttyS0 quiet loglevel=3 panic=-1 RIG_RUN={} RIG_MODULES={}",
+                "console=ttyS0 quiet loglevel=3 panic=-1 RIG_RUN={} RIG_MODULES={}{}",
                 run.path.display(),
-                modules.display()
+                modules.display(),
+                if self.systemd {
+                    " RIG_SYSTEMD=1 systemd.unit=rig.target systemd.show_status=false"
+                } else {
+                    ""
+                }
             ))
             .args([
                 "-fsdev",

@@ -4,6 +4,7 @@
 //! cargo run -p kernel-rig -- prepare            # install packages, fetch the kernel
 //! cargo run -p kernel-rig -- shell [MODULE…]    # a root shell in the guest
 //! cargo run -p kernel-rig -- run [MODULE…] -- CMD [ARG…]
+//! cargo run -p kernel-rig -- run --systemd vcan -- systemctl status  # systemd as PID 1
 //! ```
 
 use kernel_rig::Rig;
@@ -12,7 +13,8 @@ use std::process::ExitCode;
 fn usage() -> ExitCode {
     eprintln!(
         "usage: kernel-rig prepare | shell [MODULE...] | run [MODULE...] -- COMMAND [ARG...]\n\
-         (add --kvaser for two kvaser_pci CAN controllers on one emulated bus)"
+         (add --kvaser for two kvaser_pci CAN controllers on one emulated bus, --systemd for\n\
+         systemd as the guest's PID 1)"
     );
     ExitCode::from(2)
 }
@@ -30,6 +32,7 @@ fn main() -> ExitCode {
     for o in opts {
         rig = match o.as_str() {
             "--kvaser" => rig.qemu_args(&kernel_rig::KVASER_PAIR),
+            "--systemd" => rig.systemd(),
             m => rig.module(m),
         };
     }
