@@ -18,6 +18,7 @@ fn watchdog(
     gw: Arc<Gateway>,
     interval: std::time::Duration,
     stop: Arc<std::sync::atomic::AtomicBool>,
+    running: String,
 ) {
     let mut last: Option<Result<(), String>> = None;
     while !stop.load(std::sync::atomic::Ordering::Acquire) {
@@ -26,7 +27,7 @@ fn watchdog(
             match &health {
                 Ok(()) => {
                     tracing::info!("healthy");
-                    let _ = sd_notify::notify(&[NotifyState::Status("running")]);
+                    let _ = sd_notify::notify(&[NotifyState::Status(&running)]);
                 }
                 Err(why) => {
                     tracing::error!("unhealthy, not feeding the watchdog: {why}");
@@ -187,8 +188,8 @@ pub fn run(config: Option<PathBuf>, socket: Option<PathBuf>, types: &Types) -> E
     let stop_watchdog = Arc::new(std::sync::atomic::AtomicBool::new(false));
     if let Some(interval) = sd_notify::watchdog_enabled() {
         tracing::info!("systemd watchdog every {interval:?}, fed while healthy");
-        let (g, s) = (gw.clone(), stop_watchdog.clone());
-        std::thread::spawn(move || watchdog(g, interval, s));
+        let (g, s, running) = (gw.clone(), stop_watchdog.clone(), status.clone());
+        std::thread::spawn(move || watchdog(g, interval, s, running));
     }
     loop {
         match signals.wait() {
