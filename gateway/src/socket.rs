@@ -203,7 +203,8 @@ fn prepare_dir(dir: &Path, mode: u32, service: bool) -> Result<(), SocketError> 
 }
 
 /// What `hwgw check` can tell about a socket path without touching it: nothing that is not
-/// a socket of this user's at the path, and no unsafe directory above it.
+/// a socket at the path, no socket of a user other than this one or the service's (a
+/// running service's socket is fine to find), and no unsafe directory above it.
 pub fn check_path(path: &Path) -> Result<(), SocketError> {
     if let Some(dir) = path
         .parent()
@@ -212,42 +213,29 @@ pub fn check_path(path: &Path) -> Result<(), SocketError> {
         let service = is_service_path(path);
         prepare_dir(dir, if service { 0o750 } else { 0o700 }, service)?;
     }
-    match std::fs::symlink_metadata(path) {
-        Err(_) => Ok(()),
-        Ok(m) => {
-            use std::os::unix::fs::FileTypeExt;
-            if !m.file_type().is_socket() {
-                return Err(SocketError::NotASocket {
-                    path: path.to_path_buf(),
-                });
-            }
-            let me = Uid::effective().as_raw();
-            if m.uid() != me {
-                return Err(SocketError::NotOurs {
-                    path: path.to_path_buf(),
-                    owner: m.uid(),
-                    me,
-                });
-            }
-            Ok(())
-        }
+    match existing_socket(path)? {
+        Some(m) if service_uid().is_some_and(|u| u.as_raw() == m.uid()) => Ok(()),
+        Some(m) => ours(path, &m),
+        None => Ok(()),
     }
 }
 
-/// What is at `path` now, if it may be bound: nothing, or a stale socket of this user's
-/// (removed). Anything else is refused and left as it is.
-fn clear_stale(path: &Path) -> Result<(), SocketError> {
-    let m = match std::fs::symlink_metadata(path) {
-        Ok(m) => m,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
-        Err(e) => return Err(io(path)(e)),
-    };
+/// The metadata of the socket at `path`; `None` when nothing is there, an error when
+/// something that is not a socket is.
+fn existing_socket(path: &Path) -> Result<Option<std::fs::Metadata>, SocketError> {
     use std::os::unix::fs::FileTypeExt;
-    if !m.file_type().is_socket() {
-        return Err(SocketError::NotASocket {
+    match std::fs::symlink_metadata(path) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+        Err(e) => Err(io(path)(e)),
+        Ok(m) if m.file_type().is_socket() => Ok(Some(m)),
+        Ok(_) => Err(SocketError::NotASocket {
             path: path.to_path_buf(),
-        });
+        }),
     }
+}
+
+/// Refuses the socket at `path` (metadata `m`) unless this user owns it.
+fn ours(path: &Path, m: &std::fs::Metadata) -> Result<(), SocketError> {
     let me = Uid::effective().as_raw();
     if m.uid() != me {
         return Err(SocketError::NotOurs {
@@ -256,6 +244,16 @@ fn clear_stale(path: &Path) -> Result<(), SocketError> {
             me,
         });
     }
+    Ok(())
+}
+
+/// What is at `path` now, if it may be bound: nothing, or a stale socket of this user's
+/// (removed). Anything else is refused and left as it is.
+fn clear_stale(path: &Path) -> Result<(), SocketError> {
+    let Some(m) = existing_socket(path)? else {
+        return Ok(());
+    };
+    ours(path, &m)?;
     if UnixStream::connect(path).is_ok() {
         return Err(SocketError::InUse {
             path: path.to_path_buf(),

@@ -281,6 +281,23 @@ fn another_users_socket_is_neither_replaced_nor_trusted() {
         String::from_utf8_lossy(&out.stderr)
     );
     assert!(squat.exists());
+    // `check` says the same of a deployment naming it.
+    let toml = dir.path().join("squat.toml");
+    std::fs::write(
+        &toml,
+        format!("control_socket = {:?}\n", squat.display().to_string()),
+    )
+    .unwrap();
+    let out = Command::new(HWGW).arg("check").arg(&toml).output().unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains(&format!(
+            "squat.toml:1:18: control_socket: {}: a socket of uid {NOBODY}, not of this user (uid 0)",
+            squat.display()
+        )),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     // A client will not talk to it either (it could answer anything).
     std::thread::spawn(move || {
         for c in listener.incoming().flatten() {

@@ -577,11 +577,22 @@ fn the_example_deployment_runs_with_named_channels() {
         .as_f64()
         .unwrap();
     assert!((7.0..=17.0).contains(&valve), "valve {valve} mA");
+    // [card.outputs]: valve = 4.0 and pump = false are driven at stop; lamp = "keep"
+    // stays on.
+    svc.ok(json!({"cmd": "set", "component": "press.do", "port": "lamp", "value": true}));
+    wait_until("lamp on", || {
+        svc.ok(
+            json!({"cmd": "call", "component": "press.do", "operation": "check_bit", "args": [1]}),
+        )["Ok"]
+            == Value::Bool(true)
+    });
     let out = svc.terminate();
     assert!(out.status.success());
     assert!(
         out.log
             .clone()
-            .contains("card \"press\" outputs at stop: analog [4], digital on []")
+            .contains("card \"press\" outputs at stop: analog [4], digital on [1]"),
+        "{}",
+        out.log
     );
 }
