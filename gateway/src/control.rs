@@ -43,7 +43,7 @@ use rtt::component::DynWriter;
 use rtt::port::ConnPolicy;
 use serde_json::{Value, json};
 use std::collections::HashMap;
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{BufRead, BufReader, Write};
 use std::os::fd::AsFd;
 use std::os::unix::net::UnixStream;
 use std::path::Path;
@@ -100,7 +100,8 @@ pub struct ControlStats {
     pub requests: AtomicU64,
     /// Requests answered with an error.
     pub errors: AtomicU64,
-    /// Times accepting failed for want of file descriptors or memory.
+    /// Clients that could not be taken for want of file descriptors, memory or threads
+    /// (at accept, or just after: told so when that is possible).
     pub accept_failures: AtomicU64,
 }
 
@@ -233,68 +234,83 @@ fn accept_loop(shared: &Arc<Shared>, listener: &std::os::unix::net::UnixListener
                 continue;
             }
         }
-        match listener.accept() {
-            Ok((conn, _)) => {
+        let refused = match listener.accept() {
+            Ok((conn, _)) => admit(shared, conn).err(),
+            Err(e)
+                if e.kind() == std::io::ErrorKind::Interrupted
+                    || e.kind() == std::io::ErrorKind::WouldBlock =>
+            {
+                continue;
+            }
+            Err(e) => Some(e),
+        };
+        match refused {
+            None => {
                 if starved {
                     tracing::info!("control socket: accepting clients again");
                     starved = false;
                 }
                 backoff = Duration::from_millis(10);
-                admit(shared, conn);
             }
-            Err(e)
-                if matches!(
-                    e.raw_os_error(),
-                    Some(libc::EMFILE | libc::ENFILE | libc::ENOBUFS | libc::ENOMEM)
-                ) =>
-            {
+            Some(e) if out_of_resources(&e) => {
                 shared.stats.accept_failures.fetch_add(1, Ordering::Relaxed);
                 if !starved {
                     tracing::error!(
-                        "control socket: cannot accept: {e}; backing off until clients leave"
+                        "control socket: cannot take a client: {e}; backing off until clients leave"
                     );
                     starved = true;
                 }
                 std::thread::sleep(backoff);
                 backoff = (backoff * 2).min(Duration::from_secs(1));
             }
-            Err(e)
-                if e.kind() == std::io::ErrorKind::Interrupted
-                    || e.kind() == std::io::ErrorKind::WouldBlock => {}
-            Err(e) => tracing::warn!("control socket: accept: {e}"),
+            Some(e) => tracing::warn!("control socket: accept: {e}"),
         }
     }
 }
 
-/// Serves a new client on a thread of its own, or turns it away beyond the limit.
-fn admit(shared: &Arc<Shared>, conn: UnixStream) {
+/// True for the errors that pass when clients leave (descriptors, memory, threads).
+fn out_of_resources(e: &std::io::Error) -> bool {
+    matches!(
+        e.raw_os_error(),
+        Some(libc::EMFILE | libc::ENFILE | libc::ENOBUFS | libc::ENOMEM | libc::EAGAIN)
+    )
+}
+
+/// Serves a new client on a thread of its own, or turns it away beyond the limit. An
+/// error when the client could not be taken for want of resources (a descriptor for its
+/// second handle, a thread): it is told so, and the caller backs off.
+fn admit(shared: &Arc<Shared>, conn: UnixStream) -> std::io::Result<()> {
+    let turn_away = |conn: UnixStream, kind: ErrorKind, why: String| {
+        let _ = conn.set_write_timeout(Some(Duration::from_millis(100)));
+        let _ = send(&conn, &Reply::error(Value::Null, kind, why));
+    };
     let id = shared.next_id.fetch_add(1, Ordering::Relaxed);
     {
         let mut clients = rtt::lock(&shared.clients);
         if shared.closing.load(Ordering::Acquire) {
-            return;
+            return Ok(());
         }
         if clients.len() >= shared.limits.clients {
             shared.stats.refused.fetch_add(1, Ordering::Relaxed);
-            let mut conn = conn;
-            let _ = conn.set_write_timeout(Some(Duration::from_millis(100)));
-            let busy = Reply::error(
-                Value::Null,
-                ErrorKind::Busy,
-                format!(
-                    "{} clients are connected, the most this gateway takes; try again later",
-                    shared.limits.clients
-                ),
+            let why = format!(
+                "{} clients are connected, the most this gateway takes; try again later",
+                shared.limits.clients
             );
-            let _ = send(&mut conn, &busy);
-            return;
+            turn_away(conn, ErrorKind::Busy, why);
+            return Ok(());
         }
-        let Ok(clone) = conn.try_clone() else {
-            return;
+        match conn.try_clone() {
+            Ok(clone) => clients.insert(id, clone),
+            Err(e) => {
+                turn_away(
+                    conn,
+                    ErrorKind::Busy,
+                    format!("the gateway cannot take a client now ({e}); try again later"),
+                );
+                return Err(e);
+            }
         };
-        clients.insert(id, clone);
     }
-    shared.stats.clients.fetch_add(1, Ordering::Relaxed);
     let s = shared.clone();
     let spawned = std::thread::Builder::new()
         .name("hwgw-client".into())
@@ -302,10 +318,13 @@ fn admit(shared: &Arc<Shared>, conn: UnixStream) {
             serve_client(&s, conn);
             rtt::lock(&s.clients).remove(&id);
         });
-    if spawned.is_err() {
-        tracing::warn!("control socket: cannot start a client thread");
+    if let Err(e) = spawned {
+        // The client's handle went with the closure; its clone in `clients` goes now.
         rtt::lock(&shared.clients).remove(&id);
+        return Err(e);
     }
+    shared.stats.clients.fetch_add(1, Ordering::Relaxed);
+    Ok(())
 }
 
 /// Reads one line of at most `MAX_LINE` bytes. `Ok(None)` at end of stream;
@@ -342,12 +361,11 @@ fn read_line(r: &mut impl BufRead, buf: &mut Vec<u8>) -> std::io::Result<Option<
 }
 
 fn serve_client(shared: &Shared, conn: UnixStream) {
+    // One handle reads and writes (no second descriptor to run out of).
     let _ = conn.set_read_timeout(Some(shared.limits.idle));
-    let Ok(mut out) = conn.try_clone() else {
-        return;
-    };
-    let _ = out.set_write_timeout(Some(shared.limits.idle));
-    let mut reader = BufReader::new(conn.take(u64::MAX));
+    let _ = conn.set_write_timeout(Some(shared.limits.idle));
+    let out = &conn;
+    let mut reader = BufReader::new(&conn);
     let mut writers: HashMap<(String, String), Box<dyn DynWriter>> = HashMap::new();
     let mut buf = Vec::new();
     let stats = &shared.stats;
@@ -382,7 +400,7 @@ fn serve_client(shared: &Shared, conn: UnixStream) {
                             port,
                             count,
                         },
-                    )) => match watch(shared, &component, &port, count, &id, &mut out) {
+                    )) => match watch(shared, &component, &port, count, &id, out) {
                         // The stream ended because the client went away or had enough.
                         Ok(()) => return,
                         Err(Fail(kind, message)) => Reply::error(id, kind, message),
@@ -395,7 +413,7 @@ fn serve_client(shared: &Shared, conn: UnixStream) {
         if matches!(reply.body, Body::Error(_)) {
             stats.errors.fetch_add(1, Ordering::Relaxed);
         }
-        if send(&mut out, &reply).is_err() {
+        if send(out, &reply).is_err() {
             return;
         }
     }
@@ -431,7 +449,7 @@ fn carry_out(
     }
 }
 
-fn send(out: &mut UnixStream, reply: &Reply) -> std::io::Result<()> {
+fn send(mut out: &UnixStream, reply: &Reply) -> std::io::Result<()> {
     let mut line = serde_json::to_string(reply).map_err(std::io::Error::other)?;
     line.push('\n');
     out.write_all(line.as_bytes())
@@ -482,7 +500,7 @@ fn watch(
     port: &str,
     count: Option<u64>,
     id: &Value,
-    out: &mut UnixStream,
+    out: &UnixStream,
 ) -> Result<(), Fail> {
     let t = shared
         .gw

@@ -461,6 +461,24 @@ fn out_of_file_descriptors_the_server_backs_off_and_recovers() {
         .filter_map(|_| UnixStream::connect(&svc.socket).ok())
         .collect();
     std::thread::sleep(Duration::from_secs(2));
+    // None was dropped without a word: each is served, waiting, or told why not.
+    let (mut told, mut waiting) = (0, 0);
+    for c in &clients {
+        c.set_nonblocking(true).unwrap();
+        let mut buf = [0u8; 1024];
+        match std::io::Read::read(&mut &*c, &mut buf) {
+            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => waiting += 1,
+            r => {
+                let line = String::from_utf8_lossy(&buf[..*r.as_ref().unwrap_or(&0)]);
+                assert!(line.contains("cannot take a client now"), "{r:?}: {line:?}");
+                told += 1;
+            }
+        }
+    }
+    eprintln!(
+        "of {} clients: {told} told to come back, {waiting} served or waiting",
+        clients.len()
+    );
     drop(clients);
     // Once clients leave, it accepts again.
     wait_until("served again", || {
