@@ -695,7 +695,8 @@ impl Activity {
         }
     }
 
-    /// Stops the thread and waits for it (at most one period of a periodic activity).
+    /// Stops the thread and waits for it: the step under way finishes; a periodic activity's
+    /// sleep is cut short (within 50 ms, whatever its period).
     pub(crate) fn stop(&self) {
         if !self.shared.running.swap(false, Ordering::AcqRel) {
             return;
@@ -821,7 +822,7 @@ fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
             let events = FdEvents::default();
             let mut unhealthy_logged = false;
             while shared.running.load(Ordering::Acquire) {
-                sleep_until(next);
+                sleep_until_or_stopped(next, &shared.running);
                 if !shared.running.load(Ordering::Acquire) {
                     break;
                 }
@@ -931,6 +932,27 @@ fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
             }
         }
         ActivitySpec::Slave => {}
+    }
+}
+
+/// Longest uninterrupted sleep of a periodic activity: a stop is seen within this long
+/// whatever the period (a period of a day must not make a stop wait a day).
+const STOP_SLICE_NS: u64 = 50_000_000;
+
+/// Sleeps until `ns` on the monotonic clock, in slices of at most [`STOP_SLICE_NS`],
+/// returning early once `running` is cleared. A wake-up within a slice of `ns` is the same
+/// single absolute sleep as ever.
+fn sleep_until_or_stopped(ns: u64, running: &AtomicBool) {
+    loop {
+        let now = MonotonicClock.now().as_nanos();
+        if now >= ns {
+            return;
+        }
+        let until = ns.min(now.saturating_add(STOP_SLICE_NS));
+        sleep_until(until);
+        if until == ns || !running.load(Ordering::Acquire) {
+            return;
+        }
     }
 }
 

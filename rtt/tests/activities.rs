@@ -1,4 +1,5 @@
-//! Activities on real threads: fd wake-up and timeout, overrun counting and health,
+//! Activities on real threads: fd wake-up and timeout, overrun counting and health, a
+//! stop cut short however long the period,
 //! SCHED_FIFO fallback, and ThreadScope pulses read back from a sim card's output record.
 
 #![allow(
@@ -216,6 +217,35 @@ fn overruns_are_counted_and_turn_health_off_then_on() {
     assert!(after.steps > before.steps);
     assert!(after.overruns >= 5);
     assert!(after.step_max_ns >= 6_000_000);
+}
+
+#[test]
+fn a_long_period_does_not_hold_up_a_stop() {
+    struct Idle;
+    impl Component for Idle {}
+    let rt = runtime();
+    let spec = ActivitySpec::Periodic {
+        period: Duration::from_secs(24 * 3600),
+        thread: ThreadOptions::default(),
+        timing: Timing::Absolute,
+        max_overruns: None,
+    };
+    let t = rt
+        .add("daily", spec, rtt::InitialState::Stopped, |_| Ok(Idle))
+        .unwrap();
+    t.start().unwrap();
+    wait_for("the first step", || t.stats().steps == 1);
+    // The activity now sleeps until tomorrow; a stop must not wait for that.
+    let (tx, rx) = std::sync::mpsc::channel();
+    let task = t.clone();
+    std::thread::spawn(move || tx.send(task.stop().is_ok()).unwrap());
+    assert_eq!(
+        rx.recv_timeout(Duration::from_secs(30)),
+        Ok(true),
+        "the stop waited for the next period"
+    );
+    assert_eq!(t.state(), rtt::TaskState::Stopped);
+    assert_eq!(t.stats().steps, 1);
 }
 
 #[test]
