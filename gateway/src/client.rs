@@ -106,6 +106,7 @@ impl Client {
             path: self.path.clone(),
             source,
         })?;
+        crate::socket::check_peer(&self.path, &conn)?;
         conn.set_read_timeout(Some(self.timeout))
             .and_then(|()| conn.set_write_timeout(Some(self.timeout)))
             .map_err(|e| self.io(e))?;

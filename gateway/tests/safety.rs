@@ -254,6 +254,25 @@ fn the_socket_option_never_deletes_a_file() {
         RACE,
         "the file is untouched"
     );
+    // A socket directory that is a link could be pointed anywhere later: refused.
+    let real = dir.path().join("real");
+    std::fs::create_dir(&real).unwrap();
+    let link = dir.path().join("link");
+    std::os::unix::fs::symlink(&real, &link).unwrap();
+    let out = Command::new(HWGW)
+        .args(["run", "--socket"])
+        .arg(link.join("hwgw.sock"))
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains(&format!(
+            "hwgw: control socket: {}: a symbolic link; a socket directory must be a directory of its own",
+            link.display()
+        )),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 }
 
 /// `uid` of the unprivileged user the tests run things as.
@@ -379,6 +398,22 @@ fn a_users_default_socket_sits_in_a_directory_only_that_user_can_write() {
         ls.status.success(),
         "{}",
         String::from_utf8_lossy(&ls.stderr)
+    );
+    // Root's client trusts a socket file root owns — but not the server behind it, which
+    // runs as nobody: what answers is checked, not only what the file says.
+    nix::unistd::chown(&sock, Some(nix::unistd::Uid::from_raw(0)), None).unwrap();
+    let ls = Command::new(HWGW)
+        .args(["ls", "--socket"])
+        .arg(&sock)
+        .output()
+        .unwrap();
+    assert_eq!(ls.status.code(), Some(1));
+    assert_eq!(
+        String::from_utf8_lossy(&ls.stderr).trim(),
+        format!(
+            "hwgw: {}: served by uid {NOBODY}, neither this user, root nor hwgw: not talking to it",
+            sock.display()
+        )
     );
     nix::sys::signal::kill(
         nix::unistd::Pid::from_raw(child.id() as i32),

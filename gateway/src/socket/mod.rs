@@ -11,8 +11,10 @@
 //! A client (the CLI, `hwgw browse`) looks for the user's own socket first, then the
 //! service's.
 
+mod dir;
+
 use nix::unistd::{Gid, Group, Uid, User};
-use std::os::unix::fs::{DirBuilderExt, MetadataExt, PermissionsExt};
+use std::os::unix::fs::MetadataExt;
 use std::os::unix::net::{UnixListener, UnixStream};
 use std::path::{Path, PathBuf};
 
@@ -67,6 +69,28 @@ pub enum SocketError {
         path: PathBuf,
         /// Its owner.
         owner: u32,
+    },
+    /// The socket's directory is a symbolic link (it could be pointed anywhere).
+    #[error("{dir}: a symbolic link; a socket directory must be a directory of its own")]
+    LinkedDirectory {
+        /// The directory.
+        dir: PathBuf,
+    },
+    /// The path has no file name to bind.
+    #[error("{path}: not a file path (a socket needs a name in a directory)")]
+    NoName {
+        /// The path.
+        path: PathBuf,
+    },
+    /// The server at the path answered as a user other than this one, root or `hwgw`.
+    #[error(
+        "{path}: served by uid {uid}, neither this user, root nor {SERVICE_GROUP}: not talking to it"
+    )]
+    UntrustedPeer {
+        /// The path.
+        path: PathBuf,
+        /// The serving process's user.
+        uid: u32,
     },
     /// A file system call failed.
     #[error("{path}: {source}")]
@@ -150,12 +174,67 @@ fn is_service_path(path: &Path) -> bool {
         || runtime_directory().is_some_and(|d| path.parent() == Some(d.as_path()))
 }
 
+/// What `hwgw check` can tell about a socket path without touching it: nothing that is not
+/// a socket at the path, no socket of a user other than this one or the service's (a
+/// running service's socket is fine to find), and no unsafe directory above it.
+pub fn check_path(path: &Path) -> Result<(), SocketError> {
+    let (dir, name) = dir::split(path)?;
+    if !dir.exists() {
+        return Ok(());
+    }
+    let dir = dir::SocketDir::open(&dir, is_service_path(path), false)?;
+    match dir.existing(&name)? {
+        Some(st) if service_uid().is_some_and(|u| u.as_raw() == st.st_uid) => Ok(()),
+        Some(st) => ours(path, st.st_uid),
+        None => Ok(()),
+    }
+}
+
+/// Refuses a socket at `path` owned by `owner` unless that is this user.
+fn ours(path: &Path, owner: u32) -> Result<(), SocketError> {
+    let me = Uid::effective().as_raw();
+    if owner != me {
+        return Err(SocketError::NotOurs {
+            path: path.to_path_buf(),
+            owner,
+            me,
+        });
+    }
+    Ok(())
+}
+
+/// Binds the control socket at `path` safely: its directory prepared (0700 for a user's,
+/// 0750 group `hwgw` for the service's) and opened without following links, nothing but a
+/// stale socket of this user's replaced, the socket created with mode 0600 (0660, group
+/// `hwgw`, for the service's). Every step after the directory's check goes through its
+/// descriptor: renaming a directory above it cannot redirect one.
+pub fn bind(path: &Path) -> Result<Bound, SocketError> {
+    let service = is_service_path(path);
+    let (dir, name) = dir::split(path)?;
+    let dir = dir::SocketDir::open(&dir, service, true)?;
+    if let Some(st) = dir.existing(&name)? {
+        ours(path, st.st_uid)?;
+        dir.remove_stale(&name, path)?;
+    }
+    let mode = if service { 0o660 } else { 0o600 };
+    let (listener, id) = dir.bind(&name, mode, service.then(service_gid).flatten())?;
+    Ok(Bound {
+        listener,
+        path: path.to_path_buf(),
+        dir,
+        name,
+        id,
+    })
+}
+
 /// A bound socket and how to recognise it when it is time to remove it.
 pub struct Bound {
     /// The listener.
     pub listener: UnixListener,
     /// The path.
     pub path: PathBuf,
+    dir: dir::SocketDir,
+    name: std::ffi::OsString,
     /// (device, inode) of the socket file bound.
     id: (u64, u64),
 }
@@ -163,130 +242,8 @@ pub struct Bound {
 impl Bound {
     /// Removes the socket file, if it is still the one bound here.
     pub fn remove(&self) {
-        if let Ok(m) = std::fs::symlink_metadata(&self.path)
-            && (m.dev(), m.ino()) == self.id
-        {
-            let _ = std::fs::remove_file(&self.path);
-        }
+        self.dir.remove_if(&self.name, self.id);
     }
-}
-
-/// Makes sure `dir` exists and is safe for a socket: created with `mode` if missing; an
-/// existing one must belong to this user (or root, for the service's) and be writable by
-/// no one else.
-fn prepare_dir(dir: &Path, mode: u32, service: bool) -> Result<(), SocketError> {
-    if !dir.exists() {
-        std::fs::DirBuilder::new()
-            .recursive(true)
-            .mode(mode)
-            .create(dir)
-            .map_err(io(dir))?;
-        if service && let Some(gid) = service_gid() {
-            let _ = nix::unistd::chown(dir, None, Some(gid));
-        }
-        return Ok(());
-    }
-    let m = std::fs::metadata(dir).map_err(io(dir))?;
-    let me = Uid::effective().as_raw();
-    let owner_ok = m.uid() == me || m.uid() == 0;
-    // Nobody else may write: no group or other write bit, unless sticky (/tmp itself is
-    // never the socket's directory here).
-    let writable_by_others = m.mode() & 0o022 != 0;
-    if !owner_ok || writable_by_others {
-        return Err(SocketError::UnsafeDirectory {
-            dir: dir.to_path_buf(),
-            owner: m.uid(),
-            mode: m.mode() & 0o7777,
-        });
-    }
-    Ok(())
-}
-
-/// What `hwgw check` can tell about a socket path without touching it: nothing that is not
-/// a socket at the path, no socket of a user other than this one or the service's (a
-/// running service's socket is fine to find), and no unsafe directory above it.
-pub fn check_path(path: &Path) -> Result<(), SocketError> {
-    if let Some(dir) = path
-        .parent()
-        .filter(|d| d.exists() && !d.as_os_str().is_empty())
-    {
-        let service = is_service_path(path);
-        prepare_dir(dir, if service { 0o750 } else { 0o700 }, service)?;
-    }
-    match existing_socket(path)? {
-        Some(m) if service_uid().is_some_and(|u| u.as_raw() == m.uid()) => Ok(()),
-        Some(m) => ours(path, &m),
-        None => Ok(()),
-    }
-}
-
-/// The metadata of the socket at `path`; `None` when nothing is there, an error when
-/// something that is not a socket is.
-fn existing_socket(path: &Path) -> Result<Option<std::fs::Metadata>, SocketError> {
-    use std::os::unix::fs::FileTypeExt;
-    match std::fs::symlink_metadata(path) {
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
-        Err(e) => Err(io(path)(e)),
-        Ok(m) if m.file_type().is_socket() => Ok(Some(m)),
-        Ok(_) => Err(SocketError::NotASocket {
-            path: path.to_path_buf(),
-        }),
-    }
-}
-
-/// Refuses the socket at `path` (metadata `m`) unless this user owns it.
-fn ours(path: &Path, m: &std::fs::Metadata) -> Result<(), SocketError> {
-    let me = Uid::effective().as_raw();
-    if m.uid() != me {
-        return Err(SocketError::NotOurs {
-            path: path.to_path_buf(),
-            owner: m.uid(),
-            me,
-        });
-    }
-    Ok(())
-}
-
-/// What is at `path` now, if it may be bound: nothing, or a stale socket of this user's
-/// (removed). Anything else is refused and left as it is.
-fn clear_stale(path: &Path) -> Result<(), SocketError> {
-    let Some(m) = existing_socket(path)? else {
-        return Ok(());
-    };
-    ours(path, &m)?;
-    if UnixStream::connect(path).is_ok() {
-        return Err(SocketError::InUse {
-            path: path.to_path_buf(),
-        });
-    }
-    std::fs::remove_file(path).map_err(io(path))
-}
-
-/// Binds the control socket at `path` safely: its directory prepared (0700 for a user's,
-/// 0750 group `hwgw` for the service's), nothing but a stale socket of this user's
-/// replaced, the socket created with mode 0600 (0660, group `hwgw`, for the service's).
-pub fn bind(path: &Path) -> Result<Bound, SocketError> {
-    let service = is_service_path(path);
-    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        prepare_dir(dir, if service { 0o750 } else { 0o700 }, service)?;
-    }
-    clear_stale(path)?;
-    // The socket gets its mode from the umask at bind: never a moment with more access.
-    let mode = if service { 0o660 } else { 0o600 };
-    let old = nix::sys::stat::umask(nix::sys::stat::Mode::from_bits_truncate(0o777 & !mode));
-    let bound = UnixListener::bind(path);
-    nix::sys::stat::umask(old);
-    let listener = bound.map_err(io(path))?;
-    if service && let Some(gid) = service_gid() {
-        let _ = nix::unistd::chown(path, None, Some(gid));
-    }
-    std::fs::set_permissions(path, std::fs::Permissions::from_mode(mode)).map_err(io(path))?;
-    let m = std::fs::symlink_metadata(path).map_err(io(path))?;
-    Ok(Bound {
-        listener,
-        path: path.to_path_buf(),
-        id: (m.dev(), m.ino()),
-    })
 }
 
 /// A client's check before it talks: the socket must belong to this user, root or the
@@ -305,6 +262,27 @@ pub fn check_owner(path: &Path) -> Result<(), SocketError> {
         Err(SocketError::Untrusted {
             path: path.to_path_buf(),
             owner,
+        })
+    }
+}
+
+/// A client's check once connected: the process serving `conn` (at `path`) runs as this
+/// user, root or the service user — what the socket file's owner said before connecting
+/// holds for the server actually reached (the file could have been swapped in between).
+pub fn check_peer(path: &Path, conn: &UnixStream) -> Result<(), SocketError> {
+    let cred = nix::sys::socket::getsockopt(conn, nix::sys::socket::sockopt::PeerCredentials)
+        .map_err(|e| SocketError::Io {
+            path: path.to_path_buf(),
+            source: e.into(),
+        })?;
+    let uid = cred.uid();
+    let me = Uid::effective().as_raw();
+    if uid == me || uid == 0 || service_uid().is_some_and(|u| u.as_raw() == uid) {
+        Ok(())
+    } else {
+        Err(SocketError::UntrustedPeer {
+            path: path.to_path_buf(),
+            uid,
         })
     }
 }
