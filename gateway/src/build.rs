@@ -5,7 +5,7 @@
 use crate::config::{CARD_KEYS, CardConfig, ChannelNames, Deployment, millis, split_port};
 use crate::deploy::{CardRt, Gateway};
 use crate::drivers::SectionError;
-use crate::outputs::{CardOutputs, OutputSpec};
+use crate::outputs::{CardOutputs, Hold, OutputDevices, OutputSpec};
 use crate::problems::{KeyPath, Problem, Problems, Source};
 use crate::types::Types;
 use crate::{checks, io};
@@ -17,7 +17,6 @@ use std::any::{Any, TypeId};
 use std::collections::HashMap;
 use std::path::Path;
 use std::sync::Arc;
-use std::sync::atomic::AtomicBool;
 
 /// The output watchdog's component name.
 pub const OUTPUT_WATCHDOG: &str = "output_watchdog";
@@ -65,8 +64,8 @@ struct Build<'d, 's, 'a> {
     problems: Problems<'s, 'a>,
     /// Files a card names (DBC) are relative to the deployment file.
     base: &'d Path,
-    /// The gateway's stop flag: once set, the guarded outputs refuse writes.
-    held: Arc<AtomicBool>,
+    /// The gateway's stop gate: once held, the guarded outputs refuse writes.
+    hold: Arc<Hold>,
 }
 
 impl Gateway {
@@ -90,7 +89,7 @@ fn build(d: &Deployment, file: &str, text: &str, types: &Types) -> Result<Gatewa
         types,
         problems: Problems::new(&source),
         base,
-        held: Arc::new(AtomicBool::new(false)),
+        hold: Arc::new(Hold::default()),
     };
     for (key, message) in checks::control(d) {
         b.problems.at(&KeyPath::top(&key), message);
@@ -113,7 +112,7 @@ fn build(d: &Deployment, file: &str, text: &str, types: &Types) -> Result<Gatewa
     if !b.problems.is_empty() {
         return Err(b.problems.into_vec());
     }
-    Ok(Gateway::new(runtime, cards, servers, order, start, b.held))
+    Ok(Gateway::new(runtime, cards, servers, order, start, b.hold))
 }
 
 impl Build<'_, '_, '_> {
@@ -266,10 +265,13 @@ impl Build<'_, '_, '_> {
         let mut devices = devices;
         let outputs = match CardOutputs::new(
             &c.name,
-            devices.analog_out.take(),
-            devices.digital_out.take(),
+            OutputDevices {
+                analog: devices.analog_out.take(),
+                digital: devices.digital_out.take(),
+                read_back: card.read_back(),
+            },
             &spec,
-            &self.held,
+            &self.hold,
         ) {
             Ok(o) => o,
             Err(problems) => {

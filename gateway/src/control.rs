@@ -100,6 +100,8 @@ pub struct ControlStats {
     pub requests: AtomicU64,
     /// Requests answered with an error.
     pub errors: AtomicU64,
+    /// Requests being carried out now.
+    pub under_way: AtomicU64,
     /// Clients that could not be taken for want of file descriptors, memory or threads
     /// (at accept, or just after: told so when that is possible).
     pub accept_failures: AtomicU64,
@@ -132,10 +134,14 @@ impl Shared {
             idle_closed: load(&s.idle_closed),
             requests: load(&s.requests),
             errors: load(&s.errors),
+            under_way: load(&s.under_way),
             accept_failures: load(&s.accept_failures),
         }
     }
 }
+
+/// How long [`ControlServer::close`] lets the requests under way finish.
+pub const CLOSE_WAIT: Duration = Duration::from_secs(2);
 
 /// The running control server; [`close`](ControlServer::close) (or dropping it) stops
 /// accepting, waits for the requests under way, disconnects every client and removes the
@@ -196,11 +202,26 @@ impl ControlServer {
         &self.shared.stats
     }
 
-    /// Stops serving: no new request is carried out, the ones under way finish, every
-    /// client is disconnected, the socket is removed. Idempotent.
+    /// Stops serving: no new request is carried out, the ones under way get up to
+    /// [`CLOSE_WAIT`] to finish (a call can wait for a component's next period; the stop
+    /// does not), every client is disconnected, the socket is removed. Idempotent.
     pub fn close(&mut self) {
         self.shared.closing.store(true, Ordering::Release);
-        drop(self.shared.gate.write().unwrap_or_else(|p| p.into_inner()));
+        let deadline = std::time::Instant::now() + CLOSE_WAIT;
+        loop {
+            match self.shared.gate.try_write() {
+                Ok(_) | Err(std::sync::TryLockError::Poisoned(_)) => break,
+                Err(std::sync::TryLockError::WouldBlock) => {}
+            }
+            if std::time::Instant::now() >= deadline {
+                tracing::warn!(
+                    "control socket: requests still under way after {CLOSE_WAIT:?}; \
+                     disconnecting their clients and stopping without them"
+                );
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
         for (_, c) in rtt::lock(&self.shared.clients).drain() {
             let _ = c.shutdown(std::net::Shutdown::Both);
         }
@@ -315,8 +336,9 @@ fn admit(shared: &Arc<Shared>, conn: UnixStream) -> std::io::Result<()> {
     let spawned = std::thread::Builder::new()
         .name("hwgw-client".into())
         .spawn(move || {
+            // Leaves the table however serving ends (a panic in a request included).
+            let _leave = Leave(&s, id);
             serve_client(&s, conn);
-            rtt::lock(&s.clients).remove(&id);
         });
     if let Err(e) = spawned {
         // The client's handle went with the closure; its clone in `clients` goes now.
@@ -325,6 +347,31 @@ fn admit(shared: &Arc<Shared>, conn: UnixStream) -> std::io::Result<()> {
     }
     shared.stats.clients.fetch_add(1, Ordering::Relaxed);
     Ok(())
+}
+
+/// A request under way, counted while it lives.
+struct UnderWay<'a>(&'a AtomicU64);
+
+impl<'a> UnderWay<'a> {
+    fn new(gauge: &'a AtomicU64) -> Self {
+        gauge.fetch_add(1, Ordering::Relaxed);
+        UnderWay(gauge)
+    }
+}
+
+impl Drop for UnderWay<'_> {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::Relaxed);
+    }
+}
+
+/// A served client's entry in the table of clients, removed when its thread ends.
+struct Leave<'a>(&'a Shared, u64);
+
+impl Drop for Leave<'_> {
+    fn drop(&mut self) {
+        rtt::lock(&self.0.clients).remove(&self.1);
+    }
 }
 
 /// Reads one line of at most `MAX_LINE` bytes. `Ok(None)` at end of stream;
@@ -440,6 +487,7 @@ fn carry_out(
     if shared.closing.load(Ordering::Acquire) {
         return stopping();
     }
+    let _counted = UnderWay::new(&shared.stats.under_way);
     match handle(&shared.gw, shared.report(), req, writers) {
         Ok(v) => Reply {
             id,

@@ -6,13 +6,12 @@
 //! would, each located in the file.
 
 use crate::config::{ChannelNames, Deployment};
-use crate::outputs::{CardOutputs, OutputReport};
+use crate::outputs::{CardOutputs, Hold, OutputReport};
 use crate::problems::KeyPath;
 use driver_api::{Card, CardStatus, Server};
 use rtt::{Runtime, TaskContext, TaskState};
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 /// How long the cards may take at stop to get their safe values to the hardware.
@@ -59,8 +58,8 @@ pub struct Gateway {
     order: Vec<TaskContext>,
     /// Which components the deployment asked to start.
     start: Vec<bool>,
-    /// Set when the stop begins: the guarded outputs refuse every write from then on.
-    held: Arc<AtomicBool>,
+    /// Held when the stop begins: the guarded outputs refuse every write from then on.
+    hold: Arc<Hold>,
 }
 
 impl Gateway {
@@ -70,7 +69,7 @@ impl Gateway {
         servers: Vec<Box<dyn Server>>,
         order: Vec<TaskContext>,
         start: Vec<bool>,
-        held: Arc<AtomicBool>,
+        hold: Arc<Hold>,
     ) -> Gateway {
         Gateway {
             runtime,
@@ -78,7 +77,7 @@ impl Gateway {
             servers,
             order,
             start,
-            held,
+            hold,
         }
     }
 
@@ -253,12 +252,19 @@ impl Gateway {
             .any(|c| c.bus.iter().any(|b| b.name() == t.name()))
     }
 
+    /// Refuses every write to an output from now on ([`device_interface::DeviceError::Held`]);
+    /// returns once the writes under way have reached their cards. The first step of a
+    /// stop, before anything else can hang; [`shutdown`](Self::shutdown) does it too.
+    pub fn hold_outputs(&self) {
+        self.hold.hold();
+    }
+
     /// Stops every component but the cards' bus sides in reverse start order, drives every
     /// output to its safe value, lets each card get them to the hardware, then stops the bus
     /// sides. Returns a line per card with the outputs as left.
     pub fn shutdown(&self) -> Vec<String> {
         // From here on only the safe values are written: every other write is refused.
-        self.held.store(true, Ordering::Release);
+        self.hold_outputs();
         for s in &self.servers {
             s.stop();
         }
@@ -272,15 +278,21 @@ impl Gateway {
         for t in self.order.iter().rev().filter(|t| !self.is_bus(t)) {
             stop(t);
         }
-        for c in &self.cards {
-            c.outputs.drive_safe();
-        }
+        // A card whose driver panics must not keep the next cards from their safe values.
+        let each_card = |what: &str, f: &dyn Fn(&CardRt)| {
+            for c in &self.cards {
+                if std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(c))).is_err() {
+                    tracing::error!("card {:?}: its driver panicked while {what}", c.name);
+                }
+            }
+        };
+        each_card("driving its safe values", &|c| c.outputs.drive_safe());
         let deadline = Instant::now() + SETTLE;
-        for c in &self.cards {
+        each_card("settling its safe values", &|c| {
             if let Err(e) = c.card.settle(deadline) {
                 tracing::error!("card {:?}: {e}", c.name);
             }
-        }
+        });
         for t in self.order.iter().rev().filter(|t| self.is_bus(t)) {
             stop(t);
         }

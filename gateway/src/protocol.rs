@@ -387,7 +387,10 @@ pub struct ControlReport {
     pub requests: u64,
     /// Requests answered with an error.
     pub errors: u64,
-    /// Times accepting failed for want of file descriptors or memory.
+    /// Requests being carried out now (this `status` among them).
+    #[serde(default)]
+    pub under_way: u64,
+    /// Clients that could not be taken for want of file descriptors, memory or threads.
     pub accept_failures: u64,
 }
 

@@ -109,6 +109,36 @@ pub fn check(config: PathBuf, types: &Types) -> ExitCode {
     }
 }
 
+/// Stops the gateway once: when asked, or when dropped (a panic unwinding through `run`
+/// included), so no way out leaves the outputs as the last writer left them.
+struct Stopper {
+    gw: Arc<Gateway>,
+    server: ControlServer,
+    stopped: bool,
+}
+
+impl Stopper {
+    /// No write may race the safe values: outputs refuse writes first (whatever a request
+    /// under way still does), then the server lets requests finish for a bounded time and
+    /// disconnects every client, then the gateway stops.
+    fn stop(&mut self) {
+        if std::mem::replace(&mut self.stopped, true) {
+            return;
+        }
+        self.gw.hold_outputs();
+        self.server.close();
+        for line in self.gw.shutdown() {
+            tracing::info!("{line}");
+        }
+    }
+}
+
+impl Drop for Stopper {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
+
 /// The signals that stop the gateway with its outputs safe: every one whose default is to
 /// end the process and that a process may handle (SIGKILL and SIGSTOP it may not; faults
 /// such as SIGSEGV are not requests to stop).
@@ -161,26 +191,32 @@ pub fn run(config: Option<PathBuf>, socket: Option<PathBuf>, types: &Types) -> E
     let path = socket
         .or_else(|| d.control_socket.as_ref().map(PathBuf::from))
         .unwrap_or_else(crate::socket::default_server_socket);
-    let mut server = match ControlServer::start(gw.clone(), &path, crate::control::Limits::of(&d)) {
+    let server = match ControlServer::start(gw.clone(), &path, crate::control::Limits::of(&d)) {
         Ok(s) => s,
         Err(e) => {
             eprintln!("hwgw: control socket: {e}");
             return ExitCode::FAILURE;
         }
     };
+    // From here every way out of this function — a panic included — stops the gateway.
+    let mut stopper = Stopper {
+        gw: gw.clone(),
+        server,
+        stopped: false,
+    };
     if let Err(e) = gw.start() {
         eprintln!("hwgw: {e}");
-        server.close();
-        for line in gw.shutdown() {
-            tracing::info!("{line}");
-        }
+        stopper.stop();
         return ExitCode::FAILURE;
     }
-    tracing::info!("running; control socket {}", server.path().display());
+    tracing::info!(
+        "running; control socket {}",
+        stopper.server.path().display()
+    );
     let status = format!(
         "running {} components; control socket {}",
         gw.runtime().components().len(),
-        server.path().display()
+        stopper.server.path().display()
     );
     if let Err(e) = sd_notify::notify(&[NotifyState::Ready, NotifyState::Status(&status)]) {
         tracing::warn!("cannot notify systemd: {e}");
@@ -189,7 +225,13 @@ pub fn run(config: Option<PathBuf>, socket: Option<PathBuf>, types: &Types) -> E
     if let Some(interval) = sd_notify::watchdog_enabled() {
         tracing::info!("systemd watchdog every {interval:?}, fed while healthy");
         let (g, s, running) = (gw.clone(), stop_watchdog.clone(), status.clone());
-        std::thread::spawn(move || watchdog(g, interval, s, running));
+        let spawned = std::thread::Builder::new()
+            .name("hwgw-watchdog".into())
+            .spawn(move || watchdog(g, interval, s, running));
+        if let Err(e) = spawned {
+            // Unfed, systemd will stop and restart hwgw: the outputs go safe either way.
+            tracing::error!("cannot start the watchdog thread: {e}");
+        }
     }
     loop {
         match signals.wait() {
@@ -209,12 +251,7 @@ pub fn run(config: Option<PathBuf>, socket: Option<PathBuf>, types: &Types) -> E
         NotifyState::Status("stopping: outputs to safe values"),
     ]);
     stop_watchdog.store(true, std::sync::atomic::Ordering::Release);
-    // No client request may race the safe values: the server waits for the ones under way
-    // and disconnects every client before the gateway stops.
-    server.close();
-    for line in gw.shutdown() {
-        tracing::info!("{line}");
-    }
+    stopper.stop();
     tracing::info!("stopped");
     ExitCode::SUCCESS
 }

@@ -164,8 +164,15 @@ pub fn status(s: &StatusReport) -> String {
     out.push(String::new());
     let c = &s.control;
     out.push(format!(
-        "control socket: {} clients connected ({} since start, {} turned away, {} idle closed), {} requests ({} errors), {} accept failures",
-        c.connected, c.clients, c.refused, c.idle_closed, c.requests, c.errors, c.accept_failures
+        "control socket: {} clients connected ({} since start, {} turned away, {} idle closed), {} requests ({} errors, {} under way), {} accept failures",
+        c.connected,
+        c.clients,
+        c.refused,
+        c.idle_closed,
+        c.requests,
+        c.errors,
+        c.under_way,
+        c.accept_failures
     ));
     out.join("\n")
 }

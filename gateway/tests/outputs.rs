@@ -146,13 +146,16 @@ fn a_failed_writer_sends_its_output_to_the_safe_value() {
     gw.shutdown();
 }
 
-#[test]
-fn a_stop_writes_to_a_modbus_unit_only_what_the_policy_asks() {
+/// A Modbus unit holding setpoint 3.0 (30), limit 7, spare 777, fan on, horn on; hwgw
+/// (`read_back` as given) writes setpoint 4.2, limit 33 and the fan off, then stops.
+/// Returns (setpoint, limit, spare, fan, horn) on the unit afterwards, and the log of the
+/// stop.
+fn modbus_stop(read_back: bool) -> ((u16, u16, u16, bool, bool), Vec<String>) {
     let server = TestServer::start();
     {
         let mut m = server.memory().lock().unwrap();
-        m.holding[12] = 777;
-        m.coils[1] = true;
+        (m.holding[10], m.holding[11], m.holding[12]) = (30, 7, 777);
+        (m.coils[0], m.coils[1]) = (true, true);
     }
     let text = format!(
         r#"
@@ -168,6 +171,7 @@ digital_out = ["fan", "horn"]
 transport = {{ type = "tcp", address = "{}" }}
 poll_ms = 10
 timeout_ms = 200
+read_back = {read_back}
 [[card.modbus.point]]
 table = "holding_registers"
 address = 10
@@ -188,6 +192,7 @@ address = 1
         server.addr()
     );
     let gw = gateway(&text, &Types::builtin());
+    let log = testkit::LogCapture::start();
     gw.start().unwrap();
     let reg = gw.runtime().registry();
     let (ao, dout) = (
@@ -199,22 +204,44 @@ address = 1
     });
     ao.write(0, 4.2).unwrap();
     ao.write(1, 33.0).unwrap();
-    dout.set_bit(0, true).unwrap();
+    dout.set_bit(0, false).unwrap();
     wait_until("the writes on the unit", || {
         let m = server.memory().lock().unwrap();
-        (m.holding[10], m.holding[11], m.coils[0]) == (42, 33, true)
+        (m.holding[10], m.holding[11], m.coils[0]) == (42, 33, false)
     });
     gw.shutdown();
     let m = server.memory().lock().unwrap();
+    let unit = (
+        m.holding[10],
+        m.holding[11],
+        m.holding[12],
+        m.coils[0],
+        m.coils[1],
+    );
+    (unit, log.lines())
+}
+
+#[test]
+fn a_stop_writes_to_a_modbus_unit_only_what_the_policy_asks() {
+    // Without read-back hwgw cannot know the fan was on before it wrote it: it leaves it
+    // as written and says so, rather than "restore" a value the unit never had.
+    let (unit, log) = modbus_stop(false);
     assert_eq!(
-        (
-            m.holding[10],
-            m.holding[11],
-            m.holding[12],
-            m.coils[0],
-            m.coils[1]
-        ),
+        unit,
         (15, 33, 777, false, true),
-        "setpoint safe, limit kept, spare never written, fan back off, horn never written"
+        "setpoint safe, limit kept, spare and horn never written, fan left as written"
+    );
+    assert!(
+        log.iter().any(|l| l.contains(
+            "card \"plc\": output \"fan\" left as hwgw last wrote it: its value before that is unknown"
+        )),
+        "{log:#?}"
+    );
+    // With read-back the outputs are polled: the fan goes back on, as hwgw found it.
+    let (unit, _) = modbus_stop(true);
+    assert_eq!(
+        unit,
+        (15, 33, 777, true, true),
+        "setpoint safe, limit kept, spare and horn never written, fan back on"
     );
 }

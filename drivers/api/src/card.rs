@@ -2,6 +2,7 @@
 
 use device_interface::CardDevices;
 use serde::{Deserialize, Serialize};
+use std::sync::Arc;
 use std::time::Instant;
 
 use crate::names::ChannelNames;
@@ -36,6 +37,44 @@ impl CardStatus {
             bus: bus.into(),
             counters,
         }
+    }
+}
+
+/// What a card's output read-back (`AnalogOut::read_back`, `DigitalOut::check_bit`) shows:
+/// the gateway notes an output's value just before hwgw first writes it, to put it back at
+/// stop under the policy "initial", only when the read-back is the device's own state.
+#[derive(Clone, Default)]
+pub enum ReadBack {
+    /// Only what hwgw wrote (before that, a placeholder): "initial" leaves such outputs as
+    /// they are at stop. The default: a card that cannot tell must not claim more.
+    #[default]
+    Written,
+    /// Always the device's state (the devices are the hardware's registers).
+    Device,
+    /// The device's state whenever this says so (e.g. once the outputs were polled).
+    /// Called from the first write of each output, on the writer's thread: it must keep
+    /// the device interfaces' real-time contract (non-blocking, allocation-free).
+    DeviceWhen(Arc<dyn Fn() -> bool + Send + Sync>),
+}
+
+impl ReadBack {
+    /// True when the read-back shows the device's state now.
+    pub fn is_device(&self) -> bool {
+        match self {
+            ReadBack::Written => false,
+            ReadBack::Device => true,
+            ReadBack::DeviceWhen(now) => now(),
+        }
+    }
+}
+
+impl std::fmt::Debug for ReadBack {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            ReadBack::Written => "Written",
+            ReadBack::Device => "Device",
+            ReadBack::DeviceWhen(_) => "DeviceWhen(..)",
+        })
     }
 }
 
@@ -79,6 +118,12 @@ pub trait Card: Send + Sync {
     /// Its bus status and counters, now. Default: none.
     fn status(&self) -> CardStatus {
         CardStatus::default()
+    }
+
+    /// What the read-back of its outputs shows (see [`ReadBack`]). Called once, at build.
+    /// Default: [`ReadBack::Written`].
+    fn read_back(&self) -> ReadBack {
+        ReadBack::Written
     }
 
     /// At stop, after the gateway wrote the safe values to the card's outputs and while its

@@ -9,6 +9,8 @@
 //! - its bus side: the component(s) that do the bus I/O on rtt activities ([`Card::add_bus`]);
 //! - its status and counters as one serialisable snapshot ([`Card::status`]);
 //! - a one-line summary for the start-up log ([`Card::summary`]);
+//! - whether its output read-back is the device's state ([`Card::read_back`]), so that an
+//!   output can be put back as hwgw found it;
 //! - how the safe values, once written to its outputs, reach the hardware ([`Card::settle`]).
 //!
 //! A [`Server`] is the other plug-in shape: something served beside the cards (hwgw as a
@@ -55,7 +57,7 @@ mod context;
 mod names;
 mod server;
 
-pub use card::{Card, CardStatus, periodic_bus};
+pub use card::{Card, CardStatus, ReadBack, periodic_bus};
 pub use context::{BuildFn, CardContext, CardError};
 pub use names::{ChannelNames, NamesError, is_port_name};
 pub use server::Server;

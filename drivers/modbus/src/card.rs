@@ -297,6 +297,12 @@ impl ModbusCard {
         first_error.map_or(Ok(()), Err)
     }
 
+    /// True once a complete poll succeeded (every mapped input, and the outputs with
+    /// `read_back`, hold the unit's values from then on).
+    pub fn polled(&self) -> bool {
+        self.last_good.load(Ordering::Acquire) != 0
+    }
+
     /// Records a complete, good poll: the inputs are fresh and the unit online.
     pub fn poll_succeeded(&self) {
         self.last_good.store(

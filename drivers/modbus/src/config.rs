@@ -89,7 +89,9 @@ pub struct ModbusConfig {
     #[serde(default = "max_gap")]
     pub max_gap: u16,
     /// Poll the outputs too (coils, holding-register outputs), so read-back shows what the
-    /// device holds rather than what was last written (default false).
+    /// device holds rather than what was last written (default false). Only then can the
+    /// gateway put an output it wrote back as it found it at stop (output policy
+    /// "initial"); without, such outputs are left as last written.
     #[serde(default)]
     pub read_back: bool,
     /// The register map.

@@ -182,12 +182,19 @@ pub struct Map {
     reads: Vec<Read>,
     /// For each read, the indices into `points` it serves.
     read_points: Vec<Vec<usize>>,
+    /// Outputs are polled too.
+    read_back: bool,
 }
 
 impl Map {
     /// Validates `configs`, numbers the channels and plans the reads with `max_gap`.
     pub fn new(configs: &[PointConfig], max_gap: u16) -> Result<Map, MapError> {
         Self::with_read_back(configs, max_gap, false)
+    }
+
+    /// True when the outputs are polled too (their images show the device's values).
+    pub fn reads_outputs(&self) -> bool {
+        self.read_back
     }
 
     /// As [`new`](Self::new); with `read_back`, outputs (coils, holding-register outputs)
@@ -351,6 +358,7 @@ impl Map {
             counts,
             reads,
             read_points,
+            read_back,
         })
     }
 

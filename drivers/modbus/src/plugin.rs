@@ -117,6 +117,17 @@ impl Card for ModbusPlugin {
         Ok(vec![task])
     }
 
+    fn read_back(&self) -> driver_api::ReadBack {
+        // With `read_back` the outputs are polled: after a good poll their images are the
+        // unit's registers. Without, they only hold what hwgw wrote.
+        if self.card.map().reads_outputs() {
+            let card = self.card.clone();
+            driver_api::ReadBack::DeviceWhen(Arc::new(move || card.polled()))
+        } else {
+            driver_api::ReadBack::Written
+        }
+    }
+
     fn summary(&self) -> String {
         let reads = self.card.map().reads();
         format!(

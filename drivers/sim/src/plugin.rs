@@ -5,7 +5,7 @@
 use crate::card::SimCard;
 use crate::config::SimConfig;
 use device_interface::{AnalogIn, AnalogOut, CardDevices, DigitalIn, DigitalOut};
-use driver_api::{Card, CardContext, CardError};
+use driver_api::{Card, CardContext, CardError, ReadBack};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -42,6 +42,11 @@ impl Card for SimPlugin {
         let card = self.card.clone();
         let step = move || card.step();
         driver_api::periodic_bus(runtime, name, self.period, self.thread.clone(), step)
+    }
+
+    fn read_back(&self) -> ReadBack {
+        // The simulation's outputs are its state.
+        ReadBack::Device
     }
 
     fn summary(&self) -> String {

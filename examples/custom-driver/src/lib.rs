@@ -245,6 +245,11 @@ impl Card for LoopbackCard {
         driver_api::periodic_bus(runtime, name, self.period, self.thread.clone(), step)
     }
 
+    fn read_back(&self) -> driver_api::ReadBack {
+        // The loopback's outputs are its whole state.
+        driver_api::ReadBack::Device
+    }
+
     fn summary(&self) -> String {
         format!(
             "{} analog and {} digital channels looped back every {:?}",

@@ -9,19 +9,23 @@
 //!   connected to it goes to Exception or FatalError;
 //! - `"keep"`: left as it is at stop;
 //! - by default (`default = "initial"`): an output hwgw wrote goes back to the value it had
-//!   when the gateway started; one it never wrote is not touched (`default = "keep"`
-//!   leaves them all).
+//!   just before hwgw first wrote it — when the card's read-back is the device's state
+//!   ([`ReadBack`]); otherwise it is left as it is, and the log says why. One hwgw never
+//!   wrote is not touched (`default = "keep"` leaves them all).
 
-use device_interface::{AnalogOut, Device, DeviceError, DigitalOut, Health, Scale};
+mod guard;
+
+pub use guard::{GuardedAnalogOut, GuardedDigitalOut, Hold};
+
+use device_interface::{AnalogOut, DeviceError, DigitalOut};
+use driver_api::ReadBack;
+use guard::Track;
 use rtt::TaskState;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::Duration;
-
-/// Why guarded outputs refuse writes during a stop.
-const STOPPING: &str = "the gateway is stopping: outputs go to their safe values";
 
 /// The `[card.outputs]` section.
 #[derive(Debug, Clone, Default, PartialEq, Deserialize)]
@@ -45,7 +49,8 @@ pub struct OutputsConfig {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum DefaultPolicy {
-    /// Back to their value at start, if hwgw wrote them; untouched otherwise.
+    /// Back to their value before hwgw first wrote them (where the card can tell it);
+    /// untouched if hwgw never wrote them.
     #[default]
     Initial,
     /// Left as they are.
@@ -57,143 +62,11 @@ pub enum DefaultPolicy {
 pub enum Policy {
     /// Driven to this value (analog, physical units; digital, 0 or 1).
     Safe(f64),
-    /// Back to its value at start, if hwgw wrote it.
+    /// Back to its value before hwgw first wrote it (if hwgw wrote it, and the card could
+    /// tell that value).
     Initial,
     /// Left as it is.
     Keep,
-}
-
-/// Per output: written at all, and when last (ns on the monotonic clock).
-struct Track {
-    written: Vec<AtomicBool>,
-    last_ns: Vec<AtomicU64>,
-}
-
-impl Track {
-    fn new(n: u32) -> Track {
-        Track {
-            written: (0..n).map(|_| AtomicBool::new(false)).collect(),
-            last_ns: (0..n).map(|_| AtomicU64::new(0)).collect(),
-        }
-    }
-
-    fn mark(&self, i: u32) {
-        use rtt::time::{Clock, MonotonicClock};
-        if let (Some(w), Some(t)) = (self.written.get(i as usize), self.last_ns.get(i as usize)) {
-            t.store(MonotonicClock.now().as_nanos(), Ordering::Release);
-            w.store(true, Ordering::Release);
-        }
-    }
-
-    fn written(&self, i: u32) -> bool {
-        self.written
-            .get(i as usize)
-            .is_some_and(|w| w.load(Ordering::Acquire))
-    }
-
-    fn last(&self, i: u32) -> u64 {
-        self.last_ns
-            .get(i as usize)
-            .map_or(0, |t| t.load(Ordering::Acquire))
-    }
-}
-
-/// A card's analog outputs as the registry hands them out: writes go through to the card,
-/// are noted, and are refused once the gateway holds its outputs.
-pub struct GuardedAnalogOut {
-    inner: Arc<dyn AnalogOut>,
-    held: Arc<AtomicBool>,
-    track: Track,
-}
-
-impl GuardedAnalogOut {
-    fn check(&self) -> Result<(), DeviceError> {
-        if self.held.load(Ordering::Acquire) {
-            return Err(DeviceError::Held { reason: STOPPING });
-        }
-        Ok(())
-    }
-}
-
-impl Device for GuardedAnalogOut {
-    fn health(&self) -> Health {
-        self.inner.health()
-    }
-}
-
-impl AnalogOut for GuardedAnalogOut {
-    fn channel_count(&self) -> u32 {
-        self.inner.channel_count()
-    }
-    fn scale(&self, channel: u32) -> Result<Scale, DeviceError> {
-        self.inner.scale(channel)
-    }
-    fn write_raw(&self, channel: u32, raw: i64) -> Result<(), DeviceError> {
-        self.check()?;
-        self.inner.write_raw(channel, raw)?;
-        self.track.mark(channel);
-        Ok(())
-    }
-    fn write(&self, channel: u32, value: f64) -> Result<(), DeviceError> {
-        self.check()?;
-        self.inner.write(channel, value)?;
-        self.track.mark(channel);
-        Ok(())
-    }
-    fn read_back_raw(&self, channel: u32) -> Result<i64, DeviceError> {
-        self.inner.read_back_raw(channel)
-    }
-    fn read_back(&self, channel: u32) -> Result<f64, DeviceError> {
-        self.inner.read_back(channel)
-    }
-}
-
-/// A card's digital outputs as the registry hands them out (see [`GuardedAnalogOut`]).
-pub struct GuardedDigitalOut {
-    inner: Arc<dyn DigitalOut>,
-    held: Arc<AtomicBool>,
-    track: Track,
-}
-
-impl GuardedDigitalOut {
-    fn check(&self) -> Result<(), DeviceError> {
-        if self.held.load(Ordering::Acquire) {
-            return Err(DeviceError::Held { reason: STOPPING });
-        }
-        Ok(())
-    }
-}
-
-impl Device for GuardedDigitalOut {
-    fn health(&self) -> Health {
-        self.inner.health()
-    }
-}
-
-impl DigitalOut for GuardedDigitalOut {
-    fn output_count(&self) -> u32 {
-        self.inner.output_count()
-    }
-    fn set_bit(&self, bit: u32, value: bool) -> Result<(), DeviceError> {
-        self.check()?;
-        self.inner.set_bit(bit, value)?;
-        self.track.mark(bit);
-        Ok(())
-    }
-    fn check_bit(&self, bit: u32) -> Result<bool, DeviceError> {
-        self.inner.check_bit(bit)
-    }
-    fn set_sequence(&self, start: u32, stop: u32, value: u64) -> Result<(), DeviceError> {
-        self.check()?;
-        self.inner.set_sequence(start, stop, value)?;
-        for b in start..=stop {
-            self.track.mark(b);
-        }
-        Ok(())
-    }
-    fn check_sequence(&self, start: u32, stop: u32) -> Result<u64, DeviceError> {
-        self.inner.check_sequence(start, stop)
-    }
 }
 
 /// One output's policy and what it needs to apply it.
@@ -201,8 +74,6 @@ struct Output {
     /// Its port name.
     port: String,
     policy: Policy,
-    /// Its value when the gateway started.
-    initial: f64,
     /// Components writing it (through a connection to its port).
     writers: Vec<String>,
     /// True while a watchdog trip holds it at its safe value (until the next write).
@@ -240,6 +111,16 @@ pub struct OutputSpec<'a> {
     pub analog_ports: Vec<String>,
     /// See `analog_ports`.
     pub digital_ports: Vec<String>,
+}
+
+/// A card's output devices, as the card hands them out.
+pub struct OutputDevices {
+    /// Its analog outputs.
+    pub analog: Option<Arc<dyn AnalogOut>>,
+    /// Its digital outputs.
+    pub digital: Option<Arc<dyn DigitalOut>>,
+    /// What their read-back shows ([`driver_api::Card::read_back`]).
+    pub read_back: ReadBack,
 }
 
 /// A policy problem: the key under the card and what is wrong.
@@ -321,7 +202,7 @@ fn analog_outputs(
                     format!("{x}: not a safe value for analog output {port:?}: {e}"),
                 ));
             }
-            Output::new(port, policy, ao.read_back(ch).unwrap_or(0.0))
+            Output::new(port, policy)
         })
         .collect()
 }
@@ -359,49 +240,35 @@ fn digital_outputs(
                 "true or false",
                 problems,
             );
-            Output::new(
-                port,
-                policy,
-                f64::from(u8::from(d.check_bit(b).unwrap_or(false))),
-            )
+            Output::new(port, policy)
         })
         .collect()
 }
 
 impl CardOutputs {
-    /// Guards `analog` and `digital` (the card's output devices) and settles each output's
-    /// policy; `held` is the gateway's stop flag. Every problem names its key.
+    /// Guards the card's output `devices` and settles each output's policy; `hold` is the
+    /// gateway's stop gate. Every problem names its key.
     pub fn new(
         card: &str,
-        analog: Option<Arc<dyn AnalogOut>>,
-        digital: Option<Arc<dyn DigitalOut>>,
+        devices: OutputDevices,
         spec: &OutputSpec<'_>,
-        held: &Arc<AtomicBool>,
+        hold: &Arc<Hold>,
     ) -> Result<CardOutputs, Vec<PolicyError>> {
+        let OutputDevices {
+            analog,
+            digital,
+            read_back,
+        } = devices;
         let mut problems = Vec::new();
         let analog = analog.map(|ao| {
             let outputs = analog_outputs(&*ao, spec, &mut problems);
-            let track = Track::new(ao.channel_count());
-            (
-                Arc::new(GuardedAnalogOut {
-                    inner: ao,
-                    held: held.clone(),
-                    track,
-                }),
-                outputs,
-            )
+            let guard = GuardedAnalogOut::new(ao, hold, read_back.clone());
+            (Arc::new(guard), outputs)
         });
         let digital = digital.map(|d| {
             let outputs = digital_outputs(&*d, spec, &mut problems);
-            let track = Track::new(d.output_count());
-            (
-                Arc::new(GuardedDigitalOut {
-                    inner: d,
-                    held: held.clone(),
-                    track,
-                }),
-                outputs,
-            )
+            let guard = GuardedDigitalOut::new(d, hold, read_back.clone());
+            (Arc::new(guard), outputs)
         });
         let ports: Vec<&str> = analog
             .iter()
@@ -502,7 +369,7 @@ impl CardOutputs {
     pub fn drive_safe(&self) {
         if let Some((g, outs)) = &self.analog {
             for (ch, o) in outs.iter().enumerate() {
-                if let Some(v) = o.at_stop(g.track.written(ch as u32))
+                if let Some(v) = self.at_stop(o, &g.track, ch as u32)
                     && let Err(e) = g.inner.write(ch as u32, v)
                 {
                     tracing::error!(
@@ -515,7 +382,7 @@ impl CardOutputs {
         }
         if let Some((g, outs)) = &self.digital {
             for (b, o) in outs.iter().enumerate() {
-                if let Some(v) = o.at_stop(g.track.written(b as u32))
+                if let Some(v) = self.at_stop(o, &g.track, b as u32)
                     && let Err(e) = g.inner.set_bit(b as u32, v != 0.0)
                 {
                     tracing::error!(
@@ -606,39 +473,50 @@ impl CardOutputs {
         }
     }
 
+    /// The value to drive output `i` (policy `o`, noted in `track`) to at stop, if any.
+    fn at_stop(&self, o: &Output, track: &Track, i: u32) -> Option<f64> {
+        match o.policy {
+            Policy::Safe(v) => Some(v),
+            Policy::Initial if track.written(i) => {
+                let initial = track.initial(i);
+                if initial.is_none() {
+                    tracing::warn!(
+                        "card {:?}: output {:?} left as hwgw last wrote it: its value before \
+                         that is unknown (the card's read-back did not show the device's \
+                         state); give it a safe value or \"keep\"",
+                        self.card,
+                        o.port
+                    );
+                }
+                initial
+            }
+            Policy::Initial | Policy::Keep => None,
+        }
+    }
+
     /// Counters for `hwgw status`.
     pub fn report(&self) -> OutputReport {
-        let count = |t: &Track| {
-            t.written
-                .iter()
-                .filter(|w| w.load(Ordering::Relaxed))
-                .count() as u64
-        };
         OutputReport {
-            written: self.analog.as_ref().map_or(0, |a| count(&a.0.track))
-                + self.digital.as_ref().map_or(0, |d| count(&d.0.track)),
+            written: self
+                .analog
+                .as_ref()
+                .map_or(0, |a| a.0.track.count_written())
+                + self
+                    .digital
+                    .as_ref()
+                    .map_or(0, |d| d.0.track.count_written()),
             watchdog_trips: self.trips.load(Ordering::Relaxed),
         }
     }
 }
 
 impl Output {
-    fn new(port: String, policy: Policy, initial: f64) -> Output {
+    fn new(port: String, policy: Policy) -> Output {
         Output {
             port,
             policy,
-            initial,
             writers: Vec::new(),
             tripped: AtomicBool::new(false),
-        }
-    }
-
-    /// The value to drive at stop, if any.
-    fn at_stop(&self, written: bool) -> Option<f64> {
-        match self.policy {
-            Policy::Safe(v) => Some(v),
-            Policy::Initial if written => Some(self.initial),
-            Policy::Initial | Policy::Keep => None,
         }
     }
 }

@@ -9,11 +9,13 @@
 //! - [`fixtures`]: shared test data (a Modbus register map);
 //! - [`rig`]: kernel rig presets (vcan);
 //! - [`service`]: an `hwgw` binary running a deployment on a socket of its own;
+//! - [`logs`]: what a gateway built in the test's own process logs, captured;
 //! - [`layout`]: checks of the source tree's shape (module cycles, function lengths).
 
 pub mod candump;
 pub mod fixtures;
 pub mod layout;
+pub mod logs;
 pub mod mbpoll;
 pub mod peers;
 pub mod rig;
@@ -21,5 +23,6 @@ pub mod service;
 pub mod wait;
 
 pub use candump::Candump;
+pub use logs::LogCapture;
 pub use service::{Service, TempDir};
 pub use wait::{wait_for, wait_until};
