@@ -255,8 +255,7 @@ pub fn check_owner(path: &Path) -> Result<(), SocketError> {
         Err(_) => return Ok(()),
     };
     let owner = m.uid();
-    let me = Uid::effective().as_raw();
-    if owner == me || owner == 0 || service_uid().is_some_and(|u| u.as_raw() == owner) {
+    if trusted(owner) {
         Ok(())
     } else {
         Err(SocketError::Untrusted {
@@ -264,6 +263,11 @@ pub fn check_owner(path: &Path) -> Result<(), SocketError> {
             owner,
         })
     }
+}
+
+/// True for the users a client talks to: itself, root and the service user.
+fn trusted(uid: u32) -> bool {
+    uid == Uid::effective().as_raw() || uid == 0 || service_uid().is_some_and(|u| u.as_raw() == uid)
 }
 
 /// A client's check once connected: the process serving `conn` (at `path`) runs as this
@@ -276,8 +280,7 @@ pub fn check_peer(path: &Path, conn: &UnixStream) -> Result<(), SocketError> {
             source: e.into(),
         })?;
     let uid = cred.uid();
-    let me = Uid::effective().as_raw();
-    if uid == me || uid == 0 || service_uid().is_some_and(|u| u.as_raw() == uid) {
+    if trusted(uid) {
         Ok(())
     } else {
         Err(SocketError::UntrustedPeer {
