@@ -138,6 +138,7 @@ pub struct Rig {
     cpus: u32,
     timeout: Duration,
     systemd: bool,
+    gpio_sim: bool,
 }
 
 impl Default for Rig {
@@ -171,6 +172,7 @@ impl Rig {
             cpus: 1,
             timeout,
             systemd: false,
+            gpio_sim: false,
         }
     }
 
@@ -181,6 +183,16 @@ impl Rig {
         self.systemd = true;
         self.tool("/lib/systemd/systemd", "systemd")
             .tool("udevadm", "udev")
+    }
+
+    /// Gives the guest the kernel's GPIO simulator: the gpio-sim module (built once for
+    /// the rig's kernel, see [`prepare::gpio_sim`]) loaded, configfs mounted at
+    /// `/sys/kernel/config`, and libgpiod's tools (Debian `gpiod`) on the host.
+    pub fn gpio_sim(mut self) -> Rig {
+        self.gpio_sim = true;
+        self.module("gpio-sim")
+            .setup("mountpoint -q /sys/kernel/config || mount -t configfs none /sys/kernel/config")
+            .tool("gpioinfo", "gpiod")
     }
 
     /// Loads `module` (with its dependencies) in the guest before the command runs.
@@ -226,7 +238,11 @@ impl Rig {
             .iter()
             .map(|(c, p)| (c.as_str(), p.as_str()))
             .collect();
-        prepare::kernel(&rig_dir(), &tools)
+        let kernel = prepare::kernel(&rig_dir(), &tools)?;
+        if self.gpio_sim {
+            prepare::gpio_sim(&rig_dir(), &kernel)?;
+        }
+        Ok(kernel)
     }
 
     /// Boots the guest, runs `program` with `args` in the current directory with this

@@ -5,6 +5,7 @@
 //! cargo run -p kernel-rig -- shell [MODULE…]    # a root shell in the guest
 //! cargo run -p kernel-rig -- run [MODULE…] -- CMD [ARG…]
 //! cargo run -p kernel-rig -- run --systemd vcan -- systemctl status  # systemd as PID 1
+//! cargo run -p kernel-rig -- run --gpio-sim -- gpiodetect             # gpio-sim loaded
 //! ```
 
 use kernel_rig::Rig;
@@ -14,7 +15,7 @@ fn usage() -> ExitCode {
     eprintln!(
         "usage: kernel-rig prepare | shell [MODULE...] | run [MODULE...] -- COMMAND [ARG...]\n\
          (add --kvaser for two kvaser_pci CAN controllers on one emulated bus, --systemd for\n\
-         systemd as the guest's PID 1)"
+         systemd as the guest's PID 1, --gpio-sim for the kernel's GPIO simulator)"
     );
     ExitCode::from(2)
 }
@@ -33,6 +34,7 @@ fn main() -> ExitCode {
         rig = match o.as_str() {
             "--kvaser" => rig.qemu_args(&kernel_rig::KVASER_PAIR),
             "--systemd" => rig.systemd(),
+            "--gpio-sim" => rig.gpio_sim(),
             m => rig.module(m),
         };
     }

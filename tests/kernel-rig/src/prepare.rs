@@ -283,3 +283,206 @@ fn build_initramfs(root: &Path, version: &str, out: &Path) -> Result<(), RigErro
     std::fs::write(&tmp, a.finish()).map_err(|e| RigError::io(&tmp, e))?;
     std::fs::rename(&tmp, out).map_err(|e| RigError::io(out, e))
 }
+
+/// Host commands building an out-of-tree module takes, with their Debian packages.
+pub const MODULE_BUILD_TOOLS: &[(&str, &str)] = &[
+    ("make", "make"),
+    ("gcc", "gcc"),
+    ("pahole", "dwarves"),
+    ("xz", "xz-utils"),
+    ("tar", "tar"),
+];
+
+/// Where [`gpio_sim`] puts the module in the guest kernel's tree.
+fn gpio_sim_path(kernel: &Kernel) -> PathBuf {
+    kernel
+        .root
+        .join("lib/modules")
+        .join(&kernel.version)
+        .join("extra/gpio-sim.ko")
+}
+
+/// Builds the kernel's gpio-sim module for the guest kernel, once (Debian's kernel has
+/// gpiolib and the character device but not gpio-sim, nor the irq_sim it needs): fetches
+/// the kernel's headers, kbuild and source packages of the same version, builds
+/// `drivers/gpio/gpio-sim.c` with `kernel/irq/irq_sim.c` into one module (irq_sim
+/// changed to use an exported call), installs it under `extra/` and runs depmod, so
+/// `modprobe gpio-sim` loads it in the guest. About 170 MB of downloads and half a minute.
+pub fn gpio_sim(dir: &Path, kernel: &Kernel) -> Result<(), RigError> {
+    let ko = gpio_sim_path(kernel);
+    if ko.is_file() {
+        return Ok(());
+    }
+    host_tools(MODULE_BUILD_TOOLS)?;
+    let lock_path = dir.join("prepare.lock");
+    let lock = std::fs::File::create(&lock_path).map_err(|e| RigError::io(&lock_path, e))?;
+    lock.lock().map_err(|e| RigError::io(&lock_path, e))?;
+    if ko.is_file() {
+        return Ok(());
+    }
+    eprintln!(
+        "kernel-rig: building gpio-sim for {} (once; kept in {})",
+        kernel.version,
+        dir.display()
+    );
+    let work = dir.join("gpio-sim-build");
+    let _ = std::fs::remove_dir_all(&work);
+    let x = work.join("x");
+    let mods = work.join("mod");
+    for d in [&work, &x, &mods] {
+        std::fs::create_dir_all(d).map_err(|e| RigError::io(d, e))?;
+    }
+    let result = build_gpio_sim(kernel, &work, &x, &mods, &ko);
+    let _ = std::fs::remove_dir_all(&work);
+    result
+}
+
+fn build_gpio_sim(
+    kernel: &Kernel,
+    work: &Path,
+    x: &Path,
+    mods: &Path,
+    ko: &Path,
+) -> Result<(), RigError> {
+    let version = &kernel.version;
+    let abi = version.strip_suffix("-amd64").ok_or_else(|| {
+        RigError::Missing(format!(
+            "{version}: not an -amd64 kernel; cannot name its headers"
+        ))
+    })?;
+    let headers = format!("linux-headers-{version}");
+    run(Command::new("apt-get")
+        .args([
+            "download",
+            "-q",
+            &headers,
+            &format!("linux-headers-{abi}-common"),
+        ])
+        .arg(format!("linux-kbuild-{abi}"))
+        .current_dir(work))?;
+    let debs = |w: &Path| -> Result<Vec<PathBuf>, RigError> {
+        Ok(std::fs::read_dir(w)
+            .map_err(|e| RigError::io(w, e))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|x| x == "deb"))
+            .collect())
+    };
+    let header_deb = debs(work)?
+        .into_iter()
+        .find(|p| p.to_string_lossy().contains(&format!("/{headers}_")))
+        .ok_or_else(|| RigError::Missing(format!("apt-get download {headers}: no .deb")))?;
+    // The source package of the same Debian version as the headers.
+    let deb_version = run(Command::new("dpkg-deb")
+        .args(["-f"])
+        .arg(&header_deb)
+        .arg("Version"))?;
+    run(Command::new("apt-get")
+        .args(["download", "-q"])
+        .arg(format!("linux-source-6.12={}", deb_version.trim()))
+        .current_dir(work))?;
+    let mut needed = Vec::new();
+    for deb in debs(work)? {
+        run(Command::new("dpkg-deb").arg("-x").arg(&deb).arg(x))?;
+        let depends = run(Command::new("dpkg-deb").arg("-f").arg(&deb).arg("Depends"))?;
+        needed.extend(libraries_needed(&depends));
+    }
+    // What the kbuild tools link to and the compiler the headers name (not the kernel
+    // packages themselves: those stay extracted here, never installed).
+    needed.sort();
+    needed.dedup();
+    let missing: Vec<&str> = needed
+        .iter()
+        .map(String::as_str)
+        .filter(|p| !installed(p))
+        .collect();
+    if !missing.is_empty() {
+        apt_install(&missing)?;
+    }
+    // The headers' Makefile includes the -common tree by its installed path.
+    let hdir = x.join("usr/src").join(&headers);
+    let makefile = hdir.join("Makefile");
+    let text = std::fs::read_to_string(&makefile).map_err(|e| RigError::io(&makefile, e))?;
+    let text = text.replace(
+        "include /usr/src/",
+        &format!("include {}/usr/src/", x.display()),
+    );
+    std::fs::write(&makefile, text).map_err(|e| RigError::io(&makefile, e))?;
+    let tarball = x.join("usr/src/linux-source-6.12.tar.xz");
+    run(Command::new("tar")
+        .arg("-xJf")
+        .arg(&tarball)
+        .args([
+            "linux-source-6.12/drivers/gpio/gpio-sim.c",
+            "linux-source-6.12/kernel/irq/irq_sim.c",
+        ])
+        .current_dir(work))?;
+    let src = work.join("linux-source-6.12");
+    let read = |from: &str| -> Result<String, RigError> {
+        let p = src.join(from);
+        std::fs::read_to_string(&p).map_err(|e| RigError::io(&p, e))
+    };
+    let main = read("drivers/gpio/gpio-sim.c")?;
+    let irq = read("kernel/irq/irq_sim.c")?;
+    // irq_to_desc is not exported to modules: handle the interrupt by domain instead.
+    let old = "irqnum = irq_find_mapping(work_ctx->domain, offset);\n\t\thandle_simple_irq(irq_to_desc(irqnum));";
+    if !irq.contains(old) {
+        return Err(RigError::Missing(format!(
+            "{}: the irq_sim.c of this kernel source differs from the one the rig knows \
+             (no irq_find_mapping + handle_simple_irq(irq_to_desc(...)) to replace)",
+            src.display()
+        )));
+    }
+    let irq = irq
+        .replace(old, "generic_handle_domain_irq(work_ctx->domain, offset);")
+        .replace(
+            "\tunsigned int offset = 0;\n\tint irqnum;\n",
+            "\tunsigned int offset = 0;\n",
+        );
+    for (name, text) in [
+        ("gpio-sim-main.c", main.as_str()),
+        ("irq_sim.c", irq.as_str()),
+        (
+            "Kbuild",
+            "obj-m := gpio-sim.o\ngpio-sim-y := gpio-sim-main.o irq_sim.o\n",
+        ),
+    ] {
+        let p = mods.join(name);
+        std::fs::write(&p, text).map_err(|e| RigError::io(&p, e))?;
+    }
+    run(Command::new("make")
+        .arg("-C")
+        .arg(&hdir)
+        .arg(format!("M={}", mods.display()))
+        .arg("modules"))?;
+    let built = mods.join("gpio-sim.ko");
+    let dir = ko.parent().unwrap_or(Path::new("."));
+    std::fs::create_dir_all(dir).map_err(|e| RigError::io(dir, e))?;
+    let tmp = ko.with_extension("tmp");
+    std::fs::copy(&built, &tmp).map_err(|e| RigError::io(&built, e))?;
+    std::fs::rename(&tmp, ko).map_err(|e| RigError::io(ko, e))?;
+    run(Command::new("depmod")
+        .arg("-b")
+        .arg(&kernel.root)
+        .arg(version))?;
+    Ok(())
+}
+
+/// The packages of a Depends field (first of each alternative, no versions), but the
+/// kernel's own packages.
+fn libraries_needed(depends: &str) -> Vec<String> {
+    depends
+        .split(',')
+        .filter_map(|d| d.split('|').next())
+        .filter_map(|d| d.split_whitespace().next())
+        .filter(|p| !p.is_empty() && !p.starts_with("linux-"))
+        .map(str::to_string)
+        .collect()
+}
+
+/// True when Debian package `package` is installed.
+fn installed(package: &str) -> bool {
+    Command::new("dpkg-query")
+        .args(["-W", "-f=${Status}", package])
+        .output()
+        .is_ok_and(|o| String::from_utf8_lossy(&o.stdout).contains("install ok installed"))
+}

@@ -7,6 +7,7 @@
 //! - [`candump`]: a CAN capture that is listening before it returns;
 //! - [`mbpoll`]: the libmodbus master as a one-shot check;
 //! - [`fixtures`]: shared test data (a Modbus register map);
+//! - [`gpiosim`]: chips of the kernel's GPIO simulator, driven from outside;
 //! - [`rig`]: kernel rig presets (vcan);
 //! - [`service`]: an `hwgw` binary running a deployment on a socket of its own;
 //! - [`logs`]: what a gateway built in the test's own process logs, captured;
@@ -14,6 +15,7 @@
 
 pub mod candump;
 pub mod fixtures;
+pub mod gpiosim;
 pub mod layout;
 pub mod logs;
 pub mod mbpoll;
@@ -23,6 +25,7 @@ pub mod service;
 pub mod wait;
 
 pub use candump::Candump;
+pub use gpiosim::SimChip;
 pub use logs::LogCapture;
 pub use service::{Service, TempDir};
 pub use wait::{wait_for, wait_until};

@@ -1,0 +1,102 @@
+//! Chips of the kernel's GPIO simulator (gpio-sim, configured through configfs), for tests
+//! in the kernel rig's guest ([`kernel_rig::Rig::gpio_sim`]): made live with named lines,
+//! inputs driven from outside by their simulated pull, outputs read back.
+
+use std::io;
+use std::path::{Path, PathBuf};
+
+const CONFIGFS: &str = "/sys/kernel/config/gpio-sim";
+
+/// A live gpio-sim chip of one bank; taken down when dropped.
+#[derive(Debug)]
+pub struct SimChip {
+    dir: PathBuf,
+    lines: u32,
+    names: Vec<u32>,
+    /// The platform device (`gpio-sim.0`).
+    pub dev_name: String,
+    /// The GPIO chip (`gpiochip1`): its character device is `/dev/<chip_name>`.
+    pub chip_name: String,
+    /// The chip's label (the `label` given).
+    pub label: String,
+}
+
+fn write(path: &Path, value: &str) -> io::Result<()> {
+    std::fs::write(path, value)
+        .map_err(|e| io::Error::new(e.kind(), format!("{}: {e}", path.display())))
+}
+
+fn read(path: &Path) -> io::Result<String> {
+    std::fs::read_to_string(path)
+        .map(|s| s.trim().to_string())
+        .map_err(|e| io::Error::new(e.kind(), format!("{}: {e}", path.display())))
+}
+
+impl SimChip {
+    /// A chip labelled `label` with `lines` lines, the `names` given (offset, name).
+    pub fn new(label: &str, lines: u32, names: &[(u32, &str)]) -> io::Result<SimChip> {
+        let dir = Path::new(CONFIGFS).join(label);
+        let bank = dir.join("bank0");
+        std::fs::create_dir_all(&bank)
+            .map_err(|e| io::Error::new(e.kind(), format!("{}: {e}", bank.display())))?;
+        write(&bank.join("num_lines"), &lines.to_string())?;
+        write(&bank.join("label"), label)?;
+        for (offset, name) in names {
+            let line = bank.join(format!("line{offset}"));
+            std::fs::create_dir_all(&line)?;
+            write(&line.join("name"), name)?;
+        }
+        write(&dir.join("live"), "1")?;
+        Ok(SimChip {
+            dev_name: read(&dir.join("dev_name"))?,
+            chip_name: read(&bank.join("chip_name"))?,
+            label: label.to_string(),
+            names: names.iter().map(|(o, _)| *o).collect(),
+            lines,
+            dir,
+        })
+    }
+
+    /// The chip's character device.
+    pub fn path(&self) -> PathBuf {
+        Path::new("/dev").join(&self.chip_name)
+    }
+
+    fn attr(&self, offset: u32, what: &str) -> PathBuf {
+        Path::new("/sys/devices/platform")
+            .join(&self.dev_name)
+            .join(&self.chip_name)
+            .join(format!("sim_gpio{offset}"))
+            .join(what)
+    }
+
+    /// Drives input `offset` from outside: pulled up (high) or down (low).
+    pub fn pull(&self, offset: u32, high: bool) -> io::Result<()> {
+        write(
+            &self.attr(offset, "pull"),
+            if high { "pull-up" } else { "pull-down" },
+        )
+    }
+
+    /// The level of line `offset` as the chip has it (an output's driven level).
+    pub fn value(&self, offset: u32) -> io::Result<bool> {
+        Ok(read(&self.attr(offset, "value"))? == "1")
+    }
+
+    /// The number of lines.
+    pub fn lines(&self) -> u32 {
+        self.lines
+    }
+}
+
+impl Drop for SimChip {
+    fn drop(&mut self) {
+        let _ = std::fs::write(self.dir.join("live"), "0");
+        let bank = self.dir.join("bank0");
+        for o in &self.names {
+            let _ = std::fs::remove_dir(bank.join(format!("line{o}")));
+        }
+        let _ = std::fs::remove_dir(&bank);
+        let _ = std::fs::remove_dir(&self.dir);
+    }
+}
