@@ -1,0 +1,349 @@
+//! A GPIO card's devices: its input lines as DigitalIn bits, its output lines as
+//! DigitalOut bits, its quadrature encoders as Encoder devices.
+//!
+//! The card is built from resolved lines (nothing requested: `hwgw check` must not drive an
+//! output) and requests them once, at [`GpioBus::open`](crate::bus::GpioBus::open), one request per chip: output
+//! lines at their initial value from the request on, inputs with their bias, polarity,
+//! debounce period and edge detection. Until then, and after its chip went away, every
+//! device call fails with [`DeviceError::Offline`].
+//!
+//! Real-time paths: `read_bit` of an input with edge detection on both edges answers from
+//! the line's state the edge events keep (no ioctl); other inputs are one
+//! `GPIO_V2_LINE_GET_VALUES` ioctl; `set_bit` and `set_sequence` over the lines of one chip
+//! are one `GPIO_V2_LINE_SET_VALUES` ioctl. None allocates but on an error path.
+
+use crate::chips::LineId;
+use crate::config::{Bias, Drive, Edges};
+use device_interface::bits::BitSpan;
+use device_interface::encoder::{CardEncoder, EncoderCounter, EncoderHost};
+use device_interface::time::{Clock, Timestamp};
+use device_interface::{CardDevices, Device, DeviceError, DigitalIn, DigitalOut, Health, Status};
+use gpiocdev_uapi::v2::{LineValues, get_line_values, set_line_values};
+use std::fs::File;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, OnceLock};
+
+/// How one line is requested.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Setup {
+    /// An input.
+    Input {
+        /// Bias.
+        bias: Bias,
+        /// Active low.
+        active_low: bool,
+        /// Debounce period, µs.
+        debounce_us: u32,
+        /// Edge detection.
+        edges: Edges,
+    },
+    /// An output.
+    Output {
+        /// Drive.
+        drive: Drive,
+        /// Bias.
+        bias: Bias,
+        /// Active low.
+        active_low: bool,
+        /// Logical value from the request on.
+        initial: bool,
+    },
+}
+
+/// A line of the card: where it is and how it is requested.
+#[derive(Debug, Clone)]
+pub struct Line {
+    /// The line.
+    pub id: LineId,
+    /// Its request.
+    pub setup: Setup,
+}
+
+/// Which line of the card (index into its chip's request) an input, output or encoder
+/// uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct Slot {
+    /// Index of the chip among the card's chips.
+    pub chip: usize,
+    /// Index of the line in the chip's request (its bit in line values).
+    pub bit: u32,
+}
+
+/// The lines of one chip, in request order.
+#[derive(Debug)]
+pub(crate) struct ChipLines {
+    pub lines: Vec<Line>,
+}
+
+/// A chip's request, once made.
+pub(crate) struct Opened {
+    /// The request (owns the line fd; kept so the lines stay requested).
+    pub _request: gpiocdev::Request,
+    /// The same fd, non-blocking, for allocation-free ioctls and reads.
+    pub file: File,
+}
+
+/// Counters of a card.
+#[derive(Debug, Default)]
+pub(crate) struct Counters {
+    pub events: AtomicU64,
+    pub lost_events: AtomicU64,
+    pub encoder_errors: AtomicU64,
+    pub index_pulses: AtomicU64,
+    pub read_errors: AtomicU64,
+    pub write_errors: AtomicU64,
+}
+
+/// A snapshot of a card's counters, for `hwgw status`.
+#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize)]
+pub struct GpioCounters {
+    /// Whether its lines are requested and its chips present.
+    pub online: bool,
+    /// Edge events read.
+    pub events: u64,
+    /// Edge events the kernel dropped (gaps in the lines' sequence numbers: a full event
+    /// buffer) or that the card could not read.
+    pub lost_events: u64,
+    /// Impossible quadrature transitions (an encoder lost edges).
+    pub encoder_errors: u64,
+    /// Index pulses seen.
+    pub index_pulses: u64,
+    /// Failed line reads.
+    pub read_errors: u64,
+    /// Failed line writes.
+    pub write_errors: u64,
+}
+
+/// One encoder's lines and count.
+pub(crate) struct Enc {
+    pub a: Slot,
+    pub b: Slot,
+    pub index: Option<Slot>,
+    pub counter: EncoderCounter,
+}
+
+/// A GPIO card.
+pub struct GpioCard {
+    pub(crate) consumer: String,
+    pub(crate) event_buffer: Option<u32>,
+    pub(crate) chips: Vec<ChipLines>,
+    pub(crate) inputs: Vec<(Slot, Edges)>,
+    /// The state of each input with edge detection on both edges, kept by the events.
+    pub(crate) input_state: Vec<AtomicBool>,
+    pub(crate) outputs: Vec<Slot>,
+    pub(crate) output_image: Vec<AtomicBool>,
+    pub(crate) encoders: Vec<Enc>,
+    pub(crate) opened: OnceLock<Vec<Opened>>,
+    pub(crate) online: AtomicBool,
+    pub(crate) last_event: AtomicU64,
+    pub(crate) counters: Counters,
+    pub(crate) clock: Arc<dyn Clock>,
+}
+
+fn bus_error(e: gpiocdev_uapi::Error) -> DeviceError {
+    DeviceError::Bus {
+        source: Arc::new(e),
+    }
+}
+
+impl GpioCard {
+    /// The card's encoders' counts (for tests and status).
+    pub fn encoder_count(&self) -> usize {
+        self.encoders.len()
+    }
+
+    /// Its counters, now.
+    pub fn counters(&self) -> GpioCounters {
+        let c = &self.counters;
+        let l = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        GpioCounters {
+            online: self.online.load(Ordering::Acquire),
+            events: l(&c.events),
+            lost_events: l(&c.lost_events),
+            encoder_errors: l(&c.encoder_errors),
+            index_pulses: l(&c.index_pulses),
+            read_errors: l(&c.read_errors),
+            write_errors: l(&c.write_errors),
+        }
+    }
+
+    /// Every line of the card, chip by chip.
+    pub fn lines(&self) -> impl Iterator<Item = &Line> {
+        self.chips.iter().flat_map(|c| &c.lines)
+    }
+
+    /// The line behind input `bit`, output `bit`.
+    pub fn input_line(&self, bit: u32) -> Option<&Line> {
+        let (s, _) = self.inputs.get(bit as usize)?;
+        self.line(*s)
+    }
+
+    /// The line behind output `bit`.
+    pub fn output_line(&self, bit: u32) -> Option<&Line> {
+        self.line(*self.outputs.get(bit as usize)?)
+    }
+
+    pub(crate) fn line(&self, s: Slot) -> Option<&Line> {
+        self.chips.get(s.chip)?.lines.get(s.bit as usize)
+    }
+
+    /// The devices: DigitalIn and DigitalOut when it has such lines, one Encoder each
+    /// (`card.encoder0`, `card.encoder1`, …).
+    pub fn devices(self: &Arc<Self>) -> CardDevices {
+        CardDevices {
+            digital_in: (!self.inputs.is_empty()).then(|| self.clone() as Arc<dyn DigitalIn>),
+            digital_out: (!self.outputs.is_empty()).then(|| self.clone() as Arc<dyn DigitalOut>),
+            encoders: (0..self.encoders.len())
+                .map(|i| {
+                    (
+                        format!("encoder{i}"),
+                        Arc::new(CardEncoder::new(self.clone(), i))
+                            as Arc<dyn device_interface::Encoder>,
+                    )
+                })
+                .collect(),
+            ..CardDevices::default()
+        }
+    }
+
+    fn file(&self, chip: usize) -> Result<&File, DeviceError> {
+        if !self.online.load(Ordering::Acquire) {
+            return Err(DeviceError::Offline);
+        }
+        self.opened
+            .get()
+            .and_then(|o| o.get(chip))
+            .map(|o| &o.file)
+            .ok_or(DeviceError::Offline)
+    }
+
+    /// Reads the lines `mask` of `chip` (one ioctl).
+    pub(crate) fn get(&self, chip: usize, mask: u64) -> Result<u64, DeviceError> {
+        let file = self.file(chip)?;
+        let mut lv = LineValues { bits: 0, mask };
+        get_line_values(file, &mut lv).map_err(|e| {
+            self.counters.read_errors.fetch_add(1, Ordering::Relaxed);
+            bus_error(e)
+        })?;
+        Ok(lv.bits & mask)
+    }
+
+    fn set(&self, chip: usize, mask: u64, bits: u64) -> Result<(), DeviceError> {
+        let file = self.file(chip)?;
+        set_line_values(file, &LineValues { bits, mask }).map_err(|e| {
+            self.counters.write_errors.fetch_add(1, Ordering::Relaxed);
+            bus_error(e)
+        })
+    }
+
+    fn input(&self, bit: u32) -> Result<(Slot, Edges), DeviceError> {
+        self.inputs
+            .get(bit as usize)
+            .copied()
+            .ok_or(DeviceError::BitOutOfRange {
+                bit,
+                count: self.input_count(),
+            })
+    }
+
+    fn output(&self, bit: u32) -> Result<Slot, DeviceError> {
+        self.outputs
+            .get(bit as usize)
+            .copied()
+            .ok_or(DeviceError::BitOutOfRange {
+                bit,
+                count: self.output_count(),
+            })
+    }
+}
+
+impl Device for GpioCard {
+    fn health(&self) -> Health {
+        let online = self.online.load(Ordering::Acquire);
+        let last = self.last_event.load(Ordering::Acquire);
+        Health {
+            status: if online {
+                Status::Online
+            } else {
+                Status::Offline
+            },
+            last_good: (last != 0).then(|| Timestamp::from_nanos(last)),
+            checked_at: self.clock.now(),
+            last_error: (!online).then_some(DeviceError::Offline),
+        }
+    }
+}
+
+impl DigitalIn for GpioCard {
+    fn input_count(&self) -> u32 {
+        self.inputs.len() as u32
+    }
+
+    fn read_bit(&self, bit: u32) -> Result<bool, DeviceError> {
+        let (slot, edges) = self.input(bit)?;
+        if edges == Edges::Both {
+            self.file(slot.chip)?;
+            return Ok(self.input_state[bit as usize].load(Ordering::Acquire));
+        }
+        Ok(self.get(slot.chip, 1 << slot.bit)? != 0)
+    }
+}
+
+impl DigitalOut for GpioCard {
+    fn output_count(&self) -> u32 {
+        self.outputs.len() as u32
+    }
+
+    fn set_bit(&self, bit: u32, value: bool) -> Result<(), DeviceError> {
+        let slot = self.output(bit)?;
+        self.set(slot.chip, 1 << slot.bit, u64::from(value) << slot.bit)?;
+        self.output_image[bit as usize].store(value, Ordering::Release);
+        Ok(())
+    }
+
+    fn check_bit(&self, bit: u32) -> Result<bool, DeviceError> {
+        self.output(bit)?;
+        self.file(0)?;
+        Ok(self.output_image[bit as usize].load(Ordering::Acquire))
+    }
+
+    /// One ioctl per chip the span's lines are on (one for lines of one chip).
+    fn set_sequence(&self, start: u32, stop: u32, value: u64) -> Result<(), DeviceError> {
+        let span = BitSpan::new(start, stop, self.output_count())?;
+        span.check_value(value)?;
+        for chip in 0..self.chips.len() {
+            let (mut mask, mut bits) = (0u64, 0u64);
+            for (bit, i) in span.bits() {
+                let s = self.outputs[bit as usize];
+                if s.chip == chip {
+                    mask |= 1 << s.bit;
+                    bits |= (value >> i & 1) << s.bit;
+                }
+            }
+            if mask != 0 {
+                self.set(chip, mask, bits)?;
+                for (bit, i) in span.bits() {
+                    if self.outputs[bit as usize].chip == chip {
+                        self.output_image[bit as usize]
+                            .store(value >> i & 1 == 1, Ordering::Release);
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+impl EncoderHost for GpioCard {
+    fn encoder_counter(&self, index: usize) -> &EncoderCounter {
+        &self.encoders[index].counter
+    }
+
+    fn check_encoder(&self, _index: usize) -> Result<(), DeviceError> {
+        self.file(0).map(|_| ())
+    }
+
+    fn check_writable(&self) -> Result<(), DeviceError> {
+        self.file(0).map(|_| ())
+    }
+}

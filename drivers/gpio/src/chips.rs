@@ -1,0 +1,227 @@
+//! Finding chips and lines: a chip by path, name or label, a line by offset or by the
+//! name the kernel gives it; errors list what exists.
+
+use crate::config::LineRef;
+use gpiocdev::chip::Chip;
+use std::os::unix::fs::FileTypeExt;
+use std::path::{Path, PathBuf};
+
+/// The most chips or lines an error lists before it says "…".
+const LISTED: usize = 16;
+
+/// A chip found.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ChipId {
+    /// Its character device.
+    pub path: PathBuf,
+    /// Its name (`gpiochip0`).
+    pub name: String,
+    /// Its label (`gpio-sim.0-node0`).
+    pub label: String,
+    /// Its number of lines.
+    pub lines: u32,
+}
+
+/// A line found.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct LineId {
+    /// Its chip.
+    pub chip: ChipId,
+    /// Its offset on the chip.
+    pub offset: u32,
+    /// The kernel's name for it (may be empty).
+    pub name: String,
+    /// Who holds it now, when it is in use (`consumer`, or `"?"` for an unnamed one).
+    pub used_by: Option<String>,
+}
+
+impl std::fmt::Display for LineId {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "line {} of {} ({})",
+            self.offset, self.chip.name, self.chip.label
+        )?;
+        if !self.name.is_empty() {
+            write!(f, " {:?}", self.name)?;
+        }
+        Ok(())
+    }
+}
+
+fn open(path: &Path) -> Result<(Chip, ChipId), String> {
+    // gpiocdev's own check needs a file name and a character device: make sure first.
+    let canonical = std::fs::canonicalize(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let meta = std::fs::metadata(&canonical).map_err(|e| format!("{}: {e}", path.display()))?;
+    if canonical.file_name().is_none() || !meta.file_type().is_char_device() {
+        return Err(format!("{}: not a GPIO character device", path.display()));
+    }
+    let chip = Chip::from_path(&canonical).map_err(|e| format!("{}: {e}", path.display()))?;
+    let info = chip
+        .info()
+        .map_err(|e| format!("{}: {e}", path.display()))?;
+    let id = ChipId {
+        path: canonical,
+        name: info.name,
+        label: info.label,
+        lines: info.num_lines,
+    };
+    Ok((chip, id))
+}
+
+/// Every chip of the system, in order (`gpiochip0`, `gpiochip1`, …).
+pub fn all() -> Vec<(Chip, ChipId)> {
+    gpiocdev::chip::chips()
+        .unwrap_or_default()
+        .iter()
+        .filter_map(|p| open(p).ok())
+        .collect()
+}
+
+fn listing(chips: &[(Chip, ChipId)]) -> String {
+    if chips.is_empty() {
+        return "there are no GPIO chips".into();
+    }
+    let mut names: Vec<String> = chips
+        .iter()
+        .take(LISTED)
+        .map(|(_, c)| format!("{} ({}, {} lines)", c.name, c.label, c.lines))
+        .collect();
+    if chips.len() > LISTED {
+        names.push("…".into());
+    }
+    format!("the chips are {}", names.join(", "))
+}
+
+/// The chip `spec` names: a path (anything with a `/`), else a chip name or label.
+pub fn chip(spec: &str) -> Result<(Chip, ChipId), String> {
+    if spec.contains('/') {
+        return open(Path::new(spec));
+    }
+    let chips = all();
+    let mut found: Vec<usize> = (0..chips.len())
+        .filter(|&i| chips[i].1.name == spec || chips[i].1.label == spec)
+        .collect();
+    match found.len() {
+        0 => Err(format!(
+            "no GPIO chip named or labelled {spec:?}; {}",
+            listing(&chips)
+        )),
+        1 => {
+            let i = found.remove(0);
+            Ok(chips
+                .into_iter()
+                .nth(i)
+                .unwrap_or_else(|| unreachable!("index from the list")))
+        }
+        _ => Err(format!(
+            "{} chips are labelled {spec:?} ({}); give the chip's name or path",
+            found.len(),
+            found
+                .iter()
+                .map(|&i| chips[i].1.name.clone())
+                .collect::<Vec<_>>()
+                .join(", ")
+        )),
+    }
+}
+
+fn line_on(chip: &Chip, id: &ChipId, offset: u32) -> Result<LineId, String> {
+    if offset >= id.lines {
+        return Err(format!(
+            "{} ({}) has lines 0..={}; there is no line {offset}",
+            id.name,
+            id.label,
+            id.lines.saturating_sub(1)
+        ));
+    }
+    let info = chip
+        .line_info(offset)
+        .map_err(|e| format!("line {offset} of {}: {e}", id.name))?;
+    Ok(LineId {
+        chip: id.clone(),
+        offset,
+        name: info.name,
+        used_by: info.used.then(|| {
+            if info.consumer.is_empty() {
+                "?".to_string()
+            } else {
+                info.consumer
+            }
+        }),
+    })
+}
+
+/// Finds `line` on `chip` (a spec as [`chip`] takes), or by name across every chip.
+pub fn line(chip_spec: Option<&str>, line: &LineRef) -> Result<LineId, String> {
+    match (chip_spec, line) {
+        (Some(spec), LineRef::Offset(o)) => {
+            let (c, id) = chip(spec)?;
+            line_on(&c, &id, *o)
+        }
+        (None, LineRef::Offset(o)) => Err(format!("line {o}: on which chip?")),
+        (Some(spec), LineRef::Name(n)) => {
+            let (c, id) = chip(spec)?;
+            let named = lines_named(&c, &id, n);
+            match named.as_slice() {
+                [one] => line_on(&c, &id, *one),
+                [] => Err(format!(
+                    "{} ({}) has no line named {n:?}; {}",
+                    id.name,
+                    id.label,
+                    names_of(&c, &id)
+                )),
+                many => Err(format!(
+                    "{} ({}) has {} lines named {n:?} (offsets {many:?}); give the offset",
+                    id.name,
+                    id.label,
+                    many.len()
+                )),
+            }
+        }
+        (None, LineRef::Name(n)) => {
+            let chips = all();
+            let mut hits = Vec::new();
+            for (c, id) in &chips {
+                for o in lines_named(c, id, n) {
+                    hits.push((c, id, o));
+                }
+            }
+            match hits.as_slice() {
+                [(c, id, o)] => line_on(c, id, *o),
+                [] => Err(format!("no GPIO line is named {n:?}; {}", listing(&chips))),
+                many => Err(format!(
+                    "{} lines are named {n:?} ({}); give `chip`",
+                    many.len(),
+                    many.iter()
+                        .map(|(_, id, o)| format!("{} line {o}", id.name))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                )),
+            }
+        }
+    }
+}
+
+fn lines_named(chip: &Chip, id: &ChipId, name: &str) -> Vec<u32> {
+    (0..id.lines)
+        .filter(|&o| chip.line_info(o).is_ok_and(|i| i.name == name))
+        .collect()
+}
+
+fn names_of(chip: &Chip, id: &ChipId) -> String {
+    let named: Vec<String> = (0..id.lines)
+        .filter_map(|o| {
+            let i = chip.line_info(o).ok()?;
+            (!i.name.is_empty()).then(|| format!("{o}={}", i.name))
+        })
+        .collect();
+    if named.is_empty() {
+        return "its lines have no names".into();
+    }
+    let mut shown: Vec<String> = named.iter().take(LISTED).cloned().collect();
+    if named.len() > LISTED {
+        shown.push("…".into());
+    }
+    format!("its named lines are {}", shown.join(", "))
+}

@@ -1,0 +1,411 @@
+//! The GPIO card against the real kernel: gpio-sim chips in the kernel rig (the
+//! character device's uAPI v2 on the Debian kernel), driven from outside through the
+//! simulator's `pull` attribute, read back through its `value`, and libgpiod's tools
+//! (`gpioinfo`, `gpioset`) as the independent peer. Each trial makes its own chip.
+#![allow(clippy::unwrap_used, reason = "test code")]
+
+use device_interface::conformance;
+use device_interface::time::{Clock, MonotonicClock};
+use device_interface::{DeviceError, DigitalIn, DigitalOut};
+use driver_gpio::bus::{GpioBus, GpioEdge};
+use driver_gpio::card::GpioCard;
+use driver_gpio::component::GpioIo;
+use driver_gpio::config::GpioConfig;
+use kernel_rig::{Failed, Rig, Trial, sh};
+use rtt::port::ConnPolicy;
+use rtt::{Runtime, RuntimeOptions, TaskContext};
+use std::process::ExitCode;
+use std::sync::Arc;
+use std::time::Duration;
+use testkit::{SimChip, wait_for};
+
+const PATIENCE: Duration = Duration::from_secs(10);
+
+/// A card built from `body` (with `chip = "<label>"` first), its bus component running.
+struct Up {
+    card: Arc<GpioCard>,
+    task: TaskContext,
+    _rt: Runtime,
+}
+
+fn card(chip: &SimChip, body: &str) -> Result<Arc<GpioCard>, Failed> {
+    let config: GpioConfig = toml::from_str(&format!("chip = {:?}\n{body}", chip.label))?;
+    driver_gpio::plugin::card(&config, Arc::new(MonotonicClock))
+        .map_err(|e| Failed::from(format!("{}: {}", e.key.unwrap_or_default(), e.message)))
+}
+
+fn start(card: Arc<GpioCard>) -> Result<Up, Failed> {
+    let rt = Runtime::new(
+        Arc::new(device_interface::Registry::new()),
+        RuntimeOptions::default(),
+    )?;
+    let task = GpioIo::add(&rt, "gpio", GpioBus::new(card.clone()), Default::default())?;
+    task.start()?;
+    Ok(Up {
+        card,
+        task,
+        _rt: rt,
+    })
+}
+
+fn up(chip: &SimChip, body: &str) -> Result<Up, Failed> {
+    start(card(chip, body)?)
+}
+
+fn wait(what: &str, f: impl FnMut() -> bool) -> Result<(), Failed> {
+    wait_for(what, PATIENCE, f).map_err(Failed::from)
+}
+
+fn bit(d: &dyn DigitalIn, b: u32) -> bool {
+    d.read_bit(b)
+        .unwrap_or_else(|e| panic!("read_bit({b}): {e}"))
+}
+
+fn inputs_follow_bias_polarity_and_the_outside() -> Result<(), Failed> {
+    let chip = SimChip::new("hwgw-in", 8, &[(0, "up"), (1, "down")])?;
+    let up = up(
+        &chip,
+        r#"input = [
+            { line = "up", bias = "pull-up" },
+            { line = "down", bias = "pull-down" },
+            { line = 2, bias = "pull-up", active_low = true },
+            { line = 3, bias = "pull-down", edges = "none" },
+            { line = 4, bias = "disabled" },
+        ]"#,
+    )?;
+    let c = &*up.card;
+    // The request's bias sets the simulated line's level.
+    assert_eq!(
+        (bit(c, 0), bit(c, 1), bit(c, 2), bit(c, 3)),
+        (true, false, false, false)
+    );
+    // Driven from outside: events keep the state (bits 0-2), bit 3 is read from the chip.
+    chip.pull(0, false)?;
+    chip.pull(1, true)?;
+    chip.pull(2, false)?;
+    chip.pull(3, true)?;
+    wait("inputs follow the outside", || {
+        (bit(c, 0), bit(c, 1), bit(c, 2), bit(c, 3)) == (false, true, true, true)
+    })?;
+    chip.pull(4, true)?;
+    wait("a line without bias follows its pull", || bit(c, 4))?;
+    // libgpiod sees what was requested.
+    let info = sh(&format!("gpioinfo {}", chip.chip_name))?;
+    let line = |o: u32| {
+        info.lines()
+            .find(|l| l.trim_start().starts_with(&format!("line {o:>3}:")))
+            .unwrap_or("")
+            .to_string()
+    };
+    for (o, bias) in [(0, "pull-up"), (1, "pull-down"), (4, "bias-disabled")] {
+        let l = line(o);
+        assert!(
+            l.contains("\"hwgw\"") && l.contains("input") && l.contains(bias),
+            "gpioinfo line {o}: {l:?}\n{info}"
+        );
+    }
+    assert!(line(2).contains("active-low"), "{info}");
+    Ok(())
+}
+
+/// Every edge read from the port `edges` so far.
+fn edges(reader: &mut dyn rtt::component::DynReader) -> Vec<GpioEdge> {
+    let mut out = Vec::new();
+    while let (rtt::port::FlowStatus::NewData, Some(v)) = reader.read() {
+        out.push(serde_json::from_value(v).unwrap());
+    }
+    out
+}
+
+fn edges_reach_the_port_with_kernel_times_and_sequence() -> Result<(), Failed> {
+    let chip = SimChip::new("hwgw-edges", 4, &[])?;
+    let up = up(&chip, "input = [{ line = 1, bias = \"pull-down\" }]")?;
+    let mut reader = up.task.port("edges")?.reader(ConnPolicy::buffer(256))?;
+    let before = MonotonicClock.now().as_nanos();
+    for _ in 0..10 {
+        chip.pull(1, true)?;
+        wait("rising", || bit(&*up.card, 0))?;
+        chip.pull(1, false)?;
+        wait("falling", || !bit(&*up.card, 0))?;
+    }
+    let after = MonotonicClock.now().as_nanos();
+    let mut seen = Vec::new();
+    wait("20 edges on the port", || {
+        seen.extend(edges(&mut *reader));
+        seen.len() >= 20
+    })?;
+    assert_eq!(seen.len(), 20, "{seen:?}");
+    for (i, e) in seen.iter().enumerate() {
+        assert_eq!(e.rising, i % 2 == 0, "edge {i}: {e:?}");
+        assert_eq!((e.bit, e.offset), (0, 1));
+        assert_eq!(e.line_seqno as usize, i + 1, "{e:?}");
+        assert!(
+            before <= e.kernel_ns && e.kernel_ns <= after,
+            "{e:?} not in {before}..{after}"
+        );
+        if i > 0 {
+            assert!(e.kernel_ns > seen[i - 1].kernel_ns && e.seqno == seen[i - 1].seqno + 1);
+        }
+    }
+    let c = up.card.counters();
+    assert_eq!((c.events, c.lost_events), (20, 0), "{c:?}");
+    Ok(())
+}
+
+fn debounce_hides_a_pulse_shorter_than_its_period() -> Result<(), Failed> {
+    let chip = SimChip::new("hwgw-debounce", 2, &[])?;
+    let up = up(
+        &chip,
+        "input = [{ line = 0, bias = \"pull-down\", debounce_us = 200000 }]",
+    )?;
+    let mut reader = up.task.port("edges")?.reader(ConnPolicy::buffer(64))?;
+    // A pulse of a few hundred µs, then one held until the card sees it.
+    chip.pull(0, true)?;
+    chip.pull(0, false)?;
+    chip.pull(0, true)?;
+    wait("the long pulse", || bit(&*up.card, 0))?;
+    chip.pull(0, false)?;
+    wait("its end", || !bit(&*up.card, 0))?;
+    let seen = edges(&mut *reader);
+    // Events come in order: had the short pulse been seen, its edges would come first.
+    assert_eq!(
+        seen.iter().map(|e| e.rising).collect::<Vec<_>>(),
+        [true, false],
+        "{seen:?}"
+    );
+    let held = seen[1].kernel_ns - seen[0].kernel_ns;
+    assert!(
+        held >= 150_000_000,
+        "a debounced pulse is at least the period long: {held} ns"
+    );
+    Ok(())
+}
+
+fn outputs_start_at_their_initial_value_and_follow_writes() -> Result<(), Failed> {
+    let chip = SimChip::new("hwgw-out", 8, &[(4, "lamp")])?;
+    // Pulled the other way before the request: a request that drove the line to
+    // its default first would show here as the wrong level.
+    chip.pull(4, false)?;
+    chip.pull(5, true)?;
+    let card = card(
+        &chip,
+        r#"output = [
+            { line = "lamp", initial = true },
+            { line = 5, initial = false },
+            { line = 6, active_low = true },
+            { line = 7, drive = "open-drain", initial = true },
+        ]"#,
+    )?;
+    // Built but not started: nothing requested, nothing written.
+    assert!(matches!(card.set_bit(0, false), Err(DeviceError::Offline)));
+    assert!(!chip.value(4)? && chip.value(5)?);
+    let up = start(card)?;
+    let c = &*up.card;
+    assert!(chip.value(4)?, "the initial value, from the request on");
+    assert!(!chip.value(5)?);
+    assert!(chip.value(6)?, "active low: bit off is a high line");
+    c.set_bit(0, false)?;
+    assert!(!chip.value(4)?);
+    c.set_bit(2, true)?;
+    assert!(!chip.value(6)?);
+    // One ioctl for the lines of one request.
+    c.set_sequence(0, 2, 0b011)?;
+    assert_eq!(
+        (chip.value(4)?, chip.value(5)?, chip.value(6)?),
+        (true, true, true)
+    );
+    assert_eq!(c.check_sequence(0, 2)?, 0b011);
+    let info = sh(&format!("gpioinfo {}", chip.chip_name))?;
+    let lamp = info.lines().find(|l| l.contains("\"lamp\"")).unwrap_or("");
+    assert!(
+        lamp.contains("\"hwgw\"") && lamp.contains("output"),
+        "{info}"
+    );
+    assert!(info.lines().any(|l| l.contains("open-drain")), "{info}");
+    Ok(())
+}
+
+fn a_line_held_by_gpioset_is_refused_naming_it() -> Result<(), Failed> {
+    let chip = SimChip::new("hwgw-busy", 4, &[(2, "taken")])?;
+    let mut gpioset = std::process::Command::new("gpioset")
+        .args(["--mode=signal", &chip.chip_name, "2=1"])
+        .spawn()?;
+    let held = || {
+        sh(&format!("gpioinfo {}", chip.chip_name)).is_ok_and(|i| {
+            i.lines()
+                .any(|l| l.contains("\"taken\"") && l.contains("\"gpioset\""))
+        })
+    };
+    let result = (|| {
+        wait("gpioset holds the line", held)?;
+        let config: GpioConfig = toml::from_str(&format!(
+            "chip = {:?}\noutput = [{{ line = \"taken\" }}]",
+            chip.label
+        ))?;
+        let e = driver_gpio::plugin::card(&config, Arc::new(MonotonicClock)).err();
+        let e = e.ok_or("a held line was accepted")?;
+        assert_eq!(e.key.as_deref(), Some("output[0].line"));
+        assert!(
+            e.message.contains("is used by \"gpioset\"") && e.message.contains("\"taken\""),
+            "{}",
+            e.message
+        );
+        Ok::<(), Failed>(())
+    })();
+    let _ = gpioset.kill();
+    let _ = gpioset.wait();
+    result?;
+    // Taken between build and start: the start fails, naming the holder.
+    let card = card(&chip, "input = [{ line = 2 }]")?;
+    let mut gpioset = std::process::Command::new("gpioset")
+        .args(["--mode=signal", &chip.chip_name, "2=1"])
+        .spawn()?;
+    let result = (|| {
+        wait("gpioset holds the line again", held)?;
+        let e = start(card).err().ok_or("started on a held line")?;
+        let text = e.message().unwrap_or_default();
+        assert!(text.contains("used by \"gpioset\""), "{text}");
+        Ok::<(), Failed>(())
+    })();
+    let _ = gpioset.kill();
+    let _ = gpioset.wait();
+    result
+}
+
+/// Drives the quadrature lines `a`, `b` by `counts` steps (positive: A leads).
+struct Quad<'a> {
+    chip: &'a SimChip,
+    a: u32,
+    b: u32,
+    phase: i64,
+}
+
+impl Quad<'_> {
+    fn step(&mut self, counts: i64) -> std::io::Result<()> {
+        let dir = counts.signum();
+        for _ in 0..counts.abs() {
+            self.phase = (self.phase + dir).rem_euclid(4);
+            // Forward phases: 00, 10, 11, 01 (A, B).
+            let (a, b) =
+                [(false, false), (true, false), (true, true), (false, true)][self.phase as usize];
+            let (line, level) = if dir > 0 {
+                if self.phase % 2 == 1 {
+                    (self.a, a)
+                } else {
+                    (self.b, b)
+                }
+            } else if self.phase % 2 == 0 {
+                (self.a, a)
+            } else {
+                (self.b, b)
+            };
+            self.chip.pull(line, level)?;
+        }
+        Ok(())
+    }
+}
+
+fn an_encoder_decodes_ten_thousand_edges_exactly() -> Result<(), Failed> {
+    let chip = SimChip::new("hwgw-enc", 4, &[(0, "encA"), (1, "encB"), (2, "encZ")])?;
+    let up = up(
+        &chip,
+        "event_buffer = 1024\nencoder = [{ a = \"encA\", b = \"encB\", resolution = 1000 }]",
+    )?;
+    let enc = up.card.devices().encoders.remove(0).1;
+    let mut q = Quad {
+        chip: &chip,
+        a: 0,
+        b: 1,
+        phase: 0,
+    };
+    q.step(10_000)?;
+    wait("10 000 counts", || {
+        enc.turn().ok() == Some(10) && enc.position().ok() == Some(0)
+    })?;
+    q.step(-2_500)?;
+    wait("7 500 counts", || {
+        enc.turn().ok() == Some(7) && enc.position().ok() == Some(500)
+    })?;
+    let c = up.card.counters();
+    assert_eq!(
+        (c.events, c.lost_events, c.encoder_errors),
+        (12_500, 0, 0),
+        "{c:?}"
+    );
+    Ok(())
+}
+
+fn the_conformance_kit_passes() -> Result<(), Failed> {
+    let chip = SimChip::new("hwgw-kit", 8, &[])?;
+    let up = up(
+        &chip,
+        // Offsets out of order across roles: bits address lines by their place in the
+        // request, whatever order the section gives them in.
+        r#"input = [{ line = 6 }, { line = 4 }, { line = 5, edges = "none" }]
+           output = [{ line = 3 }, { line = 0 }]
+           encoder = [{ a = 2, b = 1, resolution = 400 }]"#,
+    )?;
+    let c = up.card.clone();
+    let mut set_di = |b: u32, v: bool| {
+        chip.pull([6, 4, 5][b as usize], v).unwrap();
+        wait_for("the input follows", PATIENCE, || {
+            c.read_bit(b).ok() == Some(v)
+        })
+        .unwrap();
+    };
+    conformance::check_digital_in(&*up.card, Some(&mut set_di)).assert_complete();
+    conformance::check_digital_out(&*up.card).assert_complete();
+    up.card.set_sequence(0, 1, 0b10)?;
+    assert_eq!((chip.value(3)?, chip.value(0)?), (false, true));
+    let enc = up.card.devices().encoders.remove(0).1;
+    let mut q = Quad {
+        chip: &chip,
+        a: 2,
+        b: 1,
+        phase: 0,
+    };
+    let e2 = enc.clone();
+    let mut motion = |counts: i64| {
+        let before = (e2.position().unwrap(), e2.turn().unwrap());
+        let total = before.1 * 400 + before.0 + counts;
+        q.step(counts).unwrap();
+        wait_for("the encoder follows", PATIENCE, || {
+            e2.position().unwrap() + e2.turn().unwrap() * 400 == total
+        })
+        .unwrap();
+    };
+    conformance::check_encoder(&*enc, Some(&mut motion)).assert_complete();
+    Ok(())
+}
+
+fn main() -> ExitCode {
+    let rig = Rig::new().gpio_sim();
+    let trials = vec![
+        Trial::test(
+            "inputs_follow_bias_polarity_and_the_outside",
+            inputs_follow_bias_polarity_and_the_outside,
+        ),
+        Trial::test(
+            "edges_reach_the_port_with_kernel_times_and_sequence",
+            edges_reach_the_port_with_kernel_times_and_sequence,
+        ),
+        Trial::test(
+            "debounce_hides_a_pulse_shorter_than_its_period",
+            debounce_hides_a_pulse_shorter_than_its_period,
+        ),
+        Trial::test(
+            "outputs_start_at_their_initial_value_and_follow_writes",
+            outputs_start_at_their_initial_value_and_follow_writes,
+        ),
+        Trial::test(
+            "a_line_held_by_gpioset_is_refused_naming_it",
+            a_line_held_by_gpioset_is_refused_naming_it,
+        ),
+        Trial::test(
+            "an_encoder_decodes_ten_thousand_edges_exactly",
+            an_encoder_decodes_ten_thousand_edges_exactly,
+        ),
+        Trial::test("the_conformance_kit_passes", the_conformance_kit_passes),
+    ];
+    kernel_rig::harness(&rig, trials)
+}

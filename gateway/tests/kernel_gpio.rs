@@ -1,0 +1,122 @@
+//! `hwgw` with a GPIO card, in the kernel rig: the real binary on `config/gpio.toml` over a
+//! gpio-sim chip, inputs driven and outputs read through the simulator, libgpiod's
+//! `gpioinfo` as the independent view of the lines, the CLI in between.
+#![allow(clippy::unwrap_used, reason = "test code")]
+
+use kernel_rig::{Failed, Rig, Trial, sh};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use testkit::{Service, SimChip};
+
+const HWGW: &str = env!("CARGO_BIN_EXE_hwgw");
+const CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../config/gpio.toml");
+
+/// Waits until `f` says yes; its errors end the wait.
+fn wait_for(what: &str, mut f: impl FnMut() -> Result<bool, Failed>) -> Result<(), Failed> {
+    let mut error = None;
+    testkit::wait_for(what, testkit::wait::PATIENCE, || match f() {
+        Ok(done) => done,
+        Err(e) => {
+            error = Some(e);
+            true
+        }
+    })?;
+    error.map_or(Ok(()), Err)
+}
+
+fn hwgw_gets_sets_and_leaves_the_lamp_safe() -> Result<(), Failed> {
+    // The chip config/gpio.toml expects (its header says how to make it by hand).
+    let chip = SimChip::new("hwgw-demo", 8, &[(0, "button"), (1, "limit"), (4, "lamp")])?;
+    // The lamp's line is pulled up before hwgw requests it: requested at its initial value
+    // (off) it must go low, and when hwgw exits and releases it, high again.
+    chip.pull(4, true)?;
+    let gw = Service::start(HWGW, "gpio", &[CONFIG], &[])?;
+    let get = |port: &str, name: &str| gw.out(&["get", port, name]).map_err(Failed::from);
+    wait_for("the card online", || {
+        Ok(gw
+            .out(&["call", "gpio", "counters"])?
+            .contains("\"online\": true"))
+    })?;
+    assert!(
+        !chip.value(4)?,
+        "the lamp at its initial value (off) from the request on"
+    );
+
+    // Inputs: the button (pull-down), the limit switch (pull-up, active low).
+    assert_eq!(get("gpio.di", "button")?, "false");
+    assert_eq!(get("gpio.di", "limit")?, "false");
+    chip.pull(0, true)?;
+    chip.pull(1, false)?;
+    wait_for("button and limit on", || {
+        Ok(get("gpio.di", "button")? == "true" && get("gpio.di", "limit")? == "true")
+    })?;
+
+    // Outputs: hwgw set, read back through the simulator.
+    gw.out(&["set", "gpio.do", "lamp", "true"])?;
+    if let Err(e) = wait_for("the lamp on", || Ok(chip.value(4)?)) {
+        let lamp = gw.out(&["get", "gpio.do", "lamp"]);
+        let counters = gw.out(&["call", "gpio", "counters"]);
+        let stopped = gw.terminate();
+        return Err(format!(
+            "{e:?}: lamp {lamp:?}, counters {counters:?}, log:\n{}",
+            stopped.log
+        )
+        .into());
+    }
+    let info = sh(&format!("gpioinfo {}", chip.chip_name))?;
+    for name in ["\"button\"", "\"limit\"", "\"lamp\""] {
+        let line = info.lines().find(|l| l.contains(name)).unwrap_or("");
+        assert!(line.contains("\"hwgw\""), "{name}: {line:?}\n{info}");
+    }
+    // The encoder on lines 2 and 3: one cycle forward is 4 counts.
+    for (line, level) in [(2, true), (3, true), (2, false), (3, false)] {
+        chip.pull(line, level)?;
+    }
+    wait_for("4 counts", || {
+        Ok(gw.out(&["get", "gpio.encoder0", "position"])? == "4")
+    })?;
+    let status = gw.out(&["status"])?;
+    assert!(status.contains(&chip.chip_name), "{status}");
+
+    // SIGTERM: the lamp goes to its safe value (off, low) while hwgw still holds the line,
+    // then back to the pull (high) once hwgw has exited and the kernel released it.
+    let watching = Arc::new(AtomicBool::new(true));
+    let seen_low = Arc::new(AtomicBool::new(false));
+    let sampler = {
+        let (watching, seen_low) = (watching.clone(), seen_low.clone());
+        let value = chip.value(4)?;
+        assert!(value);
+        let path = format!(
+            "/sys/devices/platform/{}/{}/sim_gpio4/value",
+            chip.dev_name, chip.chip_name
+        );
+        std::thread::spawn(move || {
+            while watching.load(Ordering::Acquire) {
+                if std::fs::read_to_string(&path).is_ok_and(|v| v.trim() == "0") {
+                    seen_low.store(true, Ordering::Release);
+                }
+            }
+        })
+    };
+    let stopped = gw.terminate();
+    watching.store(false, Ordering::Release);
+    let _ = sampler.join();
+    assert!(stopped.status.success(), "{}", stopped.log);
+    assert!(stopped.log.contains("digital on []"), "{}", stopped.log);
+    assert!(
+        seen_low.load(Ordering::Acquire),
+        "the lamp never went to its safe value (low)"
+    );
+    wait_for("the line released to its pull", || Ok(chip.value(4)?))?;
+    Ok(())
+}
+
+fn main() -> std::process::ExitCode {
+    kernel_rig::harness(
+        &Rig::new().gpio_sim(),
+        vec![Trial::test(
+            "hwgw_gets_sets_and_leaves_the_lamp_safe",
+            hwgw_gets_sets_and_leaves_the_lamp_safe,
+        )],
+    )
+}
