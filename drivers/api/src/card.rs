@@ -159,6 +159,24 @@ pub fn periodic_bus(
     Ok(vec![task])
 }
 
+/// A bus component named `name` on a file-descriptor activity of its own (no timeout,
+/// placed by `thread`), not started: what a card woken by its bus's descriptors (a CAN
+/// socket, a serial line, GPIO line events) adds in [`Card::add_bus`]. `build` makes the
+/// component over its interface, as [`rtt::Runtime::add`] takes it; the component
+/// watches its descriptors from its `start_hook`.
+pub fn fd_bus<C: rtt::Component>(
+    runtime: &rtt::Runtime,
+    name: &str,
+    thread: rtt::ThreadOptions,
+    build: impl FnOnce(&mut rtt::InterfaceBuilder<C>) -> Result<C, rtt::component::IntrospectError>,
+) -> Result<rtt::TaskContext, rtt::RuntimeError> {
+    let spec = rtt::ActivitySpec::FileDescriptor {
+        timeout: None,
+        thread,
+    };
+    runtime.add(name, spec, rtt::InitialState::Stopped, build)
+}
+
 /// Calls its step each period.
 struct Cycle(Box<dyn FnMut() + Send>);
 

@@ -57,7 +57,7 @@ mod context;
 mod names;
 mod server;
 
-pub use card::{Card, CardStatus, ReadBack, periodic_bus};
+pub use card::{Card, CardStatus, ReadBack, fd_bus, periodic_bus};
 pub use context::{BuildFn, CardContext, CardError};
 pub use names::{ChannelNames, NamesError, is_port_name};
 pub use server::Server;

@@ -50,15 +50,7 @@ impl CanIo {
         bus: CanBus,
         thread: rtt::ThreadOptions,
     ) -> Result<rtt::TaskContext, rtt::RuntimeError> {
-        runtime.add(
-            name,
-            rtt::ActivitySpec::FileDescriptor {
-                timeout: None,
-                thread,
-            },
-            rtt::InitialState::Stopped,
-            move |iface| CanIo::new(bus, iface),
-        )
+        driver_api::fd_bus(runtime, name, thread, move |iface| CanIo::new(bus, iface))
     }
 
     /// Builds the component's interface: port `rx.<message>` per received frame (the DBC

@@ -147,11 +147,6 @@ fn bus_error(e: gpiocdev_uapi::Error) -> DeviceError {
 }
 
 impl GpioCard {
-    /// The card's encoders' counts (for tests and status).
-    pub fn encoder_count(&self) -> usize {
-        self.encoders.len()
-    }
-
     /// Its counters, now.
     pub fn counters(&self) -> GpioCounters {
         let c = &self.counters;

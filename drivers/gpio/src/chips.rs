@@ -98,8 +98,8 @@ pub fn chip(spec: &str) -> Result<(Chip, ChipId), String> {
     if spec.contains('/') {
         return open(Path::new(spec));
     }
-    let chips = all();
-    let mut found: Vec<usize> = (0..chips.len())
+    let mut chips = all();
+    let found: Vec<usize> = (0..chips.len())
         .filter(|&i| chips[i].1.name == spec || chips[i].1.label == spec)
         .collect();
     match found.len() {
@@ -107,13 +107,7 @@ pub fn chip(spec: &str) -> Result<(Chip, ChipId), String> {
             "no GPIO chip named or labelled {spec:?}; {}",
             listing(&chips)
         )),
-        1 => {
-            let i = found.remove(0);
-            Ok(chips
-                .into_iter()
-                .nth(i)
-                .unwrap_or_else(|| unreachable!("index from the list")))
-        }
+        1 => Ok(chips.swap_remove(found[0])),
         _ => Err(format!(
             "{} chips are labelled {spec:?} ({}); give the chip's name or path",
             found.len(),

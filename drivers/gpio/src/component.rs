@@ -29,15 +29,7 @@ impl GpioIo {
         bus: GpioBus,
         thread: rtt::ThreadOptions,
     ) -> Result<rtt::TaskContext, rtt::RuntimeError> {
-        runtime.add(
-            name,
-            rtt::ActivitySpec::FileDescriptor {
-                timeout: None,
-                thread,
-            },
-            rtt::InitialState::Stopped,
-            move |iface| GpioIo::new(bus, iface),
-        )
+        driver_api::fd_bus(runtime, name, thread, move |iface| GpioIo::new(bus, iface))
     }
 
     /// Builds the interface: port `edges` and operation `counters`.

@@ -47,15 +47,9 @@ impl LineIo {
         units: Vec<LineUnit>,
         thread: rtt::ThreadOptions,
     ) -> Result<rtt::TaskContext, rtt::RuntimeError> {
-        runtime.add(
-            name,
-            rtt::ActivitySpec::FileDescriptor {
-                timeout: None,
-                thread,
-            },
-            rtt::InitialState::Stopped,
-            move |iface| LineIo::new(transport, units, iface),
-        )
+        driver_api::fd_bus(runtime, name, thread, move |iface| {
+            LineIo::new(transport, units, iface)
+        })
     }
 
     /// Builds the component's interface: the `counters` operation.
