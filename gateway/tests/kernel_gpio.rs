@@ -111,12 +111,142 @@ fn hwgw_gets_sets_and_leaves_the_lamp_safe() -> Result<(), Failed> {
     Ok(())
 }
 
+/// Each input case of the section, read by `hwgw get`: every bias, active low on a line
+/// with edge events and on one read by ioctl, and a debounced line a short pulse does not
+/// reach.
+const INPUTS: &str = r#"
+[[card]]
+name = "gpio"
+driver = "gpio"
+sample_period_ms = 5
+
+[card.names]
+digital_in = ["up", "down", "floating", "low_active", "debounced", "polled"]
+
+[card.gpio]
+chip = "hwgw-cases"
+
+[[card.gpio.input]]
+line = 0
+bias = "pull-up"
+
+[[card.gpio.input]]
+line = 1
+bias = "pull-down"
+
+[[card.gpio.input]]
+line = 2
+bias = "disabled"
+
+[[card.gpio.input]]
+line = 3
+bias = "pull-up"
+active_low = true
+
+[[card.gpio.input]]
+line = 4
+bias = "pull-down"
+debounce_us = 200000
+
+[[card.gpio.input]]
+line = 5
+bias = "pull-down"
+active_low = true
+edges = "none"
+"#;
+
+fn hwgw_get_reads_each_bias_polarity_and_debounce_case() -> Result<(), Failed> {
+    let chip = SimChip::new("hwgw-cases", 8, &[])?;
+    let dir = testkit::TempDir::new("gpio-cases-config");
+    let config = dir.path().join("cases.toml");
+    std::fs::write(&config, INPUTS)?;
+    let gw = Service::start(HWGW, "gpio-cases", &[&config], &[])?;
+    let get = |name: &str| gw.out(&["get", "gpio.di", name]).map_err(Failed::from);
+    let all = || -> Result<Vec<String>, Failed> {
+        [
+            "up",
+            "down",
+            "floating",
+            "low_active",
+            "debounced",
+            "polled",
+        ]
+        .iter()
+        .map(|n| get(n))
+        .collect()
+    };
+    wait_for("the card online", || {
+        Ok(gw
+            .out(&["call", "gpio", "counters"])?
+            .contains("\"online\": true"))
+    })?;
+    // As requested: the bias sets the simulated line, active low inverts it (a line
+    // without bias stays where the simulator's default pull has it: low).
+    wait_for("the levels the biases give", || {
+        Ok(all()? == ["true", "false", "false", "false", "false", "true"])
+    })?;
+    let info = sh(&format!("gpioinfo {}", chip.chip_name))?;
+    for (line, words) in [
+        (0, &["pull-up"][..]),
+        (1, &["pull-down"]),
+        (2, &["bias-disabled"]),
+        (3, &["pull-up", "active-low"]),
+        // Debian's gpioinfo (libgpiod 1.6) does not print debounce periods: the pulses
+        // below show this one.
+        (4, &["pull-down"]),
+        (5, &["pull-down", "active-low"]),
+    ] {
+        let l = info
+            .lines()
+            .find(|l| l.trim_start().starts_with(&format!("line {line:>3}:")))
+            .unwrap_or("");
+        for w in words {
+            assert!(
+                l.contains(w) && l.contains("\"hwgw\""),
+                "line {line}: {w}: {l:?}\n{info}"
+            );
+        }
+    }
+    // Driven from outside, each the other way.
+    chip.pull(0, false)?;
+    chip.pull(1, true)?;
+    chip.pull(2, true)?;
+    chip.pull(3, false)?;
+    chip.pull(5, true)?;
+    wait_for("every case the other way", || {
+        Ok(all()? == ["false", "true", "true", "true", "false", "false"])
+    })?;
+    // A pulse far shorter than the 200 ms debounce period, then one held until seen.
+    chip.pull(4, true)?;
+    chip.pull(4, false)?;
+    chip.pull(4, true)?;
+    wait_for("the held pulse", || Ok(get("debounced")? == "true"))?;
+    chip.pull(4, false)?;
+    wait_for("its end", || Ok(get("debounced")? == "false"))?;
+    // The kernel's events: one edge on each of lines 0-3, two on line 4 (the short
+    // pulse never reached the card), none on line 5 (no edge detection).
+    let counters = gw.out(&["call", "gpio", "counters"])?;
+    assert!(
+        counters.contains("\"events\": 6,") && counters.contains("\"lost_events\": 0,"),
+        "{counters}"
+    );
+    let stopped = gw.terminate();
+    assert!(stopped.status.success(), "{}", stopped.log);
+    Ok(())
+}
+
 fn main() -> std::process::ExitCode {
     kernel_rig::harness(
         &Rig::new().gpio_sim(),
-        vec![Trial::test(
-            "hwgw_gets_sets_and_leaves_the_lamp_safe",
-            hwgw_gets_sets_and_leaves_the_lamp_safe,
-        )],
+        vec![
+            Trial::test(
+                "hwgw_gets_sets_and_leaves_the_lamp_safe",
+                hwgw_gets_sets_and_leaves_the_lamp_safe,
+            ),
+            Trial::test(
+                "hwgw_get_reads_each_bias_polarity_and_debounce_case",
+                hwgw_get_reads_each_bias_polarity_and_debounce_case,
+            ),
+        ],
     )
 }

@@ -5,17 +5,28 @@
 //! the kernel has queued, without blocking: it keeps the inputs' state, counts lost events
 //! (gaps in each line's sequence numbers), decodes the encoders and hands each input's
 //! edge to the caller to publish.
+//!
+//! A chip that goes away (the kernel wakes its descriptor and reads fail with `ENODEV`)
+//! takes the card offline: [`GpioBus::close_lost`] closes its request and
+//! [`GpioBus::reopen`], called every [`REOPEN_PERIOD`], looks for it — at its old path or
+//! under a new number, by label and number of lines, its line names unchanged — and
+//! requests its lines anew, outputs at the level last written to them. Inputs and
+//! encoders start again from where their lines stand then; edges while the chip was away
+//! are not seen (an encoder's count keeps its value from before).
 
-use crate::card::{GpioCard, Opened, Setup, Slot};
-use crate::config::{Bias, Drive, Edges};
+use crate::card::{GpioCard, Opened, Slot};
+use crate::chips::ChipId;
+use crate::config::Edges;
 use crate::quad::{Quadrature, Step};
-use gpiocdev::line::{self, EdgeDetection, Value};
+use crate::request::request;
 use gpiocdev_uapi::v2::LineEdgeEvent;
-use std::fs::File;
-use std::os::fd::AsFd;
-use std::sync::Arc;
+use std::os::fd::{AsFd, AsRawFd, BorrowedFd, RawFd};
 use std::sync::atomic::Ordering;
+use std::sync::{Arc, PoisonError};
 use std::time::Duration;
+
+/// How often a card whose chip went away looks for it.
+pub const REOPEN_PERIOD: Duration = Duration::from_millis(500);
 
 /// One edge of an input, as published on the bus component's `edges` port.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -56,24 +67,13 @@ pub struct GpioBus {
     last_seq: Vec<Vec<u32>>,
     quads: Vec<Quadrature>,
     buf: Vec<u64>,
-}
-
-fn bias(b: Bias) -> Option<line::Bias> {
-    match b {
-        Bias::AsIs => None,
-        Bias::PullUp => Some(line::Bias::PullUp),
-        Bias::PullDown => Some(line::Bias::PullDown),
-        Bias::Disabled => Some(line::Bias::Disabled),
-    }
-}
-
-fn edges(e: Edges) -> Option<EdgeDetection> {
-    match e {
-        Edges::Both => Some(EdgeDetection::BothEdges),
-        Edges::Rising => Some(EdgeDetection::RisingEdge),
-        Edges::Falling => Some(EdgeDetection::FallingEdge),
-        Edges::None => None,
-    }
+    /// Per chip: its reads failed (it went away) and its request is still to be closed
+    /// or made anew.
+    lost: Vec<bool>,
+    /// Per chip: where it was last found.
+    was: Vec<ChipId>,
+    /// Why the last look for a lost chip failed (logged when it changes).
+    why_not: Option<String>,
 }
 
 impl GpioBus {
@@ -104,12 +104,20 @@ impl GpioBus {
         }
         let last_seq = card.chips.iter().map(|c| vec![0; c.lines.len()]).collect();
         let quads = vec![Quadrature::new(false, false); card.encoders.len()];
+        let was = card
+            .chips
+            .iter()
+            .map(|c| c.lines[0].id.chip.clone())
+            .collect();
         GpioBus {
+            lost: vec![false; card.chips.len()],
             card,
             routes,
             last_seq,
             quads,
             buf: vec![0; BATCH * LineEdgeEvent::u64_size()],
+            was,
+            why_not: None,
         }
     }
 
@@ -118,60 +126,174 @@ impl GpioBus {
         &self.card
     }
 
-    /// The descriptors to watch (one per chip), once open.
-    pub fn fds(&self) -> Vec<std::os::fd::BorrowedFd<'_>> {
-        self.card
+    /// Calls `f` with each chip's request descriptor (one per chip that is open).
+    pub fn for_each_fd<E>(
+        &self,
+        mut f: impl FnMut(BorrowedFd<'_>) -> Result<(), E>,
+    ) -> Result<(), E> {
+        let opened = self
+            .card
             .opened
-            .get()
-            .map(|o| o.iter().map(|x| x.file.as_fd()).collect())
-            .unwrap_or_default()
-    }
-
-    /// Requests the card's lines (the first time only; outputs at their initial values
-    /// from the request on) and reads where inputs and encoders start. An error names the
-    /// line and, when another consumer holds it, that consumer.
-    pub fn open(&mut self) -> Result<(), String> {
-        let card = self.card.clone();
-        if card.opened.get().is_none() {
-            let mut opened = Vec::new();
-            for c in &card.chips {
-                opened.push(request(&card, c)?);
-            }
-            // Only this thread opens: the set cannot fail.
-            let _ = card.opened.set(opened);
-        }
-        card.online.store(true, Ordering::Release);
-        for (i, (s, e)) in card.inputs.iter().enumerate() {
-            if *e == Edges::Both {
-                let v = card.get(s.chip, 1 << s.bit).map_err(|e| e.to_string())?;
-                card.input_state[i].store(v != 0, Ordering::Release);
-            }
-        }
-        for (i, e) in card.encoders.iter().enumerate() {
-            let a = card
-                .get(e.a.chip, 1 << e.a.bit)
-                .map_err(|e| e.to_string())?
-                != 0;
-            let b = card
-                .get(e.b.chip, 1 << e.b.bit)
-                .map_err(|e| e.to_string())?
-                != 0;
-            self.quads[i] = Quadrature::new(a, b);
+            .read()
+            .unwrap_or_else(PoisonError::into_inner);
+        for o in opened.iter().flatten() {
+            f(o.file.as_fd())?;
         }
         Ok(())
     }
 
-    /// Reads what the kernel has queued, without blocking, calling `edge` for each input
-    /// edge. Real-time: no allocation.
-    pub fn service(&mut self, edge: &mut dyn FnMut(&GpioEdge)) {
+    /// True while a chip of the card is lost (gone, or not found again yet).
+    pub fn is_missing(&self) -> bool {
+        self.lost.iter().any(|l| *l)
+    }
+
+    /// Requests the card's lines on every chip not requested yet (outputs at their
+    /// initial values from the request on), reads where inputs and encoders start and
+    /// puts the card online. An error names the line and, when another consumer holds it,
+    /// that consumer.
+    pub fn open(&mut self) -> Result<(), String> {
+        for i in 0..self.card.chips.len() {
+            if self.card.with_request(i, |_| ()).is_ok() {
+                continue;
+            }
+            let o = self.find(i)?;
+            self.put(i, o);
+        }
+        self.settle().map_err(|e| e.to_string())
+    }
+
+    /// Finds chip `i` where it is now and requests its lines.
+    fn find(&self, i: usize) -> Result<Opened, String> {
+        let named: Vec<(u32, &str)> = self.card.chips[i]
+            .lines
+            .iter()
+            .filter(|l| !l.id.name.is_empty())
+            .map(|l| (l.id.offset, l.id.name.as_str()))
+            .collect();
+        let id = crate::chips::again(&self.was[i], &named)?;
+        request(&self.card, i, id)
+    }
+
+    fn put(&mut self, i: usize, o: Opened) {
+        self.was[i] = o.chip.clone();
+        self.lost[i] = false;
+        // A new request numbers its lines' events from 1 again.
+        self.last_seq[i].iter_mut().for_each(|s| *s = 0);
+        let mut opened = self
+            .card
+            .opened
+            .write()
+            .unwrap_or_else(PoisonError::into_inner);
+        opened.resize_with(self.card.chips.len(), || None);
+        opened[i] = Some(o);
+    }
+
+    /// Reads where the inputs and encoders stand and puts the card online.
+    fn settle(&mut self) -> Result<(), device_interface::DeviceError> {
         let card = self.card.clone();
-        let Some(opened) = card.opened.get() else {
-            return;
-        };
+        for (i, (s, e)) in card.inputs.iter().enumerate() {
+            if *e == Edges::Both {
+                let v = card.get_unchecked(s.chip, 1 << s.bit)?;
+                card.input_state[i].store(v != 0, Ordering::Release);
+            }
+        }
+        for (i, e) in card.encoders.iter().enumerate() {
+            let a = card.get_unchecked(e.a.chip, 1 << e.a.bit)? != 0;
+            let b = card.get_unchecked(e.b.chip, 1 << e.b.bit)? != 0;
+            self.quads[i] = Quadrature::new(a, b);
+        }
+        card.online.store(true, Ordering::Release);
+        Ok(())
+    }
+
+    /// Closes the requests of the chips that went away, calling `unwatch` with each one's
+    /// descriptor first.
+    pub fn close_lost(&mut self, unwatch: &mut dyn FnMut(RawFd)) {
+        let mut closed = Vec::new();
+        {
+            let mut opened = self
+                .card
+                .opened
+                .write()
+                .unwrap_or_else(PoisonError::into_inner);
+            for (i, o) in opened.iter_mut().enumerate() {
+                if self.lost.get(i).copied().unwrap_or(false)
+                    && let Some(o) = o.take()
+                {
+                    unwatch(o.file.as_raw_fd());
+                    closed.push(o);
+                }
+            }
+        }
+        for o in closed {
+            tracing::warn!(
+                "GPIO chip {} ({}) went away: its card is offline; looking for it every {:?}",
+                o.chip.name,
+                o.chip.label,
+                REOPEN_PERIOD
+            );
+        }
+    }
+
+    /// Looks for the chips that went away and requests their lines anew, calling `watch`
+    /// with each new descriptor; the card is online again when all are back. True when
+    /// none is missing any more.
+    pub fn reopen(&mut self, watch: &mut dyn FnMut(BorrowedFd<'_>) -> Result<(), String>) -> bool {
+        for i in 0..self.lost.len() {
+            if !self.lost[i] || self.card.with_request(i, |_| ()).is_ok() {
+                continue;
+            }
+            let found = self.find(i).and_then(|o| watch(o.file.as_fd()).map(|()| o));
+            match found {
+                Ok(o) => {
+                    tracing::info!(
+                        "GPIO chip {} ({}) is back as {}: its lines are requested again",
+                        o.chip.name,
+                        o.chip.label,
+                        o.chip.path.display()
+                    );
+                    self.put(i, o);
+                    self.card
+                        .counters
+                        .chips_back
+                        .fetch_add(1, Ordering::Relaxed);
+                }
+                Err(why) => {
+                    if self.why_not.as_ref() != Some(&why) {
+                        tracing::warn!("GPIO chip {}: not back yet: {why}", self.was[i].label);
+                        self.why_not = Some(why);
+                    }
+                    return false;
+                }
+            }
+        }
+        self.why_not = None;
+        match self.settle() {
+            Ok(()) => true,
+            Err(e) => {
+                tracing::warn!("GPIO card: its chips are back but its lines cannot be read: {e}");
+                false
+            }
+        }
+    }
+
+    /// Reads what the kernel has queued, without blocking, calling `edge` for each input
+    /// edge. True when a chip went away this time (then call
+    /// [`close_lost`](Self::close_lost)). Real-time: no allocation.
+    pub fn service(&mut self, edge: &mut dyn FnMut(&GpioEdge)) -> bool {
+        let card = self.card.clone();
+        let mut newly_lost = false;
         let size = LineEdgeEvent::u64_size();
-        for (chip, o) in opened.iter().enumerate() {
+        for chip in 0..card.chips.len() {
+            if self.lost[chip] {
+                continue;
+            }
             for _ in 0..READS_PER_WAKE {
-                let words = match gpiocdev_uapi::read_event(&o.file, &mut self.buf) {
+                let read = card.with_request(chip, |f| gpiocdev_uapi::read_event(f, &mut self.buf));
+                let Ok(read) = read else {
+                    break;
+                };
+                let words = match read {
                     Ok(n) => n,
                     Err(gpiocdev_uapi::Error::Os(gpiocdev_uapi::Errno(e)))
                         if e == libc_eagain() =>
@@ -179,12 +301,13 @@ impl GpioBus {
                         break;
                     }
                     Err(_) => {
-                        // The chip is gone (ENODEV) or the read failed: offline.
-                        self.card
-                            .counters
-                            .read_errors
-                            .fetch_add(1, Ordering::Relaxed);
-                        self.card.online.store(false, Ordering::Release);
+                        // The chip is gone (ENODEV; the kernel wakes the descriptor) or
+                        // its descriptor fails: offline until it is found again.
+                        card.counters.read_errors.fetch_add(1, Ordering::Relaxed);
+                        card.counters.chips_lost.fetch_add(1, Ordering::Relaxed);
+                        card.online.store(false, Ordering::Release);
+                        self.lost[chip] = true;
+                        newly_lost = true;
                         break;
                     }
                 };
@@ -201,6 +324,7 @@ impl GpioBus {
                 }
             }
         }
+        newly_lost
     }
 
     fn event(&mut self, chip: usize, ev: &LineEdgeEvent, edge: &mut dyn FnMut(&GpioEdge)) {
@@ -259,105 +383,4 @@ impl GpioBus {
 
 fn libc_eagain() -> i32 {
     nix::errno::Errno::EAGAIN as i32
-}
-
-/// Requests the lines of one chip.
-fn request(card: &GpioCard, c: &crate::card::ChipLines) -> Result<Opened, String> {
-    let Some(first) = c.lines.first() else {
-        return Err("a chip with no lines".into());
-    };
-    let chip = &first.id.chip;
-    let mut b = gpiocdev::Request::builder();
-    b.on_chip(&chip.path).with_consumer(card.consumer.as_str());
-    let inputs_with_edges = c
-        .lines
-        .iter()
-        .filter(|l| matches!(l.setup, Setup::Input { edges, .. } if edges != Edges::None))
-        .count() as u32;
-    let depth = card
-        .event_buffer
-        .unwrap_or((16 * inputs_with_edges).clamp(16, crate::config::MAX_EVENT_BUFFER));
-    b.with_kernel_event_buffer_size(depth);
-    for l in &c.lines {
-        b.with_line(l.id.offset);
-        match l.setup {
-            Setup::Input {
-                bias: bi,
-                active_low,
-                debounce_us,
-                edges: e,
-            } => {
-                b.as_input()
-                    .with_bias(bias(bi))
-                    .with_edge_detection(edges(e));
-                if active_low {
-                    b.as_active_low();
-                }
-                if debounce_us > 0 {
-                    b.with_debounce_period(Duration::from_micros(u64::from(debounce_us)));
-                }
-            }
-            Setup::Output {
-                drive,
-                bias: bi,
-                active_low,
-                initial,
-            } => {
-                b.as_output(if initial {
-                    Value::Active
-                } else {
-                    Value::Inactive
-                })
-                .with_bias(bias(bi))
-                .with_drive(match drive {
-                    Drive::PushPull => line::Drive::PushPull,
-                    Drive::OpenDrain => line::Drive::OpenDrain,
-                    Drive::OpenSource => line::Drive::OpenSource,
-                });
-                if active_low {
-                    b.as_active_low();
-                }
-            }
-        }
-    }
-    let request = b.request().map_err(|e| {
-        // Name who holds a line, when one is held.
-        for l in &c.lines {
-            if let Ok(now) = crate::chips::line(
-                Some(&chip.path.to_string_lossy()),
-                &crate::config::LineRef::Offset(l.id.offset),
-            ) && let Some(who) = &now.used_by
-            {
-                return format!("{now} is used by {who:?}: it cannot be requested ({e})");
-            }
-        }
-        format!(
-            "{} ({}): requesting lines {:?}: {e}",
-            chip.name,
-            chip.label,
-            c.lines.iter().map(|l| l.id.offset).collect::<Vec<_>>()
-        )
-    })?;
-    // Line values address the lines by their index in the request: it must be ours.
-    let order: Vec<u32> = c.lines.iter().map(|l| l.id.offset).collect();
-    if request.config().lines() != &order {
-        return Err(format!(
-            "{}: the request has lines {:?}, the card expected {order:?}",
-            chip.name,
-            request.config().lines()
-        ));
-    }
-    let fd = request
-        .as_fd()
-        .try_clone_to_owned()
-        .map_err(|e| format!("{}: {e}", chip.name))?;
-    let flags = nix::fcntl::fcntl(&fd, nix::fcntl::FcntlArg::F_GETFL)
-        .map_err(|e| format!("{}: {e}", chip.name))?;
-    let flags = nix::fcntl::OFlag::from_bits_truncate(flags) | nix::fcntl::OFlag::O_NONBLOCK;
-    nix::fcntl::fcntl(&fd, nix::fcntl::FcntlArg::F_SETFL(flags))
-        .map_err(|e| format!("{}: {e}", chip.name))?;
-    Ok(Opened {
-        _request: request,
-        file: File::from(fd),
-    })
 }

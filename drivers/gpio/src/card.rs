@@ -5,7 +5,9 @@
 //! output) and requests them once, at [`GpioBus::open`](crate::bus::GpioBus::open), one request per chip: output
 //! lines at their initial value from the request on, inputs with their bias, polarity,
 //! debounce period and edge detection. Until then, and after its chip went away, every
-//! device call fails with [`DeviceError::Offline`].
+//! device call fails with [`DeviceError::Offline`]. A chip that goes away (an unplugged
+//! USB adapter) takes the card offline until the bus side finds it again and requests its
+//! lines anew (see [`GpioBus`](crate::bus::GpioBus)).
 //!
 //! Real-time paths: `read_bit` of an input with edge detection on both edges answers from
 //! the line's state the edge events keep (no ioctl); other inputs are one
@@ -21,7 +23,7 @@ use device_interface::{CardDevices, Device, DeviceError, DigitalIn, DigitalOut, 
 use gpiocdev_uapi::v2::{LineValues, get_line_values, set_line_values};
 use std::fs::File;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, OnceLock};
+use std::sync::{Arc, PoisonError, RwLock};
 
 /// How one line is requested.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -81,6 +83,9 @@ pub(crate) struct Opened {
     pub _request: gpiocdev::Request,
     /// The same fd, non-blocking, for allocation-free ioctls and reads.
     pub file: File,
+    /// The chip it was made on, as found then (a chip that came back may have a new
+    /// number).
+    pub chip: crate::chips::ChipId,
 }
 
 /// Counters of a card.
@@ -92,6 +97,8 @@ pub(crate) struct Counters {
     pub index_pulses: AtomicU64,
     pub read_errors: AtomicU64,
     pub write_errors: AtomicU64,
+    pub chips_lost: AtomicU64,
+    pub chips_back: AtomicU64,
 }
 
 /// A snapshot of a card's counters, for `hwgw status`.
@@ -112,6 +119,10 @@ pub struct GpioCounters {
     pub read_errors: u64,
     /// Failed line writes.
     pub write_errors: u64,
+    /// Times a chip of the card went away.
+    pub chips_lost: u64,
+    /// Times a chip that went away was found again and its lines requested anew.
+    pub chips_back: u64,
 }
 
 /// One encoder's lines and count.
@@ -133,7 +144,10 @@ pub struct GpioCard {
     pub(crate) outputs: Vec<Slot>,
     pub(crate) output_image: Vec<AtomicBool>,
     pub(crate) encoders: Vec<Enc>,
-    pub(crate) opened: OnceLock<Vec<Opened>>,
+    /// Each chip's request, while it is made and the chip is there. Device calls hold
+    /// the read lock for one ioctl; only the bus side writes (at start, when a chip goes
+    /// or comes back), so a call never reaches a descriptor that was closed or reused.
+    pub(crate) opened: RwLock<Vec<Option<Opened>>>,
     pub(crate) online: AtomicBool,
     pub(crate) last_event: AtomicU64,
     pub(crate) counters: Counters,
@@ -159,7 +173,23 @@ impl GpioCard {
             index_pulses: l(&c.index_pulses),
             read_errors: l(&c.read_errors),
             write_errors: l(&c.write_errors),
+            chips_lost: l(&c.chips_lost),
+            chips_back: l(&c.chips_back),
         }
+    }
+
+    /// The names of the card's chips: as requested now, or as found at build for one not
+    /// requested (yet, or since it went away).
+    pub fn chip_names(&self) -> Vec<String> {
+        let opened = self.opened.read().unwrap_or_else(PoisonError::into_inner);
+        self.chips
+            .iter()
+            .enumerate()
+            .map(|(i, c)| match opened.get(i) {
+                Some(Some(o)) => o.chip.name.clone(),
+                _ => c.lines[0].id.chip.name.clone(),
+            })
+            .collect()
     }
 
     /// Every line of the card, chip by chip.
@@ -201,34 +231,77 @@ impl GpioCard {
         }
     }
 
-    fn file(&self, chip: usize) -> Result<&File, DeviceError> {
+    /// Runs `f` on `chip`'s request, when the card is online.
+    fn with_file<R>(&self, chip: usize, f: impl FnOnce(&File) -> R) -> Result<R, DeviceError> {
         if !self.online.load(Ordering::Acquire) {
             return Err(DeviceError::Offline);
         }
-        self.opened
-            .get()
-            .and_then(|o| o.get(chip))
-            .map(|o| &o.file)
-            .ok_or(DeviceError::Offline)
+        self.with_request(chip, f)
+    }
+
+    /// Runs `f` on `chip`'s request, when it is made (online or not: the bus side reads
+    /// where lines stand before the card goes online).
+    pub(crate) fn with_request<R>(
+        &self,
+        chip: usize,
+        f: impl FnOnce(&File) -> R,
+    ) -> Result<R, DeviceError> {
+        let opened = self.opened.read().unwrap_or_else(PoisonError::into_inner);
+        match opened.get(chip) {
+            Some(Some(o)) => Ok(f(&o.file)),
+            _ => Err(DeviceError::Offline),
+        }
+    }
+
+    /// True when the card is online.
+    fn check_online(&self) -> Result<(), DeviceError> {
+        if self.online.load(Ordering::Acquire) {
+            Ok(())
+        } else {
+            Err(DeviceError::Offline)
+        }
+    }
+
+    /// Counts a failed ioctl; a chip that is gone (ENODEV) takes the card offline at once
+    /// (the bus side, woken by the same loss, closes and looks for it).
+    fn failed(&self, e: gpiocdev_uapi::Error, counter: &AtomicU64) -> DeviceError {
+        counter.fetch_add(1, Ordering::Relaxed);
+        if matches!(e, gpiocdev_uapi::Error::Os(gpiocdev_uapi::Errno(n)) if n == nix::errno::Errno::ENODEV as i32)
+        {
+            self.online.store(false, Ordering::Release);
+        }
+        bus_error(e)
     }
 
     /// Reads the lines `mask` of `chip` (one ioctl).
     pub(crate) fn get(&self, chip: usize, mask: u64) -> Result<u64, DeviceError> {
-        let file = self.file(chip)?;
         let mut lv = LineValues { bits: 0, mask };
-        get_line_values(file, &mut lv).map_err(|e| {
-            self.counters.read_errors.fetch_add(1, Ordering::Relaxed);
-            bus_error(e)
-        })?;
+        self.with_file(chip, |f| get_line_values(f, &mut lv))?
+            .map_err(|e| self.failed(e, &self.counters.read_errors))?;
+        Ok(lv.bits & mask)
+    }
+
+    /// Reads the lines `mask` of `chip` while the card is not online yet.
+    pub(crate) fn get_unchecked(&self, chip: usize, mask: u64) -> Result<u64, DeviceError> {
+        let mut lv = LineValues { bits: 0, mask };
+        self.with_request(chip, |f| get_line_values(f, &mut lv))?
+            .map_err(|e| self.failed(e, &self.counters.read_errors))?;
         Ok(lv.bits & mask)
     }
 
     fn set(&self, chip: usize, mask: u64, bits: u64) -> Result<(), DeviceError> {
-        let file = self.file(chip)?;
-        set_line_values(file, &LineValues { bits, mask }).map_err(|e| {
-            self.counters.write_errors.fetch_add(1, Ordering::Relaxed);
-            bus_error(e)
-        })
+        self.with_file(chip, |f| set_line_values(f, &LineValues { bits, mask }))?
+            .map_err(|e| self.failed(e, &self.counters.write_errors))
+    }
+
+    /// The logical level output line `line` of `chip` is to have when (re)requested: the
+    /// last value written, or its initial value.
+    pub(crate) fn output_level(&self, chip: usize, line: u32) -> Option<bool> {
+        let bit = self
+            .outputs
+            .iter()
+            .position(|s| s.chip == chip && s.bit == line)?;
+        Some(self.output_image[bit].load(Ordering::Acquire))
     }
 
     fn input(&self, bit: u32) -> Result<(Slot, Edges), DeviceError> {
@@ -277,7 +350,7 @@ impl DigitalIn for GpioCard {
     fn read_bit(&self, bit: u32) -> Result<bool, DeviceError> {
         let (slot, edges) = self.input(bit)?;
         if edges == Edges::Both {
-            self.file(slot.chip)?;
+            self.check_online()?;
             return Ok(self.input_state[bit as usize].load(Ordering::Acquire));
         }
         Ok(self.get(slot.chip, 1 << slot.bit)? != 0)
@@ -298,7 +371,7 @@ impl DigitalOut for GpioCard {
 
     fn check_bit(&self, bit: u32) -> Result<bool, DeviceError> {
         self.output(bit)?;
-        self.file(0)?;
+        self.check_online()?;
         Ok(self.output_image[bit as usize].load(Ordering::Acquire))
     }
 
@@ -335,10 +408,10 @@ impl EncoderHost for GpioCard {
     }
 
     fn check_encoder(&self, _index: usize) -> Result<(), DeviceError> {
-        self.file(0).map(|_| ())
+        self.check_online()
     }
 
     fn check_writable(&self) -> Result<(), DeviceError> {
-        self.file(0).map(|_| ())
+        self.check_online()
     }
 }

@@ -219,3 +219,43 @@ fn names_of(chip: &Chip, id: &ChipId) -> String {
     }
     format!("its named lines are {}", shown.join(", "))
 }
+
+/// The chip `was` again, after it went away: at its old path if that is a chip with the
+/// same label and number of lines, else the one such chip anywhere (a USB adapter plugged
+/// back may get another number); its lines at `named` offsets must still bear those names.
+/// An error says why it is not (yet) there.
+pub fn again(was: &ChipId, named: &[(u32, &str)]) -> Result<ChipId, String> {
+    let same = |id: &ChipId| id.label == was.label && id.lines == was.lines;
+    let (chip, id) = match open(&was.path) {
+        Ok((c, id)) if same(&id) => (c, id),
+        _ => {
+            let mut found: Vec<(Chip, ChipId)> =
+                all().into_iter().filter(|(_, id)| same(id)).collect();
+            match found.len() {
+                0 => {
+                    return Err(format!(
+                        "no GPIO chip is labelled {:?} with {} lines",
+                        was.label, was.lines
+                    ));
+                }
+                1 => found.swap_remove(0),
+                n => {
+                    return Err(format!(
+                        "{n} chips are labelled {:?} with {} lines; which one is it?",
+                        was.label, was.lines
+                    ));
+                }
+            }
+        }
+    };
+    for &(offset, name) in named {
+        let now = line_on(&chip, &id, offset)?;
+        if now.name != name {
+            return Err(format!(
+                "{} ({}) is back, but its line {offset} is named {:?}, not {name:?}",
+                id.name, id.label, now.name
+            ));
+        }
+    }
+    Ok(id)
+}

@@ -5,10 +5,13 @@
 //! reads the queued edge events. Each input edge is written to the output port `edges`
 //! (connect it buffered to see every one); the `counters` operation returns the card's
 //! counters. The lines stay requested when the component stops, at the level the gateway
-//! left them, until the process ends.
+//! left them, until the process ends. When a chip goes away the component closes its
+//! request and looks for it every [`REOPEN_PERIOD`] (a deadline of its activity) until it
+//! is back.
 
-use crate::bus::{GpioBus, GpioEdge};
+use crate::bus::{GpioBus, GpioEdge, REOPEN_PERIOD};
 use crate::card::GpioCounters;
+use device_interface::time::{Clock, MonotonicClock};
 use rtt::component::IntrospectError;
 use rtt::port::OutputPort;
 use rtt::{Component, Context, HookResult, InterfaceBuilder};
@@ -55,21 +58,41 @@ impl GpioIo {
 impl Component for GpioIo {
     fn start_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
         self.bus.open().map_err(rtt::HookError::new)?;
-        for fd in self.bus.fds() {
-            ctx.activity().watch(fd)?;
-        }
+        let activity = ctx.activity();
+        self.bus.for_each_fd(|fd| activity.watch(fd))?;
         self.update_hook(ctx)
     }
 
-    fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
+    fn update_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
         let port = &mut self.edges;
-        self.bus.service(&mut |e| port.write(e));
+        let lost = self.bus.service(&mut |e| port.write(e));
+        let activity = ctx.activity();
+        if lost {
+            self.bus.close_lost(&mut |fd| {
+                activity.unwatch(fd);
+            });
+        }
+        if !self.bus.is_missing() {
+            return Ok(());
+        }
+        if ctx.fd_events().deadline_passed()
+            && self
+                .bus
+                .reopen(&mut |fd| activity.watch(fd).map_err(|e| e.to_string()))
+        {
+            return Ok(());
+        }
+        if lost || ctx.fd_events().deadline_passed() {
+            activity.wake_at(MonotonicClock.now().saturating_add(REOPEN_PERIOD))?;
+        }
         Ok(())
     }
 
     fn stop_hook(&mut self, ctx: &mut Context<'_>) {
-        for fd in self.bus.fds() {
-            ctx.activity().unwatch(fd.as_raw_fd());
-        }
+        let activity = ctx.activity();
+        let _ = self.bus.for_each_fd(|fd| {
+            activity.unwatch(fd.as_raw_fd());
+            Ok::<(), ()>(())
+        });
     }
 }

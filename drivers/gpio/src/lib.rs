@@ -6,7 +6,9 @@
 //! - [`card`]: the devices — DigitalIn, DigitalOut, software quadrature Encoders — over
 //!   the requested lines.
 //! - [`quad`]: the quadrature decoder.
-//! - [`bus`]: requesting the lines and reading their edge events without blocking.
+//! - [`request`]: requesting one chip's lines.
+//! - [`bus`]: requesting the lines, reading their edge events without blocking, and
+//!   finding a chip again that went away.
 //! - [`component`]: that bus side as an rtt component on a file-descriptor activity,
 //!   publishing every input edge on its `edges` port.
 //! - [`plugin`]: the card as a driver plug-in (`driver = "gpio"`).
@@ -18,3 +20,4 @@ pub mod component;
 pub mod config;
 pub mod plugin;
 pub mod quad;
+pub mod request;

@@ -14,7 +14,7 @@ use device_interface::CardDevices;
 use device_interface::encoder::EncoderCounter;
 use driver_api::{Card, CardContext, CardError, CardStatus, ChannelNames, ReadBack, is_port_name};
 use std::sync::atomic::{AtomicBool, AtomicU64};
-use std::sync::{Arc, OnceLock};
+use std::sync::{Arc, RwLock};
 
 /// A GPIO card of a deployment.
 struct GpioPlugin {
@@ -127,6 +127,7 @@ pub fn card(
         });
     }
     in_request_order(&mut chips, &mut inputs, &mut outputs, &mut encoders);
+    let opened = RwLock::new(chips.iter().map(|_| None).collect());
     Ok(Arc::new(GpioCard {
         consumer: config.consumer.clone(),
         event_buffer: config.event_buffer,
@@ -136,7 +137,7 @@ pub fn card(
         output_image: image,
         encoders,
         chips,
-        opened: OnceLock::new(),
+        opened,
         online: AtomicBool::new(false),
         last_event: AtomicU64::new(0),
         counters: Default::default(),
@@ -239,13 +240,7 @@ impl Card for GpioPlugin {
     }
 
     fn status(&self) -> CardStatus {
-        let bus: Vec<String> = self
-            .card
-            .chips
-            .iter()
-            .map(|c| c.lines[0].id.chip.name.clone())
-            .collect();
-        CardStatus::new(bus.join(", "), &self.card.counters())
+        CardStatus::new(self.card.chip_names().join(", "), &self.card.counters())
     }
 
     fn read_back(&self) -> ReadBack {

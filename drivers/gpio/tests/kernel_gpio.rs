@@ -6,7 +6,7 @@
 
 use device_interface::conformance;
 use device_interface::time::{Clock, MonotonicClock};
-use device_interface::{DeviceError, DigitalIn, DigitalOut};
+use device_interface::{Device, DeviceError, DigitalIn, DigitalOut, Status};
 use driver_gpio::bus::{GpioBus, GpioEdge};
 use driver_gpio::card::GpioCard;
 use driver_gpio::component::GpioIo;
@@ -17,7 +17,7 @@ use rtt::{Runtime, RuntimeOptions, TaskContext};
 use std::process::ExitCode;
 use std::sync::Arc;
 use std::time::Duration;
-use testkit::{SimChip, wait_for};
+use testkit::{GpioTrace, SimChip, wait_for};
 
 const PATIENCE: Duration = Duration::from_secs(10);
 
@@ -225,6 +225,88 @@ fn outputs_start_at_their_initial_value_and_follow_writes() -> Result<(), Failed
     Ok(())
 }
 
+fn outputs_are_driven_to_no_level_but_their_initial_one_at_the_request() -> Result<(), Failed> {
+    let chip = SimChip::new("hwgw-glitch", 4, &[])?;
+    // Each line pulled to the level opposite to the one it is to start at.
+    chip.pull(0, false)?;
+    chip.pull(1, true)?;
+    chip.pull(2, true)?;
+    let card = card(
+        &chip,
+        r#"output = [
+            { line = 0, initial = true },
+            { line = 1, initial = false },
+            { line = 2, active_low = true, initial = true },
+        ]"#,
+    )?;
+    let base = chip.base()?;
+    let trace = GpioTrace::start()?;
+    let up = start(card)?;
+    // The kernel's record: each line set once, to its initial level, then made an output.
+    for (line, level) in [(0, "set 1"), (1, "set 0"), (2, "set 0")] {
+        assert_eq!(
+            trace.events(base + line)?,
+            [level, "out (0)"],
+            "line {line}: driven before or besides its initial level"
+        );
+    }
+    up.card.set_bit(1, true)?;
+    assert_eq!(trace.events(base + 1)?, ["set 0", "out (0)", "set 1"]);
+    assert_eq!(trace.events(base)?, ["set 1", "out (0)"], "written unasked");
+    Ok(())
+}
+
+fn a_chip_that_goes_away_is_found_again() -> Result<(), Failed> {
+    let mut chip = SimChip::new("hwgw-plug", 4, &[(0, "plug-in"), (1, "plug-out")])?;
+    let up = up(
+        &chip,
+        r#"input = [{ line = "plug-in", bias = "pull-down" }]
+           output = [{ line = "plug-out", initial = false }]"#,
+    )?;
+    let c = up.card.clone();
+    let mut reader = up.task.port("edges")?.reader(ConnPolicy::buffer(64))?;
+    c.set_bit(0, true)?;
+    assert!(chip.value(1)?);
+    // Held open here, the old chip keeps its number: the one that comes back gets another.
+    let old = std::fs::File::open(chip.path())?;
+    let old_name = chip.chip_name.clone();
+    chip.unplug()?;
+    wait("the card offline", || !c.counters().online)?;
+    assert_eq!(c.counters().chips_lost, 1);
+    assert!(matches!(c.set_bit(0, false), Err(DeviceError::Offline)));
+    assert!(matches!(c.read_bit(0), Err(DeviceError::Offline)));
+    assert_eq!(c.health().status, Status::Offline);
+    chip.plug()?;
+    assert_ne!(
+        chip.chip_name, old_name,
+        "the chip came back under its old number"
+    );
+    wait("the card online again", || c.counters().online)?;
+    drop(old);
+    assert_eq!(c.counters().chips_back, 1);
+    assert_eq!(c.health().status, Status::Online);
+    assert!(
+        chip.value(1)?,
+        "the output requested again at the level last written"
+    );
+    assert!(!bit(&*c, 0));
+    chip.pull(0, true)?;
+    wait("the input follows on the new chip", || bit(&*c, 0))?;
+    c.set_bit(0, false)?;
+    assert!(!chip.value(1)?);
+    let seen = edges(&mut *reader);
+    assert_eq!(seen.len(), 1, "{seen:?}");
+    assert!(seen[0].rising && seen[0].line_seqno == 1, "{seen:?}");
+    assert_eq!(c.counters().lost_events, 0);
+    let info = sh(&format!("gpioinfo {}", chip.chip_name))?;
+    assert!(
+        info.lines()
+            .any(|l| l.contains("\"plug-out\"") && l.contains("\"hwgw\"") && l.contains("output")),
+        "{info}"
+    );
+    Ok(())
+}
+
 fn a_line_held_by_gpioset_is_refused_naming_it() -> Result<(), Failed> {
     let chip = SimChip::new("hwgw-busy", 4, &[(2, "taken")])?;
     let mut gpioset = std::process::Command::new("gpioset")
@@ -396,6 +478,14 @@ fn main() -> ExitCode {
         Trial::test(
             "outputs_start_at_their_initial_value_and_follow_writes",
             outputs_start_at_their_initial_value_and_follow_writes,
+        ),
+        Trial::test(
+            "outputs_are_driven_to_no_level_but_their_initial_one_at_the_request",
+            outputs_are_driven_to_no_level_but_their_initial_one_at_the_request,
+        ),
+        Trial::test(
+            "a_chip_that_goes_away_is_found_again",
+            a_chip_that_goes_away_is_found_again,
         ),
         Trial::test(
             "a_line_held_by_gpioset_is_refused_naming_it",

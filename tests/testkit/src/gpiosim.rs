@@ -1,6 +1,7 @@
 //! Chips of the kernel's GPIO simulator (gpio-sim, configured through configfs), for tests
 //! in the kernel rig's guest ([`kernel_rig::Rig::gpio_sim`]): made live with named lines,
-//! inputs driven from outside by their simulated pull, outputs read back.
+//! inputs driven from outside by their simulated pull, outputs read back; and
+//! [`GpioTrace`], the kernel's own record of every level driven on a line.
 
 use std::io;
 use std::path::{Path, PathBuf};
@@ -83,6 +84,38 @@ impl SimChip {
         Ok(read(&self.attr(offset, "value"))? == "1")
     }
 
+    /// Takes the chip away, as an unplugged USB adapter goes: its character device and
+    /// lines disappear (requests on them fail with `ENODEV`).
+    pub fn unplug(&mut self) -> io::Result<()> {
+        write(&self.dir.join("live"), "0")
+    }
+
+    /// Brings the chip back after [`unplug`](Self::unplug), its lines at their default
+    /// pulls; `chip_name` and `dev_name` are what the kernel gives it now.
+    pub fn plug(&mut self) -> io::Result<()> {
+        write(&self.dir.join("live"), "1")?;
+        self.dev_name = read(&self.dir.join("dev_name"))?;
+        self.chip_name = read(&self.dir.join("bank0").join("chip_name"))?;
+        Ok(())
+    }
+
+    /// The chip's first global GPIO number (what the kernel's `gpio` trace events call its
+    /// line 0), from `/sys/class/gpio`.
+    pub fn base(&self) -> io::Result<u32> {
+        for entry in std::fs::read_dir("/sys/class/gpio")? {
+            let dir = entry?.path();
+            if dir.join("label").exists() && read(&dir.join("label"))? == self.label {
+                return read(&dir.join("base"))?
+                    .parse()
+                    .map_err(|e| io::Error::new(io::ErrorKind::InvalidData, format!("{e}")));
+            }
+        }
+        Err(io::Error::new(
+            io::ErrorKind::NotFound,
+            format!("no /sys/class/gpio/gpiochip* is labelled {:?}", self.label),
+        ))
+    }
+
     /// The number of lines.
     pub fn lines(&self) -> u32 {
         self.lines
@@ -98,5 +131,64 @@ impl Drop for SimChip {
         }
         let _ = std::fs::remove_dir(&bank);
         let _ = std::fs::remove_dir(&self.dir);
+    }
+}
+
+const TRACING: &str = "/sys/kernel/tracing";
+
+/// The kernel's `gpio_value` and `gpio_direction` trace events from [`GpioTrace::start`]
+/// on: every level gpiolib drives on any line, in order, whoever asks — the independent
+/// witness that a line was never driven to a level nobody asked for. Tracing stops when
+/// dropped.
+#[derive(Debug)]
+pub struct GpioTrace(());
+
+impl GpioTrace {
+    /// Mounts tracefs when needed, clears the trace buffer and turns both events on.
+    pub fn start() -> io::Result<GpioTrace> {
+        let root = Path::new(TRACING);
+        if !root.join("events").exists() {
+            let status = std::process::Command::new("mount")
+                .args(["-t", "tracefs", "nodev", TRACING])
+                .status()?;
+            if !status.success() {
+                return Err(io::Error::other(format!("mount -t tracefs: {status}")));
+            }
+        }
+        write(&root.join("trace"), "")?;
+        for event in ["gpio_value", "gpio_direction"] {
+            write(&root.join("events/gpio").join(event).join("enable"), "1")?;
+        }
+        Ok(GpioTrace(()))
+    }
+
+    /// The events of global GPIO number `gpio` so far, in order, as the kernel words them
+    /// after the number: `"set 1"`, `"get 0"`, `"out (0)"`, `"in (0)"`.
+    pub fn events(&self, gpio: u32) -> io::Result<Vec<String>> {
+        let text = read(&Path::new(TRACING).join("trace"))?;
+        let prefix = format!("{gpio} ");
+        Ok(text
+            .lines()
+            .filter_map(|l| {
+                let (_, rest) = l
+                    .split_once("gpio_value: ")
+                    .or_else(|| l.split_once("gpio_direction: "))?;
+                rest.strip_prefix(&prefix).map(str::to_string)
+            })
+            .collect())
+    }
+}
+
+impl Drop for GpioTrace {
+    fn drop(&mut self) {
+        for event in ["gpio_value", "gpio_direction"] {
+            let _ = std::fs::write(
+                Path::new(TRACING)
+                    .join("events/gpio")
+                    .join(event)
+                    .join("enable"),
+                "0",
+            );
+        }
     }
 }

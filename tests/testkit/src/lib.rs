@@ -25,7 +25,7 @@ pub mod service;
 pub mod wait;
 
 pub use candump::Candump;
-pub use gpiosim::SimChip;
+pub use gpiosim::{GpioTrace, SimChip};
 pub use logs::LogCapture;
 pub use service::{Service, TempDir};
 pub use wait::{wait_for, wait_until};
