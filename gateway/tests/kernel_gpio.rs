@@ -235,6 +235,80 @@ fn hwgw_get_reads_each_bias_polarity_and_debounce_case() -> Result<(), Failed> {
     Ok(())
 }
 
+/// ThreadScope on a GPIO card, as `config/gpio.toml`'s commented block sets it up, with
+/// a simulated card whose bus cycle and sampling step every 2 ms on threads of their own
+/// (the GPIO card's own threads step only when asked: it has no inputs).
+const SCOPE: &str = r#"
+thread_scope = true
+
+[[card]]
+name = "sim0"
+driver = "sim"
+period_ms = 2
+sample_period_ms = 2
+
+[card.sim]
+digital_inputs = 2
+
+[[card]]
+name = "scope"
+driver = "gpio"
+sample_period_ms = 2
+
+[card.gpio]
+chip = "hwgw-scope"
+output = [{ line = 0 }, { line = 1 }, { line = 2 }, { line = 3 }, { line = 4 }, { line = 5 }, { line = 6 }, { line = 7 }]
+
+[[alias]]
+interface = "digital_out"
+name = "ThreadScope"
+target = "scope"
+"#;
+
+fn hwgw_pulses_thread_scope_on_gpio_lines() -> Result<(), Failed> {
+    let chip = SimChip::new("hwgw-scope", 8, &[])?;
+    let base = chip.base()?;
+    let dir = testkit::TempDir::new("gpio-scope-config");
+    let config = dir.path().join("scope.toml");
+    std::fs::write(&config, SCOPE)?;
+    let trace = testkit::GpioTrace::start()?;
+    let gw = Service::start(HWGW, "gpio-scope", &[&config], &[])?;
+    // Pulses after the request's "set 0", "out (0)", per line.
+    let pulses = |line: u32| -> Result<Vec<String>, Failed> {
+        Ok(trace.events(base + line)?.into_iter().skip(2).collect())
+    };
+    let waited = wait_for("a thread pulsing its line 20 times", || {
+        Ok((1..8).any(|l| pulses(l).is_ok_and(|p| p.len() >= 40)))
+    });
+    if let Err(e) = waited {
+        let seen: Vec<_> = (0..8).map(|l| trace.events(base + l)).collect();
+        let status = gw.out(&["status"]);
+        let stopped = gw.terminate();
+        return Err(format!(
+            "{e:?}: events {seen:?}\nstatus {status:?}\nlog:\n{}",
+            stopped.log
+        )
+        .into());
+    }
+    let stopped = gw.terminate();
+    assert!(stopped.status.success(), "{}", stopped.log);
+    assert!(stopped.log.contains("ThreadScope"), "{}", stopped.log);
+    let mut busy = 0;
+    for line in 0..8 {
+        let p = pulses(line)?;
+        busy += usize::from(p.len() >= 2);
+        for (i, e) in p.iter().enumerate() {
+            let want = if i % 2 == 0 { "set 1" } else { "set 0" };
+            assert_eq!(e, want, "line {line}, event {i}: {p:?}");
+        }
+    }
+    assert!(
+        busy >= 2,
+        "pulses on {busy} lines: one thread each expected"
+    );
+    Ok(())
+}
+
 fn main() -> std::process::ExitCode {
     kernel_rig::harness(
         &Rig::new().gpio_sim(),
@@ -246,6 +320,10 @@ fn main() -> std::process::ExitCode {
             Trial::test(
                 "hwgw_get_reads_each_bias_polarity_and_debounce_case",
                 hwgw_get_reads_each_bias_polarity_and_debounce_case,
+            ),
+            Trial::test(
+                "hwgw_pulses_thread_scope_on_gpio_lines",
+                hwgw_pulses_thread_scope_on_gpio_lines,
             ),
         ],
     )

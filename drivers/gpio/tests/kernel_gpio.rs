@@ -19,6 +19,9 @@ use std::sync::Arc;
 use std::time::Duration;
 use testkit::{GpioTrace, SimChip, wait_for};
 
+mod common;
+use common::{card, running};
+
 const PATIENCE: Duration = Duration::from_secs(10);
 
 /// A card built from `body` (with `chip = "<label>"` first), its bus component running.
@@ -28,19 +31,8 @@ struct Up {
     _rt: Runtime,
 }
 
-fn card(chip: &SimChip, body: &str) -> Result<Arc<GpioCard>, Failed> {
-    let config: GpioConfig = toml::from_str(&format!("chip = {:?}\n{body}", chip.label))?;
-    driver_gpio::plugin::card(&config, Arc::new(MonotonicClock))
-        .map_err(|e| Failed::from(format!("{}: {}", e.key.unwrap_or_default(), e.message)))
-}
-
 fn start(card: Arc<GpioCard>) -> Result<Up, Failed> {
-    let rt = Runtime::new(
-        Arc::new(device_interface::Registry::new()),
-        RuntimeOptions::default(),
-    )?;
-    let task = GpioIo::add(&rt, "gpio", GpioBus::new(card.clone()), Default::default())?;
-    task.start()?;
+    let (rt, task) = running(&card)?;
     Ok(Up {
         card,
         task,
@@ -307,6 +299,72 @@ fn a_chip_that_goes_away_is_found_again() -> Result<(), Failed> {
     Ok(())
 }
 
+/// A component that does nothing but step.
+struct Idle;
+
+impl rtt::Component for Idle {}
+
+fn thread_scope_pulses_one_line_per_runtime_thread() -> Result<(), Failed> {
+    let chip = SimChip::new("hwgw-scope", 4, &[])?;
+    let card = card(
+        &chip,
+        "output = [{ line = 0 }, { line = 1 }, { line = 2 }, { line = 3 }]",
+    )?;
+    let registry = Arc::new(device_interface::Registry::new());
+    registry.register_card("scope", card.devices())?;
+    registry.alias(
+        device_interface::Interface::DigitalOut,
+        "ThreadScope",
+        "scope",
+    )?;
+    let base = chip.base()?;
+    let trace = GpioTrace::start()?;
+    let rt = Runtime::new(
+        registry,
+        RuntimeOptions {
+            thread_scope: true,
+            ..RuntimeOptions::default()
+        },
+    )?;
+    // Thread 1: the card's own bus component; threads 2 and 3: two periodic components.
+    let io = GpioIo::add(&rt, "gpio", GpioBus::new(card.clone()), Default::default())?;
+    io.start()?;
+    let mut tasks = Vec::new();
+    for (name, ms) in [("fast", 1), ("slow", 3)] {
+        let t = rt.add(
+            name,
+            rtt::ActivitySpec::periodic(Duration::from_millis(ms)),
+            rtt::InitialState::Stopped,
+            |_| Ok(Idle),
+        )?;
+        t.start()?;
+        tasks.push(t);
+    }
+    let pulses = |line: u32| -> Result<Vec<String>, Failed> {
+        // The request's "set 0", "out (0)" first, then the thread's pulses.
+        Ok(trace.events(base + line)?.into_iter().skip(2).collect())
+    };
+    wait("20 pulses of each periodic thread", || {
+        [2, 3]
+            .iter()
+            .all(|&l| pulses(l).is_ok_and(|p| p.len() >= 40))
+    })?;
+    for t in &tasks {
+        t.stop()?;
+    }
+    for line in [2, 3] {
+        let p = pulses(line)?;
+        // High while the thread steps, low between: strictly alternating, low at the end.
+        for (i, e) in p.iter().enumerate() {
+            let want = if i % 2 == 0 { "set 1" } else { "set 0" };
+            assert_eq!(e, want, "line {line}, event {i}: {p:?}");
+        }
+        assert_eq!(p.len() % 2, 0, "line {line} left high: {p:?}");
+    }
+    assert_eq!(rt.thread_scope().errors(), 0);
+    Ok(())
+}
+
 fn a_line_held_by_gpioset_is_refused_naming_it() -> Result<(), Failed> {
     let chip = SimChip::new("hwgw-busy", 4, &[(2, "taken")])?;
     let mut gpioset = std::process::Command::new("gpioset")
@@ -354,39 +412,6 @@ fn a_line_held_by_gpioset_is_refused_naming_it() -> Result<(), Failed> {
     result
 }
 
-/// Drives the quadrature lines `a`, `b` by `counts` steps (positive: A leads).
-struct Quad<'a> {
-    chip: &'a SimChip,
-    a: u32,
-    b: u32,
-    phase: i64,
-}
-
-impl Quad<'_> {
-    fn step(&mut self, counts: i64) -> std::io::Result<()> {
-        let dir = counts.signum();
-        for _ in 0..counts.abs() {
-            self.phase = (self.phase + dir).rem_euclid(4);
-            // Forward phases: 00, 10, 11, 01 (A, B).
-            let (a, b) =
-                [(false, false), (true, false), (true, true), (false, true)][self.phase as usize];
-            let (line, level) = if dir > 0 {
-                if self.phase % 2 == 1 {
-                    (self.a, a)
-                } else {
-                    (self.b, b)
-                }
-            } else if self.phase % 2 == 0 {
-                (self.a, a)
-            } else {
-                (self.b, b)
-            };
-            self.chip.pull(line, level)?;
-        }
-        Ok(())
-    }
-}
-
 fn an_encoder_decodes_ten_thousand_edges_exactly() -> Result<(), Failed> {
     let chip = SimChip::new("hwgw-enc", 4, &[(0, "encA"), (1, "encB"), (2, "encZ")])?;
     let up = up(
@@ -394,12 +419,7 @@ fn an_encoder_decodes_ten_thousand_edges_exactly() -> Result<(), Failed> {
         "event_buffer = 1024\nencoder = [{ a = \"encA\", b = \"encB\", resolution = 1000 }]",
     )?;
     let enc = up.card.devices().encoders.remove(0).1;
-    let mut q = Quad {
-        chip: &chip,
-        a: 0,
-        b: 1,
-        phase: 0,
-    };
+    let mut q = chip.quadrature(0, 1)?;
     q.step(10_000)?;
     wait("10 000 counts", || {
         enc.turn().ok() == Some(10) && enc.position().ok() == Some(0)
@@ -440,12 +460,7 @@ fn the_conformance_kit_passes() -> Result<(), Failed> {
     up.card.set_sequence(0, 1, 0b10)?;
     assert_eq!((chip.value(3)?, chip.value(0)?), (false, true));
     let enc = up.card.devices().encoders.remove(0).1;
-    let mut q = Quad {
-        chip: &chip,
-        a: 2,
-        b: 1,
-        phase: 0,
-    };
+    let mut q = chip.quadrature(2, 1)?;
     let e2 = enc.clone();
     let mut motion = |counts: i64| {
         let before = (e2.position().unwrap(), e2.turn().unwrap());
@@ -486,6 +501,10 @@ fn main() -> ExitCode {
         Trial::test(
             "a_chip_that_goes_away_is_found_again",
             a_chip_that_goes_away_is_found_again,
+        ),
+        Trial::test(
+            "thread_scope_pulses_one_line_per_runtime_thread",
+            thread_scope_pulses_one_line_per_runtime_thread,
         ),
         Trial::test(
             "a_line_held_by_gpioset_is_refused_naming_it",

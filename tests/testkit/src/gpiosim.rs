@@ -4,7 +4,9 @@
 //! [`GpioTrace`], the kernel's own record of every level driven on a line.
 
 use std::io;
+use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
 
 const CONFIGFS: &str = "/sys/kernel/config/gpio-sim";
 
@@ -116,6 +118,22 @@ impl SimChip {
         ))
     }
 
+    /// Lines `a` and `b` driven from outside as an encoder's channels (both start low).
+    pub fn quadrature(&self, a: u32, b: u32) -> io::Result<QuadratureDrive> {
+        let open = |offset: u32| {
+            let path = self.attr(offset, "pull");
+            std::fs::OpenOptions::new()
+                .write(true)
+                .open(&path)
+                .map_err(|e| io::Error::new(e.kind(), format!("{}: {e}", path.display())))
+        };
+        Ok(QuadratureDrive {
+            a: open(a)?,
+            b: open(b)?,
+            phase: 0,
+        })
+    }
+
     /// The number of lines.
     pub fn lines(&self) -> u32 {
         self.lines
@@ -131,6 +149,52 @@ impl Drop for SimChip {
         }
         let _ = std::fs::remove_dir(&bank);
         let _ = std::fs::remove_dir(&self.dir);
+    }
+}
+
+/// An encoder's A and B channels driven through two gpio-sim lines' pulls: each count one
+/// edge, A leading for counts forward. Each edge is one `write(2)` to an open sysfs file.
+#[derive(Debug)]
+pub struct QuadratureDrive {
+    a: std::fs::File,
+    b: std::fs::File,
+    /// 0..4: the phase of (A, B) in the forward order 00, 10, 11, 01.
+    phase: i64,
+}
+
+impl QuadratureDrive {
+    /// Moves by `counts` (negative: backward) as fast as the writes go.
+    pub fn step(&mut self, counts: i64) -> io::Result<()> {
+        self.paced(counts, Duration::ZERO).map(|_| ())
+    }
+
+    /// Moves by `counts`, one edge every `gap` at the earliest (spinning, not sleeping);
+    /// returns how long it took.
+    pub fn paced(&mut self, counts: i64, gap: Duration) -> io::Result<Duration> {
+        let dir = counts.signum();
+        let start = Instant::now();
+        for i in 0..counts.unsigned_abs() {
+            if !gap.is_zero() {
+                let due = start + gap.saturating_mul(u32::try_from(i).unwrap_or(u32::MAX));
+                while Instant::now() < due {
+                    std::hint::spin_loop();
+                }
+            }
+            let from = self.phase;
+            self.phase = (self.phase + dir).rem_euclid(4);
+            // Forward, A changes entering phases 1 and 3; backward, leaving them.
+            let a_moves = if dir > 0 {
+                self.phase % 2 == 1
+            } else {
+                from % 2 == 1
+            };
+            let (a, b) =
+                [(false, false), (true, false), (true, true), (false, true)][self.phase as usize];
+            let (file, level) = if a_moves { (&self.a, a) } else { (&self.b, b) };
+            let text: &[u8] = if level { b"pull-up" } else { b"pull-down" };
+            file.write_all_at(text, 0)?;
+        }
+        Ok(start.elapsed())
     }
 }
 
