@@ -275,13 +275,13 @@ fn hwgw_pulses_thread_scope_on_gpio_lines() -> Result<(), Failed> {
     let gw = Service::start(HWGW, "gpio-scope", &[&config], &[])?;
     // Pulses after the request's "set 0", "out (0)", per line.
     let pulses = |line: u32| -> Result<Vec<String>, Failed> {
-        Ok(trace.events(base + line)?.into_iter().skip(2).collect())
+        Ok(trace.driven(base + line)?.into_iter().skip(2).collect())
     };
     let waited = wait_for("a thread pulsing its line 20 times", || {
         Ok((1..8).any(|l| pulses(l).is_ok_and(|p| p.len() >= 40)))
     });
     if let Err(e) = waited {
-        let seen: Vec<_> = (0..8).map(|l| trace.events(base + l)).collect();
+        let seen: Vec<_> = (0..8).map(|l| trace.driven(base + l)).collect();
         let status = gw.out(&["status"]);
         let stopped = gw.terminate();
         return Err(format!(

@@ -114,7 +114,9 @@ fn pulse_bench(quick: bool) -> Result<u64, Failed> {
         (mean, p99)
     };
     let (g, r, m, c) = (summary(&g), summary(&r), summary(&m), summary(&c));
-    println!("ThreadScope pulse (bit high, bit low), {n} pulses each (p99: timed one by one):");
+    println!(
+        "ThreadScope pulse (bit high, bit low), {n} pulses each (p99: the worst of 10 rounds, timed one by one):"
+    );
     println!(
         "  GPIO card (hwgw)        mean {:8.0} ns   p99 {:8} ns",
         g.0, g.1

@@ -6,13 +6,15 @@
 //! (gaps in each line's sequence numbers), decodes the encoders and hands each input's
 //! edge to the caller to publish.
 //!
-//! A chip that goes away (the kernel wakes its descriptor and reads fail with `ENODEV`)
-//! takes the card offline: [`GpioBus::close_lost`] closes its request and
-//! [`GpioBus::reopen`], called every [`REOPEN_PERIOD`], looks for it — at its old path or
-//! under a new number, by label and number of lines, its line names unchanged — and
-//! requests its lines anew, outputs at the level last written to them. Inputs and
-//! encoders start again from where their lines stand then; edges while the chip was away
-//! are not seen (an encoder's count keeps its value from before).
+//! A chip that goes away takes the card offline. The loss is seen when a read fails with
+//! `ENODEV` — the rig's 6.12 kernel wakes the request's descriptor when its chip is
+//! removed — or, where no wake comes (older kernels may not send one), by
+//! [`GpioBus::check_alive`] every [`CHECK_PERIOD`]. [`GpioBus::close_lost`] then closes the
+//! request and [`GpioBus::reopen`], every [`CHECK_PERIOD`], looks for the chip — at its old
+//! path or under a new number, by label and number of lines, our lines free and their
+//! names unchanged — and requests its lines anew, outputs at the level last written to
+//! them. Inputs and encoders start again from where their lines stand then; edges while
+//! the chip was away are not seen (an encoder's count keeps its value from before).
 
 use crate::card::{GpioCard, Opened, Slot};
 use crate::chips::ChipId;
@@ -21,12 +23,13 @@ use crate::quad::{Quadrature, Step};
 use crate::request::request;
 use gpiocdev_uapi::v2::LineEdgeEvent;
 use std::os::fd::{AsFd, AsRawFd, BorrowedFd, RawFd};
+use std::sync::Arc;
 use std::sync::atomic::Ordering;
-use std::sync::{Arc, PoisonError};
 use std::time::Duration;
 
-/// How often a card whose chip went away looks for it.
-pub const REOPEN_PERIOD: Duration = Duration::from_millis(500);
+/// How often the bus side checks that its chips are there, and looks for one that went
+/// away.
+pub const CHECK_PERIOD: Duration = Duration::from_millis(500);
 
 /// One edge of an input, as published on the bus component's `edges` port.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -74,6 +77,8 @@ pub struct GpioBus {
     was: Vec<ChipId>,
     /// Why the last look for a lost chip failed (logged when it changes).
     why_not: Option<String>,
+    /// The chips are requested but where the lines stand could not be read yet.
+    unsettled: bool,
 }
 
 impl GpioBus {
@@ -118,6 +123,7 @@ impl GpioBus {
             buf: vec![0; BATCH * LineEdgeEvent::u64_size()],
             was,
             why_not: None,
+            unsettled: false,
         }
     }
 
@@ -131,27 +137,30 @@ impl GpioBus {
         &self,
         mut f: impl FnMut(BorrowedFd<'_>) -> Result<(), E>,
     ) -> Result<(), E> {
-        let opened = self
-            .card
-            .opened
-            .read()
-            .unwrap_or_else(PoisonError::into_inner);
-        for o in opened.iter().flatten() {
-            f(o.file.as_fd())?;
+        for i in 0..self.card.chips.len() {
+            if let Some(slot) = self.card.request(i)
+                && let Some(o) = slot.as_ref()
+            {
+                f(o.file.as_fd())?;
+            }
         }
         Ok(())
     }
 
-    /// True while a chip of the card is lost (gone, or not found again yet).
+    /// True while a chip of the card is lost (gone, or not found again yet) or its lines
+    /// could not be read since it came back.
     pub fn is_missing(&self) -> bool {
-        self.lost.iter().any(|l| *l)
+        self.unsettled || self.lost.iter().any(|l| *l)
     }
 
-    /// Requests the card's lines on every chip not requested yet (outputs at their
-    /// initial values from the request on), reads where inputs and encoders start and
+    /// Requests the card's lines on every chip not requested yet, or whose request's chip
+    /// went away while the bus side was stopped (outputs at their initial values, or the
+    /// level last written, from the request on), reads where inputs and encoders start and
     /// puts the card online. An error names the line and, when another consumer holds it,
     /// that consumer.
     pub fn open(&mut self) -> Result<(), String> {
+        self.check_alive();
+        self.close_lost(&mut |_| ());
         for i in 0..self.card.chips.len() {
             if self.card.with_request(i, |_| ()).is_ok() {
                 continue;
@@ -162,6 +171,35 @@ impl GpioBus {
         self.settle().map_err(|e| e.to_string())
     }
 
+    /// Reads one line of every chip that is requested and not known lost (one ioctl
+    /// each); a chip that is gone is marked lost and the card offline. True when one was.
+    pub fn check_alive(&mut self) -> bool {
+        let mut newly = false;
+        for i in 0..self.card.chips.len() {
+            if self.lost[i] {
+                continue;
+            }
+            let probe = self.card.with_request(i, |f| {
+                let mut lv = gpiocdev_uapi::v2::LineValues { bits: 0, mask: 1 };
+                gpiocdev_uapi::v2::get_line_values(f, &mut lv)
+            });
+            if let Ok(Err(e)) = probe
+                && crate::card::is_gone(&e)
+            {
+                self.mark_lost(i);
+                newly = true;
+            }
+        }
+        newly
+    }
+
+    fn mark_lost(&mut self, chip: usize) {
+        let counters = &self.card.counters;
+        counters.chips_lost.fetch_add(1, Ordering::Relaxed);
+        self.card.online.store(false, Ordering::Release);
+        self.lost[chip] = true;
+    }
+
     /// Finds chip `i` where it is now and requests its lines.
     fn find(&self, i: usize) -> Result<Opened, String> {
         let named: Vec<(u32, &str)> = self.card.chips[i]
@@ -170,7 +208,12 @@ impl GpioBus {
             .filter(|l| !l.id.name.is_empty())
             .map(|l| (l.id.offset, l.id.name.as_str()))
             .collect();
-        let id = crate::chips::again(&self.was[i], &named)?;
+        let offsets: Vec<u32> = self.card.chips[i]
+            .lines
+            .iter()
+            .map(|l| l.id.offset)
+            .collect();
+        let id = crate::chips::again(&self.was[i], &offsets, &named)?;
         request(&self.card, i, id)
     }
 
@@ -179,17 +222,14 @@ impl GpioBus {
         self.lost[i] = false;
         // A new request numbers its lines' events from 1 again.
         self.last_seq[i].iter_mut().for_each(|s| *s = 0);
-        let mut opened = self
-            .card
-            .opened
-            .write()
-            .unwrap_or_else(PoisonError::into_inner);
-        opened.resize_with(self.card.chips.len(), || None);
-        opened[i] = Some(o);
+        if let Some(mut slot) = self.card.request(i) {
+            *slot = Some(o);
+        }
     }
 
     /// Reads where the inputs and encoders stand and puts the card online.
     fn settle(&mut self) -> Result<(), device_interface::DeviceError> {
+        self.unsettled = true;
         let card = self.card.clone();
         for (i, (s, e)) in card.inputs.iter().enumerate() {
             if *e == Edges::Both {
@@ -202,6 +242,7 @@ impl GpioBus {
             let b = card.get_unchecked(e.b.chip, 1 << e.b.bit)? != 0;
             self.quads[i] = Quadrature::new(a, b);
         }
+        self.unsettled = false;
         card.online.store(true, Ordering::Release);
         Ok(())
     }
@@ -209,28 +250,19 @@ impl GpioBus {
     /// Closes the requests of the chips that went away, calling `unwatch` with each one's
     /// descriptor first.
     pub fn close_lost(&mut self, unwatch: &mut dyn FnMut(RawFd)) {
-        let mut closed = Vec::new();
-        {
-            let mut opened = self
-                .card
-                .opened
-                .write()
-                .unwrap_or_else(PoisonError::into_inner);
-            for (i, o) in opened.iter_mut().enumerate() {
-                if self.lost.get(i).copied().unwrap_or(false)
-                    && let Some(o) = o.take()
-                {
-                    unwatch(o.file.as_raw_fd());
-                    closed.push(o);
-                }
+        for i in 0..self.lost.len() {
+            if !self.lost[i] {
+                continue;
             }
-        }
-        for o in closed {
+            let Some(o) = self.card.request(i).and_then(|mut slot| slot.take()) else {
+                continue;
+            };
+            unwatch(o.file.as_raw_fd());
             tracing::warn!(
                 "GPIO chip {} ({}) went away: its card is offline; looking for it every {:?}",
                 o.chip.name,
                 o.chip.label,
-                REOPEN_PERIOD
+                CHECK_PERIOD
             );
         }
     }
@@ -240,7 +272,7 @@ impl GpioBus {
     /// none is missing any more.
     pub fn reopen(&mut self, watch: &mut dyn FnMut(BorrowedFd<'_>) -> Result<(), String>) -> bool {
         for i in 0..self.lost.len() {
-            if !self.lost[i] || self.card.with_request(i, |_| ()).is_ok() {
+            if !self.lost[i] {
                 continue;
             }
             let found = self.find(i).and_then(|o| watch(o.file.as_fd()).map(|()| o));
@@ -300,14 +332,15 @@ impl GpioBus {
                     {
                         break;
                     }
-                    Err(_) => {
-                        // The chip is gone (ENODEV; the kernel wakes the descriptor) or
-                        // its descriptor fails: offline until it is found again.
+                    Err(e) => {
                         card.counters.read_errors.fetch_add(1, Ordering::Relaxed);
-                        card.counters.chips_lost.fetch_add(1, Ordering::Relaxed);
-                        card.online.store(false, Ordering::Release);
-                        self.lost[chip] = true;
-                        newly_lost = true;
+                        // The chip is gone: offline until it is found again. Another
+                        // error is counted, the request kept (closing it would let go
+                        // of the outputs).
+                        if crate::card::is_gone(&e) {
+                            self.mark_lost(chip);
+                            newly_lost = true;
+                        }
                         break;
                     }
                 };

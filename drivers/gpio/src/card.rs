@@ -2,17 +2,25 @@
 //! DigitalOut bits, its quadrature encoders as Encoder devices.
 //!
 //! The card is built from resolved lines (nothing requested: `hwgw check` must not drive an
-//! output) and requests them once, at [`GpioBus::open`](crate::bus::GpioBus::open), one request per chip: output
-//! lines at their initial value from the request on, inputs with their bias, polarity,
-//! debounce period and edge detection. Until then, and after its chip went away, every
-//! device call fails with [`DeviceError::Offline`]. A chip that goes away (an unplugged
-//! USB adapter) takes the card offline until the bus side finds it again and requests its
-//! lines anew (see [`GpioBus`](crate::bus::GpioBus)).
+//! output) and requests them at [`GpioBus::open`](crate::bus::GpioBus::open), one request
+//! per chip: output lines at their initial value from the request on, inputs with their
+//! bias, polarity, debounce period and edge detection. Until then, and after its chip went
+//! away, every device call fails with [`DeviceError::Offline`]. A chip that goes away (an
+//! unplugged USB adapter) takes the card offline until the bus side finds it again and
+//! requests its lines anew, outputs at the level last written (see
+//! [`GpioBus`](crate::bus::GpioBus)).
+//!
+//! Each chip's request sits behind a mutex of its own: a device call holds it for its one
+//! ioctl and the update of the output image, the bus side for one non-blocking read, and
+//! for closing or replacing the request. So no call reaches a descriptor that was closed or
+//! reused, and the image a chip is requested again with is the level its line last had.
 //!
 //! Real-time paths: `read_bit` of an input with edge detection on both edges answers from
-//! the line's state the edge events keep (no ioctl); other inputs are one
+//! the line's state the edge events keep (no ioctl, no lock); other inputs are one
 //! `GPIO_V2_LINE_GET_VALUES` ioctl; `set_bit` and `set_sequence` over the lines of one chip
-//! are one `GPIO_V2_LINE_SET_VALUES` ioctl. None allocates but on an error path.
+//! are one `GPIO_V2_LINE_SET_VALUES` ioctl; each under its chip's mutex (std's: no priority
+//! inheritance — a low-priority thread writing the same chip can delay a high-priority
+//! one by one ioctl). None allocates but on an error path.
 
 use crate::chips::LineId;
 use crate::config::{Bias, Drive, Edges};
@@ -23,7 +31,7 @@ use device_interface::{CardDevices, Device, DeviceError, DigitalIn, DigitalOut, 
 use gpiocdev_uapi::v2::{LineValues, get_line_values, set_line_values};
 use std::fs::File;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, PoisonError, RwLock};
+use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 
 /// How one line is requested.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -144,14 +152,17 @@ pub struct GpioCard {
     pub(crate) outputs: Vec<Slot>,
     pub(crate) output_image: Vec<AtomicBool>,
     pub(crate) encoders: Vec<Enc>,
-    /// Each chip's request, while it is made and the chip is there. Device calls hold
-    /// the read lock for one ioctl; only the bus side writes (at start, when a chip goes
-    /// or comes back), so a call never reaches a descriptor that was closed or reused.
-    pub(crate) opened: RwLock<Vec<Option<Opened>>>,
+    /// Each chip's request, while it is made and the chip is there (see the module doc).
+    pub(crate) opened: Vec<Mutex<Option<Opened>>>,
     pub(crate) online: AtomicBool,
     pub(crate) last_event: AtomicU64,
     pub(crate) counters: Counters,
     pub(crate) clock: Arc<dyn Clock>,
+}
+
+/// True for the error of a request whose chip is gone (`ENODEV`).
+pub(crate) fn is_gone(e: &gpiocdev_uapi::Error) -> bool {
+    matches!(e, gpiocdev_uapi::Error::Os(gpiocdev_uapi::Errno(n)) if *n == nix::errno::Errno::ENODEV as i32)
 }
 
 fn bus_error(e: gpiocdev_uapi::Error) -> DeviceError {
@@ -181,11 +192,10 @@ impl GpioCard {
     /// The names of the card's chips: as requested now, or as found at build for one not
     /// requested (yet, or since it went away).
     pub fn chip_names(&self) -> Vec<String> {
-        let opened = self.opened.read().unwrap_or_else(PoisonError::into_inner);
         self.chips
             .iter()
             .enumerate()
-            .map(|(i, c)| match opened.get(i) {
+            .map(|(i, c)| match self.request(i).as_deref() {
                 Some(Some(o)) => o.chip.name.clone(),
                 _ => c.lines[0].id.chip.name.clone(),
             })
@@ -231,23 +241,24 @@ impl GpioCard {
         }
     }
 
-    /// Runs `f` on `chip`'s request, when the card is online.
-    fn with_file<R>(&self, chip: usize, f: impl FnOnce(&File) -> R) -> Result<R, DeviceError> {
-        if !self.online.load(Ordering::Acquire) {
-            return Err(DeviceError::Offline);
-        }
-        self.with_request(chip, f)
+    /// `chip`'s request slot, locked.
+    pub(crate) fn request(&self, chip: usize) -> Option<MutexGuard<'_, Option<Opened>>> {
+        Some(
+            self.opened
+                .get(chip)?
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner),
+        )
     }
 
-    /// Runs `f` on `chip`'s request, when it is made (online or not: the bus side reads
-    /// where lines stand before the card goes online).
+    /// Runs `f` on `chip`'s request under its lock, when it is made (online or not: the
+    /// bus side reads where lines stand before the card goes online).
     pub(crate) fn with_request<R>(
         &self,
         chip: usize,
         f: impl FnOnce(&File) -> R,
     ) -> Result<R, DeviceError> {
-        let opened = self.opened.read().unwrap_or_else(PoisonError::into_inner);
-        match opened.get(chip) {
+        match self.request(chip).as_deref() {
             Some(Some(o)) => Ok(f(&o.file)),
             _ => Err(DeviceError::Offline),
         }
@@ -263,35 +274,51 @@ impl GpioCard {
     }
 
     /// Counts a failed ioctl; a chip that is gone (ENODEV) takes the card offline at once
-    /// (the bus side, woken by the same loss, closes and looks for it).
+    /// (the bus side finds the loss too and closes the request). Called with the chip's
+    /// lock held, so the bus side cannot have put the card online again in between.
     fn failed(&self, e: gpiocdev_uapi::Error, counter: &AtomicU64) -> DeviceError {
         counter.fetch_add(1, Ordering::Relaxed);
-        if matches!(e, gpiocdev_uapi::Error::Os(gpiocdev_uapi::Errno(n)) if n == nix::errno::Errno::ENODEV as i32)
-        {
+        if is_gone(&e) {
             self.online.store(false, Ordering::Release);
         }
         bus_error(e)
     }
 
-    /// Reads the lines `mask` of `chip` (one ioctl).
+    /// Reads the lines `mask` of `chip` (one ioctl), when online.
     pub(crate) fn get(&self, chip: usize, mask: u64) -> Result<u64, DeviceError> {
-        let mut lv = LineValues { bits: 0, mask };
-        self.with_file(chip, |f| get_line_values(f, &mut lv))?
-            .map_err(|e| self.failed(e, &self.counters.read_errors))?;
-        Ok(lv.bits & mask)
+        self.with_request(chip, |f| {
+            self.check_online()?;
+            self.read_lines(f, mask)
+        })?
     }
 
     /// Reads the lines `mask` of `chip` while the card is not online yet.
     pub(crate) fn get_unchecked(&self, chip: usize, mask: u64) -> Result<u64, DeviceError> {
+        self.with_request(chip, |f| self.read_lines(f, mask))?
+    }
+
+    fn read_lines(&self, f: &File, mask: u64) -> Result<u64, DeviceError> {
         let mut lv = LineValues { bits: 0, mask };
-        self.with_request(chip, |f| get_line_values(f, &mut lv))?
-            .map_err(|e| self.failed(e, &self.counters.read_errors))?;
+        get_line_values(f, &mut lv).map_err(|e| self.failed(e, &self.counters.read_errors))?;
         Ok(lv.bits & mask)
     }
 
-    fn set(&self, chip: usize, mask: u64, bits: u64) -> Result<(), DeviceError> {
-        self.with_file(chip, |f| set_line_values(f, &LineValues { bits, mask }))?
-            .map_err(|e| self.failed(e, &self.counters.write_errors))
+    /// Sets the lines `mask` of `chip` to `bits` (one ioctl), then, still under the chip's
+    /// lock, runs `then` (which records the levels in the output image).
+    fn set(
+        &self,
+        chip: usize,
+        mask: u64,
+        bits: u64,
+        then: impl FnOnce(),
+    ) -> Result<(), DeviceError> {
+        self.with_request(chip, |f| {
+            self.check_online()?;
+            set_line_values(f, &LineValues { bits, mask })
+                .map_err(|e| self.failed(e, &self.counters.write_errors))?;
+            then();
+            Ok(())
+        })?
     }
 
     /// The logical level output line `line` of `chip` is to have when (re)requested: the
@@ -364,9 +391,14 @@ impl DigitalOut for GpioCard {
 
     fn set_bit(&self, bit: u32, value: bool) -> Result<(), DeviceError> {
         let slot = self.output(bit)?;
-        self.set(slot.chip, 1 << slot.bit, u64::from(value) << slot.bit)?;
-        self.output_image[bit as usize].store(value, Ordering::Release);
-        Ok(())
+        self.set(
+            slot.chip,
+            1 << slot.bit,
+            u64::from(value) << slot.bit,
+            || {
+                self.output_image[bit as usize].store(value, Ordering::Release);
+            },
+        )
     }
 
     fn check_bit(&self, bit: u32) -> Result<bool, DeviceError> {
@@ -389,13 +421,14 @@ impl DigitalOut for GpioCard {
                 }
             }
             if mask != 0 {
-                self.set(chip, mask, bits)?;
-                for (bit, i) in span.bits() {
-                    if self.outputs[bit as usize].chip == chip {
-                        self.output_image[bit as usize]
-                            .store(value >> i & 1 == 1, Ordering::Release);
+                self.set(chip, mask, bits, || {
+                    for (bit, i) in span.bits() {
+                        if self.outputs[bit as usize].chip == chip {
+                            self.output_image[bit as usize]
+                                .store(value >> i & 1 == 1, Ordering::Release);
+                        }
                     }
-                }
+                })?;
             }
         }
         Ok(())

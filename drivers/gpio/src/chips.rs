@@ -221,27 +221,36 @@ fn names_of(chip: &Chip, id: &ChipId) -> String {
 }
 
 /// The chip `was` again, after it went away: at its old path if that is a chip with the
-/// same label and number of lines, else the one such chip anywhere (a USB adapter plugged
-/// back may get another number); its lines at `named` offsets must still bear those names.
-/// An error says why it is not (yet) there.
-pub fn again(was: &ChipId, named: &[(u32, &str)]) -> Result<ChipId, String> {
+/// same label and number of lines, else the one such chip anywhere whose lines at
+/// `offsets` nobody holds (a USB adapter plugged back may get another number; an identical
+/// one in use elsewhere is not it). Its lines at `named` offsets must still bear those
+/// names. An error says why it is not (yet) there.
+pub fn again(was: &ChipId, offsets: &[u32], named: &[(u32, &str)]) -> Result<ChipId, String> {
     let same = |id: &ChipId| id.label == was.label && id.lines == was.lines;
+    let free = |chip: &Chip, id: &ChipId| {
+        offsets
+            .iter()
+            .all(|&o| line_on(chip, id, o).is_ok_and(|l| l.used_by.is_none()))
+    };
     let (chip, id) = match open(&was.path) {
         Ok((c, id)) if same(&id) => (c, id),
         _ => {
-            let mut found: Vec<(Chip, ChipId)> =
-                all().into_iter().filter(|(_, id)| same(id)).collect();
+            let mut found: Vec<(Chip, ChipId)> = all()
+                .into_iter()
+                .filter(|(c, id)| same(id) && free(c, id))
+                .collect();
             match found.len() {
                 0 => {
                     return Err(format!(
-                        "no GPIO chip is labelled {:?} with {} lines",
+                        "no GPIO chip labelled {:?} with {} lines has lines {offsets:?} free",
                         was.label, was.lines
                     ));
                 }
                 1 => found.swap_remove(0),
                 n => {
                     return Err(format!(
-                        "{n} chips are labelled {:?} with {} lines; which one is it?",
+                        "{n} chips are labelled {:?} with {} lines and have lines {offsets:?} \
+                         free; which one is it? (give each adapter a label of its own)",
                         was.label, was.lines
                     ));
                 }

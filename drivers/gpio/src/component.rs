@@ -5,11 +5,11 @@
 //! reads the queued edge events. Each input edge is written to the output port `edges`
 //! (connect it buffered to see every one); the `counters` operation returns the card's
 //! counters. The lines stay requested when the component stops, at the level the gateway
-//! left them, until the process ends. When a chip goes away the component closes its
-//! request and looks for it every [`REOPEN_PERIOD`] (a deadline of its activity) until it
-//! is back.
+//! left them, until the process ends. Every [`CHECK_PERIOD`] (a deadline of its activity)
+//! it checks that its chips are there; when one goes away it closes its request and looks
+//! for it at each deadline until it is back.
 
-use crate::bus::{GpioBus, GpioEdge, REOPEN_PERIOD};
+use crate::bus::{CHECK_PERIOD, GpioBus, GpioEdge};
 use crate::card::GpioCounters;
 use device_interface::time::{Clock, MonotonicClock};
 use rtt::component::IntrospectError;
@@ -60,30 +60,28 @@ impl Component for GpioIo {
         self.bus.open().map_err(rtt::HookError::new)?;
         let activity = ctx.activity();
         self.bus.for_each_fd(|fd| activity.watch(fd))?;
+        activity.wake_at(MonotonicClock.now().saturating_add(CHECK_PERIOD))?;
         self.update_hook(ctx)
     }
 
     fn update_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
         let port = &mut self.edges;
-        let lost = self.bus.service(&mut |e| port.write(e));
+        let mut lost = self.bus.service(&mut |e| port.write(e));
+        let deadline = ctx.fd_events().deadline_passed();
+        if deadline {
+            lost |= self.bus.check_alive();
+        }
         let activity = ctx.activity();
         if lost {
             self.bus.close_lost(&mut |fd| {
                 activity.unwatch(fd);
             });
+        } else if deadline && self.bus.is_missing() {
+            self.bus
+                .reopen(&mut |fd| activity.watch(fd).map_err(|e| e.to_string()));
         }
-        if !self.bus.is_missing() {
-            return Ok(());
-        }
-        if ctx.fd_events().deadline_passed()
-            && self
-                .bus
-                .reopen(&mut |fd| activity.watch(fd).map_err(|e| e.to_string()))
-        {
-            return Ok(());
-        }
-        if lost || ctx.fd_events().deadline_passed() {
-            activity.wake_at(MonotonicClock.now().saturating_add(REOPEN_PERIOD))?;
+        if deadline || lost {
+            activity.wake_at(MonotonicClock.now().saturating_add(CHECK_PERIOD))?;
         }
         Ok(())
     }

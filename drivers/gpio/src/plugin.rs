@@ -14,7 +14,7 @@ use device_interface::CardDevices;
 use device_interface::encoder::EncoderCounter;
 use driver_api::{Card, CardContext, CardError, CardStatus, ChannelNames, ReadBack, is_port_name};
 use std::sync::atomic::{AtomicBool, AtomicU64};
-use std::sync::{Arc, RwLock};
+use std::sync::{Arc, Mutex};
 
 /// A GPIO card of a deployment.
 struct GpioPlugin {
@@ -127,7 +127,7 @@ pub fn card(
         });
     }
     in_request_order(&mut chips, &mut inputs, &mut outputs, &mut encoders);
-    let opened = RwLock::new(chips.iter().map(|_| None).collect());
+    let opened = chips.iter().map(|_| Mutex::new(None)).collect();
     Ok(Arc::new(GpioCard {
         consumer: config.consumer.clone(),
         event_buffer: config.event_buffer,

@@ -237,14 +237,14 @@ fn outputs_are_driven_to_no_level_but_their_initial_one_at_the_request() -> Resu
     // The kernel's record: each line set once, to its initial level, then made an output.
     for (line, level) in [(0, "set 1"), (1, "set 0"), (2, "set 0")] {
         assert_eq!(
-            trace.events(base + line)?,
+            trace.driven(base + line)?,
             [level, "out (0)"],
             "line {line}: driven before or besides its initial level"
         );
     }
     up.card.set_bit(1, true)?;
-    assert_eq!(trace.events(base + 1)?, ["set 0", "out (0)", "set 1"]);
-    assert_eq!(trace.events(base)?, ["set 1", "out (0)"], "written unasked");
+    assert_eq!(trace.driven(base + 1)?, ["set 0", "out (0)", "set 1"]);
+    assert_eq!(trace.driven(base)?, ["set 1", "out (0)"], "written unasked");
     Ok(())
 }
 
@@ -252,13 +252,13 @@ fn a_chip_that_goes_away_is_found_again() -> Result<(), Failed> {
     let mut chip = SimChip::new("hwgw-plug", 4, &[(0, "plug-in"), (1, "plug-out")])?;
     let up = up(
         &chip,
-        r#"input = [{ line = "plug-in", bias = "pull-down" }]
+        r#"input = [{ line = "plug-in", bias = "pull-up" }]
            output = [{ line = "plug-out", initial = false }]"#,
     )?;
     let c = up.card.clone();
     let mut reader = up.task.port("edges")?.reader(ConnPolicy::buffer(64))?;
     c.set_bit(0, true)?;
-    assert!(chip.value(1)?);
+    assert!(chip.value(1)? && bit(&*c, 0));
     // Held open here, the old chip keeps its number: the one that comes back gets another.
     let old = std::fs::File::open(chip.path())?;
     let old_name = chip.chip_name.clone();
@@ -268,6 +268,7 @@ fn a_chip_that_goes_away_is_found_again() -> Result<(), Failed> {
     assert!(matches!(c.set_bit(0, false), Err(DeviceError::Offline)));
     assert!(matches!(c.read_bit(0), Err(DeviceError::Offline)));
     assert_eq!(c.health().status, Status::Offline);
+    let trace = GpioTrace::start()?;
     chip.plug()?;
     assert_ne!(
         chip.chip_name, old_name,
@@ -277,18 +278,29 @@ fn a_chip_that_goes_away_is_found_again() -> Result<(), Failed> {
     drop(old);
     assert_eq!(c.counters().chips_back, 1);
     assert_eq!(c.health().status, Status::Online);
-    assert!(
-        chip.value(1)?,
-        "the output requested again at the level last written"
+    // Requested again: the output driven to nothing but the level last written (a write
+    // refused while offline changes nothing), the input's bias applied again (the
+    // simulator's own default pull is down).
+    assert_eq!(
+        trace.driven(chip.base()? + 1)?,
+        ["set 1", "out (0)"],
+        "the output at re-request"
     );
-    assert!(!bit(&*c, 0));
-    chip.pull(0, true)?;
-    wait("the input follows on the new chip", || bit(&*c, 0))?;
+    assert!(chip.value(1)?);
+    assert!(bit(&*c, 0), "the pull-up applied again");
+    chip.pull(0, false)?;
+    wait("the input follows on the new chip", || !bit(&*c, 0))?;
     c.set_bit(0, false)?;
     assert!(!chip.value(1)?);
-    let seen = edges(&mut *reader);
-    assert_eq!(seen.len(), 1, "{seen:?}");
-    assert!(seen[0].rising && seen[0].line_seqno == 1, "{seen:?}");
+    let mut seen = Vec::new();
+    wait("the edge on the port", || {
+        seen.extend(edges(&mut *reader));
+        !seen.is_empty()
+    })?;
+    assert!(
+        seen.len() == 1 && !seen[0].rising && seen[0].line_seqno == 1,
+        "{seen:?}"
+    );
     assert_eq!(c.counters().lost_events, 0);
     let info = sh(&format!("gpioinfo {}", chip.chip_name))?;
     assert!(
@@ -296,6 +308,22 @@ fn a_chip_that_goes_away_is_found_again() -> Result<(), Failed> {
             .any(|l| l.contains("\"plug-out\"") && l.contains("\"hwgw\"") && l.contains("output")),
         "{info}"
     );
+    // Again, nothing holding the old chip: back at its old number or another, found.
+    chip.unplug()?;
+    wait("offline a second time", || !c.counters().online)?;
+    chip.plug()?;
+    wait("online a second time", || c.counters().online)?;
+    assert_eq!((c.counters().chips_lost, c.counters().chips_back), (2, 2));
+    assert!(!chip.value(1)? && bit(&*c, 0));
+    // Gone and back while the bus component is stopped (its requests kept, nothing
+    // watching them): the start finds the stale request and the chip again.
+    c.set_bit(0, true)?;
+    up.task.stop()?;
+    chip.unplug()?;
+    chip.plug()?;
+    up.task.start()?;
+    assert!(c.counters().online && c.counters().chips_lost == 3);
+    assert!(chip.value(1)? && bit(&*c, 0));
     Ok(())
 }
 
@@ -342,7 +370,7 @@ fn thread_scope_pulses_one_line_per_runtime_thread() -> Result<(), Failed> {
     }
     let pulses = |line: u32| -> Result<Vec<String>, Failed> {
         // The request's "set 0", "out (0)" first, then the thread's pulses.
-        Ok(trace.events(base + line)?.into_iter().skip(2).collect())
+        Ok(trace.driven(base + line)?.into_iter().skip(2).collect())
     };
     wait("20 pulses of each periodic thread", || {
         [2, 3]

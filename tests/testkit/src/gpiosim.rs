@@ -241,6 +241,16 @@ impl GpioTrace {
             })
             .collect())
     }
+
+    /// The levels driven on `gpio` and its direction changes so far: [`events`](Self::events)
+    /// without the reads (`"get …"`).
+    pub fn driven(&self, gpio: u32) -> io::Result<Vec<String>> {
+        Ok(self
+            .events(gpio)?
+            .into_iter()
+            .filter(|e| !e.starts_with("get"))
+            .collect())
+    }
 }
 
 impl Drop for GpioTrace {
