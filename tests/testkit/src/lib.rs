@@ -8,6 +8,7 @@
 //! - [`mbpoll`]: the libmodbus master as a one-shot check;
 //! - [`fixtures`]: shared test data (a Modbus register map);
 //! - [`gpiosim`]: chips of the kernel's GPIO simulator, driven from outside;
+//! - [`i2cstub`]: the kernel's I2C stub, its chips' registers set and read with i2c-tools;
 //! - [`rig`]: kernel rig presets (vcan);
 //! - [`service`]: an `hwgw` binary running a deployment on a socket of its own;
 //! - [`logs`]: what a gateway built in the test's own process logs, captured;
@@ -16,6 +17,7 @@
 pub mod candump;
 pub mod fixtures;
 pub mod gpiosim;
+pub mod i2cstub;
 pub mod layout;
 pub mod logs;
 pub mod mbpoll;
@@ -26,6 +28,7 @@ pub mod wait;
 
 pub use candump::Candump;
 pub use gpiosim::{GpioTrace, SimChip};
+pub use i2cstub::I2cStub;
 pub use logs::LogCapture;
 pub use service::{Service, TempDir};
 pub use wait::{wait_for, wait_until};

@@ -65,6 +65,13 @@ pub const CAN_UTILS: Peer = Peer {
     packages: &["can-utils"],
 };
 
+/// i2c-tools: i2cget, i2cset, i2cdump, i2cdetect (in /usr/sbin).
+pub const I2C_TOOLS: Peer = Peer {
+    name: "i2c-tools",
+    probe: Probe::Command("i2cget"),
+    packages: &["i2c-tools"],
+};
+
 /// cyclictest, the wake-up latency reference of the jitter benchmark.
 pub const CYCLICTEST: Peer = Peer {
     name: "cyclictest",

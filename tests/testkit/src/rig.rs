@@ -1,6 +1,6 @@
 //! Kernel rig presets for the tests that need a kernel bus.
 
-use crate::peers::{CAN_UTILS, Peer, Probe, require};
+use crate::peers::{CAN_UTILS, I2C_TOOLS, Peer, Probe, require};
 use kernel_rig::Rig;
 
 /// `rig` with `peer` installed on the host before it boots (the guest runs the host's
@@ -25,4 +25,10 @@ pub fn with_peer(rig: Rig, peer: &Peer) -> Rig {
 /// A guest with vcan and CAN_RAW loaded and can-utils on the host (the CAN tests' rig).
 pub fn vcan() -> Rig {
     with_peer(Rig::new().module("vcan").module("can_raw"), &CAN_UTILS)
+}
+
+/// A guest with i2c-dev loaded and i2c-tools on the host (the I2C tests' rig); each test
+/// loads i2c-stub with the chip addresses it wants ([`crate::i2cstub::I2cStub`]).
+pub fn i2c_stub() -> Rig {
+    with_peer(Rig::new().module("i2c-dev"), &I2C_TOOLS)
 }
