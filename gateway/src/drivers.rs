@@ -3,7 +3,7 @@
 //! Each entry is a driver's build function over its typed section (see
 //! [`driver_api`]); the section is parsed strictly from the deployment file where it
 //! stands, so its errors point at the file, line and key. hwgw ships `sim`, `modbus`,
-//! `socketcan` and `gpio`; a user's binary adds its own with [`DriverTypes::register`] (see
+//! `socketcan`, `gpio` and `i2c`; a user's binary adds its own with [`DriverTypes::register`] (see
 //! `examples/custom-driver`).
 
 use driver_api::{BuildFn, Card, CardContext, CardError};
@@ -73,13 +73,14 @@ impl DriverTypes {
         }
     }
 
-    /// The drivers built into hwgw: gpio, modbus, sim, socketcan.
+    /// The drivers built into hwgw: gpio, i2c, modbus, sim, socketcan.
     pub fn builtin() -> Self {
         let mut t = Self::empty();
         t.register("sim", driver_sim::plugin::build);
         t.register("modbus", driver_modbus::plugin::build);
         t.register("socketcan", driver_can::plugin::build);
         t.register("gpio", driver_gpio::plugin::build);
+        t.register("i2c", driver_i2c::plugin::build);
         t
     }
 

@@ -5,6 +5,7 @@
 use kernel_rig::{Failed, Trial, sh};
 use testkit::Candump;
 use testkit::Service;
+use testkit::wait::wait_ok;
 
 const HWGW: &str = env!("CARGO_BIN_EXE_hwgw");
 const CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../config/can.toml");
@@ -26,19 +27,6 @@ fn terminate(gw: Service) -> Result<String, Failed> {
         return Err(format!("hwgw exited with {}: {}", stopped.status, stopped.log).into());
     }
     Ok(stopped.log)
-}
-
-/// Waits until `f` says yes; its errors end the wait.
-fn wait_for(what: &str, mut f: impl FnMut() -> Result<bool, Failed>) -> Result<(), Failed> {
-    let mut error = None;
-    testkit::wait_for(what, testkit::wait::PATIENCE, || match f() {
-        Ok(done) => done,
-        Err(e) => {
-            error = Some(e);
-            true
-        }
-    })?;
-    error.map_or(Ok(()), Err)
 }
 
 /// `candump -L` of the frames matching `filter` (`id:mask`), until `n` or 3 s of silence.
@@ -63,7 +51,7 @@ fn hwgw_reads_writes_and_leaves_safe_frames() -> Result<(), Failed> {
     // cansend -> the DBC-decoded values, through the CLI.
     let mirror = candump("210:7FF", 1)?;
     sh("cansend vcan0 100#3930F9C00B00FAFF && cansend vcan0 18FEEE05#822EFB00")?;
-    wait_for("Speed decoded", || {
+    wait_ok("Speed decoded", || {
         Ok(out(&gw, &["get", "can.ai", "Speed"])? == "123.45")
     })?;
     assert_eq!(out(&gw, &["get", "can.ai", "Torque"])?, "-60.0");
@@ -80,7 +68,7 @@ fn hwgw_reads_writes_and_leaves_safe_frames() -> Result<(), Failed> {
     out(&gw, &["set", "can.ao", "Setpoint", "-12.3"])?;
     out(&gw, &["set", "can.do", "Run", "true"])?;
     // Both reached the card (read back through the ports) before the capture starts.
-    wait_for("the setpoint and Run on the card", || {
+    wait_ok("the setpoint and Run on the card", || {
         Ok(out(&gw, &["get", "can.ao", "Setpoint"])? == "-12.3"
             && out(&gw, &["get", "can.do", "Run"])? == "true")
     })?;

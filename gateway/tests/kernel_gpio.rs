@@ -6,23 +6,11 @@
 use kernel_rig::{Failed, Rig, Trial, sh};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
+use testkit::wait::wait_ok;
 use testkit::{Service, SimChip};
 
 const HWGW: &str = env!("CARGO_BIN_EXE_hwgw");
 const CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../config/gpio.toml");
-
-/// Waits until `f` says yes; its errors end the wait.
-fn wait_for(what: &str, mut f: impl FnMut() -> Result<bool, Failed>) -> Result<(), Failed> {
-    let mut error = None;
-    testkit::wait_for(what, testkit::wait::PATIENCE, || match f() {
-        Ok(done) => done,
-        Err(e) => {
-            error = Some(e);
-            true
-        }
-    })?;
-    error.map_or(Ok(()), Err)
-}
 
 fn hwgw_gets_sets_and_leaves_the_lamp_safe() -> Result<(), Failed> {
     // The chip config/gpio.toml expects (its header says how to make it by hand).
@@ -32,7 +20,7 @@ fn hwgw_gets_sets_and_leaves_the_lamp_safe() -> Result<(), Failed> {
     chip.pull(4, true)?;
     let gw = Service::start(HWGW, "gpio", &[CONFIG], &[])?;
     let get = |port: &str, name: &str| gw.out(&["get", port, name]).map_err(Failed::from);
-    wait_for("the card online", || {
+    wait_ok("the card online", || {
         Ok(gw
             .out(&["call", "gpio", "counters"])?
             .contains("\"online\": true"))
@@ -47,13 +35,13 @@ fn hwgw_gets_sets_and_leaves_the_lamp_safe() -> Result<(), Failed> {
     assert_eq!(get("gpio.di", "limit")?, "false");
     chip.pull(0, true)?;
     chip.pull(1, false)?;
-    wait_for("button and limit on", || {
+    wait_ok("button and limit on", || {
         Ok(get("gpio.di", "button")? == "true" && get("gpio.di", "limit")? == "true")
     })?;
 
     // Outputs: hwgw set, read back through the simulator.
     gw.out(&["set", "gpio.do", "lamp", "true"])?;
-    if let Err(e) = wait_for("the lamp on", || Ok(chip.value(4)?)) {
+    if let Err(e) = wait_ok("the lamp on", || Ok(chip.value(4)?)) {
         let lamp = gw.out(&["get", "gpio.do", "lamp"]);
         let counters = gw.out(&["call", "gpio", "counters"]);
         let stopped = gw.terminate();
@@ -72,7 +60,7 @@ fn hwgw_gets_sets_and_leaves_the_lamp_safe() -> Result<(), Failed> {
     for (line, level) in [(2, true), (3, true), (2, false), (3, false)] {
         chip.pull(line, level)?;
     }
-    wait_for("4 counts", || {
+    wait_ok("4 counts", || {
         Ok(gw.out(&["get", "gpio.encoder0", "position"])? == "4")
     })?;
     let status = gw.out(&["status"])?;
@@ -107,7 +95,7 @@ fn hwgw_gets_sets_and_leaves_the_lamp_safe() -> Result<(), Failed> {
         seen_low.load(Ordering::Acquire),
         "the lamp never went to its safe value (low)"
     );
-    wait_for("the line released to its pull", || Ok(chip.value(4)?))?;
+    wait_ok("the line released to its pull", || Ok(chip.value(4)?))?;
     Ok(())
 }
 
@@ -175,14 +163,14 @@ fn hwgw_get_reads_each_bias_polarity_and_debounce_case() -> Result<(), Failed> {
         .map(|n| get(n))
         .collect()
     };
-    wait_for("the card online", || {
+    wait_ok("the card online", || {
         Ok(gw
             .out(&["call", "gpio", "counters"])?
             .contains("\"online\": true"))
     })?;
     // As requested: the bias sets the simulated line, active low inverts it (a line
     // without bias stays where the simulator's default pull has it: low).
-    wait_for("the levels the biases give", || {
+    wait_ok("the levels the biases give", || {
         Ok(all()? == ["true", "false", "false", "false", "false", "true"])
     })?;
     let info = sh(&format!("gpioinfo {}", chip.chip_name))?;
@@ -213,16 +201,16 @@ fn hwgw_get_reads_each_bias_polarity_and_debounce_case() -> Result<(), Failed> {
     chip.pull(2, true)?;
     chip.pull(3, false)?;
     chip.pull(5, true)?;
-    wait_for("every case the other way", || {
+    wait_ok("every case the other way", || {
         Ok(all()? == ["false", "true", "true", "true", "false", "false"])
     })?;
     // A pulse far shorter than the 200 ms debounce period, then one held until seen.
     chip.pull(4, true)?;
     chip.pull(4, false)?;
     chip.pull(4, true)?;
-    wait_for("the held pulse", || Ok(get("debounced")? == "true"))?;
+    wait_ok("the held pulse", || Ok(get("debounced")? == "true"))?;
     chip.pull(4, false)?;
-    wait_for("its end", || Ok(get("debounced")? == "false"))?;
+    wait_ok("its end", || Ok(get("debounced")? == "false"))?;
     // The kernel's events: one edge on each of lines 0-3, two on line 4 (the short
     // pulse never reached the card), none on line 5 (no edge detection).
     let counters = gw.out(&["call", "gpio", "counters"])?;
@@ -277,7 +265,7 @@ fn hwgw_pulses_thread_scope_on_gpio_lines() -> Result<(), Failed> {
     let pulses = |line: u32| -> Result<Vec<String>, Failed> {
         Ok(trace.driven(base + line)?.into_iter().skip(2).collect())
     };
-    let waited = wait_for("a thread pulsing its line 20 times", || {
+    let waited = wait_ok("a thread pulsing its line 20 times", || {
         Ok((1..8).any(|l| pulses(l).is_ok_and(|p| p.len() >= 40)))
     });
     if let Err(e) = waited {

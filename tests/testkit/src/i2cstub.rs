@@ -37,8 +37,13 @@ fn parse(text: &str) -> io::Result<u16> {
 
 impl I2cStub {
     /// (Re)loads i2c-stub with chips at `addresses` (at most 10, as the module takes).
+    /// Fails while a process holds the stub's `/dev/i2c-N` open: the open file pins the
+    /// module, so chips cannot come and go under a running reader.
     pub fn load(addresses: &[u8]) -> io::Result<I2cStub> {
-        let _ = run("modprobe", &["-r", "i2c-stub"]);
+        let loaded = Path::new("/sys/module/i2c_stub").exists();
+        if loaded {
+            run("modprobe", &["-r", "i2c-stub"])?;
+        }
         let list: Vec<String> = addresses.iter().map(|a| format!("{a:#04x}")).collect();
         run(
             "modprobe",

@@ -25,3 +25,20 @@ pub fn wait_until(what: &str, f: impl FnMut() -> bool) {
         panic!("timed out: {e}");
     }
 }
+
+/// Polls `f` until it says yes, for [`PATIENCE`]; an error of `f` ends the wait and is
+/// returned (a check that cannot be made is not a check that failed yet).
+pub fn wait_ok(
+    what: &str,
+    mut f: impl FnMut() -> Result<bool, kernel_rig::Failed>,
+) -> Result<(), kernel_rig::Failed> {
+    let mut error = None;
+    wait_for(what, PATIENCE, || match f() {
+        Ok(done) => done,
+        Err(e) => {
+            error = Some(e);
+            true
+        }
+    })?;
+    error.map_or(Ok(()), Err)
+}

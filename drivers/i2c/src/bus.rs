@@ -1,0 +1,269 @@
+//! An I2C card's bus side: every chip polled on its own period, one transfer at a time,
+//! on the card's bus thread.
+//!
+//! A chip that does not answer (a NAK) goes offline at once; other failed transfers are
+//! counted and the chip goes offline after [`FAILS_TO_OFFLINE`] in a row. An offline chip
+//! is probed — configured again from scratch, its outputs written — after
+//! [`FIRST_BACKOFF`], doubling up to [`MAX_BACKOFF`], through a newly opened bus file (an
+//! adapter that went away and came back at the same path is found); one dead chip costs
+//! the others one failed transfer per probe, never a wait.
+
+use crate::card::I2cCard;
+use crate::chips::ChipModel;
+use crate::smbus::{LinuxChip, Smbus, Transfer};
+use device_interface::time::Timestamp;
+use std::path::PathBuf;
+use std::sync::atomic::Ordering;
+use std::sync::{Arc, PoisonError};
+use std::time::Duration;
+
+/// Failed transfers in a row (other than a NAK) that take a chip offline.
+pub const FAILS_TO_OFFLINE: u32 = 3;
+/// The first wait before probing a chip that stopped answering.
+pub const FIRST_BACKOFF: Duration = Duration::from_millis(100);
+/// The longest wait between probes.
+pub const MAX_BACKOFF: Duration = Duration::from_secs(5);
+
+/// Opens the transfers to the chip at an address.
+pub type Opener = Box<dyn FnMut(u16) -> Result<Box<dyn Smbus>, String> + Send>;
+
+struct Polled {
+    model: Box<dyn ChipModel>,
+    bus: Option<Box<dyn Smbus>>,
+    next: Timestamp,
+    backoff: Duration,
+    fails: u32,
+}
+
+/// The card's bus side.
+pub struct I2cBus {
+    card: Arc<I2cCard>,
+    chips: Vec<Polled>,
+    open: Opener,
+}
+
+impl I2cBus {
+    /// The bus side of `card` over the i2c-dev bus at `path`; `models` in the card's chip
+    /// order.
+    pub fn new(card: Arc<I2cCard>, models: Vec<Box<dyn ChipModel>>, path: PathBuf) -> I2cBus {
+        let open: Opener = Box::new(move |address| {
+            LinuxChip::open(&path, address).map(|c| Box::new(c) as Box<dyn Smbus>)
+        });
+        I2cBus::with_opener(card, models, open)
+    }
+
+    /// The same over transfers `open` makes (a test's bus).
+    pub fn with_opener(
+        card: Arc<I2cCard>,
+        models: Vec<Box<dyn ChipModel>>,
+        open: Opener,
+    ) -> I2cBus {
+        let now = card.now();
+        let chips = models
+            .into_iter()
+            .map(|model| Polled {
+                model,
+                bus: None,
+                next: now,
+                backoff: FIRST_BACKOFF,
+                fails: 0,
+            })
+            .collect();
+        I2cBus { card, chips, open }
+    }
+
+    /// The card.
+    pub fn card(&self) -> &Arc<I2cCard> {
+        &self.card
+    }
+
+    /// Closes every chip's bus file and takes the chips offline (the bus side stops: a
+    /// card that is not polled holds no adapter, so its module can be unloaded). The next
+    /// step probes them all again.
+    pub fn release(&mut self) {
+        let now = self.card.now();
+        for (p, slot) in self.chips.iter_mut().zip(&self.card.chips) {
+            p.bus = None;
+            p.next = now;
+            p.backoff = FIRST_BACKOFF;
+            slot.online.store(false, Ordering::Release);
+        }
+    }
+
+    /// Polls (or probes) every chip that is due at `now`; returns when the next one is.
+    pub fn step(&mut self, now: Timestamp) -> Option<Timestamp> {
+        let card = self.card.clone();
+        for (i, p) in self.chips.iter_mut().enumerate() {
+            if p.next > now {
+                continue;
+            }
+            let (Some(slot), Some(io)) = (card.chips.get(i), card.io(i)) else {
+                continue;
+            };
+            let online = slot.online.load(Ordering::Acquire);
+            let result = match &mut p.bus {
+                Some(bus) if online => p.model.poll(bus.as_mut(), &io),
+                Some(bus) => p.model.start(bus.as_mut(), &io),
+                None => match (self.open)(slot.address) {
+                    Ok(mut bus) => {
+                        let r = p.model.start(bus.as_mut(), &io);
+                        p.bus = Some(bus);
+                        r
+                    }
+                    Err(e) => Err(Transfer::Failed(e)),
+                },
+            };
+            let period = Duration::from_millis(u64::from(slot.poll_ms));
+            match result {
+                Ok(()) => {
+                    p.fails = 0;
+                    p.backoff = FIRST_BACKOFF;
+                    slot.polls.fetch_add(1, Ordering::Relaxed);
+                    slot.last_good
+                        .store(now.as_nanos().max(1), Ordering::Release);
+                    if !online {
+                        tracing::info!(
+                            "I2C chip {} at {:#04x}: answering",
+                            slot.model,
+                            slot.address
+                        );
+                        slot.online.store(true, Ordering::Release);
+                    }
+                    // The next period after now (missed periods are skipped, not caught up).
+                    p.next = p
+                        .next
+                        .saturating_add(period)
+                        .max(now.saturating_add(period / 2));
+                }
+                Err(e) => {
+                    slot.errors.fetch_add(1, Ordering::Relaxed);
+                    p.fails += 1;
+                    let gone = matches!(e, Transfer::NoAnswer(_)) || p.fails >= FAILS_TO_OFFLINE;
+                    if online && gone {
+                        slot.online.store(false, Ordering::Release);
+                        slot.went_offline.fetch_add(1, Ordering::Relaxed);
+                        tracing::warn!(
+                            "I2C chip {} at {:#04x}: offline ({e}); probing with backoff",
+                            slot.model,
+                            slot.address
+                        );
+                    }
+                    let changed = {
+                        let mut last = slot
+                            .last_error
+                            .lock()
+                            .unwrap_or_else(PoisonError::into_inner);
+                        let text = e.to_string();
+                        let changed = last.as_deref() != Some(text.as_str());
+                        if changed {
+                            *last = Some(text);
+                        }
+                        changed
+                    };
+                    if !online && changed {
+                        tracing::warn!("I2C chip {} at {:#04x}: {e}", slot.model, slot.address);
+                    }
+                    if online && !gone {
+                        p.next = now.saturating_add(period);
+                    } else {
+                        // Probed through a new open: an adapter that was removed and came
+                        // back (a reloaded module, a replugged USB adapter) has a new file.
+                        p.bus = None;
+                        p.next = now.saturating_add(p.backoff);
+                        p.backoff = (p.backoff * 2).min(MAX_BACKOFF);
+                    }
+                }
+            }
+        }
+        self.chips.iter().map(|p| p.next).min()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, reason = "test code")]
+    use super::*;
+    use crate::config::Mcp23017Config;
+    use std::sync::Mutex;
+
+    /// An MCP23017 whose transfers fail as the test says: each call pops the next
+    /// outcome (none left: success).
+    struct Scripted(Arc<Mutex<Vec<Option<Transfer>>>>);
+
+    impl Scripted {
+        fn next(&mut self) -> Result<(), Transfer> {
+            match self.0.lock().unwrap().pop() {
+                Some(Some(e)) => Err(e),
+                _ => Ok(()),
+            }
+        }
+    }
+
+    impl Smbus for Scripted {
+        fn read_byte(&mut self, _: u8) -> Result<u8, Transfer> {
+            self.next().map(|()| 0)
+        }
+        fn write_byte(&mut self, _: u8, _: u8) -> Result<(), Transfer> {
+            self.next()
+        }
+        fn read_word(&mut self, _: u8) -> Result<u16, Transfer> {
+            self.next().map(|()| 0)
+        }
+        fn write_word(&mut self, _: u8, _: u16) -> Result<(), Transfer> {
+            self.next()
+        }
+    }
+
+    fn bus(script: Arc<Mutex<Vec<Option<Transfer>>>>) -> I2cBus {
+        let config = Mcp23017Config {
+            address: 0x20,
+            poll_ms: 10,
+            inputs: vec![0],
+            outputs: vec![],
+            pull_up: vec![],
+            invert: vec![],
+            initial_on: vec![],
+        };
+        let model = crate::chips::model(&crate::config::ChipConfig::Mcp23017(config));
+        let card = Arc::new(I2cCard::new(
+            &[(0x20, 10, model.as_ref())],
+            &[],
+            Arc::new(device_interface::time::SimClock::new(
+                Timestamp::from_nanos(0),
+            )),
+        ));
+        I2cBus::with_opener(
+            card,
+            vec![model],
+            Box::new(move |_| Ok(Box::new(Scripted(script.clone())) as Box<dyn Smbus>)),
+        )
+    }
+
+    #[test]
+    fn transient_errors_are_counted_a_nak_takes_the_chip_offline_and_probes_back_off() {
+        let script = Arc::new(Mutex::new(Vec::new()));
+        let mut b = bus(script.clone());
+        let t = |ms: u64| Timestamp::from_nanos(ms * 1_000_000);
+        let chip = |b: &I2cBus| b.card.counters().chips[0].clone();
+        assert_eq!(b.step(t(0)), Some(t(10)));
+        assert!(chip(&b).online);
+        // Two failed polls in a row: counted, still online, polled on its period.
+        let failed = || Some(Transfer::Failed("timeout".into()));
+        *script.lock().unwrap() = vec![failed(), failed()];
+        assert_eq!(b.step(t(10)), Some(t(20)));
+        assert_eq!(b.step(t(20)), Some(t(30)));
+        assert!(chip(&b).online);
+        assert_eq!(chip(&b).errors, 2);
+        // A NAK: offline at once, probed after 100 ms, then 200, 400 …
+        *script.lock().unwrap() = vec![Some(Transfer::NoAnswer("ENXIO".into())); 3];
+        assert_eq!(b.step(t(30)), Some(t(130)));
+        assert!(!chip(&b).online);
+        assert_eq!(chip(&b).went_offline, 1);
+        assert_eq!(b.step(t(130)), Some(t(330)));
+        assert_eq!(b.step(t(330)), Some(t(730)));
+        // It answers again: configured anew, online, polled on its period.
+        assert_eq!(b.step(t(730)), Some(t(740)));
+        assert!(chip(&b).online);
+        assert!(chip(&b).last_error.unwrap().contains("ENXIO"));
+    }
+}

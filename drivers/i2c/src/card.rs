@@ -1,0 +1,309 @@
+//! An I2C card's devices: the chips' input pins, output pins (and, as models are added,
+//! analog channels and encoders) as one DigitalIn and one DigitalOut, each chip's channels
+//! after the previous chip's, in the section's order.
+//!
+//! Devices only touch images: `read_bit` answers from the last poll of the bit's chip,
+//! `set_bit` records the level and marks the chip for its next poll, which sends it (at
+//! most one poll period later). A bit of a chip that does not answer is
+//! [`DeviceError::Offline`]. Real-time: no allocation, no lock, no system call.
+
+use crate::chips::{ChipModel, Shape};
+use device_interface::bits::BitImage;
+use device_interface::time::{Clock, Timestamp};
+use device_interface::{CardDevices, Device, DeviceError, DigitalIn, DigitalOut, Health, Status};
+use std::ops::Range;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
+
+/// One chip's place on the card and its state.
+#[derive(Debug)]
+pub struct ChipSlot {
+    /// Its address.
+    pub address: u16,
+    /// Its model.
+    pub model: &'static str,
+    /// Poll period, ms.
+    pub poll_ms: u32,
+    pub(crate) digital_in: Range<u32>,
+    pub(crate) digital_out: Range<u32>,
+    pub(crate) online: AtomicBool,
+    pub(crate) dirty: AtomicBool,
+    pub(crate) polls: AtomicU64,
+    pub(crate) errors: AtomicU64,
+    pub(crate) went_offline: AtomicU64,
+    pub(crate) last_good: AtomicU64,
+    pub(crate) last_error: Mutex<Option<String>>,
+}
+
+/// A snapshot of one chip's counters.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+pub struct ChipCounters {
+    /// Its address.
+    pub address: u16,
+    /// Its model.
+    pub model: &'static str,
+    /// Whether it answers.
+    pub online: bool,
+    /// Polls that succeeded.
+    pub polls: u64,
+    /// Failed transfers (each one, transient or not).
+    pub errors: u64,
+    /// Times it stopped answering.
+    pub went_offline: u64,
+    /// Why it last failed.
+    pub last_error: Option<String>,
+}
+
+/// The card's counters, for `hwgw status`.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+pub struct I2cCounters {
+    /// Chips answering, of all.
+    pub online: String,
+    /// Each chip's.
+    pub chips: Vec<ChipCounters>,
+}
+
+/// An I2C card.
+pub struct I2cCard {
+    pub(crate) chips: Vec<ChipSlot>,
+    inputs: BitImage,
+    outputs: BitImage,
+    clock: Arc<dyn Clock>,
+}
+
+/// What a chip model sees of the card: its own channels, numbered from 0.
+pub struct ChipIo<'a> {
+    card: &'a I2cCard,
+    chip: &'a ChipSlot,
+}
+
+impl ChipIo<'_> {
+    /// Records input `bit` of the chip as read.
+    pub fn set_input(&self, bit: u32, value: bool) {
+        let _ = self
+            .card
+            .inputs
+            .set(self.chip.digital_in.start + bit, value);
+    }
+
+    /// The level output `bit` of the chip is to have.
+    pub fn output(&self, bit: u32) -> bool {
+        self.card
+            .outputs
+            .get(self.chip.digital_out.start + bit)
+            .unwrap_or(false)
+    }
+
+    /// True, once, when a device changed an output of the chip since the last call.
+    pub fn take_dirty(&self) -> bool {
+        self.chip.dirty.swap(false, Ordering::AcqRel)
+    }
+
+    /// Marks the chip's outputs as still to send (their write failed).
+    pub fn mark_dirty(&self) {
+        self.chip.dirty.store(true, Ordering::Release);
+    }
+}
+
+impl I2cCard {
+    /// A card of `models` (their addresses and poll periods beside them), all offline
+    /// until polled; outputs start at `initial` (by DigitalOut bit).
+    pub fn new(
+        models: &[(u16, u32, &dyn ChipModel)],
+        initial: &[bool],
+        clock: Arc<dyn Clock>,
+    ) -> I2cCard {
+        let (mut di, mut dout) = (0u32, 0u32);
+        let mut chips = Vec::with_capacity(models.len());
+        for (address, poll_ms, m) in models {
+            let Shape {
+                digital_in,
+                digital_out,
+            } = m.shape();
+            chips.push(ChipSlot {
+                address: *address,
+                model: m.model(),
+                poll_ms: *poll_ms,
+                digital_in: di..di + digital_in,
+                digital_out: dout..dout + digital_out,
+                online: AtomicBool::new(false),
+                dirty: AtomicBool::new(false),
+                polls: AtomicU64::new(0),
+                errors: AtomicU64::new(0),
+                went_offline: AtomicU64::new(0),
+                last_good: AtomicU64::new(0),
+                last_error: Mutex::new(None),
+            });
+            di += digital_in;
+            dout += digital_out;
+        }
+        let outputs = BitImage::new(dout);
+        for (bit, on) in initial.iter().enumerate() {
+            let _ = outputs.set(bit as u32, *on);
+        }
+        I2cCard {
+            chips,
+            inputs: BitImage::new(di),
+            outputs,
+            clock,
+        }
+    }
+
+    /// What chip `i`'s model sees.
+    pub fn io(&self, i: usize) -> Option<ChipIo<'_>> {
+        Some(ChipIo {
+            card: self,
+            chip: self.chips.get(i)?,
+        })
+    }
+
+    /// The chips.
+    pub fn chips(&self) -> &[ChipSlot] {
+        &self.chips
+    }
+
+    /// The devices: a DigitalIn and a DigitalOut when the chips have such channels.
+    pub fn devices(self: &Arc<Self>) -> CardDevices {
+        CardDevices {
+            digital_in: (!self.inputs.is_empty()).then(|| self.clone() as Arc<dyn DigitalIn>),
+            digital_out: (!self.outputs.is_empty()).then(|| self.clone() as Arc<dyn DigitalOut>),
+            ..CardDevices::default()
+        }
+    }
+
+    /// Its counters, now.
+    pub fn counters(&self) -> I2cCounters {
+        let l = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        let chips: Vec<ChipCounters> = self
+            .chips
+            .iter()
+            .map(|c| ChipCounters {
+                address: c.address,
+                model: c.model,
+                online: c.online.load(Ordering::Acquire),
+                polls: l(&c.polls),
+                errors: l(&c.errors),
+                went_offline: l(&c.went_offline),
+                last_error: c
+                    .last_error
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .clone(),
+            })
+            .collect();
+        I2cCounters {
+            online: format!(
+                "{}/{}",
+                chips.iter().filter(|c| c.online).count(),
+                chips.len()
+            ),
+            chips,
+        }
+    }
+
+    /// Waits, until `deadline` at the latest, for every online chip's changed outputs to
+    /// be sent: its outputs no longer marked and a poll finished since the call. An error
+    /// names each chip they may not have reached.
+    pub fn settle(&self, deadline: std::time::Instant) -> Result<(), String> {
+        let start: Vec<u64> = self
+            .chips
+            .iter()
+            .map(|c| c.polls.load(Ordering::Acquire))
+            .collect();
+        let sent = |(c, p0): (&ChipSlot, &u64)| {
+            !c.online.load(Ordering::Acquire)
+                || (!c.dirty.load(Ordering::Acquire) && c.polls.load(Ordering::Acquire) > *p0)
+        };
+        while !self.chips.iter().zip(&start).all(sent) && std::time::Instant::now() < deadline {
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+        let unsent: Vec<String> = self
+            .chips
+            .iter()
+            .zip(&start)
+            .filter(|(c, p0)| !sent((c, p0)) || !c.online.load(Ordering::Acquire))
+            .filter(|(c, _)| !c.digital_out.is_empty())
+            .map(|(c, _)| {
+                let state = if c.online.load(Ordering::Acquire) {
+                    "not polled in time"
+                } else {
+                    "offline"
+                };
+                format!("{} at {:#04x} ({state})", c.model, c.address)
+            })
+            .collect();
+        if unsent.is_empty() {
+            Ok(())
+        } else {
+            Err(format!("outputs not sent to {}", unsent.join(", ")))
+        }
+    }
+
+    pub(crate) fn now(&self) -> Timestamp {
+        self.clock.now()
+    }
+
+    fn chip_of(&self, bit: u32, range: impl Fn(&ChipSlot) -> &Range<u32>) -> Option<&ChipSlot> {
+        self.chips.iter().find(|c| range(c).contains(&bit))
+    }
+
+    fn online(c: Option<&ChipSlot>) -> Result<(), DeviceError> {
+        match c {
+            Some(c) if c.online.load(Ordering::Acquire) => Ok(()),
+            _ => Err(DeviceError::Offline),
+        }
+    }
+}
+
+impl Device for I2cCard {
+    fn health(&self) -> Health {
+        let all = self.chips.iter().all(|c| c.online.load(Ordering::Acquire));
+        let last = self
+            .chips
+            .iter()
+            .map(|c| c.last_good.load(Ordering::Acquire))
+            .filter(|t| *t != 0)
+            .min();
+        Health {
+            status: if all { Status::Online } else { Status::Offline },
+            last_good: last.map(Timestamp::from_nanos),
+            checked_at: self.clock.now(),
+            last_error: (!all).then_some(DeviceError::Offline),
+        }
+    }
+}
+
+impl DigitalIn for I2cCard {
+    fn input_count(&self) -> u32 {
+        self.inputs.len()
+    }
+
+    fn read_bit(&self, bit: u32) -> Result<bool, DeviceError> {
+        self.inputs.check_bit(bit)?;
+        Self::online(self.chip_of(bit, |c| &c.digital_in))?;
+        self.inputs.get(bit)
+    }
+}
+
+impl DigitalOut for I2cCard {
+    fn output_count(&self) -> u32 {
+        self.outputs.len()
+    }
+
+    fn set_bit(&self, bit: u32, value: bool) -> Result<(), DeviceError> {
+        self.outputs.check_bit(bit)?;
+        let chip = self.chip_of(bit, |c| &c.digital_out);
+        Self::online(chip)?;
+        self.outputs.set(bit, value)?;
+        if let Some(c) = chip {
+            c.dirty.store(true, Ordering::Release);
+        }
+        Ok(())
+    }
+
+    fn check_bit(&self, bit: u32) -> Result<bool, DeviceError> {
+        self.outputs.check_bit(bit)?;
+        Self::online(self.chip_of(bit, |c| &c.digital_out))?;
+        self.outputs.get(bit)
+    }
+}

@@ -1,0 +1,51 @@
+//! Chip models: what each chip's registers mean, one file per chip.
+//!
+//! # Adding a chip model
+//!
+//! 1. A file `chips/<model>.rs` with a type implementing [`ChipModel`]: its [`Shape`] (how
+//!    many channels of each interface it adds to the card), `start` (configure the chip
+//!    and write its outputs' starting values, outputs before directions so no pin shows a
+//!    level nobody asked for) and `poll` (read inputs into the card's images, send outputs
+//!    the devices changed). Use only SMBus byte/word transfers ([`Smbus`]), the size the
+//!    real chip uses for each register (i2c-stub keeps one word per register and does not
+//!    overlap a word register with the byte register after it).
+//! 2. A variant of [`ChipConfig`] with the chip's settings and
+//!    their checks, and a line in [`model`] making the model from it.
+//! 3. A kernel test on i2c-stub: inputs set with `i2cset` read through the devices, outputs
+//!    read back with `i2cget`, and the conformance kit.
+
+pub mod mcp23017;
+
+use crate::card::ChipIo;
+use crate::config::ChipConfig;
+use crate::smbus::{Smbus, Transfer};
+
+/// How many channels of each interface a chip adds to its card.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Shape {
+    /// DigitalIn bits.
+    pub digital_in: u32,
+    /// DigitalOut bits.
+    pub digital_out: u32,
+}
+
+/// A chip's register model. Runs on the card's bus thread only; keeps the real-time
+/// contract there (no allocation, no blocking but the transfers themselves).
+pub trait ChipModel: Send {
+    /// The model's name, for logs and errors.
+    fn model(&self) -> &'static str;
+    /// Its channels.
+    fn shape(&self) -> Shape;
+    /// Configures the chip and writes its outputs' current values: at start, and again
+    /// each time it answers after it did not.
+    fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer>;
+    /// One poll: inputs read into the images, outputs the devices changed sent.
+    fn poll(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer>;
+}
+
+/// The model a chip section describes (checked).
+pub fn model(config: &ChipConfig) -> Box<dyn ChipModel> {
+    match config {
+        ChipConfig::Mcp23017(c) => Box::new(mcp23017::Mcp23017::new(c)),
+    }
+}

@@ -1,0 +1,268 @@
+//! An I2C card's `[card.i2c]` section: the bus, and the chips on it with their settings.
+//!
+//! ```
+//! use driver_i2c::config::{ChipConfig, I2cConfig};
+//!
+//! let config: I2cConfig = toml::from_str(r#"
+//!     bus = "/dev/i2c-1"
+//!     [[chip]]
+//!     model = "mcp23017"
+//!     address = 0x20
+//!     inputs = [8, 9, 10]
+//!     pull_up = [8]
+//!     outputs = [0, 1]
+//! "#)?;
+//! let ChipConfig::Mcp23017(c) = &config.chip[0];
+//! assert_eq!((c.address, c.poll_ms), (0x20, 10));
+//! config.check()?;
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+
+use serde::Deserialize;
+
+/// The most chips one card polls (a 7-bit bus has 112 usable addresses; a bus with more
+/// than this many chips wants more than one card anyway).
+pub const MAX_CHIPS: usize = 32;
+/// The shortest poll period, ms.
+pub const MIN_POLL_MS: u32 = 1;
+/// The longest poll period, ms (a minute).
+pub const MAX_POLL_MS: u32 = 60_000;
+/// The longest bus path or adapter name accepted, in bytes.
+pub const MAX_NAME: usize = 255;
+/// The 7-bit addresses a chip may have (0x00–0x07 and 0x78–0x7f are reserved by the I2C
+/// specification).
+pub const ADDRESSES: std::ops::RangeInclusive<u16> = 0x08..=0x77;
+
+/// A card's `[card.i2c]` section.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct I2cConfig {
+    /// The bus: its character device (`/dev/i2c-1`) or its adapter's name (as in
+    /// `/sys/class/i2c-dev/i2c-N/name`).
+    pub bus: String,
+    /// The chips on it; their channels follow each other in this order on the card's
+    /// devices.
+    #[serde(default)]
+    pub chip: Vec<ChipConfig>,
+}
+
+/// One chip: its model and that model's settings.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(tag = "model")]
+pub enum ChipConfig {
+    /// A Microchip MCP23017 16-bit IO expander.
+    #[serde(rename = "mcp23017")]
+    Mcp23017(Mcp23017Config),
+}
+
+fn default_poll_ms() -> u32 {
+    10
+}
+
+/// An MCP23017: pins 0–7 are GPA0–7, pins 8–15 GPB0–7. Inputs are the card's DigitalIn
+/// bits and outputs its DigitalOut bits, in the order given; pins in neither stay inputs.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Mcp23017Config {
+    /// Its 7-bit address (0x20–0x27 by its A2..A0 pins).
+    pub address: u16,
+    /// Poll period, ms (default 10): inputs read and written outputs sent this often.
+    #[serde(default = "default_poll_ms")]
+    pub poll_ms: u32,
+    /// Input pins, in DigitalIn bit order.
+    #[serde(default)]
+    pub inputs: Vec<u8>,
+    /// Output pins, in DigitalOut bit order.
+    #[serde(default)]
+    pub outputs: Vec<u8>,
+    /// Input pins with the chip's 100 kΩ pull-up on (GPPU).
+    #[serde(default)]
+    pub pull_up: Vec<u8>,
+    /// Input pins read inverted by the chip (IPOL): on when the pin is low.
+    #[serde(default)]
+    pub invert: Vec<u8>,
+    /// Output pins on from the start (written to OLAT before the pin becomes an output).
+    #[serde(default)]
+    pub initial_on: Vec<u8>,
+}
+
+/// A section that cannot work, and where.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{key}: {message}")]
+pub struct ConfigError {
+    /// The key, relative to the section (`chip[1].address`).
+    pub key: String,
+    /// What is wrong.
+    pub message: String,
+}
+
+fn err(key: impl Into<String>, message: impl Into<String>) -> ConfigError {
+    ConfigError {
+        key: key.into(),
+        message: message.into(),
+    }
+}
+
+impl ChipConfig {
+    /// Its address.
+    pub fn address(&self) -> u16 {
+        match self {
+            ChipConfig::Mcp23017(c) => c.address,
+        }
+    }
+
+    /// Its poll period, ms.
+    pub fn poll_ms(&self) -> u32 {
+        match self {
+            ChipConfig::Mcp23017(c) => c.poll_ms,
+        }
+    }
+}
+
+impl I2cConfig {
+    /// Checks what the types cannot say; the first problem, with its key.
+    pub fn check(&self) -> Result<(), ConfigError> {
+        if self.bus.is_empty() || self.bus.len() > MAX_NAME {
+            return Err(err(
+                "bus",
+                format!("a path or adapter name of 1 to {MAX_NAME} bytes"),
+            ));
+        }
+        if self.chip.len() > MAX_CHIPS {
+            return Err(err(
+                "chip",
+                format!(
+                    "{} chips; one card polls at most {MAX_CHIPS}",
+                    self.chip.len()
+                ),
+            ));
+        }
+        for (i, c) in self.chip.iter().enumerate() {
+            let key = |k: &str| format!("chip[{i}].{k}");
+            if !ADDRESSES.contains(&c.address()) {
+                return Err(err(
+                    key("address"),
+                    format!(
+                        "{:#04x} is not a 7-bit chip address ({:#04x}..={:#04x})",
+                        c.address(),
+                        ADDRESSES.start(),
+                        ADDRESSES.end()
+                    ),
+                ));
+            }
+            if let Some(j) = self.chip[..i]
+                .iter()
+                .position(|o| o.address() == c.address())
+            {
+                return Err(err(
+                    key("address"),
+                    format!("{:#04x} is chip[{j}]'s address already", c.address()),
+                ));
+            }
+            if !(MIN_POLL_MS..=MAX_POLL_MS).contains(&c.poll_ms()) {
+                return Err(err(
+                    key("poll_ms"),
+                    format!(
+                        "{} ms; between {MIN_POLL_MS} and {MAX_POLL_MS}",
+                        c.poll_ms()
+                    ),
+                ));
+            }
+            match c {
+                ChipConfig::Mcp23017(m) => m.check().map_err(|e| err(key(&e.key), e.message))?,
+            }
+        }
+        Ok(())
+    }
+}
+
+impl Mcp23017Config {
+    fn check(&self) -> Result<(), ConfigError> {
+        let mut seen = [None::<&str>; 16];
+        for (what, pins) in [("inputs", &self.inputs), ("outputs", &self.outputs)] {
+            for (n, &p) in pins.iter().enumerate() {
+                let key = format!("{what}[{n}]");
+                let Some(slot) = seen.get_mut(usize::from(p)) else {
+                    return Err(err(key, format!("pin {p}: the MCP23017 has pins 0..=15")));
+                };
+                if let Some(other) = slot {
+                    return Err(err(key, format!("pin {p} is in {other} already")));
+                }
+                *slot = Some(what);
+            }
+        }
+        for (what, pins, must) in [
+            ("pull_up", &self.pull_up, "inputs"),
+            ("invert", &self.invert, "inputs"),
+            ("initial_on", &self.initial_on, "outputs"),
+        ] {
+            for (n, &p) in pins.iter().enumerate() {
+                if seen.get(usize::from(p)).copied().flatten() != Some(must) {
+                    return Err(err(
+                        format!("{what}[{n}]"),
+                        format!("pin {p} is not one of the {must}"),
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, reason = "test code")]
+    use super::*;
+
+    fn parse(text: &str) -> I2cConfig {
+        toml::from_str(text).unwrap()
+    }
+
+    #[test]
+    fn bad_sections_name_their_key() {
+        let base = "bus = \"/dev/i2c-0\"\n[[chip]]\nmodel = \"mcp23017\"\n";
+        for (body, key, words) in [
+            ("address = 0x78", "chip[0].address", "not a 7-bit"),
+            ("address = 0x20\npoll_ms = 0", "chip[0].poll_ms", "between"),
+            (
+                "address = 0x20\ninputs = [16]",
+                "chip[0].inputs[0]",
+                "0..=15",
+            ),
+            (
+                "address = 0x20\ninputs = [1]\noutputs = [1]",
+                "chip[0].outputs[0]",
+                "in inputs",
+            ),
+            (
+                "address = 0x20\noutputs = [1]\npull_up = [1]",
+                "chip[0].pull_up[0]",
+                "not one of the inputs",
+            ),
+            (
+                "address = 0x20\ninputs = [2]\ninitial_on = [2]",
+                "chip[0].initial_on[0]",
+                "outputs",
+            ),
+        ] {
+            let e = parse(&format!("{base}{body}")).check().unwrap_err();
+            assert_eq!(e.key, key, "{body}: {e}");
+            assert!(e.message.contains(words), "{body}: {e}");
+        }
+        let two = format!("{base}address = 0x20\n[[chip]]\nmodel = \"mcp23017\"\naddress = 0x20\n");
+        assert_eq!(parse(&two).check().unwrap_err().key, "chip[1].address");
+    }
+
+    #[test]
+    fn unknown_models_and_keys_are_refused() {
+        let e =
+            toml::from_str::<I2cConfig>("bus = \"x\"\n[[chip]]\nmodel = \"mcp9999\"\naddress = 1")
+                .unwrap_err();
+        assert!(e.to_string().contains("mcp23017"), "{e}");
+        let e = toml::from_str::<I2cConfig>(
+            "bus = \"x\"\n[[chip]]\nmodel = \"mcp23017\"\naddress = 32\npullup = [1]",
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains("pullup"), "{e}");
+    }
+}

@@ -1,0 +1,198 @@
+//! The I2C card against the real kernel: the i2c-stub bus in the kernel rig, chips' input
+//! registers set and output registers read back with i2c-tools (the independent peer).
+#![allow(clippy::unwrap_used, reason = "test code")]
+
+use device_interface::conformance;
+use device_interface::time::MonotonicClock;
+use device_interface::{DeviceError, DigitalIn, DigitalOut};
+use driver_i2c::card::I2cCard;
+use driver_i2c::component::I2cIo;
+use driver_i2c::config::I2cConfig;
+use kernel_rig::{Failed, Trial};
+use rtt::{Runtime, RuntimeOptions};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use testkit::{I2cStub, wait_for};
+
+const PATIENCE: Duration = Duration::from_secs(10);
+
+/// A card of `chips` (TOML `[[chip]]` tables) on `stub`, its bus component running.
+struct Up {
+    card: Arc<I2cCard>,
+    task: rtt::TaskContext,
+    _rt: Runtime,
+}
+
+fn up(stub: &I2cStub, chips: &str) -> Result<Up, Failed> {
+    let config: I2cConfig = toml::from_str(&format!(
+        "bus = {:?}\n{chips}",
+        stub.path().display().to_string()
+    ))?;
+    let built = driver_i2c::plugin::card(&config, Arc::new(MonotonicClock))
+        .map_err(|e| Failed::from(format!("{}: {}", e.key.unwrap_or_default(), e.message)))?;
+    let card = built.card.clone();
+    let rt = Runtime::new(
+        Arc::new(device_interface::Registry::new()),
+        RuntimeOptions::default(),
+    )?;
+    let task = I2cIo::add(&rt, "i2c", built.bus(), Default::default())?;
+    task.start()?;
+    Ok(Up {
+        card,
+        task,
+        _rt: rt,
+    })
+}
+
+fn wait(what: &str, f: impl FnMut() -> bool) -> Result<(), Failed> {
+    wait_for(what, PATIENCE, f).map_err(Failed::from)
+}
+
+const MCP: &str = r#"
+[[chip]]
+model = "mcp23017"
+address = 0x20
+poll_ms = 5
+inputs = [8, 9, 3]
+pull_up = [8]
+invert = [9]
+outputs = [0, 1, 15]
+initial_on = [1]
+"#;
+
+fn mcp23017_registers_as_i2c_tools_sees_them() -> Result<(), Failed> {
+    let stub = I2cStub::load(&[0x20])?;
+    // GPB0 (pin 8) and GPA3 high before hwgw starts.
+    stub.set_word(0x20, 0x12, 0x0108)?;
+    let up = up(&stub, MCP)?;
+    let c = &*up.card;
+    wait("the chip online", || c.counters().chips[0].online)?;
+    // Configured as the section says, one word per A/B register pair.
+    assert_eq!(
+        stub.get_word(0x20, 0x00)?,
+        !0x8003u16,
+        "IODIR: pins 0, 1, 15 outputs"
+    );
+    assert_eq!(stub.get_word(0x20, 0x02)?, 0x0200, "IPOL: pin 9 inverted");
+    assert_eq!(stub.get_word(0x20, 0x0c)?, 0x0100, "GPPU: pin 8 pulled up");
+    assert_eq!(
+        stub.get_word(0x20, 0x14)?,
+        0x0002,
+        "OLAT: pin 1 on from the start"
+    );
+    assert_eq!(
+        (c.read_bit(0)?, c.read_bit(1)?, c.read_bit(2)?),
+        (true, false, true)
+    );
+    // i2c-stub does not apply IPOL: what GPIO holds is what the card reads.
+    stub.set_word(0x20, 0x12, 0x0200)?;
+    wait("inputs follow GPIO", || {
+        (c.read_bit(0).ok(), c.read_bit(1).ok(), c.read_bit(2).ok())
+            == (Some(false), Some(true), Some(false))
+    })?;
+    c.set_bit(2, true)?;
+    c.set_bit(1, false)?;
+    wait("OLAT follows the writes", || {
+        stub.get_word(0x20, 0x14).ok() == Some(0x8000)
+    })?;
+    assert!(c.check_bit(2)? && !c.check_bit(1)?);
+    Ok(())
+}
+
+fn a_chip_that_does_not_answer_is_offline_and_others_keep_polling() -> Result<(), Failed> {
+    let stub = I2cStub::load(&[0x20])?;
+    let up = up(
+        &stub,
+        r#"
+[[chip]]
+model = "mcp23017"
+address = 0x20
+poll_ms = 5
+inputs = [0]
+[[chip]]
+model = "mcp23017"
+address = 0x21
+poll_ms = 5
+outputs = [0]
+initial_on = [0]
+"#,
+    )?;
+    let c = up.card.clone();
+    wait("0x20 online", || c.counters().chips[0].online)?;
+    let dead = c.counters().chips[1].clone();
+    assert!(!dead.online, "{dead:?}");
+    let why = dead.last_error.unwrap_or_default();
+    assert!(why.contains("no answer"), "{why}");
+    assert!(matches!(c.set_bit(0, false), Err(DeviceError::Offline)));
+    assert!(c.read_bit(0).is_ok());
+    // The live chip's poll rate beside the dead one (reported, not asserted: the rig is
+    // a shared machine).
+    let (p0, t0) = (c.counters().chips[0].polls, Instant::now());
+    wait("100 more polls of 0x20", || {
+        c.counters().chips[0].polls >= p0 + 100
+    })?;
+    let rate = (c.counters().chips[0].polls - p0) as f64 / t0.elapsed().as_secs_f64();
+    println!("0x20 polled at {rate:.0}/s (period 5 ms: 200/s) beside a dead 0x21");
+    // Probed with a backoff all along: its failures keep coming, slower and slower.
+    let errors = c.counters().chips[1].errors;
+    assert!(errors >= 2, "{errors} probes");
+    // i2c-stub gets its chips only when loaded, and an open bus file pins the module: the
+    // bus component stops (closing the bus), the stub comes back with 0x21, and the
+    // component starts again — probing 0x21, configuring it, writing its output as asked.
+    let bus = stub.bus;
+    up.task.stop()?;
+    drop(stub);
+    let stub = I2cStub::load(&[0x20, 0x21])?;
+    assert_eq!(stub.bus, bus, "the stub came back as another adapter");
+    up.task.start()?;
+    wait("0x21 online", || c.counters().chips[1].online)?;
+    assert_eq!(stub.get_word(0x21, 0x14)?, 0x0001, "OLAT as asked");
+    assert_eq!(stub.get_word(0x21, 0x00)?, 0xfffe, "IODIR");
+    assert!(c.counters().chips[0].online);
+    Ok(())
+}
+
+fn the_conformance_kit_passes() -> Result<(), Failed> {
+    let stub = I2cStub::load(&[0x20])?;
+    let up = up(
+        &stub,
+        "[[chip]]\nmodel = \"mcp23017\"\naddress = 0x20\npoll_ms = 2\ninputs = [4, 12]\noutputs = [2, 7]",
+    )?;
+    let c = up.card.clone();
+    wait("online", || c.counters().chips[0].online)?;
+    let gpio = std::cell::Cell::new(0u16);
+    let mut set_di = |b: u32, v: bool| {
+        let pin = [4, 12][b as usize];
+        let word = if v {
+            gpio.get() | 1 << pin
+        } else {
+            gpio.get() & !(1 << pin)
+        };
+        gpio.set(word);
+        stub.set_word(0x20, 0x12, word).unwrap();
+        wait_for("the input follows", PATIENCE, || {
+            c.read_bit(b).ok() == Some(v)
+        })
+        .unwrap();
+    };
+    conformance::check_digital_in(&*up.card, Some(&mut set_di)).assert_complete();
+    conformance::check_digital_out(&*up.card).assert_complete();
+    Ok(())
+}
+
+fn main() -> std::process::ExitCode {
+    kernel_rig::harness(
+        &testkit::rig::i2c_stub(),
+        vec![
+            Trial::test(
+                "mcp23017_registers_as_i2c_tools_sees_them",
+                mcp23017_registers_as_i2c_tools_sees_them,
+            ),
+            Trial::test(
+                "a_chip_that_does_not_answer_is_offline_and_others_keep_polling",
+                a_chip_that_does_not_answer_is_offline_and_others_keep_polling,
+            ),
+            Trial::test("the_conformance_kit_passes", the_conformance_kit_passes),
+        ],
+    )
+}

@@ -1,0 +1,65 @@
+//! `hwgw` with an I2C card, in the kernel rig: the real binary on `config/i2c.toml` over
+//! the kernel's i2c-stub, the MCP23017's input register set and its output latch read
+//! with i2c-tools, the CLI in between.
+#![allow(clippy::unwrap_used, reason = "test code")]
+
+use kernel_rig::{Failed, Trial};
+use testkit::wait::wait_ok;
+use testkit::{I2cStub, Service};
+
+const HWGW: &str = env!("CARGO_BIN_EXE_hwgw");
+const CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../config/i2c.toml");
+
+fn hwgw_gets_sets_and_leaves_the_outputs_safe() -> Result<(), Failed> {
+    let stub = I2cStub::load(&[0x20])?;
+    let gw = Service::start(HWGW, "i2c", &[CONFIG], &[])?;
+    let get = |name: &str| gw.out(&["get", "i2c.di", name]).map_err(Failed::from);
+    wait_ok("the chip online", || {
+        Ok(gw
+            .out(&["call", "i2c", "counters"])?
+            .contains("\"online\": \"1/1\""))
+    })?;
+    // Configured as config/i2c.toml says.
+    assert_eq!(
+        stub.get_word(0x20, 0x00)?,
+        0xfffc,
+        "IODIR: GPA0, GPA1 outputs"
+    );
+    assert_eq!(stub.get_word(0x20, 0x0c)?, 0x0300, "GPPU: GPB0, GPB1");
+    assert_eq!(stub.get_word(0x20, 0x02)?, 0x0200, "IPOL: GPB1");
+    // Inputs as the GPIO register has them.
+    stub.set_word(0x20, 0x12, 0x0100)?;
+    wait_ok("button on, limit off", || {
+        Ok(get("button")? == "true" && get("limit")? == "false")
+    })?;
+    stub.set_word(0x20, 0x12, 0x0200)?;
+    wait_ok("button off, limit on", || {
+        Ok(get("button")? == "false" && get("limit")? == "true")
+    })?;
+    // Outputs: hwgw set, read back from the latch byte for byte.
+    gw.out(&["set", "i2c.do", "lamp", "true"])?;
+    gw.out(&["set", "i2c.do", "valve", "true"])?;
+    wait_ok("OLAT 0x0003", || Ok(stub.get_word(0x20, 0x14)? == 0x0003))?;
+    let status = gw.out(&["status"])?;
+    assert!(status.contains("mcp23017"), "{status}");
+    // SIGTERM: both to their safe value (off), sent before the bus side stops.
+    let stopped = gw.terminate();
+    assert!(stopped.status.success(), "{}", stopped.log);
+    assert_eq!(
+        stub.get_word(0x20, 0x14)?,
+        0x0000,
+        "the latch after stop: {}",
+        stopped.log
+    );
+    Ok(())
+}
+
+fn main() -> std::process::ExitCode {
+    kernel_rig::harness(
+        &testkit::rig::i2c_stub(),
+        vec![Trial::test(
+            "hwgw_gets_sets_and_leaves_the_outputs_safe",
+            hwgw_gets_sets_and_leaves_the_outputs_safe,
+        )],
+    )
+}
