@@ -36,7 +36,7 @@ fn installs_and_starts_as_an_operator_would() -> Result<(), Failed> {
          && install -m 0644 {REPO}/systemd/hwgw.service /etc/systemd/system/ \
          && install -D -m 0644 {REPO}/systemd/hwgw.sysusers.conf /etc/sysusers.d/hwgw.conf \
          && systemd-sysusers \
-         && install -D -m 0644 {REPO}/udev/60-hwgw.rules /etc/udev/rules.d/60-hwgw.rules \
+         && install -D -m 0644 {REPO}/udev/65-hwgw.rules /etc/udev/rules.d/65-hwgw.rules \
          && udevadm control --reload \
          && install -D -m 0640 -g hwgw {REPO}/gateway/tests/data/systemd.toml /etc/hwgw/hwgw.toml \
          && ip link add vcan0 type vcan && ip link set vcan0 up \
@@ -158,7 +158,7 @@ fn udev_gives_group_hwgw_the_nodes_its_rules_name() -> Result<(), Failed> {
         ("/dev/cpu_dma_latency", "/sys/class/misc/cpu_dma_latency"),
     ] {
         let test = sh(&format!("udevadm test {sys} 2>&1"))?;
-        if !test.contains("60-hwgw.rules") || !test.contains("GROUP") {
+        if !test.contains("65-hwgw.rules") || !test.contains("GROUP") {
             return Err(format!("udevadm test {sys}:\n{test}").into());
         }
         let owner = sh(&format!("stat -c '%G %a' {node}"))?;

@@ -225,8 +225,14 @@ mod tests {
             initial_on: vec![],
         };
         let model = crate::chips::model(&crate::config::ChipConfig::Mcp23017(config));
+        let place = crate::card::ChipPlace {
+            address: 0x20,
+            poll_ms: 10,
+            model: model.model(),
+            shape: model.shape(),
+        };
         let card = Arc::new(I2cCard::new(
-            &[(0x20, 10, model.as_ref())],
+            &[place],
             &[],
             Arc::new(device_interface::time::SimClock::new(
                 Timestamp::from_nanos(0),

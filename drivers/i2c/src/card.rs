@@ -7,13 +7,35 @@
 //! most one poll period later). A bit of a chip that does not answer is
 //! [`DeviceError::Offline`]. Real-time: no allocation, no lock, no system call.
 
-use crate::chips::{ChipModel, Shape};
 use device_interface::bits::BitImage;
 use device_interface::time::{Clock, Timestamp};
 use device_interface::{CardDevices, Device, DeviceError, DigitalIn, DigitalOut, Health, Status};
 use std::ops::Range;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
+
+/// How many channels of each interface a chip adds to its card.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Shape {
+    /// DigitalIn bits.
+    pub digital_in: u32,
+    /// DigitalOut bits.
+    pub digital_out: u32,
+}
+
+/// A chip as the card is made of it: where it is, how often it is polled, its model's
+/// name and channels.
+#[derive(Debug, Clone, Copy)]
+pub struct ChipPlace {
+    /// Its address.
+    pub address: u16,
+    /// Poll period, ms.
+    pub poll_ms: u32,
+    /// Its model's name.
+    pub model: &'static str,
+    /// Its channels.
+    pub shape: Shape,
+}
 
 /// One chip's place on the card and its state.
 #[derive(Debug)]
@@ -106,24 +128,20 @@ impl ChipIo<'_> {
 }
 
 impl I2cCard {
-    /// A card of `models` (their addresses and poll periods beside them), all offline
-    /// until polled; outputs start at `initial` (by DigitalOut bit).
-    pub fn new(
-        models: &[(u16, u32, &dyn ChipModel)],
-        initial: &[bool],
-        clock: Arc<dyn Clock>,
-    ) -> I2cCard {
+    /// A card of `places`, every chip offline until polled; outputs start at `initial`
+    /// (by DigitalOut bit).
+    pub fn new(places: &[ChipPlace], initial: &[bool], clock: Arc<dyn Clock>) -> I2cCard {
         let (mut di, mut dout) = (0u32, 0u32);
-        let mut chips = Vec::with_capacity(models.len());
-        for (address, poll_ms, m) in models {
+        let mut chips = Vec::with_capacity(places.len());
+        for p in places {
             let Shape {
                 digital_in,
                 digital_out,
-            } = m.shape();
+            } = p.shape;
             chips.push(ChipSlot {
-                address: *address,
-                model: m.model(),
-                poll_ms: *poll_ms,
+                address: p.address,
+                model: p.model,
+                poll_ms: p.poll_ms,
                 digital_in: di..di + digital_in,
                 digital_out: dout..dout + digital_out,
                 online: AtomicBool::new(false),

@@ -5,7 +5,7 @@
 //! nothing is sent until the bus component starts, so `hwgw check` touches no chip.
 
 use crate::bus::I2cBus;
-use crate::card::I2cCard;
+use crate::card::{ChipPlace, I2cCard};
 use crate::chips::{self, ChipModel};
 use crate::component::I2cIo;
 use crate::config::{ChipConfig, I2cConfig};
@@ -95,13 +95,18 @@ pub fn card(config: &I2cConfig, clock: Arc<dyn Clock>) -> Result<Built, CardErro
             }
         }
     }
-    let shaped: Vec<(u16, u32, &dyn ChipModel)> = config
+    let places: Vec<ChipPlace> = config
         .chip
         .iter()
         .zip(&models)
-        .map(|(c, m)| (c.address(), c.poll_ms(), m.as_ref()))
+        .map(|(c, m)| ChipPlace {
+            address: c.address(),
+            poll_ms: c.poll_ms(),
+            model: m.model(),
+            shape: m.shape(),
+        })
         .collect();
-    let card = Arc::new(I2cCard::new(&shaped, &initial, clock));
+    let card = Arc::new(I2cCard::new(&places, &initial, clock));
     Ok(Built { card, models, path })
 }
 

@@ -17,17 +17,9 @@
 pub mod mcp23017;
 
 use crate::card::ChipIo;
+pub use crate::card::Shape;
 use crate::config::ChipConfig;
 use crate::smbus::{Smbus, Transfer};
-
-/// How many channels of each interface a chip adds to its card.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct Shape {
-    /// DigitalIn bits.
-    pub digital_in: u32,
-    /// DigitalOut bits.
-    pub digital_out: u32,
-}
 
 /// A chip's register model. Runs on the card's bus thread only; keeps the real-time
 /// contract there (no allocation, no blocking but the transfers themselves).
