@@ -11,13 +11,15 @@ const HWGW: &str = env!("CARGO_BIN_EXE_hwgw");
 const CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../config/i2c.toml");
 
 fn hwgw_gets_sets_and_leaves_the_outputs_safe() -> Result<(), Failed> {
-    let stub = I2cStub::load(&[0x20])?;
+    let stub = I2cStub::load(&[0x20, 0x48])?;
+    // The ADS1115's conversion: 0x4000, MSB first on the wire.
+    stub.set_word(0x48, 0x00, 0x0040)?;
     let gw = Service::start(HWGW, "i2c", &[CONFIG], &[])?;
     let get = |name: &str| gw.out(&["get", "i2c.di", name]).map_err(Failed::from);
     wait_ok("the chip online", || {
         Ok(gw
             .out(&["call", "i2c", "counters"])?
-            .contains("\"online\": \"1/1\""))
+            .contains("\"online\": \"2/2\""))
     })?;
     // Configured as config/i2c.toml says.
     assert_eq!(
@@ -35,6 +37,11 @@ fn hwgw_gets_sets_and_leaves_the_outputs_safe() -> Result<(), Failed> {
     stub.set_word(0x20, 0x12, 0x0200)?;
     wait_ok("button off, limit on", || {
         Ok(get("button")? == "false" && get("limit")? == "true")
+    })?;
+    // Analog inputs with each channel's range: 16384 × 4.096 / 32768, × 0.256 / 32768.
+    wait_ok("both channels converted", || {
+        Ok(gw.out(&["get", "i2c.ai", "supply"])? == "2.048"
+            && gw.out(&["get", "i2c.ai", "bridge"])? == "0.128")
     })?;
     // Outputs: hwgw set, read back from the latch byte for byte.
     gw.out(&["set", "i2c.do", "lamp", "true"])?;

@@ -230,6 +230,7 @@ mod tests {
             poll_ms: 10,
             model: model.model(),
             shape: model.shape(),
+            analog_in: model.analog_in(),
         };
         let card = Arc::new(I2cCard::new(
             &[place],

@@ -1,17 +1,20 @@
-//! An I2C card's devices: the chips' input pins, output pins (and, as models are added,
-//! analog channels and encoders) as one DigitalIn and one DigitalOut, each chip's channels
-//! after the previous chip's, in the section's order.
+//! An I2C card's devices: the chips' input pins, output pins and analog inputs (and, as
+//! models are added, analog outputs and encoders) as one DigitalIn, one DigitalOut and one
+//! AnalogIn, each chip's channels after the previous chip's, in the section's order.
 //!
 //! Devices only touch images: `read_bit` answers from the last poll of the bit's chip,
 //! `set_bit` records the level and marks the chip for its next poll, which sends it (at
-//! most one poll period later). A bit of a chip that does not answer is
+//! most one poll period later); `read_raw` answers an analog channel's last conversion
+//! ([`DeviceError::Stale`] before its first). A channel of a chip that does not answer is
 //! [`DeviceError::Offline`]. Real-time: no allocation, no lock, no system call.
 
 use device_interface::bits::BitImage;
 use device_interface::time::{Clock, Timestamp};
-use device_interface::{CardDevices, Device, DeviceError, DigitalIn, DigitalOut, Health, Status};
+use device_interface::{
+    AnalogIn, CardDevices, Device, DeviceError, DigitalIn, DigitalOut, Health, Scale, Status,
+};
 use std::ops::Range;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 
 /// How many channels of each interface a chip adds to its card.
@@ -25,7 +28,7 @@ pub struct Shape {
 
 /// A chip as the card is made of it: where it is, how often it is polled, its model's
 /// name and channels.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct ChipPlace {
     /// Its address.
     pub address: u16,
@@ -35,7 +38,12 @@ pub struct ChipPlace {
     pub model: &'static str,
     /// Its channels.
     pub shape: Shape,
+    /// Its analog inputs' scales (one per channel).
+    pub analog_in: Vec<Scale>,
 }
+
+/// A raw analog value that was never read.
+const NO_SAMPLE: i64 = i64::MIN;
 
 /// One chip's place on the card and its state.
 #[derive(Debug)]
@@ -48,6 +56,7 @@ pub struct ChipSlot {
     pub poll_ms: u32,
     pub(crate) digital_in: Range<u32>,
     pub(crate) digital_out: Range<u32>,
+    pub(crate) analog_in: Range<u32>,
     pub(crate) online: AtomicBool,
     pub(crate) dirty: AtomicBool,
     pub(crate) polls: AtomicU64,
@@ -90,6 +99,8 @@ pub struct I2cCard {
     pub(crate) chips: Vec<ChipSlot>,
     inputs: BitImage,
     outputs: BitImage,
+    analog_raw: Box<[AtomicI64]>,
+    analog_scale: Vec<Scale>,
     clock: Arc<dyn Clock>,
 }
 
@@ -121,6 +132,17 @@ impl ChipIo<'_> {
         self.chip.dirty.swap(false, Ordering::AcqRel)
     }
 
+    /// Records analog input `channel` of the chip as converted.
+    pub fn set_analog_in(&self, channel: u32, raw: i64) {
+        if let Some(a) = self
+            .card
+            .analog_raw
+            .get((self.chip.analog_in.start + channel) as usize)
+        {
+            a.store(raw, Ordering::Release);
+        }
+    }
+
     /// Marks the chip's outputs as still to send (their write failed).
     pub fn mark_dirty(&self) {
         self.chip.dirty.store(true, Ordering::Release);
@@ -131,7 +153,8 @@ impl I2cCard {
     /// A card of `places`, every chip offline until polled; outputs start at `initial`
     /// (by DigitalOut bit).
     pub fn new(places: &[ChipPlace], initial: &[bool], clock: Arc<dyn Clock>) -> I2cCard {
-        let (mut di, mut dout) = (0u32, 0u32);
+        let (mut di, mut dout, mut ai) = (0u32, 0u32, 0u32);
+        let mut analog_scale = Vec::new();
         let mut chips = Vec::with_capacity(places.len());
         for p in places {
             let Shape {
@@ -144,6 +167,7 @@ impl I2cCard {
                 poll_ms: p.poll_ms,
                 digital_in: di..di + digital_in,
                 digital_out: dout..dout + digital_out,
+                analog_in: ai..ai + p.analog_in.len() as u32,
                 online: AtomicBool::new(false),
                 dirty: AtomicBool::new(false),
                 polls: AtomicU64::new(0),
@@ -154,6 +178,8 @@ impl I2cCard {
             });
             di += digital_in;
             dout += digital_out;
+            ai += p.analog_in.len() as u32;
+            analog_scale.extend(p.analog_in.iter().copied());
         }
         let outputs = BitImage::new(dout);
         for (bit, on) in initial.iter().enumerate() {
@@ -163,6 +189,8 @@ impl I2cCard {
             chips,
             inputs: BitImage::new(di),
             outputs,
+            analog_raw: (0..ai).map(|_| AtomicI64::new(NO_SAMPLE)).collect(),
+            analog_scale,
             clock,
         }
     }
@@ -180,11 +208,13 @@ impl I2cCard {
         &self.chips
     }
 
-    /// The devices: a DigitalIn and a DigitalOut when the chips have such channels.
+    /// The devices: a DigitalIn, a DigitalOut and an AnalogIn when the chips have such
+    /// channels.
     pub fn devices(self: &Arc<Self>) -> CardDevices {
         CardDevices {
             digital_in: (!self.inputs.is_empty()).then(|| self.clone() as Arc<dyn DigitalIn>),
             digital_out: (!self.outputs.is_empty()).then(|| self.clone() as Arc<dyn DigitalOut>),
+            analog_in: (!self.analog_scale.is_empty()).then(|| self.clone() as Arc<dyn AnalogIn>),
             ..CardDevices::default()
         }
     }
@@ -323,5 +353,30 @@ impl DigitalOut for I2cCard {
         self.outputs.check_bit(bit)?;
         Self::online(self.chip_of(bit, |c| &c.digital_out))?;
         self.outputs.get(bit)
+    }
+}
+
+impl AnalogIn for I2cCard {
+    fn channel_count(&self) -> u32 {
+        self.analog_scale.len() as u32
+    }
+
+    fn scale(&self, channel: u32) -> Result<Scale, DeviceError> {
+        self.analog_scale
+            .get(channel as usize)
+            .copied()
+            .ok_or(DeviceError::ChannelOutOfRange {
+                channel,
+                count: self.channel_count(),
+            })
+    }
+
+    fn read_raw(&self, channel: u32) -> Result<i64, DeviceError> {
+        self.scale(channel)?;
+        Self::online(self.chip_of(channel, |c| &c.analog_in))?;
+        match self.analog_raw[channel as usize].load(Ordering::Acquire) {
+            NO_SAMPLE => Err(DeviceError::Stale { age: None }),
+            raw => Ok(raw),
+        }
     }
 }

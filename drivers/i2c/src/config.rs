@@ -12,7 +12,7 @@
 //!     pull_up = [8]
 //!     outputs = [0, 1]
 //! "#)?;
-//! let ChipConfig::Mcp23017(c) = &config.chip[0];
+//! let ChipConfig::Mcp23017(c) = &config.chip[0] else { panic!("an MCP23017") };
 //! assert_eq!((c.address, c.poll_ms), (0x20, 10));
 //! config.check()?;
 //! # Ok::<(), Box<dyn std::error::Error>>(())
@@ -53,7 +53,51 @@ pub enum ChipConfig {
     /// A Microchip MCP23017 16-bit IO expander.
     #[serde(rename = "mcp23017")]
     Mcp23017(Mcp23017Config),
+    /// A Texas Instruments ADS1115 16-bit ADC.
+    #[serde(rename = "ads1115")]
+    Ads1115(Ads1115Config),
 }
+
+/// An ADS1115: each channel an input (or pair) with its full-scale range, converted in
+/// turn in single-shot mode; the card's AnalogIn channels, in the order given.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Ads1115Config {
+    /// Its 7-bit address (0x48–0x4b by its ADDR pin).
+    pub address: u16,
+    /// Poll period, ms (default 10): each poll reads the conversion started by the
+    /// previous one and starts the next channel's.
+    #[serde(default = "default_poll_ms")]
+    pub poll_ms: u32,
+    /// Conversions per second the chip runs at: 8, 16, 32, 64, 128, 250, 475 or 860
+    /// (default 860; slower is quieter).
+    #[serde(default = "default_data_rate")]
+    pub data_rate: u32,
+    /// The channels.
+    #[serde(default)]
+    pub channel: Vec<Ads1115Channel>,
+}
+
+fn default_data_rate() -> u32 {
+    860
+}
+
+/// One ADS1115 channel.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Ads1115Channel {
+    /// `a0`..`a3` against ground, or a pair: `a0-a1`, `a0-a3`, `a1-a3`, `a2-a3`.
+    pub input: String,
+    /// Full-scale range in volts (the PGA): 6.144, 4.096, 2.048, 1.024, 0.512 or 0.256.
+    pub range_v: f64,
+}
+
+/// The ADS1115's inputs, by their MUX code (config bits 14..12).
+pub const ADS1115_INPUTS: [&str; 8] = ["a0-a1", "a0-a3", "a1-a3", "a2-a3", "a0", "a1", "a2", "a3"];
+/// The ADS1115's full-scale ranges in volts, by their PGA code (bits 11..9).
+pub const ADS1115_RANGES: [f64; 6] = [6.144, 4.096, 2.048, 1.024, 0.512, 0.256];
+/// The ADS1115's data rates, by their DR code (bits 7..5).
+pub const ADS1115_RATES: [u32; 8] = [8, 16, 32, 64, 128, 250, 475, 860];
 
 fn default_poll_ms() -> u32 {
     10
@@ -108,6 +152,7 @@ impl ChipConfig {
     pub fn address(&self) -> u16 {
         match self {
             ChipConfig::Mcp23017(c) => c.address,
+            ChipConfig::Ads1115(c) => c.address,
         }
     }
 
@@ -115,6 +160,7 @@ impl ChipConfig {
     pub fn poll_ms(&self) -> u32 {
         match self {
             ChipConfig::Mcp23017(c) => c.poll_ms,
+            ChipConfig::Ads1115(c) => c.poll_ms,
         }
     }
 }
@@ -170,6 +216,7 @@ impl I2cConfig {
             }
             match c {
                 ChipConfig::Mcp23017(m) => m.check().map_err(|e| err(key(&e.key), e.message))?,
+                ChipConfig::Ads1115(a) => a.check().map_err(|e| err(key(&e.key), e.message))?,
             }
         }
         Ok(())
@@ -203,6 +250,44 @@ impl Mcp23017Config {
                         format!("pin {p} is not one of the {must}"),
                     ));
                 }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The most channels one ADS1115 section converts in turn.
+pub const MAX_ADS1115_CHANNELS: usize = 8;
+
+impl Ads1115Config {
+    fn check(&self) -> Result<(), ConfigError> {
+        if !ADS1115_RATES.contains(&self.data_rate) {
+            return Err(err(
+                "data_rate",
+                format!("{} conversions/s; one of {ADS1115_RATES:?}", self.data_rate),
+            ));
+        }
+        if self.channel.len() > MAX_ADS1115_CHANNELS {
+            return Err(err(
+                "channel",
+                format!(
+                    "{} channels; at most {MAX_ADS1115_CHANNELS}",
+                    self.channel.len()
+                ),
+            ));
+        }
+        for (i, c) in self.channel.iter().enumerate() {
+            if !ADS1115_INPUTS.contains(&c.input.as_str()) {
+                return Err(err(
+                    format!("channel[{i}].input"),
+                    format!("{:?}; one of {}", c.input, ADS1115_INPUTS.join(", ")),
+                ));
+            }
+            if !ADS1115_RANGES.contains(&c.range_v) {
+                return Err(err(
+                    format!("channel[{i}].range_v"),
+                    format!("{} V; one of {ADS1115_RANGES:?}", c.range_v),
+                ));
             }
         }
         Ok(())
@@ -246,6 +331,24 @@ mod tests {
             ),
         ] {
             let e = parse(&format!("{base}{body}")).check().unwrap_err();
+            assert_eq!(e.key, key, "{body}: {e}");
+            assert!(e.message.contains(words), "{body}: {e}");
+        }
+        let ads = "bus = \"/dev/i2c-0\"\n[[chip]]\nmodel = \"ads1115\"\naddress = 0x48\n";
+        for (body, key, words) in [
+            ("data_rate = 100", "chip[0].data_rate", "one of"),
+            (
+                "channel = [{ input = \"a4\", range_v = 4.096 }]",
+                "chip[0].channel[0].input",
+                "a0-a1",
+            ),
+            (
+                "channel = [{ input = \"a0\", range_v = 5.0 }]",
+                "chip[0].channel[0].range_v",
+                "6.144",
+            ),
+        ] {
+            let e = parse(&format!("{ads}{body}")).check().unwrap_err();
             assert_eq!(e.key, key, "{body}: {e}");
             assert!(e.message.contains(words), "{body}: {e}");
         }

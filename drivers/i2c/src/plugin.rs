@@ -93,6 +93,7 @@ pub fn card(config: &I2cConfig, clock: Arc<dyn Clock>) -> Result<Built, CardErro
             ChipConfig::Mcp23017(m) => {
                 initial.extend(m.outputs.iter().map(|p| m.initial_on.contains(p)));
             }
+            ChipConfig::Ads1115(_) => {}
         }
     }
     let places: Vec<ChipPlace> = config
@@ -104,6 +105,7 @@ pub fn card(config: &I2cConfig, clock: Arc<dyn Clock>) -> Result<Built, CardErro
             poll_ms: c.poll_ms(),
             model: m.model(),
             shape: m.shape(),
+            analog_in: m.analog_in(),
         })
         .collect();
     let card = Arc::new(I2cCard::new(&places, &initial, clock));

@@ -4,7 +4,7 @@
 
 use device_interface::conformance;
 use device_interface::time::MonotonicClock;
-use device_interface::{DeviceError, DigitalIn, DigitalOut};
+use device_interface::{AnalogIn, DeviceError, DigitalIn, DigitalOut};
 use driver_i2c::card::I2cCard;
 use driver_i2c::component::I2cIo;
 use driver_i2c::config::I2cConfig;
@@ -175,8 +175,77 @@ fn the_conformance_kit_passes() -> Result<(), Failed> {
         })
         .unwrap();
     };
-    conformance::check_digital_in(&*up.card, Some(&mut set_di)).assert_complete();
-    conformance::check_digital_out(&*up.card).assert_complete();
+    // Through the devices the card registers, as a user gets them.
+    let devices = up.card.devices();
+    let (di, dout) = (devices.digital_in.unwrap(), devices.digital_out.unwrap());
+    assert!(devices.analog_in.is_none());
+    conformance::check_digital_in(&*di, Some(&mut set_di)).assert_complete();
+    conformance::check_digital_out(&*dout).assert_complete();
+    drop(up);
+    drop(stub);
+    let stub = I2cStub::load(&[0x48])?;
+    let adc = self::up(&stub, ADS)?;
+    let c = adc.card.clone();
+    wait("converted", || c.read_raw(2).is_ok())?;
+    let mut set_ai = |ch: u32, raw: i64| {
+        stub.set_word(0x48, 0x00, wire(raw as i16)).unwrap();
+        wait_for("the channel follows", PATIENCE, || {
+            c.read_raw(ch).ok() == Some(raw)
+        })
+        .unwrap();
+    };
+    let ai = adc.card.devices().analog_in.unwrap();
+    conformance::check_analog_in(&*ai, Some(&mut set_ai)).assert_complete();
+    Ok(())
+}
+
+const ADS: &str = r#"
+[[chip]]
+model = "ads1115"
+address = 0x48
+poll_ms = 2
+channel = [
+    { input = "a0", range_v = 4.096 },
+    { input = "a0-a1", range_v = 0.256 },
+    { input = "a3", range_v = 6.144 },
+]
+"#;
+
+/// `raw` as the ADS1115 sends it (MSB first) read as an SMBus word (LSB first).
+fn wire(raw: i16) -> u16 {
+    (raw as u16).swap_bytes()
+}
+
+fn ads1115_converts_with_each_range_and_sign() -> Result<(), Failed> {
+    let stub = I2cStub::load(&[0x48])?;
+    stub.set_word(0x48, 0x00, wire(16384))?;
+    let up = up(&stub, ADS)?;
+    let c = &*up.card;
+    wait("all three converted", || {
+        (0..3).all(|ch| c.read_raw(ch).ok() == Some(16384))
+    })?;
+    // raw × full scale / 32768, each channel with its own PGA range.
+    for (ch, volts) in [(0, 2.048), (1, 0.128), (2, 3.072)] {
+        let v = c.read(ch)?;
+        assert!(
+            (v - volts).abs() < 1e-12,
+            "channel {ch}: {v} V, not {volts}"
+        );
+    }
+    stub.set_word(0x48, 0x00, wire(-32768))?;
+    wait("the negative full scale", || {
+        (0..3).all(|ch| c.read_raw(ch).ok() == Some(-32768))
+    })?;
+    assert_eq!((c.read(0)?, c.read(1)?), (-4.096, -0.256));
+    // The config word the chip was last given, as i2cget reads it (datasheet bits, MSB
+    // first on the wire): OS | MUX | PGA | MODE single-shot | DR 860 | comparator off.
+    let configs = [
+        wire(0xc3e3u16 as i16), // a0 (MUX 100), ±4.096 V (PGA 001)
+        wire(0x8be3u16 as i16), // a0-a1 (MUX 000), ±0.256 V (PGA 101)
+        wire(0xf1e3u16 as i16), // a3 (MUX 111), ±6.144 V (PGA 000)
+    ];
+    let config = stub.get_word(0x48, 0x01)?;
+    assert!(configs.contains(&config), "config {config:#06x}");
     Ok(())
 }
 
@@ -191,6 +260,10 @@ fn main() -> std::process::ExitCode {
             Trial::test(
                 "a_chip_that_does_not_answer_is_offline_and_others_keep_polling",
                 a_chip_that_does_not_answer_is_offline_and_others_keep_polling,
+            ),
+            Trial::test(
+                "ads1115_converts_with_each_range_and_sign",
+                ads1115_converts_with_each_range_and_sign,
             ),
             Trial::test("the_conformance_kit_passes", the_conformance_kit_passes),
         ],

@@ -14,6 +14,7 @@
 //! 3. A kernel test on i2c-stub: inputs set with `i2cset` read through the devices, outputs
 //!    read back with `i2cget`, and the conformance kit.
 
+pub mod ads1115;
 pub mod mcp23017;
 
 use crate::card::ChipIo;
@@ -26,8 +27,12 @@ use crate::smbus::{Smbus, Transfer};
 pub trait ChipModel: Send {
     /// The model's name, for logs and errors.
     fn model(&self) -> &'static str;
-    /// Its channels.
+    /// Its digital channels.
     fn shape(&self) -> Shape;
+    /// Its analog inputs' scales, one per AnalogIn channel. Default: none.
+    fn analog_in(&self) -> Vec<device_interface::Scale> {
+        Vec::new()
+    }
     /// Configures the chip and writes its outputs' current values: at start, and again
     /// each time it answers after it did not.
     fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer>;
@@ -39,5 +44,6 @@ pub trait ChipModel: Send {
 pub fn model(config: &ChipConfig) -> Box<dyn ChipModel> {
     match config {
         ChipConfig::Mcp23017(c) => Box::new(mcp23017::Mcp23017::new(c)),
+        ChipConfig::Ads1115(c) => Box::new(ads1115::Ads1115::new(c)),
     }
 }
