@@ -11,7 +11,7 @@ const HWGW: &str = env!("CARGO_BIN_EXE_hwgw");
 const CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../config/i2c.toml");
 
 fn hwgw_gets_sets_and_leaves_the_outputs_safe() -> Result<(), Failed> {
-    let stub = I2cStub::load(&[0x20, 0x48])?;
+    let stub = I2cStub::load(&[0x20, 0x48, 0x60])?;
     // The ADS1115's conversion: 0x4000, MSB first on the wire.
     stub.set_word(0x48, 0x00, 0x0040)?;
     let gw = Service::start(HWGW, "i2c", &[CONFIG], &[])?;
@@ -19,7 +19,7 @@ fn hwgw_gets_sets_and_leaves_the_outputs_safe() -> Result<(), Failed> {
     wait_ok("the chip online", || {
         Ok(gw
             .out(&["call", "i2c", "counters"])?
-            .contains("\"online\": \"2/2\""))
+            .contains("\"online\": \"3/3\""))
     })?;
     // Configured as config/i2c.toml says.
     assert_eq!(
@@ -47,6 +47,11 @@ fn hwgw_gets_sets_and_leaves_the_outputs_safe() -> Result<(), Failed> {
     gw.out(&["set", "i2c.do", "lamp", "true"])?;
     gw.out(&["set", "i2c.do", "valve", "true"])?;
     wait_ok("OLAT 0x0003", || Ok(stub.get_word(0x20, 0x14)? == 0x0003))?;
+    // The DAC: code 2703 (3.3 V × 4096 / 5 V = 0xa8f), "register" 0x0a, data 0x8f.
+    gw.out(&["set", "i2c.ao", "setpoint", "3.3"])?;
+    wait_ok("the DAC code sent", || {
+        Ok(stub.get_byte(0x60, 0x0a)? == 0x8f)
+    })?;
     let status = gw.out(&["status"])?;
     assert!(status.contains("mcp23017"), "{status}");
     // SIGTERM: both to their safe value (off), sent before the bus side stops.

@@ -231,6 +231,7 @@ mod tests {
             model: model.model(),
             shape: model.shape(),
             analog_in: model.analog_in(),
+            analog_out: Vec::new(),
         };
         let card = Arc::new(I2cCard::new(
             &[place],

@@ -11,7 +11,8 @@
 use device_interface::bits::BitImage;
 use device_interface::time::{Clock, Timestamp};
 use device_interface::{
-    AnalogIn, CardDevices, Device, DeviceError, DigitalIn, DigitalOut, Health, Scale, Status,
+    AnalogIn, AnalogOut, CardDevices, Device, DeviceError, DigitalIn, DigitalOut, Health, Scale,
+    Status,
 };
 use std::ops::Range;
 use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU64, Ordering};
@@ -40,6 +41,8 @@ pub struct ChipPlace {
     pub shape: Shape,
     /// Its analog inputs' scales (one per channel).
     pub analog_in: Vec<Scale>,
+    /// Its analog outputs' scales and raw values from the start (one per channel).
+    pub analog_out: Vec<(Scale, i64)>,
 }
 
 /// A raw analog value that was never read.
@@ -57,6 +60,7 @@ pub struct ChipSlot {
     pub(crate) digital_in: Range<u32>,
     pub(crate) digital_out: Range<u32>,
     pub(crate) analog_in: Range<u32>,
+    pub(crate) analog_out: Range<u32>,
     pub(crate) online: AtomicBool,
     pub(crate) dirty: AtomicBool,
     pub(crate) polls: AtomicU64,
@@ -101,6 +105,8 @@ pub struct I2cCard {
     outputs: BitImage,
     analog_raw: Box<[AtomicI64]>,
     analog_scale: Vec<Scale>,
+    out_raw: Box<[AtomicI64]>,
+    out_scale: Vec<Scale>,
     clock: Arc<dyn Clock>,
 }
 
@@ -143,6 +149,14 @@ impl ChipIo<'_> {
         }
     }
 
+    /// The raw value analog output `channel` of the chip is to have.
+    pub fn analog_out(&self, channel: u32) -> i64 {
+        self.card
+            .out_raw
+            .get((self.chip.analog_out.start + channel) as usize)
+            .map_or(0, |a| a.load(Ordering::Acquire))
+    }
+
     /// Marks the chip's outputs as still to send (their write failed).
     pub fn mark_dirty(&self) {
         self.chip.dirty.store(true, Ordering::Release);
@@ -153,8 +167,9 @@ impl I2cCard {
     /// A card of `places`, every chip offline until polled; outputs start at `initial`
     /// (by DigitalOut bit).
     pub fn new(places: &[ChipPlace], initial: &[bool], clock: Arc<dyn Clock>) -> I2cCard {
-        let (mut di, mut dout, mut ai) = (0u32, 0u32, 0u32);
+        let (mut di, mut dout, mut ai, mut ao) = (0u32, 0u32, 0u32, 0u32);
         let mut analog_scale = Vec::new();
+        let mut out = Vec::new();
         let mut chips = Vec::with_capacity(places.len());
         for p in places {
             let Shape {
@@ -168,6 +183,7 @@ impl I2cCard {
                 digital_in: di..di + digital_in,
                 digital_out: dout..dout + digital_out,
                 analog_in: ai..ai + p.analog_in.len() as u32,
+                analog_out: ao..ao + p.analog_out.len() as u32,
                 online: AtomicBool::new(false),
                 dirty: AtomicBool::new(false),
                 polls: AtomicU64::new(0),
@@ -179,7 +195,9 @@ impl I2cCard {
             di += digital_in;
             dout += digital_out;
             ai += p.analog_in.len() as u32;
+            ao += p.analog_out.len() as u32;
             analog_scale.extend(p.analog_in.iter().copied());
+            out.extend(p.analog_out.iter().copied());
         }
         let outputs = BitImage::new(dout);
         for (bit, on) in initial.iter().enumerate() {
@@ -191,6 +209,8 @@ impl I2cCard {
             outputs,
             analog_raw: (0..ai).map(|_| AtomicI64::new(NO_SAMPLE)).collect(),
             analog_scale,
+            out_raw: out.iter().map(|(_, raw)| AtomicI64::new(*raw)).collect(),
+            out_scale: out.iter().map(|(scale, _)| *scale).collect(),
             clock,
         }
     }
@@ -208,13 +228,14 @@ impl I2cCard {
         &self.chips
     }
 
-    /// The devices: a DigitalIn, a DigitalOut and an AnalogIn when the chips have such
-    /// channels.
+    /// The devices: a DigitalIn, a DigitalOut, an AnalogIn and an AnalogOut when the
+    /// chips have such channels.
     pub fn devices(self: &Arc<Self>) -> CardDevices {
         CardDevices {
             digital_in: (!self.inputs.is_empty()).then(|| self.clone() as Arc<dyn DigitalIn>),
             digital_out: (!self.outputs.is_empty()).then(|| self.clone() as Arc<dyn DigitalOut>),
             analog_in: (!self.analog_scale.is_empty()).then(|| self.clone() as Arc<dyn AnalogIn>),
+            analog_out: (!self.out_scale.is_empty()).then(|| self.clone() as Arc<dyn AnalogOut>),
             ..CardDevices::default()
         }
     }
@@ -270,7 +291,7 @@ impl I2cCard {
             .iter()
             .zip(&start)
             .filter(|(c, p0)| !sent((c, p0)) || !c.online.load(Ordering::Acquire))
-            .filter(|(c, _)| !c.digital_out.is_empty())
+            .filter(|(c, _)| !c.digital_out.is_empty() || !c.analog_out.is_empty())
             .map(|(c, _)| {
                 let state = if c.online.load(Ordering::Acquire) {
                     "not polled in time"
@@ -367,16 +388,49 @@ impl AnalogIn for I2cCard {
             .copied()
             .ok_or(DeviceError::ChannelOutOfRange {
                 channel,
-                count: self.channel_count(),
+                count: AnalogIn::channel_count(self),
             })
     }
 
     fn read_raw(&self, channel: u32) -> Result<i64, DeviceError> {
-        self.scale(channel)?;
+        AnalogIn::scale(self, channel)?;
         Self::online(self.chip_of(channel, |c| &c.analog_in))?;
         match self.analog_raw[channel as usize].load(Ordering::Acquire) {
             NO_SAMPLE => Err(DeviceError::Stale { age: None }),
             raw => Ok(raw),
         }
+    }
+}
+
+impl AnalogOut for I2cCard {
+    fn channel_count(&self) -> u32 {
+        self.out_scale.len() as u32
+    }
+
+    fn scale(&self, channel: u32) -> Result<Scale, DeviceError> {
+        self.out_scale
+            .get(channel as usize)
+            .copied()
+            .ok_or(DeviceError::ChannelOutOfRange {
+                channel,
+                count: AnalogOut::channel_count(self),
+            })
+    }
+
+    /// Recorded and marked for the chip's next poll, which sends it.
+    fn write_raw(&self, channel: u32, raw: i64) -> Result<(), DeviceError> {
+        AnalogOut::scale(self, channel)?.check_raw(channel, raw)?;
+        let chip = self.chip_of(channel, |c| &c.analog_out);
+        Self::online(chip)?;
+        self.out_raw[channel as usize].store(raw, Ordering::Release);
+        if let Some(c) = chip {
+            c.dirty.store(true, Ordering::Release);
+        }
+        Ok(())
+    }
+
+    fn read_back_raw(&self, channel: u32) -> Result<i64, DeviceError> {
+        AnalogOut::scale(self, channel)?;
+        Ok(self.out_raw[channel as usize].load(Ordering::Acquire))
     }
 }

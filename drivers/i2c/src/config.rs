@@ -56,7 +56,30 @@ pub enum ChipConfig {
     /// A Texas Instruments ADS1115 16-bit ADC.
     #[serde(rename = "ads1115")]
     Ads1115(Ads1115Config),
+    /// A Microchip MCP4725 12-bit DAC.
+    #[serde(rename = "mcp4725")]
+    Mcp4725(Mcp4725Config),
 }
+
+/// An MCP4725: one AnalogOut channel, 0 V to its supply (the DAC's reference) in 4096
+/// steps.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Mcp4725Config {
+    /// Its 7-bit address (0x60–0x67: fixed bits by variant, A0 by pin).
+    pub address: u16,
+    /// Poll period, ms (default 10): a written value is sent at the next poll.
+    #[serde(default = "default_poll_ms")]
+    pub poll_ms: u32,
+    /// Its supply, the full scale, in volts (2.7 to 5.5).
+    pub vref_v: f64,
+    /// The output from the start, in volts (default 0).
+    #[serde(default)]
+    pub initial_v: f64,
+}
+
+/// The MCP4725's supply range, volts.
+pub const MCP4725_SUPPLY: std::ops::RangeInclusive<f64> = 2.7..=5.5;
 
 /// An ADS1115: each channel an input (or pair) with its full-scale range, converted in
 /// turn in single-shot mode; the card's AnalogIn channels, in the order given.
@@ -153,6 +176,7 @@ impl ChipConfig {
         match self {
             ChipConfig::Mcp23017(c) => c.address,
             ChipConfig::Ads1115(c) => c.address,
+            ChipConfig::Mcp4725(c) => c.address,
         }
     }
 
@@ -161,6 +185,7 @@ impl ChipConfig {
         match self {
             ChipConfig::Mcp23017(c) => c.poll_ms,
             ChipConfig::Ads1115(c) => c.poll_ms,
+            ChipConfig::Mcp4725(c) => c.poll_ms,
         }
     }
 }
@@ -217,6 +242,20 @@ impl I2cConfig {
             match c {
                 ChipConfig::Mcp23017(m) => m.check().map_err(|e| err(key(&e.key), e.message))?,
                 ChipConfig::Ads1115(a) => a.check().map_err(|e| err(key(&e.key), e.message))?,
+                ChipConfig::Mcp4725(d) => {
+                    if !MCP4725_SUPPLY.contains(&d.vref_v) {
+                        return Err(err(
+                            key("vref_v"),
+                            format!("{} V; the MCP4725 runs on 2.7 to 5.5 V", d.vref_v),
+                        ));
+                    }
+                    if !(0.0..=d.vref_v).contains(&d.initial_v) {
+                        return Err(err(
+                            key("initial_v"),
+                            format!("{} V; between 0 and vref_v ({} V)", d.initial_v, d.vref_v),
+                        ));
+                    }
+                }
             }
         }
         Ok(())

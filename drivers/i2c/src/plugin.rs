@@ -93,7 +93,7 @@ pub fn card(config: &I2cConfig, clock: Arc<dyn Clock>) -> Result<Built, CardErro
             ChipConfig::Mcp23017(m) => {
                 initial.extend(m.outputs.iter().map(|p| m.initial_on.contains(p)));
             }
-            ChipConfig::Ads1115(_) => {}
+            ChipConfig::Ads1115(_) | ChipConfig::Mcp4725(_) => {}
         }
     }
     let places: Vec<ChipPlace> = config
@@ -106,6 +106,17 @@ pub fn card(config: &I2cConfig, clock: Arc<dyn Clock>) -> Result<Built, CardErro
             model: m.model(),
             shape: m.shape(),
             analog_in: m.analog_in(),
+            analog_out: m
+                .analog_out()
+                .into_iter()
+                .map(|scale| {
+                    let volts = match c {
+                        ChipConfig::Mcp4725(d) => d.initial_v,
+                        _ => 0.0,
+                    };
+                    (scale, scale.to_raw_saturating(volts))
+                })
+                .collect(),
         })
         .collect();
     let card = Arc::new(I2cCard::new(&places, &initial, clock));

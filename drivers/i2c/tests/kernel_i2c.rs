@@ -4,7 +4,7 @@
 
 use device_interface::conformance;
 use device_interface::time::MonotonicClock;
-use device_interface::{AnalogIn, DeviceError, DigitalIn, DigitalOut};
+use device_interface::{AnalogIn, AnalogOut, DeviceError, DigitalIn, DigitalOut};
 use driver_i2c::card::I2cCard;
 use driver_i2c::component::I2cIo;
 use driver_i2c::config::I2cConfig;
@@ -249,6 +249,33 @@ fn ads1115_converts_with_each_range_and_sign() -> Result<(), Failed> {
     Ok(())
 }
 
+fn mcp4725_codes_as_i2c_stub_stores_them() -> Result<(), Failed> {
+    let stub = I2cStub::load(&[0x60])?;
+    let up = up(
+        &stub,
+        "[[chip]]\nmodel = \"mcp4725\"\naddress = 0x60\npoll_ms = 2\nvref_v = 5.0\ninitial_v = 1.0",
+    )?;
+    let c = up.card.clone();
+    wait("the DAC online", || c.counters().chips[0].online)?;
+    // 1.0 V of 5.0 V: code 819 = 0x333, sent as "register" 0x03 (PD 00, D11..D8) with
+    // data 0x33 (D7..D0).
+    assert_eq!(c.read_back_raw(0)?, 819);
+    assert_eq!(stub.get_byte(0x60, 0x03)?, 0x33);
+    c.write(0, 3.3)?;
+    assert_eq!(c.read_back_raw(0)?, 2703, "3.3 V × 4096 / 5 V");
+    wait("code 0xa8f sent", || {
+        stub.get_byte(0x60, 0x0a).ok() == Some(0x8f)
+    })?;
+    c.write_raw(0, 0x5c)?;
+    wait("code 0x05c sent", || {
+        stub.get_byte(0x60, 0x00).ok() == Some(0x5c)
+    })?;
+    assert!(c.write_raw(0, 4096).is_err(), "past 12 bits");
+    let ao = c.devices().analog_out.unwrap();
+    conformance::check_analog_out(&*ao).assert_complete();
+    Ok(())
+}
+
 fn main() -> std::process::ExitCode {
     kernel_rig::harness(
         &testkit::rig::i2c_stub(),
@@ -264,6 +291,10 @@ fn main() -> std::process::ExitCode {
             Trial::test(
                 "ads1115_converts_with_each_range_and_sign",
                 ads1115_converts_with_each_range_and_sign,
+            ),
+            Trial::test(
+                "mcp4725_codes_as_i2c_stub_stores_them",
+                mcp4725_codes_as_i2c_stub_stores_them,
             ),
             Trial::test("the_conformance_kit_passes", the_conformance_kit_passes),
         ],

@@ -16,6 +16,7 @@
 
 pub mod ads1115;
 pub mod mcp23017;
+pub mod mcp4725;
 
 use crate::card::ChipIo;
 pub use crate::card::Shape;
@@ -33,6 +34,10 @@ pub trait ChipModel: Send {
     fn analog_in(&self) -> Vec<device_interface::Scale> {
         Vec::new()
     }
+    /// Its analog outputs' scales, one per AnalogOut channel. Default: none.
+    fn analog_out(&self) -> Vec<device_interface::Scale> {
+        Vec::new()
+    }
     /// Configures the chip and writes its outputs' current values: at start, and again
     /// each time it answers after it did not.
     fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer>;
@@ -45,5 +50,6 @@ pub fn model(config: &ChipConfig) -> Box<dyn ChipModel> {
     match config {
         ChipConfig::Mcp23017(c) => Box::new(mcp23017::Mcp23017::new(c)),
         ChipConfig::Ads1115(c) => Box::new(ads1115::Ads1115::new(c)),
+        ChipConfig::Mcp4725(c) => Box::new(mcp4725::Mcp4725::new(c)),
     }
 }

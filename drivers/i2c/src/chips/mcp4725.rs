@@ -1,0 +1,62 @@
+//! Microchip MCP4725, a 12-bit DAC whose full scale is its supply.
+//!
+//! Written in the fast mode: two bytes after the address, the first `0 0 PD1 PD0 D11 D10
+//! D9 D8` (power-down bits 00: normal), the second `D7..D0`. As an SMBus transfer that is a
+//! byte-data write whose "register" is the first byte — which is how i2c-stub stores it
+//! (register `D11..D8` holds `D7..D0`). The EEPROM is never written. One AnalogOut channel:
+//! `code × vref / 4096` volts.
+
+use super::{ChipModel, Shape};
+use crate::card::ChipIo;
+use crate::config::Mcp4725Config;
+use crate::smbus::{Smbus, Transfer};
+use device_interface::{RawRange, Scale, Unit};
+
+/// An MCP4725.
+pub struct Mcp4725 {
+    vref: f64,
+}
+
+impl Mcp4725 {
+    /// The model of a (checked) section.
+    pub fn new(c: &Mcp4725Config) -> Mcp4725 {
+        Mcp4725 { vref: c.vref_v }
+    }
+
+    fn send(bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {
+        let code = io.analog_out(0).clamp(0, 4095) as u16;
+        bus.write_byte((code >> 8) as u8, (code & 0xff) as u8)
+    }
+}
+
+impl ChipModel for Mcp4725 {
+    fn model(&self) -> &'static str {
+        "mcp4725"
+    }
+
+    fn shape(&self) -> Shape {
+        Shape::default()
+    }
+
+    fn analog_out(&self) -> Vec<Scale> {
+        // Cannot fail: 12 bits, a checked positive reference, a short unit.
+        let scale = RawRange::unsigned_bits(12)
+            .and_then(|raw| Scale::from_factor(raw, self.vref / 4096.0, 0.0, Unit::new("V")?));
+        scale.into_iter().collect()
+    }
+
+    fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {
+        io.take_dirty();
+        Self::send(bus, io)
+    }
+
+    fn poll(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {
+        if io.take_dirty()
+            && let Err(e) = Self::send(bus, io)
+        {
+            io.mark_dirty();
+            return Err(e);
+        }
+        Ok(())
+    }
+}
