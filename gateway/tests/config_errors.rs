@@ -238,7 +238,7 @@ fn the_shipped_examples_are_valid() {
                 assert_eq!(
                     got,
                     format!(
-                        "{file}:34:7: card[0].i2c.bus: card \"i2c\": no I2C adapter is named \
+                        "{file}:36:7: card[0].i2c.bus: card \"i2c\": no I2C adapter is named \
                          \"SMBus stub driver\"; there are none (is i2c-dev loaded?)"
                     ),
                 );

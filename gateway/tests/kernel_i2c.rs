@@ -11,7 +11,10 @@ const HWGW: &str = env!("CARGO_BIN_EXE_hwgw");
 const CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../config/i2c.toml");
 
 fn hwgw_gets_sets_and_leaves_the_outputs_safe() -> Result<(), Failed> {
-    let stub = I2cStub::load(&[0x20, 0x48, 0x60])?;
+    let stub = I2cStub::load(&[0x20, 0x36, 0x48, 0x60])?;
+    // The AS5600 sees a magnet, at 1000 counts (RAW ANGLE MSB first on the wire).
+    stub.set_byte(0x36, 0x0b, 0x20)?;
+    stub.set_word(0x36, 0x0c, 1000u16.swap_bytes())?;
     // The ADS1115's conversion: 0x4000, MSB first on the wire.
     stub.set_word(0x48, 0x00, 0x0040)?;
     let gw = Service::start(HWGW, "i2c", &[CONFIG], &[])?;
@@ -19,7 +22,7 @@ fn hwgw_gets_sets_and_leaves_the_outputs_safe() -> Result<(), Failed> {
     wait_ok("the chip online", || {
         Ok(gw
             .out(&["call", "i2c", "counters"])?
-            .contains("\"online\": \"3/3\""))
+            .contains("\"online\": \"4/4\""))
     })?;
     // Configured as config/i2c.toml says.
     assert_eq!(
@@ -51,6 +54,19 @@ fn hwgw_gets_sets_and_leaves_the_outputs_safe() -> Result<(), Failed> {
     gw.out(&["set", "i2c.ao", "setpoint", "3.3"])?;
     wait_ok("the DAC code sent", || {
         Ok(stub.get_byte(0x60, 0x0a)? == 0x8f)
+    })?;
+    // The shaft: its angle as the position, then forwards across the wrap.
+    wait_ok("the angle", || {
+        Ok(gw.out(&["get", "i2c.encoder0", "position"])? == "1000")
+    })?;
+    stub.set_word(0x36, 0x0c, 3000u16.swap_bytes())?;
+    wait_ok("3000", || {
+        Ok(gw.out(&["get", "i2c.encoder0", "position"])? == "3000")
+    })?;
+    stub.set_word(0x36, 0x0c, 500u16.swap_bytes())?;
+    wait_ok("one turn on", || {
+        Ok(gw.out(&["get", "i2c.encoder0", "position"])? == "500"
+            && gw.out(&["get", "i2c.encoder0", "turn"])? == "1")
     })?;
     let status = gw.out(&["status"])?;
     assert!(status.contains("mcp23017"), "{status}");

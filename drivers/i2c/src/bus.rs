@@ -232,14 +232,10 @@ mod tests {
             shape: model.shape(),
             analog_in: model.analog_in(),
             analog_out: Vec::new(),
+            encoders: Vec::new(),
         };
-        let card = Arc::new(I2cCard::new(
-            &[place],
-            &[],
-            Arc::new(device_interface::time::SimClock::new(
-                Timestamp::from_nanos(0),
-            )),
-        ));
+        let clock = device_interface::time::SimClock::new(Timestamp::from_nanos(0));
+        let card = Arc::new(I2cCard::new(&[place], &[], Arc::new(clock)).unwrap());
         I2cBus::with_opener(
             card,
             vec![model],

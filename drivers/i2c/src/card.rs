@@ -9,6 +9,7 @@
 //! [`DeviceError::Offline`]. Real-time: no allocation, no lock, no system call.
 
 use device_interface::bits::BitImage;
+use device_interface::encoder::{CardEncoder, EncoderCounter, EncoderHost};
 use device_interface::time::{Clock, Timestamp};
 use device_interface::{
     AnalogIn, AnalogOut, CardDevices, Device, DeviceError, DigitalIn, DigitalOut, Health, Scale,
@@ -43,6 +44,8 @@ pub struct ChipPlace {
     pub analog_in: Vec<Scale>,
     /// Its analog outputs' scales and raw values from the start (one per channel).
     pub analog_out: Vec<(Scale, i64)>,
+    /// Its encoders' resolution and counting direction (one per encoder).
+    pub encoders: Vec<(i64, bool)>,
 }
 
 /// A raw analog value that was never read.
@@ -61,6 +64,7 @@ pub struct ChipSlot {
     pub(crate) digital_out: Range<u32>,
     pub(crate) analog_in: Range<u32>,
     pub(crate) analog_out: Range<u32>,
+    pub(crate) encoders: Range<u32>,
     pub(crate) online: AtomicBool,
     pub(crate) dirty: AtomicBool,
     pub(crate) polls: AtomicU64,
@@ -107,6 +111,7 @@ pub struct I2cCard {
     analog_scale: Vec<Scale>,
     out_raw: Box<[AtomicI64]>,
     out_scale: Vec<Scale>,
+    encoders: Vec<EncoderCounter>,
     clock: Arc<dyn Clock>,
 }
 
@@ -157,6 +162,13 @@ impl ChipIo<'_> {
             .map_or(0, |a| a.load(Ordering::Acquire))
     }
 
+    /// Encoder `index` of the chip.
+    pub fn encoder(&self, index: u32) -> Option<&EncoderCounter> {
+        self.card
+            .encoders
+            .get((self.chip.encoders.start + index) as usize)
+    }
+
     /// Marks the chip's outputs as still to send (their write failed).
     pub fn mark_dirty(&self) {
         self.chip.dirty.store(true, Ordering::Release);
@@ -165,11 +177,16 @@ impl ChipIo<'_> {
 
 impl I2cCard {
     /// A card of `places`, every chip offline until polled; outputs start at `initial`
-    /// (by DigitalOut bit).
-    pub fn new(places: &[ChipPlace], initial: &[bool], clock: Arc<dyn Clock>) -> I2cCard {
+    /// (by DigitalOut bit). Fails on an encoder geometry the counter refuses.
+    pub fn new(
+        places: &[ChipPlace],
+        initial: &[bool],
+        clock: Arc<dyn Clock>,
+    ) -> Result<I2cCard, DeviceError> {
         let (mut di, mut dout, mut ai, mut ao) = (0u32, 0u32, 0u32, 0u32);
         let mut analog_scale = Vec::new();
         let mut out = Vec::new();
+        let mut encoders = Vec::new();
         let mut chips = Vec::with_capacity(places.len());
         for p in places {
             let Shape {
@@ -184,6 +201,7 @@ impl I2cCard {
                 digital_out: dout..dout + digital_out,
                 analog_in: ai..ai + p.analog_in.len() as u32,
                 analog_out: ao..ao + p.analog_out.len() as u32,
+                encoders: encoders.len() as u32..(encoders.len() + p.encoders.len()) as u32,
                 online: AtomicBool::new(false),
                 dirty: AtomicBool::new(false),
                 polls: AtomicU64::new(0),
@@ -198,12 +216,15 @@ impl I2cCard {
             ao += p.analog_out.len() as u32;
             analog_scale.extend(p.analog_in.iter().copied());
             out.extend(p.analog_out.iter().copied());
+            for (resolution, upcounting) in &p.encoders {
+                encoders.push(EncoderCounter::new(*resolution, *upcounting)?);
+            }
         }
         let outputs = BitImage::new(dout);
         for (bit, on) in initial.iter().enumerate() {
             let _ = outputs.set(bit as u32, *on);
         }
-        I2cCard {
+        Ok(I2cCard {
             chips,
             inputs: BitImage::new(di),
             outputs,
@@ -211,8 +232,9 @@ impl I2cCard {
             analog_scale,
             out_raw: out.iter().map(|(_, raw)| AtomicI64::new(*raw)).collect(),
             out_scale: out.iter().map(|(scale, _)| *scale).collect(),
+            encoders,
             clock,
-        }
+        })
     }
 
     /// What chip `i`'s model sees.
@@ -229,14 +251,22 @@ impl I2cCard {
     }
 
     /// The devices: a DigitalIn, a DigitalOut, an AnalogIn and an AnalogOut when the
-    /// chips have such channels.
+    /// chips have such channels, and one Encoder each (`card.encoder0`, …).
     pub fn devices(self: &Arc<Self>) -> CardDevices {
         CardDevices {
             digital_in: (!self.inputs.is_empty()).then(|| self.clone() as Arc<dyn DigitalIn>),
             digital_out: (!self.outputs.is_empty()).then(|| self.clone() as Arc<dyn DigitalOut>),
             analog_in: (!self.analog_scale.is_empty()).then(|| self.clone() as Arc<dyn AnalogIn>),
             analog_out: (!self.out_scale.is_empty()).then(|| self.clone() as Arc<dyn AnalogOut>),
-            ..CardDevices::default()
+            encoders: (0..self.encoders.len())
+                .map(|i| {
+                    (
+                        format!("encoder{i}"),
+                        Arc::new(CardEncoder::new(self.clone(), i))
+                            as Arc<dyn device_interface::Encoder>,
+                    )
+                })
+                .collect(),
         }
     }
 
@@ -432,5 +462,19 @@ impl AnalogOut for I2cCard {
     fn read_back_raw(&self, channel: u32) -> Result<i64, DeviceError> {
         AnalogOut::scale(self, channel)?;
         Ok(self.out_raw[channel as usize].load(Ordering::Acquire))
+    }
+}
+
+impl EncoderHost for I2cCard {
+    fn encoder_counter(&self, index: usize) -> &EncoderCounter {
+        &self.encoders[index]
+    }
+
+    fn check_encoder(&self, index: usize) -> Result<(), DeviceError> {
+        Self::online(self.chip_of(index as u32, |c| &c.encoders))
+    }
+
+    fn check_writable(&self) -> Result<(), DeviceError> {
+        Ok(())
     }
 }

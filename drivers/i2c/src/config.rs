@@ -59,6 +59,29 @@ pub enum ChipConfig {
     /// A Microchip MCP4725 12-bit DAC.
     #[serde(rename = "mcp4725")]
     Mcp4725(Mcp4725Config),
+    /// An ams AS5600 12-bit magnetic angle sensor.
+    #[serde(rename = "as5600")]
+    As5600(As5600Config),
+}
+
+/// An AS5600: one Encoder (`card.encoderN`, numbered across the card's chips), 4096
+/// counts a turn, turns counted across the wrap. Poll it faster than half a turn of the
+/// fastest motion, or turns are miscounted.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct As5600Config {
+    /// Its 7-bit address (0x36; the AS5600L's is programmable, 0x40 by default).
+    pub address: u16,
+    /// Poll period, ms (default 10).
+    #[serde(default = "default_poll_ms")]
+    pub poll_ms: u32,
+    /// True when the position counts up as turns roll over forwards (default true).
+    #[serde(default = "default_true")]
+    pub upcounting: bool,
+}
+
+fn default_true() -> bool {
+    true
 }
 
 /// An MCP4725: one AnalogOut channel, 0 V to its supply (the DAC's reference) in 4096
@@ -177,6 +200,7 @@ impl ChipConfig {
             ChipConfig::Mcp23017(c) => c.address,
             ChipConfig::Ads1115(c) => c.address,
             ChipConfig::Mcp4725(c) => c.address,
+            ChipConfig::As5600(c) => c.address,
         }
     }
 
@@ -186,6 +210,7 @@ impl ChipConfig {
             ChipConfig::Mcp23017(c) => c.poll_ms,
             ChipConfig::Ads1115(c) => c.poll_ms,
             ChipConfig::Mcp4725(c) => c.poll_ms,
+            ChipConfig::As5600(c) => c.poll_ms,
         }
     }
 }
@@ -242,6 +267,7 @@ impl I2cConfig {
             match c {
                 ChipConfig::Mcp23017(m) => m.check().map_err(|e| err(key(&e.key), e.message))?,
                 ChipConfig::Ads1115(a) => a.check().map_err(|e| err(key(&e.key), e.message))?,
+                ChipConfig::As5600(_) => {}
                 ChipConfig::Mcp4725(d) => {
                     if !MCP4725_SUPPLY.contains(&d.vref_v) {
                         return Err(err(

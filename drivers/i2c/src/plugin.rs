@@ -93,7 +93,7 @@ pub fn card(config: &I2cConfig, clock: Arc<dyn Clock>) -> Result<Built, CardErro
             ChipConfig::Mcp23017(m) => {
                 initial.extend(m.outputs.iter().map(|p| m.initial_on.contains(p)));
             }
-            ChipConfig::Ads1115(_) | ChipConfig::Mcp4725(_) => {}
+            ChipConfig::Ads1115(_) | ChipConfig::Mcp4725(_) | ChipConfig::As5600(_) => {}
         }
     }
     let places: Vec<ChipPlace> = config
@@ -117,9 +117,11 @@ pub fn card(config: &I2cConfig, clock: Arc<dyn Clock>) -> Result<Built, CardErro
                     (scale, scale.to_raw_saturating(volts))
                 })
                 .collect(),
+            encoders: m.encoders(),
         })
         .collect();
-    let card = Arc::new(I2cCard::new(&places, &initial, clock));
+    let card =
+        Arc::new(I2cCard::new(&places, &initial, clock).map_err(|e| CardError::at("chip", e))?);
     Ok(Built { card, models, path })
 }
 

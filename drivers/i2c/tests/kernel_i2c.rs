@@ -276,6 +276,59 @@ fn mcp4725_codes_as_i2c_stub_stores_them() -> Result<(), Failed> {
     Ok(())
 }
 
+/// `angle` as the AS5600 sends RAW ANGLE (MSB first) read as an SMBus word.
+fn angle_word(angle: i64) -> u16 {
+    (angle.rem_euclid(4096) as u16).swap_bytes()
+}
+
+fn as5600_counts_turns_across_the_wrap() -> Result<(), Failed> {
+    let stub = I2cStub::load(&[0x36])?;
+    stub.set_byte(0x36, 0x0b, 0x20)?; // STATUS: magnet detected
+    stub.set_word(0x36, 0x0c, angle_word(4000))?;
+    let up = up(
+        &stub,
+        "[[chip]]\nmodel = \"as5600\"\naddress = 0x36\npoll_ms = 2",
+    )?;
+    let c = up.card.clone();
+    let enc = c.devices().encoders.remove(0).1;
+    let at =
+        |pos: i64, turn: i64| enc.position().ok() == Some(pos) && enc.turn().ok() == Some(turn);
+    wait("the angle as the position", || at(4000, 0))?;
+    stub.set_word(0x36, 0x0c, angle_word(100))?;
+    wait("forwards across the wrap", || at(100, 1))?;
+    stub.set_word(0x36, 0x0c, angle_word(3900))?;
+    wait("back across it", || at(3900, 0))?;
+    // The magnet removed: the chip is failing, the encoder offline; back, and the angle
+    // is the position again (the turn kept).
+    stub.set_byte(0x36, 0x0b, 0x00)?;
+    wait("offline without a magnet", || {
+        matches!(enc.position(), Err(DeviceError::Offline))
+    })?;
+    let why = c.counters().chips[0].last_error.clone().unwrap_or_default();
+    assert!(why.contains("no magnet"), "{why}");
+    stub.set_word(0x36, 0x0c, angle_word(10))?;
+    stub.set_byte(0x36, 0x0b, 0x20)?;
+    wait("back with its angle", || at(10, 0))?;
+    // The conformance kit, moving the magnet at most 1000 counts between readings.
+    let angle = std::cell::Cell::new(10i64);
+    let mut motion = |counts: i64| {
+        let total =
+            |e: &dyn device_interface::Encoder| e.turn().unwrap() * 4096 + e.position().unwrap();
+        let target = total(&*enc) + counts;
+        let mut left = counts;
+        while left != 0 {
+            let step = left.clamp(-1000, 1000);
+            angle.set(angle.get() + step);
+            stub.set_word(0x36, 0x0c, angle_word(angle.get())).unwrap();
+            let want = target - left + step;
+            wait_for("the encoder follows", PATIENCE, || total(&*enc) == want).unwrap();
+            left -= step;
+        }
+    };
+    conformance::check_encoder(&*enc, Some(&mut motion)).assert_complete();
+    Ok(())
+}
+
 fn main() -> std::process::ExitCode {
     kernel_rig::harness(
         &testkit::rig::i2c_stub(),
@@ -295,6 +348,10 @@ fn main() -> std::process::ExitCode {
             Trial::test(
                 "mcp4725_codes_as_i2c_stub_stores_them",
                 mcp4725_codes_as_i2c_stub_stores_them,
+            ),
+            Trial::test(
+                "as5600_counts_turns_across_the_wrap",
+                as5600_counts_turns_across_the_wrap,
             ),
             Trial::test("the_conformance_kit_passes", the_conformance_kit_passes),
         ],

@@ -15,6 +15,7 @@
 //!    read back with `i2cget`, and the conformance kit.
 
 pub mod ads1115;
+pub mod as5600;
 pub mod mcp23017;
 pub mod mcp4725;
 
@@ -38,6 +39,10 @@ pub trait ChipModel: Send {
     fn analog_out(&self) -> Vec<device_interface::Scale> {
         Vec::new()
     }
+    /// Its encoders' resolution and counting direction. Default: none.
+    fn encoders(&self) -> Vec<(i64, bool)> {
+        Vec::new()
+    }
     /// Configures the chip and writes its outputs' current values: at start, and again
     /// each time it answers after it did not.
     fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer>;
@@ -51,5 +56,6 @@ pub fn model(config: &ChipConfig) -> Box<dyn ChipModel> {
         ChipConfig::Mcp23017(c) => Box::new(mcp23017::Mcp23017::new(c)),
         ChipConfig::Ads1115(c) => Box::new(ads1115::Ads1115::new(c)),
         ChipConfig::Mcp4725(c) => Box::new(mcp4725::Mcp4725::new(c)),
+        ChipConfig::As5600(c) => Box::new(as5600::As5600::new(c)),
     }
 }
