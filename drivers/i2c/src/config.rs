@@ -62,7 +62,59 @@ pub enum ChipConfig {
     /// An ams AS5600 12-bit magnetic angle sensor.
     #[serde(rename = "as5600")]
     As5600(As5600Config),
+    /// A Texas Instruments INA219 current and voltage monitor.
+    #[serde(rename = "ina219")]
+    Ina219(Ina219Config),
+    /// An NXP PCA9685 16-channel 12-bit PWM controller.
+    #[serde(rename = "pca9685")]
+    Pca9685(Pca9685Config),
 }
+
+/// An INA219: three AnalogIn channels — shunt voltage (V), bus voltage (V) and current
+/// (A, the chip's current register through the calibration written at start).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Ina219Config {
+    /// Its 7-bit address (0x40–0x4f by A1, A0).
+    pub address: u16,
+    /// Poll period, ms (default 10).
+    #[serde(default = "default_poll_ms")]
+    pub poll_ms: u32,
+    /// The shunt resistor, ohms (default 0.1).
+    #[serde(default = "default_shunt")]
+    pub shunt_ohms: f64,
+    /// The largest current to measure, amperes (default 3.2): sets the current LSB
+    /// (max / 32768) and so the calibration.
+    #[serde(default = "default_max_current")]
+    pub max_current_a: f64,
+}
+
+fn default_shunt() -> f64 {
+    0.1
+}
+
+fn default_max_current() -> f64 {
+    3.2
+}
+
+/// A PCA9685: the channels given, each an AnalogOut duty cycle from 0 (off) to 1 (on), in
+/// 4096 steps, at one PWM frequency for the chip.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Pca9685Config {
+    /// Its 7-bit address (0x40–0x7f by A5..A0; 0x70 is its all-call address by default).
+    pub address: u16,
+    /// Poll period, ms (default 10): written duty cycles are sent at the next poll.
+    #[serde(default = "default_poll_ms")]
+    pub poll_ms: u32,
+    /// PWM frequency, Hz (24 to 1526 with its 25 MHz oscillator).
+    pub frequency_hz: f64,
+    /// Its outputs (0..=15), in AnalogOut channel order; each starts off.
+    pub channels: Vec<u8>,
+}
+
+/// The PCA9685's PWM frequencies, Hz (prescale 255 down to 3).
+pub const PCA9685_FREQUENCY: std::ops::RangeInclusive<f64> = 24.0..=1526.0;
 
 /// An AS5600: one Encoder (`card.encoderN`, numbered across the card's chips), 4096
 /// counts a turn, turns counted across the wrap. Poll it faster than half a turn of the
@@ -201,6 +253,8 @@ impl ChipConfig {
             ChipConfig::Ads1115(c) => c.address,
             ChipConfig::Mcp4725(c) => c.address,
             ChipConfig::As5600(c) => c.address,
+            ChipConfig::Ina219(c) => c.address,
+            ChipConfig::Pca9685(c) => c.address,
         }
     }
 
@@ -211,6 +265,8 @@ impl ChipConfig {
             ChipConfig::Ads1115(c) => c.poll_ms,
             ChipConfig::Mcp4725(c) => c.poll_ms,
             ChipConfig::As5600(c) => c.poll_ms,
+            ChipConfig::Ina219(c) => c.poll_ms,
+            ChipConfig::Pca9685(c) => c.poll_ms,
         }
     }
 }
@@ -268,6 +324,49 @@ impl I2cConfig {
                 ChipConfig::Mcp23017(m) => m.check().map_err(|e| err(key(&e.key), e.message))?,
                 ChipConfig::Ads1115(a) => a.check().map_err(|e| err(key(&e.key), e.message))?,
                 ChipConfig::As5600(_) => {}
+                ChipConfig::Ina219(i) => {
+                    for (k, v) in [
+                        ("shunt_ohms", i.shunt_ohms),
+                        ("max_current_a", i.max_current_a),
+                    ] {
+                        if !(v.is_finite() && v > 0.0 && v <= 1000.0) {
+                            return Err(err(key(k), format!("{v}; above 0 and at most 1000")));
+                        }
+                    }
+                    // The calibration register is 15 bits and not 0.
+                    let cal = 0.04096 / (i.max_current_a / 32768.0 * i.shunt_ohms);
+                    if !(1.0..=32767.0).contains(&cal.trunc()) {
+                        return Err(err(
+                            key("max_current_a"),
+                            format!(
+                                "{} A over {} Ω needs calibration {cal:.0}; the INA219 takes 1 to 32767",
+                                i.max_current_a, i.shunt_ohms
+                            ),
+                        ));
+                    }
+                }
+                ChipConfig::Pca9685(p) => {
+                    if !PCA9685_FREQUENCY.contains(&p.frequency_hz) {
+                        return Err(err(
+                            key("frequency_hz"),
+                            format!("{} Hz; between 24 and 1526", p.frequency_hz),
+                        ));
+                    }
+                    for (n, &ch) in p.channels.iter().enumerate() {
+                        if ch > 15 {
+                            return Err(err(
+                                key(&format!("channels[{n}]")),
+                                format!("output {ch}: the PCA9685 has outputs 0..=15"),
+                            ));
+                        }
+                        if p.channels[..n].contains(&ch) {
+                            return Err(err(
+                                key(&format!("channels[{n}]")),
+                                format!("output {ch} is given twice"),
+                            ));
+                        }
+                    }
+                }
                 ChipConfig::Mcp4725(d) => {
                     if !MCP4725_SUPPLY.contains(&d.vref_v) {
                         return Err(err(

@@ -89,11 +89,8 @@ pub fn card(config: &I2cConfig, clock: Arc<dyn Clock>) -> Result<Built, CardErro
     let models: Vec<Box<dyn ChipModel>> = config.chip.iter().map(chips::model).collect();
     let mut initial = Vec::new();
     for c in &config.chip {
-        match c {
-            ChipConfig::Mcp23017(m) => {
-                initial.extend(m.outputs.iter().map(|p| m.initial_on.contains(p)));
-            }
-            ChipConfig::Ads1115(_) | ChipConfig::Mcp4725(_) | ChipConfig::As5600(_) => {}
+        if let ChipConfig::Mcp23017(m) = c {
+            initial.extend(m.outputs.iter().map(|p| m.initial_on.contains(p)));
         }
     }
     let places: Vec<ChipPlace> = config

@@ -329,6 +329,80 @@ fn as5600_counts_turns_across_the_wrap() -> Result<(), Failed> {
     Ok(())
 }
 
+fn ina219_reads_shunt_bus_and_current_with_its_lsbs() -> Result<(), Failed> {
+    let stub = I2cStub::load(&[0x40])?;
+    // Big-endian registers, written as SMBus words: shunt 1000 counts, bus 3000 counts
+    // (bits 15..3), current 2000 counts.
+    stub.set_word(0x40, 0x01, 1000u16.swap_bytes())?;
+    stub.set_word(0x40, 0x02, (3000u16 << 3).swap_bytes())?;
+    stub.set_word(0x40, 0x04, 2000u16.swap_bytes())?;
+    let up = up(
+        &stub,
+        "[[chip]]\nmodel = \"ina219\"\naddress = 0x40\npoll_ms = 2",
+    )?;
+    let c = up.card.clone();
+    wait("the monitor online", || c.counters().chips[0].online)?;
+    // The configuration and the calibration for 3.2 A over 0.1 Ω:
+    // LSB 3.2 / 32768 A, trunc(0.04096 / (LSB × 0.1)) = 4194 (0x1062).
+    assert_eq!(stub.get_word(0x40, 0x00)?, 0x399fu16.swap_bytes());
+    assert_eq!(stub.get_word(0x40, 0x05)?, 0x1062u16.swap_bytes());
+    for (ch, want) in [(0, 0.01), (1, 12.0), (2, 2000.0 * 3.2 / 32768.0)] {
+        let got = c.read(ch)?;
+        assert!(
+            (got - want).abs() < 1e-12,
+            "channel {ch}: {got}, not {want}"
+        );
+    }
+    // A negative shunt voltage and current (reverse flow).
+    stub.set_word(0x40, 0x01, (-400i16 as u16).swap_bytes())?;
+    stub.set_word(0x40, 0x04, (-800i16 as u16).swap_bytes())?;
+    wait("reverse flow", || {
+        c.read_raw(0).ok() == Some(-400) && c.read_raw(2).ok() == Some(-800)
+    })?;
+    let ai = c.devices().analog_in.unwrap();
+    let mut set_ai = |ch: u32, raw: i64| {
+        let (reg, word) = match ch {
+            0 => (0x01, raw as i16 as u16),
+            1 => (0x02, (raw as u16) << 3),
+            _ => (0x04, raw as i16 as u16),
+        };
+        stub.set_word(0x40, reg, word.swap_bytes()).unwrap();
+        wait_for("the channel follows", PATIENCE, || {
+            c.read_raw(ch).ok() == Some(raw)
+        })
+        .unwrap();
+    };
+    conformance::check_analog_in(&*ai, Some(&mut set_ai)).assert_complete();
+    Ok(())
+}
+
+fn pca9685_sets_its_prescale_and_duty_registers() -> Result<(), Failed> {
+    let stub = I2cStub::load(&[0x41])?;
+    let up = up(
+        &stub,
+        "[[chip]]\nmodel = \"pca9685\"\naddress = 0x41\npoll_ms = 2\nfrequency_hz = 50\nchannels = [3, 0]",
+    )?;
+    let c = up.card.clone();
+    wait("the PWM online", || c.counters().chips[0].online)?;
+    // 50 Hz: round(25 MHz / (4096 × 50)) − 1 = 121; awake with auto-increment.
+    assert_eq!(stub.get_byte(0x41, 0xfe)?, 121);
+    assert_eq!(stub.get_byte(0x41, 0x00)?, 0x20);
+    // Both start full off: LEDn_OFF bit 12.
+    assert_eq!(stub.get_word(0x41, 0x06 + 4 * 3 + 2)?, 0x1000);
+    assert_eq!(stub.get_word(0x41, 0x06 + 2)?, 0x1000);
+    c.write(0, 0.25)?;
+    c.write(1, 1.0)?;
+    wait("output 3 at 25 %, output 0 full on", || {
+        stub.get_word(0x41, 0x14).ok() == Some(1024)
+            && stub.get_word(0x41, 0x12).ok() == Some(0)
+            && stub.get_word(0x41, 0x06).ok() == Some(0x1000)
+            && stub.get_word(0x41, 0x08).ok() == Some(0)
+    })?;
+    let ao = c.devices().analog_out.unwrap();
+    conformance::check_analog_out(&*ao).assert_complete();
+    Ok(())
+}
+
 fn main() -> std::process::ExitCode {
     kernel_rig::harness(
         &testkit::rig::i2c_stub(),
@@ -352,6 +426,14 @@ fn main() -> std::process::ExitCode {
             Trial::test(
                 "as5600_counts_turns_across_the_wrap",
                 as5600_counts_turns_across_the_wrap,
+            ),
+            Trial::test(
+                "ina219_reads_shunt_bus_and_current_with_its_lsbs",
+                ina219_reads_shunt_bus_and_current_with_its_lsbs,
+            ),
+            Trial::test(
+                "pca9685_sets_its_prescale_and_duty_registers",
+                pca9685_sets_its_prescale_and_duty_registers,
             ),
             Trial::test("the_conformance_kit_passes", the_conformance_kit_passes),
         ],

@@ -16,8 +16,10 @@
 
 pub mod ads1115;
 pub mod as5600;
+pub mod ina219;
 pub mod mcp23017;
 pub mod mcp4725;
+pub mod pca9685;
 
 use crate::card::ChipIo;
 pub use crate::card::Shape;
@@ -57,5 +59,7 @@ pub fn model(config: &ChipConfig) -> Box<dyn ChipModel> {
         ChipConfig::Ads1115(c) => Box::new(ads1115::Ads1115::new(c)),
         ChipConfig::Mcp4725(c) => Box::new(mcp4725::Mcp4725::new(c)),
         ChipConfig::As5600(c) => Box::new(as5600::As5600::new(c)),
+        ChipConfig::Ina219(c) => Box::new(ina219::Ina219::new(c)),
+        ChipConfig::Pca9685(c) => Box::new(pca9685::Pca9685::new(c)),
     }
 }

@@ -1,0 +1,101 @@
+//! NXP PCA9685, a 16-channel 12-bit PWM controller: the configured outputs as AnalogOut
+//! duty cycles, 0 (off) to 1 (on) in 4096 steps. Its registers are little-endian pairs
+//! (L then H) with auto-increment on, so each is one SMBus word as it is.
+//!
+//! | register | address | use |
+//! |---|---|---|
+//! | MODE1 | 0x00 | SLEEP while the prescale is set, then AI (auto-increment) awake |
+//! | LEDn_ON | 0x06 + 4n | 0 (the pulse starts at count 0), or bit 12 (full on) |
+//! | LEDn_OFF | 0x08 + 4n | the duty in counts, or bit 12 (full off) |
+//! | PRE_SCALE | 0xFE | `round(25 MHz / (4096 × frequency)) − 1` |
+
+use super::{ChipModel, Shape};
+use crate::card::ChipIo;
+use crate::config::Pca9685Config;
+use crate::smbus::{Smbus, Transfer};
+use device_interface::{RawRange, Scale, Unit};
+
+const MODE1: u8 = 0x00;
+const PRE_SCALE: u8 = 0xfe;
+const SLEEP: u8 = 1 << 4;
+const AI: u8 = 1 << 5;
+/// The full-on / full-off bit of LEDn_ON_H / LEDn_OFF_H, as a word.
+const FULL: u16 = 1 << 12;
+/// Counts a period.
+pub const STEPS: i64 = 4096;
+/// Its internal oscillator, Hz.
+const OSCILLATOR: f64 = 25e6;
+
+/// A PCA9685.
+pub struct Pca9685 {
+    channels: Vec<u8>,
+    prescale: u8,
+}
+
+impl Pca9685 {
+    /// The model of a (checked) section.
+    pub fn new(c: &Pca9685Config) -> Pca9685 {
+        let prescale = (OSCILLATOR / (4096.0 * c.frequency_hz)).round() - 1.0;
+        Pca9685 {
+            channels: c.channels.clone(),
+            prescale: prescale.clamp(3.0, 255.0) as u8,
+        }
+    }
+
+    /// The PRE_SCALE register's value.
+    pub fn prescale(&self) -> u8 {
+        self.prescale
+    }
+
+    fn send(&self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {
+        for (i, &ch) in self.channels.iter().enumerate() {
+            let duty = io.analog_out(i as u32).clamp(0, STEPS);
+            let (on, off) = match duty {
+                0 => (0, FULL),
+                STEPS => (FULL, 0),
+                d => (0, d as u16),
+            };
+            let base = 0x06 + 4 * ch;
+            bus.write_word(base, on)?;
+            bus.write_word(base + 2, off)?;
+        }
+        Ok(())
+    }
+}
+
+impl ChipModel for Pca9685 {
+    fn model(&self) -> &'static str {
+        "pca9685"
+    }
+
+    fn shape(&self) -> Shape {
+        Shape::default()
+    }
+
+    fn analog_out(&self) -> Vec<Scale> {
+        // Cannot fail: a fixed raw range, a positive factor, no unit.
+        let scale = RawRange::new(0, STEPS)
+            .and_then(|raw| Scale::from_factor(raw, 1.0 / STEPS as f64, 0.0, Unit::none()));
+        scale.map_or_else(|_| Vec::new(), |s| vec![s; self.channels.len()])
+    }
+
+    fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {
+        io.take_dirty();
+        // The prescale is taken only while the oscillator sleeps; the outputs are set
+        // before it runs again.
+        bus.write_byte(MODE1, SLEEP | AI)?;
+        bus.write_byte(PRE_SCALE, self.prescale)?;
+        self.send(bus, io)?;
+        bus.write_byte(MODE1, AI)
+    }
+
+    fn poll(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {
+        if io.take_dirty()
+            && let Err(e) = self.send(bus, io)
+        {
+            io.mark_dirty();
+            return Err(e);
+        }
+        Ok(())
+    }
+}
