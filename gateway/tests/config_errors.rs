@@ -233,14 +233,24 @@ fn the_shipped_examples_are_valid() {
                     ),
                 );
             } else if path.ends_with("i2c.toml") {
-                // Nor I2C adapters: its bus is not found, and nothing else is wrong
-                // (gateway/tests/kernel_i2c.rs runs it on i2c-stub in the kernel rig).
+                // Nor I2C adapters: its bus is not found, and so the connections to the
+                // card's components; nothing else may (gateway/tests/kernel_i2c.rs runs it
+                // on i2c-stub in the kernel rig).
+                let mut lines = got.lines();
                 assert_eq!(
-                    got,
-                    format!(
-                        "{file}:36:7: card[0].i2c.bus: card \"i2c\": no I2C adapter is named \
-                         \"SMBus stub driver\"; there are none (is i2c-dev loaded?)"
+                    lines.next(),
+                    Some(
+                        format!(
+                            "{file}:37:7: card[0].i2c.bus: card \"i2c\": no I2C adapter is \
+                             named \"SMBus stub driver\"; there are none (is i2c-dev loaded?)"
+                        )
+                        .as_str()
                     ),
+                    "{got}"
+                );
+                assert!(
+                    lines.all(|l| l.contains("no component named \"i2c.a")),
+                    "{got}"
                 );
             } else {
                 assert_eq!(got, "ok", "{file}");

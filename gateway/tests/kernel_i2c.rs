@@ -11,7 +11,12 @@ const HWGW: &str = env!("CARGO_BIN_EXE_hwgw");
 const CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../config/i2c.toml");
 
 fn hwgw_gets_sets_and_leaves_the_outputs_safe() -> Result<(), Failed> {
-    let stub = I2cStub::load(&[0x20, 0x36, 0x48, 0x60])?;
+    let stub = I2cStub::load(&[0x20, 0x36, 0x40, 0x41, 0x48, 0x60])?;
+    // The INA219: shunt 1000 counts, bus 3000 counts (bits 15..3), current 2000 counts,
+    // big-endian.
+    stub.set_word(0x40, 0x01, 1000u16.swap_bytes())?;
+    stub.set_word(0x40, 0x02, (3000u16 << 3).swap_bytes())?;
+    stub.set_word(0x40, 0x04, 2000u16.swap_bytes())?;
     // The AS5600 sees a magnet, at 1000 counts (RAW ANGLE MSB first on the wire).
     stub.set_byte(0x36, 0x0b, 0x20)?;
     stub.set_word(0x36, 0x0c, 1000u16.swap_bytes())?;
@@ -22,7 +27,7 @@ fn hwgw_gets_sets_and_leaves_the_outputs_safe() -> Result<(), Failed> {
     wait_ok("the chip online", || {
         Ok(gw
             .out(&["call", "i2c", "counters"])?
-            .contains("\"online\": \"4/4\""))
+            .contains("\"online\": \"6/6\""))
     })?;
     // Configured as config/i2c.toml says.
     assert_eq!(
@@ -68,9 +73,26 @@ fn hwgw_gets_sets_and_leaves_the_outputs_safe() -> Result<(), Failed> {
         Ok(gw.out(&["get", "i2c.encoder0", "position"])? == "500"
             && gw.out(&["get", "i2c.encoder0", "turn"])? == "1")
     })?;
+    // The INA219 with its LSBs: 1000 × 10 µV, 3000 × 4 mV, 2000 × 3.2 / 32768 A.
+    wait_ok("the monitor's channels", || {
+        Ok(gw
+            .out(&["get", "i2c.ai", "shunt"])?
+            .parse::<f64>()
+            .is_ok_and(|v| (v - 0.01).abs() < 1e-12)
+            && gw.out(&["get", "i2c.ai", "bus"])? == "12.0"
+            && gw.out(&["get", "i2c.ai", "current"])? == "0.1953125")
+    })?;
+    // A component's writes: fan_control drives the fan at a quarter of the supply's
+    // volts, 2.048 × 0.25 = 0.512 of the period: LED0_OFF = round(0.512 × 4096) = 2097.
+    wait_ok("the fan's duty", || Ok(stub.get_word(0x41, 0x08)? == 2097))?;
+    assert_eq!(
+        stub.get_byte(0x41, 0xfe)?,
+        5,
+        "1000 Hz: round(25 MHz / 4096 / 1000) - 1"
+    );
     let status = gw.out(&["status"])?;
     assert!(status.contains("mcp23017"), "{status}");
-    // SIGTERM: both to their safe value (off), sent before the bus side stops.
+    // SIGTERM: every output to its safe value (off), sent before the bus side stops.
     let stopped = gw.terminate();
     assert!(stopped.status.success(), "{}", stopped.log);
     assert_eq!(
@@ -78,6 +100,11 @@ fn hwgw_gets_sets_and_leaves_the_outputs_safe() -> Result<(), Failed> {
         0x0000,
         "the latch after stop: {}",
         stopped.log
+    );
+    assert_eq!(
+        stub.get_word(0x41, 0x08)?,
+        0x1000,
+        "the fan full off after stop"
     );
     Ok(())
 }
