@@ -73,14 +73,18 @@ fn hwgw_gets_sets_and_leaves_the_outputs_safe() -> Result<(), Failed> {
         Ok(gw.out(&["get", "i2c.encoder0", "position"])? == "500"
             && gw.out(&["get", "i2c.encoder0", "turn"])? == "1")
     })?;
-    // The INA219 with its LSBs: 1000 × 10 µV, 3000 × 4 mV, 2000 × 3.2 / 32768 A.
+    // The INA219 with its LSBs: 1000 × 10 µV, 3000 × 4 mV, and 2000 counts of the current
+    // LSB its calibration gives (0.04096 / (4194 × 0.1 Ω) A).
     wait_ok("the monitor's channels", || {
         Ok(gw
             .out(&["get", "i2c.ai", "shunt"])?
             .parse::<f64>()
             .is_ok_and(|v| (v - 0.01).abs() < 1e-12)
             && gw.out(&["get", "i2c.ai", "bus"])? == "12.0"
-            && gw.out(&["get", "i2c.ai", "current"])? == "0.1953125")
+            && gw
+                .out(&["get", "i2c.ai", "current"])?
+                .parse::<f64>()
+                .is_ok_and(|v| (v - 2000.0 * 0.04096 / (4194.0 * 0.1)).abs() < 1e-12))
     })?;
     // A component's writes: fan_control drives the fan at a quarter of the supply's
     // volts, 2.048 × 0.25 = 0.512 of the period: LED0_OFF = round(0.512 × 4096) = 2097.

@@ -116,6 +116,9 @@ impl I2cBus {
             let period = Duration::from_millis(u64::from(slot.poll_ms));
             match result {
                 Ok(()) => {
+                    // What this poll took to send is sent.
+                    slot.sent
+                        .store(slot.taken.load(Ordering::Acquire), Ordering::Release);
                     p.fails = 0;
                     p.backoff = FIRST_BACKOFF;
                     slot.polls.fetch_add(1, Ordering::Relaxed);

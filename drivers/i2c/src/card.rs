@@ -1,6 +1,6 @@
-//! An I2C card's devices: the chips' input pins, output pins and analog inputs (and, as
-//! models are added, analog outputs and encoders) as one DigitalIn, one DigitalOut and one
-//! AnalogIn, each chip's channels after the previous chip's, in the section's order.
+//! An I2C card's devices: the chips' input pins, output pins, analog inputs and outputs as
+//! one DigitalIn, DigitalOut, AnalogIn and AnalogOut, and their encoders, each chip's
+//! channels after the previous chip's, in the section's order.
 //!
 //! Devices only touch images: `read_bit` answers from the last poll of the bit's chip,
 //! `set_bit` records the level and marks the chip for its next poll, which sends it (at
@@ -66,7 +66,12 @@ pub struct ChipSlot {
     pub(crate) analog_out: Range<u32>,
     pub(crate) encoders: Range<u32>,
     pub(crate) online: AtomicBool,
-    pub(crate) dirty: AtomicBool,
+    /// Output writes the devices made (each one counts).
+    pub(crate) wanted: AtomicU64,
+    /// `wanted` as the chip model last took it to send.
+    pub(crate) taken: AtomicU64,
+    /// `wanted` as last sent: what the bus side confirms after a poll that succeeded.
+    pub(crate) sent: AtomicU64,
     pub(crate) polls: AtomicU64,
     pub(crate) errors: AtomicU64,
     pub(crate) went_offline: AtomicU64,
@@ -140,7 +145,8 @@ impl ChipIo<'_> {
 
     /// True, once, when a device changed an output of the chip since the last call.
     pub fn take_dirty(&self) -> bool {
-        self.chip.dirty.swap(false, Ordering::AcqRel)
+        let wanted = self.chip.wanted.load(Ordering::Acquire);
+        self.chip.taken.swap(wanted, Ordering::AcqRel) != wanted
     }
 
     /// Records analog input `channel` of the chip as converted.
@@ -171,7 +177,8 @@ impl ChipIo<'_> {
 
     /// Marks the chip's outputs as still to send (their write failed).
     pub fn mark_dirty(&self) {
-        self.chip.dirty.store(true, Ordering::Release);
+        let sent = self.chip.sent.load(Ordering::Acquire);
+        self.chip.taken.store(sent, Ordering::Release);
     }
 }
 
@@ -203,7 +210,9 @@ impl I2cCard {
                 analog_out: ao..ao + p.analog_out.len() as u32,
                 encoders: encoders.len() as u32..(encoders.len() + p.encoders.len()) as u32,
                 online: AtomicBool::new(false),
-                dirty: AtomicBool::new(false),
+                wanted: AtomicU64::new(0),
+                taken: AtomicU64::new(0),
+                sent: AtomicU64::new(0),
                 polls: AtomicU64::new(0),
                 errors: AtomicU64::new(0),
                 went_offline: AtomicU64::new(0),
@@ -300,31 +309,31 @@ impl I2cCard {
         }
     }
 
-    /// Waits, until `deadline` at the latest, for every online chip's changed outputs to
-    /// be sent: its outputs no longer marked and a poll finished since the call. An error
-    /// names each chip they may not have reached.
+    /// Waits, until `deadline` at the latest, for every online chip's outputs written
+    /// before the call to be sent (a poll that took them succeeded). Chips without outputs
+    /// are not waited for. An error names each chip they may not have reached.
     pub fn settle(&self, deadline: std::time::Instant) -> Result<(), String> {
-        let start: Vec<u64> = self
+        let wanted: Vec<u64> = self
             .chips
             .iter()
-            .map(|c| c.polls.load(Ordering::Acquire))
+            .map(|c| c.wanted.load(Ordering::Acquire))
             .collect();
-        let sent = |(c, p0): (&ChipSlot, &u64)| {
-            !c.online.load(Ordering::Acquire)
-                || (!c.dirty.load(Ordering::Acquire) && c.polls.load(Ordering::Acquire) > *p0)
+        let has_outputs = |c: &ChipSlot| !c.digital_out.is_empty() || !c.analog_out.is_empty();
+        let sent = |(c, w): (&ChipSlot, &u64)| {
+            !has_outputs(c)
+                || (c.online.load(Ordering::Acquire) && c.sent.load(Ordering::Acquire) >= *w)
         };
-        while !self.chips.iter().zip(&start).all(sent) && std::time::Instant::now() < deadline {
+        while !self.chips.iter().zip(&wanted).all(sent) && std::time::Instant::now() < deadline {
             std::thread::sleep(std::time::Duration::from_millis(1));
         }
         let unsent: Vec<String> = self
             .chips
             .iter()
-            .zip(&start)
-            .filter(|(c, p0)| !sent((c, p0)) || !c.online.load(Ordering::Acquire))
-            .filter(|(c, _)| !c.digital_out.is_empty() || !c.analog_out.is_empty())
+            .zip(&wanted)
+            .filter(|(c, w)| !sent((c, w)))
             .map(|(c, _)| {
                 let state = if c.online.load(Ordering::Acquire) {
-                    "not polled in time"
+                    "not sent in time"
                 } else {
                     "offline"
                 };
@@ -395,7 +404,7 @@ impl DigitalOut for I2cCard {
         Self::online(chip)?;
         self.outputs.set(bit, value)?;
         if let Some(c) = chip {
-            c.dirty.store(true, Ordering::Release);
+            c.wanted.fetch_add(1, Ordering::AcqRel);
         }
         Ok(())
     }
@@ -454,7 +463,7 @@ impl AnalogOut for I2cCard {
         Self::online(chip)?;
         self.out_raw[channel as usize].store(raw, Ordering::Release);
         if let Some(c) = chip {
-            c.dirty.store(true, Ordering::Release);
+            c.wanted.fetch_add(1, Ordering::AcqRel);
         }
         Ok(())
     }

@@ -333,13 +333,13 @@ impl I2cConfig {
                             return Err(err(key(k), format!("{v}; above 0 and at most 1000")));
                         }
                     }
-                    // The calibration register is 15 bits and not 0.
+                    // The calibration register holds 2..=0xfffe (bit 0 is void).
                     let cal = 0.04096 / (i.max_current_a / 32768.0 * i.shunt_ohms);
-                    if !(1.0..=32767.0).contains(&cal.trunc()) {
+                    if !(2.0..=65534.0).contains(&cal.trunc()) {
                         return Err(err(
                             key("max_current_a"),
                             format!(
-                                "{} A over {} Ω needs calibration {cal:.0}; the INA219 takes 1 to 32767",
+                                "{} A over {} Ω needs calibration {cal:.0}; the INA219 takes 2 to 65534",
                                 i.max_current_a, i.shunt_ohms
                             ),
                         ));

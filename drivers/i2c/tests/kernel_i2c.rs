@@ -118,7 +118,9 @@ initial_on = [0]
 "#,
     )?;
     let c = up.card.clone();
-    wait("0x20 online", || c.counters().chips[0].online)?;
+    wait("0x20 online, 0x21 refused", || {
+        c.counters().chips[0].online && c.counters().chips[1].last_error.is_some()
+    })?;
     let dead = c.counters().chips[1].clone();
     assert!(!dead.online, "{dead:?}");
     let why = dead.last_error.unwrap_or_default();
@@ -343,10 +345,11 @@ fn ina219_reads_shunt_bus_and_current_with_its_lsbs() -> Result<(), Failed> {
     let c = up.card.clone();
     wait("the monitor online", || c.counters().chips[0].online)?;
     // The configuration and the calibration for 3.2 A over 0.1 Ω:
-    // LSB 3.2 / 32768 A, trunc(0.04096 / (LSB × 0.1)) = 4194 (0x1062).
+    // trunc(0.04096 / (3.2 / 32768 × 0.1)) = 4194 (0x1062, even: bit 0 is void), and the
+    // current LSB the chip works with for it, 0.04096 / (4194 × 0.1) A.
     assert_eq!(stub.get_word(0x40, 0x00)?, 0x399fu16.swap_bytes());
     assert_eq!(stub.get_word(0x40, 0x05)?, 0x1062u16.swap_bytes());
-    for (ch, want) in [(0, 0.01), (1, 12.0), (2, 2000.0 * 3.2 / 32768.0)] {
+    for (ch, want) in [(0, 0.01), (1, 12.0), (2, 2000.0 * 0.04096 / (4194.0 * 0.1))] {
         let got = c.read(ch)?;
         assert!(
             (got - want).abs() < 1e-12,

@@ -6,8 +6,8 @@
 //! | Configuration | 0x00 | written at start: 0x399F (32 V bus range, ±320 mV shunt range, 12-bit, continuous) |
 //! | Shunt voltage | 0x01 | channel 0: signed, 10 µV a count |
 //! | Bus voltage | 0x02 | channel 1: bits 15..3, 4 mV a count (CNVR, OVF below) |
-//! | Current | 0x04 | channel 2: signed, `max_current_a / 32768` A a count |
-//! | Calibration | 0x05 | written at start: `trunc(0.04096 / (current LSB × shunt Ω))` |
+//! | Current | 0x04 | channel 2: signed, `0.04096 / (calibration × shunt Ω)` A a count |
+//! | Calibration | 0x05 | written at start: `trunc(0.04096 / (max_current_a / 32768 × shunt Ω))`, bit 0 cleared (void) |
 
 use super::{ChipModel, Shape};
 use crate::card::ChipIo;
@@ -32,12 +32,12 @@ pub struct Ina219 {
 impl Ina219 {
     /// The model of a (checked) section.
     pub fn new(c: &Ina219Config) -> Ina219 {
-        let current_lsb = c.max_current_a / 32768.0;
-        let calibration = (0.04096 / (current_lsb * c.shunt_ohms))
-            .trunc()
-            .clamp(1.0, 32767.0) as u16;
+        // The register's bit 0 is void: an even calibration, and the current LSB the chip
+        // really works with for it.
+        let wanted = 0.04096 / (c.max_current_a / 32768.0 * c.shunt_ohms);
+        let calibration = ((wanted.trunc() as u32) & !1).clamp(2, 0xfffe) as u16;
         Ina219 {
-            current_lsb,
+            current_lsb: 0.04096 / (f64::from(calibration) * c.shunt_ohms),
             calibration,
         }
     }
