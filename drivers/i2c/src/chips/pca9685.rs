@@ -56,8 +56,17 @@ impl Pca9685 {
                 d => (0, d as u16),
             };
             let base = 0x06 + 4 * ch;
-            bus.write_word(base, on)?;
-            bus.write_word(base + 2, off)?;
+            // Two transfers, ordered so the output between them is at its old level or
+            // its new one, never another: to full on, set the full-on bit first (full off
+            // still overrides it); otherwise set OFF first (a full-on bit still set holds
+            // the output on until ON is cleared).
+            if on == FULL {
+                bus.write_word(base, on)?;
+                bus.write_word(base + 2, off)?;
+            } else {
+                bus.write_word(base + 2, off)?;
+                bus.write_word(base, on)?;
+            }
         }
         Ok(())
     }
