@@ -370,7 +370,14 @@ fn thread_scope_pulses_one_line_per_runtime_thread() -> Result<(), Failed> {
     }
     let pulses = |line: u32| -> Result<Vec<String>, Failed> {
         // The request's "set 0", "out (0)" first, then the thread's pulses.
-        Ok(trace.driven(base + line)?.into_iter().skip(2).collect())
+        Ok(trace
+            .driven(base + line)?
+            .into_iter()
+            .skip(2)
+            // The card's own bus thread opens the lines inside its first pulse: that
+            // pulse's end writes low to a line the request just made low.
+            .skip_while(|e| e == "set 0")
+            .collect())
     };
     wait("20 pulses of each periodic thread", || {
         [2, 3]
