@@ -244,6 +244,23 @@ impl<H: EncoderHost> CardEncoder<H> {
         CardEncoder { host, index }
     }
 
+    /// Encoders `0..count` of `host` as the card's devices, named `encoder0`,
+    /// `encoder1`, … (what [`CardDevices::encoders`](crate::CardDevices) takes).
+    pub fn all(
+        host: &std::sync::Arc<H>,
+        count: usize,
+    ) -> Vec<(String, std::sync::Arc<dyn crate::Encoder>)> {
+        (0..count)
+            .map(|i| {
+                (
+                    format!("encoder{i}"),
+                    std::sync::Arc::new(CardEncoder::new(host.clone(), i))
+                        as std::sync::Arc<dyn crate::Encoder>,
+                )
+            })
+            .collect()
+    }
+
     fn counter(&self) -> &EncoderCounter {
         self.host.encoder_counter(self.index)
     }

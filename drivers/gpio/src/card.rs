@@ -228,15 +228,7 @@ impl GpioCard {
         CardDevices {
             digital_in: (!self.inputs.is_empty()).then(|| self.clone() as Arc<dyn DigitalIn>),
             digital_out: (!self.outputs.is_empty()).then(|| self.clone() as Arc<dyn DigitalOut>),
-            encoders: (0..self.encoders.len())
-                .map(|i| {
-                    (
-                        format!("encoder{i}"),
-                        Arc::new(CardEncoder::new(self.clone(), i))
-                            as Arc<dyn device_interface::Encoder>,
-                    )
-                })
-                .collect(),
+            encoders: CardEncoder::all(self, self.encoders.len()),
             ..CardDevices::default()
         }
     }

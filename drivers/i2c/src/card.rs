@@ -267,15 +267,7 @@ impl I2cCard {
             digital_out: (!self.outputs.is_empty()).then(|| self.clone() as Arc<dyn DigitalOut>),
             analog_in: (!self.analog_scale.is_empty()).then(|| self.clone() as Arc<dyn AnalogIn>),
             analog_out: (!self.out_scale.is_empty()).then(|| self.clone() as Arc<dyn AnalogOut>),
-            encoders: (0..self.encoders.len())
-                .map(|i| {
-                    (
-                        format!("encoder{i}"),
-                        Arc::new(CardEncoder::new(self.clone(), i))
-                            as Arc<dyn device_interface::Encoder>,
-                    )
-                })
-                .collect(),
+            encoders: CardEncoder::all(self, self.encoders.len()),
         }
     }
 

@@ -41,11 +41,6 @@ impl Ina219 {
             calibration,
         }
     }
-
-    /// The calibration register's value.
-    pub fn calibration(&self) -> u16 {
-        self.calibration
-    }
 }
 
 fn scale(

@@ -42,11 +42,6 @@ impl Pca9685 {
         }
     }
 
-    /// The PRE_SCALE register's value.
-    pub fn prescale(&self) -> u8 {
-        self.prescale
-    }
-
     fn send(&self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {
         for (i, &ch) in self.channels.iter().enumerate() {
             let duty = io.analog_out(i as u32).clamp(0, STEPS);
