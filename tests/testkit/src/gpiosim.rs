@@ -251,6 +251,33 @@ impl GpioTrace {
             .filter(|e| !e.starts_with("get"))
             .collect())
     }
+
+    /// The ThreadScope pulses driven on `gpio` after its request (its `"set 0"`,
+    /// `"out (0)"`): without any lows leading them — the card's own bus thread requests
+    /// the lines inside its first pulse, whose end writes low to a line just made low.
+    pub fn pulses(&self, gpio: u32) -> io::Result<Vec<String>> {
+        Ok(self
+            .driven(gpio)?
+            .into_iter()
+            .skip(2)
+            .skip_while(|e| e == "set 0")
+            .collect())
+    }
+}
+
+/// `Ok` when `pulses` (from [`GpioTrace::pulses`]) are ThreadScope's: high while a thread
+/// steps, low between, strictly alternating, low at the end; else what breaks that.
+pub fn check_pulses(pulses: &[String]) -> Result<(), String> {
+    for (i, e) in pulses.iter().enumerate() {
+        let want = if i % 2 == 0 { "set 1" } else { "set 0" };
+        if e != want {
+            return Err(format!("event {i} is {e:?}, not {want:?}: {pulses:?}"));
+        }
+    }
+    if pulses.len() % 2 == 1 {
+        return Err(format!("left high: {pulses:?}"));
+    }
+    Ok(())
 }
 
 impl Drop for GpioTrace {
