@@ -96,7 +96,10 @@ fn hwgw_gets_sets_and_leaves_the_outputs_safe() -> Result<(), Failed> {
     );
     let status = gw.out(&["status"])?;
     assert!(status.contains("mcp23017"), "{status}");
-    // SIGTERM: every output to its safe value (off), sent before the bus side stops.
+    // SIGTERM: every output to its safe value (off), sent before the bus side stops. The
+    // DAC's safe code is 0 ("register" 0x00, data 0x00): a marker there first shows it
+    // written.
+    stub.set_byte(0x60, 0x00, 0xaa)?;
     let stopped = gw.terminate();
     assert!(stopped.status.success(), "{}", stopped.log);
     assert_eq!(
@@ -109,6 +112,11 @@ fn hwgw_gets_sets_and_leaves_the_outputs_safe() -> Result<(), Failed> {
         stub.get_word(0x41, 0x08)?,
         0x1000,
         "the fan full off after stop"
+    );
+    assert_eq!(
+        stub.get_byte(0x60, 0x00)?,
+        0x00,
+        "the DAC at code 0 after stop"
     );
     Ok(())
 }

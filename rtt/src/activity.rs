@@ -597,7 +597,11 @@ impl Activity {
         self.shared.wake();
     }
 
-    pub(crate) fn waker(&self) -> Arc<dyn Waker> {
+    /// A handle that asks this activity for a step from any thread, as [`trigger`](Self::trigger)
+    /// does, holding nothing of its component: for a device's write path to wake the bus
+    /// side that sends it. Waking is one `eventfd` write (file-descriptor activities) or a
+    /// notify (non-periodic); never blocks, never allocates.
+    pub fn waker(&self) -> Arc<dyn Waker> {
         self.shared.clone()
     }
 

@@ -5,14 +5,17 @@
 //! counted and the chip goes offline after [`FAILS_TO_OFFLINE`] in a row. An offline chip
 //! is probed — configured again from scratch, its outputs written — after
 //! [`FIRST_BACKOFF`], doubling up to [`MAX_BACKOFF`], through a newly opened bus file (an
-//! adapter that went away and came back at the same path is found); one dead chip costs
-//! the others one failed transfer per probe, never a wait.
+//! adapter that went away and came back, at its path or under its name, is found); one
+//! dead chip costs the others one failed transfer per probe, never a wait.
+//!
+//! A device's output write wakes the bus side, which polls that chip at once (its
+//! schedule unchanged). Every [`CHECK_PERIOD`] an online chip's model checks that the
+//! chip is still set up as it left it, and sets it up again (counted) when not.
 
-use crate::card::I2cCard;
+use crate::card::{ChipIo, ChipSlot, I2cCard};
 use crate::chips::ChipModel;
-use crate::smbus::{LinuxChip, Smbus, Transfer};
+use crate::smbus::{LinuxChip, Smbus, Transfer, find_bus};
 use device_interface::time::Timestamp;
-use std::path::PathBuf;
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, PoisonError};
 use std::time::Duration;
@@ -23,6 +26,8 @@ pub const FAILS_TO_OFFLINE: u32 = 3;
 pub const FIRST_BACKOFF: Duration = Duration::from_millis(100);
 /// The longest wait between probes.
 pub const MAX_BACKOFF: Duration = Duration::from_secs(5);
+/// How often an online chip's set-up is checked ([`ChipModel::check`]), after a poll.
+pub const CHECK_PERIOD: Duration = Duration::from_millis(500);
 
 /// Opens the transfers to the chip at an address.
 pub type Opener = Box<dyn FnMut(u16) -> Result<Box<dyn Smbus>, String> + Send>;
@@ -31,6 +36,7 @@ struct Polled {
     model: Box<dyn ChipModel>,
     bus: Option<Box<dyn Smbus>>,
     next: Timestamp,
+    next_check: Timestamp,
     backoff: Duration,
     fails: u32,
 }
@@ -43,10 +49,12 @@ pub struct I2cBus {
 }
 
 impl I2cBus {
-    /// The bus side of `card` over the i2c-dev bus at `path`; `models` in the card's chip
-    /// order.
-    pub fn new(card: Arc<I2cCard>, models: Vec<Box<dyn ChipModel>>, path: PathBuf) -> I2cBus {
+    /// The bus side of `card` over the i2c-dev bus `bus` names (a path, or an adapter's
+    /// name, found again at each open: an adapter that comes back under another number is
+    /// found by its name); `models` in the card's chip order.
+    pub fn new(card: Arc<I2cCard>, models: Vec<Box<dyn ChipModel>>, bus: String) -> I2cBus {
         let open: Opener = Box::new(move |address| {
+            let path = find_bus(&bus)?;
             LinuxChip::open(&path, address).map(|c| Box::new(c) as Box<dyn Smbus>)
         });
         I2cBus::with_opener(card, models, open)
@@ -65,6 +73,7 @@ impl I2cBus {
                 model,
                 bus: None,
                 next: now,
+                next_check: now,
                 backoff: FIRST_BACKOFF,
                 fails: 0,
             })
@@ -90,95 +99,132 @@ impl I2cBus {
         }
     }
 
-    /// Polls (or probes) every chip that is due at `now`; returns when the next one is.
+    /// Polls (or probes) every chip that is due at `now` — on its period, or at once when
+    /// a device wrote one of its outputs — and returns when the next one is.
     pub fn step(&mut self, now: Timestamp) -> Option<Timestamp> {
         let card = self.card.clone();
         for (i, p) in self.chips.iter_mut().enumerate() {
-            if p.next > now {
-                continue;
-            }
             let (Some(slot), Some(io)) = (card.chips.get(i), card.io(i)) else {
                 continue;
             };
             let online = slot.online.load(Ordering::Acquire);
-            let result = match &mut p.bus {
-                Some(bus) if online => p.model.poll(bus.as_mut(), &io),
-                Some(bus) => p.model.start(bus.as_mut(), &io),
-                None => match (self.open)(slot.address) {
-                    Ok(mut bus) => {
-                        let r = p.model.start(bus.as_mut(), &io);
-                        p.bus = Some(bus);
-                        r
-                    }
-                    Err(e) => Err(Transfer::Failed(e)),
-                },
-            };
-            let period = Duration::from_millis(u64::from(slot.poll_ms));
-            match result {
-                Ok(()) => {
-                    // What this poll took to send is sent.
-                    slot.sent
-                        .store(slot.taken.load(Ordering::Acquire), Ordering::Release);
-                    p.fails = 0;
-                    p.backoff = FIRST_BACKOFF;
-                    slot.polls.fetch_add(1, Ordering::Relaxed);
-                    slot.last_good
-                        .store(now.as_nanos().max(1), Ordering::Release);
-                    if !online {
-                        tracing::info!(
-                            "I2C chip {} at {:#04x}: answering",
-                            slot.model,
-                            slot.address
-                        );
-                        slot.online.store(true, Ordering::Release);
-                    }
-                    // The next period after now (missed periods are skipped, not caught up).
-                    p.next = p
-                        .next
-                        .saturating_add(period)
-                        .max(now.saturating_add(period / 2));
-                }
-                Err(e) => {
-                    slot.errors.fetch_add(1, Ordering::Relaxed);
-                    p.fails += 1;
-                    let gone = matches!(e, Transfer::NoAnswer(_)) || p.fails >= FAILS_TO_OFFLINE;
-                    if online && gone {
-                        slot.online.store(false, Ordering::Release);
-                        slot.went_offline.fetch_add(1, Ordering::Relaxed);
-                        tracing::warn!(
-                            "I2C chip {} at {:#04x}: offline ({e}); probing with backoff",
-                            slot.model,
-                            slot.address
-                        );
-                    }
-                    let changed = {
-                        let mut last = slot
-                            .last_error
-                            .lock()
-                            .unwrap_or_else(PoisonError::into_inner);
-                        let text = e.to_string();
-                        let changed = last.as_deref() != Some(text.as_str());
-                        if changed {
-                            *last = Some(text);
-                        }
-                        changed
-                    };
-                    if !online && changed {
-                        tracing::warn!("I2C chip {} at {:#04x}: {e}", slot.model, slot.address);
-                    }
-                    if online && !gone {
-                        p.next = now.saturating_add(period);
-                    } else {
-                        // Probed through a new open: an adapter that was removed and came
-                        // back (a reloaded module, a replugged USB adapter) has a new file.
-                        p.bus = None;
-                        p.next = now.saturating_add(p.backoff);
-                        p.backoff = (p.backoff * 2).min(MAX_BACKOFF);
-                    }
-                }
+            let early = p.next > now;
+            if early && !(online && p.bus.is_some() && slot.unsent()) {
+                continue;
+            }
+            match p.exchange(&mut self.open, slot, &io, online, now) {
+                Ok(()) => p.succeeded(slot, online, early, now),
+                Err(e) => p.failed(slot, &e, online, now),
             }
         }
         self.chips.iter().map(|p| p.next).min()
+    }
+}
+
+impl Polled {
+    /// The chip's transfers for this step: a poll (and, every [`CHECK_PERIOD`], its check)
+    /// when it is online; else a probe that sets it up from scratch.
+    fn exchange(
+        &mut self,
+        open: &mut Opener,
+        slot: &ChipSlot,
+        io: &ChipIo<'_>,
+        online: bool,
+        now: Timestamp,
+    ) -> Result<(), Transfer> {
+        let bus = match &mut self.bus {
+            Some(bus) if online => {
+                self.model.poll(bus.as_mut(), io)?;
+                if now < self.next_check {
+                    return Ok(());
+                }
+                self.next_check = now.saturating_add(CHECK_PERIOD);
+                if self.model.check(bus.as_mut(), io)? {
+                    return Ok(());
+                }
+                io.count_reset();
+                tracing::warn!(
+                    "I2C chip {} at {:#04x}: not set up as hwgw left it (a reset, a power \
+                     loss or another master); setting it up again",
+                    slot.model,
+                    slot.address
+                );
+                return self.model.start(bus.as_mut(), io);
+            }
+            Some(bus) => bus,
+            None => self
+                .bus
+                .insert(open(slot.address).map_err(Transfer::Failed)?),
+        };
+        self.next_check = now.saturating_add(CHECK_PERIOD);
+        self.model.start(bus.as_mut(), io)
+    }
+
+    fn succeeded(&mut self, slot: &ChipSlot, online: bool, early: bool, now: Timestamp) {
+        // What this poll took to send is sent.
+        slot.sent
+            .store(slot.taken.load(Ordering::Acquire), Ordering::Release);
+        self.fails = 0;
+        self.backoff = FIRST_BACKOFF;
+        slot.polls.fetch_add(1, Ordering::Relaxed);
+        slot.last_good
+            .store(now.as_nanos().max(1), Ordering::Release);
+        if !online {
+            tracing::info!(
+                "I2C chip {} at {:#04x}: answering",
+                slot.model,
+                slot.address
+            );
+            slot.online.store(true, Ordering::Release);
+        }
+        if !early {
+            // The next period after now (missed periods are skipped, not caught up); a
+            // poll made early for a write keeps the schedule.
+            let period = slot.period();
+            self.next = self
+                .next
+                .saturating_add(period)
+                .max(now.saturating_add(period / 2));
+        }
+    }
+
+    fn failed(&mut self, slot: &ChipSlot, e: &Transfer, online: bool, now: Timestamp) {
+        slot.errors.fetch_add(1, Ordering::Relaxed);
+        self.fails += 1;
+        let gone = matches!(e, Transfer::NoAnswer(_)) || self.fails >= FAILS_TO_OFFLINE;
+        if online && gone {
+            slot.online.store(false, Ordering::Release);
+            slot.went_offline.fetch_add(1, Ordering::Relaxed);
+            tracing::warn!(
+                "I2C chip {} at {:#04x}: offline ({e}); probing with backoff",
+                slot.model,
+                slot.address
+            );
+        }
+        let changed = {
+            let mut last = slot
+                .last_error
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner);
+            let text = e.to_string();
+            let changed = last.as_deref() != Some(text.as_str());
+            if changed {
+                *last = Some(text);
+            }
+            changed
+        };
+        if !online && changed {
+            tracing::warn!("I2C chip {} at {:#04x}: {e}", slot.model, slot.address);
+        }
+        if online && !gone {
+            self.next = now.saturating_add(slot.period());
+        } else {
+            // Probed through a new open: an adapter that was removed and came back (a
+            // reloaded module, a replugged USB adapter) has a new file.
+            self.bus = None;
+            self.next = now.saturating_add(self.backoff);
+            self.backoff = (self.backoff * 2).min(MAX_BACKOFF);
+        }
     }
 }
 
@@ -272,5 +318,61 @@ mod tests {
         assert_eq!(b.step(t(730)), Some(t(740)));
         assert!(chip(&b).online);
         assert!(chip(&b).last_error.unwrap().contains("ENXIO"));
+    }
+
+    /// Counts its wakes.
+    #[derive(Default)]
+    struct Wakes(std::sync::atomic::AtomicU32);
+
+    impl rtt::activity::Waker for Wakes {
+        fn wake(&self) {
+            self.0.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    #[test]
+    fn a_write_is_sent_at_once_and_a_chip_found_reset_is_set_up_again() {
+        use crate::smbus::fake::Registers;
+        use device_interface::DigitalOut;
+        let config: crate::config::I2cConfig = toml::from_str(
+            "bus = \"/dev/i2c-0\"\n[[chip]]\nmodel = \"mcp23017\"\naddress = 0x20\n\
+             poll_ms = 100\noutputs = [0]",
+        )
+        .unwrap();
+        let model = crate::chips::model(&config.chip[0]);
+        let card = crate::card::one_chip(model.as_ref(), 100);
+        let wakes = Arc::new(Wakes::default());
+        card.set_waker(wakes.clone());
+        let regs = Registers::new();
+        let r = regs.clone();
+        let mut b = I2cBus::with_opener(
+            card.clone(),
+            vec![model],
+            Box::new(move |_| Ok(Box::new(r.clone()) as Box<dyn Smbus>)),
+        );
+        let t = |ms: u64| Timestamp::from_nanos(ms * 1_000_000);
+        assert_eq!(b.step(t(0)), Some(t(100)));
+        regs.writes();
+        // A write between polls: a wake, and the step it makes sends it, the schedule kept.
+        card.set_bit(0, true).unwrap();
+        assert_eq!(wakes.0.load(Ordering::Relaxed), 1);
+        assert_eq!(b.step(t(30)), Some(t(100)));
+        assert_eq!(regs.writes(), [(0x14, 1)]);
+        assert!(card.settle(std::time::Instant::now()).is_ok());
+        // A step with nothing written and nothing due transfers nothing.
+        assert_eq!(b.step(t(40)), Some(t(100)));
+        assert!(regs.writes().is_empty());
+        // Reset (all inputs, latch 0) between checks: the check after 0.5 s finds it, and
+        // the chip is set up again with the latch as asked.
+        regs.set(0x00, 0xffff);
+        regs.set(0x14, 0);
+        for ms in [100, 200, 300, 400] {
+            b.step(t(ms));
+        }
+        assert_eq!(regs.get(0x00), 0xffff, "not checked before 0.5 s");
+        b.step(t(500));
+        assert_eq!((regs.get(0x00), regs.get(0x14)), (0xfffe, 1));
+        let counters = card.counters().chips[0].clone();
+        assert_eq!((counters.resets, counters.online), (1, true));
     }
 }

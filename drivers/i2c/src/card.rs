@@ -3,10 +3,11 @@
 //! channels after the previous chip's, in the section's order.
 //!
 //! Devices only touch images: `read_bit` answers from the last poll of the bit's chip,
-//! `set_bit` records the level and marks the chip for its next poll, which sends it (at
-//! most one poll period later); `read_raw` answers an analog channel's last conversion
+//! `set_bit` records the level, marks the chip and wakes the bus side, which polls that
+//! chip at once and sends it; `read_raw` answers an analog channel's last conversion
 //! ([`DeviceError::Stale`] before its first). A channel of a chip that does not answer is
-//! [`DeviceError::Offline`]. Real-time: no allocation, no lock, no system call.
+//! [`DeviceError::Offline`]. Real-time: no allocation, no lock; a write's one system call
+//! is the bus side's wake-up (an `eventfd` write, which never blocks).
 
 use device_interface::bits::BitImage;
 use device_interface::encoder::{CardEncoder, EncoderCounter, EncoderHost};
@@ -15,9 +16,10 @@ use device_interface::{
     AnalogIn, AnalogOut, CardDevices, Device, DeviceError, DigitalIn, DigitalOut, Health, Scale,
     Status,
 };
+use rtt::activity::Waker;
 use std::ops::Range;
 use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 
 /// How many channels of each interface a chip adds to its card.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -75,8 +77,23 @@ pub struct ChipSlot {
     pub(crate) polls: AtomicU64,
     pub(crate) errors: AtomicU64,
     pub(crate) went_offline: AtomicU64,
+    /// Times its check found it set up otherwise than its start left it (a power loss, a
+    /// reset, another master) and it was set up again.
+    pub(crate) resets: AtomicU64,
     pub(crate) last_good: AtomicU64,
     pub(crate) last_error: Mutex<Option<String>>,
+}
+
+impl ChipSlot {
+    /// Whether a device wrote an output the chip's model has not taken to send yet.
+    pub(crate) fn unsent(&self) -> bool {
+        self.wanted.load(Ordering::Acquire) != self.taken.load(Ordering::Acquire)
+    }
+
+    /// Its poll period.
+    pub(crate) fn period(&self) -> std::time::Duration {
+        std::time::Duration::from_millis(u64::from(self.poll_ms))
+    }
 }
 
 /// A snapshot of one chip's counters.
@@ -94,6 +111,8 @@ pub struct ChipCounters {
     pub errors: u64,
     /// Times it stopped answering.
     pub went_offline: u64,
+    /// Times it was found reset (or set up by someone else) and set up again.
+    pub resets: u64,
     /// Why it last failed.
     pub last_error: Option<String>,
 }
@@ -118,6 +137,8 @@ pub struct I2cCard {
     out_scale: Vec<Scale>,
     encoders: Vec<EncoderCounter>,
     clock: Arc<dyn Clock>,
+    /// Wakes the bus side when an output is written (set once it runs).
+    waker: OnceLock<Arc<dyn Waker>>,
 }
 
 /// What a chip model sees of the card: its own channels, numbered from 0.
@@ -175,6 +196,11 @@ impl ChipIo<'_> {
             .get((self.chip.encoders.start + index) as usize)
     }
 
+    /// Counts a reset the chip's check found (the bus side sets the chip up again).
+    pub fn count_reset(&self) {
+        self.chip.resets.fetch_add(1, Ordering::Relaxed);
+    }
+
     /// Marks the chip's outputs as still to send (their write failed).
     pub fn mark_dirty(&self) {
         let sent = self.chip.sent.load(Ordering::Acquire);
@@ -216,6 +242,7 @@ impl I2cCard {
                 polls: AtomicU64::new(0),
                 errors: AtomicU64::new(0),
                 went_offline: AtomicU64::new(0),
+                resets: AtomicU64::new(0),
                 last_good: AtomicU64::new(0),
                 last_error: Mutex::new(None),
             });
@@ -243,6 +270,7 @@ impl I2cCard {
             out_scale: out.iter().map(|(scale, _)| *scale).collect(),
             encoders,
             clock,
+            waker: OnceLock::new(),
         })
     }
 
@@ -284,6 +312,7 @@ impl I2cCard {
                 polls: l(&c.polls),
                 errors: l(&c.errors),
                 went_offline: l(&c.went_offline),
+                resets: l(&c.resets),
                 last_error: c
                     .last_error
                     .lock()
@@ -336,6 +365,22 @@ impl I2cCard {
             Ok(())
         } else {
             Err(format!("outputs not sent to {}", unsent.join(", ")))
+        }
+    }
+
+    /// Sets what wakes the bus side when a device writes an output (once; later calls
+    /// keep the first).
+    pub fn set_waker(&self, waker: Arc<dyn Waker>) {
+        let _ = self.waker.set(waker);
+    }
+
+    /// Records an output write to `chip` and wakes the bus side to send it.
+    fn wanted(&self, chip: Option<&ChipSlot>) {
+        if let Some(c) = chip {
+            c.wanted.fetch_add(1, Ordering::AcqRel);
+        }
+        if let Some(w) = self.waker.get() {
+            w.wake();
         }
     }
 
@@ -395,9 +440,7 @@ impl DigitalOut for I2cCard {
         let chip = self.chip_of(bit, |c| &c.digital_out);
         Self::online(chip)?;
         self.outputs.set(bit, value)?;
-        if let Some(c) = chip {
-            c.wanted.fetch_add(1, Ordering::AcqRel);
-        }
+        self.wanted(chip);
         Ok(())
     }
 
@@ -448,15 +491,13 @@ impl AnalogOut for I2cCard {
             })
     }
 
-    /// Recorded and marked for the chip's next poll, which sends it.
+    /// Recorded, and the chip's poll that sends it asked for at once.
     fn write_raw(&self, channel: u32, raw: i64) -> Result<(), DeviceError> {
         AnalogOut::scale(self, channel)?.check_raw(channel, raw)?;
         let chip = self.chip_of(channel, |c| &c.analog_out);
         Self::online(chip)?;
         self.out_raw[channel as usize].store(raw, Ordering::Release);
-        if let Some(c) = chip {
-            c.wanted.fetch_add(1, Ordering::AcqRel);
-        }
+        self.wanted(chip);
         Ok(())
     }
 
@@ -477,5 +518,24 @@ impl EncoderHost for I2cCard {
 
     fn check_writable(&self) -> Result<(), DeviceError> {
         Ok(())
+    }
+}
+
+/// A card of one chip for unit tests, on a simulated clock at 0.
+#[cfg(test)]
+pub(crate) fn one_chip(model: &dyn crate::chips::ChipModel, poll_ms: u32) -> Arc<I2cCard> {
+    let place = ChipPlace {
+        address: 0x20,
+        poll_ms,
+        model: model.model(),
+        shape: model.shape(),
+        analog_in: model.analog_in(),
+        analog_out: model.analog_out().into_iter().map(|s| (s, 0)).collect(),
+        encoders: model.encoders(),
+    };
+    let clock = device_interface::time::SimClock::new(Timestamp::from_nanos(0));
+    match I2cCard::new(&[place], &[], Arc::new(clock)) {
+        Ok(card) => Arc::new(card),
+        Err(e) => panic!("a test card: {e}"),
     }
 }

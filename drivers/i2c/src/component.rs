@@ -1,5 +1,6 @@
 //! An I2C card's bus side as an rtt component: a file-descriptor activity with no
-//! descriptors, woken at each chip's next poll by its deadline; operation `counters`.
+//! descriptors, woken at each chip's next poll by its deadline and by the devices' output
+//! writes; operation `counters`.
 //! Stopping it closes the bus (the chips go offline until it starts again).
 
 use crate::bus::I2cBus;
@@ -40,6 +41,8 @@ impl I2cIo {
 
 impl Component for I2cIo {
     fn start_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+        // Output writes wake this activity, which polls the written chip at once.
+        self.bus.card().set_waker(ctx.activity().waker());
         self.update_hook(ctx)
     }
 

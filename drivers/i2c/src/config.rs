@@ -104,7 +104,8 @@ fn default_max_current() -> f64 {
 pub struct Pca9685Config {
     /// Its 7-bit address (0x40–0x7f by A5..A0; 0x70 is its all-call address by default).
     pub address: u16,
-    /// Poll period, ms (default 10): written duty cycles are sent at the next poll.
+    /// Poll period, ms (default 10): how often its set-up is read back. A written duty
+    /// cycle is sent at once.
     #[serde(default = "default_poll_ms")]
     pub poll_ms: u32,
     /// PWM frequency, Hz (24 to 1526 with its 25 MHz oscillator).
@@ -143,7 +144,8 @@ fn default_true() -> bool {
 pub struct Mcp4725Config {
     /// Its 7-bit address (0x60–0x67: fixed bits by variant, A0 by pin).
     pub address: u16,
-    /// Poll period, ms (default 10): a written value is sent at the next poll.
+    /// Poll period, ms (default 10). A written value is sent at once; the code is sent
+    /// again every half second (its check).
     #[serde(default = "default_poll_ms")]
     pub poll_ms: u32,
     /// Its supply, the full scale, in volts (2.7 to 5.5).

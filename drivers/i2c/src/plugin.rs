@@ -9,59 +9,12 @@ use crate::card::{ChipPlace, I2cCard};
 use crate::chips::{self, ChipModel};
 use crate::component::I2cIo;
 use crate::config::{ChipConfig, I2cConfig};
+use crate::smbus::find_bus;
 use device_interface::CardDevices;
 use device_interface::time::Clock;
 use driver_api::{Card, CardContext, CardError, CardStatus};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::{Arc, Mutex, PoisonError};
-
-/// The adapters an error lists at most.
-const LISTED: usize = 16;
-
-/// The bus `spec` names: a path (anything with a `/`), else an adapter's name.
-pub fn find_bus(spec: &str) -> Result<PathBuf, String> {
-    if spec.contains('/') {
-        let path = Path::new(spec);
-        return if path.exists() {
-            Ok(path.to_path_buf())
-        } else {
-            Err(format!("{spec}: no such I2C bus (is i2c-dev loaded?)"))
-        };
-    }
-    let mut adapters = Vec::new();
-    if let Ok(dir) = std::fs::read_dir("/sys/class/i2c-dev") {
-        for entry in dir.flatten() {
-            let dev = entry.file_name().to_string_lossy().to_string();
-            let name = std::fs::read_to_string(entry.path().join("name")).unwrap_or_default();
-            adapters.push((dev, name.trim().to_string()));
-        }
-    }
-    adapters.sort();
-    let found: Vec<&(String, String)> = adapters.iter().filter(|(_, n)| n == spec).collect();
-    match found.as_slice() {
-        [(dev, _)] => Ok(Path::new("/dev").join(dev)),
-        [] if adapters.is_empty() => Err(format!(
-            "no I2C adapter is named {spec:?}; there are none (is i2c-dev loaded?)"
-        )),
-        [] => Err(format!(
-            "no I2C adapter is named {spec:?}; the adapters are {}",
-            adapters
-                .iter()
-                .take(LISTED)
-                .map(|(d, n)| format!("{d} ({n})"))
-                .collect::<Vec<_>>()
-                .join(", ")
-        )),
-        many => Err(format!(
-            "{} adapters are named {spec:?} ({}); give the path",
-            many.len(),
-            many.iter()
-                .map(|(d, _)| d.as_str())
-                .collect::<Vec<_>>()
-                .join(", ")
-        )),
-    }
-}
 
 /// A section built: the card, its chips' models and the bus they are on.
 pub struct Built {
@@ -69,14 +22,16 @@ pub struct Built {
     pub card: Arc<I2cCard>,
     /// The chips' models, in the card's chip order.
     pub models: Vec<Box<dyn ChipModel>>,
-    /// The bus's character device.
+    /// The bus's character device, as found now.
     pub path: PathBuf,
+    /// The bus as the section names it (found again at each open).
+    pub bus: String,
 }
 
 impl Built {
     /// Its bus side.
     pub fn bus(self) -> I2cBus {
-        I2cBus::new(self.card, self.models, self.path)
+        I2cBus::new(self.card, self.models, self.bus)
     }
 }
 
@@ -119,7 +74,46 @@ pub fn card(config: &I2cConfig, clock: Arc<dyn Clock>) -> Result<Built, CardErro
         .collect();
     let card =
         Arc::new(I2cCard::new(&places, &initial, clock).map_err(|e| CardError::at("chip", e))?);
-    Ok(Built { card, models, path })
+    Ok(Built {
+        card,
+        models,
+        path,
+        bus: config.bus.clone(),
+    })
+}
+
+/// The chips the deployment's I2C cards poll: (bus device, address) → the card and its
+/// chip key. Two cards polling one chip would each send it their own outputs.
+#[derive(Default)]
+struct Claimed(std::collections::HashMap<(PathBuf, u16), String>);
+
+/// Claims every chip of `config` on `path` for card `name`; refuses one another card has.
+fn claim(
+    claimed: &mut Claimed,
+    name: &str,
+    path: &std::path::Path,
+    config: &I2cConfig,
+) -> Result<(), CardError> {
+    // The same bus under another name (a udev symlink) is the same bus.
+    let path = std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf());
+    for (i, c) in config.chip.iter().enumerate() {
+        if let Some(other) = claimed.0.get(&(path.clone(), c.address())) {
+            return Err(CardError::at(
+                format!("chip[{i}].address"),
+                format!(
+                    "{:#04x} on {} is card {other} already",
+                    c.address(),
+                    path.display()
+                ),
+            ));
+        }
+    }
+    for (i, c) in config.chip.iter().enumerate() {
+        claimed
+            .0
+            .insert((path.clone(), c.address()), format!("{name:?}'s chip[{i}]"));
+    }
+    Ok(())
 }
 
 struct I2cPlugin {
@@ -127,16 +121,25 @@ struct I2cPlugin {
     /// Taken by `add_bus` (once).
     models: Mutex<Option<Vec<Box<dyn ChipModel>>>>,
     path: PathBuf,
+    bus: String,
     thread: rtt::ThreadOptions,
 }
 
 /// Builds the card a section describes.
 pub fn build(config: &I2cConfig, ctx: &mut CardContext<'_>) -> Result<Box<dyn Card>, CardError> {
-    let Built { card, models, path } = card(config, ctx.clock())?;
+    let Built {
+        card,
+        models,
+        path,
+        bus,
+    } = card(config, ctx.clock())?;
+    let name = ctx.name().to_string();
+    claim(ctx.shared(), &name, &path, config)?;
     Ok(Box::new(I2cPlugin {
         card,
         models: Mutex::new(Some(models)),
         path,
+        bus,
         thread: ctx.thread().clone(),
     }))
 }
@@ -157,7 +160,7 @@ impl Card for I2cPlugin {
             .unwrap_or_else(PoisonError::into_inner)
             .take()
             .unwrap_or_default();
-        let bus = I2cBus::new(self.card.clone(), models, self.path.clone());
+        let bus = I2cBus::new(self.card.clone(), models, self.bus.clone());
         Ok(vec![I2cIo::add(runtime, name, bus, self.thread.clone())?])
     }
 
@@ -177,5 +180,54 @@ impl Card for I2cPlugin {
 
     fn status(&self) -> CardStatus {
         CardStatus::new(self.path.display().to_string(), &self.card.counters())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, reason = "test code")]
+    use super::*;
+    use device_interface::time::MonotonicClock;
+    use std::collections::HashMap;
+    use std::path::Path;
+    use std::time::Duration;
+
+    #[test]
+    fn a_chip_belongs_to_one_card() {
+        let section = |bus: &str, first: u16, second: u16| -> I2cConfig {
+            toml::from_str(&format!(
+                "bus = {bus:?}\n[[chip]]\nmodel = \"mcp4725\"\naddress = {first}\nvref_v = 5.0\n\
+                 [[chip]]\nmodel = \"mcp4725\"\naddress = {second}\nvref_v = 5.0"
+            ))
+            .unwrap()
+        };
+        let mut shared = HashMap::new();
+        let thread = rtt::ThreadOptions::default();
+        let mut build_as = |name: &str, config: &I2cConfig| {
+            let mut ctx = CardContext::new(
+                name,
+                Duration::from_millis(10),
+                &thread,
+                Path::new("/"),
+                Arc::new(MonotonicClock),
+                &mut shared,
+            );
+            build(config, &mut ctx).map(|_| ())
+        };
+        // /dev/null stands in for a bus: found by its path, never opened here.
+        build_as("a", &section("/dev/null", 0x60, 0x61)).unwrap();
+        // The same bus by another path.
+        let Err(e) = build_as("b", &section("/dev/../dev/null", 0x62, 0x61)) else {
+            panic!("a second card on chip 0x61");
+        };
+        assert_eq!(e.key.as_deref(), Some("chip[1].address"));
+        assert!(
+            e.message
+                .contains("0x61 on /dev/null is card \"a\"'s chip[1] already"),
+            "{}",
+            e.message
+        );
+        // The refused card claimed nothing: 0x62 is free.
+        build_as("c", &section("/dev/null", 0x62, 0x63)).unwrap();
     }
 }

@@ -1,10 +1,11 @@
 //! SMBus transfers to one chip, the only kind every adapter and the kernel's i2c-stub
 //! answer: byte-data and word-data reads and writes to a register. [`LinuxChip`] speaks
 //! them through i2c-dev (`i2cdev`); tests may give a chip model anything else that does.
+//! [`find_bus`] finds a bus's character device by its path or its adapter's name.
 
 use i2cdev::core::I2CDevice;
 use i2cdev::linux::{LinuxI2CDevice, LinuxI2CError};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// A failed transfer.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -84,5 +85,121 @@ impl Smbus for LinuxChip {
     }
     fn write_word(&mut self, reg: u8, value: u16) -> Result<(), Transfer> {
         self.0.smbus_write_word_data(reg, value).map_err(transfer)
+    }
+}
+
+/// The adapters an error lists at most.
+const LISTED: usize = 16;
+
+/// The bus `spec` names: a path (anything with a `/`), else an adapter's name.
+pub fn find_bus(spec: &str) -> Result<PathBuf, String> {
+    if spec.contains('/') {
+        let path = Path::new(spec);
+        return if path.exists() {
+            Ok(path.to_path_buf())
+        } else {
+            Err(format!("{spec}: no such I2C bus (is i2c-dev loaded?)"))
+        };
+    }
+    let mut adapters = Vec::new();
+    if let Ok(dir) = std::fs::read_dir("/sys/class/i2c-dev") {
+        for entry in dir.flatten() {
+            let dev = entry.file_name().to_string_lossy().to_string();
+            let name = std::fs::read_to_string(entry.path().join("name")).unwrap_or_default();
+            adapters.push((dev, name.trim().to_string()));
+        }
+    }
+    adapters.sort();
+    let found: Vec<&(String, String)> = adapters.iter().filter(|(_, n)| n == spec).collect();
+    match found.as_slice() {
+        [(dev, _)] => Ok(Path::new("/dev").join(dev)),
+        [] if adapters.is_empty() => Err(format!(
+            "no I2C adapter is named {spec:?}; there are none (is i2c-dev loaded?)"
+        )),
+        [] => Err(format!(
+            "no I2C adapter is named {spec:?}; the adapters are {}",
+            adapters
+                .iter()
+                .take(LISTED)
+                .map(|(d, n)| format!("{d} ({n})"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        )),
+        many => Err(format!(
+            "{} adapters are named {spec:?} ({}); give the path",
+            many.len(),
+            many.iter()
+                .map(|(d, _)| d.as_str())
+                .collect::<Vec<_>>()
+                .join(", ")
+        )),
+    }
+}
+
+/// A chip for unit tests: i2c-stub's model (one word per register, byte transfers on its
+/// low byte), every transfer logged.
+#[cfg(test)]
+pub(crate) mod fake {
+    use super::{Smbus, Transfer};
+    use std::sync::{Arc, Mutex, PoisonError};
+
+    /// What the test and the chip model share.
+    #[derive(Default)]
+    pub struct State {
+        pub words: Vec<u16>,
+        /// Each write: (register, value).
+        pub writes: Vec<(u8, u16)>,
+    }
+
+    /// The chip.
+    #[derive(Clone)]
+    pub struct Registers(pub Arc<Mutex<State>>);
+
+    impl Registers {
+        pub fn new() -> Registers {
+            Registers(Arc::new(Mutex::new(State {
+                words: vec![0; 256],
+                writes: Vec::new(),
+            })))
+        }
+
+        pub fn state(&self) -> std::sync::MutexGuard<'_, State> {
+            self.0.lock().unwrap_or_else(PoisonError::into_inner)
+        }
+
+        pub fn set(&self, reg: u8, value: u16) {
+            self.state().words[reg as usize] = value;
+        }
+
+        pub fn get(&self, reg: u8) -> u16 {
+            self.state().words[reg as usize]
+        }
+
+        /// The writes so far, taken.
+        pub fn writes(&self) -> Vec<(u8, u16)> {
+            std::mem::take(&mut self.state().writes)
+        }
+    }
+
+    impl Smbus for Registers {
+        fn read_byte(&mut self, reg: u8) -> Result<u8, Transfer> {
+            Ok(self.get(reg) as u8)
+        }
+        fn write_byte(&mut self, reg: u8, value: u8) -> Result<(), Transfer> {
+            let mut s = self.state();
+            let w = &mut s.words[reg as usize];
+            *w = (*w & 0xff00) | u16::from(value);
+            s.writes.push((reg, u16::from(value)));
+            Ok(())
+        }
+        fn read_word(&mut self, reg: u8) -> Result<u16, Transfer> {
+            Ok(self.get(reg))
+        }
+        fn write_word(&mut self, reg: u8, value: u16) -> Result<(), Transfer> {
+            let mut s = self.state();
+            s.words[reg as usize] = value;
+            s.writes.push((reg, value));
+            Ok(())
+        }
     }
 }

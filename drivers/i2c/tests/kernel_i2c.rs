@@ -300,8 +300,10 @@ fn as5600_counts_turns_across_the_wrap() -> Result<(), Failed> {
     wait("forwards across the wrap", || at(100, 1))?;
     stub.set_word(0x36, 0x0c, angle_word(3900))?;
     wait("back across it", || at(3900, 0))?;
-    // The magnet removed: the chip is failing, the encoder offline; back, and the angle
-    // is the position again (the turn kept).
+    // Homed here.
+    enc.set_position(0)?;
+    // The magnet removed: the chip is failing, the encoder offline; back, and counted on
+    // from where it was by the shortest way (3900 to 10: 206 counts on), the homing kept.
     stub.set_byte(0x36, 0x0b, 0x00)?;
     wait("offline without a magnet", || {
         matches!(enc.position(), Err(DeviceError::Offline))
@@ -310,7 +312,7 @@ fn as5600_counts_turns_across_the_wrap() -> Result<(), Failed> {
     assert!(why.contains("no magnet"), "{why}");
     stub.set_word(0x36, 0x0c, angle_word(10))?;
     stub.set_byte(0x36, 0x0b, 0x20)?;
-    wait("back with its angle", || at(10, 0))?;
+    wait("back, counted on", || at(206, 0))?;
     // The conformance kit, moving the magnet at most 1000 counts between readings.
     let angle = std::cell::Cell::new(10i64);
     let mut motion = |counts: i64| {
@@ -381,15 +383,19 @@ fn ina219_reads_shunt_bus_and_current_with_its_lsbs() -> Result<(), Failed> {
 
 fn pca9685_sets_its_prescale_and_duty_registers() -> Result<(), Failed> {
     let stub = I2cStub::load(&[0x41])?;
+    // As after power-on: ALLCALL, asleep, prescale 30 (200 Hz).
+    stub.set_byte(0x41, 0x00, 0x11)?;
+    stub.set_byte(0x41, 0xfe, 30)?;
     let up = up(
         &stub,
         "[[chip]]\nmodel = \"pca9685\"\naddress = 0x41\npoll_ms = 2\nfrequency_hz = 50\nchannels = [3, 0]",
     )?;
     let c = up.card.clone();
     wait("the PWM online", || c.counters().chips[0].online)?;
-    // 50 Hz: round(25 MHz / (4096 × 50)) − 1 = 121; awake with auto-increment.
+    // 50 Hz: round(25 MHz / (4096 × 50)) − 1 = 121; awake with auto-increment, ALLCALL
+    // kept.
     assert_eq!(stub.get_byte(0x41, 0xfe)?, 121);
-    assert_eq!(stub.get_byte(0x41, 0x00)?, 0x20);
+    assert_eq!(stub.get_byte(0x41, 0x00)?, 0x21);
     // Both start full off: LEDn_OFF bit 12.
     assert_eq!(stub.get_word(0x41, 0x06 + 4 * 3 + 2)?, 0x1000);
     assert_eq!(stub.get_word(0x41, 0x06 + 2)?, 0x1000);
@@ -403,6 +409,83 @@ fn pca9685_sets_its_prescale_and_duty_registers() -> Result<(), Failed> {
     })?;
     let ao = c.devices().analog_out.unwrap();
     conformance::check_analog_out(&*ao).assert_complete();
+    Ok(())
+}
+
+fn writes_go_out_at_once_and_chips_found_reset_are_set_up_again() -> Result<(), Failed> {
+    let stub = I2cStub::load(&[0x20, 0x21, 0x41, 0x60])?;
+    let up = up(
+        &stub,
+        r#"
+[[chip]]
+model = "mcp23017"
+address = 0x20
+poll_ms = 60000
+outputs = [0]
+[[chip]]
+model = "mcp23017"
+address = 0x21
+poll_ms = 10
+outputs = [0]
+initial_on = [0]
+[[chip]]
+model = "pca9685"
+address = 0x41
+poll_ms = 10
+frequency_hz = 50
+channels = [0]
+[[chip]]
+model = "mcp4725"
+address = 0x60
+poll_ms = 10
+vref_v = 5.0
+"#,
+    )?;
+    let c = up.card.clone();
+    wait("all online", || c.counters().online == "4/4")?;
+    let resets = |i: usize| c.counters().chips[i].resets;
+    // A chip polled once a minute: a write is sent when it is made, not at the next poll
+    // (this wait gives up long before that).
+    c.set_bit(0, true)?;
+    wait("OLAT of 0x20 at 1", || {
+        stub.get_word(0x20, 0x14).ok() == Some(1)
+    })?;
+    c.write(0, 0.5)?;
+    c.write_raw(1, 0xa8f)?;
+    wait("the duty and the code sent", || {
+        stub.get_word(0x41, 0x08).ok() == Some(2048) && stub.get_byte(0x60, 0x0a).ok() == Some(0x8f)
+    })?;
+    // Each loses its set-up as a power loss would leave it (the latch first, so the
+    // check that sees IODIR also finds the latch cleared).
+    stub.set_word(0x21, 0x14, 0x0000)?;
+    stub.set_word(0x21, 0x00, 0xffff)?;
+    stub.set_byte(0x41, 0x00, 0x11)?;
+    stub.set_byte(0x41, 0xfe, 30)?;
+    stub.set_word(0x41, 0x08, 0x1000)?;
+    stub.set_byte(0x60, 0x0a, 0x00)?;
+    wait("the expander set up again", || {
+        stub.get_word(0x21, 0x00).ok() == Some(0xfffe) && stub.get_word(0x21, 0x14).ok() == Some(1)
+    })?;
+    assert_eq!(resets(1), 1);
+    wait("the PWM set up again", || {
+        stub.get_byte(0x41, 0x00).ok() == Some(0x21)
+            && stub.get_byte(0x41, 0xfe).ok() == Some(121)
+            && stub.get_word(0x41, 0x08).ok() == Some(2048)
+    })?;
+    assert!(resets(2) >= 1);
+    wait("the DAC's code sent again", || {
+        stub.get_byte(0x60, 0x0a).ok() == Some(0x8f)
+    })?;
+    assert_eq!(resets(3), 0, "the DAC's check only sends");
+    assert_eq!(resets(0), 0);
+    assert!(
+        c.counters()
+            .chips
+            .iter()
+            .all(|chip| chip.online && chip.errors == 0),
+        "{:?}",
+        c.counters()
+    );
     Ok(())
 }
 
@@ -437,6 +520,10 @@ fn main() -> std::process::ExitCode {
             Trial::test(
                 "pca9685_sets_its_prescale_and_duty_registers",
                 pca9685_sets_its_prescale_and_duty_registers,
+            ),
+            Trial::test(
+                "writes_go_out_at_once_and_chips_found_reset_are_set_up_again",
+                writes_go_out_at_once_and_chips_found_reset_are_set_up_again,
             ),
             Trial::test("the_conformance_kit_passes", the_conformance_kit_passes),
         ],

@@ -9,7 +9,9 @@
 //! Both registers are big-endian on the wire while SMBus words are little-endian: every
 //! word is byte-swapped. Each poll reads the conversion started by the previous poll (if
 //! the chip says it is done; else it waits for the next poll) and starts the next
-//! channel's, so a poll never waits for a conversion. A channel is `raw × range / 32768`
+//! channel's, so a poll never waits for a conversion. A conversion still not done after
+//! twice its time at the data rate (counted in polls) is a failed transfer, counted, and
+//! is started again. A channel is `raw × range / 32768`
 //! volts (range: the PGA's full scale; a single-ended input reads 0 V and up).
 
 use super::{ChipModel, Shape};
@@ -31,6 +33,10 @@ pub struct Ads1115 {
     channels: Vec<(u16, f64)>,
     /// The channel whose conversion was started last.
     current: Option<usize>,
+    /// Polls that found it still converting.
+    waited: u32,
+    /// Polls it may take: twice a conversion's time, and one.
+    patience: u32,
 }
 
 fn index<T: PartialEq>(all: &[T], x: &T) -> u16 {
@@ -53,9 +59,13 @@ impl Ads1115 {
                 )
             })
             .collect();
+        // A conversion takes 1/rate s (±10 %, the chip's oscillator).
+        let polls = (2000.0 / f64::from(c.data_rate) / f64::from(c.poll_ms.max(1))).ceil();
         Ads1115 {
             channels,
             current: None,
+            waited: 0,
+            patience: polls as u32 + 1,
         }
     }
 
@@ -65,6 +75,7 @@ impl Ads1115 {
         };
         bus.write_word(CONFIG, config.swap_bytes())?;
         self.current = Some(channel);
+        self.waited = 0;
         Ok(())
     }
 }
@@ -98,8 +109,16 @@ impl ChipModel for Ads1115 {
             return self.begin(bus, 0);
         };
         if bus.read_word(CONFIG)?.swap_bytes() & OS == 0 {
-            // Still converting: read it next poll.
-            return Ok(());
+            self.waited += 1;
+            if self.waited < self.patience {
+                // Still converting: read it next poll.
+                return Ok(());
+            }
+            let waited = self.waited;
+            self.begin(bus, k)?;
+            return Err(Transfer::Failed(format!(
+                "channel {k}'s conversion not done after {waited} polls; started again"
+            )));
         }
         let raw = bus.read_word(CONVERSION)?.swap_bytes() as i16;
         io.set_analog_in(k as u32, i64::from(raw));

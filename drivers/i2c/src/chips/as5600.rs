@@ -6,11 +6,13 @@
 //! | STATUS | 0x0B | MD (bit 5): a magnet is detected; without one the chip's angle means nothing, and the chip counts as failing |
 //! | RAW ANGLE | 0x0C–0x0D | the unscaled angle, 12 bits, MSB first: one SMBus word, byte-swapped |
 //!
-//! The first reading after the chip answers sets the position (the angle is absolute
-//! within a turn; the turn count is kept); each later one advances the count by the
-//! shortest way round the circle, so turns are counted across the wrap as long as the
-//! shaft moves less than half a turn between polls. The ZPOS/MPOS/MANG programming and the
-//! burn commands are never touched.
+//! The first reading sets the position (the angle is absolute within a turn); each later
+//! one advances the count by the shortest way round the circle, so turns are counted
+//! across the wrap as long as the shaft moves less than half a turn between polls. That
+//! holds across a dropout too: the last angle is kept, so a position set by homing stays
+//! set when the chip answers again — but a shaft that turned half a turn or more while the
+//! chip did not answer is counted short by whole turns (nothing can tell). The
+//! ZPOS/MPOS/MANG programming and the burn commands are never touched.
 
 use super::{ChipModel, Shape};
 use crate::card::ChipIo;
@@ -54,7 +56,6 @@ impl ChipModel for As5600 {
     }
 
     fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {
-        self.last = None;
         self.poll(bus, io)
     }
 

@@ -8,6 +8,9 @@
 //! | Bus voltage | 0x02 | channel 1: bits 15..3, 4 mV a count (CNVR, OVF below) |
 //! | Current | 0x04 | channel 2: signed, `0.04096 / (calibration × shunt Ω)` A a count |
 //! | Calibration | 0x05 | written at start: `trunc(0.04096 / (max_current_a / 32768 × shunt Ω))`, bit 0 cleared (void) |
+//!
+//! The check reads Configuration and Calibration back: after a power loss or a reset the
+//! calibration is 0 (the current reads 0), and the chip is set up again.
 
 use super::{ChipModel, Shape};
 use crate::card::ChipIo;
@@ -87,5 +90,10 @@ impl ChipModel for Ina219 {
         io.set_analog_in(1, i64::from(busv));
         io.set_analog_in(2, i64::from(current));
         Ok(())
+    }
+
+    fn check(&mut self, bus: &mut dyn Smbus, _: &ChipIo<'_>) -> Result<bool, Transfer> {
+        Ok(bus.read_word(CONFIG)?.swap_bytes() == CONFIGURATION
+            && bus.read_word(CALIBRATION)?.swap_bytes() == self.calibration)
     }
 }

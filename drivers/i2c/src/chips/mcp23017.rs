@@ -1,14 +1,18 @@
-//! Microchip MCP23017, a 16-bit IO expander (registers as after power-on: IOCON.BANK = 0,
-//! so each A register is followed by its B register and one SMBus word transfer covers
-//! both, A in the low byte; pin n is bit n of that word).
+//! Microchip MCP23017, a 16-bit IO expander, used with IOCON as after power-on (BANK = 0,
+//! sequential addressing): each A register is followed by its B register and one SMBus
+//! word transfer covers both, A in the low byte; pin n is bit n of that word.
 //!
 //! | register | address | use |
 //! |---|---|---|
+//! | IOCON | 0x05, then 0x0A | set to 0 (BANK = 0, sequential) at start: 0x05 is IOCON if BANK was 1 (and GPINTENB, unused, if not), 0x0A is IOCON then |
 //! | IODIR | 0x00 | 1 = input; pins not configured as outputs stay inputs |
 //! | IPOL | 0x02 | inputs read inverted (`invert`) |
 //! | GPPU | 0x0C | 100 kΩ pull-ups (`pull_up`) |
 //! | GPIO | 0x12 | inputs read, each poll |
 //! | OLAT | 0x14 | outputs written, when a device changed one (and at start) |
+//!
+//! The check reads IODIR, IPOL and GPPU back: after a power loss or a reset the chip is
+//! all inputs, no pull-ups, and is set up again (its outputs written first).
 
 use super::{ChipModel, Shape};
 use crate::card::ChipIo;
@@ -16,6 +20,10 @@ use crate::config::Mcp23017Config;
 use crate::smbus::{Smbus, Transfer};
 
 const IODIR: u8 = 0x00;
+/// IOCON as BANK = 1 places it.
+const IOCON_BANK1: u8 = 0x05;
+/// IOCON as BANK = 0 places it.
+const IOCON: u8 = 0x0A;
 const IPOL: u8 = 0x02;
 const GPPU: u8 = 0x0C;
 const GPIO: u8 = 0x12;
@@ -71,6 +79,9 @@ impl ChipModel for Mcp23017 {
 
     fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {
         io.take_dirty();
+        // The register map every later transfer assumes.
+        bus.write_byte(IOCON_BANK1, 0)?;
+        bus.write_byte(IOCON, 0)?;
         // Latches first: a pin that becomes an output drives what was asked from then on.
         self.write_outputs(bus, io)?;
         bus.write_word(IPOL, self.ipol)?;
@@ -93,5 +104,11 @@ impl ChipModel for Mcp23017 {
             return Err(e);
         }
         Ok(())
+    }
+
+    fn check(&mut self, bus: &mut dyn Smbus, _: &ChipIo<'_>) -> Result<bool, Transfer> {
+        Ok(bus.read_word(IODIR)? == self.iodir
+            && bus.read_word(IPOL)? == self.ipol
+            && bus.read_word(GPPU)? == self.gppu)
     }
 }

@@ -5,6 +5,12 @@
 //! byte-data write whose "register" is the first byte — which is how i2c-stub stores it
 //! (register `D11..D8` holds `D7..D0`). The EEPROM is never written. One AnalogOut channel:
 //! `code × vref / 4096` volts.
+//!
+//! The DAC register cannot be read back with SMBus transfers (the chip's read is a plain
+//! five-byte I2C read, which i2c-stub and some SMBus-only adapters lack), and a chip that
+//! lost power comes back at its EEPROM's code: the check sends the code again instead (the
+//! same code, so the output does not move), which puts such a chip back at the asked
+//! value within [`CHECK_PERIOD`](crate::bus::CHECK_PERIOD).
 
 use super::{ChipModel, Shape};
 use crate::card::ChipIo;
@@ -58,5 +64,9 @@ impl ChipModel for Mcp4725 {
             return Err(e);
         }
         Ok(())
+    }
+
+    fn check(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<bool, Transfer> {
+        Self::send(bus, io).map(|()| true)
     }
 }

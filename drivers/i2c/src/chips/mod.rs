@@ -6,7 +6,9 @@
 //!    many channels of each interface it adds to the card), `start` (configure the chip
 //!    and write its outputs' starting values, outputs before directions so no pin shows a
 //!    level nobody asked for) and `poll` (read inputs into the card's images, send outputs
-//!    the devices changed). Use only SMBus byte/word transfers ([`Smbus`]), the size the
+//!    the devices changed), and `check` if the chip keeps set-up that a power loss or a
+//!    reset undoes (read it back; answer false and the bus side counts a reset and calls
+//!    `start` again). Use only SMBus byte/word transfers ([`Smbus`]), the size the
 //!    real chip uses for each register (i2c-stub keeps one word per register and does not
 //!    overlap a word register with the byte register after it).
 //! 2. A variant of [`ChipConfig`] with the chip's settings and
@@ -20,6 +22,8 @@ pub mod ina219;
 pub mod mcp23017;
 pub mod mcp4725;
 pub mod pca9685;
+#[cfg(test)]
+mod tests;
 
 use crate::card::ChipIo;
 pub use crate::card::Shape;
@@ -27,7 +31,8 @@ use crate::config::ChipConfig;
 use crate::smbus::{Smbus, Transfer};
 
 /// A chip's register model. Runs on the card's bus thread only; keeps the real-time
-/// contract there (no allocation, no blocking but the transfers themselves).
+/// contract there: no blocking but the transfers themselves, no allocation while the
+/// transfers succeed (a failed one's [`Transfer`] carries its text).
 pub trait ChipModel: Send {
     /// The model's name, for logs and errors.
     fn model(&self) -> &'static str;
@@ -50,6 +55,13 @@ pub trait ChipModel: Send {
     fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer>;
     /// One poll: inputs read into the images, outputs the devices changed sent.
     fn poll(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer>;
+    /// Whether the chip is still set up as `start` left it (called after a poll, every
+    /// [`CHECK_PERIOD`](crate::bus::CHECK_PERIOD)); false has the bus side count a reset
+    /// and call `start` again. Default: a chip with nothing to lose, always true.
+    fn check(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<bool, Transfer> {
+        let _ = (bus, io);
+        Ok(true)
+    }
 }
 
 /// The model a chip section describes (checked).

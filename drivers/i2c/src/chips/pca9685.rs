@@ -4,10 +4,16 @@
 //!
 //! | register | address | use |
 //! |---|---|---|
-//! | MODE1 | 0x00 | SLEEP while the prescale is set, then AI (auto-increment) awake |
+//! | MODE1 | 0x00 | read, and written back with AI (auto-increment) set, SLEEP and RESTART clear, the rest kept (ALLCALL, SUBn, EXTCLK); SLEEP set while a changed prescale is written |
 //! | LEDn_ON | 0x06 + 4n | 0 (the pulse starts at count 0), or bit 12 (full on) |
 //! | LEDn_OFF | 0x08 + 4n | the duty in counts, or bit 12 (full off) |
-//! | PRE_SCALE | 0xFE | `round(25 MHz / (4096 × frequency)) − 1` |
+//! | PRE_SCALE | 0xFE | `round(25 MHz / (4096 × frequency)) − 1`, written only when it differs |
+//!
+//! The prescale is taken only while the oscillator sleeps, and a sleeping chip's outputs
+//! are off: the chip sleeps at start only when its prescale must change, so a chip probed
+//! again after a dropout (prescale unchanged) keeps its outputs running. The check reads
+//! MODE1 and PRE_SCALE back: after a power loss the chip sleeps at its default prescale,
+//! and is set up again.
 
 use super::{ChipModel, Shape};
 use crate::card::ChipIo;
@@ -19,6 +25,7 @@ const MODE1: u8 = 0x00;
 const PRE_SCALE: u8 = 0xfe;
 const SLEEP: u8 = 1 << 4;
 const AI: u8 = 1 << 5;
+const RESTART: u8 = 1 << 7;
 /// The full-on / full-off bit of LEDn_ON_H / LEDn_OFF_H, as a word.
 const FULL: u16 = 1 << 12;
 /// Counts a period.
@@ -85,12 +92,20 @@ impl ChipModel for Pca9685 {
 
     fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {
         io.take_dirty();
-        // The prescale is taken only while the oscillator sleeps; the outputs are set
-        // before it runs again.
-        bus.write_byte(MODE1, SLEEP | AI)?;
-        bus.write_byte(PRE_SCALE, self.prescale)?;
+        let mode = bus.read_byte(MODE1)?;
+        let awake = (mode & !(SLEEP | RESTART)) | AI;
+        let slept = bus.read_byte(PRE_SCALE)? != self.prescale;
+        if slept {
+            // Taken only while the oscillator sleeps; the outputs are set before it runs
+            // again.
+            bus.write_byte(MODE1, awake | SLEEP)?;
+            bus.write_byte(PRE_SCALE, self.prescale)?;
+        }
         self.send(bus, io)?;
-        bus.write_byte(MODE1, AI)
+        if slept || mode != awake {
+            bus.write_byte(MODE1, awake)?;
+        }
+        Ok(())
     }
 
     fn poll(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {
@@ -101,5 +116,12 @@ impl ChipModel for Pca9685 {
             return Err(e);
         }
         Ok(())
+    }
+
+    fn check(&mut self, bus: &mut dyn Smbus, _: &ChipIo<'_>) -> Result<bool, Transfer> {
+        Ok(
+            bus.read_byte(MODE1)? & (SLEEP | AI) == AI
+                && bus.read_byte(PRE_SCALE)? == self.prescale,
+        )
     }
 }
