@@ -340,7 +340,7 @@ mod tests {
         )
         .unwrap();
         let model = crate::chips::model(&config.chip[0]);
-        let card = crate::card::one_chip(model.as_ref(), 100);
+        let card = crate::chips::tests::one_chip(model.as_ref(), 100);
         let wakes = Arc::new(Wakes::default());
         card.set_waker(wakes.clone());
         let regs = Registers::new();

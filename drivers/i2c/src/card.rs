@@ -520,22 +520,3 @@ impl EncoderHost for I2cCard {
         Ok(())
     }
 }
-
-/// A card of one chip for unit tests, on a simulated clock at 0.
-#[cfg(test)]
-pub(crate) fn one_chip(model: &dyn crate::chips::ChipModel, poll_ms: u32) -> Arc<I2cCard> {
-    let place = ChipPlace {
-        address: 0x20,
-        poll_ms,
-        model: model.model(),
-        shape: model.shape(),
-        analog_in: model.analog_in(),
-        analog_out: model.analog_out().into_iter().map(|s| (s, 0)).collect(),
-        encoders: model.encoders(),
-    };
-    let clock = device_interface::time::SimClock::new(Timestamp::from_nanos(0));
-    match I2cCard::new(&[place], &[], Arc::new(clock)) {
-        Ok(card) => Arc::new(card),
-        Err(e) => panic!("a test card: {e}"),
-    }
-}

@@ -455,13 +455,13 @@ vref_v = 5.0
     wait("the duty and the code sent", || {
         stub.get_word(0x41, 0x08).ok() == Some(2048) && stub.get_byte(0x60, 0x0a).ok() == Some(0x8f)
     })?;
-    // Each loses its set-up as a power loss would leave it (the latch first, so the
-    // check that sees IODIR also finds the latch cleared).
+    // Each loses its set-up as a power loss would leave it, what the checks read last
+    // (IODIR; MODE1), so whichever check sees a loss sets up everything lost before it.
     stub.set_word(0x21, 0x14, 0x0000)?;
     stub.set_word(0x21, 0x00, 0xffff)?;
-    stub.set_byte(0x41, 0x00, 0x11)?;
-    stub.set_byte(0x41, 0xfe, 30)?;
     stub.set_word(0x41, 0x08, 0x1000)?;
+    stub.set_byte(0x41, 0xfe, 30)?;
+    stub.set_byte(0x41, 0x00, 0x11)?;
     stub.set_byte(0x60, 0x0a, 0x00)?;
     wait("the expander set up again", || {
         stub.get_word(0x21, 0x00).ok() == Some(0xfffe) && stub.get_word(0x21, 0x14).ok() == Some(1)

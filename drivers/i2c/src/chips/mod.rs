@@ -23,7 +23,7 @@ pub mod mcp23017;
 pub mod mcp4725;
 pub mod pca9685;
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;
 
 use crate::card::ChipIo;
 pub use crate::card::Shape;

@@ -4,7 +4,7 @@
 #![allow(clippy::unwrap_used, reason = "test code")]
 
 use super::{ChipModel, model};
-use crate::card::{I2cCard, one_chip};
+use crate::card::I2cCard;
 use crate::config::I2cConfig;
 use crate::smbus::fake::Registers;
 use crate::smbus::{Smbus, Transfer};
@@ -173,4 +173,23 @@ fn as5600_keeps_a_homed_position_across_a_dropout() {
     regs.set(0x0c, 1300u16.swap_bytes());
     start(&mut m, &card, &regs).unwrap();
     assert_eq!(counter.position(), 300, "the homing kept");
+}
+
+/// A card of one chip for unit tests, on a simulated clock at 0.
+pub(crate) fn one_chip(model: &dyn ChipModel, poll_ms: u32) -> Arc<I2cCard> {
+    let place = crate::card::ChipPlace {
+        address: 0x20,
+        poll_ms,
+        model: model.model(),
+        shape: model.shape(),
+        analog_in: model.analog_in(),
+        analog_out: model.analog_out().into_iter().map(|s| (s, 0)).collect(),
+        encoders: model.encoders(),
+    };
+    let clock =
+        device_interface::time::SimClock::new(device_interface::time::Timestamp::from_nanos(0));
+    match I2cCard::new(&[place], &[], Arc::new(clock)) {
+        Ok(card) => Arc::new(card),
+        Err(e) => panic!("a test card: {e}"),
+    }
 }
