@@ -109,12 +109,14 @@ impl I2cBus {
             };
             let online = slot.online.load(Ordering::Acquire);
             let early = p.next > now;
-            if early && !(online && p.bus.is_some() && slot.unsent()) {
+            // Early only while it answers: a chip whose last transfer failed waits for its
+            // period, so its failures in a row span periods.
+            if early && !(online && p.fails == 0 && p.bus.is_some() && slot.unsent()) {
                 continue;
             }
             match p.exchange(&mut self.open, slot, &io, online, now) {
                 Ok(()) => p.succeeded(slot, online, early, now),
-                Err(e) => p.failed(slot, &e, online, now),
+                Err(e) => p.failed(slot, &e, online, early, now),
             }
         }
         self.chips.iter().map(|p| p.next).min()
@@ -149,7 +151,14 @@ impl Polled {
                     slot.model,
                     slot.address
                 );
-                return self.model.start(bus.as_mut(), io);
+                let r = self.model.start(bus.as_mut(), io);
+                if r.is_err() {
+                    // What start took to send may not have reached the chip: send it
+                    // again, and check again at the next poll.
+                    io.mark_dirty();
+                    self.next_check = now;
+                }
+                return r;
             }
             Some(bus) => bus,
             None => self
@@ -188,7 +197,7 @@ impl Polled {
         }
     }
 
-    fn failed(&mut self, slot: &ChipSlot, e: &Transfer, online: bool, now: Timestamp) {
+    fn failed(&mut self, slot: &ChipSlot, e: &Transfer, online: bool, early: bool, now: Timestamp) {
         slot.errors.fetch_add(1, Ordering::Relaxed);
         self.fails += 1;
         let gone = matches!(e, Transfer::NoAnswer(_)) || self.fails >= FAILS_TO_OFFLINE;
@@ -217,7 +226,9 @@ impl Polled {
             tracing::warn!("I2C chip {} at {:#04x}: {e}", slot.model, slot.address);
         }
         if online && !gone {
-            self.next = now.saturating_add(slot.period());
+            if !early {
+                self.next = now.saturating_add(slot.period());
+            }
         } else {
             // Probed through a new open: an adapter that was removed and came back (a
             // reloaded module, a replugged USB adapter) has a new file.

@@ -100,6 +100,10 @@ impl ChipModel for Pca9685 {
             // again.
             bus.write_byte(MODE1, awake | SLEEP)?;
             bus.write_byte(PRE_SCALE, self.prescale)?;
+        } else if mode & AI == 0 {
+            // The duty words need auto-increment (without it both bytes land in the L
+            // register); sleep is left as it is until they are written.
+            bus.write_byte(MODE1, (mode & !RESTART) | AI)?;
         }
         self.send(bus, io)?;
         if slept || mode != awake {

@@ -131,6 +131,28 @@ fn pca9685_sleeps_only_to_change_its_prescale_and_keeps_mode1s_other_bits() {
 }
 
 #[test]
+fn pca9685_at_its_power_on_prescale_sets_auto_increment_before_the_duty_words() {
+    // 200 Hz: prescale 30, the power-on value, so it need not sleep to set it.
+    let (mut m, card, regs) =
+        chip("model = \"pca9685\"\naddress = 0x41\nfrequency_hz = 200\nchannels = [0]");
+    regs.set(0x00, 0x11);
+    regs.set(0xfe, 30);
+    start(&mut m, &card, &regs).unwrap();
+    let writes = regs.writes();
+    assert_eq!(
+        writes[0],
+        (0x00, 0x31),
+        "AI first, still asleep: {writes:x?}"
+    );
+    assert!(writes[1..].iter().all(|w| w.0 != 0xfe), "{writes:x?}");
+    assert_eq!(
+        writes.last(),
+        Some(&(0x00, 0x21)),
+        "then awake: {writes:x?}"
+    );
+}
+
+#[test]
 fn mcp4725_check_sends_the_asked_code_again() {
     let (mut m, card, regs) = chip("model = \"mcp4725\"\naddress = 0x60\nvref_v = 5.0");
     online(&card);
