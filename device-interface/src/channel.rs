@@ -29,6 +29,18 @@
 use crate::{AnalogIn, AnalogOut, AnalogRange, DeviceError, DigitalIn, DigitalOut};
 use std::sync::Arc;
 
+/// Channel `channel` of a card's per-channel `items` (its scales, its channel states):
+/// [`DeviceError::ChannelOutOfRange`] past the end. For cards' `scale`, `read_raw` and the
+/// like.
+pub fn nth<T>(items: &[T], channel: u32) -> Result<&T, DeviceError> {
+    items
+        .get(channel as usize)
+        .ok_or(DeviceError::ChannelOutOfRange {
+            channel,
+            count: u32::try_from(items.len()).unwrap_or(u32::MAX),
+        })
+}
+
 fn check_channel(channel: u32, count: u32) -> Result<(), DeviceError> {
     if channel < count {
         Ok(())

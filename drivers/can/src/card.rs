@@ -660,12 +660,7 @@ impl CanCard {
     /// Where analog `channel` sits: (frame, signal) in the rx or tx frames.
     fn analog_at(&self, tx: bool, channel: u32) -> Result<(u32, u32), DeviceError> {
         let at = if tx { &self.ao_at } else { &self.ai_at };
-        at.get(channel as usize)
-            .copied()
-            .ok_or(DeviceError::ChannelOutOfRange {
-                channel,
-                count: at.len() as u32,
-            })
+        device_interface::channel::nth(at, channel).copied()
     }
 
     fn scale_of(&self, tx: bool, channel: u32) -> Result<Scale, DeviceError> {

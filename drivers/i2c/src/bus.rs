@@ -284,18 +284,9 @@ mod tests {
             invert: vec![],
             initial_on: vec![],
         };
-        let model = crate::chips::model(&crate::config::ChipConfig::Mcp23017(config));
-        let place = crate::card::ChipPlace {
-            address: 0x20,
-            poll_ms: 10,
-            model: model.model(),
-            shape: model.shape(),
-            analog_in: model.analog_in(),
-            analog_out: Vec::new(),
-            encoders: Vec::new(),
-        };
-        let clock = device_interface::time::SimClock::new(Timestamp::from_nanos(0));
-        let card = Arc::new(I2cCard::new(&[place], &[], Arc::new(clock)).unwrap());
+        let config = crate::config::ChipConfig::Mcp23017(config);
+        let model = crate::chips::model(&config);
+        let card = crate::chips::tests::one_chip(&config, model.as_ref());
         I2cBus::with_opener(
             card,
             vec![model],
@@ -351,7 +342,7 @@ mod tests {
         )
         .unwrap();
         let model = crate::chips::model(&config.chip[0]);
-        let card = crate::chips::tests::one_chip(model.as_ref(), 100);
+        let card = crate::chips::tests::one_chip(&config.chip[0], model.as_ref());
         let wakes = Arc::new(Wakes::default());
         card.set_waker(wakes.clone());
         let regs = Registers::new();

@@ -10,6 +10,7 @@
 //! is the bus side's wake-up (an `eventfd` write, which never blocks).
 
 use device_interface::bits::BitImage;
+use device_interface::channel::nth;
 use device_interface::encoder::{CardEncoder, EncoderCounter, EncoderHost};
 use device_interface::time::{Clock, Timestamp};
 use device_interface::{
@@ -42,6 +43,8 @@ pub struct ChipPlace {
     pub model: &'static str,
     /// Its channels.
     pub shape: Shape,
+    /// Its DigitalOut bits' levels from the start (one per bit; missing ones off).
+    pub initial_on: Vec<bool>,
     /// Its analog inputs' scales (one per channel).
     pub analog_in: Vec<Scale>,
     /// Its analog outputs' scales and raw values from the start (one per channel).
@@ -209,17 +212,14 @@ impl ChipIo<'_> {
 }
 
 impl I2cCard {
-    /// A card of `places`, every chip offline until polled; outputs start at `initial`
-    /// (by DigitalOut bit). Fails on an encoder geometry the counter refuses.
-    pub fn new(
-        places: &[ChipPlace],
-        initial: &[bool],
-        clock: Arc<dyn Clock>,
-    ) -> Result<I2cCard, DeviceError> {
+    /// A card of `places`, every chip offline until polled, outputs at each place's
+    /// starting values. Fails on an encoder geometry the counter refuses.
+    pub fn new(places: &[ChipPlace], clock: Arc<dyn Clock>) -> Result<I2cCard, DeviceError> {
         let (mut di, mut dout, mut ai, mut ao) = (0u32, 0u32, 0u32, 0u32);
         let mut analog_scale = Vec::new();
         let mut out = Vec::new();
         let mut encoders = Vec::new();
+        let mut initial = Vec::new();
         let mut chips = Vec::with_capacity(places.len());
         for p in places {
             let Shape {
@@ -248,6 +248,7 @@ impl I2cCard {
             });
             di += digital_in;
             dout += digital_out;
+            initial.extend((0..digital_out as usize).map(|b| p.initial_on.get(b) == Some(&true)));
             ai += p.analog_in.len() as u32;
             ao += p.analog_out.len() as u32;
             analog_scale.extend(p.analog_in.iter().copied());
@@ -457,13 +458,7 @@ impl AnalogIn for I2cCard {
     }
 
     fn scale(&self, channel: u32) -> Result<Scale, DeviceError> {
-        self.analog_scale
-            .get(channel as usize)
-            .copied()
-            .ok_or(DeviceError::ChannelOutOfRange {
-                channel,
-                count: AnalogIn::channel_count(self),
-            })
+        nth(&self.analog_scale, channel).copied()
     }
 
     fn read_raw(&self, channel: u32) -> Result<i64, DeviceError> {
@@ -482,13 +477,7 @@ impl AnalogOut for I2cCard {
     }
 
     fn scale(&self, channel: u32) -> Result<Scale, DeviceError> {
-        self.out_scale
-            .get(channel as usize)
-            .copied()
-            .ok_or(DeviceError::ChannelOutOfRange {
-                channel,
-                count: AnalogOut::channel_count(self),
-            })
+        nth(&self.out_scale, channel).copied()
     }
 
     /// Recorded, and the chip's poll that sends it asked for at once.

@@ -8,7 +8,7 @@ use crate::bus::I2cBus;
 use crate::card::{ChipPlace, I2cCard};
 use crate::chips::{self, ChipModel};
 use crate::component::I2cIo;
-use crate::config::{ChipConfig, I2cConfig};
+use crate::config::I2cConfig;
 use crate::smbus::find_bus;
 use device_interface::CardDevices;
 use device_interface::time::Clock;
@@ -42,38 +42,13 @@ pub fn card(config: &I2cConfig, clock: Arc<dyn Clock>) -> Result<Built, CardErro
         .map_err(|e| CardError::at(e.key, e.message))?;
     let path = find_bus(&config.bus).map_err(|e| CardError::at("bus", e))?;
     let models: Vec<Box<dyn ChipModel>> = config.chip.iter().map(chips::model).collect();
-    let mut initial = Vec::new();
-    for c in &config.chip {
-        if let ChipConfig::Mcp23017(m) = c {
-            initial.extend(m.outputs.iter().map(|p| m.initial_on.contains(p)));
-        }
-    }
     let places: Vec<ChipPlace> = config
         .chip
         .iter()
         .zip(&models)
-        .map(|(c, m)| ChipPlace {
-            address: c.address(),
-            poll_ms: c.poll_ms(),
-            model: m.model(),
-            shape: m.shape(),
-            analog_in: m.analog_in(),
-            analog_out: m
-                .analog_out()
-                .into_iter()
-                .map(|scale| {
-                    let volts = match c {
-                        ChipConfig::Mcp4725(d) => d.initial_v,
-                        _ => 0.0,
-                    };
-                    (scale, scale.to_raw_saturating(volts))
-                })
-                .collect(),
-            encoders: m.encoders(),
-        })
+        .map(|(c, m)| chips::place(c, m.as_ref()))
         .collect();
-    let card =
-        Arc::new(I2cCard::new(&places, &initial, clock).map_err(|e| CardError::at("chip", e))?);
+    let card = Arc::new(I2cCard::new(&places, clock).map_err(|e| CardError::at("chip", e))?);
     Ok(Built {
         card,
         models,

@@ -464,21 +464,11 @@ impl SimCard {
     }
 
     fn ai_channel(&self, channel: u32) -> Result<&AnalogInChannel, DeviceError> {
-        self.ai
-            .get(channel as usize)
-            .ok_or(DeviceError::ChannelOutOfRange {
-                channel,
-                count: self.ai.len() as u32,
-            })
+        device_interface::channel::nth(&self.ai, channel)
     }
 
     fn ao_channel(&self, channel: u32) -> Result<&AnalogOutChannel, DeviceError> {
-        self.ao
-            .get(channel as usize)
-            .ok_or(DeviceError::ChannelOutOfRange {
-                channel,
-                count: self.ao.len() as u32,
-            })
+        device_interface::channel::nth(&self.ao, channel)
     }
 
     // ---- test hooks ----

@@ -14,11 +14,11 @@
 //! is started again. A channel is `raw × range / 32768`
 //! volts (range: the PGA's full scale; a single-ended input reads 0 V and up).
 
-use super::{ChipModel, Shape};
+use super::{ChipModel, Shape, linear};
 use crate::card::ChipIo;
 use crate::config::{ADS1115_INPUTS, ADS1115_RANGES, ADS1115_RATES, Ads1115Config};
 use crate::smbus::{Smbus, Transfer};
-use device_interface::{RawRange, Scale, Unit};
+use device_interface::{RawRange, Scale};
 
 const CONVERSION: u8 = 0x00;
 const CONFIG: u8 = 0x01;
@@ -92,10 +92,7 @@ impl ChipModel for Ads1115 {
     fn analog_in(&self) -> Vec<Scale> {
         self.channels
             .iter()
-            .filter_map(|(_, fs)| {
-                let unit = Unit::new("V").ok()?;
-                Scale::from_factor(RawRange::signed_bits(16).ok()?, fs / 32768.0, 0.0, unit).ok()
-            })
+            .filter_map(|(_, fs)| linear(RawRange::signed_bits(16), fs / 32768.0, "V"))
             .collect()
     }
 

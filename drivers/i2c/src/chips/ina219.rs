@@ -12,11 +12,11 @@
 //! The check reads Configuration and Calibration back: after a power loss or a reset the
 //! calibration is 0 (the current reads 0), and the chip is set up again.
 
-use super::{ChipModel, Shape};
+use super::{ChipModel, Shape, linear};
 use crate::card::ChipIo;
 use crate::config::Ina219Config;
 use crate::smbus::{Smbus, Transfer};
-use device_interface::{RawRange, Scale, Unit};
+use device_interface::{RawRange, Scale};
 
 const CONFIG: u8 = 0x00;
 const SHUNT: u8 = 0x01;
@@ -46,14 +46,6 @@ impl Ina219 {
     }
 }
 
-fn scale(
-    raw: Result<RawRange, device_interface::ScaleError>,
-    factor: f64,
-    unit: &str,
-) -> Option<Scale> {
-    Scale::from_factor(raw.ok()?, factor, 0.0, Unit::new(unit).ok()?).ok()
-}
-
 impl ChipModel for Ina219 {
     fn model(&self) -> &'static str {
         "ina219"
@@ -67,9 +59,9 @@ impl ChipModel for Ina219 {
         // Cannot fail: fixed widths, positive finite factors (the LSB from a checked
         // section), short units.
         [
-            scale(RawRange::signed_bits(16), 10e-6, "V"),
-            scale(RawRange::unsigned_bits(13), 4e-3, "V"),
-            scale(RawRange::signed_bits(16), self.current_lsb, "A"),
+            linear(RawRange::signed_bits(16), 10e-6, "V"),
+            linear(RawRange::unsigned_bits(13), 4e-3, "V"),
+            linear(RawRange::signed_bits(16), self.current_lsb, "A"),
         ]
         .into_iter()
         .flatten()

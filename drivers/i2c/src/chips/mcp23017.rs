@@ -37,6 +37,7 @@ fn mask(pins: &[u8]) -> u16 {
 pub struct Mcp23017 {
     inputs: Vec<u8>,
     outputs: Vec<u8>,
+    initial_on: Vec<bool>,
     iodir: u16,
     ipol: u16,
     gppu: u16,
@@ -48,6 +49,7 @@ impl Mcp23017 {
         Mcp23017 {
             inputs: c.inputs.clone(),
             outputs: c.outputs.clone(),
+            initial_on: c.outputs.iter().map(|p| c.initial_on.contains(p)).collect(),
             iodir: !mask(&c.outputs),
             ipol: mask(&c.invert),
             gppu: mask(&c.pull_up),
@@ -75,6 +77,10 @@ impl ChipModel for Mcp23017 {
             digital_in: self.inputs.len() as u32,
             digital_out: self.outputs.len() as u32,
         }
+    }
+
+    fn initial_on(&self) -> Vec<bool> {
+        self.initial_on.clone()
     }
 
     fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {

@@ -12,21 +12,25 @@
 //! same code, so the output does not move), which puts such a chip back at the asked
 //! value within [`CHECK_PERIOD`](crate::bus::CHECK_PERIOD).
 
-use super::{ChipModel, Shape};
+use super::{ChipModel, Shape, linear};
 use crate::card::ChipIo;
 use crate::config::Mcp4725Config;
 use crate::smbus::{Smbus, Transfer};
-use device_interface::{RawRange, Scale, Unit};
+use device_interface::{RawRange, Scale};
 
 /// An MCP4725.
 pub struct Mcp4725 {
     vref: f64,
+    initial_v: f64,
 }
 
 impl Mcp4725 {
     /// The model of a (checked) section.
     pub fn new(c: &Mcp4725Config) -> Mcp4725 {
-        Mcp4725 { vref: c.vref_v }
+        Mcp4725 {
+            vref: c.vref_v,
+            initial_v: c.initial_v,
+        }
     }
 
     fn send(bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {
@@ -44,11 +48,13 @@ impl ChipModel for Mcp4725 {
         Shape::default()
     }
 
-    fn analog_out(&self) -> Vec<Scale> {
+    fn analog_out(&self) -> Vec<(Scale, i64)> {
         // Cannot fail: 12 bits, a checked positive reference, a short unit.
-        let scale = RawRange::unsigned_bits(12)
-            .and_then(|raw| Scale::from_factor(raw, self.vref / 4096.0, 0.0, Unit::new("V")?));
-        scale.into_iter().collect()
+        let scale = linear(RawRange::unsigned_bits(12), self.vref / 4096.0, "V");
+        scale
+            .map(|s| (s, s.to_raw_saturating(self.initial_v)))
+            .into_iter()
+            .collect()
     }
 
     fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {

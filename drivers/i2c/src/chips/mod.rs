@@ -3,7 +3,9 @@
 //! # Adding a chip model
 //!
 //! 1. A file `chips/<model>.rs` with a type implementing [`ChipModel`]: its [`Shape`] (how
-//!    many channels of each interface it adds to the card), `start` (configure the chip
+//!    many channels of each interface it adds to the card), its channels' scales and its
+//!    outputs' starting values (`analog_in`, `analog_out`, `initial_on`, `encoders`; a
+//!    linear scale is [`linear`]), `start` (configure the chip
 //!    and write its outputs' starting values, outputs before directions so no pin shows a
 //!    level nobody asked for) and `poll` (read inputs into the card's images, send outputs
 //!    the devices changed), and `check` if the chip keeps set-up that a power loss or a
@@ -25,10 +27,11 @@ pub mod pca9685;
 #[cfg(test)]
 pub(crate) mod tests;
 
-use crate::card::ChipIo;
 pub use crate::card::Shape;
+use crate::card::{ChipIo, ChipPlace};
 use crate::config::ChipConfig;
 use crate::smbus::{Smbus, Transfer};
+use device_interface::{RawRange, Scale, ScaleError, Unit};
 
 /// A chip's register model. Runs on the card's bus thread only; keeps the real-time
 /// contract there: no blocking but the transfers themselves, no allocation while the
@@ -39,11 +42,16 @@ pub trait ChipModel: Send {
     /// Its digital channels.
     fn shape(&self) -> Shape;
     /// Its analog inputs' scales, one per AnalogIn channel. Default: none.
-    fn analog_in(&self) -> Vec<device_interface::Scale> {
+    fn analog_in(&self) -> Vec<Scale> {
         Vec::new()
     }
-    /// Its analog outputs' scales, one per AnalogOut channel. Default: none.
-    fn analog_out(&self) -> Vec<device_interface::Scale> {
+    /// Its DigitalOut bits' levels from the start, one per bit. Default: all off.
+    fn initial_on(&self) -> Vec<bool> {
+        Vec::new()
+    }
+    /// Its analog outputs' scales and raw values from the start, one per AnalogOut
+    /// channel. Default: none.
+    fn analog_out(&self) -> Vec<(Scale, i64)> {
         Vec::new()
     }
     /// Its encoders' resolution and counting direction. Default: none.
@@ -62,6 +70,27 @@ pub trait ChipModel: Send {
         let _ = (bus, io);
         Ok(true)
     }
+}
+
+/// Where a chip section's model sits on its card: its address, period and channels, with
+/// their scales and starting values.
+pub fn place(config: &ChipConfig, model: &dyn ChipModel) -> ChipPlace {
+    ChipPlace {
+        address: config.address(),
+        poll_ms: config.poll_ms(),
+        model: model.model(),
+        shape: model.shape(),
+        initial_on: model.initial_on(),
+        analog_in: model.analog_in(),
+        analog_out: model.analog_out(),
+        encoders: model.encoders(),
+    }
+}
+
+/// `raw × factor` in `unit` over `raw`. None only for what no model gives: a raw range
+/// it failed to make, a factor that is not positive and finite, a unit too long.
+pub fn linear(raw: Result<RawRange, ScaleError>, factor: f64, unit: &str) -> Option<Scale> {
+    Scale::from_factor(raw.ok()?, factor, 0.0, Unit::new(unit).ok()?).ok()
 }
 
 /// The model a chip section describes (checked).

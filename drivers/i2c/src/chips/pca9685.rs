@@ -15,11 +15,11 @@
 //! MODE1 and PRE_SCALE back: after a power loss the chip sleeps at its default prescale,
 //! and is set up again.
 
-use super::{ChipModel, Shape};
+use super::{ChipModel, Shape, linear};
 use crate::card::ChipIo;
 use crate::config::Pca9685Config;
 use crate::smbus::{Smbus, Transfer};
-use device_interface::{RawRange, Scale, Unit};
+use device_interface::{RawRange, Scale};
 
 const MODE1: u8 = 0x00;
 const PRE_SCALE: u8 = 0xfe;
@@ -83,11 +83,10 @@ impl ChipModel for Pca9685 {
         Shape::default()
     }
 
-    fn analog_out(&self) -> Vec<Scale> {
-        // Cannot fail: a fixed raw range, a positive factor, no unit.
-        let scale = RawRange::new(0, STEPS)
-            .and_then(|raw| Scale::from_factor(raw, 1.0 / STEPS as f64, 0.0, Unit::none()));
-        scale.map_or_else(|_| Vec::new(), |s| vec![s; self.channels.len()])
+    fn analog_out(&self) -> Vec<(Scale, i64)> {
+        // Cannot fail: a fixed raw range, a positive factor, no unit. Each starts off.
+        let scale = linear(RawRange::new(0, STEPS), 1.0 / STEPS as f64, "");
+        scale.map_or_else(Vec::new, |s| vec![(s, 0); self.channels.len()])
     }
 
     fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {

@@ -3,9 +3,9 @@
 //! chip probed again.
 #![allow(clippy::unwrap_used, reason = "test code")]
 
-use super::{ChipModel, model};
+use super::{ChipModel, model, place};
 use crate::card::I2cCard;
-use crate::config::I2cConfig;
+use crate::config::{ChipConfig, I2cConfig};
 use crate::smbus::fake::Registers;
 use crate::smbus::{Smbus, Transfer};
 use device_interface::{AnalogIn, AnalogOut, DeviceError};
@@ -17,7 +17,7 @@ fn chip(table: &str) -> (Box<dyn ChipModel>, Arc<I2cCard>, Registers) {
         toml::from_str(&format!("bus = \"/dev/i2c-0\"\n[[chip]]\n{table}")).unwrap();
     config.check().unwrap();
     let m = model(&config.chip[0]);
-    let card = one_chip(m.as_ref(), config.chip[0].poll_ms());
+    let card = one_chip(&config.chip[0], m.as_ref());
     (m, card, Registers::new())
 }
 
@@ -197,20 +197,11 @@ fn as5600_keeps_a_homed_position_across_a_dropout() {
     assert_eq!(counter.position(), 300, "the homing kept");
 }
 
-/// A card of one chip for unit tests, on a simulated clock at 0.
-pub(crate) fn one_chip(model: &dyn ChipModel, poll_ms: u32) -> Arc<I2cCard> {
-    let place = crate::card::ChipPlace {
-        address: 0x20,
-        poll_ms,
-        model: model.model(),
-        shape: model.shape(),
-        analog_in: model.analog_in(),
-        analog_out: model.analog_out().into_iter().map(|s| (s, 0)).collect(),
-        encoders: model.encoders(),
-    };
+/// A card of the one chip `config` describes, for unit tests, on a simulated clock at 0.
+pub(crate) fn one_chip(config: &ChipConfig, model: &dyn ChipModel) -> Arc<I2cCard> {
     let clock =
         device_interface::time::SimClock::new(device_interface::time::Timestamp::from_nanos(0));
-    match I2cCard::new(&[place], &[], Arc::new(clock)) {
+    match I2cCard::new(&[place(config, model)], Arc::new(clock)) {
         Ok(card) => Arc::new(card),
         Err(e) => panic!("a test card: {e}"),
     }
