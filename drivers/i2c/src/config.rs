@@ -323,67 +323,86 @@ impl I2cConfig {
                 ));
             }
             match c {
-                ChipConfig::Mcp23017(m) => m.check().map_err(|e| err(key(&e.key), e.message))?,
-                ChipConfig::Ads1115(a) => a.check().map_err(|e| err(key(&e.key), e.message))?,
-                ChipConfig::As5600(_) => {}
-                ChipConfig::Ina219(i) => {
-                    for (k, v) in [
-                        ("shunt_ohms", i.shunt_ohms),
-                        ("max_current_a", i.max_current_a),
-                    ] {
-                        if !(v.is_finite() && v > 0.0 && v <= 1000.0) {
-                            return Err(err(key(k), format!("{v}; above 0 and at most 1000")));
-                        }
-                    }
-                    // The calibration register holds 2..=0xfffe (bit 0 is void).
-                    let cal = 0.04096 / (i.max_current_a / 32768.0 * i.shunt_ohms);
-                    if !(2.0..=65534.0).contains(&cal.trunc()) {
-                        return Err(err(
-                            key("max_current_a"),
-                            format!(
-                                "{} A over {} Ω needs calibration {cal:.0}; the INA219 takes 2 to 65534",
-                                i.max_current_a, i.shunt_ohms
-                            ),
-                        ));
-                    }
-                }
-                ChipConfig::Pca9685(p) => {
-                    if !PCA9685_FREQUENCY.contains(&p.frequency_hz) {
-                        return Err(err(
-                            key("frequency_hz"),
-                            format!("{} Hz; between 24 and 1526", p.frequency_hz),
-                        ));
-                    }
-                    for (n, &ch) in p.channels.iter().enumerate() {
-                        if ch > 15 {
-                            return Err(err(
-                                key(&format!("channels[{n}]")),
-                                format!("output {ch}: the PCA9685 has outputs 0..=15"),
-                            ));
-                        }
-                        if p.channels[..n].contains(&ch) {
-                            return Err(err(
-                                key(&format!("channels[{n}]")),
-                                format!("output {ch} is given twice"),
-                            ));
-                        }
-                    }
-                }
-                ChipConfig::Mcp4725(d) => {
-                    if !MCP4725_SUPPLY.contains(&d.vref_v) {
-                        return Err(err(
-                            key("vref_v"),
-                            format!("{} V; the MCP4725 runs on 2.7 to 5.5 V", d.vref_v),
-                        ));
-                    }
-                    if !(0.0..=d.vref_v).contains(&d.initial_v) {
-                        return Err(err(
-                            key("initial_v"),
-                            format!("{} V; between 0 and vref_v ({} V)", d.initial_v, d.vref_v),
-                        ));
-                    }
-                }
+                ChipConfig::Mcp23017(m) => m.check(),
+                ChipConfig::Ads1115(a) => a.check(),
+                ChipConfig::As5600(_) => Ok(()),
+                ChipConfig::Ina219(i) => i.check(),
+                ChipConfig::Pca9685(p) => p.check(),
+                ChipConfig::Mcp4725(d) => d.check(),
             }
+            .map_err(|e| err(key(&e.key), e.message))?;
+        }
+        Ok(())
+    }
+}
+
+impl Ina219Config {
+    fn check(&self) -> Result<(), ConfigError> {
+        for (key, v) in [
+            ("shunt_ohms", self.shunt_ohms),
+            ("max_current_a", self.max_current_a),
+        ] {
+            if !(v.is_finite() && v > 0.0 && v <= 1000.0) {
+                return Err(err(key, format!("{v}; above 0 and at most 1000")));
+            }
+        }
+        // The calibration register holds 2..=0xfffe (bit 0 is void).
+        let cal = 0.04096 / (self.max_current_a / 32768.0 * self.shunt_ohms);
+        if !(2.0..=65534.0).contains(&cal.trunc()) {
+            return Err(err(
+                "max_current_a",
+                format!(
+                    "{} A over {} Ω needs calibration {cal:.0}; the INA219 takes 2 to 65534",
+                    self.max_current_a, self.shunt_ohms
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl Pca9685Config {
+    fn check(&self) -> Result<(), ConfigError> {
+        if !PCA9685_FREQUENCY.contains(&self.frequency_hz) {
+            return Err(err(
+                "frequency_hz",
+                format!("{} Hz; between 24 and 1526", self.frequency_hz),
+            ));
+        }
+        for (n, &ch) in self.channels.iter().enumerate() {
+            if ch > 15 {
+                return Err(err(
+                    format!("channels[{n}]"),
+                    format!("output {ch}: the PCA9685 has outputs 0..=15"),
+                ));
+            }
+            if self.channels[..n].contains(&ch) {
+                return Err(err(
+                    format!("channels[{n}]"),
+                    format!("output {ch} is given twice"),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+impl Mcp4725Config {
+    fn check(&self) -> Result<(), ConfigError> {
+        if !MCP4725_SUPPLY.contains(&self.vref_v) {
+            return Err(err(
+                "vref_v",
+                format!("{} V; the MCP4725 runs on 2.7 to 5.5 V", self.vref_v),
+            ));
+        }
+        if !(0.0..=self.vref_v).contains(&self.initial_v) {
+            return Err(err(
+                "initial_v",
+                format!(
+                    "{} V; between 0 and vref_v ({} V)",
+                    self.initial_v, self.vref_v
+                ),
+            ));
         }
         Ok(())
     }
