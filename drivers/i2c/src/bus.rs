@@ -102,8 +102,8 @@ impl I2cBus {
     /// Polls (or probes) every chip that is due at `now` — on its period, or at once when
     /// a device wrote one of its outputs — and returns when the next one is.
     pub fn step(&mut self, now: Timestamp) -> Option<Timestamp> {
-        let card = self.card.clone();
-        for (i, p) in self.chips.iter_mut().enumerate() {
+        let I2cBus { card, chips, open } = self;
+        for (i, p) in chips.iter_mut().enumerate() {
             let (Some(slot), Some(io)) = (card.chips.get(i), card.io(i)) else {
                 continue;
             };
@@ -114,12 +114,12 @@ impl I2cBus {
             if early && !(online && p.fails == 0 && p.bus.is_some() && slot.unsent()) {
                 continue;
             }
-            match p.exchange(&mut self.open, slot, &io, online, now) {
+            match p.exchange(open, slot, &io, online, now) {
                 Ok(()) => p.succeeded(slot, online, early, now),
                 Err(e) => p.failed(slot, &e, online, early, now),
             }
         }
-        self.chips.iter().map(|p| p.next).min()
+        chips.iter().map(|p| p.next).min()
     }
 }
 
