@@ -53,6 +53,14 @@ pub const KVASER_PAIR: [&str; 6] = [
 /// Set (to `1`) in the guest's environment.
 pub const GUEST_ENV: &str = "HWGW_RIG_GUEST";
 
+/// Set in the guest's environment to the run directory: shared with the host read-write
+/// at the same path, where qemu's own records of a run are (see [`Rig::parallel_port`]).
+pub const RUN_ENV: &str = "HWGW_RIG_RUN";
+
+/// The file in the run directory where [`Rig::parallel_port`] has qemu record the
+/// port's register writes.
+pub const PARPORT_TRACE: &str = "parport.trace";
+
 /// Why the rig could not run something.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -110,6 +118,11 @@ pub fn in_guest() -> bool {
     std::env::var_os(GUEST_ENV).is_some()
 }
 
+/// The run directory, in the guest (see [`RUN_ENV`]).
+pub fn run_dir() -> Option<PathBuf> {
+    std::env::var_os(RUN_ENV).map(PathBuf::from)
+}
+
 /// True when running under CI (`CI` set and not `false`/`0`), where an unusable rig fails.
 pub fn in_ci() -> bool {
     std::env::var("CI").is_ok_and(|v| !v.is_empty() && v != "false" && v != "0")
@@ -139,6 +152,7 @@ pub struct Rig {
     timeout: Duration,
     systemd: bool,
     gpio_sim: bool,
+    parallel: bool,
 }
 
 impl Default for Rig {
@@ -173,6 +187,7 @@ impl Rig {
             timeout,
             systemd: false,
             gpio_sim: false,
+            parallel: false,
         }
     }
 
@@ -193,6 +208,19 @@ impl Rig {
         self.module("gpio-sim")
             .setup("mountpoint -q /sys/kernel/config || mount -t configfs none /sys/kernel/config")
             .tool("gpioinfo", "gpiod")
+    }
+
+    /// Gives the guest a PC parallel port at I/O 0x378 (IRQ 7), and records every write
+    /// the guest makes to its registers as qemu sees it (qemu's `parallel_ioport_write`
+    /// trace event, with host timestamps) in [`PARPORT_TRACE`] in the run directory: the
+    /// port's outputs read from outside the guest's kernel (see [`run_dir`]).
+    ///
+    /// qemu's parallel port hands its data register to its character device only on a
+    /// strobe (and only with INIT and SELECT high), so a chardev (`-parallel file:`) sees
+    /// none of the writes a driver of the data lines makes; the trace sees each one.
+    pub fn parallel_port(mut self) -> Rig {
+        self.parallel = true;
+        self
     }
 
     /// Loads `module` (with its dependencies) in the guest before the command runs.
@@ -297,7 +325,8 @@ impl Rig {
             cmd.push_str(&format!(" {}", quote(&format!("{k}={v}"))));
         }
         cmd.push_str(&format!(
-            " {GUEST_ENV}=1 {}",
+            " {GUEST_ENV}=1 {RUN_ENV}={} {}",
+            quote(&run.path.to_string_lossy()),
             quote(&program.to_string_lossy())
         ));
         for a in args {
@@ -418,6 +447,14 @@ impl Rig {
             ))
             .args(["-device", "virtio-9p-pci,fsdev=rig,mount_tag=rig"])
             .args(&self.qemu);
+        if self.parallel {
+            c.args(["-chardev", "null,id=lpt0"])
+                .args(["-device", "isa-parallel,chardev=lpt0,iobase=0x378,irq=7"])
+                .args(["-trace", "enable=parallel_ioport_write"])
+                .args(["-msg", "timestamp=on"])
+                .arg("-D")
+                .arg(run.path.join(PARPORT_TRACE));
+        }
         if interactive {
             c.args(["-serial", "mon:stdio"]);
         } else {

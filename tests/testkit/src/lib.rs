@@ -8,6 +8,8 @@
 //! - [`mbpoll`]: the libmodbus master as a one-shot check;
 //! - [`fixtures`]: shared test data (a Modbus register map);
 //! - [`gpiosim`]: chips of the kernel's GPIO simulator, driven from outside;
+//! - [`comedi`]: comedi boards attached and detached, the parallel port's writes as qemu
+//!   recorded them;
 //! - [`i2cstub`]: the kernel's I2C stub, its chips' registers set and read with i2c-tools;
 //! - [`rig`]: kernel rig presets (vcan);
 //! - [`service`]: an `hwgw` binary running a deployment on a socket of its own;
@@ -15,6 +17,7 @@
 //! - [`layout`]: checks of the source tree's shape (module cycles, function lengths).
 
 pub mod candump;
+pub mod comedi;
 pub mod fixtures;
 pub mod gpiosim;
 pub mod i2cstub;
@@ -27,6 +30,7 @@ pub mod service;
 pub mod wait;
 
 pub use candump::Candump;
+pub use comedi::{ComediBoard, PortTrace};
 pub use gpiosim::{GpioTrace, SimChip};
 pub use i2cstub::I2cStub;
 pub use logs::LogCapture;
