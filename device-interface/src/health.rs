@@ -66,4 +66,20 @@ impl Health {
     pub fn is_online(&self) -> bool {
         self.status == Status::Online
     }
+
+    /// The health of a device that is online or offline as a whole: its last good sample
+    /// at `last_good_nanos` on its clock (0: never), [`DeviceError::Offline`] as the last
+    /// error while offline.
+    pub fn online_if(online: bool, last_good_nanos: u64, checked_at: Timestamp) -> Health {
+        Health {
+            status: if online {
+                Status::Online
+            } else {
+                Status::Offline
+            },
+            last_good: (last_good_nanos != 0).then(|| Timestamp::from_nanos(last_good_nanos)),
+            checked_at,
+            last_error: (!online).then_some(DeviceError::Offline),
+        }
+    }
 }

@@ -252,6 +252,28 @@ fn the_shipped_examples_are_valid() {
                     lines.all(|l| l.contains("no component named \"i2c.a")),
                     "{got}"
                 );
+            } else if path.ends_with("comedi.toml") {
+                // Nor comedi: neither board is found, and so ThreadScope's alias to the
+                // port; nothing else may (gateway/tests/kernel_comedi.rs runs it on
+                // comedi_test and comedi_parport in the kernel rig).
+                let lines: Vec<&str> = got.lines().collect();
+                for (i, (card, dev)) in [("daq", 0), ("lpt", 1)].iter().enumerate() {
+                    assert!(
+                        lines[i].contains(&format!(
+                            "card[{i}].comedi.device: card \"{card}\": comedi_open on /dev/comedi{dev}: "
+                        )) && lines[i].ends_with("comedi devices here: none (is the comedi module loaded?)"),
+                        "{got}"
+                    );
+                }
+                assert!(
+                    lines[2].contains("alias[0]: no DigitalOut named \"lpt\""),
+                    "{got}"
+                );
+                assert!(
+                    lines[3].contains("thread_scope: ThreadScope is on"),
+                    "{got}"
+                );
+                assert_eq!(lines.len(), 4, "{got}");
             } else {
                 assert_eq!(got, "ok", "{file}");
             }

@@ -19,7 +19,7 @@ use device_interface::encoder::{CardEncoder, EncoderCounter, EncoderHost, Wrappi
 use device_interface::time::{Clock, Timestamp};
 use device_interface::{
     AnalogIn, AnalogOut, AnalogReference, CardDevices, Device, DeviceError, DigitalIn, DigitalOut,
-    Health, Scale, Status,
+    Health, Scale,
 };
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
@@ -321,18 +321,11 @@ impl ComediCard {
 
 impl Device for ComediCard {
     fn health(&self) -> Health {
-        let online = self.is_online();
-        let last = self.last_good.load(Ordering::Acquire);
-        Health {
-            status: if online {
-                Status::Online
-            } else {
-                Status::Offline
-            },
-            last_good: (last != 0).then(|| Timestamp::from_nanos(last)),
-            checked_at: self.clock.now(),
-            last_error: (!online).then_some(DeviceError::Offline),
-        }
+        Health::online_if(
+            self.is_online(),
+            self.last_good.load(Ordering::Acquire),
+            self.clock.now(),
+        )
     }
 }
 

@@ -21,6 +21,7 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
+use driver_api::CardError;
 use serde::Deserialize;
 
 /// The most channels one interface of a card maps (a bound on what a config may ask for;
@@ -45,7 +46,7 @@ pub struct ComediConfig {
     pub analog_in: Vec<AnalogGroup>,
     /// AnalogOut channels, in order.
     #[serde(default)]
-    pub analog_out: Vec<AnalogOutGroup>,
+    pub analog_out: Vec<AnalogGroup>,
     /// DigitalIn bits, in order.
     #[serde(default)]
     pub input: Vec<DigitalGroup>,
@@ -108,11 +109,11 @@ impl Aref {
     }
 }
 
-/// Analog input channels of one subdevice.
+/// Analog channels of one subdevice (inputs or outputs, as the list they are in says).
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct AnalogGroup {
-    /// The subdevice (default: the board's first AI).
+    /// The subdevice (default: the board's first AI, or AO).
     #[serde(default)]
     pub subdevice: Option<u32>,
     /// Its channels (default: all).
@@ -124,26 +125,8 @@ pub struct AnalogGroup {
     /// The reference (default ground).
     #[serde(default)]
     pub aref: Aref,
-}
-
-/// Analog output channels of one subdevice.
-#[derive(Debug, Clone, PartialEq, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct AnalogOutGroup {
-    /// The subdevice (default: the board's first AO).
-    #[serde(default)]
-    pub subdevice: Option<u32>,
-    /// Its channels (default: all).
-    #[serde(default)]
-    pub channels: Option<Vec<u32>>,
-    /// The range: an index into the channel's range table (default 0).
-    #[serde(default)]
-    pub range: u32,
-    /// The reference (default ground).
-    #[serde(default)]
-    pub aref: Aref,
-    /// A value, in the range's unit, written at start. Without one nothing is written
-    /// until asked and the read-back is what the board reads back.
+    /// Outputs only: a value, in the range's unit, written at start. Without one nothing
+    /// is written until asked and the read-back is what the board reads back.
     #[serde(default)]
     pub initial: Option<f64>,
 }
@@ -197,27 +180,14 @@ fn yes() -> bool {
     true
 }
 
-/// A section error: the key and why.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("{key}: {message}")]
-pub struct ConfigError {
-    /// The key, as `analog_in[0].channels`.
-    pub key: String,
-    /// What is wrong.
-    pub message: String,
-}
-
-fn err(key: impl Into<String>, message: impl Into<String>) -> ConfigError {
-    ConfigError {
-        key: key.into(),
-        message: message.into(),
-    }
+fn err(key: impl Into<String>, message: impl std::fmt::Display) -> CardError {
+    CardError::at(key, message)
 }
 
 impl ComediConfig {
     /// Checks what can be checked without the board (bounds; the channels against the
     /// board are checked when the card is built).
-    pub fn check(&self) -> Result<(), ConfigError> {
+    pub fn check(&self) -> Result<(), CardError> {
         if self.device.is_empty() || self.device.len() > 4096 || self.device.contains('\0') {
             return Err(err("device", "must be a path (1–4096 bytes, no NUL)"));
         }
@@ -261,6 +231,14 @@ impl ComediConfig {
                         ));
                     }
                 }
+            }
+        }
+        for (i, g) in self.analog_in.iter().enumerate() {
+            if g.initial.is_some() {
+                return Err(err(
+                    format!("analog_in[{i}].initial"),
+                    "an input has no initial value",
+                ));
             }
         }
         for (i, g) in self.analog_out.iter().enumerate() {

@@ -3,8 +3,9 @@
 //! every channel a device reports exists on the board.
 
 use crate::board::{BoardDesc, Kind, Range, RangeUnit, SubdeviceDesc};
-use crate::config::{Aref, ComediConfig, ConfigError};
+use crate::config::{AnalogGroup, Aref, ComediConfig};
 use device_interface::{RawRange, Scale, Unit};
+use driver_api::CardError;
 
 /// An analog channel: where it is and its range table as scales.
 #[derive(Debug, Clone)]
@@ -70,11 +71,8 @@ pub struct Layout {
     pub counters: Vec<CounterChan>,
 }
 
-fn err(key: impl Into<String>, message: impl Into<String>) -> ConfigError {
-    ConfigError {
-        key: key.into(),
-        message: message.into(),
-    }
+fn err(key: impl Into<String>, message: impl std::fmt::Display) -> CardError {
+    CardError::at(key, message)
 }
 
 /// The board's subdevices as one line: `0 AI (8 channels), 1 AO (8 channels)`.
@@ -110,7 +108,7 @@ fn subdevice<'a>(
     key: &str,
     given: Option<u32>,
     kinds: &[Kind],
-) -> Result<(u32, &'a SubdeviceDesc), ConfigError> {
+) -> Result<(u32, &'a SubdeviceDesc), CardError> {
     let names: Vec<String> = kinds.iter().map(|k| k.to_string()).collect();
     let names = names.join(" or ");
     match given {
@@ -165,7 +163,7 @@ fn channels(
     given: &Option<Vec<u32>>,
     n: u32,
     s: &SubdeviceDesc,
-) -> Result<Vec<u32>, ConfigError> {
+) -> Result<Vec<u32>, CardError> {
     let count = s.channels.len() as u32;
     let list = given.clone().unwrap_or_else(|| (0..count).collect());
     for c in &list {
@@ -187,21 +185,12 @@ fn channels(
     Ok(list)
 }
 
-struct AnalogSpec<'a> {
-    key: String,
-    subdevice: Option<u32>,
-    channels: &'a Option<Vec<u32>>,
-    range: u32,
-    aref: Aref,
-    initial: Option<f64>,
-}
-
 fn analog(
     desc: &BoardDesc,
-    spec: AnalogSpec<'_>,
+    key: &str,
+    spec: &AnalogGroup,
     kind: Kind,
-) -> Result<Vec<AnalogChan>, ConfigError> {
-    let key = spec.key.as_str();
+) -> Result<Vec<AnalogChan>, CardError> {
     let (n, s) = subdevice(desc, key, spec.subdevice, &[kind])?;
     if s.flags & spec.aref.flag() == 0 {
         return Err(err(
@@ -210,7 +199,7 @@ fn analog(
         ));
     }
     let mut out = Vec::new();
-    for c in channels(key, spec.channels, n, s)? {
+    for c in channels(key, &spec.channels, n, s)? {
         let ch = &s.channels[c as usize];
         let mut ranges = Vec::new();
         for (i, r) in ch.ranges.iter().enumerate() {
@@ -274,7 +263,7 @@ fn bits(
     channel_list: &Option<Vec<u32>>,
     kinds: &[Kind],
     initial: Option<bool>,
-) -> Result<Vec<BitChan>, ConfigError> {
+) -> Result<Vec<BitChan>, CardError> {
     let (n, s) = subdevice(desc, key, given, kinds)?;
     Ok(channels(key, channel_list, n, s)?
         .into_iter()
@@ -288,29 +277,15 @@ fn bits(
 }
 
 /// Resolves `config` against the board `desc` describes.
-pub fn resolve(config: &ComediConfig, desc: &BoardDesc) -> Result<Layout, ConfigError> {
+pub fn resolve(config: &ComediConfig, desc: &BoardDesc) -> Result<Layout, CardError> {
     let mut layout = Layout::default();
     for (i, g) in config.analog_in.iter().enumerate() {
-        let spec = AnalogSpec {
-            key: format!("analog_in[{i}]"),
-            subdevice: g.subdevice,
-            channels: &g.channels,
-            range: g.range,
-            aref: g.aref,
-            initial: None,
-        };
-        layout.analog_in.extend(analog(desc, spec, Kind::Ai)?);
+        let key = format!("analog_in[{i}]");
+        layout.analog_in.extend(analog(desc, &key, g, Kind::Ai)?);
     }
     for (i, g) in config.analog_out.iter().enumerate() {
-        let spec = AnalogSpec {
-            key: format!("analog_out[{i}]"),
-            subdevice: g.subdevice,
-            channels: &g.channels,
-            range: g.range,
-            aref: g.aref,
-            initial: g.initial,
-        };
-        layout.analog_out.extend(analog(desc, spec, Kind::Ao)?);
+        let key = format!("analog_out[{i}]");
+        layout.analog_out.extend(analog(desc, &key, g, Kind::Ao)?);
     }
     for (i, g) in config.input.iter().enumerate() {
         let key = format!("input[{i}]");
@@ -351,8 +326,8 @@ pub fn resolve(config: &ComediConfig, desc: &BoardDesc) -> Result<Layout, Config
 }
 
 /// Refuses a channel mapped twice in one list, or a DIO channel both input and output.
-fn check_unique(layout: &Layout) -> Result<(), ConfigError> {
-    fn once(list: &str, places: impl Iterator<Item = (u32, u32)>) -> Result<(), ConfigError> {
+fn check_unique(layout: &Layout) -> Result<(), CardError> {
+    fn once(list: &str, places: impl Iterator<Item = (u32, u32)>) -> Result<(), CardError> {
         let mut seen = std::collections::HashSet::new();
         for (s, c) in places {
             if !seen.insert((s, c)) {

@@ -53,27 +53,20 @@ fn present() -> String {
     if found.is_empty() {
         "none (is the comedi module loaded?)".into()
     } else {
-        found.join(", ")
+        format!(
+            "{} (a board is attached to one with comedi_config, or by its driver)",
+            found.join(", ")
+        )
     }
 }
 
 /// The card of a section: the board's description read, the section resolved against it.
 pub fn card(config: &ComediConfig, clock: Arc<dyn Clock>) -> Result<Built, CardError> {
-    config
-        .check()
-        .map_err(|e| CardError::at(e.key, e.message))?;
+    config.check()?;
     let desc = Board::open(&config.device)
         .and_then(|mut b| b.describe())
-        .map_err(|e| {
-            CardError::at(
-                "device",
-                format!(
-                    "{e}; comedi devices here: {} (a board is configured with comedi_config)",
-                    present()
-                ),
-            )
-        })?;
-    let layout: Layout = resolve(config, &desc).map_err(|e| CardError::at(e.key, e.message))?;
+        .map_err(|e| CardError::at("device", format!("{e}; comedi devices here: {}", present())))?;
+    let layout: Layout = resolve(config, &desc)?;
     for (list, n) in [
         ("analog_in", layout.analog_in.len()),
         ("analog_out", layout.analog_out.len()),

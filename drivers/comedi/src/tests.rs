@@ -313,7 +313,7 @@ fn error(section: &str) -> String {
         toml::from_str(&format!("device = \"/dev/fake\"\n{section}")).unwrap();
     match config.check().and_then(|()| resolve(&config, &desc())) {
         Ok(_) => panic!("accepted: {section}"),
-        Err(e) => e.to_string(),
+        Err(e) => format!("{}: {}", e.key.unwrap_or_default(), e.message),
     }
 }
 

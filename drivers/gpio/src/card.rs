@@ -26,8 +26,8 @@ use crate::chips::LineId;
 use crate::config::{Bias, Drive, Edges};
 use device_interface::bits::BitSpan;
 use device_interface::encoder::{CardEncoder, EncoderCounter, EncoderHost};
-use device_interface::time::{Clock, Timestamp};
-use device_interface::{CardDevices, Device, DeviceError, DigitalIn, DigitalOut, Health, Status};
+use device_interface::time::Clock;
+use device_interface::{CardDevices, Device, DeviceError, DigitalIn, DigitalOut, Health};
 use gpiocdev_uapi::v2::{LineValues, get_line_values, set_line_values};
 use std::fs::File;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -346,18 +346,11 @@ impl GpioCard {
 
 impl Device for GpioCard {
     fn health(&self) -> Health {
-        let online = self.online.load(Ordering::Acquire);
-        let last = self.last_event.load(Ordering::Acquire);
-        Health {
-            status: if online {
-                Status::Online
-            } else {
-                Status::Offline
-            },
-            last_good: (last != 0).then(|| Timestamp::from_nanos(last)),
-            checked_at: self.clock.now(),
-            last_error: (!online).then_some(DeviceError::Offline),
-        }
+        Health::online_if(
+            self.online.load(Ordering::Acquire),
+            self.last_event.load(Ordering::Acquire),
+            self.clock.now(),
+        )
     }
 }
 

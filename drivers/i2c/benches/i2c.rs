@@ -20,8 +20,8 @@ use kernel_rig::{Failed, Trial};
 use std::hint::black_box;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::time::Instant;
 use testkit::I2cStub;
+use testkit::bench::{mean, rate as run};
 
 const CHIPS: &str = r#"
 [[chip]]
@@ -83,23 +83,6 @@ impl Smbus for Counting {
         let r = self.0.write_word(reg, value);
         self.count(r)
     }
-}
-
-/// (transfers per second, µs per cycle) of `cycles` cycles of `f`, which returns its
-/// transfers.
-fn run(cycles: u32, mut f: impl FnMut() -> u64) -> (f64, f64) {
-    let start = Instant::now();
-    let mut transfers = 0;
-    for _ in 0..cycles {
-        transfers += f();
-    }
-    let s = start.elapsed().as_secs_f64();
-    (transfers as f64 / s, s * 1e6 / f64::from(cycles))
-}
-
-fn mean(v: impl Iterator<Item = f64>) -> f64 {
-    let (sum, n) = v.fold((0.0, 0.0), |(s, n), x| (s + x, n + 1.0));
-    sum / n
 }
 
 fn bus_bench(quick: bool) -> Result<u64, Failed> {

@@ -210,6 +210,18 @@ impl Rig {
             .tool("gpioinfo", "gpiod")
     }
 
+    /// Gives the guest comedi: the core with four legacy device files (`/dev/comedi0`…`3`,
+    /// no board attached), the comedi_test and comedi_parport drivers loaded, a
+    /// [`parallel_port`](Self::parallel_port) for comedi_parport, and comedilib's
+    /// `comedi_config` (Debian `libcomedi0`) on the host to attach boards with.
+    pub fn comedi(self) -> Rig {
+        self.parallel_port()
+            .setup("modprobe comedi comedi_num_legacy_minors=4")
+            .setup("modprobe comedi_test noauto=1")
+            .setup("modprobe comedi_parport")
+            .tool("comedi_config", "libcomedi0")
+    }
+
     /// Gives the guest a PC parallel port at I/O 0x378 (IRQ 7), and records every write
     /// the guest makes to its registers as qemu sees it (qemu's `parallel_ioport_write`
     /// trace event, with host timestamps) in [`PARPORT_TRACE`] in the run directory: the

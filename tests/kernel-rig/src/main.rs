@@ -6,6 +6,7 @@
 //! cargo run -p kernel-rig -- run [MODULE…] -- CMD [ARG…]
 //! cargo run -p kernel-rig -- run --systemd vcan -- systemctl status  # systemd as PID 1
 //! cargo run -p kernel-rig -- run --gpio-sim -- gpiodetect             # gpio-sim loaded
+//! cargo run -p kernel-rig -- shell --comedi     # comedi_test, comedi_parport, a parallel port
 //! ```
 
 use kernel_rig::Rig;
@@ -15,7 +16,8 @@ fn usage() -> ExitCode {
     eprintln!(
         "usage: kernel-rig prepare | shell [MODULE...] | run [MODULE...] -- COMMAND [ARG...]\n\
          (add --kvaser for two kvaser_pci CAN controllers on one emulated bus, --systemd for\n\
-         systemd as the guest's PID 1, --gpio-sim for the kernel's GPIO simulator)"
+         systemd as the guest's PID 1, --gpio-sim for the kernel's GPIO simulator, --comedi for\n\
+         comedi_test and comedi_parport on an emulated parallel port)"
     );
     ExitCode::from(2)
 }
@@ -35,6 +37,7 @@ fn main() -> ExitCode {
             "--kvaser" => rig.qemu_args(&kernel_rig::KVASER_PAIR),
             "--systemd" => rig.systemd(),
             "--gpio-sim" => rig.gpio_sim(),
+            "--comedi" => rig.comedi(),
             m => rig.module(m),
         };
     }

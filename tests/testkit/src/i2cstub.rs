@@ -3,9 +3,9 @@
 //! test wants, found as `/dev/i2c-N` by its adapter's name, and read and written from
 //! outside with i2c-tools (`i2cget`, `i2cset`), the independent peer.
 
+use crate::run;
 use std::io;
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 /// The name the stub's adapter has in `/sys/class/i2c-dev/*/name`.
 pub const ADAPTER_NAME: &str = "SMBus stub driver";
@@ -15,19 +15,6 @@ pub const ADAPTER_NAME: &str = "SMBus stub driver";
 pub struct I2cStub {
     /// The adapter's number (`/dev/i2c-<bus>`).
     pub bus: u32,
-}
-
-fn run(program: &str, args: &[&str]) -> io::Result<String> {
-    let out = Command::new(program).args(args).output()?;
-    if !out.status.success() {
-        return Err(io::Error::other(format!(
-            "{program} {}: {}{}",
-            args.join(" "),
-            String::from_utf8_lossy(&out.stdout).trim(),
-            String::from_utf8_lossy(&out.stderr).trim()
-        )));
-    }
-    Ok(String::from_utf8_lossy(&out.stdout).trim().to_string())
 }
 
 fn parse(text: &str) -> io::Result<u16> {

@@ -3,6 +3,7 @@
 //! - [`peers`]: the third-party programs the tests talk to, declared in one place and
 //!   installed on demand (the suite passes on a fresh machine, or fails naming the
 //!   package — it never skips);
+//! - [`bench`]: timing cycles and averaging rounds, for the bench binaries;
 //! - [`wait`]: waiting for a condition with a deadline;
 //! - [`candump`]: a CAN capture that is listening before it returns;
 //! - [`mbpoll`]: the libmodbus master as a one-shot check;
@@ -16,6 +17,7 @@
 //! - [`logs`]: what a gateway built in the test's own process logs, captured;
 //! - [`layout`]: checks of the source tree's shape (module cycles, function lengths).
 
+pub mod bench;
 pub mod candump;
 pub mod comedi;
 pub mod fixtures;
@@ -36,3 +38,19 @@ pub use i2cstub::I2cStub;
 pub use logs::LogCapture;
 pub use service::{Service, TempDir};
 pub use wait::{wait_for, wait_until};
+
+/// Runs `program` with `args` and returns its standard output, trimmed; an error carries
+/// the command and what it printed (for the peers the kernel-bus helpers drive:
+/// `modprobe`, `i2cset`, `comedi_config`, …).
+pub fn run(program: &str, args: &[&str]) -> std::io::Result<String> {
+    let out = std::process::Command::new(program).args(args).output()?;
+    if !out.status.success() {
+        return Err(std::io::Error::other(format!(
+            "{program} {}: {}{}",
+            args.join(" "),
+            String::from_utf8_lossy(&out.stdout).trim(),
+            String::from_utf8_lossy(&out.stderr).trim()
+        )));
+    }
+    Ok(String::from_utf8_lossy(&out.stdout).trim().to_string())
+}

@@ -72,14 +72,6 @@ pub const I2C_TOOLS: Peer = Peer {
     packages: &["i2c-tools"],
 };
 
-/// comedilib's tools: comedi_config (attaches and detaches comedi boards), in Debian's
-/// libcomedi0 (in /usr/sbin).
-pub const COMEDI_CONFIG: Peer = Peer {
-    name: "comedi_config",
-    probe: Probe::Command("comedi_config"),
-    packages: &["libcomedi0"],
-};
-
 /// cyclictest, the wake-up latency reference of the jitter benchmark.
 pub const CYCLICTEST: Peer = Peer {
     name: "cyclictest",

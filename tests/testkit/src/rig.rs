@@ -1,6 +1,6 @@
 //! Kernel rig presets for the tests that need a kernel bus.
 
-use crate::peers::{CAN_UTILS, COMEDI_CONFIG, I2C_TOOLS, Peer, Probe, require};
+use crate::peers::{CAN_UTILS, I2C_TOOLS, Peer, Probe, require};
 use kernel_rig::Rig;
 
 /// `rig` with `peer` installed on the host before it boots (the guest runs the host's
@@ -33,15 +33,9 @@ pub fn i2c_stub() -> Rig {
     with_peer(Rig::new().module("i2c-dev"), &I2C_TOOLS)
 }
 
-/// A guest with comedi loaded (four legacy minors, `/dev/comedi0`…`3`, no board attached),
-/// the comedi_test and comedi_parport drivers ready, a parallel port whose writes qemu
-/// records ([`kernel_rig::Rig::parallel_port`]) and comedi_config on the host (the comedi
-/// tests' rig); each test attaches the boards it wants ([`crate::comedi`]).
+/// The comedi tests' rig ([`Rig::comedi`]): comedi_test and comedi_parport ready, the
+/// parallel port's writes recorded by qemu; each test attaches the boards it wants
+/// ([`crate::comedi`]).
 pub fn comedi() -> Rig {
-    let rig = Rig::new()
-        .parallel_port()
-        .setup("modprobe comedi comedi_num_legacy_minors=4")
-        .setup("modprobe comedi_test noauto=1")
-        .setup("modprobe comedi_parport");
-    with_peer(rig, &COMEDI_CONFIG)
+    Rig::new().comedi()
 }

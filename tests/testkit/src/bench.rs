@@ -1,0 +1,22 @@
+//! What the bench binaries that compare hwgw with a bare reference share: timing a number
+//! of cycles that each count their operations, and averaging interleaved rounds.
+
+use std::time::Instant;
+
+/// (operations per second, µs per cycle) of `cycles` cycles of `f`, which returns how many
+/// operations (transfers, samples) it made.
+pub fn rate(cycles: u32, mut f: impl FnMut() -> u64) -> (f64, f64) {
+    let start = Instant::now();
+    let mut ops = 0;
+    for _ in 0..cycles {
+        ops += f();
+    }
+    let s = start.elapsed().as_secs_f64();
+    (ops as f64 / s, s * 1e6 / f64::from(cycles.max(1)))
+}
+
+/// The mean of `v` (NaN when empty).
+pub fn mean(v: impl Iterator<Item = f64>) -> f64 {
+    let (sum, n) = v.fold((0.0, 0.0), |(s, n), x| (s + x, n + 1.0));
+    sum / n
+}
