@@ -169,14 +169,25 @@ impl Gateway {
     /// `Ok` while every component that should run is running and every periodic activity
     /// keeps its period; else what is wrong. This is what feeds the systemd watchdog.
     pub fn health(&self) -> Result<(), String> {
+        self.health_since(&mut Vec::new())
+    }
+
+    /// [`health`](Self::health), and also wrong when a periodic activity overran its
+    /// period since the last call with the same `seen` (a spell over by now still counts:
+    /// the watchdog is fed only after an interval the gateway was healthy throughout);
+    /// `seen` keeps each activity's count of unhealthy spells between calls.
+    pub fn health_since(&self, seen: &mut Vec<u64>) -> Result<(), String> {
+        seen.resize(self.order.len(), 0);
         let mut wrong = Vec::new();
-        for (t, start) in self.order.iter().zip(&self.start) {
+        for ((t, start), seen) in self.order.iter().zip(&self.start).zip(seen.iter_mut()) {
+            let stats = t.stats();
+            let spells = std::mem::replace(seen, stats.unhealthy_spells);
             match t.state() {
                 TaskState::Running => {}
                 s if *start => wrong.push(format!("{} is {s}", t.name())),
                 _ => continue,
             }
-            if !t.stats().healthy {
+            if !stats.healthy || stats.unhealthy_spells > spells {
                 wrong.push(format!("{} overruns its period", t.name()));
             }
         }

@@ -12,8 +12,9 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::Arc;
 
-/// Feeds the systemd watchdog every half interval while the gateway is healthy; says why
-/// in STATUS when it is not (once per change).
+/// Feeds the systemd watchdog every half interval after which the gateway is healthy and
+/// no activity overran its period in between; says why in STATUS when it is not (once per
+/// change).
 fn watchdog(
     gw: Arc<Gateway>,
     interval: std::time::Duration,
@@ -21,8 +22,11 @@ fn watchdog(
     running: String,
 ) {
     let mut last: Option<Result<(), String>> = None;
+    // Each activity's unhealthy spells as last seen: one between two looks starves the
+    // watchdog too.
+    let mut seen = Vec::new();
     while !stop.load(std::sync::atomic::Ordering::Acquire) {
-        let health = gw.health();
+        let health = gw.health_since(&mut seen);
         if last.as_ref() != Some(&health) {
             match &health {
                 Ok(()) => {

@@ -262,6 +262,10 @@ pub struct ActivityStats {
     pub consecutive_overruns: u64,
     /// False while consecutive overruns exceed the configured maximum.
     pub healthy: bool,
+    /// Times it became unhealthy (so a watcher that looks now and then sees a spell that
+    /// was over before it looked).
+    #[serde(default)]
+    pub unhealthy_spells: u64,
     /// Lateness histogram: bucket `i` counts wake-ups `2^i..2^(i+1)` ns late.
     pub lateness_histogram: Vec<u64>,
     /// Largest lateness seen, ns.
@@ -303,6 +307,7 @@ struct StatsCell {
     overruns: AtomicU64,
     consecutive: AtomicU64,
     healthy: AtomicBool,
+    spells: AtomicU64,
     histogram: [AtomicU64; HISTOGRAM_BUCKETS],
     lateness_max: AtomicU64,
     step_max: AtomicU64,
@@ -317,6 +322,7 @@ impl StatsCell {
             overruns: AtomicU64::new(0),
             consecutive: AtomicU64::new(0),
             healthy: AtomicBool::new(true),
+            spells: AtomicU64::new(0),
             histogram: std::array::from_fn(|_| AtomicU64::new(0)),
             lateness_max: AtomicU64::new(0),
             step_max: AtomicU64::new(0),
@@ -343,6 +349,7 @@ impl StatsCell {
             overruns: self.overruns.load(Ordering::Relaxed),
             consecutive_overruns: self.consecutive.load(Ordering::Relaxed),
             healthy: self.healthy.load(Ordering::Relaxed),
+            unhealthy_spells: self.spells.load(Ordering::Relaxed),
             lateness_histogram: self
                 .histogram
                 .iter()
@@ -852,7 +859,9 @@ fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                         next = next.saturating_add(missed.saturating_mul(period_ns));
                     }
                     if max_overruns.is_some_and(|m| run > u64::from(m)) {
-                        stats.healthy.store(false, Ordering::Relaxed);
+                        if stats.healthy.swap(false, Ordering::Relaxed) {
+                            stats.spells.fetch_add(1, Ordering::Relaxed);
+                        }
                         if !unhealthy_logged {
                             unhealthy_logged = true;
                             tracing::error!(activity = %shared.name, overruns = run, "{} overruns in a row: activity unhealthy", run);
