@@ -220,10 +220,22 @@ pub struct Scale {
     at_min: f64,
     /// Physical value at `raw.max` (below `at_min` for a negative factor).
     at_max: f64,
-    /// For a scale built from a factor: (factor, offset), so values are computed the way
-    /// the device documents them, `raw * factor + offset`.
-    factor: Option<(f64, f64)>,
+    /// How a raw value becomes physical.
+    formula: Formula,
     unit: Unit,
+}
+
+/// How a [`Scale`] computes a physical value, so that it is the value the device's own
+/// documentation (or library) gives, to the last bit.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Formula {
+    /// Interpolated from the nearer end of the range, so both ends are exact.
+    Ends,
+    /// `raw * factor + offset` (factor, offset): the DBC and Modbus view.
+    Factor(f64, f64),
+    /// `lowest + (raw - raw.min) / steps * (highest - lowest)`, in that order: comedilib's
+    /// `comedi_to_phys`.
+    Fraction,
 }
 
 impl Scale {
@@ -242,9 +254,24 @@ impl Scale {
             raw,
             at_min: lowest,
             at_max: highest,
-            factor: None,
+            formula: Formula::Ends,
             unit,
         })
+    }
+
+    /// Maps `raw.min` to `lowest` and `raw.max` to `highest` the way comedilib's
+    /// `comedi_to_phys` does: the raw value's fraction of the raw range times the span,
+    /// plus `lowest` — so a value equals comedilib's to the last bit (`highest` itself may
+    /// then come out a rounding step off, where `lowest + span` is not exact).
+    pub fn fraction(
+        raw: RawRange,
+        lowest: f64,
+        highest: f64,
+        unit: Unit,
+    ) -> Result<Scale, ScaleError> {
+        let mut s = Scale::linear(raw, lowest, highest, unit)?;
+        s.formula = Formula::Fraction;
+        Ok(s)
     }
 
     /// `physical = raw * factor + offset` over `raw`. A negative factor is allowed.
@@ -267,7 +294,7 @@ impl Scale {
             raw,
             at_min,
             at_max,
-            factor: Some((factor, offset)),
+            formula: Formula::Factor(factor, offset),
             unit,
         })
     }
@@ -298,11 +325,13 @@ impl Scale {
 
     /// The physical value of `raw`. Raw values outside the raw range extrapolate linearly.
     pub fn to_physical(&self, raw: i64) -> f64 {
-        if let Some((factor, offset)) = self.factor {
-            // The documented formula, which also gave the range's ends (so they are exact).
-            return raw as f64 * factor + offset;
-        }
         let t = (i128::from(raw) - i128::from(self.raw.min)) as f64 / self.raw.steps();
+        match self.formula {
+            // The documented formula, which also gave the range's ends (so they are exact).
+            Formula::Factor(factor, offset) => return raw as f64 * factor + offset,
+            Formula::Fraction => return t * (self.at_max - self.at_min) + self.at_min,
+            Formula::Ends => {}
+        }
         // Interpolate from the nearer end so both endpoints come out exactly.
         if t < 0.5 {
             self.at_min + t * (self.at_max - self.at_min)
@@ -363,7 +392,7 @@ impl Scale {
     }
 
     fn nearest_raw(&self, value: f64) -> i64 {
-        if let Some((factor, offset)) = self.factor {
+        if let Formula::Factor(factor, offset) = self.formula {
             // Rounded and clamped in f64 first, so infinities saturate; `as` then saturates too.
             let steps = ((value - offset) / factor).round();
             return self
@@ -401,6 +430,17 @@ mod tests {
             assert_eq!(s.to_raw(lo), Some(0));
             assert_eq!(s.to_raw(hi), Some(s.raw_range().max));
         }
+    }
+
+    #[test]
+    fn fraction_scales_compute_as_comedi_to_phys() {
+        let s = Scale::fraction(RawRange::new(0, 65535).unwrap(), -10.0, 10.0, v()).unwrap();
+        for raw in [0i64, 1, 32767, 32768, 40000, 65534, 65535] {
+            let x = raw as f64 / 65535.0;
+            assert_eq!(s.to_physical(raw), x * 20.0 + -10.0, "raw {raw}");
+        }
+        assert_eq!(s.to_raw(10.0), Some(65535));
+        assert_eq!(s.to_raw(-10.0), Some(0));
     }
 
     #[test]

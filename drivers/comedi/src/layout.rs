@@ -90,7 +90,7 @@ pub fn listing(desc: &BoardDesc) -> String {
     }
 }
 
-/// The scale of `range` over raw `0..=maxdata`.
+/// The scale of `range` over raw `0..=maxdata`, computing as comedilib's `comedi_to_phys`.
 pub fn scale(range: &Range, maxdata: u32) -> Result<Scale, String> {
     let unit = match range.unit {
         RangeUnit::Volt => "V",
@@ -99,7 +99,7 @@ pub fn scale(range: &Range, maxdata: u32) -> Result<Scale, String> {
     };
     let unit = Unit::new(unit).map_err(|e| e.to_string())?;
     let raw = RawRange::new(0, i64::from(maxdata)).map_err(|e| e.to_string())?;
-    Scale::linear(raw, range.min, range.max, unit).map_err(|e| e.to_string())
+    Scale::fraction(raw, range.min, range.max, unit).map_err(|e| e.to_string())
 }
 
 /// Finds the subdevice a group names, or the first of `kinds`.
