@@ -197,6 +197,13 @@ impl WrappingCounter {
         })
     }
 
+    /// Makes the next reading a new baseline (the count keeps its value): for a hardware
+    /// counter that restarted (its board reset, unplugged and back), whose next reading
+    /// has nothing to do with the last.
+    pub fn rebase(&self) {
+        self.seen.store(false, Ordering::Release);
+    }
+
     /// Takes a new counter reading (signed or unsigned, as the counter gives it).
     pub fn sample(&self, raw: i64) {
         let prev = self.last.swap(raw, Ordering::AcqRel);

@@ -213,7 +213,12 @@ unsafe impl Send for Board {}
 impl Board {
     /// Opens the board at `path` (`/dev/comedi0`). Fails when the file is absent or the
     /// board is not configured (`comedi_config`).
+    ///
+    /// The path must be a character device of the comedi driver (its major number in
+    /// `/proc/devices`): comedilib opens it read-write and sends it comedi's ioctls, which
+    /// another device (a watchdog, a serial port waiting for carrier) must never get.
     pub fn open(path: &str) -> Result<Board, ComediError> {
+        check_device(path)?;
         let c = CString::new(path).map_err(|_| ComediError {
             call: "comedi_open",
             path: path.escape_debug().to_string(),
@@ -408,6 +413,53 @@ impl Daq for Board {
         let rc = unsafe { sys::comedi_dio_bitfield2(self.ptr(), subdevice, mask, &mut bits, base) };
         self.check("comedi_dio_bitfield2", rc).map(|_| bits)
     }
+}
+
+/// Checks that `path` is a comedi character device.
+fn check_device(path: &str) -> Result<(), ComediError> {
+    use std::os::unix::fs::{FileTypeExt, MetadataExt};
+    let refuse = |code: i32, message: String| ComediError {
+        call: "comedi_open",
+        path: path.escape_debug().to_string(),
+        code,
+        message,
+    };
+    let meta = std::fs::metadata(path).map_err(|e| {
+        let text = e.to_string();
+        let text = text
+            .split(" (os error")
+            .next()
+            .unwrap_or_default()
+            .to_string();
+        refuse(e.raw_os_error().unwrap_or(0), text)
+    })?;
+    let Some(comedi) = comedi_major() else {
+        return Err(refuse(
+            libc_errno::ENODEV,
+            "the comedi driver is not loaded (no comedi in /proc/devices)".into(),
+        ));
+    };
+    let rdev = meta.rdev();
+    let major = ((rdev >> 8) & 0xfff) | ((rdev >> 32) & !0xfff);
+    if !meta.file_type().is_char_device() || major != comedi {
+        return Err(refuse(
+            libc_errno::ENODEV,
+            format!("not a comedi device (comedi's are character devices of major {comedi})"),
+        ));
+    }
+    Ok(())
+}
+
+/// comedi's character-device major number, from `/proc/devices`.
+fn comedi_major() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/devices").ok()?;
+    text.lines()
+        .skip_while(|l| !l.starts_with("Character devices"))
+        .take_while(|l| !l.is_empty())
+        .find_map(|l| {
+            let (n, name) = l.trim().split_once(' ')?;
+            (name.trim() == "comedi").then(|| n.parse().ok()).flatten()
+        })
 }
 
 /// Turns off comedilib's own error printing (hwgw reports its errors itself); once.

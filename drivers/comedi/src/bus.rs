@@ -10,13 +10,14 @@
 //!
 //! A poll reads each analog input in its selected range and reference (one
 //! `comedi_data_read` each), the digital inputs one `comedi_dio_bitfield2` per subdevice
-//! window of 32 channels, and each counter. A call failing because the board is gone
+//! window of 32 channels, and each counter (a card with no inputs reads one output back
+//! instead, so that it notices a board gone). A call failing because the board is gone
 //! (`ENODEV`, `ENXIO`, `EBADF`, `EIO`) takes the card offline at once, three other failures
 //! in a row too; an offline board is closed and opened again after 100 ms, doubling to 5 s.
 
 use crate::board::{BoardDesc, ComediError, Daq};
-use crate::card::ComediCard;
-use crate::layout::listing;
+use crate::card::{ComediCard, pack, unpack};
+use crate::layout::{BitChan, listing};
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
@@ -44,6 +45,10 @@ pub struct ComediBus {
     backoff: Duration,
     fails: u32,
     windows: Vec<Window>,
+    /// The board cannot have the section's directions: never opened again.
+    refused: bool,
+    /// An analog output the board reads back (the liveness read of a card with no inputs).
+    probe_ao: Option<usize>,
 }
 
 impl ComediBus {
@@ -69,6 +74,8 @@ impl ComediBus {
             backoff: FIRST_BACKOFF,
             fails: 0,
             windows,
+            refused: false,
+            probe_ao: None,
         }
     }
 
@@ -84,10 +91,11 @@ impl ComediBus {
             return;
         }
         // Gone (here or in a device call): closed before it is opened again.
-        if self.card.lock().take().is_some() {
+        if self.close() {
             self.next_open = Some(now + self.backoff);
         }
-        if self.next_open.is_some_and(|t| now < t) {
+        let closing = self.card.closing.load(Ordering::Acquire);
+        if closing || self.refused || self.next_open.is_some_and(|t| now < t) {
             return;
         }
         match self.open_board() {
@@ -96,6 +104,8 @@ impl ComediBus {
                 self.fails = 0;
                 self.next_open = None;
                 tracing::info!(board = %self.card.path(), "comedi board open");
+                // Its first poll at once: no input answers from before it was opened.
+                self.poll(now);
             }
             Err(e) => {
                 self.card.failed(&e);
@@ -103,6 +113,17 @@ impl ComediBus {
                 self.backoff = (self.backoff * 2).min(MAX_BACKOFF);
             }
         }
+    }
+
+    /// Closes the board if it is open; its inputs' samples are dropped (none is served as
+    /// current after it is opened again). True if it was open.
+    fn close(&self) -> bool {
+        let was_open = self.card.lock().take().is_some();
+        self.card.fresh.store(false, Ordering::Release);
+        for a in &self.card.ai {
+            a.sample.store(0, Ordering::Release);
+        }
+        was_open
     }
 
     /// Runs one call on the open board.
@@ -119,6 +140,7 @@ impl ComediBus {
             Some(Ok(())) => {
                 self.fails = 0;
                 self.card.polls.fetch_add(1, Ordering::AcqRel);
+                self.card.fresh.store(true, Ordering::Release);
                 self.card
                     .last_good
                     .store(self.card.now().as_nanos().max(1), Ordering::Release);
@@ -134,7 +156,7 @@ impl ComediBus {
                 }
                 if !self.card.is_online() {
                     tracing::warn!(board = %self.card.path(), error = %e, "comedi board offline");
-                    self.card.lock().take();
+                    self.close();
                     self.next_open = Some(now + self.backoff);
                 }
             }
@@ -150,9 +172,7 @@ impl ComediBus {
             let aref = a.aref.load(Ordering::Acquire);
             let c = &a.chan;
             match self.call(|b| b.data_read(c.subdevice, c.channel, range, aref))? {
-                Ok(raw) => a
-                    .sample
-                    .store(crate::card::pack(raw, range), Ordering::Release),
+                Ok(raw) => a.sample.store(pack(raw, range, aref), Ordering::Release),
                 Err(e) => return Some(Err(e)),
             }
         }
@@ -170,6 +190,24 @@ impl ComediBus {
             match self.call(|b| b.data_read(c.subdevice, c.channel, 0, 0))? {
                 Ok(raw) => counter.sample(i64::from(raw)),
                 Err(e) => return Some(Err(e)),
+            }
+        }
+        if card.ai.is_empty() && self.windows.is_empty() && card.counters.is_empty() {
+            // Nothing to read: one output read back, so a board that went away is
+            // noticed (an analog output only on a board that reads them back).
+            let probe = if let Some(o) = card.dout.first() {
+                let (sub, base) = (o.chan.subdevice, o.chan.channel & !31);
+                self.call(|b| b.bitfield(sub, base, 0, 0).map(|_| ()))?
+            } else if let Some(c) = self.probe_ao.and_then(|i| card.ao.get(i)).map(|a| &a.chan) {
+                self.call(|b| {
+                    b.data_read(c.subdevice, c.channel, c.range, c.aref.raw())
+                        .map(|_| ())
+                })?
+            } else {
+                Ok(())
+            };
+            if let Err(e) = probe {
+                return Some(Err(e));
             }
         }
         Some(Ok(()))
@@ -197,35 +235,38 @@ impl ComediBus {
             });
         }
         self.set_up(board.as_mut())?;
+        // Counters restart with the board: each one's next reading is its new baseline.
+        for (_, counter) in &self.card.counters {
+            counter.rebase();
+        }
         *self.card.lock() = Some(board);
         self.card.opened.fetch_add(1, Ordering::Relaxed);
         self.card.online.store(true, Ordering::Release);
         Ok(())
     }
 
-    fn set_up(&self, b: &mut dyn Daq) -> Result<(), ComediError> {
+    /// Sets the outputs up: levels, then DIO directions (read back), then analog outputs.
+    fn set_up(&mut self, b: &mut dyn Daq) -> Result<(), ComediError> {
         let card = &self.card;
-        for (bit, o) in card.dout.iter().enumerate() {
-            let (sub, base) = (o.chan.subdevice, o.chan.channel & !31);
-            let shift = o.chan.channel - base;
-            let bit = bit as u32;
-            if o.asked.load(Ordering::Acquire) {
-                let on = card.outputs.get(bit).unwrap_or(false);
-                b.bitfield(sub, base, 1 << shift, u32::from(on) << shift)?;
-            } else {
-                let word = b.bitfield(sub, base, 0, 0)?;
-                let _ = card.outputs.set(bit, word >> shift & 1 == 1);
-                o.known.store(true, Ordering::Release);
-            }
-        }
         let dio_out = card.dout.iter().map(|o| (o.chan, true));
         let dio_in = card.di.iter().map(|c| (*c, false));
         let dio: Vec<_> = dio_out.chain(dio_in).filter(|(c, _)| c.dio).collect();
+        let mut before = Vec::with_capacity(dio.len());
+        for (c, _) in &dio {
+            before.push(b.dio_get_config(c.subdevice, c.channel)?);
+        }
+        self.levels(b, &dio, &before)?;
         for (c, out) in &dio {
             b.dio_config(c.subdevice, c.channel, *out)?;
         }
         for (c, out) in &dio {
             if b.dio_get_config(c.subdevice, c.channel)? != *out {
+                // The board sets one direction for channels the section splits: put them
+                // back as they were and never try again (the section must change).
+                for ((c, _), was) in dio.iter().zip(&before) {
+                    let _ = b.dio_config(c.subdevice, c.channel, *was);
+                }
+                self.refused = true;
                 let other = dio
                     .iter()
                     .find(|(o, d)| o.subdevice == c.subdevice && d != out)
@@ -237,7 +278,7 @@ impl ComediBus {
                     path: card.path().to_string(),
                     code: 0,
                     message: format!(
-                        "DIO subdevice {} channel {} did not stay an {}: the board sets the direction of its channels together{other}",
+                        "DIO subdevice {} channel {} did not stay an {}: the board sets the direction of its channels together{other}; directions put back, not opened again until the section changes",
                         c.subdevice,
                         c.channel,
                         if *out { "output" } else { "input" }
@@ -245,17 +286,70 @@ impl ComediBus {
                 });
             }
         }
-        for a in &card.ao {
+        self.probe_ao = None;
+        for (i, a) in card.ao.iter().enumerate() {
             let c = &a.chan;
-            if a.asked.load(Ordering::Acquire) {
-                if let Some((raw, _)) = crate::card::unpack(a.value.load(Ordering::Acquire)) {
-                    b.data_write(c.subdevice, c.channel, c.range, c.aref.raw(), raw)?;
-                }
-            } else if let Ok(raw) = b.data_read(c.subdevice, c.channel, c.range, c.aref.raw()) {
-                // A board that reads its outputs back; one that cannot leaves them unknown.
-                a.value
-                    .store(crate::card::pack(raw, c.range), Ordering::Release);
+            let aref = c.aref.raw();
+            if a.asked.load(Ordering::Acquire)
+                && let Some((raw, _, _)) = unpack(a.value.load(Ordering::Acquire))
+            {
+                b.data_write(c.subdevice, c.channel, c.range, aref, raw)?;
             }
+            // A board that reads its outputs back; one that cannot leaves them unknown.
+            if let Ok(raw) = b.data_read(c.subdevice, c.channel, c.range, aref) {
+                self.probe_ao.get_or_insert(i);
+                if !a.asked.load(Ordering::Acquire) {
+                    a.value.store(pack(raw, c.range, aref), Ordering::Release);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The outputs' levels before any drives: those hwgw wrote (or `initial`) written,
+    /// the others read; a DIO input about to be an output latched at the level its pin
+    /// reads, so the line keeps its level when it starts to drive.
+    fn levels(
+        &self,
+        b: &mut dyn Daq,
+        dio: &[(BitChan, bool)],
+        before: &[bool],
+    ) -> Result<(), ComediError> {
+        let card = &self.card;
+        // Pins of DIO inputs about to be outputs, to latch at the level they read, so the
+        // lines keep their level when they start to drive: (subdevice, base, mask, bits).
+        let mut latch: Vec<(u32, u32, u32, u32)> = Vec::new();
+        for (bit, o) in card.dout.iter().enumerate() {
+            let (sub, base) = (o.chan.subdevice, o.chan.channel & !31);
+            let shift = o.chan.channel - base;
+            let bit = bit as u32;
+            if o.asked.load(Ordering::Acquire) {
+                let on = card.outputs.get(bit).unwrap_or(false);
+                b.bitfield(sub, base, 1 << shift, u32::from(on) << shift)?;
+                continue;
+            }
+            let on = b.bitfield(sub, base, 0, 0)? >> shift & 1 == 1;
+            let is_input = o.chan.dio
+                && dio
+                    .iter()
+                    .zip(before)
+                    .any(|((c, _), out)| *c == o.chan && !out);
+            if is_input {
+                let w = match latch.iter().position(|w| (w.0, w.1) == (sub, base)) {
+                    Some(w) => w,
+                    None => {
+                        latch.push((sub, base, 0, 0));
+                        latch.len() - 1
+                    }
+                };
+                latch[w].2 |= 1 << shift;
+                latch[w].3 |= u32::from(on) << shift;
+            }
+            let _ = card.outputs.set(bit, on);
+            o.known.store(true, Ordering::Release);
+        }
+        for (sub, base, mask, bits) in latch {
+            b.bitfield(sub, base, mask, bits)?;
         }
         Ok(())
     }

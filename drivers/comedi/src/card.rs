@@ -28,13 +28,19 @@ use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 const NO_SAMPLE: u64 = 0;
 const VALID: u64 = 1 << 63;
 
-/// A sample and the range it was taken in, in one word: valid bit, range (16 bits), raw.
-pub(crate) fn pack(raw: u32, range: u32) -> u64 {
-    VALID | (u64::from(range & 0xffff) << 32) | u64::from(raw)
+/// A sample and the range and reference it was taken in, in one word: valid bit, aref
+/// (bits 48–49), range (bits 32–47), raw.
+pub(crate) fn pack(raw: u32, range: u32, aref: u32) -> u64 {
+    VALID | (u64::from(aref & 3) << 48) | (u64::from(range & 0xffff) << 32) | u64::from(raw)
 }
 
-pub(crate) fn unpack(word: u64) -> Option<(u32, u32)> {
-    (word & VALID != 0).then_some(((word & 0xffff_ffff) as u32, ((word >> 32) & 0xffff) as u32))
+/// (raw, range, aref) of a packed sample, if valid.
+pub(crate) fn unpack(word: u64) -> Option<(u32, u32, u32)> {
+    (word & VALID != 0).then_some((
+        (word & 0xffff_ffff) as u32,
+        ((word >> 32) & 0xffff) as u32,
+        ((word >> 48) & 3) as u32,
+    ))
 }
 
 /// An analog input channel's state.
@@ -92,6 +98,10 @@ pub struct ComediCard {
     pub(crate) name: String,
     pub(crate) board: Mutex<Option<Box<dyn Daq>>>,
     pub(crate) online: AtomicBool,
+    /// The inputs were read since the board was last opened.
+    pub(crate) fresh: AtomicBool,
+    /// The gateway is stopping: the board is not opened again (see `settle`).
+    pub(crate) closing: AtomicBool,
     pub(crate) ai: Vec<AiSlot>,
     pub(crate) ao: Vec<AoSlot>,
     pub(crate) di: Vec<BitChan>,
@@ -118,6 +128,15 @@ impl ComediCard {
         layout: Layout,
         clock: Arc<dyn Clock>,
     ) -> Result<ComediCard, DeviceError> {
+        let analog = layout.analog_in.iter().chain(&layout.analog_out);
+        if analog
+            .clone()
+            .any(|c| c.ranges.get(c.range as usize).is_none())
+        {
+            return Err(DeviceError::Unsupported {
+                what: "an analog channel without its starting range in its range table",
+            });
+        }
         let counters = layout
             .counters
             .iter()
@@ -132,6 +151,8 @@ impl ComediCard {
             name: name.to_string(),
             board: Mutex::new(None),
             online: AtomicBool::new(false),
+            fresh: AtomicBool::new(false),
+            closing: AtomicBool::new(false),
             ai: layout
                 .analog_in
                 .into_iter()
@@ -146,7 +167,10 @@ impl ComediCard {
                 .analog_out
                 .into_iter()
                 .map(|chan| AoSlot {
-                    value: AtomicU64::new(chan.initial.map_or(NO_SAMPLE, |r| pack(r, chan.range))),
+                    value: AtomicU64::new(
+                        chan.initial
+                            .map_or(NO_SAMPLE, |r| pack(r, chan.range, chan.aref.raw())),
+                    ),
                     asked: AtomicBool::new(chan.initial.is_some()),
                     chan,
                 })
@@ -217,6 +241,22 @@ impl ComediCard {
                 .lock()
                 .unwrap_or_else(PoisonError::into_inner)
                 .clone(),
+        }
+    }
+
+    /// At stop, after the gateway wrote the safe values (at once, as every write): the
+    /// board is not opened again from now on, so a board that comes back before the bus
+    /// side stops is not given the outputs it had before. `Err` when it is offline: the
+    /// safe values could not be written.
+    pub fn settle(&self) -> Result<(), String> {
+        self.closing.store(true, Ordering::Release);
+        if self.is_online() {
+            Ok(())
+        } else {
+            Err(format!(
+                "{} is offline: its outputs are as it left them, not at their safe values",
+                self.path
+            ))
         }
     }
 
@@ -303,19 +343,22 @@ impl ComediCard {
                 windows[w].3 |= shift;
             }
         }
+        // Each window's outputs recorded under the board's lock as soon as it is written:
+        // what a reopen writes back, and what the read-back says, is what the board has.
         self.with_board(|b| {
             for &(sub, base, mask, bits) in &windows[..n] {
                 b.bitfield(sub, base, mask, bits)?;
+                for (bit, on) in span() {
+                    let slot = &self.dout[bit as usize];
+                    if slot.chan.subdevice == sub && slot.chan.channel & !31 == base {
+                        let _ = self.outputs.set(bit, on);
+                        slot.known.store(true, Ordering::Release);
+                        slot.asked.store(true, Ordering::Release);
+                    }
+                }
             }
             Ok(())
-        })?;
-        for (bit, on) in span() {
-            let _ = self.outputs.set(bit, on);
-            let slot = &self.dout[bit as usize];
-            slot.known.store(true, Ordering::Release);
-            slot.asked.store(true, Ordering::Release);
-        }
-        Ok(())
+        })
     }
 }
 
@@ -336,8 +379,16 @@ impl AnalogIn for ComediCard {
 
     fn scale(&self, channel: u32) -> Result<Scale, DeviceError> {
         let a = self.ai(channel)?;
+        // `new` checked every channel has its starting range; `select_range` stores only
+        // indices in the table.
         let r = a.range.load(Ordering::Acquire) as usize;
-        Ok(a.chan.ranges[r.min(a.chan.ranges.len() - 1)].1)
+        a.chan
+            .ranges
+            .get(r)
+            .map(|(_, scale)| *scale)
+            .ok_or(DeviceError::Unsupported {
+                what: "a channel without that range",
+            })
     }
 
     fn read_raw(&self, channel: u32) -> Result<i64, DeviceError> {
@@ -346,7 +397,12 @@ impl AnalogIn for ComediCard {
             return Err(DeviceError::Offline);
         }
         match unpack(a.sample.load(Ordering::Acquire)) {
-            Some((raw, range)) if range == a.range.load(Ordering::Acquire) => Ok(i64::from(raw)),
+            Some((raw, range, aref))
+                if range == a.range.load(Ordering::Acquire)
+                    && aref == a.aref.load(Ordering::Acquire) =>
+            {
+                Ok(i64::from(raw))
+            }
             _ => Err(DeviceError::Stale { age: None }),
         }
     }
@@ -396,7 +452,13 @@ impl AnalogOut for ComediCard {
 
     fn scale(&self, channel: u32) -> Result<Scale, DeviceError> {
         let a = self.ao(channel)?;
-        Ok(a.chan.ranges[a.chan.range as usize].1)
+        a.chan
+            .ranges
+            .get(a.chan.range as usize)
+            .map(|(_, scale)| *scale)
+            .ok_or(DeviceError::Unsupported {
+                what: "a channel without that range",
+            })
     }
 
     /// One `comedi_data_write`, at once.
@@ -406,17 +468,21 @@ impl AnalogOut for ComediCard {
         let c = &a.chan;
         // In 0..=maxdata (checked above), so it fits.
         let data = raw as u32;
-        self.with_board(|b| b.data_write(c.subdevice, c.channel, c.range, c.aref.raw(), data))?;
-        a.value.store(pack(data, c.range), Ordering::Release);
-        a.asked.store(true, Ordering::Release);
-        Ok(())
+        self.with_board(|b| {
+            b.data_write(c.subdevice, c.channel, c.range, c.aref.raw(), data)?;
+            // Under the board's lock: what a reopen writes back is what the board has.
+            a.value
+                .store(pack(data, c.range, c.aref.raw()), Ordering::Release);
+            a.asked.store(true, Ordering::Release);
+            Ok(())
+        })
     }
 
     /// What was written, or what the board read back when the card opened it.
     fn read_back_raw(&self, channel: u32) -> Result<i64, DeviceError> {
         let a = self.ao(channel)?;
         match unpack(a.value.load(Ordering::Acquire)) {
-            Some((raw, _)) => Ok(i64::from(raw)),
+            Some((raw, _, _)) => Ok(i64::from(raw)),
             None if !self.is_online() => Err(DeviceError::Offline),
             None => Err(DeviceError::Stale { age: None }),
         }
@@ -433,7 +499,7 @@ impl DigitalIn for ComediCard {
         if !self.is_online() {
             return Err(DeviceError::Offline);
         }
-        if self.polls.load(Ordering::Acquire) == 0 {
+        if !self.fresh.load(Ordering::Acquire) {
             return Err(DeviceError::Stale { age: None });
         }
         self.inputs.get(bit)

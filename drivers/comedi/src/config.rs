@@ -154,7 +154,7 @@ pub struct OutputGroup {
     #[serde(default)]
     pub channels: Option<Vec<u32>>,
     /// A level written at start. Without one nothing is written until asked: the
-    /// outputs keep the levels the board has (a DIO channel is made an output at them).
+    /// outputs keep the levels they have (a DIO input is made an output at its pin's).
     #[serde(default)]
     pub initial: Option<bool>,
 }

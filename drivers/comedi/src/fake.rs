@@ -18,6 +18,8 @@ pub struct State {
     pub bits: HashMap<u32, u32>,
     /// DIO outputs by subdevice (bit = channel).
     pub dirs: HashMap<u32, u32>,
+    /// The levels on a DIO subdevice's pins from outside (what its inputs read).
+    pub pins: HashMap<u32, u32>,
     /// DIO subdevices whose channels share one direction.
     pub ganged: Vec<u32>,
     /// Calls that changed the board, in order.
@@ -207,9 +209,22 @@ impl Daq for Fake {
         bits: u32,
     ) -> Result<u32, ComediError> {
         let mut s = self.enter("comedi_dio_bitfield2")?;
+        let dio = s
+            .desc
+            .as_ref()
+            .and_then(|d| d.subdevices.get(subdevice as usize))
+            .is_some_and(|d| d.kind == Kind::Dio);
         let word = s.bits.entry(subdevice).or_default();
         *word = (*word & !(mask << base)) | ((bits & mask) << base);
-        let now = *word >> base;
+        let latch = *word;
+        // A DIO channel reads its latch as an output, its pin as an input.
+        let now = if dio {
+            let dirs = s.dirs.get(&subdevice).copied().unwrap_or(0);
+            let pins = s.pins.get(&subdevice).copied().unwrap_or(0);
+            ((latch & dirs) | (pins & !dirs)) >> base
+        } else {
+            latch >> base
+        };
         if mask != 0 {
             s.log.push(format!(
                 "bits {subdevice} mask {mask:#x} = {:#x}",

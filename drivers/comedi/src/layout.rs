@@ -3,7 +3,7 @@
 //! every channel a device reports exists on the board.
 
 use crate::board::{BoardDesc, Kind, Range, RangeUnit, SubdeviceDesc};
-use crate::config::{AnalogGroup, Aref, ComediConfig};
+use crate::config::{AnalogGroup, Aref, ComediConfig, MAX_CHANNELS};
 use device_interface::{RawRange, Scale, Unit};
 use driver_api::CardError;
 
@@ -276,16 +276,29 @@ fn bits(
         .collect())
 }
 
+/// Refuses a list past [`MAX_CHANNELS`] as soon as a group takes it there.
+fn bound(key: &str, len: usize) -> Result<(), CardError> {
+    if len > MAX_CHANNELS {
+        return Err(err(
+            key,
+            format!("takes its list past {MAX_CHANNELS} channels"),
+        ));
+    }
+    Ok(())
+}
+
 /// Resolves `config` against the board `desc` describes.
 pub fn resolve(config: &ComediConfig, desc: &BoardDesc) -> Result<Layout, CardError> {
     let mut layout = Layout::default();
     for (i, g) in config.analog_in.iter().enumerate() {
         let key = format!("analog_in[{i}]");
         layout.analog_in.extend(analog(desc, &key, g, Kind::Ai)?);
+        bound(&key, layout.analog_in.len())?;
     }
     for (i, g) in config.analog_out.iter().enumerate() {
         let key = format!("analog_out[{i}]");
         layout.analog_out.extend(analog(desc, &key, g, Kind::Ao)?);
+        bound(&key, layout.analog_out.len())?;
     }
     for (i, g) in config.input.iter().enumerate() {
         let key = format!("input[{i}]");
@@ -297,6 +310,7 @@ pub fn resolve(config: &ComediConfig, desc: &BoardDesc) -> Result<Layout, CardEr
             &[Kind::Di, Kind::Dio],
             None,
         )?);
+        bound(&key, layout.input.len())?;
     }
     for (i, g) in config.output.iter().enumerate() {
         let key = format!("output[{i}]");
@@ -308,11 +322,13 @@ pub fn resolve(config: &ComediConfig, desc: &BoardDesc) -> Result<Layout, CardEr
             &[Kind::Do, Kind::Dio],
             g.initial,
         )?);
+        bound(&key, layout.output.len())?;
     }
     for (i, e) in config.encoder.iter().enumerate() {
         let key = format!("encoder[{i}]");
         let (n, s) = subdevice(desc, &key, e.subdevice, &[Kind::Counter])?;
-        let c = channels(&key, &Some(vec![e.channel]), n, s)?[0];
+        let c = e.channel;
+        channels(&key, &Some(vec![c]), n, s)?;
         layout.counters.push(CounterChan {
             subdevice: n,
             channel: c,

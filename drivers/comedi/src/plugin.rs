@@ -9,7 +9,7 @@
 use crate::board::{Board, BoardDesc, Daq};
 use crate::bus::ComediBus;
 use crate::card::ComediCard;
-use crate::config::{ComediConfig, MAX_CHANNELS};
+use crate::config::ComediConfig;
 use crate::layout::{Layout, resolve};
 use device_interface::CardDevices;
 use device_interface::time::Clock;
@@ -67,19 +67,6 @@ pub fn card(config: &ComediConfig, clock: Arc<dyn Clock>) -> Result<Built, CardE
         .and_then(|mut b| b.describe())
         .map_err(|e| CardError::at("device", format!("{e}; comedi devices here: {}", present())))?;
     let layout: Layout = resolve(config, &desc)?;
-    for (list, n) in [
-        ("analog_in", layout.analog_in.len()),
-        ("analog_out", layout.analog_out.len()),
-        ("input", layout.input.len()),
-        ("output", layout.output.len()),
-    ] {
-        if n > MAX_CHANNELS {
-            return Err(CardError::at(
-                list,
-                format!("maps {n} channels, more than {MAX_CHANNELS}"),
-            ));
-        }
-    }
     let name = format!("{} ({})", desc.board, desc.driver);
     let card = ComediCard::new(&config.device, &name, layout, clock)
         .map_err(|e| CardError::at("encoder", e))?;
@@ -165,6 +152,12 @@ impl Card for ComediPlugin {
             self.card.devices().encoders.len(),
             self.period.as_millis()
         )
+    }
+
+    /// Outputs are written at once; this stops the board being opened again and says
+    /// whether it was online to take them.
+    fn settle(&self, _deadline: std::time::Instant) -> Result<(), String> {
+        self.card.settle()
     }
 
     fn status(&self) -> CardStatus {

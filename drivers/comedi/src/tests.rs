@@ -11,7 +11,7 @@ use crate::fake::{Fake, desc};
 use crate::layout::resolve;
 use device_interface::conformance;
 use device_interface::time::MonotonicClock;
-use device_interface::{AnalogIn, AnalogOut, DeviceError, DigitalOut};
+use device_interface::{AnalogIn, AnalogOut, DeviceError, DigitalIn, DigitalOut};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -92,7 +92,13 @@ fn conformance_kit_over_every_interface() {
     let mut di = |bit: u32, on: bool| {
         let (sub, chan) = [(3, 0), (3, 1), (3, 2), (3, 3), (2, 6), (2, 7)][bit as usize];
         let mut s = fake.state();
-        let w = s.bits.entry(sub).or_default();
+        // The DI's levels, the DIO inputs' pins.
+        let w = if sub == 2 {
+            s.pins.entry(sub)
+        } else {
+            s.bits.entry(sub)
+        }
+        .or_default();
         *w = (*w & !(1 << chan)) | (u32::from(on) << chan);
         drop(s);
         rig.borrow_mut().step();
@@ -122,6 +128,8 @@ fn conformance_kit_over_every_interface() {
 fn opening_writes_nothing_unasked_and_levels_before_directions() {
     let mut rig = Rig::new(ALL);
     rig.fake.state().bits.insert(2, 0b0101);
+    // Outputs already (as another program left them): their latch is read, not written.
+    rig.fake.state().dirs.insert(2, 0b1111);
     rig.fake.state().data.insert((1, 0), 1234);
     rig.step();
     // Only directions: the outputs' levels were read, not written.
@@ -195,8 +203,8 @@ fn a_board_gone_is_offline_then_opened_again_with_what_was_written() {
     let c = rig.card.counters();
     assert_eq!((c.went_offline, c.opened), (1, 1));
     assert!(c.last_error.unwrap().contains("No such device"));
-    // Back, reset: only what hwgw wrote is written again (bit 1 and AO 0), before the
-    // directions; the other outputs are read as the board has them.
+    // Back, reset, its lines inputs at 0: the one hwgw wrote (bit 1) latched at its level,
+    // the others at their pins' (0), before they drive; then AO 0 as written.
     {
         let mut s = rig.fake.state();
         s.gone = false;
@@ -208,15 +216,19 @@ fn a_board_gone_is_offline_then_opened_again_with_what_was_written() {
     rig.step_long();
     assert!(rig.card.is_online());
     assert_eq!(rig.card.counters().opened, 2);
-    let log = rig.log();
-    assert_eq!(log[0], "bits 2 mask 0x2 = 0x2", "{log:?}");
-    assert!(log[1].starts_with("config"), "{log:?}");
-    assert_eq!(log.last().unwrap(), "write 1/0 range 1 = 3071", "{log:?}");
     assert_eq!(
-        log.iter()
-            .filter(|l| l.starts_with("write") || l.starts_with("bits"))
-            .count(),
-        2
+        rig.log(),
+        [
+            "bits 2 mask 0x2 = 0x2",
+            "bits 2 mask 0xd = 0x0",
+            "config 2/0 out",
+            "config 2/1 out",
+            "config 2/2 out",
+            "config 2/3 out",
+            "config 2/6 in",
+            "config 2/7 in",
+            "write 1/0 range 1 = 3071",
+        ]
     );
 }
 
@@ -367,4 +379,100 @@ fn section_errors_name_the_key_and_what_the_board_has() {
     assert_eq!((layout.output.len(), layout.output[0].subdevice), (8, 2));
     assert_eq!((layout.input.len(), layout.input[0].subdevice), (4, 3));
     assert_eq!(desc().subdevices[2].kind, Kind::Dio);
+}
+
+#[test]
+fn a_dio_input_made_an_output_drives_the_level_its_pin_had() {
+    let mut rig = Rig::new("output = [{ subdevice = 2, channels = [0, 1] }]");
+    {
+        let mut s = rig.fake.state();
+        s.pins.insert(2, 0b01);
+        s.bits.insert(2, 0b10);
+    }
+    rig.step();
+    assert!(rig.card.is_online());
+    // The pins (1, 0) latched before the lines drive, not the stale latch (0, 1).
+    assert_eq!(
+        rig.log(),
+        ["bits 2 mask 0x3 = 0x1", "config 2/0 out", "config 2/1 out"]
+    );
+    assert_eq!(rig.card.check_sequence(0, 1).unwrap(), 0b01);
+}
+
+#[test]
+fn a_refused_direction_is_put_back_and_never_tried_again() {
+    let mut rig = Rig::new(
+        "output = [{ subdevice = 2, channels = [0] }]\ninput = [{ subdevice = 2, channels = [1] }]",
+    );
+    rig.fake.state().ganged.push(2);
+    rig.step();
+    assert_eq!(
+        rig.fake.state().dirs.get(&2).copied().unwrap_or(0),
+        0,
+        "inputs as before"
+    );
+    let calls = rig.fake.state().calls;
+    rig.step_long();
+    assert_eq!(rig.fake.state().calls, calls, "not opened again");
+    assert!(!rig.card.is_online());
+}
+
+#[test]
+fn after_a_reopen_inputs_are_fresh_and_counters_do_not_jump() {
+    let mut rig = Rig::new(
+        "analog_in = [{ channels = [0] }]\ninput = [{}]\nencoder = [{ resolution = 100000 }]",
+    );
+    {
+        let mut s = rig.fake.state();
+        s.data.insert((0, 0), 100);
+        s.data.insert((4, 0), 5000);
+        s.bits.insert(3, 1);
+    }
+    rig.step();
+    rig.step();
+    let enc = rig.card.devices().encoders.into_iter().next().unwrap().1;
+    let at = enc.position().unwrap();
+    assert_eq!(
+        (rig.card.read_raw(0).unwrap(), rig.card.read_bit(0).unwrap()),
+        (100, true)
+    );
+    rig.fake.state().gone = true;
+    rig.step();
+    {
+        let mut s = rig.fake.state();
+        s.gone = false;
+        s.data.insert((0, 0), 200);
+        s.data.insert((4, 0), 7);
+        s.bits.insert(3, 0);
+    }
+    // The step that opens it polls it: nothing from before the outage is served.
+    for _ in 0..600 {
+        rig.step();
+        if rig.card.is_online() {
+            break;
+        }
+    }
+    assert_eq!(
+        (rig.card.read_raw(0).unwrap(), rig.card.read_bit(0).unwrap()),
+        (200, false)
+    );
+    // The counter restarted at 7: a new baseline, not a jump of 7 - 5000.
+    assert_eq!(enc.position().unwrap(), at);
+    rig.fake.state().data.insert((4, 0), 17);
+    rig.step();
+    assert_eq!(enc.position().unwrap(), at + 10);
+}
+
+#[test]
+fn after_settle_the_board_is_not_opened_again() {
+    let mut rig = Rig::new("analog_out = [{ channels = [0] }]");
+    rig.step();
+    rig.card.write(0, 5.0).unwrap();
+    assert_eq!(rig.card.settle(), Ok(()));
+    rig.fake.state().gone = true;
+    rig.step();
+    rig.fake.state().gone = false;
+    rig.step_long();
+    assert!(!rig.card.is_online());
+    assert!(rig.card.settle().unwrap_err().contains("offline"));
 }
