@@ -274,6 +274,15 @@ impl Gateway {
     /// output to its safe value, lets each card get them to the hardware, then stops the bus
     /// sides. Returns a line per card with the outputs as left.
     pub fn shutdown(&self) -> Vec<String> {
+        // ThreadScope first, its pulses under way ended: the hold below would refuse their
+        // lows and leave their bits high.
+        if !self
+            .runtime
+            .thread_scope()
+            .close(Instant::now() + Duration::from_secs(1))
+        {
+            tracing::warn!("ThreadScope: a step still under way after 1 s; its bit may stay high");
+        }
         // From here on only the safe values are written: every other write is refused.
         self.hold_outputs();
         for s in &self.servers {

@@ -10,7 +10,7 @@
 use device_interface::DigitalOut;
 use std::cell::Cell;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 
 thread_local! {
     static THREAD_NUMBER: Cell<Option<u32>> = const { Cell::new(None) };
@@ -30,6 +30,10 @@ pub(crate) fn set_thread_number(n: u32) {
 pub struct ThreadScope {
     out: Option<Arc<dyn DigitalOut>>,
     errors: AtomicU64,
+    /// No pulse starts once set ([`close`](Self::close)).
+    closed: AtomicBool,
+    /// Pulses begun and not yet ended (their bit high).
+    active: AtomicU32,
 }
 
 impl ThreadScope {
@@ -38,6 +42,8 @@ impl ThreadScope {
         ThreadScope {
             out: None,
             errors: AtomicU64::new(0),
+            closed: AtomicBool::new(false),
+            active: AtomicU32::new(0),
         }
     }
 
@@ -46,6 +52,8 @@ impl ThreadScope {
         ThreadScope {
             out: Some(out),
             errors: AtomicU64::new(0),
+            closed: AtomicBool::new(false),
+            active: AtomicU32::new(0),
         }
     }
 
@@ -70,15 +78,41 @@ impl ThreadScope {
             d.set(v + 1);
             v == 0
         });
-        if outer {
+        // Counted before `closed` is read: `close` either sees this pulse and waits for its
+        // low, or this pulse sees `closed` and writes nothing.
+        let write = outer && {
+            self.active.fetch_add(1, Ordering::SeqCst);
+            let open = !self.closed.load(Ordering::SeqCst);
+            if !open {
+                self.active.fetch_sub(1, Ordering::SeqCst);
+            }
+            open
+        };
+        if write {
             self.set(out.as_ref(), bit, true);
         }
         let r = f();
-        if outer {
+        if write {
             self.set(out.as_ref(), bit, false);
+            self.active.fetch_sub(1, Ordering::SeqCst);
         }
         DEPTH.with(|d| d.set(d.get().saturating_sub(1)));
         r
+    }
+
+    /// Ends ThreadScope: no pulse starts from now on, and this waits (until `deadline` at
+    /// the latest) for the pulses under way to end, so every bit is left low. For a
+    /// gateway stopping, before its outputs stop taking writes. False if a pulse was still
+    /// under way at the deadline (a step that long).
+    pub fn close(&self, deadline: std::time::Instant) -> bool {
+        self.closed.store(true, Ordering::SeqCst);
+        while self.active.load(Ordering::SeqCst) != 0 {
+            if std::time::Instant::now() >= deadline {
+                return false;
+            }
+            std::thread::sleep(std::time::Duration::from_micros(200));
+        }
+        true
     }
 
     fn set(&self, out: &dyn DigitalOut, bit: u32, value: bool) {

@@ -372,6 +372,57 @@ fn thread_scope_pulses_each_thread_bit_in_order() {
 }
 
 #[test]
+fn thread_scope_closed_waits_for_its_pulses_and_writes_no_more() {
+    struct Slow;
+    impl Component for Slow {
+        fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
+            std::thread::sleep(Duration::from_millis(5));
+            Ok(())
+        }
+    }
+    let registry = Arc::new(Registry::new());
+    let mut config = SimConfig::demo();
+    config.digital_outputs = 16;
+    config.record_capacity = 1 << 20;
+    let card = SimCard::new(&config, Arc::new(rtt::time::MonotonicClock)).unwrap();
+    card.register(&registry, "sim").unwrap();
+    registry.digital_out().alias("ThreadScope", "sim").unwrap();
+    let rt = Runtime::new(
+        registry,
+        RuntimeOptions {
+            thread_scope: true,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let t = rt
+        .add(
+            "slow",
+            ActivitySpec::periodic(Duration::from_millis(1)),
+            rtt::InitialState::Stopped,
+            |_| Ok(Slow),
+        )
+        .unwrap();
+    t.start().unwrap();
+    std::thread::sleep(Duration::from_millis(30));
+    // Closed in the middle of a 5 ms step: it waits for that step's low.
+    assert!(
+        rt.thread_scope()
+            .close(Instant::now() + Duration::from_secs(1))
+    );
+    let record = card.take_output_record();
+    let last = record.iter().rev().find_map(|e| match e.write {
+        OutputWrite::Bit { bit: 1, value } => Some(value),
+        _ => None,
+    });
+    assert_eq!(last, Some(false), "bit 1 ends low");
+    // The thread steps on; its bit is not written any more.
+    std::thread::sleep(Duration::from_millis(20));
+    assert!(card.take_output_record().is_empty());
+    t.stop().unwrap();
+}
+
+#[test]
 fn thread_scope_needs_its_output() {
     let e = Runtime::new(
         Arc::new(Registry::new()),
