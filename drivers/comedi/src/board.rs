@@ -226,6 +226,7 @@ impl Board {
             message: "the path has a NUL byte".into(),
         })?;
         quiet();
+        clear_errno();
         // SAFETY: `c` is a NUL-terminated string that outlives the call; comedi_open
         // returns NULL or a handle this Board then owns.
         let handle = unsafe { sys::comedi_open(c.as_ptr()) };
@@ -356,6 +357,7 @@ impl Daq for Board {
         aref: u32,
     ) -> Result<u32, ComediError> {
         let mut data: sys::lsampl_t = 0;
+        clear_errno();
         // SAFETY: the handle is open; `data` is a valid place for one sample.
         let rc = unsafe {
             sys::comedi_data_read(self.ptr(), subdevice, channel, range, aref, &mut data)
@@ -371,6 +373,7 @@ impl Daq for Board {
         aref: u32,
         data: u32,
     ) -> Result<(), ComediError> {
+        clear_errno();
         // SAFETY: the handle is open; the sample is passed by value.
         let rc =
             unsafe { sys::comedi_data_write(self.ptr(), subdevice, channel, range, aref, data) };
@@ -388,6 +391,7 @@ impl Daq for Board {
         } else {
             sys::COMEDI_INPUT
         };
+        clear_errno();
         // SAFETY: the handle is open; plain values.
         let rc = unsafe { sys::comedi_dio_config(self.ptr(), subdevice, channel, dir) };
         self.check("comedi_dio_config", rc).map(|_| ())
@@ -395,6 +399,7 @@ impl Daq for Board {
 
     fn dio_get_config(&mut self, subdevice: u32, channel: u32) -> Result<bool, ComediError> {
         let mut dir: c_uint = 0;
+        clear_errno();
         // SAFETY: the handle is open; `dir` is a valid place for the answer.
         let rc = unsafe { sys::comedi_dio_get_config(self.ptr(), subdevice, channel, &mut dir) };
         self.check("comedi_dio_get_config", rc)
@@ -409,6 +414,7 @@ impl Daq for Board {
         bits: u32,
     ) -> Result<u32, ComediError> {
         let mut bits = bits;
+        clear_errno();
         // SAFETY: the handle is open; `bits` is a valid place for the bits read back.
         let rc = unsafe { sys::comedi_dio_bitfield2(self.ptr(), subdevice, mask, &mut bits, base) };
         self.check("comedi_dio_bitfield2", rc).map(|_| bits)
@@ -471,10 +477,36 @@ fn quiet() {
     });
 }
 
-/// The error comedilib holds for the last call on this thread.
+/// Where comedilib's own error numbers start (`COMEDI_NOERROR`); below are errno values.
+const COMEDI_OWN_ERRORS: i32 = 0x1000;
+
+/// Clears the thread's errno before a comedilib call, so [`error`] reads this call's.
+fn clear_errno() {
+    // SAFETY: `__errno_location` returns the calling thread's errno, valid for the
+    // thread's life; writing 0 there is what C code does before a call it checks.
+    unsafe { *libc::__errno_location() = 0 };
+}
+
+/// The error of the comedilib call that just failed on this thread.
 fn error(call: &'static str, path: &str) -> ComediError {
+    // The system's error number, cleared before the call: the kernel's answer when the
+    // call failed in a system call. Else comedilib's own (0x1000 on), which it does not
+    // clear: an errno-range value there is an earlier call's, not this one's.
+    let os = std::io::Error::last_os_error().raw_os_error().unwrap_or(0);
     // SAFETY: reads comedilib's last error number.
-    let code = unsafe { sys::comedi_errno() };
+    let lib = unsafe { sys::comedi_errno() };
+    let code = if os != 0 {
+        os
+    } else if lib >= COMEDI_OWN_ERRORS {
+        lib
+    } else {
+        return ComediError {
+            call,
+            path: path.to_string(),
+            code: 0,
+            message: "comedilib failed without saying why".into(),
+        };
+    };
     // SAFETY: comedi_strerror returns a pointer to a static string (or NULL).
     let text = unsafe { sys::comedi_strerror(code) };
     let message = if text.is_null() {

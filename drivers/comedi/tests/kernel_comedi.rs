@@ -369,6 +369,18 @@ fn a_missing_board_and_a_wrong_channel_are_named() -> Result<(), Failed> {
     let e = err("device = \"/dev/comedi3\"\nanalog_in = [{}]".into());
     assert!(e.contains("device: comedi_open on /dev/comedi3"), "{e}");
     assert!(e.contains("/dev/comedi0, /dev/comedi1"), "{e}");
+    // A failing call's error is its own, not an earlier one's: after comedi_open failed
+    // with ENODEV, a bit-field call on an analog subdevice fails, and not as "gone".
+    let _ = Board::open("/dev/comedi3");
+    {
+        let _board = ComediBoard::comedi_test(TEST_BOARD)?;
+        let mut bare = Board::open(TEST_BOARD)?;
+        let e = bare
+            .bitfield(0, 0, 0, 0)
+            .expect_err("bits of an AI subdevice");
+        assert!(!e.gone(), "{e}");
+        println!("bits of an AI subdevice: {e}");
+    }
     // Not a comedi device: refused before comedilib opens it.
     let e = err("device = \"/dev/null\"\nanalog_in = [{}]".into());
     assert!(e.contains("comedi_open on /dev/null: not a comedi device (comedi's are character devices of major 98)"), "{e}");
