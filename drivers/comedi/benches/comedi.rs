@@ -14,43 +14,16 @@
 
 use device_interface::time::MonotonicClock;
 use device_interface::{AnalogIn, AnalogOut};
-use driver_comedi::board::{Board, BoardDesc, ComediError, Daq};
-use driver_comedi::bus::ComediBus;
+use driver_comedi::board::{Board, Daq};
 use driver_comedi::config::ComediConfig;
 use kernel_rig::{Failed, Trial};
 use std::hint::black_box;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 use testkit::ComediBoard;
 use testkit::bench::{mean, rate};
 
 const DEVICE: &str = "/dev/comedi0";
-
-/// Counts the samples it reads.
-struct Counting(Board, Arc<AtomicU64>);
-
-impl Daq for Counting {
-    fn describe(&mut self) -> Result<BoardDesc, ComediError> {
-        self.0.describe()
-    }
-    fn data_read(&mut self, s: u32, c: u32, r: u32, a: u32) -> Result<u32, ComediError> {
-        self.1.fetch_add(1, Ordering::Relaxed);
-        self.0.data_read(s, c, r, a)
-    }
-    fn data_write(&mut self, s: u32, c: u32, r: u32, a: u32, d: u32) -> Result<(), ComediError> {
-        self.0.data_write(s, c, r, a, d)
-    }
-    fn dio_config(&mut self, s: u32, c: u32, o: bool) -> Result<(), ComediError> {
-        self.0.dio_config(s, c, o)
-    }
-    fn dio_get_config(&mut self, s: u32, c: u32) -> Result<bool, ComediError> {
-        self.0.dio_get_config(s, c)
-    }
-    fn bitfield(&mut self, s: u32, b: u32, m: u32, bits: u32) -> Result<u32, ComediError> {
-        self.0.bitfield(s, b, m, bits)
-    }
-}
 
 fn bench(quick: bool) -> Result<u64, Failed> {
     let cycles = if quick { 100 } else { 20_000 };
@@ -61,13 +34,7 @@ fn bench(quick: bool) -> Result<u64, Failed> {
     let built = driver_comedi::plugin::card(&config, Arc::new(MonotonicClock))
         .map_err(|e| Failed::from(e.message))?;
     let card = built.card.clone();
-    let counted = Arc::new(AtomicU64::new(0));
-    let c = counted.clone();
-    let mut bus = ComediBus::new(
-        built.card,
-        built.desc,
-        Box::new(move |path| Ok(Box::new(Counting(Board::open(path)?, c.clone())) as Box<dyn Daq>)),
-    );
+    let mut bus = built.bus();
     let mut now = Instant::now();
     let mut step = || {
         now += Duration::from_millis(1);
@@ -78,13 +45,14 @@ fn bench(quick: bool) -> Result<u64, Failed> {
         return Err(format!("the board did not open: {:?}", card.counters()).into());
     }
     let n = AnalogIn::channel_count(card.as_ref());
+    // Samples counted by the card's own polls (each reads every channel once).
     let mut hwgw_in = || -> u64 {
-        let before = counted.load(Ordering::Relaxed);
+        let before = card.polls();
         step();
         for ch in 0..n {
             black_box(card.read(ch).unwrap());
         }
-        counted.load(Ordering::Relaxed) - before
+        (card.polls() - before) * u64::from(n)
     };
     let mut bare = Board::open(DEVICE)?;
     let mut bare_in = || -> u64 {

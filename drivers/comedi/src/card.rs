@@ -226,6 +226,11 @@ impl ComediCard {
         self.online.load(Ordering::Acquire)
     }
 
+    /// Polls that read every input, so far.
+    pub fn polls(&self) -> u64 {
+        self.polls.load(Ordering::Relaxed)
+    }
+
     /// Its counters, now.
     pub fn counters(&self) -> ComediCounters {
         let l = |a: &AtomicU64| a.load(Ordering::Relaxed);

@@ -3,7 +3,7 @@
 //! - [`peers`]: the third-party programs the tests talk to, declared in one place and
 //!   installed on demand (the suite passes on a fresh machine, or fails naming the
 //!   package — it never skips);
-//! - [`bench`]: timing cycles and averaging rounds, for the bench binaries;
+//! - [`mod@bench`]: timing cycles and averaging rounds, for the bench binaries;
 //! - [`wait`]: waiting for a condition with a deadline;
 //! - [`candump`]: a CAN capture that is listening before it returns;
 //! - [`mbpoll`]: the libmodbus master as a one-shot check;
