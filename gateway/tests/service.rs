@@ -344,7 +344,12 @@ fn an_overrunning_activity_starves_the_watchdog() {
         "the watchdog was fed while unhealthy: {msgs:?}"
     );
     let described = svc.ok(json!({"cmd": "describe", "component": "fast"}));
-    assert_eq!(described["activity"]["healthy"], json!(false));
+    // It may be on time for a step at the moment it is described (a 1 µs period, now and
+    // then met): the spells it had say it overran.
+    assert!(
+        described["activity"]["unhealthy_spells"].as_u64().unwrap() >= 1,
+        "{described}"
+    );
     assert!(described["activity"]["overruns"].as_u64().unwrap() > 0);
     assert!(svc.terminate().status.success());
 }
