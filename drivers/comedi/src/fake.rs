@@ -15,11 +15,11 @@ pub struct State {
     /// Samples by (subdevice, channel).
     pub data: HashMap<(u32, u32), u32>,
     /// Digital levels by subdevice (bit = channel).
-    pub bits: HashMap<u32, u32>,
+    pub bits: HashMap<u32, u64>,
     /// DIO outputs by subdevice (bit = channel).
-    pub dirs: HashMap<u32, u32>,
+    pub dirs: HashMap<u32, u64>,
     /// The levels on a DIO subdevice's pins from outside (what its inputs read).
-    pub pins: HashMap<u32, u32>,
+    pub pins: HashMap<u32, u64>,
     /// DIO subdevices whose channels share one direction.
     pub ganged: Vec<u32>,
     /// Calls that changed the board, in order.
@@ -58,7 +58,8 @@ fn sub(kind: Kind, flags: u32, n: usize, maxdata: u32, ranges: &[Range]) -> Subd
 }
 
 /// 0: AI, 4 channels, 12 bit, ±10 V and 0–5 V, ground and diff; 1: AO, 2 channels, 12 bit,
-/// 0–10 V and ±10 V; 2: DIO, 8 channels; 3: DI, 4 channels; 4: COUNTER, 2 channels, 24 bit.
+/// 0–10 V and ±10 V; 2: DIO, 8 channels; 3: DI, 4 channels; 4: COUNTER, 2 channels, 24 bit;
+/// 5: DO and 6: DI, 48 channels each (two windows of 32 for a bit-field call).
 pub fn desc() -> BoardDesc {
     use comedi_sys::{SDF_DIFF, SDF_GROUND};
     BoardDesc {
@@ -82,6 +83,8 @@ pub fn desc() -> BoardDesc {
             sub(Kind::Dio, 0, 8, 1, &[]),
             sub(Kind::Di, 0, 4, 1, &[]),
             sub(Kind::Counter, 0, 2, 0xff_ffff, &[]),
+            sub(Kind::Do, 0, 48, 1, &[]),
+            sub(Kind::Di, 0, 48, 1, &[]),
         ],
     }
 }
@@ -179,9 +182,9 @@ impl Daq for Fake {
     ) -> Result<(), ComediError> {
         let mut s = self.enter("comedi_dio_config")?;
         let mask = if s.ganged.contains(&subdevice) {
-            u32::MAX
+            u64::MAX
         } else {
-            1 << channel
+            1u64 << channel
         };
         let d = s.dirs.entry(subdevice).or_default();
         if output {
@@ -214,20 +217,28 @@ impl Daq for Fake {
             .as_ref()
             .and_then(|d| d.subdevices.get(subdevice as usize))
             .is_some_and(|d| d.kind == Kind::Dio);
+        // Up to 64 channels a subdevice; `base` picks the 32 a call sees.
+        let (mask64, bits64) = (u64::from(mask) << base, u64::from(bits & mask) << base);
         let word = s.bits.entry(subdevice).or_default();
-        *word = (*word & !(mask << base)) | ((bits & mask) << base);
+        *word = (*word & !mask64) | bits64;
         let latch = *word;
         // A DIO channel reads its latch as an output, its pin as an input.
         let now = if dio {
             let dirs = s.dirs.get(&subdevice).copied().unwrap_or(0);
             let pins = s.pins.get(&subdevice).copied().unwrap_or(0);
-            ((latch & dirs) | (pins & !dirs)) >> base
+            (latch & dirs) | (pins & !dirs)
         } else {
-            latch >> base
+            latch
         };
+        let now = (now >> base) as u32;
         if mask != 0 {
+            let at = if base == 0 {
+                String::new()
+            } else {
+                format!(" base {base}")
+            };
             s.log.push(format!(
-                "bits {subdevice} mask {mask:#x} = {:#x}",
+                "bits {subdevice}{at} mask {mask:#x} = {:#x}",
                 bits & mask
             ));
         }

@@ -99,7 +99,7 @@ fn conformance_kit_over_every_interface() {
             s.bits.entry(sub)
         }
         .or_default();
-        *w = (*w & !(1 << chan)) | (u32::from(on) << chan);
+        *w = (*w & !(1 << chan)) | (u64::from(on) << chan);
         drop(s);
         rig.borrow_mut().step();
     };
@@ -335,7 +335,7 @@ fn section_errors_name_the_key_and_what_the_board_has() {
         ("poll_ms = 0", "poll_ms: 0 is outside 1..=60000"),
         (
             "analog_in = [{ subdevice = 1 }]",
-            "analog_in[0].subdevice: subdevice 1 is AO, not AI (the board has: 0 AI (4 channels), 1 AO (2 channels), 2 DIO (8 channels), 3 DI (4 channels), 4 COUNTER (2 channels))",
+            "analog_in[0].subdevice: subdevice 1 is AO, not AI (the board has: 0 AI (4 channels), 1 AO (2 channels), 2 DIO (8 channels), 3 DI (4 channels), 4 COUNTER (2 channels), 5 DO (48 channels), 6 DI (48 channels))",
         ),
         (
             "analog_in = [{ subdevice = 9 }]",
@@ -356,10 +356,10 @@ fn section_errors_name_the_key_and_what_the_board_has() {
         ("input = [{ channels = [] }]", "input[0].channels: is empty"),
         (
             "output = [{ channels = [1, 1] }]",
-            "output: subdevice 2 channel 1 is mapped twice",
+            "output: subdevice 5 channel 1 is mapped twice",
         ),
         (
-            "output = [{ channels = [1] }]\ninput = [{ subdevice = 2, channels = [1] }]",
+            "output = [{ subdevice = 2, channels = [1] }]\ninput = [{ subdevice = 2, channels = [1] }]",
             "output: DIO subdevice 2 channel 1 is an input too",
         ),
         ("encoder = [{ resolution = 0 }]", "encoder[0].resolution"),
@@ -372,13 +372,27 @@ fn section_errors_name_the_key_and_what_the_board_has() {
         let got = error(section);
         assert!(got.contains(want), "{section}: {got}");
     }
-    // The first subdevice of a kind is the default; DO falls back to DIO.
+    // The first subdevice of a kind is the default; DO and DI fall back to DIO.
     let config: ComediConfig =
         toml::from_str("device = \"x\"\noutput = [{}]\ninput = [{}]").unwrap();
     let layout = resolve(&config, &desc()).unwrap();
-    assert_eq!((layout.output.len(), layout.output[0].subdevice), (8, 2));
+    assert_eq!((layout.output.len(), layout.output[0].subdevice), (48, 5));
     assert_eq!((layout.input.len(), layout.input[0].subdevice), (4, 3));
-    assert_eq!(desc().subdevices[2].kind, Kind::Dio);
+    let mut dio_only = desc();
+    dio_only.subdevices.truncate(3);
+    for (list, section) in [("output", "output = [{}]"), ("input", "input = [{}]")] {
+        let config: ComediConfig = toml::from_str(&format!("device = \"x\"\n{section}")).unwrap();
+        let layout = resolve(&config, &dio_only).unwrap();
+        let chans = if list == "output" {
+            &layout.output
+        } else {
+            &layout.input
+        };
+        assert_eq!((chans.len(), chans[0].subdevice), (8, 2), "{list}");
+    }
+    // Both at once would make every DIO channel an input and an output: refused.
+    assert!(resolve(&config, &dio_only).is_err());
+    assert_eq!(dio_only.subdevices[2].kind, Kind::Dio);
 }
 
 #[test]
@@ -475,4 +489,35 @@ fn after_settle_the_board_is_not_opened_again() {
     rig.step_long();
     assert!(!rig.card.is_online());
     assert!(rig.card.settle().unwrap_err().contains("offline"));
+}
+
+#[test]
+fn channels_past_31_go_through_their_own_window() {
+    let mut rig = Rig::new(
+        "output = [{ subdevice = 5, channels = [30, 31, 32, 33, 47] }]\n\
+         input = [{ subdevice = 6, channels = [31, 32, 47] }]",
+    );
+    rig.step();
+    assert!(rig.card.is_online(), "{:?}", rig.card.counters());
+    rig.log();
+    // Channels 30–33 span two windows: one call each, with its base.
+    rig.card.set_sequence(0, 3, 0b1011).unwrap();
+    rig.card.set_bit(4, true).unwrap();
+    assert_eq!(
+        rig.log(),
+        [
+            "bits 5 mask 0xc0000000 = 0xc0000000",
+            "bits 5 base 32 mask 0x3 = 0x2",
+            "bits 5 base 32 mask 0x8000 = 0x8000",
+        ]
+    );
+    assert_eq!(rig.fake.state().bits[&5], 0b11 << 30 | 1 << 33 | 1 << 47);
+    assert_eq!(rig.card.check_sequence(0, 4).unwrap(), 0b11011);
+    // Inputs 31, 32 and 47: read in two windows, each bit where it belongs.
+    rig.fake.state().bits.insert(6, 1 << 32 | 1 << 47);
+    rig.step();
+    assert_eq!(rig.card.read_sequence(0, 2).unwrap(), 0b110);
+    rig.fake.state().bits.insert(6, 1 << 31);
+    rig.step();
+    assert_eq!(rig.card.read_sequence(0, 2).unwrap(), 0b001);
 }
