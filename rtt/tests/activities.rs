@@ -289,6 +289,26 @@ fn refused_fifo_falls_back_to_other_and_still_runs() {
     assert_eq!(total, stats.steps, "every wake-up is in the histogram");
 }
 
+/// A runtime with ThreadScope on a simulated card of 16 outputs that records every write.
+fn scope_runtime() -> (Arc<SimCard>, Runtime) {
+    let registry = Arc::new(Registry::new());
+    let mut config = SimConfig::demo();
+    config.digital_outputs = 16;
+    config.record_capacity = 1 << 20;
+    let card = SimCard::new(&config, Arc::new(rtt::time::MonotonicClock)).unwrap();
+    card.register(&registry, "sim").unwrap();
+    registry.digital_out().alias("ThreadScope", "sim").unwrap();
+    let rt = Runtime::new(
+        registry,
+        RuntimeOptions {
+            thread_scope: true,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    (card, rt)
+}
+
 #[test]
 fn thread_scope_pulses_each_thread_bit_in_order() {
     struct Busy(Arc<AtomicU64>);
@@ -298,21 +318,7 @@ fn thread_scope_pulses_each_thread_bit_in_order() {
             Ok(())
         }
     }
-    let registry = Arc::new(Registry::new());
-    let mut config = SimConfig::demo();
-    config.digital_outputs = 16;
-    config.record_capacity = 1 << 20;
-    let card = SimCard::new(&config, Arc::new(rtt::time::MonotonicClock)).unwrap();
-    card.register(&registry, "sim").unwrap();
-    registry.digital_out().alias("ThreadScope", "sim").unwrap();
-    let rt = Runtime::new(
-        registry.clone(),
-        RuntimeOptions {
-            thread_scope: true,
-            ..Default::default()
-        },
-    )
-    .unwrap();
+    let (card, rt) = scope_runtime();
     let steps = Arc::new(AtomicU64::new(0));
     let mk = |name: &str, spec: ActivitySpec| {
         let s = steps.clone();
@@ -380,21 +386,7 @@ fn thread_scope_closed_waits_for_its_pulses_and_writes_no_more() {
             Ok(())
         }
     }
-    let registry = Arc::new(Registry::new());
-    let mut config = SimConfig::demo();
-    config.digital_outputs = 16;
-    config.record_capacity = 1 << 20;
-    let card = SimCard::new(&config, Arc::new(rtt::time::MonotonicClock)).unwrap();
-    card.register(&registry, "sim").unwrap();
-    registry.digital_out().alias("ThreadScope", "sim").unwrap();
-    let rt = Runtime::new(
-        registry,
-        RuntimeOptions {
-            thread_scope: true,
-            ..Default::default()
-        },
-    )
-    .unwrap();
+    let (card, rt) = scope_runtime();
     let t = rt
         .add(
             "slow",
