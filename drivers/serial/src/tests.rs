@@ -1,0 +1,348 @@
+//! The decoder against hostile bytes, the section's checks, and the bus against a board of
+//! the test's own (protocol 2.5, with the encoder feature the simulated Uno lacks).
+#![allow(clippy::unwrap_used, reason = "test code")]
+
+use crate::board::BoardInfo;
+use crate::bus::{FirmataBus, Line, Outcome};
+use crate::card::FirmataCard;
+use crate::config::FirmataConfig;
+use crate::protocol::{Decoder, encoder_positions, mode, sysex};
+use device_interface::time::{Clock, MonotonicClock};
+use device_interface::{DigitalIn, DigitalOut};
+use std::io::{Read, Write};
+use std::os::fd::{AsFd, BorrowedFd};
+use std::os::unix::net::UnixStream;
+use std::sync::Arc;
+use std::time::Duration;
+
+fn frames(bytes: &[u8]) -> (Vec<String>, Decoder) {
+    let mut d = Decoder::new();
+    let mut out = Vec::new();
+    for b in bytes {
+        if let Some(f) = d.push(*b) {
+            out.push(format!("{f:?}"));
+        }
+    }
+    (out, d)
+}
+
+#[test]
+fn frames_decode_and_errors_are_counted_exactly() {
+    let (f, d) = frames(&[
+        0xF9, 2, 5, // version
+        0x91, 0x20, 0x01, // port 1: pins 13 and 15
+        0xE3, 0x7F, 0x07, // A3 = 1023
+        0x12, 0x13, // stray: one resync, two framing errors
+        0xE0, 0x05, // cut short by the next command byte
+        0xA5, 0x01, // unknown command, its data skipped
+        0xF0, 0x55, 0x01, 0xF7, // unknown sysex
+        0xF0, 0x71, 0x41, 0x00, 0xF7, // STRING_DATA "A"
+    ]);
+    assert_eq!(
+        f,
+        [
+            "Version { major: 2, minor: 5 }",
+            "Digital { port: 1, value: 160 }",
+            "Analog { channel: 3, value: 1023 }",
+            "Sysex { command: 113, data: [65, 0] }",
+        ]
+    );
+    let c = d.counts();
+    assert_eq!(
+        (c.messages, c.framing_errors, c.unknown_commands, c.resyncs),
+        (4, 4, 2, 3),
+        "{c:?}"
+    );
+    assert_eq!(c.bytes, 24);
+}
+
+/// xorshift64*: the same hostile streams on every run.
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        self.0.wrapping_mul(0x2545_F491_4F6C_DD1D)
+    }
+}
+
+#[test]
+fn random_garbage_never_panics_nor_sticks_the_decoder() {
+    let mut rng = Rng(0x9E37_79B9_7F4A_7C15);
+    let mut d = Decoder::new();
+    for round in 0..20_000 {
+        let len = (rng.next() % 300) as usize;
+        for _ in 0..len {
+            let r = rng.next();
+            // Mostly command-ish and data bytes, sometimes a sysex start or end.
+            let b = match r % 8 {
+                0 => 0xF0,
+                1 => 0xF7,
+                2..=4 => (r >> 8) as u8 | 0x80,
+                _ => (r >> 8) as u8 & 0x7F,
+            };
+            let _ = d.push(b);
+        }
+        if round % 97 == 0 {
+            for _ in 0..5000 {
+                let _ = d.push(0x41);
+            }
+        }
+        // Whatever came before, a whole message after it is decoded.
+        let mut got = None;
+        for b in [0xF9, 2, 5] {
+            got = d.push(b).map(|f| format!("{f:?}"));
+        }
+        assert_eq!(
+            got.as_deref(),
+            Some("Version { major: 2, minor: 5 }"),
+            "round {round}"
+        );
+    }
+    let c = d.counts();
+    assert!(
+        c.framing_errors > 0 && c.resyncs > 0 && c.unknown_commands > 0,
+        "{c:?}"
+    );
+}
+
+#[test]
+fn encoder_positions_are_sign_and_magnitude() {
+    let data = [
+        0x00, 0x7F, 0x01, 0x00, 0x00, 0x41, 0x05, 0x00, 0x00, 0x00, 0x02,
+    ];
+    let (p, whole) = encoder_positions(&data);
+    assert_eq!(p.collect::<Vec<_>>(), [(0, 255), (1, -5)]);
+    assert!(!whole);
+}
+
+fn section(s: &str) -> FirmataConfig {
+    toml::from_str(&format!("port = \"/dev/ttyACM0\"\n{s}")).unwrap()
+}
+
+#[test]
+fn the_section_alone_is_bounded() {
+    for (s, key, msg) in [
+        (
+            "digital_in = [{ pin = 2 }]\ndigital_out = [{ pin = 2 }]",
+            "digital_out[0].pin",
+            "pin 2 is digital_in[0].pin already",
+        ),
+        (
+            "digital_out = [{ pin = 128 }]",
+            "digital_out[0].pin",
+            "Firmata numbers pins 0-127",
+        ),
+        (
+            "analog_in = [{ channel = 16 }]",
+            "analog_in[0].channel",
+            "A0-A15",
+        ),
+        (
+            "pwm = [{ pin = 3, initial = 1.5 }]",
+            "pwm[0].initial",
+            "a duty cycle 0-1",
+        ),
+        (
+            "servo = [{ pin = 9, min_us = 2000, max_us = 1000 }]",
+            "servo[0].max_us",
+            "min_us below max_us",
+        ),
+        (
+            "encoder = [{ a = 2, b = 2, resolution = 100 }]",
+            "encoder[0].b",
+            "pin 2 is encoder[0].a already",
+        ),
+        ("baud = 0", "baud", "300-4000000"),
+        ("sampling_ms = 0", "sampling_ms", "1-16383"),
+        ("reference_volts = nan", "reference_volts", "above 0"),
+    ] {
+        let e = section(s).check().unwrap_err();
+        assert_eq!(e.key.as_deref(), Some(key), "{s}: {e:?}");
+        assert!(e.message.contains(msg), "{s}: {e:?}");
+    }
+    let mut c = section("");
+    c.port = String::new();
+    assert_eq!(c.check().unwrap_err().key.as_deref(), Some("port"));
+}
+
+/// A board of 20 pins, protocol 2.5: pins 2 and 3 encoder-capable, 4 with a pull-up,
+/// 14–19 analog A0–A5.
+fn board_replies() -> (Vec<u8>, Vec<u8>) {
+    let mut caps = Vec::new();
+    for pin in 0..20u8 {
+        if pin >= 2 {
+            caps.extend_from_slice(&[mode::INPUT, 1, mode::OUTPUT, 1, mode::PULLUP, 1]);
+        }
+        if pin == 2 || pin == 3 {
+            caps.extend_from_slice(&[mode::ENCODER, 1]);
+        }
+        if pin >= 14 {
+            caps.extend_from_slice(&[mode::ANALOG, 10]);
+        }
+        caps.push(0x7F);
+    }
+    let map: Vec<u8> = (0..20u8)
+        .map(|p| if p >= 14 { p - 14 } else { 0x7F })
+        .collect();
+    (caps, map)
+}
+
+#[test]
+fn the_board_is_checked_and_its_gaps_named() {
+    let (caps, map) = board_replies();
+    let mut b = BoardInfo {
+        protocol: (2, 5),
+        ..BoardInfo::default()
+    };
+    b.set_capabilities(&caps).unwrap();
+    b.set_mapping(&map).unwrap();
+    let e = section("pwm = [{ pin = 3 }]").check_board(&b).unwrap_err();
+    assert_eq!(e.key.as_deref(), Some("pwm[0].pin"));
+    assert!(
+        e.message
+            .starts_with("pin 3 cannot be pwm: its modes are input, output, input_pullup, encoder"),
+        "{e:?}"
+    );
+    assert!(e.message.ends_with("pwm pins: none)"), "{e:?}");
+    assert!(
+        section("encoder = [{ a = 2, b = 3, resolution = 400 }]")
+            .check_board(&b)
+            .is_ok()
+    );
+    assert!(b.set_capabilities(&[0x00]).is_err());
+    assert!(b.set_capabilities(&[0x00, 0x01]).is_err());
+}
+
+/// The host's end of a socket pair as a serial line.
+struct Sock(UnixStream);
+impl Line for Sock {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        self.0.read(buf)
+    }
+    fn write(&mut self, data: &[u8]) -> std::io::Result<usize> {
+        self.0.write(data)
+    }
+    fn fd(&self) -> BorrowedFd<'_> {
+        self.0.as_fd()
+    }
+}
+
+/// Steps `bus` until `done`, the board answering what it is sent by `answer`.
+fn drive(
+    bus: &mut FirmataBus,
+    board: &mut UnixStream,
+    sent: &mut Vec<u8>,
+    mut done: impl FnMut(&FirmataBus, &[u8]) -> bool,
+) {
+    let end = std::time::Instant::now() + Duration::from_secs(10);
+    let (caps, map) = board_replies();
+    while !done(bus, sent) {
+        assert!(std::time::Instant::now() < end, "sent so far: {sent:x?}");
+        let _ = bus.step(MonotonicClock.now());
+        let mut buf = [0u8; 4096];
+        if let Ok(n) = board.read(&mut buf) {
+            let from = sent.len();
+            sent.extend_from_slice(&buf[..n]);
+            let new = &sent[from..];
+            if new.contains(&0xF9) {
+                board.write_all(&[0xF9, 2, 5]).unwrap();
+            }
+            if new.windows(2).any(|w| w == [0xF0, sysex::CAPABILITY_QUERY]) {
+                board
+                    .write_all(&[0xF0, sysex::CAPABILITY_RESPONSE])
+                    .unwrap();
+                board.write_all(&caps).unwrap();
+                board.write_all(&[0xF7]).unwrap();
+            }
+            if new
+                .windows(2)
+                .any(|w| w == [0xF0, sysex::ANALOG_MAPPING_QUERY])
+            {
+                board
+                    .write_all(&[0xF0, sysex::ANALOG_MAPPING_RESPONSE])
+                    .unwrap();
+                board.write_all(&map).unwrap();
+                board.write_all(&[0xF7]).unwrap();
+            }
+            if new.windows(2).any(|w| w == [0xD0, 1]) {
+                // REPORT_DIGITAL on port 0: its levels at once, pin 4 high.
+                board.write_all(&[0x90, 0x10, 0x00]).unwrap();
+            }
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+}
+
+#[test]
+fn a_protocol_2_5_board_with_encoders_is_set_up_and_read() {
+    let config = section(
+        "banner_ms = 100\ndigital_in = [{ pin = 4, pullup = true }]\ndigital_out = [{ pin = 9, initial = true }]\nencoder = [{ a = 2, b = 3, resolution = 400 }]",
+    );
+    config.check().unwrap();
+    let card = Arc::new(FirmataCard::new(&config, Arc::new(MonotonicClock)).unwrap());
+    let (host, mut board) = UnixStream::pair().unwrap();
+    host.set_nonblocking(true).unwrap();
+    board.set_nonblocking(true).unwrap();
+    let mut host = Some(host);
+    let mut bus = FirmataBus::with_opener(
+        card.clone(),
+        Box::new(move |_, _| {
+            host.take()
+                .map(|h| Box::new(Sock(h)) as Box<dyn Line>)
+                .ok_or_else(|| std::io::Error::other("unplugged"))
+        }),
+    );
+    let mut sent = Vec::new();
+    drive(&mut bus, &mut board, &mut sent, |_, _| card.is_online());
+    // Nothing was sent before the banner wait ended with a version query.
+    assert_eq!(sent[0], 0xF9);
+    let has = |s: &[u8], w: &[u8]| s.windows(w.len()).any(|x| x == w);
+    assert!(
+        has(&sent, &[0xF4, 4, mode::PULLUP]),
+        "INPUT_PULLUP from 2.5: {sent:x?}"
+    );
+    assert!(
+        has(&sent, &[0xF0, 0x61, 0x00, 0, 2, 3, 0xF7]),
+        "encoder attached: {sent:x?}"
+    );
+    assert!(has(&sent, &[0x91, 0x02, 0x00]), "pin 9 high: {sent:x?}");
+    assert!(card.read_bit(0).unwrap(), "pin 4 high");
+    // Encoder reports: +300, then −50 (sign bit), counted through.
+    let enc = card.devices().encoders.remove(0).1;
+    board
+        .write_all(&[0xF0, 0x61, 0x00, 0x2C, 0x02, 0, 0, 0xF7])
+        .unwrap();
+    drive(&mut bus, &mut board, &mut sent, |_, _| {
+        enc.position().ok() == Some(0)
+    });
+    board
+        .write_all(&[
+            0xF0, 0x61, 0x00, 0x2C, 0x02, 0, 0, 0xF7, 0xF0, 0x61, 0x40, 50, 0, 0, 0, 0xF7,
+        ])
+        .unwrap();
+    drive(&mut bus, &mut board, &mut sent, |_, _| {
+        enc.position().ok() == Some(50) && enc.turn().ok() == Some(-1)
+    });
+    // An output write is one port message.
+    let from = sent.len();
+    card.set_bit(0, false).unwrap();
+    drive(&mut bus, &mut board, &mut sent, |_, s| {
+        has(&s[from..], &[0x91, 0x00, 0x00])
+    });
+    // The board gone: offline, and no reopen succeeds.
+    drop(board);
+    let t0 = MonotonicClock.now();
+    let mut outcome = Outcome::Pending;
+    while card.is_online() && MonotonicClock.now().as_nanos() < t0.as_nanos() + 5_000_000_000 {
+        outcome = bus.step(MonotonicClock.now()).0;
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    assert!(!card.is_online(), "{outcome:?}");
+    assert!(
+        card.counters().last_error.unwrap().contains("hung up"),
+        "{:?}",
+        card.counters()
+    );
+}
