@@ -1,0 +1,141 @@
+//! `hwgw` on `config/firmata.toml` against the genuine StandardFirmata on a simulated Uno
+//! (its port pointed at the simulator's pty): inputs driven in the simulator read through
+//! `hwgw get`, outputs and PWM written by `hwgw set` and by a component seen on the
+//! simulated pins, the safe values on the pins after SIGTERM; then pyfirmata2, an
+//! independent Firmata client, on the same board reads the same values.
+#![allow(clippy::unwrap_used, reason = "test code")]
+
+use std::io::{BufRead, BufReader};
+use std::process::{Command, Stdio};
+use testkit::peers::PYTHON;
+use testkit::uno::pyfirmata2;
+use testkit::{Service, SimUno, TempDir, wait_until};
+
+const HWGW: &str = env!("CARGO_BIN_EXE_hwgw");
+const CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../config/firmata.toml");
+
+/// config/firmata.toml on `pty`, with a blinker component toggling d8 every 100 ms.
+fn deployment(dir: &TempDir, pty: &str) -> std::path::PathBuf {
+    let text = std::fs::read_to_string(CONFIG).unwrap();
+    let line = "port = \"/dev/ttyACM0\"";
+    assert!(text.contains(line), "config/firmata.toml names its port so");
+    let text = text.replace(line, &format!("port = \"{pty}\""))
+        + "\n[[component]]\nname = \"blink\"\ntype = \"blinker\"\n\
+           activity = { type = \"periodic\", period_ms = 100 }\n\
+           properties = { device = \"uno\", bit = 0 }\n";
+    let path = dir.path().join("firmata.toml");
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+/// pyfirmata2 on `pty`: A0 as it reports it (a fraction of the reference), pin 2's level,
+/// and PWM pin 5 written to 0.25.
+const PYFIRMATA: &str = r#"
+import json, sys, time, pyfirmata2
+board = pyfirmata2.Arduino(sys.argv[1])
+seen = {}
+a0 = board.get_pin('a:0:i')
+a0.register_callback(lambda v: seen.__setitem__('a0', v))
+a0.enable_reporting()
+d2 = board.get_pin('d:2:i')
+d2.register_callback(lambda v: seen.__setitem__('d2', v))
+d2.enable_reporting()
+board.samplingOn(19)
+p5 = board.get_pin('d:5:p')
+p5.write(0.25)
+end = time.time() + 10
+while len(seen) < 2 and time.time() < end:
+    time.sleep(0.01)
+time.sleep(0.2)
+print(json.dumps(seen))
+sys.stdout.flush()
+sys.stdin.readline()
+board.exit()
+"#;
+
+#[test]
+fn hwgw_and_pyfirmata2_on_standard_firmata() {
+    let py = pyfirmata2().unwrap();
+    let mut sim = SimUno::start().unwrap();
+    let dir = TempDir::new("firmata-gw");
+    let config = deployment(&dir, sim.pty().to_str().unwrap());
+    let gw = Service::start(HWGW, "firmata", &[config.as_os_str()], &[]).unwrap();
+    let mut status = String::new();
+    wait_until("the board online", || {
+        status = gw.out(&["status", "--json"]).unwrap_or_default();
+        status.contains("\"link\": \"online\"")
+    });
+    assert!(
+        status.contains("StandardFirmata.ino 2.4 (protocol 2.4), 20 pins"),
+        "{status}"
+    );
+
+    // Inputs driven in the simulator, read with hwgw get.
+    sim.input(2, true).unwrap();
+    wait_until("button on", || {
+        gw.out(&["get", "uno.di", "button"]).ok().as_deref() == Some("true")
+    });
+    sim.adc(0, 2500).unwrap();
+    let volts = 511.0 / 1023.0 * 5.0;
+    wait_until("a0 at 511", || {
+        gw.out(&["get", "uno.ai", "a0"])
+            .ok()
+            .and_then(|v| v.parse::<f64>().ok())
+            == Some(volts)
+    });
+    // Outputs and PWM written with hwgw set, seen on the pins.
+    gw.out(&["set", "uno.do", "led", "true"]).unwrap();
+    wait_until("pin 13 high", || sim.pin(13).unwrap().level);
+    gw.out(&["set", "uno.ao", "pwm5", "0.25"]).unwrap();
+    // 0.25 of 255 is 64 (rounded); timer 0's fast PWM is high for (64 + 1) / 256.
+    wait_until("pin 5 at 65/256", || {
+        (sim.pin(5).unwrap().duty - 65.0 / 256.0).abs() < 0.002
+    });
+    // The blinker component toggles d8 (pin 8) through the card.
+    let edges = sim.pin(8).unwrap().edges;
+    wait_until("pin 8 blinking", || sim.pin(8).unwrap().edges >= edges + 4);
+
+    // SIGTERM: the blinker stops first, then every output goes to its safe value.
+    let stopped = gw.terminate();
+    assert!(stopped.status.success(), "{}", stopped.log);
+    let edges = sim.pin(8).unwrap().edges;
+    for pin in [8, 12, 13, 5, 6] {
+        let p = sim.pin(pin).unwrap();
+        assert!(
+            p.output && !p.level,
+            "pin {pin} after stop: {p:?}\n{}",
+            stopped.log
+        );
+    }
+    wait_until("pin 5 quiet at 0", || sim.pin(5).unwrap().duty == 0.0);
+    assert_eq!(
+        sim.pin(8).unwrap().edges,
+        edges,
+        "nothing moves pin 8 after the stop"
+    );
+
+    // pyfirmata2 on the same board, the same stimulus: the same values.
+    let mut py = Command::new(PYTHON)
+        .env("PYTHONPATH", &py)
+        .args(["-c", PYFIRMATA, sim.pty().to_str().unwrap()])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(py.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    // pyfirmata2 writes round(0.25 × 255) = 64 as hwgw does (the pin was at 0 after
+    // hwgw's stop): high for 65/256 (checked while it runs).
+    let pwm = sim.pin(5).unwrap();
+    drop(py.stdin.take());
+    assert!(py.wait().unwrap().success(), "pyfirmata2 failed");
+    assert!((pwm.duty - 65.0 / 256.0).abs() < 0.002, "{pwm:?}");
+    let seen: serde_json::Value = serde_json::from_str(&line).unwrap();
+    assert_eq!(seen["d2"], serde_json::Value::Bool(true), "{seen}");
+    let a0 = seen["a0"].as_f64().unwrap();
+    // pyfirmata2 gives the fraction of 1023 rounded to 4 places: the same code, 511.
+    assert_eq!((a0 * 1023.0).round(), 511.0, "{seen}");
+    assert!((a0 - volts / 5.0).abs() <= 0.5e-4, "{seen}");
+}
