@@ -18,10 +18,11 @@
 //! elsewhere) is set up again from scratch.
 
 use crate::board::BoardInfo;
-use crate::card::FirmataCard;
+use crate::card::{CHECK_ASKED, CHECK_FAILED, CHECK_OK, CHECK_QUERYING, FirmataCard};
+use crate::line::{Line, Opener, open_port, send};
 use crate::protocol::{Decoder, Frame, mode, sysex, write};
 use device_interface::time::Timestamp;
-use std::io::{self, Read, Write};
+use std::io;
 use std::os::fd::BorrowedFd;
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, PoisonError};
@@ -41,50 +42,6 @@ pub const PROBE_AFTER: Duration = Duration::from_secs(1);
 pub const SILENCE_LIMIT: Duration = Duration::from_millis(3500);
 /// The most bytes waiting to be sent before the line counts as stuck.
 pub const MAX_PENDING: usize = 64 * 1024;
-
-/// An open serial line: non-blocking reads and writes, and the descriptor to wait on.
-pub trait Line: Send {
-    /// Reads what is there (`WouldBlock` when nothing).
-    fn read(&mut self, buf: &mut [u8]) -> io::Result<usize>;
-    /// Writes what it can (`WouldBlock` when the line's buffer is full).
-    fn write(&mut self, data: &[u8]) -> io::Result<usize>;
-    /// The descriptor that becomes readable.
-    fn fd(&self) -> BorrowedFd<'_>;
-}
-
-impl Line for mio_serial::SerialStream {
-    fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
-        Read::read(self, buf)
-    }
-    fn write(&mut self, data: &[u8]) -> io::Result<usize> {
-        Write::write(self, data)
-    }
-    // mio-serial gives its descriptor only as a raw one.
-    #[allow(
-        unsafe_code,
-        reason = "borrowing the stream's own descriptor for its lifetime"
-    )]
-    fn fd(&self) -> BorrowedFd<'_> {
-        // SAFETY: the stream owns this descriptor and keeps it open while borrowed: the
-        // borrow cannot outlive `&self`.
-        unsafe { BorrowedFd::borrow_raw(std::os::fd::AsRawFd::as_raw_fd(self)) }
-    }
-}
-
-/// Opens a line: the port's path and baud rate.
-pub type Opener = Box<dyn FnMut(&str, u32) -> io::Result<Box<dyn Line>> + Send>;
-
-/// Opens a real serial port (8N1, no flow control, exclusive: a second program cannot open
-/// it while hwgw has it).
-pub fn open_port(path: &str, baud: u32) -> io::Result<Box<dyn Line>> {
-    let builder = tokio_serial::new(path, baud)
-        .data_bits(tokio_serial::DataBits::Eight)
-        .parity(tokio_serial::Parity::None)
-        .stop_bits(tokio_serial::StopBits::One)
-        .flow_control(tokio_serial::FlowControl::None);
-    let stream = mio_serial::SerialStream::open(&builder).map_err(io::Error::from)?;
-    Ok(Box::new(stream))
-}
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Phase {
@@ -141,6 +98,10 @@ pub struct FirmataBus {
     generation: u64,
     tx: Vec<u8>,
     rx: Vec<u8>,
+    /// The last sysex payload (capacity [`MAX_SYSEX`](crate::protocol::MAX_SYSEX), made once).
+    sysex: Vec<u8>,
+    /// Output pins whose state the settle check still waits for, and the state.
+    checks: Vec<(u8, u32)>,
     refused: Option<String>,
     was_online: bool,
 }
@@ -167,6 +128,8 @@ impl FirmataBus {
             generation: 0,
             tx: Vec::with_capacity(1024),
             rx: vec![0; 4096],
+            sysex: Vec::with_capacity(crate::protocol::MAX_SYSEX),
+            checks: Vec::with_capacity(crate::board::MAX_PINS),
             refused: None,
             was_online: false,
         }
@@ -244,7 +207,7 @@ impl FirmataBus {
         }
         if let Err(e) = self.timers(now) {
             self.close(Some(e));
-        } else if let Err(e) = self.send_outputs() {
+        } else if let Err(e) = self.send_outputs().and_then(|()| self.query_states()) {
             self.close(Some(e));
         }
         (self.outcome(), self.deadline(now))
@@ -311,10 +274,17 @@ impl FirmataBus {
             };
             for i in 0..n {
                 let byte = self.rx[i];
-                let Some(frame) = self.decoder.push(byte) else {
-                    continue;
+                let frame = match self.decoder.push(byte) {
+                    None => continue,
+                    Some(Frame::Version { major, minor }) => Owned::Version { major, minor },
+                    Some(Frame::Digital { port, value }) => Owned::Digital { port, value },
+                    Some(Frame::Analog { channel, value }) => Owned::Analog { channel, value },
+                    Some(Frame::Sysex { command, data }) => {
+                        self.sysex.clear();
+                        self.sysex.extend_from_slice(data);
+                        Owned::Sysex { command }
+                    }
                 };
-                let frame = own(frame);
                 self.take(frame, now)?;
             }
             self.set_link_counts();
@@ -347,12 +317,15 @@ impl FirmataBus {
         }
     }
 
-    fn report(&self, frame: &Owned) {
+    fn report(&mut self, frame: &Owned) {
         match frame {
             Owned::Digital { port, value } => self.card.digital_report(*port, *value),
             Owned::Analog { channel, value } => self.card.analog_report(*channel, *value),
-            Owned::Sysex { command, data } if *command == sysex::ENCODER_DATA => {
-                let (positions, _) = crate::protocol::encoder_positions(data);
+            Owned::Sysex { command } if *command == sysex::PIN_STATE_RESPONSE => {
+                self.pin_state();
+            }
+            Owned::Sysex { command } if *command == sysex::ENCODER_DATA => {
+                let (positions, _) = crate::protocol::encoder_positions(&self.sysex);
                 for (i, p) in positions {
                     self.card.encoder_report(i, p);
                 }
@@ -385,7 +358,8 @@ impl FirmataBus {
                 *phase = Phase::Describe;
                 *deadline = after(now, REPLY_WAIT);
             }
-            (Owned::Sysex { command, data }, Phase::Describe) => {
+            (Owned::Sysex { command }, Phase::Describe) => {
+                let data = self.sysex.as_slice();
                 match *command {
                     sysex::REPORT_FIRMWARE => board.set_firmware(data),
                     sysex::CAPABILITY_RESPONSE => {
@@ -631,6 +605,61 @@ impl FirmataBus {
     }
 }
 
+impl FirmataBus {
+    /// Asked by settle: queries the state of every output pin (everything marked was sent
+    /// just before, on this same step).
+    fn query_states(&mut self) -> Result<(), String> {
+        let Link::Online { line, .. } = &mut self.link else {
+            return Ok(());
+        };
+        if self.card.check.load(Ordering::Acquire) != CHECK_ASKED {
+            return Ok(());
+        }
+        self.card.expected_states(&mut self.checks);
+        self.tx.clear();
+        for (pin, _) in &self.checks {
+            write::query_pin(&mut self.tx, *pin);
+        }
+        send(line.as_mut(), &self.tx)?;
+        self.card.check.store(CHECK_QUERYING, Ordering::Release);
+        Ok(())
+    }
+
+    /// A PIN_STATE_RESPONSE (pin, mode, state in 7-bit groups): one output confirmed, or
+    /// the check failed.
+    fn pin_state(&mut self) {
+        if self.card.check.load(Ordering::Acquire) != CHECK_QUERYING {
+            return;
+        }
+        let [pin, _mode, state @ ..] = self.sysex.as_slice() else {
+            return;
+        };
+        let value = state
+            .iter()
+            .take(5)
+            .rev()
+            .fold(0u32, |acc, b| (acc << 7) | u32::from(*b));
+        let Some(i) = self.checks.iter().position(|(p, _)| p == pin) else {
+            return;
+        };
+        let (pin, expected) = self.checks.swap_remove(i);
+        if value != expected {
+            let why = format!(
+                "{}: pin {pin} is {value} on the board, not {expected} as written",
+                self.card.config.port
+            );
+            self.card
+                .shared
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .check_error = Some(why);
+            self.card.check.store(CHECK_FAILED, Ordering::Release);
+        } else if self.checks.is_empty() {
+            self.card.check.store(CHECK_OK, Ordering::Release);
+        }
+    }
+}
+
 /// A port's DIGITAL_MESSAGE value: its outputs' bits, and its inputs' pull-ups (a 1 written
 /// to an input turns its pull-up on, the protocol's way before INPUT_PULLUP).
 fn port_value(card: &FirmataCard, port: u8) -> u8 {
@@ -649,45 +678,12 @@ fn port_value(card: &FirmataCard, port: u8) -> u8 {
     v
 }
 
-/// Writes all of `data`; a line whose buffer stays full is stuck.
-fn send(line: &mut dyn Line, data: &[u8]) -> Result<(), String> {
-    let mut rest = data;
-    let mut waits = 0;
-    while !rest.is_empty() {
-        match line.write(rest) {
-            Ok(0) => return Err("write: the port took nothing".into()),
-            Ok(n) => rest = &rest[n..],
-            Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
-            Err(e) if e.kind() == io::ErrorKind::WouldBlock && waits < 100 => {
-                // The line's buffer is full (a slow baud rate): wait for room, 1 s at most.
-                waits += 1;
-                let fd = line.fd();
-                let mut p = [nix::poll::PollFd::new(fd, nix::poll::PollFlags::POLLOUT)];
-                let _ = nix::poll::poll(&mut p, nix::poll::PollTimeout::from(10u8));
-            }
-            Err(e) => return Err(format!("write: {e}")),
-        }
-    }
-    Ok(())
-}
-
-/// A frame owned (the decoder's buffer is reused by the next byte).
-#[derive(Debug, Clone, PartialEq, Eq)]
+/// A frame taken off the decoder (a sysex's payload is copied into the bus's own buffer,
+/// made once: the decoder's is reused by the next byte).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Owned {
     Version { major: u8, minor: u8 },
     Digital { port: u8, value: u8 },
     Analog { channel: u8, value: u16 },
-    Sysex { command: u8, data: Vec<u8> },
-}
-
-fn own(frame: Frame<'_>) -> Owned {
-    match frame {
-        Frame::Version { major, minor } => Owned::Version { major, minor },
-        Frame::Digital { port, value } => Owned::Digital { port, value },
-        Frame::Analog { channel, value } => Owned::Analog { channel, value },
-        Frame::Sysex { command, data } => Owned::Sysex {
-            command,
-            data: data.to_vec(),
-        },
-    }
+    Sysex { command: u8 },
 }

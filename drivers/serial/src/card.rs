@@ -21,11 +21,19 @@ use device_interface::{
 };
 use rtt::activity::Waker;
 use serde::Serialize;
-use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU8, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 
 /// A reported sample: valid bit and raw value.
 const VALID: u64 = 1 << 63;
+
+/// The settle check's states ([`FirmataCard::settle`]): not asked for, asked for, the pin
+/// states queried, every output confirmed, an output found otherwise.
+pub(crate) const CHECK_NONE: u8 = 0;
+pub(crate) const CHECK_ASKED: u8 = 1;
+pub(crate) const CHECK_QUERYING: u8 = 2;
+pub(crate) const CHECK_OK: u8 = 3;
+pub(crate) const CHECK_FAILED: u8 = 4;
 
 /// An AnalogOut channel: its pin, what it is, its value and whether it is to be sent.
 #[derive(Debug)]
@@ -73,6 +81,8 @@ pub(crate) struct Shared {
     pub(crate) board: Option<BoardInfo>,
     pub(crate) line: LineCounts,
     pub(crate) last_error: Option<String>,
+    /// Why the settle check failed.
+    pub(crate) check_error: Option<String>,
 }
 
 /// A Firmata card.
@@ -92,6 +102,8 @@ pub struct FirmataCard {
     pub(crate) dirty_ports: AtomicU32,
     pub(crate) online: AtomicBool,
     pub(crate) closing: AtomicBool,
+    /// The settle check ([`CHECK_NONE`] …).
+    pub(crate) check: AtomicU8,
     last_good: AtomicU64,
     /// Output writes accepted, and sent (for settle).
     pub(crate) written: AtomicU64,
@@ -171,6 +183,7 @@ impl FirmataCard {
             dirty_ports: AtomicU32::new(0),
             online: AtomicBool::new(false),
             closing: AtomicBool::new(false),
+            check: AtomicU8::new(CHECK_NONE),
             last_good: AtomicU64::new(0),
             written: AtomicU64::new(0),
             sent: AtomicU64::new(0),
@@ -297,26 +310,63 @@ impl FirmataCard {
         self.outputs.get(i as u32).unwrap_or(false)
     }
 
-    /// Settles at stop: waits until every accepted write was sent (or `deadline`), then
-    /// refuses further writes.
+    /// Settles at stop: waits until every accepted write was sent, then has the board say
+    /// what each output pin is (PIN_STATE_QUERY: the level or value its firmware last set)
+    /// and compares; until `deadline` at the latest. Then refuses further writes.
     pub fn settle(&self, deadline: std::time::Instant) -> Result<(), String> {
-        let result = loop {
-            if !self.is_online() {
-                break Err(format!(
-                    "{} is offline: its outputs were not sent",
-                    self.config.port
-                ));
-            }
-            if self.sent.load(Ordering::Acquire) >= self.written.load(Ordering::Acquire) {
-                break Ok(());
-            }
-            if std::time::Instant::now() > deadline {
-                break Err(format!("{}: outputs not sent in time", self.config.port));
-            }
-            std::thread::sleep(std::time::Duration::from_millis(1));
-        };
+        let result = self.sent_and_confirmed(deadline);
         self.closing.store(true, Ordering::Release);
         result
+    }
+
+    fn sent_and_confirmed(&self, deadline: std::time::Instant) -> Result<(), String> {
+        let port = &self.config.port;
+        let wait = |done: &dyn Fn() -> bool, what: &str| -> Result<(), String> {
+            while !done() {
+                if !self.is_online() {
+                    return Err(format!(
+                        "{port} is offline: its outputs may not have reached the board"
+                    ));
+                }
+                if std::time::Instant::now() > deadline {
+                    return Err(format!("{port}: {what} not in time"));
+                }
+                std::thread::sleep(std::time::Duration::from_millis(1));
+            }
+            Ok(())
+        };
+        wait(
+            &|| self.sent.load(Ordering::Acquire) >= self.written.load(Ordering::Acquire),
+            "outputs sent",
+        )?;
+        if self.config.digital_out.is_empty() && self.ao.is_empty() {
+            return Ok(());
+        }
+        self.check.store(CHECK_ASKED, Ordering::Release);
+        if let Some(w) = self.waker.get() {
+            w.wake();
+        }
+        wait(
+            &|| self.check.load(Ordering::Acquire) >= CHECK_OK,
+            "outputs confirmed by the board",
+        )?;
+        if self.check.load(Ordering::Acquire) == CHECK_FAILED {
+            let s = self.shared.lock().unwrap_or_else(PoisonError::into_inner);
+            return Err(s.check_error.clone().unwrap_or_default());
+        }
+        Ok(())
+    }
+
+    /// The output pins and the state each must have: digital outputs their level, PWM and
+    /// servo pins their value.
+    pub(crate) fn expected_states(&self, into: &mut Vec<(u8, u32)>) {
+        into.clear();
+        for (i, p) in self.config.digital_out.iter().enumerate() {
+            into.push((p.pin, u32::from(self.output(i))));
+        }
+        for a in &self.ao {
+            into.push((a.pin, a.raw.load(Ordering::Acquire)));
+        }
     }
 
     fn writable(&self) -> Result<(), DeviceError> {

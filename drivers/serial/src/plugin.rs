@@ -94,7 +94,8 @@ impl Card for FirmataPlugin {
         )
     }
 
-    /// Waits until every output written was sent, then refuses further writes.
+    /// Waits until every output written was sent and the board confirmed each output pin's
+    /// state (PIN_STATE_QUERY), then refuses further writes.
     fn settle(&self, deadline: std::time::Instant) -> Result<(), String> {
         self.card.settle(deadline)
     }

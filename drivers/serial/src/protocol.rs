@@ -402,6 +402,10 @@ pub mod write {
     pub fn query(out: &mut Vec<u8>, command: u8) {
         out.extend_from_slice(&[START_SYSEX, command, END_SYSEX]);
     }
+    /// PIN_STATE_QUERY: the pin's mode and state come back.
+    pub fn query_pin(out: &mut Vec<u8>, pin: u8) {
+        out.extend_from_slice(&[START_SYSEX, sysex::PIN_STATE_QUERY, pin & 0x7F, END_SYSEX]);
+    }
     /// SET_PIN_MODE.
     pub fn pin_mode(out: &mut Vec<u8>, pin: u8, mode: u8) {
         out.extend_from_slice(&[SET_PIN_MODE, pin & 0x7F, mode & 0x7F]);

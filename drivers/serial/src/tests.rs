@@ -3,9 +3,10 @@
 #![allow(clippy::unwrap_used, reason = "test code")]
 
 use crate::board::BoardInfo;
-use crate::bus::{FirmataBus, Line, Outcome};
+use crate::bus::{FirmataBus, Outcome};
 use crate::card::FirmataCard;
 use crate::config::FirmataConfig;
+use crate::line::Line;
 use crate::protocol::{Decoder, encoder_positions, mode, sysex};
 use device_interface::time::{Clock, MonotonicClock};
 use device_interface::{DigitalIn, DigitalOut};
@@ -331,6 +332,24 @@ fn a_protocol_2_5_board_with_encoders_is_set_up_and_read() {
     drive(&mut bus, &mut board, &mut sent, |_, s| {
         has(&s[from..], &[0x91, 0x00, 0x00])
     });
+    // Settling: the board is asked for pin 9's state and says high, not low as written.
+    let from = sent.len();
+    std::thread::scope(|s| {
+        let settle = s.spawn(|| card.settle(std::time::Instant::now() + Duration::from_secs(5)));
+        drive(&mut bus, &mut board, &mut sent, |_, s| {
+            has(&s[from..], &[0xF0, sysex::PIN_STATE_QUERY, 9, 0xF7])
+        });
+        board
+            .write_all(&[0xF0, sysex::PIN_STATE_RESPONSE, 9, mode::OUTPUT, 1, 0xF7])
+            .unwrap();
+        drive(&mut bus, &mut board, &mut sent, |_, _| settle.is_finished());
+        let e = settle.join().unwrap().unwrap_err();
+        assert!(
+            e.ends_with("pin 9 is 1 on the board, not 0 as written"),
+            "{e}"
+        );
+    });
+    assert!(card.set_bit(0, true).is_err(), "no writes after settle");
     // The board gone: offline, and no reopen succeeds.
     drop(board);
     let t0 = MonotonicClock.now();

@@ -60,6 +60,7 @@ digital_in = [{ pin = 2 }, { pin = 3 }, { pin = 4 }, { pin = 7 }]
 digital_out = [{ pin = 8 }, { pin = 10 }, { pin = 12 }, { pin = 13, initial = true }]
 analog_in = [{ channel = 0 }, { channel = 1 }, { channel = 5 }]
 pwm = [{ pin = 5, initial = 0.5 }, { pin = 6 }]
+servo = [{ pin = 9, min_us = 600, max_us = 2400 }]
 "#;
 
 #[test]
@@ -114,12 +115,28 @@ fn inputs_outputs_and_pwm_on_standard_firmata() {
             (p.duty - expect).abs() < 0.002 && p.period_us > 900.0
         });
     }
+    // A servo's pulse (the Servo library's timer 1 interrupt drives the pin): 600 µs at
+    // 0 degrees to 2400 µs at 180, every 20 ms.
+    for (angle, pulse) in [(0.0, 600.0), (90.0, 1500.0), (180.0, 2400.0)] {
+        AnalogOut::write(card.as_ref(), 2, angle).unwrap();
+        wait_until("the servo's pulse", || {
+            let p = sim.pin(9).unwrap();
+            (p.duty * p.period_us - pulse).abs() < 20.0 && (p.period_us - 20_000.0).abs() < 500.0
+        });
+    }
     let c = card.counters();
     assert_eq!(
         (c.line.framing_errors, c.line.unknown_commands),
         (0, 0),
         "{c:?}"
     );
+    // Settling at stop: sent, then confirmed pin by pin by the board; then no more writes.
+    card.set_bit(3, false).unwrap();
+    AnalogOut::write(card.as_ref(), 0, 0.0).unwrap();
+    card.settle(std::time::Instant::now() + std::time::Duration::from_secs(5))
+        .unwrap();
+    assert!(!sim.pin(13).unwrap().level);
+    assert!(matches!(card.set_bit(0, true), Err(DeviceError::Offline)));
     u.task.stop().unwrap();
 }
 
