@@ -37,9 +37,47 @@ impl Line for mio_serial::SerialStream {
 /// Opens a line: the port's path and baud rate.
 pub type Opener = Box<dyn FnMut(&str, u32) -> io::Result<Box<dyn Line>> + Send>;
 
+/// Checks that `path` is a serial port before anything opens it: a character device whose
+/// number a tty driver of kind `serial` or `pty:slave` owns (in `/proc/tty/drivers`). So a
+/// port given wrong never opens `/dev/watchdog` (which would arm it), a console, a FIFO or
+/// a file.
+pub fn check_serial(path: &str) -> io::Result<()> {
+    use std::os::unix::fs::{FileTypeExt, MetadataExt};
+    let meta = std::fs::metadata(path)?;
+    let not = |what: String| io::Error::other(format!("{path} is not a serial port: {what}"));
+    if !meta.file_type().is_char_device() {
+        return Err(not("not a character device".into()));
+    }
+    let dev = meta.rdev();
+    let major = ((dev >> 8) & 0xfff) | ((dev >> 32) & !0xfff);
+    let minor = (dev & 0xff) | ((dev >> 12) & !0xff);
+    let drivers = std::fs::read_to_string("/proc/tty/drivers").unwrap_or_default();
+    let owner = drivers.lines().find_map(|l| {
+        let f: Vec<&str> = l.split_whitespace().collect();
+        let [name, _, maj, minors, kind] = f[..] else {
+            return None;
+        };
+        let (lo, hi) = minors.split_once('-').unwrap_or((minors, minors));
+        let inside = maj.parse() == Ok(major)
+            && lo.parse::<u64>().is_ok_and(|lo| lo <= minor)
+            && hi.parse::<u64>().is_ok_and(|hi| minor <= hi);
+        inside.then(|| (name.to_string(), kind.to_string()))
+    });
+    match owner {
+        Some((_, kind)) if kind == "serial" || kind == "pty:slave" => Ok(()),
+        Some((name, kind)) => Err(not(format!(
+            "device {major}:{minor} is the tty driver {name}'s ({kind})"
+        ))),
+        None => Err(not(format!(
+            "no tty driver owns device {major}:{minor} (see /proc/tty/drivers)"
+        ))),
+    }
+}
+
 /// Opens a real serial port (8N1, no flow control, exclusive: a second program cannot open
-/// it while hwgw has it).
+/// it while hwgw has it), once [`check_serial`] says it is one.
 pub fn open_port(path: &str, baud: u32) -> io::Result<Box<dyn Line>> {
+    check_serial(path)?;
     let builder = tokio_serial::new(path, baud)
         .data_bits(tokio_serial::DataBits::Eight)
         .parity(tokio_serial::Parity::None)

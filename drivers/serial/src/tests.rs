@@ -365,3 +365,29 @@ fn a_protocol_2_5_board_with_encoders_is_set_up_and_read() {
         card.counters()
     );
 }
+
+#[test]
+fn only_serial_ports_are_opened() {
+    for (path, why) in [
+        (
+            "/dev/null",
+            "/dev/null is not a serial port: no tty driver owns device 1:3",
+        ),
+        (
+            "/dev/tty",
+            "/dev/tty is not a serial port: device 5:0 is the tty driver /dev/tty's (system:/dev/tty)",
+        ),
+        (
+            "/proc/tty/drivers",
+            "/proc/tty/drivers is not a serial port: not a character device",
+        ),
+    ] {
+        let e = crate::line::check_serial(path).unwrap_err().to_string();
+        assert!(e.starts_with(why), "{e}");
+    }
+    assert!(crate::line::check_serial("/nonexistent/ttyACM0").is_err());
+    // A pty's slave end is one.
+    let (_master, slave) = mio_serial::SerialStream::pair().unwrap();
+    let path = mio_serial::SerialPort::name(&slave).unwrap();
+    crate::line::check_serial(&path).unwrap();
+}
