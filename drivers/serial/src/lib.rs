@@ -7,7 +7,7 @@
 //! - [`card`]: the devices; inputs from the board's reports, outputs marked to be sent.
 //! - [`bus`]: the serial line (tokio-serial's builder, mio-serial's non-blocking port), the
 //!   hand-shake, the set-up, reconnection.
-//! - [`line`]: the serial port (tokio-serial's builder, mio-serial's non-blocking port).
+//! - [`mod@line`]: the serial port (tokio-serial's builder, mio-serial's non-blocking port).
 //! - [`component`]: the bus side on a file-descriptor activity.
 //! - [`plugin`]: the card as a driver plug-in (`driver = "firmata"`).
 
