@@ -46,9 +46,12 @@ pub enum Rule {
     AiRange,
     /// AnalogIn resolution is the physical span over the raw span.
     AiResolution,
-    /// AnalogIn `read` is the scale's conversion of `read_raw`, within the raw range.
+    /// AnalogIn `read` is the scale's conversion of `read_raw` (within half a step: a
+    /// device may read finer than its raw grid, `read_raw` then being the nearest code),
+    /// within the raw range.
     AiConversion,
-    /// AnalogIn reads exactly the raw values the stimulus sets (needs a stimulus).
+    /// AnalogIn reads exactly the raw values the stimulus sets, and `read` their
+    /// conversion within half a step (needs a stimulus).
     AiStimulus,
     /// AnalogOut has at least one channel.
     AoChannels,
@@ -407,7 +410,9 @@ pub fn check_analog_in(dev: &dyn AnalogIn, mut stimulus: Option<AnalogStimulus<'
         };
         check_scale(&mut report, (AiRange, AiResolution), c, &scale, ranges);
 
-        let tol = scale.resolution() * 1e-6;
+        // read() may be finer than the raw grid (a float register carries its value
+        // exactly); read_raw() is then its nearest code: half a step apart at most.
+        let tol = scale.resolution() * (0.5 + 1e-6);
         match (dev.read_raw(c), dev.read(c)) {
             (Ok(raw), Ok(value)) => {
                 report.expect(AiConversion, scale.raw_range().contains(raw), || {

@@ -124,6 +124,15 @@ pub enum DeviceError {
         #[source]
         source: Arc<dyn std::error::Error + Send + Sync>,
     },
+    /// The channel's source holds no number: a floating-point register reading NaN or an
+    /// infinity. The channel's own status; the device's other channels are unaffected.
+    #[error("channel {channel} holds {what}, not a number")]
+    NotANumber {
+        /// The channel.
+        channel: u32,
+        /// "NaN", "+inf" or "-inf".
+        what: &'static str,
+    },
     /// The device cannot do this (for example, selecting a range on a fixed-range card).
     #[error("unsupported by this device: {what}")]
     Unsupported {

@@ -10,6 +10,7 @@
 use crate::codec::Number;
 use crate::map::{Map, Point, Role};
 use crate::plan::Table;
+use crate::value;
 use arc_swap::ArcSwapOption;
 use device_interface::bits::{BitImage, BitSpan};
 use device_interface::time::{Clock, Timestamp};
@@ -86,7 +87,9 @@ pub enum ReplyError {
         /// Received.
         got: usize,
     },
-    /// A float register holding NaN or infinity: the point keeps its previous value.
+    /// A counter register (an encoder) that decodes to no integer: the encoder keeps its
+    /// count. (A float *analog* point holding NaN is that channel's status, not an error
+    /// of the reply.)
     #[error("point {point}: the register holds {value}, not a number in range")]
     NotANumber {
         /// The point.
@@ -117,26 +120,12 @@ pub struct ModbusCard {
     last_error: ArcSwapOption<DeviceError>,
 }
 
-fn raw_of(point: &Point, n: Number) -> Option<i64> {
-    let r = point.scale.raw_range();
+/// An encoder register's count (integer types; a float counter has none).
+fn count_of(n: Number) -> Option<i64> {
     match n {
         Number::Int(v) => Some(v),
         Number::UInt(v) => Some(i64::try_from(v).unwrap_or(i64::MAX)),
-        Number::Float(f) if f.is_finite() => {
-            // Saturates at the range the register type represents exactly (see map).
-            Some((f / point.step).round().clamp(r.min as f64, r.max as f64) as i64)
-        }
         Number::Float(_) => None,
-    }
-}
-
-fn number_of(point: &Point, raw: i64) -> Number {
-    if point.layout.ty.is_float() {
-        Number::Float(raw as f64 * point.step)
-    } else if raw < 0 {
-        Number::Int(raw)
-    } else {
-        Number::UInt(raw as u64)
     }
 }
 
@@ -145,15 +134,11 @@ impl ModbusCard {
     /// device).
     pub fn new(map: Map, clock: Arc<dyn Clock>) -> Arc<ModbusCard> {
         let [ai, ao, di, dout] = map.counts();
-        // Analog images start at the raw value nearest to 0 until the first reply.
+        // Analog images start at physical 0 (or the raw value nearest to it) until the
+        // first reply.
         let image = |role: Role, n: u32| -> Box<[AtomicI64]> {
             (0..n)
-                .map(|ch| {
-                    AtomicI64::new(
-                        map.point(role, ch)
-                            .map_or(0, |p| p.scale.to_raw_saturating(0.0)),
-                    )
-                })
+                .map(|ch| AtomicI64::new(map.point(role, ch).map_or(0, value::initial_word)))
                 .collect()
         };
         Arc::new(ModbusCard {
@@ -215,8 +200,10 @@ impl ModbusCard {
         &self.map
     }
 
-    /// Decodes the reply to read `read` of the plan into the input image. A point whose
-    /// value is not a number keeps its previous value; the others are still taken.
+    /// Decodes the reply to read `read` of the plan into the input image. A float point
+    /// holding NaN or an infinity keeps it (its channel reads `NotANumber`); an encoder
+    /// whose register holds no integer keeps its count, and the reply is reported bad —
+    /// every other point is still taken.
     pub fn apply_read(&self, read: usize, data: ReadData<'_>) -> Result<(), ReplyError> {
         let r = self
             .map
@@ -259,11 +246,7 @@ impl ModbusCard {
                     let _ = self.di.set(p.channel, regs[offset] >> bit & 1 == 1);
                 }
                 (ReadData::Registers(regs), Role::Encoder) => {
-                    let raw = p
-                        .layout
-                        .decode(&regs[offset..])
-                        .ok()
-                        .and_then(|n| raw_of(p, n));
+                    let raw = p.layout.decode(&regs[offset..]).ok().and_then(count_of);
                     match (raw, self.encoders.get(p.channel as usize)) {
                         (Some(raw), Some(e)) => e.sample(raw),
                         _ => {
@@ -276,8 +259,10 @@ impl ModbusCard {
                 }
                 (ReadData::Registers(regs), _) => {
                     // The reply length was checked, so decoding cannot come up short.
+                    // A float holding NaN or an infinity is kept as it is: that channel
+                    // reads NotANumber, the others are taken.
                     let decoded = p.layout.decode(&regs[offset..]);
-                    let raw = decoded.as_ref().ok().and_then(|n| raw_of(p, *n));
+                    let raw = decoded.as_ref().ok().and_then(|n| value::word_of(p, *n));
                     let value = decoded.map_or(f64::NAN, Number::as_f64);
                     let (image, dirty) = match p.role {
                         // Read back: the device's value, unless a change is still to be sent.
@@ -346,9 +331,10 @@ impl ModbusCard {
                 coils.push((p.span.address, self.dout.get(p.channel).unwrap_or(false)));
                 continue;
             }
-            let raw = self.ao[p.channel as usize].load(Ordering::Acquire);
-            // The raw range is the type's, so encoding cannot fail; skip rather than panic.
-            if let Ok(words) = p.layout.encode(number_of(p, raw)) {
+            let word = self.ao[p.channel as usize].load(Ordering::Acquire);
+            // Writes were checked against the point's range, so encoding cannot fail; skip
+            // rather than panic.
+            if let Ok(words) = p.layout.encode(value::number(p, word)) {
                 for (k, w) in words.as_slice().iter().enumerate() {
                     regs.push((p.span.address + k as u16, *w));
                 }
@@ -420,6 +406,13 @@ impl ModbusCard {
         }
     }
 
+    fn store_output(&self, channel: u32, word: i64) -> Result<(), DeviceError> {
+        self.check_output()?;
+        self.ao[channel as usize].store(word, Ordering::Release);
+        self.ao_dirty.set(channel, true)?;
+        Ok(())
+    }
+
     fn check_output(&self) -> Result<(), DeviceError> {
         if self.status.load(Ordering::Acquire) == OFFLINE {
             return Err(DeviceError::Offline);
@@ -487,9 +480,24 @@ impl AnalogIn for ModbusCard {
     }
 
     fn read_raw(&self, channel: u32) -> Result<i64, DeviceError> {
-        self.point(Role::AnalogIn, channel, self.map.counts()[0])?;
+        let p = self.point(Role::AnalogIn, channel, self.map.counts()[0])?;
         self.check_input()?;
-        Ok(self.ai[channel as usize].load(Ordering::Acquire))
+        value::raw(
+            p,
+            channel,
+            self.ai[channel as usize].load(Ordering::Acquire),
+        )
+    }
+
+    /// Exact for float registers (see [`value`]).
+    fn read(&self, channel: u32) -> Result<f64, DeviceError> {
+        let p = self.point(Role::AnalogIn, channel, self.map.counts()[0])?;
+        self.check_input()?;
+        value::physical(
+            p,
+            channel,
+            self.ai[channel as usize].load(Ordering::Acquire),
+        )
     }
 }
 
@@ -506,16 +514,33 @@ impl AnalogOut for ModbusCard {
 
     fn write_raw(&self, channel: u32, raw: i64) -> Result<(), DeviceError> {
         let p = self.point(Role::AnalogOut, channel, self.map.counts()[1])?;
-        p.scale.check_raw(channel, raw)?;
-        self.check_output()?;
-        self.ao[channel as usize].store(raw, Ordering::Release);
-        self.ao_dirty.set(channel, true)?;
-        Ok(())
+        let word = value::word_for_raw(p, channel, raw)?;
+        self.store_output(channel, word)
+    }
+
+    /// Exact for float registers (see [`value`]).
+    fn write(&self, channel: u32, v: f64) -> Result<(), DeviceError> {
+        let p = self.point(Role::AnalogOut, channel, self.map.counts()[1])?;
+        let word = value::word_for_value(p, channel, v)?;
+        self.store_output(channel, word)
     }
 
     fn read_back_raw(&self, channel: u32) -> Result<i64, DeviceError> {
-        self.point(Role::AnalogOut, channel, self.map.counts()[1])?;
-        Ok(self.ao[channel as usize].load(Ordering::Acquire))
+        let p = self.point(Role::AnalogOut, channel, self.map.counts()[1])?;
+        value::raw(
+            p,
+            channel,
+            self.ao[channel as usize].load(Ordering::Acquire),
+        )
+    }
+
+    fn read_back(&self, channel: u32) -> Result<f64, DeviceError> {
+        let p = self.point(Role::AnalogOut, channel, self.map.counts()[1])?;
+        value::physical(
+            p,
+            channel,
+            self.ao[channel as usize].load(Ordering::Acquire),
+        )
     }
 }
 

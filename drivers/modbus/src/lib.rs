@@ -7,6 +7,7 @@
 //! - [`map`]: the register map, and which device channel each point is;
 //! - [`card`]: a unit's devices — images fed by replies, outputs turned into writes;
 //! - [`line`](mod@line): the poller of one connection and the units on it;
+//! - [`value`]: an analog point's value in the card's image (floats exact);
 //! - [`config`]: a card's section of a deployment;
 //! - [`server`]: hwgw as a Modbus TCP server over chosen registry devices.
 //!
@@ -30,3 +31,4 @@ pub mod served;
 pub mod server;
 #[cfg(feature = "test-server")]
 pub mod testing;
+pub mod value;

@@ -11,12 +11,16 @@
 //! | holding registers | value | AnalogOut channel (AnalogIn with `read_only = true`) |
 //! | input or holding registers | `encoder = { resolution = … }` | an Encoder, turns counted on the counter's wrap |
 //!
-//! An analog point's raw value is the register value for integer types. A float register
-//! has no integer value, so its raw value counts steps of `resolution` (default 0.001
-//! register units), over the range the type represents exactly at that step: ±2^23 steps
-//! for `f32` (±8388.608 at the default; choose a coarser resolution for larger values,
-//! which otherwise saturate), ±2^52 for `f64`. The physical value is
-//! `register value * scale + offset`, in `unit`.
+//! The physical value is `register value * scale + offset`, in `unit`. An analog point's
+//! raw value is the register value for integer types. A float register's value is read
+//! and written exactly (`read`, `write`, `read_back`; see [`value`](crate::value)); it has
+//! no integer, so its *raw* value (`read_raw`, `write_raw`) counts steps of `resolution`
+//! (default 0.001 register units) over the range the type represents exactly at that step:
+//! ±2^23 steps for `f32` (±8388.608 at the default), ±2^52 for `f64`. That range is the
+//! channel's declared range, what `write` accepts; a value read beyond it is still read
+//! exactly, and `read_raw` says it is out of range. NaN and infinities are the channel's
+//! status ([`DeviceError::NotANumber`](device_interface::DeviceError::NotANumber)), not a
+//! fault of the card.
 //!
 //! ```
 //! use driver_modbus::map::{Map, PointConfig, Role};
@@ -73,7 +77,8 @@ pub struct PointConfig {
     /// A holding register read as an input instead of written as an output.
     #[serde(default)]
     pub read_only: bool,
-    /// For f32/f64 points: the register-value step one raw count stands for.
+    /// For f32/f64 points: the register-value step one raw count stands for (the raw grid
+    /// and the writable range; reads are exact).
     #[serde(default)]
     pub resolution: Option<f64>,
     /// Make this counter register an Encoder: counts per turn and direction. Turns are

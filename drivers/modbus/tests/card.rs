@@ -328,7 +328,8 @@ fn bad_replies_are_refused_and_counted_by_the_caller() {
         card.apply_read(regs_read, ReadData::Registers(&[1])),
         Err(ReplyError::Short { .. })
     ));
-    // A NaN float keeps the point's previous value; the others in the reply are taken.
+    // A NaN float is that channel's status; the others in the reply are taken and the
+    // reply is good.
     let mut unit = Unit::new();
     unit.registers[0][0] = 7;
     let nan = f32::NAN.to_bits();
@@ -340,16 +341,30 @@ fn bad_replies_are_refused_and_counted_by_the_caller() {
         .iter()
         .position(|r| r.table == driver_modbus::plan::Table::InputRegisters && r.start == 0)
         .unwrap();
-    let e = card
-        .apply_read(
-            r,
-            ReadData::Registers(&unit.registers[0][..usize::from(card.map().reads()[r].count)]),
-        )
-        .unwrap_err();
-    assert!(matches!(e, ReplyError::NotANumber { point: 2, .. }), "{e}");
+    card.apply_read(
+        r,
+        ReadData::Registers(&unit.registers[0][..usize::from(card.map().reads()[r].count)]),
+    )
+    .unwrap();
     card.poll_succeeded();
     assert_eq!(card.read_raw(0).unwrap(), 7);
-    assert_eq!(card.read(2).unwrap(), 0.0);
+    let e = card.read(2).unwrap_err();
+    assert!(
+        matches!(
+            e,
+            DeviceError::NotANumber {
+                channel: 2,
+                what: "NaN"
+            }
+        ),
+        "{e}"
+    );
+    assert_eq!(e.to_string(), "channel 2 holds NaN, not a number");
+    assert!(matches!(
+        card.read_raw(2),
+        Err(DeviceError::NotANumber { .. })
+    ));
+    assert_eq!(card.health().status, Status::Online);
 }
 
 #[test]

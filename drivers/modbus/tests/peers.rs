@@ -165,6 +165,62 @@ fn reads_and_writes_against_pymodbus_over_tcp() {
     );
 }
 
+/// Floats far past the old step grid's range and far below its step read exactly; a NaN
+/// and an infinity are their channels' status, and the card stays online with the other
+/// channels readable.
+#[test]
+fn floats_are_exact_and_a_nan_is_one_channels_status() {
+    let (_peer, addr) = start_pymodbus_tcp();
+    let map = "[[point]]\ntable = \"input_registers\"\naddress = 50\ntype = \"f32\"\n\
+               [[point]]\ntable = \"input_registers\"\naddress = 52\ntype = \"f32\"\n\
+               [[point]]\ntable = \"input_registers\"\naddress = 54\ntype = \"f32\"\n\
+               [[point]]\ntable = \"input_registers\"\naddress = 56\ntype = \"f32\"\n\
+               [[point]]\ntable = \"input_registers\"\naddress = 10\n";
+    let card = driver_modbus::testing::card(map, 100);
+    let stats = Arc::new(UnitStats::default());
+    let _line = TestLine::spawn(
+        "mb-float",
+        Transport::Tcp(addr),
+        vec![LineUnit {
+            card: card.clone(),
+            timing: timing(),
+            stats: stats.clone(),
+        }],
+    )
+    .unwrap();
+    wait_until("online", || card.health().status == Status::Online);
+    assert_eq!(card.read(0).unwrap(), f64::from(12345.678f32), "f32-exact");
+    assert_eq!(
+        card.read(2).unwrap(),
+        f64::from(0.0004f32),
+        "below the old step"
+    );
+    let nan = card.read(1).unwrap_err().to_string();
+    assert_eq!(nan, "channel 1 holds NaN, not a number");
+    assert_eq!(
+        card.read(3).unwrap_err().to_string(),
+        "channel 3 holds -inf, not a number"
+    );
+    assert_eq!(card.read(4).unwrap(), 40000.0, "the integer beside them");
+    // Polls keep succeeding: no bad reply, the card online.
+    let replies = stats.replies.load(std::sync::atomic::Ordering::Relaxed);
+    wait_until("more good polls", || {
+        stats.replies.load(std::sync::atomic::Ordering::Relaxed) >= replies + 3
+    });
+    assert_eq!(
+        stats.bad_replies.load(std::sync::atomic::Ordering::Relaxed),
+        0
+    );
+    assert_eq!(card.health().status, Status::Online);
+    // The step grid remains for read_raw, with an error beyond its range.
+    assert_eq!(card.read_raw(2).unwrap(), 0);
+    let e = card.read_raw(0).unwrap_err().to_string();
+    assert!(
+        e.contains("outside channel 0's range [-8388.608, 8388.608]"),
+        "{e}"
+    );
+}
+
 /// A socat pty pair: the line's end and the unit's end.
 struct PtyPair {
     child: Child,

@@ -28,6 +28,10 @@ ir[20:24] = [0x0001, 0x0002, 0x0003, 0x0004]     # u64: 0x0001000200030004
 ir[24:28] = [0xFFFF, 0xFFFF, 0xFFFF, 0xFFFB]     # i64: -5
 ir[30:34] = [0x3FF4, 0x0000, 0x0000, 0x0000]     # f64: 1.25
 ir[40] = 0b1000_0000_0000_0010                   # bits 1 and 15 set
+ir[50:52] = [0x4640, 0xE6B6]                     # f32: 12345.678 (f32 12345.677734375)
+ir[52:54] = [0x7FC0, 0x0000]                     # f32: NaN
+ir[54:56] = [0x39D1, 0xB717]                     # f32: 0.0004
+ir[56:58] = [0xFF80, 0x0000]                     # f32: -inf
 hr[40] = 1234                                    # an output the device already holds
 co[8] = True                                     # a coil already on
 
