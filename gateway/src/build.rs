@@ -492,8 +492,8 @@ impl Build<'_, '_, '_> {
             return Vec::new();
         };
         match ms.table(runtime.registry()) {
-            Ok((listen, table)) => vec![Box::new(driver_modbus::served::TableServer::new(
-                listen, table,
+            Ok((listen, table, limits)) => vec![Box::new(driver_modbus::served::TableServer::new(
+                listen, table, limits,
             ))],
             Err(problems) => {
                 let at = KeyPath::top("modbus_server");

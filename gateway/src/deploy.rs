@@ -48,6 +48,16 @@ pub struct CardReport {
     pub outputs: OutputReport,
 }
 
+/// A server's state, for `status`.
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+pub struct ServerReport {
+    /// Its deployment key (`modbus_server`).
+    pub name: String,
+    /// Where it listens, and its counters.
+    #[serde(flatten)]
+    pub status: CardStatus,
+}
+
 /// A built (and possibly running) gateway.
 pub struct Gateway {
     runtime: Runtime,
@@ -191,6 +201,11 @@ impl Gateway {
                 wrong.push(format!("{} overruns its period", t.name()));
             }
         }
+        for s in &self.servers {
+            if let Err(e) = s.health() {
+                wrong.push(e);
+            }
+        }
         if wrong.is_empty() {
             Ok(())
         } else {
@@ -216,6 +231,19 @@ impl Gateway {
                 driver: c.driver.clone(),
                 status: c.card.status(),
                 outputs: c.outputs.report(),
+            })
+            .collect()
+    }
+
+    /// Every server's state and counters, for `status`.
+    pub fn server_status(&self) -> Vec<ServerReport> {
+        self.servers
+            .iter()
+            .filter_map(|s| {
+                s.status().map(|status| ServerReport {
+                    name: s.name().to_string(),
+                    status,
+                })
             })
             .collect()
     }

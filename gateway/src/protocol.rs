@@ -4,7 +4,7 @@
 //! the command table of the documentation and the "unknown command" error both come from
 //! [`COMMANDS`], so they cannot drift from the code.
 
-use crate::deploy::CardReport;
+use crate::deploy::{CardReport, ServerReport};
 use device_interface::{Interface, RegistryEntry, Status};
 use rtt::TaskState;
 use rtt::activity::ActivityStats;
@@ -441,6 +441,9 @@ pub struct StatusReport {
     pub devices: Vec<DeviceStatus>,
     /// Every card's bus and counters.
     pub cards: Vec<CardReport>,
+    /// Every server's (the Modbus server's) address, state and counters.
+    #[serde(default)]
+    pub servers: Vec<ServerReport>,
     /// Every component.
     pub components: Vec<ComponentStatus>,
     /// The control server.

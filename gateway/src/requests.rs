@@ -53,6 +53,7 @@ fn status(gw: &Gateway, control: ControlReport) -> StatusReport {
         health: gw.health().err().unwrap_or_else(|| "ok".into()),
         devices,
         cards: gw.card_status(),
+        servers: gw.server_status(),
         components,
         control,
     }

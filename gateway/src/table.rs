@@ -129,6 +129,23 @@ pub fn status(s: &StatusReport) -> String {
             .collect();
         out.push(table(&["CARD", "DRIVER", "BUS", "COUNTERS"], &cards));
     }
+    if !s.servers.is_empty() {
+        out.push(String::new());
+        let servers: Vec<Vec<String>> = s
+            .servers
+            .iter()
+            .map(|v| {
+                let counters: Vec<String> = v
+                    .status
+                    .counters
+                    .iter()
+                    .map(|(k, x)| format!("{k}={}", plain(x)))
+                    .collect();
+                vec![v.name.clone(), v.status.bus.clone(), counters.join(" ")]
+            })
+            .collect();
+        out.push(table(&["SERVER", "LISTEN", "COUNTERS"], &servers));
+    }
     out.push(String::new());
     let components: Vec<Vec<String>> = s
         .components

@@ -141,7 +141,18 @@ fn mbpoll(port: u16, table: &str, address: u16, write: &[&str]) -> String {
 
 #[test]
 fn mbpoll_reads_and_writes_the_gateways_registers() {
-    let text = r#"
+    let text = SERVED;
+    let d = Deployment::parse(text, "srv.toml").unwrap();
+    let gw = Gateway::build(&d, "srv.toml", text, &hwgw::types::Types::builtin()).unwrap();
+    gw.start().unwrap();
+    let addr: std::net::SocketAddr = gw.server_address("modbus_server").unwrap().parse().unwrap();
+    let port = addr.port();
+    mbpoll_checks(&gw, port);
+    gw.shutdown();
+}
+
+/// A sim card with loopbacks, served on a port of its own.
+const SERVED: &str = r#"
 [[card]]
 name = "sim0"
 driver = "sim"
@@ -187,12 +198,8 @@ device = "sim0"
 interface = "digital_in"
 channel = 2
 "#;
-    let d = Deployment::parse(text, "srv.toml").unwrap();
-    let gw = Gateway::build(&d, "srv.toml", text, &hwgw::types::Types::builtin()).unwrap();
-    gw.start().unwrap();
-    let addr: std::net::SocketAddr = gw.server_address("modbus_server").unwrap().parse().unwrap();
-    let port = addr.port();
 
+fn mbpoll_checks(gw: &Gateway, port: u16) {
     let w = mbpoll(port, "4", 10, &["2500"]);
     assert!(w.contains("Written 1 references"), "{w}");
     let ao = gw.runtime().registry().analog_out().lookup("sim0").unwrap();
@@ -228,6 +235,133 @@ channel = 2
     assert!(
         (ao.read_back(0).unwrap() - 2.5).abs() < 0.001,
         "a refused write changes nothing"
+    );
+}
+
+/// One request over `s` (transaction id `tid`, unit 1); the reply's PDU, or None when the
+/// server closed the connection.
+fn exchange(s: &mut std::net::TcpStream, tid: u16, pdu: &[u8]) -> Option<Vec<u8>> {
+    use std::io::{Read, Write};
+    let mut frame = tid.to_be_bytes().to_vec();
+    frame.extend_from_slice(&[0, 0]);
+    frame.extend_from_slice(&((pdu.len() + 1) as u16).to_be_bytes());
+    frame.push(1);
+    frame.extend_from_slice(pdu);
+    s.write_all(&frame).ok()?;
+    let mut head = [0u8; 7];
+    s.read_exact(&mut head).ok()?;
+    assert_eq!(
+        u16::from_be_bytes([head[0], head[1]]),
+        tid,
+        "the transaction id echoed"
+    );
+    let len = usize::from(u16::from_be_bytes([head[4], head[5]]));
+    let mut body = vec![0u8; len - 1];
+    s.read_exact(&mut body).ok()?;
+    Some(body)
+}
+
+fn connect(addr: std::net::SocketAddr) -> std::net::TcpStream {
+    let s = std::net::TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(std::time::Duration::from_secs(10)))
+        .unwrap();
+    s
+}
+
+/// True when the server closed `s` (a read gets end of file or a reset).
+fn closed(s: &mut std::net::TcpStream) -> bool {
+    use std::io::Read;
+    let mut b = [0u8; 1];
+    matches!(s.read(&mut b), Ok(0) | Err(_))
+}
+
+#[test]
+fn hostile_requests_get_the_specifications_exceptions_and_the_server_survives() {
+    let text = SERVED.replace(
+        "listen = \"127.0.0.1:0\"\n",
+        "listen = \"127.0.0.1:0\"\nmax_clients = 4\nidle_timeout_s = 1\n",
+    );
+    assert_ne!(text, SERVED);
+    let d = Deployment::parse(&text, "srv.toml").unwrap();
+    let gw = Gateway::build(&d, "srv.toml", &text, &hwgw::types::Types::builtin()).unwrap();
+    gw.start().unwrap();
+    let addr: std::net::SocketAddr = gw.server_address("modbus_server").unwrap().parse().unwrap();
+    let mut s = connect(addr);
+    for (pdu, want, why) in [
+        (
+            &[15u8, 0, 0, 0, 100, 1, 0xFF][..],
+            [0x8F, 3],
+            "FC15 quantity over 8 x byte count (panics tokio-modbus 0.17)",
+        ),
+        (
+            &[16, 0, 10, 0x80, 0, 0],
+            [0x90, 3],
+            "FC16 quantity 0x8000 (overflows tokio-modbus 0.17)",
+        ),
+        (&[3, 0, 10, 0, 0], [0x83, 3], "quantity 0"),
+        (&[3, 0, 10, 0, 126], [0x83, 3], "126 registers"),
+        (&[4, 0, 0, 0, 126], [0x84, 3], "126 input registers"),
+        (&[1, 0, 0, 0x07, 0xD1], [0x81, 3], "2001 coils"),
+        (
+            &[5, 0, 0, 0x12, 0x34],
+            [0x85, 3],
+            "FC5 value neither 0xFF00 nor 0",
+        ),
+        (&[43, 14, 1, 0], [0xAB, 1], "an unserved function"),
+        (&[3, 0, 5, 0, 1], [0x83, 2], "an unmapped register"),
+    ] {
+        let got = exchange(&mut s, 7, pdu);
+        assert_eq!(got.as_deref(), Some(&want[..]), "{why}");
+    }
+    // The connection still serves: the holding register at 10 (sim output 0 V).
+    assert_eq!(
+        exchange(&mut s, 8, &[3, 0, 10, 0, 1]).unwrap(),
+        [3, 2, 0, 0]
+    );
+    // A frame that is not Modbus TCP (protocol id 1) closes the connection.
+    {
+        use std::io::Write;
+        s.write_all(&[0, 9, 0, 1, 0, 6, 1, 3, 0, 10, 0, 1]).unwrap();
+        assert!(
+            closed(&mut s),
+            "a foreign protocol id closes the connection"
+        );
+    }
+    // At most 4 clients: the fifth is closed at once, the four are served.
+    let mut four: Vec<_> = (0..4).map(|_| connect(addr)).collect();
+    for (i, c) in four.iter_mut().enumerate() {
+        assert!(exchange(c, i as u16, &[3, 0, 10, 0, 1]).is_some());
+    }
+    let mut fifth = connect(addr);
+    assert!(closed(&mut fifth), "the fifth client is closed");
+    drop(four);
+    drop(fifth);
+    wait_until("the server sees its clients gone", || {
+        gw.server_status()[0].status.counters["clients"] == json!(0)
+    });
+    // A client quiet for idle_timeout_s is closed.
+    let mut quiet = connect(addr);
+    let t0 = std::time::Instant::now();
+    assert!(closed(&mut quiet), "an idle client is closed");
+    assert!(
+        t0.elapsed() >= std::time::Duration::from_millis(900),
+        "{:?}",
+        t0.elapsed()
+    );
+    let status = serde_json::to_value(gw.server_status()).unwrap();
+    let c = &status[0]["counters"];
+    assert_eq!(c["running"], json!(true), "{status}");
+    assert_eq!(c["panics"], json!(0), "{status}");
+    assert!(c["exceptions"].as_u64().unwrap() >= 9, "{status}");
+    assert!(c["malformed"].as_u64().unwrap() >= 1, "{status}");
+    assert!(c["refused_clients"].as_u64().unwrap() >= 1, "{status}");
+    assert!(c["idle_closed"].as_u64().unwrap() >= 1, "{status}");
+    assert!(gw.health().is_ok(), "{:?}", gw.health());
+    // And it serves a new client after all that.
+    let mut again = connect(addr);
+    assert_eq!(
+        exchange(&mut again, 1, &[3, 0, 10, 0, 1]).unwrap(),
+        [3, 2, 0, 0]
     );
     gw.shutdown();
 }

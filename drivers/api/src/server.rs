@@ -15,4 +15,16 @@ pub trait Server: Send + Sync {
 
     /// Where it listens while running.
     fn address(&self) -> Option<String>;
+
+    /// Its state and counters for `hwgw status` (as a card's: where, and a snapshot).
+    /// Default: none.
+    fn status(&self) -> Option<crate::CardStatus> {
+        None
+    }
+
+    /// `Ok` while it serves as it should (part of the gateway's health, which feeds the
+    /// systemd watchdog); else what is wrong. Default: `Ok`.
+    fn health(&self) -> Result<(), String> {
+        Ok(())
+    }
 }

@@ -9,7 +9,9 @@
 //! - [`line`](mod@line): the poller of one connection and the units on it;
 //! - [`value`]: an analog point's value in the card's image (floats exact);
 //! - [`config`]: a card's section of a deployment;
-//! - [`server`]: hwgw as a Modbus TCP server over chosen registry devices.
+//! - [`server`]: hwgw as a Modbus TCP server over chosen registry devices: its table;
+//! - [`pdu`]: requests checked before anything acts on them, replies encoded;
+//! - [`listener`]: the server's TCP loop, its limits and counters.
 //!
 //! ```
 //! use driver_modbus::codec::{Layout, Number, ValueType};
@@ -24,7 +26,9 @@ pub mod codec;
 pub mod component;
 pub mod config;
 pub mod line;
+pub mod listener;
 pub mod map;
+pub mod pdu;
 pub mod plan;
 pub mod plugin;
 pub mod served;

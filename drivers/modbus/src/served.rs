@@ -18,8 +18,9 @@
 //! ```
 
 use crate::codec::{ByteOrder, Layout, ValueType, WordOrder};
+use crate::listener::{Limits, ModbusServer};
 use crate::plan::Table;
-use crate::server::{Entry, ModbusServer, RegisterTable, Source};
+use crate::server::{Entry, RegisterTable, Source};
 use device_interface::{Interface, Registry};
 use serde::Deserialize;
 use std::net::{SocketAddr, ToSocketAddrs};
@@ -31,9 +32,41 @@ use std::sync::Mutex;
 pub struct ServerConfig {
     /// `address:port` to listen on (e.g. 127.0.0.1:5502; 0.0.0.0 only on purpose).
     pub listen: String,
+    /// Connections served at once (1–1024; default 16); one more is closed at once.
+    #[serde(default = "default_max_clients")]
+    pub max_clients: usize,
+    /// A connection quiet this long is closed, seconds (1–86400; default 60).
+    #[serde(default = "default_idle_s")]
+    pub idle_timeout_s: u64,
     /// The register table.
     #[serde(default, rename = "register")]
     pub registers: Vec<ServedRegister>,
+}
+
+fn default_max_clients() -> usize {
+    16
+}
+fn default_idle_s() -> u64 {
+    60
+}
+
+impl ServerConfig {
+    /// Its limits, checked: (key, message) when out of bounds.
+    pub fn limits(&self) -> Result<Limits, (&'static str, String)> {
+        if !(1..=1024).contains(&self.max_clients) {
+            return Err(("max_clients", format!("{}: 1-1024", self.max_clients)));
+        }
+        if !(1..=86_400).contains(&self.idle_timeout_s) {
+            return Err((
+                "idle_timeout_s",
+                format!("{}: 1-86400 s", self.idle_timeout_s),
+            ));
+        }
+        Ok(Limits {
+            max_clients: self.max_clients,
+            idle_timeout: std::time::Duration::from_secs(self.idle_timeout_s),
+        })
+    }
 }
 
 /// One entry of the served register table.
@@ -83,12 +116,12 @@ pub struct ServerConfigError {
 }
 
 impl ServerConfig {
-    /// The listening address and the register table over the devices in `registry`, or
-    /// every problem found.
+    /// The listening address, the register table over the devices in `registry` and the
+    /// limits, or every problem found.
     pub fn table(
         &self,
         registry: &Registry,
-    ) -> Result<(SocketAddr, RegisterTable), Vec<ServerConfigError>> {
+    ) -> Result<(SocketAddr, RegisterTable, Limits), Vec<ServerConfigError>> {
         let mut problems = Vec::new();
         let listen = self
             .listen
@@ -126,10 +159,15 @@ impl ServerConfig {
             key: "register".into(),
             message: e.to_string(),
         });
-        match (listen, table) {
-            (Some(addr), Ok(table)) if problems.is_empty() => Ok((addr, table)),
-            (_, table) => {
+        let limits = self.limits().map_err(|(key, message)| ServerConfigError {
+            key: key.into(),
+            message,
+        });
+        match (listen, table, limits) {
+            (Some(addr), Ok(table), Ok(limits)) if problems.is_empty() => Ok((addr, table, limits)),
+            (_, table, limits) => {
                 problems.extend(table.err());
+                problems.extend(limits.err());
                 Err(problems)
             }
         }
@@ -141,15 +179,17 @@ impl ServerConfig {
 pub struct TableServer {
     listen: SocketAddr,
     table: RegisterTable,
+    limits: Limits,
     running: Mutex<Option<ModbusServer>>,
 }
 
 impl TableServer {
-    /// A server of `table` on `listen`, not started.
-    pub fn new(listen: SocketAddr, table: RegisterTable) -> TableServer {
+    /// A server of `table` on `listen` within `limits`, not started.
+    pub fn new(listen: SocketAddr, table: RegisterTable, limits: Limits) -> TableServer {
         TableServer {
             listen,
             table,
+            limits,
             running: Mutex::new(None),
         }
     }
@@ -161,8 +201,8 @@ impl driver_api::Server for TableServer {
     }
 
     fn start(&self) -> Result<String, String> {
-        let server =
-            ModbusServer::start(self.listen, self.table.clone()).map_err(|e| e.to_string())?;
+        let server = ModbusServer::start(self.listen, self.table.clone(), self.limits)
+            .map_err(|e| e.to_string())?;
         let addr = server.addr().to_string();
         *rtt::lock(&self.running) = Some(server);
         Ok(addr)
@@ -177,6 +217,24 @@ impl driver_api::Server for TableServer {
         rtt::lock(&self.running)
             .as_ref()
             .map(|s| s.addr().to_string())
+    }
+
+    fn status(&self) -> Option<driver_api::CardStatus> {
+        let running = rtt::lock(&self.running);
+        let counters = running
+            .as_ref()
+            .map(ModbusServer::counters)
+            .unwrap_or_default();
+        Some(driver_api::CardStatus::new(
+            self.listen.to_string(),
+            &counters,
+        ))
+    }
+
+    fn health(&self) -> Result<(), String> {
+        rtt::lock(&self.running)
+            .as_ref()
+            .map_or(Ok(()), ModbusServer::health)
     }
 }
 

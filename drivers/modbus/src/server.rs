@@ -15,13 +15,13 @@
 //! listens only where it is told.
 
 use crate::codec::{Layout, Number, ValueType};
+use crate::pdu::{Req, Resp, exception};
 use crate::plan::Table;
 use device_interface::{AnalogIn, AnalogOut, DeviceError, DigitalIn, DigitalOut};
-use std::future::Future;
-use std::net::SocketAddr;
-use std::pin::Pin;
 use std::sync::Arc;
-use tokio_modbus::{ExceptionCode, Request, Response};
+
+/// An exception code ([`pdu::exception`](crate::pdu::exception)).
+pub type ExceptionCode = u8;
 
 /// Where an entry's value comes from (and goes to).
 #[derive(Clone)]
@@ -170,11 +170,11 @@ impl RegisterTable {
         while a < end {
             let e = self
                 .find(table, a as u16)
-                .ok_or(ExceptionCode::IllegalDataAddress)?;
+                .ok_or(exception::ILLEGAL_DATA_ADDRESS)?;
             let physical = match &e.source {
                 Source::AnalogIn(d, c) => d.read(*c),
                 Source::AnalogOut(d, c) => d.read_back(*c),
-                _ => return Err(ExceptionCode::IllegalDataAddress),
+                _ => return Err(exception::ILLEGAL_DATA_ADDRESS),
             }
             .map_err(device_failure)?;
             let value = (physical - e.offset) / e.scale;
@@ -188,7 +188,7 @@ impl RegisterTable {
                 .layout
                 .encode(n)
                 .or_else(|_| e.layout.encode(saturate(e.layout.ty, value)))
-                .map_err(|_| ExceptionCode::ServerDeviceFailure)?;
+                .map_err(|_| exception::SERVER_DEVICE_FAILURE)?;
             for (k, r) in regs.as_slice().iter().enumerate() {
                 let at = u32::from(e.address) + k as u32;
                 if at >= u32::from(start) && at < end {
@@ -208,18 +208,18 @@ impl RegisterTable {
         while a < end {
             let e = self
                 .find(Table::HoldingRegisters, a as u16)
-                .ok_or(ExceptionCode::IllegalDataAddress)?;
+                .ok_or(exception::ILLEGAL_DATA_ADDRESS)?;
             let w = u32::from(width(e));
             if u32::from(e.address) != a || a + w > end {
-                return Err(ExceptionCode::IllegalDataAddress); // part of a multi-register value
+                return Err(exception::ILLEGAL_DATA_ADDRESS); // part of a multi-register value
             }
             let i = (a - u32::from(start)) as usize;
             let n = e
                 .layout
                 .decode(&values[i..i + w as usize])
-                .map_err(|_| ExceptionCode::IllegalDataValue)?;
+                .map_err(|_| exception::ILLEGAL_DATA_VALUE)?;
             let Source::AnalogOut(d, c) = &e.source else {
-                return Err(ExceptionCode::IllegalDataAddress);
+                return Err(exception::ILLEGAL_DATA_ADDRESS);
             };
             writes.push((d.clone(), *c, n.as_f64() * e.scale + e.offset));
             a += w;
@@ -227,7 +227,7 @@ impl RegisterTable {
         for (d, c, v) in &writes {
             d.write(*c, *v).map_err(|err| match err {
                 DeviceError::ValueOutOfRange { .. } | DeviceError::RawOutOfRange { .. } => {
-                    ExceptionCode::IllegalDataValue
+                    exception::ILLEGAL_DATA_VALUE
                 }
                 other => device_failure(other),
             })?;
@@ -240,11 +240,11 @@ impl RegisterTable {
             .map(|a| {
                 let e = self
                     .find(table, a as u16)
-                    .ok_or(ExceptionCode::IllegalDataAddress)?;
+                    .ok_or(exception::ILLEGAL_DATA_ADDRESS)?;
                 match &e.source {
                     Source::DigitalIn(d, b) => d.read_bit(*b),
                     Source::DigitalOut(d, b) => d.check_bit(*b),
-                    _ => return Err(ExceptionCode::IllegalDataAddress),
+                    _ => return Err(exception::ILLEGAL_DATA_ADDRESS),
                 }
                 .map_err(device_failure)
             })
@@ -257,9 +257,9 @@ impl RegisterTable {
             let a = u32::from(start) + i as u32;
             let e = self
                 .find(Table::Coils, a as u16)
-                .ok_or(ExceptionCode::IllegalDataAddress)?;
+                .ok_or(exception::ILLEGAL_DATA_ADDRESS)?;
             let Source::DigitalOut(d, b) = &e.source else {
-                return Err(ExceptionCode::IllegalDataAddress);
+                return Err(exception::ILLEGAL_DATA_ADDRESS);
             };
             targets.push((d.clone(), *b, *v));
         }
@@ -269,42 +269,56 @@ impl RegisterTable {
         Ok(())
     }
 
-    /// Answers one request.
-    pub fn answer(&self, req: Request<'_>) -> Result<Response, ExceptionCode> {
+    /// Answers one checked request ([`pdu::parse`](crate::pdu::parse)): the reply, or an
+    /// exception code.
+    pub fn answer(&self, req: Req) -> Result<Resp, ExceptionCode> {
         Ok(match req {
-            Request::ReadInputRegisters(a, n) => {
-                Response::ReadInputRegisters(self.read_registers(Table::InputRegisters, a, n)?)
+            Req::ReadRegisters {
+                function,
+                start,
+                count,
+            } => {
+                let table = if function == 4 {
+                    Table::InputRegisters
+                } else {
+                    Table::HoldingRegisters
+                };
+                Resp::Registers(function, self.read_registers(table, start, count)?)
             }
-            Request::ReadHoldingRegisters(a, n) => Response::ReadHoldingRegisters(
-                self.read_registers(Table::HoldingRegisters, a, n)?,
-            ),
-            Request::WriteSingleRegister(a, v) => {
-                self.write_registers(a, &[v])?;
-                Response::WriteSingleRegister(a, v)
+            Req::ReadBits {
+                function,
+                start,
+                count,
+            } => {
+                let table = if function == 2 {
+                    Table::DiscreteInputs
+                } else {
+                    Table::Coils
+                };
+                Resp::Bits(function, self.read_bits(table, start, count)?)
             }
-            Request::WriteMultipleRegisters(a, vs) => {
-                self.write_registers(a, &vs)?;
-                Response::WriteMultipleRegisters(a, vs.len() as u16)
+            Req::WriteRegister { address, value } => {
+                self.write_registers(address, &[value])?;
+                Resp::Echo(6, address, value)
             }
-            Request::ReadCoils(a, n) => Response::ReadCoils(self.read_bits(Table::Coils, a, n)?),
-            Request::ReadDiscreteInputs(a, n) => {
-                Response::ReadDiscreteInputs(self.read_bits(Table::DiscreteInputs, a, n)?)
+            Req::WriteRegisters { start, values } => {
+                self.write_registers(start, &values)?;
+                Resp::Written(16, start, values.len() as u16)
             }
-            Request::WriteSingleCoil(a, v) => {
-                self.write_coils(a, &[v])?;
-                Response::WriteSingleCoil(a, v)
+            Req::WriteCoil { address, on } => {
+                self.write_coils(address, &[on])?;
+                Resp::Echo(5, address, if on { 0xFF00 } else { 0 })
             }
-            Request::WriteMultipleCoils(a, vs) => {
-                self.write_coils(a, &vs)?;
-                Response::WriteMultipleCoils(a, vs.len() as u16)
+            Req::WriteCoils { start, values } => {
+                self.write_coils(start, &values)?;
+                Resp::Written(15, start, values.len() as u16)
             }
-            _ => return Err(ExceptionCode::IllegalFunction),
         })
     }
 }
 
 fn device_failure(_: DeviceError) -> ExceptionCode {
-    ExceptionCode::ServerDeviceFailure
+    exception::SERVER_DEVICE_FAILURE
 }
 
 fn saturate(ty: ValueType, v: f64) -> Number {
@@ -323,91 +337,4 @@ fn saturate(ty: ValueType, v: f64) -> Number {
         (v.round() as i128).clamp(min, max)
     };
     Number::Int(r as i64)
-}
-
-#[derive(Clone)]
-struct Service(Arc<RegisterTable>);
-
-impl tokio_modbus::server::Service for Service {
-    type Request = Request<'static>;
-    type Response = Response;
-    type Exception = ExceptionCode;
-    type Future = Pin<Box<dyn Future<Output = Result<Response, ExceptionCode>> + Send>>;
-
-    fn call(&self, req: Request<'static>) -> Self::Future {
-        let r = self.0.answer(req);
-        Box::pin(async move { r })
-    }
-}
-
-/// A running server; dropping it stops it.
-pub struct ModbusServer {
-    addr: SocketAddr,
-    stop: Option<tokio::sync::oneshot::Sender<()>>,
-    thread: Option<std::thread::JoinHandle<()>>,
-}
-
-impl ModbusServer {
-    /// Serves `table` on `listen` from a thread of its own.
-    pub fn start(listen: SocketAddr, table: RegisterTable) -> std::io::Result<ModbusServer> {
-        let rt = tokio::runtime::Builder::new_current_thread()
-            .enable_all()
-            .build()?;
-        let listener = rt.block_on(tokio::net::TcpListener::bind(listen))?;
-        let addr = listener.local_addr()?;
-        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-        let table = Arc::new(table);
-        let thread = std::thread::Builder::new()
-            .name("modbus-server".into())
-            .spawn(move || {
-                rt.block_on(async move {
-                    let server = tokio_modbus::server::tcp::Server::new(listener);
-                    let on_connected = |stream, socket_addr| {
-                        let svc = Service(table.clone());
-                        async move {
-                            tokio_modbus::server::tcp::accept_tcp_connection(
-                                stream,
-                                socket_addr,
-                                |_| Ok(Some(svc.clone())),
-                            )
-                        }
-                    };
-                    let abort = async move {
-                        let _ = rx.await;
-                    };
-                    if let Err(e) = server
-                        .serve_until(
-                            &on_connected,
-                            |e| tracing::warn!("modbus server: {e}"),
-                            abort,
-                        )
-                        .await
-                    {
-                        tracing::error!("modbus server on {addr}: {e}");
-                    }
-                });
-            })?;
-        tracing::info!("modbus server listening on {addr}");
-        Ok(ModbusServer {
-            addr,
-            stop: Some(tx),
-            thread: Some(thread),
-        })
-    }
-
-    /// Where it listens.
-    pub fn addr(&self) -> SocketAddr {
-        self.addr
-    }
-}
-
-impl Drop for ModbusServer {
-    fn drop(&mut self) {
-        if let Some(s) = self.stop.take() {
-            let _ = s.send(());
-        }
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
-        }
-    }
 }

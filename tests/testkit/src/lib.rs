@@ -58,3 +58,18 @@ pub fn run(program: &str, args: &[&str]) -> std::io::Result<String> {
     }
     Ok(String::from_utf8_lossy(&out.stdout).trim().to_string())
 }
+
+/// Sets this process's soft limit of open file descriptors to `soft` (None: back to the
+/// hard limit); returns the soft limit it had. For a test binary of its own that makes
+/// `accept` fail with EMFILE.
+pub fn set_fd_limit(soft: Option<u64>) -> std::io::Result<u64> {
+    use nix::sys::resource::{Resource, getrlimit, setrlimit};
+    let (old, hard) = getrlimit(Resource::RLIMIT_NOFILE).map_err(std::io::Error::from)?;
+    setrlimit(
+        Resource::RLIMIT_NOFILE,
+        soft.unwrap_or(hard).min(hard),
+        hard,
+    )
+    .map_err(std::io::Error::from)?;
+    Ok(old)
+}

@@ -1,0 +1,296 @@
+//! hwgw's Modbus TCP server loop: MBAP framing, every request checked by [`pdu`] before
+//! the [`RegisterTable`] answers it, and the limits a server on a plant network needs.
+//!
+//! - At most `max_clients` connections at once; one more is accepted and closed at once
+//!   (counted), so a flood cannot take every descriptor.
+//! - A connection quiet for `idle_timeout` is closed (counted); so is one that stops in the
+//!   middle of a frame for as long.
+//! - A frame whose MBAP header is not Modbus (protocol id ≠ 0, length outside 2–254) cannot
+//!   be resynchronised on a stream: the connection is closed (counted as malformed).
+//! - `accept` failing (out of descriptors: EMFILE/ENFILE, or any other error) is counted and
+//!   retried after 10 ms, doubling up to 1 s: the loop never ends but at stop.
+//! - A panic while answering (a device's bug) is caught, answered 04 and counted.
+//!
+//! [`ServerCounters`] says all of it; [`ModbusServer::health`] is `Err` while the loop does
+//! not run (what the gateway's watchdog sees).
+
+use crate::pdu::{self, Refusal, exception};
+use crate::server::RegisterTable;
+use serde::Serialize;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::time::Duration;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+/// The server's limits.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Limits {
+    /// Connections served at once.
+    pub max_clients: usize,
+    /// A connection quiet this long is closed.
+    pub idle_timeout: Duration,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits {
+            max_clients: 16,
+            idle_timeout: Duration::from_secs(60),
+        }
+    }
+}
+
+#[derive(Debug, Default)]
+struct Stats {
+    running: AtomicBool,
+    clients: AtomicUsize,
+    connections: AtomicU64,
+    refused_clients: AtomicU64,
+    requests: AtomicU64,
+    exceptions: AtomicU64,
+    malformed: AtomicU64,
+    idle_closed: AtomicU64,
+    accept_errors: AtomicU64,
+    panics: AtomicU64,
+}
+
+/// The server's state and counters.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize)]
+pub struct ServerCounters {
+    /// The accept loop runs.
+    pub running: bool,
+    /// Connections open now.
+    pub clients: usize,
+    /// Connections accepted and served.
+    pub connections: u64,
+    /// Connections closed at once: `max_clients` were open.
+    pub refused_clients: u64,
+    /// Requests read.
+    pub requests: u64,
+    /// Requests answered with an exception.
+    pub exceptions: u64,
+    /// Connections closed on a frame that is not Modbus TCP.
+    pub malformed: u64,
+    /// Connections closed after `idle_timeout` of silence.
+    pub idle_closed: u64,
+    /// Failed `accept` calls (e.g. out of descriptors), each retried after a backoff.
+    pub accept_errors: u64,
+    /// Panics caught while answering.
+    pub panics: u64,
+}
+
+fn bump(c: &AtomicU64) {
+    c.fetch_add(1, Ordering::Relaxed);
+}
+
+/// A running server; dropping it stops it and closes its clients' connections.
+pub struct ModbusServer {
+    addr: SocketAddr,
+    stats: Arc<Stats>,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl ModbusServer {
+    /// Serves `table` on `listen` from a thread of its own, within `limits`.
+    pub fn start(
+        listen: SocketAddr,
+        table: RegisterTable,
+        limits: Limits,
+    ) -> std::io::Result<ModbusServer> {
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()?;
+        let listener = rt.block_on(tokio::net::TcpListener::bind(listen))?;
+        let addr = listener.local_addr()?;
+        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+        let stats = Arc::new(Stats::default());
+        stats.running.store(true, Ordering::Release);
+        let (table, s) = (Arc::new(table), stats.clone());
+        let thread = std::thread::Builder::new()
+            .name("modbus-server".into())
+            .spawn(move || {
+                rt.block_on(accept_loop(listener, table, s.clone(), limits, rx));
+                s.running.store(false, Ordering::Release);
+                // Dropping the runtime here cancels every connection's task.
+            })?;
+        tracing::info!("modbus server listening on {addr}");
+        Ok(ModbusServer {
+            addr,
+            stats,
+            stop: Some(tx),
+            thread: Some(thread),
+        })
+    }
+
+    /// Where it listens.
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+
+    /// Its state and counters now.
+    pub fn counters(&self) -> ServerCounters {
+        let s = &self.stats;
+        let n = |c: &AtomicU64| c.load(Ordering::Relaxed);
+        ServerCounters {
+            running: s.running.load(Ordering::Acquire),
+            clients: s.clients.load(Ordering::Relaxed),
+            connections: n(&s.connections),
+            refused_clients: n(&s.refused_clients),
+            requests: n(&s.requests),
+            exceptions: n(&s.exceptions),
+            malformed: n(&s.malformed),
+            idle_closed: n(&s.idle_closed),
+            accept_errors: n(&s.accept_errors),
+            panics: n(&s.panics),
+        }
+    }
+
+    /// `Ok` while the accept loop runs.
+    pub fn health(&self) -> Result<(), String> {
+        if self.stats.running.load(Ordering::Acquire) {
+            Ok(())
+        } else {
+            Err(format!("the modbus server on {} has stopped", self.addr))
+        }
+    }
+}
+
+impl Drop for ModbusServer {
+    fn drop(&mut self) {
+        if let Some(s) = self.stop.take() {
+            let _ = s.send(());
+        }
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+async fn accept_loop(
+    listener: tokio::net::TcpListener,
+    table: Arc<RegisterTable>,
+    stats: Arc<Stats>,
+    limits: Limits,
+    mut stop: tokio::sync::oneshot::Receiver<()>,
+) {
+    const FIRST: Duration = Duration::from_millis(10);
+    let mut backoff = FIRST;
+    loop {
+        let accepted = tokio::select! {
+            _ = &mut stop => return,
+            a = listener.accept() => a,
+        };
+        match accepted {
+            Ok((stream, peer)) => {
+                backoff = FIRST;
+                if stats.clients.load(Ordering::Acquire) >= limits.max_clients {
+                    bump(&stats.refused_clients);
+                    drop(stream);
+                    continue;
+                }
+                stats.clients.fetch_add(1, Ordering::AcqRel);
+                bump(&stats.connections);
+                let (table, stats) = (table.clone(), stats.clone());
+                tokio::spawn(async move {
+                    let _ = stream.set_nodelay(true);
+                    if let Err(e) = connection(stream, &table, &stats, limits.idle_timeout).await {
+                        tracing::debug!("modbus server: {peer}: {e}");
+                    }
+                    stats.clients.fetch_sub(1, Ordering::AcqRel);
+                });
+            }
+            Err(e) => {
+                if stats
+                    .accept_errors
+                    .fetch_add(1, Ordering::Relaxed)
+                    .is_multiple_of(100)
+                {
+                    tracing::warn!("modbus server: accept: {e} (retrying in {backoff:?})");
+                }
+                tokio::select! {
+                    _ = &mut stop => return,
+                    _ = tokio::time::sleep(backoff) => {}
+                }
+                backoff = (backoff * 2).min(Duration::from_secs(1));
+            }
+        }
+    }
+}
+
+/// Serves one connection until the client closes it, it idles out or sends no Modbus.
+async fn connection(
+    mut stream: tokio::net::TcpStream,
+    table: &RegisterTable,
+    stats: &Stats,
+    idle: Duration,
+) -> std::io::Result<()> {
+    let mut head = [0u8; 7];
+    let mut body = [0u8; 253];
+    let mut out = Vec::with_capacity(260);
+    loop {
+        match tokio::time::timeout(idle, stream.read_exact(&mut head)).await {
+            Err(_) => {
+                bump(&stats.idle_closed);
+                return Ok(());
+            }
+            Ok(Err(e)) if e.kind() == std::io::ErrorKind::UnexpectedEof => return Ok(()),
+            Ok(r) => r?,
+        };
+        // The transaction id (head[0..2]) is echoed as it came.
+        let (pid, len, unit) = (
+            u16::from_be_bytes([head[2], head[3]]),
+            usize::from(u16::from_be_bytes([head[4], head[5]])),
+            head[6],
+        );
+        if pid != 0 || !(2..=254).contains(&len) {
+            bump(&stats.malformed);
+            return Ok(());
+        }
+        let pdu = &mut body[..len - 1];
+        match tokio::time::timeout(idle, stream.read_exact(pdu)).await {
+            Err(_) => {
+                bump(&stats.idle_closed);
+                return Ok(());
+            }
+            Ok(r) => r?,
+        };
+        bump(&stats.requests);
+        out.clear();
+        out.extend_from_slice(&[head[0], head[1], 0, 0, 0, 0, unit]);
+        respond(table, stats, pdu, &mut out);
+        let n = (out.len() - 6) as u16;
+        out[4..6].copy_from_slice(&n.to_be_bytes());
+        stream.write_all(&out).await?;
+    }
+}
+
+/// Appends the reply PDU to `pdu` to `out`.
+fn respond(table: &RegisterTable, stats: &Stats, pdu: &[u8], out: &mut Vec<u8>) {
+    let answer = pdu::parse(pdu).and_then(|req| {
+        let function = pdu[0];
+        std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| table.answer(req)))
+            .unwrap_or_else(|_| {
+                bump(&stats.panics);
+                Err(exception::SERVER_DEVICE_FAILURE)
+            })
+            .map_err(|code| Refusal { function, code })
+    });
+    match answer {
+        Ok(resp) => pdu::encode(&resp, out),
+        Err(r) => {
+            bump(&stats.exceptions);
+            pdu::encode_refusal(r, out);
+        }
+    }
+}
+
+/// Answers `pdu` as the server would, into `out` (for tests and the fuzz run: the whole
+/// request path but the socket).
+pub fn answer_pdu(table: &RegisterTable, pdu: &[u8], out: &mut Vec<u8>) {
+    thread_local! {
+        static STATS: Stats = Stats::default();
+    }
+    STATS.with(|s| respond(table, s, pdu, out));
+}

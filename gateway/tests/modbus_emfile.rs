@@ -1,0 +1,93 @@
+//! The Modbus server when the process runs out of file descriptors: `accept` fails with
+//! EMFILE, the server counts it and retries with a backoff, and serves again once
+//! descriptors are free. A test binary of its own: it lowers this process's descriptor
+//! limit.
+
+#![allow(
+    clippy::unwrap_used,
+    reason = "test code: a failed unwrap is a failed test"
+)]
+
+use hwgw::config::Deployment;
+use hwgw::deploy::Gateway;
+use serde_json::json;
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpStream};
+use std::time::Duration;
+use testkit::wait_until;
+
+const TEXT: &str = r#"
+[[card]]
+name = "sim0"
+driver = "sim"
+period_ms = 5
+[card.sim]
+[[card.sim.analog_out]]
+range = { lowest = -10.0, highest = 10.0, unit = "V" }
+
+[modbus_server]
+listen = "127.0.0.1:0"
+max_clients = 1024
+[[modbus_server.register]]
+table = "holding_registers"
+address = 10
+device = "sim0"
+interface = "analog_out"
+channel = 0
+type = "i16"
+scale = 0.001
+"#;
+
+/// Reads holding register 10 on a new connection.
+fn read_hr10(addr: SocketAddr) -> Option<Vec<u8>> {
+    let mut s = TcpStream::connect(addr).ok()?;
+    s.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
+    s.write_all(&[0, 1, 0, 0, 0, 6, 1, 3, 0, 10, 0, 1]).ok()?;
+    let mut reply = [0u8; 11];
+    s.read_exact(&mut reply).ok()?;
+    Some(reply[7..].to_vec())
+}
+
+fn open_fds() -> u64 {
+    std::fs::read_dir("/proc/self/fd").map_or(0, |d| d.count() as u64)
+}
+
+#[test]
+fn the_server_survives_running_out_of_descriptors() {
+    let d = Deployment::parse(TEXT, "emfile.toml").unwrap();
+    let gw = Gateway::build(&d, "emfile.toml", TEXT, &hwgw::types::Types::builtin()).unwrap();
+    gw.start().unwrap();
+    let addr: SocketAddr = gw.server_address("modbus_server").unwrap().parse().unwrap();
+    assert_eq!(read_hr10(addr).unwrap(), [3, 2, 0, 0]);
+    let counters = || gw.server_status()[0].status.counters.clone();
+
+    // Leave room for a few dozen descriptors, then take them with clients until the
+    // server's accept fails.
+    let soft = testkit::set_fd_limit(Some(open_fds() + 40)).unwrap();
+    let mut clients = Vec::new();
+    for _ in 0..200 {
+        match TcpStream::connect(addr) {
+            Ok(c) => clients.push(c),
+            Err(_) => break,
+        }
+        if counters()["accept_errors"].as_u64().unwrap() > 0 {
+            break;
+        }
+    }
+    wait_until("accept failing", || {
+        counters()["accept_errors"].as_u64().unwrap() > 0
+    });
+    assert_eq!(counters()["running"], json!(true));
+    assert!(gw.health().is_ok(), "{:?}", gw.health());
+
+    // Descriptors back: the server serves again.
+    drop(clients);
+    testkit::set_fd_limit(Some(soft)).unwrap();
+    wait_until("the server answers again", || {
+        read_hr10(addr).as_deref() == Some(&[3, 2, 0, 0])
+    });
+    let c = counters();
+    assert_eq!(c["running"], json!(true), "{c:?}");
+    assert_eq!(c["panics"], json!(0), "{c:?}");
+    gw.shutdown();
+}
