@@ -9,7 +9,7 @@
 
 use crate::codec::Number;
 use crate::map::{Map, Point, Role};
-use crate::plan::Table;
+use crate::plan::{Read, Table};
 use crate::value;
 use arc_swap::ArcSwapOption;
 use device_interface::bits::{BitImage, BitSpan};
@@ -210,6 +210,12 @@ impl ModbusCard {
             .reads()
             .get(read)
             .ok_or(ReplyError::NoSuchRead(read))?;
+        self.apply(read, r, data)
+    }
+
+    /// As [`apply_read`](Self::apply_read), for a read of the unit's own plan (a read of
+    /// the map's plan split where the unit has holes); `read` numbers it in errors.
+    pub fn apply(&self, read: usize, r: &Read, data: ReadData<'_>) -> Result<(), ReplyError> {
         let got = match data {
             ReadData::Registers(regs) if !r.table.is_bits() => regs.len(),
             ReadData::Bits(bits) if r.table.is_bits() => bits.len(),
@@ -228,7 +234,7 @@ impl ModbusCard {
             });
         }
         let mut first_error = None;
-        for &pi in self.map.read_points(read) {
+        for &pi in &r.points {
             let p = &self.map.points()[pi];
             let offset = usize::from(p.span.address - r.start);
             match (data, p.role) {

@@ -84,10 +84,13 @@ pub struct ModbusConfig {
     /// Longest wait between probes of an offline unit, ms (default 5000).
     #[serde(default = "backoff_max_ms")]
     pub backoff_max_ms: f64,
-    /// Unused addresses a read may span to save a request (default 8; 0 for devices that
-    /// refuse reads of unmapped addresses).
-    #[serde(default = "max_gap")]
-    pub max_gap: u16,
+    /// Unused addresses a read may span to save a request. Unset (the default): any gap
+    /// within the protocol's limits (125 registers, 2000 bits a read), the fewest requests
+    /// the protocol allows, and a read the unit refuses with IllegalDataAddress is split
+    /// where the unit has holes, remembered for the unit. Set (0 for devices that refuse
+    /// reads of unmapped addresses): that gap, nothing learned.
+    #[serde(default)]
+    pub max_gap: Option<u16>,
     /// Poll the outputs too (coils, holding-register outputs), so read-back shows what the
     /// device holds rather than what was last written (default false). Only then can the
     /// gateway put an output it wrote back as it found it at stop (output policy
@@ -113,9 +116,6 @@ fn offline_after() -> u32 {
 }
 fn backoff_max_ms() -> f64 {
     5000.0
-}
-fn max_gap() -> u16 {
-    8
 }
 
 /// The longest time a section may give, ms (a day).
@@ -200,9 +200,9 @@ impl ModbusConfig {
     /// The card for this unit, with its time from `clock` (it polls nothing until a
     /// [`LineIo`](crate::component::LineIo) polls it).
     pub fn card(&self, clock: Arc<dyn Clock>) -> Result<Arc<ModbusCard>, MapError> {
-        Ok(ModbusCard::new(
-            Map::with_read_back(&self.points, self.max_gap, self.read_back)?,
-            clock,
-        ))
+        let gap = self.max_gap.unwrap_or(crate::map::ANY_GAP);
+        let map = Map::with_read_back(&self.points, gap, self.read_back)?
+            .learning_holes(self.max_gap.is_none());
+        Ok(ModbusCard::new(map, clock))
     }
 }

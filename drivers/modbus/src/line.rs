@@ -64,6 +64,8 @@ pub struct UnitStats {
     pub write_retries: AtomicU64,
     /// Complete good polls.
     pub polls: AtomicU64,
+    /// Reads split where the unit has holes (each after an IllegalDataAddress).
+    pub splits: AtomicU64,
 }
 
 /// A snapshot of one unit's [`UnitStats`], for status reports and the line's `counters`
@@ -88,6 +90,8 @@ pub struct UnitCounters {
     pub bad_replies: u64,
     /// Writes that failed and will be sent again.
     pub write_retries: u64,
+    /// Reads split where the unit has holes.
+    pub splits: u64,
 }
 
 impl UnitCounters {
@@ -104,6 +108,7 @@ impl UnitCounters {
             transport_errors: load(&s.transport_errors),
             bad_replies: load(&s.bad_replies),
             write_retries: load(&s.write_retries),
+            splits: load(&s.splits),
         }
     }
 
@@ -241,6 +246,8 @@ pub(crate) struct UnitState {
     pub(crate) failures: u32,
     /// The wait before the next probe while offline.
     pub(crate) backoff: Duration,
+    /// The unit's own plan once a read was split where it has holes (None: the map's).
+    pub(crate) plan: Option<Vec<Read>>,
 }
 
 impl UnitState {
@@ -249,6 +256,7 @@ impl UnitState {
             next: now,
             failures: 0,
             backoff: first_backoff(t),
+            plan: None,
         }
     }
 }
@@ -269,7 +277,7 @@ pub(crate) async fn poll_and_schedule(
     now: &dyn Fn() -> Timestamp,
 ) {
     let t = unit.timing;
-    match poll_unit(ctx, transport, unit).await {
+    match poll_unit(ctx, transport, unit, &mut state.plan).await {
         Ok(()) => {
             unit.card.poll_succeeded();
             bump(&unit.stats.polls);
@@ -325,6 +333,7 @@ async fn poll_unit(
     ctx: &mut Option<Context>,
     transport: &Transport,
     unit: &LineUnit,
+    plan: &mut Option<Vec<Read>>,
 ) -> Result<(), PollError> {
     let t = unit.timing;
     let stats = &unit.stats;
@@ -360,7 +369,9 @@ async fn poll_unit(
         });
     };
     c.set_slave(Slave(t.unit));
-    for (ri, read) in unit.card.map().reads().iter().enumerate() {
+    let map = unit.card.map();
+    let mut ri = 0;
+    while let Some(read) = plan.as_deref().unwrap_or(map.reads()).get(ri) {
         bump(&stats.requests);
         let what = || describe_read(read);
         let reply = tokio::time::timeout(t.timeout, async {
@@ -384,10 +395,28 @@ async fn poll_unit(
             }
         })
         .await;
+        if let Ok(Ok(Err(ExceptionCode::IllegalDataAddress))) = &reply
+            && map.learns_holes()
+            && let Some((a, b)) = map.split(read)
+        {
+            // The unit has holes in this read's gaps: poll the halves (now, and from now
+            // on), splitting further until each read covers no hole.
+            bump(&stats.exceptions);
+            bump(&stats.splits);
+            let was = read.to_string();
+            let reads = plan.get_or_insert_with(|| map.reads().to_vec());
+            tracing::info!(
+                "modbus unit {}: {was} refused (IllegalDataAddress): split into {a} and {b}; {} reads a poll now",
+                t.unit,
+                reads.len() + 1
+            );
+            reads.splice(ri..=ri, [a, b]);
+            continue;
+        }
         let data = answer(reply, t, stats, what)?;
         let applied = match &data {
-            Data::Bits(b) => unit.card.apply_read(ri, ReadData::Bits(b)),
-            Data::Words(w) => unit.card.apply_read(ri, ReadData::Registers(w)),
+            Data::Bits(b) => unit.card.apply(ri, read, ReadData::Bits(b)),
+            Data::Words(w) => unit.card.apply(ri, read, ReadData::Registers(w)),
         };
         if let Err(source) = applied {
             bump(&stats.bad_replies);
@@ -398,6 +427,7 @@ async fn poll_unit(
             });
         }
         bump(&stats.replies);
+        ri += 1;
     }
     let writes = unit.card.take_writes();
     for (k, w) in writes.iter().enumerate() {

@@ -189,7 +189,12 @@ pub struct Map {
     read_points: Vec<Vec<usize>>,
     /// Outputs are polled too.
     read_back: bool,
+    /// A read refused with IllegalDataAddress is split where the unit has holes.
+    learn_holes: bool,
 }
+
+/// The `max_gap` that coalesces across any gap the protocol's read limits allow.
+pub const ANY_GAP: u16 = 2000;
 
 impl Map {
     /// Validates `configs`, numbers the channels and plans the reads with `max_gap`.
@@ -364,7 +369,57 @@ impl Map {
             reads,
             read_points,
             read_back,
+            learn_holes: false,
         })
+    }
+
+    /// The same map, splitting reads the unit refuses with IllegalDataAddress (`on`), or
+    /// failing the poll on them (the default).
+    pub fn learning_holes(mut self, on: bool) -> Map {
+        self.learn_holes = on;
+        self
+    }
+
+    /// True when a refused read is split where the unit has holes.
+    pub fn learns_holes(&self) -> bool {
+        self.learn_holes
+    }
+
+    /// Read `read` split in two at its widest gap between points (each half covering its
+    /// own points), or None when its points leave no gap (a refusal is then the unit's
+    /// answer about a mapped address).
+    pub fn split(&self, read: &Read) -> Option<(Read, Read)> {
+        let mut pts: Vec<usize> = read.points.clone();
+        pts.sort_by_key(|&p| self.points.get(p).map_or(0, |x| x.span.address));
+        let end = |p: usize| {
+            self.points
+                .get(p)
+                .map_or(0, |x| u32::from(x.span.address) + u32::from(x.span.count))
+        };
+        let start = |p: usize| self.points.get(p).map_or(0, |x| u32::from(x.span.address));
+        // The widest gap between what the points before cover and the next point.
+        let mut reach = 0u32;
+        let mut best: Option<(u32, usize)> = None;
+        for (k, &p) in pts.iter().enumerate() {
+            if k > 0 && start(p) > reach && best.is_none_or(|(g, _)| start(p) - reach > g) {
+                best = Some((start(p) - reach, k));
+            }
+            reach = reach.max(end(p));
+        }
+        let (_, at) = best?;
+        let half = |ps: &[usize]| {
+            let s = ps.iter().map(|&p| start(p)).min().unwrap_or(0);
+            let e = ps.iter().map(|&p| end(p)).max().unwrap_or(s);
+            let mut points = ps.to_vec();
+            points.sort_unstable();
+            Read {
+                table: read.table,
+                start: s as u16,
+                count: (e - s) as u16,
+                points,
+            }
+        };
+        Some((half(&pts[..at]), half(&pts[at..])))
     }
 
     /// The points, in map order.

@@ -45,11 +45,16 @@ fn free_port() -> u16 {
 }
 
 fn start_pymodbus_tcp() -> (Peer, SocketAddr) {
+    start_pymodbus("tcp")
+}
+
+/// A pymodbus server in `mode` (tcp, sparse) on a free port.
+fn start_pymodbus(mode: &str) -> (Peer, SocketAddr) {
     // The free port is released before Python binds it, so another socket can take it in
     // between: try a few ports.
     let mut last = String::new();
     for _ in 0..3 {
-        match try_pymodbus_tcp(free_port()) {
+        match try_pymodbus_tcp(mode, free_port()) {
             Ok(p) => return p,
             Err(e) => last = e,
         }
@@ -57,10 +62,10 @@ fn start_pymodbus_tcp() -> (Peer, SocketAddr) {
     panic!("{last}");
 }
 
-fn try_pymodbus_tcp(port: u16) -> Result<(Peer, SocketAddr), String> {
+fn try_pymodbus_tcp(mode: &str, port: u16) -> Result<(Peer, SocketAddr), String> {
     ensure(&PYMODBUS);
     let child = Command::new(PYTHON)
-        .args([SERVER, "tcp", &port.to_string()])
+        .args([SERVER, mode, &port.to_string()])
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
         .spawn()
@@ -219,6 +224,83 @@ fn floats_are_exact_and_a_nan_is_one_channels_status() {
         e.contains("outside channel 0's range [-8388.608, 8388.608]"),
         "{e}"
     );
+}
+
+/// A unit with holes in its map (pymodbus's sparse block): the default plan reads across
+/// the gaps, the unit refuses, the reads are split where the holes are — within the first
+/// poll, which still succeeds — and from then on every poll takes the fewest requests the
+/// holes allow, with no stale episode.
+#[test]
+fn a_unit_with_holes_is_learned_and_polled_at_the_minimum() {
+    let (_peer, addr) = start_pymodbus("sparse");
+    let point = |a: u16, ty: &str| {
+        format!("[[point]]\ntable = \"input_registers\"\naddress = {a}\ntype = \"{ty}\"\n")
+    };
+    let map: String = [
+        (0, "u16"),
+        (5, "u16"),
+        (22, "u16"),
+        (27, "u32"),
+        (100, "u16"),
+        (109, "u16"),
+    ]
+    .iter()
+    .map(|(a, ty)| point(*a, ty))
+    .collect();
+    let points: Vec<PointConfig> = toml::from_str::<toml::Table>(&map).unwrap()["point"]
+        .clone()
+        .try_into()
+        .unwrap();
+    let m = Map::new(&points, driver_modbus::map::ANY_GAP)
+        .unwrap()
+        .learning_holes(true);
+    assert_eq!(
+        m.reads().len(),
+        1,
+        "one read across the gaps: {:?}",
+        m.reads()
+    );
+    let card = ModbusCard::new(m, Arc::new(MonotonicClock));
+    let stats = Arc::new(UnitStats::default());
+    let _line = TestLine::spawn(
+        "mb-sparse",
+        Transport::Tcp(addr),
+        vec![LineUnit {
+            card: card.clone(),
+            timing: timing(),
+            stats: stats.clone(),
+        }],
+    )
+    .unwrap();
+    wait_until("online", || card.health().status == Status::Online);
+    let load = |a: &std::sync::atomic::AtomicU64| a.load(std::sync::atomic::Ordering::Relaxed);
+    // The first poll: 1 refused, split; 1 of the halves refused, split; 3 good reads.
+    assert_eq!(load(&stats.polls), 1, "online after the first poll");
+    assert_eq!((load(&stats.splits), load(&stats.exceptions)), (2, 2));
+    for (ch, want) in [
+        (0, 1000.0),
+        (1, 1005.0),
+        (2, 1022.0),
+        (4, 1100.0),
+        (5, 1109.0),
+    ] {
+        assert_eq!(card.read(ch).unwrap(), want, "channel {ch}");
+    }
+    assert_eq!(card.read(3).unwrap(), f64::from((1027u32 << 16) | 1028));
+    // From then on: 3 requests a poll, no exception, never stale.
+    let (p0, r0) = (load(&stats.polls), load(&stats.requests));
+    wait_until("ten more polls", || load(&stats.polls) >= p0 + 10);
+    let (p1, r1) = (load(&stats.polls), load(&stats.requests));
+    // 3 requests a poll, the minimum the holes allow (give or take the requests of a poll
+    // under way when each count was read).
+    assert!(
+        (r1 - r0).abs_diff(3 * (p1 - p0)) <= 2,
+        "{} requests in {} polls",
+        r1 - r0,
+        p1 - p0
+    );
+    assert_eq!(load(&stats.exceptions), 2);
+    assert!(card.health().last_error.is_none(), "{:?}", card.health());
 }
 
 /// A socat pty pair: the line's end and the unit's end.

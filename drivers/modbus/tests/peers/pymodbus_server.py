@@ -3,6 +3,11 @@
 
 Usage: pymodbus_server.py tcp PORT
        pymodbus_server.py rtu DEVICE
+       pymodbus_server.py sparse PORT
+
+sparse: input registers only at 0-9, 20-29 and 100-109 (register n holds 1000 + n); a
+read that touches any other address is refused with IllegalDataAddress, as devices with
+holes in their map do.
 
 Its registers hold known values the tests decode; on RTU, units 1 and 2 share the line
 with different contents (multi-drop). It serves until killed. Debian's
@@ -43,7 +48,18 @@ store = ModbusSlaveContext(
     zero_mode=True,  # address n is register n, as on the wire
 )
 
-if sys.argv[1] == "tcp":
+if sys.argv[1] == "sparse":
+    from pymodbus.datastore import ModbusSparseDataBlock
+    regs = {a: 1000 + a for a in list(range(0, 10)) + list(range(20, 30)) + list(range(100, 110))}
+    sparse = ModbusSlaveContext(
+        di=ModbusSparseDataBlock({0: False}),
+        co=ModbusSparseDataBlock({0: False}),
+        hr=ModbusSparseDataBlock({0: 0}),
+        ir=ModbusSparseDataBlock(regs),
+        zero_mode=True,
+    )
+    StartTcpServer(context=ModbusServerContext(slaves=sparse, single=True), address=("127.0.0.1", int(sys.argv[2])))
+elif sys.argv[1] == "tcp":
     # Any unit id reaches the one store.
     StartTcpServer(context=ModbusServerContext(slaves=store, single=True), address=("127.0.0.1", int(sys.argv[2])))
 else:
