@@ -104,6 +104,18 @@ address = 1
         let m = server.memory().lock().unwrap();
         m.holding[10] == 42 && m.coils[0]
     });
+    // `hwgw get` on the output ports: their current values, by name.
+    let value = |c: &str, p: &str| {
+        rt.component(c)
+            .unwrap()
+            .port(p)
+            .unwrap()
+            .last_value()
+            .unwrap()
+    };
+    assert_eq!(value("plc.ao", "setpoint"), Some(json!(4.2)));
+    assert_eq!(value("plc.do", "pump"), Some(json!(true)));
+    assert_eq!(value("plc.do", "fan"), Some(json!(false)));
     let diag = gw.card_status();
     let counters = &diag[0].status.counters;
     assert!(

@@ -4,7 +4,7 @@
 //!
 //! | table | point | channel |
 //! |---|---|---|
-//! | coils | — | DigitalOut bit |
+//! | coils | — | DigitalOut bit (DigitalIn with `read_only = true`) |
 //! | discrete inputs | — | DigitalIn bit |
 //! | input registers | value | AnalogIn channel |
 //! | input or holding registers | `bit = n` | DigitalIn bit (bit n of the register) |
@@ -193,6 +193,50 @@ pub struct Map {
     learn_holes: bool,
 }
 
+/// Refuses point `i` where it shares an address with an earlier point of the same table:
+/// two bits on one coil or input, two values over one register, the same bit of a register
+/// twice, or a bit of a register a writable value point covers (writing the value would
+/// change the bit). Bits of one register, and bits of a read-only value, may share it.
+fn overlap(configs: &[PointConfig], i: usize, bit_table: bool) -> Result<(), String> {
+    let c = &configs[i];
+    let span = |p: &PointConfig| {
+        let w = if bit_table {
+            1
+        } else {
+            p.ty.registers() as u32
+        };
+        (u32::from(p.address), u32::from(p.address) + w)
+    };
+    let writable = |p: &PointConfig| {
+        p.table == Table::HoldingRegisters && !p.read_only && p.bit.is_none() && p.encoder.is_none()
+    };
+    let (s, e) = span(c);
+    for (j, o) in configs[..i].iter().enumerate() {
+        let (os, oe) = span(o);
+        if o.table != c.table || s >= oe || os >= e {
+            continue;
+        }
+        let clash = match (c.bit, o.bit) {
+            _ if bit_table => true,
+            (Some(a), Some(b)) => a == b,
+            (Some(_), None) => writable(o),
+            (None, Some(_)) => writable(c),
+            (None, None) => true,
+        };
+        if clash {
+            return Err(format!(
+                "{} {}: point[{j}] is there already ({} {}{})",
+                c.table.name(),
+                c.address,
+                o.table.name(),
+                o.address,
+                o.bit.map(|b| format!(", bit {b}")).unwrap_or_default()
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// The `max_gap` that coalesces across any gap the protocol's read limits allow.
 pub const ANY_GAP: u16 = 2000;
 
@@ -262,13 +306,16 @@ impl Map {
                     ),
                 ));
             }
-            if c.read_only && c.table != Table::HoldingRegisters {
+            if c.read_only && matches!(c.table, Table::InputRegisters | Table::DiscreteInputs) {
                 return Err(bad(
                     "read_only",
-                    "only holding registers can be outputs; other tables are read-only already"
-                        .into(),
+                    format!(
+                        "{} are read-only already; read_only makes a coil or a holding register an input",
+                        c.table.name()
+                    ),
                 ));
             }
+            overlap(configs, i, bit_table).map_err(|m| bad("address", m))?;
             if let Some(e) = c.encoder {
                 if c.table.is_bits() || c.bit.is_some() || c.ty.is_float() {
                     return Err(bad("encoder", "an encoder is an integer counter register: no bit table, bit field or float".into()));
@@ -285,7 +332,8 @@ impl Map {
             }
             let role = match (c.table, c.bit, c.read_only) {
                 _ if c.encoder.is_some() => Role::Encoder,
-                (Table::Coils, _, _) => Role::DigitalOut,
+                (Table::Coils, _, true) => Role::DigitalIn,
+                (Table::Coils, _, false) => Role::DigitalOut,
                 (Table::DiscreteInputs, _, _) | (_, Some(_), _) => Role::DigitalIn,
                 (Table::InputRegisters, None, _) | (Table::HoldingRegisters, None, true) => {
                     Role::AnalogIn
@@ -575,7 +623,23 @@ mod tests {
             ),
             (
                 "[[point]]\ntable = \"input_registers\"\naddress = 0\nread_only = true\n",
-                "point[0].read_only: only holding registers can be outputs; other tables are read-only already",
+                "point[0].read_only: input registers are read-only already; read_only makes a coil or a holding register an input",
+            ),
+            (
+                "[[point]]\ntable = \"coils\"\naddress = 3\n[[point]]\ntable = \"coils\"\naddress = 3\nread_only = true\n",
+                "point[1].address: coils 3: point[0] is there already (coils 3)",
+            ),
+            (
+                "[[point]]\ntable = \"holding_registers\"\naddress = 10\ntype = \"u32\"\n[[point]]\ntable = \"holding_registers\"\naddress = 11\n",
+                "point[1].address: holding registers 11: point[0] is there already (holding registers 10)",
+            ),
+            (
+                "[[point]]\ntable = \"input_registers\"\naddress = 4\nbit = 3\n[[point]]\ntable = \"input_registers\"\naddress = 4\nbit = 3\n",
+                "point[1].address: input registers 4: point[0] is there already (input registers 4, bit 3)",
+            ),
+            (
+                "[[point]]\ntable = \"holding_registers\"\naddress = 4\n[[point]]\ntable = \"holding_registers\"\naddress = 4\nbit = 0\n",
+                "point[1].address: holding registers 4: point[0] is there already (holding registers 4)",
             ),
             (
                 "[[point]]\ntable = \"input_registers\"\naddress = 0\nscale = 0.0\n",

@@ -61,7 +61,8 @@ impl Table {
         }
     }
 
-    fn name(self) -> &'static str {
+    /// Its name: "holding registers".
+    pub fn name(self) -> &'static str {
         match self {
             Table::Coils => "coils",
             Table::DiscreteInputs => "discrete inputs",
