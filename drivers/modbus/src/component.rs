@@ -28,7 +28,7 @@ pub struct LineIo {
     units: Arc<Vec<LineUnit>>,
     states: Vec<UnitState>,
     /// The connection, while open.
-    client: Option<tokio_modbus::client::Context>,
+    client: Option<crate::client::Client>,
     /// The single-threaded tokio runtime the transactions run on (made at start).
     tokio: Option<tokio::runtime::Runtime>,
 }

@@ -50,6 +50,10 @@ pub enum TransportConfig {
         /// Stop bits, 1 or 2 (default 1).
         #[serde(default = "one_u8")]
         stop_bits: u8,
+        /// Extra quiet time after every frame before the next request, ms, for slow
+        /// RS-485 bridges (0-10000; default 0: the 3.5 character times alone).
+        #[serde(default)]
+        turnaround_ms: u32,
     },
 }
 
@@ -153,7 +157,14 @@ impl ModbusConfig {
                 baud,
                 parity,
                 stop_bits,
+                turnaround_ms,
             } => {
+                if *turnaround_ms > 10_000 {
+                    return Err(CardError::at(
+                        "transport.turnaround_ms",
+                        format!("{turnaround_ms}: expected 0 to 10000 ms"),
+                    ));
+                }
                 if !matches!(stop_bits, 1 | 2) {
                     return Err(CardError::at(
                         "transport.stop_bits",
@@ -171,6 +182,7 @@ impl ModbusConfig {
                     baud: *baud,
                     parity: *parity,
                     stop_bits: *stop_bits,
+                    turnaround_us: turnaround_ms * 1000,
                 }))
             }
         }

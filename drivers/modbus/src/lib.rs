@@ -7,6 +7,7 @@
 //! - [`map`]: the register map, and which device channel each point is;
 //! - [`card`]: a unit's devices — images fed by replies, outputs turned into writes;
 //! - [`line`](mod@line): the poller of one connection and the units on it;
+//! - [`client`]: the poller's Modbus TCP and RTU framing (silences, broadcast, stale replies);
 //! - [`value`]: an analog point's value in the card's image (floats exact);
 //! - [`config`]: a card's section of a deployment;
 //! - [`server`]: hwgw as a Modbus TCP server over chosen registry devices: its table;
@@ -22,6 +23,7 @@
 //! ```
 
 pub mod card;
+pub mod client;
 pub mod codec;
 pub mod component;
 pub mod config;

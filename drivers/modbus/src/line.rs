@@ -16,17 +16,15 @@
 //! - an exception reply surfaces with its code; a write that fails is sent again at the
 //!   next poll, never dropped.
 
-use crate::card::{ModbusCard, ReadData, Write};
-use crate::plan::{Read, Table};
+use crate::card::{ModbusCard, ReadData};
+use crate::client::{Client, ClientError, Reply};
+use crate::plan::Read;
 use device_interface::time::Timestamp;
 use device_interface::{DeviceError, Status};
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
-use tokio_modbus::client::{Context, Reader, Writer};
-use tokio_modbus::prelude::SlaveContext;
-use tokio_modbus::{ExceptionCode, Slave};
 
 /// How a unit is polled.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -66,6 +64,8 @@ pub struct UnitStats {
     pub polls: AtomicU64,
     /// Reads split where the unit has holes (each after an IllegalDataAddress).
     pub splits: AtomicU64,
+    /// TCP replies to another transaction (late answers), dropped.
+    pub stale_replies: AtomicU64,
 }
 
 /// A snapshot of one unit's [`UnitStats`], for status reports and the line's `counters`
@@ -92,6 +92,8 @@ pub struct UnitCounters {
     pub write_retries: u64,
     /// Reads split where the unit has holes.
     pub splits: u64,
+    /// TCP replies to another transaction, dropped.
+    pub stale_replies: u64,
 }
 
 impl UnitCounters {
@@ -109,6 +111,7 @@ impl UnitCounters {
             bad_replies: load(&s.bad_replies),
             write_retries: load(&s.write_retries),
             splits: load(&s.splits),
+            stale_replies: load(&s.stale_replies),
         }
     }
 
@@ -152,6 +155,9 @@ pub struct Serial {
     pub parity: Parity,
     /// Stop bits: 1 or 2.
     pub stop_bits: u8,
+    /// Extra quiet time after each frame before the next request, µs (slow RS-485
+    /// bridges; 0: the 3.5 character times alone).
+    pub turnaround_us: u32,
 }
 
 /// Where the line goes.
@@ -171,15 +177,17 @@ impl Transport {
         }
     }
 
-    /// Opens the connection (or the port) addressed to `unit`.
-    async fn open(&self, unit: u8) -> std::io::Result<Context> {
+    /// Opens the connection (or the port).
+    async fn open(&self) -> std::io::Result<Client> {
         match self {
             Transport::Tcp(addr) => {
-                tokio_modbus::client::tcp::connect_slave(*addr, Slave(unit)).await
+                let stream = tokio::net::TcpStream::connect(addr).await?;
+                let _ = stream.set_nodelay(true);
+                Ok(Client::Tcp { stream, tid: 0 })
             }
             Transport::Rtu(s) => {
                 use tokio_serial::SerialPortBuilderExt;
-                let stream = tokio_serial::new(s.device.to_string_lossy(), s.baud)
+                let port = tokio_serial::new(s.device.to_string_lossy(), s.baud)
                     .parity(match s.parity {
                         Parity::Even => tokio_serial::Parity::Even,
                         Parity::Odd => tokio_serial::Parity::Odd,
@@ -193,7 +201,16 @@ impl Transport {
                     .data_bits(tokio_serial::DataBits::Eight)
                     .open_native_async()
                     .map_err(std::io::Error::other)?;
-                Ok(tokio_modbus::client::rtu::attach_slave(stream, Slave(unit)))
+                let turnaround = Duration::from_micros(u64::from(s.turnaround_us));
+                Ok(Client::Rtu {
+                    port,
+                    baud: s.baud,
+                    turnaround,
+                    // A port just opened: the line may be mid-frame; wait a silence.
+                    quiet_from: tokio::time::Instant::now()
+                        + crate::client::t35(s.baud)
+                        + turnaround,
+                })
             }
         }
     }
@@ -213,12 +230,10 @@ enum PollError {
         what: String,
         source: std::io::Error,
     },
-    #[error("unit {unit}: {what}: Modbus exception {code:?} ({:#04x})", u8::from(*.code))]
-    Exception {
-        unit: u8,
-        what: String,
-        code: ExceptionCode,
-    },
+    #[error("unit {unit}: {what}: Modbus exception {} ({code:#04x})", exception_name(*.code))]
+    Exception { unit: u8, what: String, code: u8 },
+    #[error("unit {unit}: {what}: {why}")]
+    Garbled { unit: u8, what: String, why: String },
     #[error("unit {unit}: {what}: {source}")]
     BadReply {
         unit: u8,
@@ -230,11 +245,15 @@ enum PollError {
 impl PollError {
     /// Whether the connection must be dropped: after a timeout a late reply could be taken
     /// for the next request's.
-    fn breaks_connection(&self) -> bool {
-        matches!(
-            self,
-            PollError::Timeout { .. } | PollError::Transport { .. }
-        )
+    /// On TCP a late reply is told apart by its transaction id, so only a broken
+    /// connection is dropped; RTU has no transaction id, so a timeout or a garbled reply
+    /// reopens the port too (discarding what a late unit may still send).
+    fn breaks_connection(&self, rtu: bool) -> bool {
+        match self {
+            PollError::Transport { .. } => true,
+            PollError::Timeout { .. } | PollError::Garbled { .. } => rtu,
+            PollError::Exception { .. } | PollError::BadReply { .. } => false,
+        }
     }
 }
 
@@ -269,7 +288,7 @@ fn bump(c: &AtomicU64) {
 /// poll one period after the due time (from now after a stall, never a burst), or a
 /// growing backoff once the unit is offline. `due` is when this poll was due.
 pub(crate) async fn poll_and_schedule(
-    ctx: &mut Option<Context>,
+    ctx: &mut Option<Client>,
     transport: &Transport,
     unit: &LineUnit,
     state: &mut UnitState,
@@ -290,7 +309,7 @@ pub(crate) async fn poll_and_schedule(
             state.next = due.saturating_add(t.poll).max(now());
         }
         Err(e) => {
-            if e.breaks_connection() {
+            if e.breaks_connection(matches!(transport, Transport::Rtu(_))) {
                 *ctx = None;
             }
             state.failures += 1;
@@ -330,7 +349,7 @@ fn describe_read(r: &Read) -> String {
 }
 
 async fn poll_unit(
-    ctx: &mut Option<Context>,
+    ctx: &mut Option<Client>,
     transport: &Transport,
     unit: &LineUnit,
     plan: &mut Option<Vec<Read>>,
@@ -338,10 +357,9 @@ async fn poll_unit(
     let t = unit.timing;
     let stats = &unit.stats;
     if ctx.is_none() {
-        // Opening anew also discards whatever a timed-out unit may still send: on RTU a
-        // late reply would otherwise be taken for the next request's.
+        // Opening anew also discards whatever a timed-out unit may still send.
         let what = || format!("opening {}", transport.describe());
-        match tokio::time::timeout(t.timeout, transport.open(t.unit)).await {
+        match tokio::time::timeout(t.timeout, transport.open()).await {
             Ok(Ok(c)) => *ctx = Some(c),
             Ok(Err(source)) => {
                 bump(&stats.transport_errors);
@@ -368,40 +386,19 @@ async fn poll_unit(
             source: std::io::Error::from(std::io::ErrorKind::NotConnected),
         });
     };
-    c.set_slave(Slave(t.unit));
     let map = unit.card.map();
+    let (mut pdu, mut out) = (Vec::with_capacity(260), Vec::with_capacity(260));
     let mut ri = 0;
     while let Some(read) = plan.as_deref().unwrap_or(map.reads()).get(ri) {
-        bump(&stats.requests);
         let what = || describe_read(read);
-        let reply = tokio::time::timeout(t.timeout, async {
-            match read.table {
-                Table::Coils => c
-                    .read_coils(read.start, read.count)
-                    .await
-                    .map(|r| r.map(Data::Bits)),
-                Table::DiscreteInputs => c
-                    .read_discrete_inputs(read.start, read.count)
-                    .await
-                    .map(|r| r.map(Data::Bits)),
-                Table::InputRegisters => c
-                    .read_input_registers(read.start, read.count)
-                    .await
-                    .map(|r| r.map(Data::Words)),
-                Table::HoldingRegisters => c
-                    .read_holding_registers(read.start, read.count)
-                    .await
-                    .map(|r| r.map(Data::Words)),
-            }
-        })
-        .await;
-        if let Ok(Ok(Err(ExceptionCode::IllegalDataAddress))) = &reply
+        crate::client::read_request(read, &mut pdu);
+        let reply = exchange(c, t, stats, &pdu, &mut out, what).await;
+        if let Err(PollError::Exception { code: 2, .. }) = &reply
             && map.learns_holes()
             && let Some((a, b)) = map.split(read)
         {
             // The unit has holes in this read's gaps: poll the halves (now, and from now
             // on), splitting further until each read covers no hole.
-            bump(&stats.exceptions);
             bump(&stats.splits);
             let was = read.to_string();
             let reads = plan.get_or_insert_with(|| map.reads().to_vec());
@@ -413,10 +410,18 @@ async fn poll_unit(
             reads.splice(ri..=ri, [a, b]);
             continue;
         }
-        let data = answer(reply, t, stats, what)?;
-        let applied = match &data {
-            Data::Bits(b) => unit.card.apply(ri, read, ReadData::Bits(b)),
-            Data::Words(w) => unit.card.apply(ri, read, ReadData::Registers(w)),
+        reply?;
+        let applied = match crate::client::read_data(read, &out) {
+            Ok(Data::Bits(b)) => unit.card.apply(ri, read, ReadData::Bits(&b)),
+            Ok(Data::Words(w)) => unit.card.apply(ri, read, ReadData::Registers(&w)),
+            Err(why) => {
+                bump(&stats.bad_replies);
+                return Err(PollError::Garbled {
+                    unit: t.unit,
+                    what: what(),
+                    why,
+                });
+            }
         };
         if let Err(source) = applied {
             bump(&stats.bad_replies);
@@ -426,27 +431,12 @@ async fn poll_unit(
                 source,
             });
         }
-        bump(&stats.replies);
         ri += 1;
     }
     let writes = unit.card.take_writes();
     for (k, w) in writes.iter().enumerate() {
-        bump(&stats.requests);
-        let what = || format!("{w:?}");
-        let sent = tokio::time::timeout(t.timeout, async {
-            match w {
-                Write::Coil { address, value } => c.write_single_coil(*address, *value).await,
-                Write::Coils { address, values } => c.write_multiple_coils(*address, values).await,
-                Write::Register { address, value } => {
-                    c.write_single_register(*address, *value).await
-                }
-                Write::Registers { address, values } => {
-                    c.write_multiple_registers(*address, values).await
-                }
-            }
-        })
-        .await;
-        if let Err(e) = answer(sent, t, stats, what) {
+        crate::client::write_request(w, &mut pdu);
+        if let Err(e) = exchange(c, t, stats, &pdu, &mut out, || format!("{w:?}")).await {
             // This write and the ones not yet sent go out again at the next poll.
             for w in &writes[k..] {
                 unit.card.retry(w);
@@ -454,27 +444,40 @@ async fn poll_unit(
             }
             return Err(e);
         }
-        bump(&stats.replies);
     }
     Ok(())
 }
 
-enum Data {
-    Bits(Vec<bool>),
-    Words(Vec<u16>),
+/// The name of an exception code, for messages.
+fn exception_name(code: u8) -> &'static str {
+    match code {
+        1 => "IllegalFunction",
+        2 => "IllegalDataAddress",
+        3 => "IllegalDataValue",
+        4 => "ServerDeviceFailure",
+        5 => "Acknowledge",
+        6 => "ServerDeviceBusy",
+        8 => "MemoryParityError",
+        10 => "GatewayPathUnavailable",
+        11 => "GatewayTargetDevice",
+        _ => "unknown",
+    }
 }
 
-type Reply<T> =
-    Result<Result<Result<T, ExceptionCode>, tokio_modbus::Error>, tokio::time::error::Elapsed>;
-
-/// Unwraps the three layers of a reply (timeout, transport, exception), counting each
-/// failure.
-fn answer<T>(
-    reply: Reply<T>,
+/// One request and its reply within the unit's timeout, each failure counted: the reply
+/// PDU is in `out`.
+async fn exchange(
+    c: &mut Client,
     t: UnitTiming,
     stats: &UnitStats,
+    pdu: &[u8],
+    out: &mut Vec<u8>,
     what: impl Fn() -> String,
-) -> Result<T, PollError> {
+) -> Result<(), PollError> {
+    bump(&stats.requests);
+    let mut stale = 0;
+    let reply = tokio::time::timeout(t.timeout, c.request(t.unit, pdu, out, &mut stale)).await;
+    stats.stale_replies.fetch_add(stale, Ordering::Relaxed);
     match reply {
         Err(_) => {
             bump(&stats.timeouts);
@@ -484,21 +487,23 @@ fn answer<T>(
                 timeout: t.timeout,
             })
         }
-        Ok(Err(e)) => {
-            // A reply from the wrong unit or transaction, or with the wrong function code, is
-            // a bad reply, not a line fault.
-            match &e {
-                tokio_modbus::Error::Protocol(_) => bump(&stats.bad_replies),
-                tokio_modbus::Error::Transport(_) => bump(&stats.transport_errors),
-            }
-            let source = std::io::Error::other(e.to_string());
+        Ok(Err(ClientError::Io(source))) => {
+            bump(&stats.transport_errors);
             Err(PollError::Transport {
                 unit: t.unit,
                 what: what(),
                 source,
             })
         }
-        Ok(Ok(Err(code))) => {
+        Ok(Err(ClientError::Bad(why))) => {
+            bump(&stats.bad_replies);
+            Err(PollError::Garbled {
+                unit: t.unit,
+                what: what(),
+                why,
+            })
+        }
+        Ok(Ok(Reply::Exception(code))) => {
             bump(&stats.exceptions);
             Err(PollError::Exception {
                 unit: t.unit,
@@ -506,6 +511,15 @@ fn answer<T>(
                 code,
             })
         }
-        Ok(Ok(Ok(v))) => Ok(v),
+        Ok(Ok(Reply::Pdu | Reply::Broadcast)) => {
+            bump(&stats.replies);
+            Ok(())
+        }
     }
+}
+
+/// A read reply's values.
+pub(crate) enum Data {
+    Bits(Vec<bool>),
+    Words(Vec<u16>),
 }

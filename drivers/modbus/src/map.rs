@@ -193,10 +193,12 @@ pub struct Map {
     learn_holes: bool,
 }
 
-/// Refuses point `i` where it shares an address with an earlier point of the same table:
-/// two bits on one coil or input, two values over one register, the same bit of a register
-/// twice, or a bit of a register a writable value point covers (writing the value would
-/// change the bit). Bits of one register, and bits of a read-only value, may share it.
+/// Refuses point `i` where it shares an address with an earlier point of the same table
+/// in a way that cannot be meant: two outputs on one coil, values that overlap in part
+/// (a u32 at 10 and a u16 at 11), two outputs on one register, the same bit of a register
+/// twice, or a bit of a register an output value covers (writing the value would change
+/// the bit). Several read-only views of one address may share it (an output's value read
+/// back as an input, a counter as an encoder and as a value), as may bits of one register.
 fn overlap(configs: &[PointConfig], i: usize, bit_table: bool) -> Result<(), String> {
     let c = &configs[i];
     let span = |p: &PointConfig| {
@@ -208,7 +210,10 @@ fn overlap(configs: &[PointConfig], i: usize, bit_table: bool) -> Result<(), Str
         (u32::from(p.address), u32::from(p.address) + w)
     };
     let writable = |p: &PointConfig| {
-        p.table == Table::HoldingRegisters && !p.read_only && p.bit.is_none() && p.encoder.is_none()
+        matches!(p.table, Table::HoldingRegisters | Table::Coils)
+            && !p.read_only
+            && p.bit.is_none()
+            && p.encoder.is_none()
     };
     let (s, e) = span(c);
     for (j, o) in configs[..i].iter().enumerate() {
@@ -217,11 +222,11 @@ fn overlap(configs: &[PointConfig], i: usize, bit_table: bool) -> Result<(), Str
             continue;
         }
         let clash = match (c.bit, o.bit) {
-            _ if bit_table => true,
+            _ if bit_table => writable(c) || writable(o),
             (Some(a), Some(b)) => a == b,
             (Some(_), None) => writable(o),
             (None, Some(_)) => writable(c),
-            (None, None) => true,
+            (None, None) => (s, e) != (os, oe) || (writable(c) && writable(o)),
         };
         if clash {
             return Err(format!(

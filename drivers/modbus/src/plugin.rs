@@ -53,6 +53,15 @@ pub fn build(config: &ModbusConfig, ctx: &mut CardContext<'_>) -> Result<Box<dyn
         } => CardError::at(format!("point[{point}].{key}"), problem),
         _ => CardError::new(e),
     })?;
+    if matches!(transport, crate::line::Transport::Rtu(_))
+        && timing.unit == 0
+        && !card.map().reads().is_empty()
+    {
+        return Err(CardError::at(
+            "unit",
+            "unit 0 is the broadcast address on RTU: every unit takes its writes and none answers, so it can have outputs only (no inputs, no read_back)",
+        ));
+    }
     let stats = Arc::new(UnitStats::default());
     let thread = ctx.thread().clone();
     let unit = LineUnit {

@@ -303,6 +303,27 @@ fn a_reply_from_the_wrong_unit_is_rejected_and_counted() {
 }
 
 #[test]
+fn a_late_reply_to_another_transaction_is_dropped_and_counted() {
+    // Before each right reply, a reply to the transaction before it (as a unit that
+    // answers a timed-out request late would send): dropped, counted, the poll good.
+    let addr = raw_server(|req| {
+        let mut late = zeros_from(req, req[6]);
+        let tid = u16::from_be_bytes([req[0], req[1]]).wrapping_sub(1);
+        late[..2].copy_from_slice(&tid.to_be_bytes());
+        late.extend(zeros_from(req, req[6]));
+        (late, false)
+    });
+    let (card, stats, _line) = line_against(addr);
+    wait_until("online", || card.health().status == Status::Online);
+    wait_until("stale replies counted", || {
+        stats.stale_replies.load(Ordering::Relaxed) >= 3
+    });
+    assert_eq!(stats.bad_replies.load(Ordering::Relaxed), 0);
+    assert_eq!(stats.transport_errors.load(Ordering::Relaxed), 0);
+    assert!(stats.polls.load(Ordering::Relaxed) >= 3);
+}
+
+#[test]
 fn a_truncated_frame_is_an_error_not_a_hang() {
     // The header promises 5 bytes of PDU; 2 arrive, then the connection closes.
     let addr = raw_server(|req| {

@@ -14,6 +14,7 @@ use driver_modbus::card::ModbusCard;
 use driver_modbus::line::{LineUnit, Transport, UnitStats, UnitTiming};
 use driver_modbus::map::{Map, PointConfig};
 use driver_modbus::testing::TestLine;
+use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::process::{Child, Command, Stdio};
 use std::sync::Arc;
@@ -376,6 +377,7 @@ fn two_units_multi_dropped_on_an_rtu_line_against_pymodbus() {
         baud: 19200,
         parity: Parity::Even,
         stop_bits: 1,
+        turnaround_us: 0,
     };
     let unit = |n: u8| UnitTiming {
         unit: n,
@@ -534,4 +536,125 @@ fn every_table_and_type_against_pymodbus() {
         (0, 0),
         "a counter's first reading is its baseline"
     );
+}
+
+/// A unit of the test's own on the far end of a pty pair at 1200 baud: it records when each
+/// request frame arrived and when it answered (unit 1's reads), and answers nothing to a
+/// broadcast (unit 0).
+#[test]
+fn rtu_frames_keep_their_silence_and_a_broadcast_waits_for_no_reply() {
+    use driver_modbus::client::{crc16, t35};
+    use driver_modbus::line::{Parity, Serial};
+    use std::sync::Mutex;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let pty = PtyPair::new("rtu-silence");
+    /// A frame the unit saw: when it arrived, its unit id, when it was answered.
+    type Seen = (Instant, u8, Option<Instant>);
+    let events: Arc<Mutex<Vec<Seen>>> = Arc::default();
+    let stop = Arc::new(AtomicBool::new(false));
+    let (ev, st, path) = (events.clone(), stop.clone(), pty.dir.join("unit"));
+    let unit = std::thread::spawn(move || {
+        let mut port = tokio_serial::new(path.to_string_lossy(), 1200)
+            .timeout(Duration::from_millis(20))
+            .open()
+            .unwrap();
+        let mut buf = Vec::new();
+        while !st.load(Ordering::Relaxed) {
+            let mut b = [0u8; 64];
+            if let Ok(n) = port.read(&mut b) {
+                buf.extend_from_slice(&b[..n]);
+            }
+            while buf.len() >= 8 {
+                let frame: Vec<u8> = buf.drain(..8).collect();
+                let arrived = Instant::now();
+                assert_eq!(
+                    crc16(&frame[..6]).to_le_bytes(),
+                    [frame[6], frame[7]],
+                    "{frame:x?}"
+                );
+                let replied = (frame[0] == 1).then(|| {
+                    let mut r = vec![1, 3, 2, 0, 7];
+                    let crc = crc16(&r).to_le_bytes();
+                    r.extend_from_slice(&crc);
+                    port.write_all(&r).unwrap();
+                    Instant::now()
+                });
+                ev.lock().unwrap().push((arrived, frame[0], replied));
+            }
+        }
+    });
+    let map = |text: &str| {
+        let points: Vec<PointConfig> = toml::from_str::<toml::Table>(text).unwrap()["point"]
+            .clone()
+            .try_into()
+            .unwrap();
+        ModbusCard::new(Map::new(&points, 0).unwrap(), Arc::new(MonotonicClock))
+    };
+    let reader = map("[[point]]\ntable = \"holding_registers\"\naddress = 0\nread_only = true\n");
+    let everyone = map("[[point]]\ntable = \"coils\"\naddress = 0\n");
+    let (s1, s0) = (
+        Arc::new(UnitStats::default()),
+        Arc::new(UnitStats::default()),
+    );
+    let fast = |n: u8| UnitTiming {
+        unit: n,
+        poll: Duration::from_millis(5),
+        ..timing()
+    };
+    let turnaround = Duration::from_millis(20);
+    let _line = TestLine::spawn(
+        "mb-rtu-silence",
+        Transport::Rtu(Serial {
+            device: pty.dir.join("line"),
+            baud: 1200,
+            parity: Parity::Even,
+            stop_bits: 1,
+            turnaround_us: turnaround.as_micros() as u32,
+        }),
+        vec![
+            LineUnit {
+                card: reader.clone(),
+                timing: fast(1),
+                stats: s1.clone(),
+            },
+            LineUnit {
+                card: everyone.clone(),
+                timing: fast(0),
+                stats: s0.clone(),
+            },
+        ],
+    )
+    .unwrap();
+    wait_until("unit 1 online", || reader.health().status == Status::Online);
+    assert_eq!(AnalogIn::read_raw(&*reader, 0).unwrap(), 7);
+    everyone.set_bit(0, true).unwrap();
+    wait_until("a broadcast and reads after it", || {
+        let e = events.lock().unwrap();
+        e.iter()
+            .position(|x| x.1 == 0)
+            .is_some_and(|b| e.len() > b + 3)
+    });
+    stop.store(true, Ordering::Relaxed);
+    unit.join().unwrap();
+    let e = events.lock().unwrap().clone();
+    // 5 ms of slack for the scheduler on the early side.
+    let slack = Duration::from_millis(5);
+    let quiet = t35(1200) + turnaround;
+    let on_wire = Duration::from_secs_f64(8.0 * 11.0 / 1200.0);
+    for w in e.windows(2) {
+        let ((a, u, replied), (next, ..)) = (w[0], w[1]);
+        let (from, need) = match replied {
+            Some(r) => (r, quiet),
+            None => (a, on_wire + quiet),
+        };
+        let gap = next.duration_since(from);
+        assert!(
+            gap + slack >= need,
+            "after unit {u}'s frame: {gap:?} of silence, {need:?} needed"
+        );
+    }
+    let load = |a: &std::sync::atomic::AtomicU64| a.load(Ordering::Relaxed);
+    assert_eq!(load(&s0.timeouts), 0, "a broadcast waits for no reply");
+    assert!(load(&s0.replies) >= 1);
+    assert_eq!(load(&s1.timeouts), 0);
 }

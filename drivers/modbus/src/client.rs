@@ -1,0 +1,327 @@
+//! hwgw's Modbus client framing, for the line's poller: one request, its reply.
+//!
+//! - **TCP** (MBAP): each request gets the next transaction id; a reply with another id (a
+//!   late answer to a request that timed out) is read whole, dropped and counted, and the
+//!   wait goes on for the right one. A header that is not Modbus TCP breaks the connection.
+//! - **RTU**: frames are separated by the 3.5 character times of silence the specification
+//!   requires at the line's baud rate (11 bits a character; 1.75 ms above 19200 baud),
+//!   plus a configurable turnaround delay for slow RS-485 bridges: a request is not sent
+//!   before the line has been quiet that long since the last frame on it. A reply is read to
+//!   the length its function code gives, its CRC and unit checked. A broadcast (unit 0) is
+//!   sent and not answered: the line waits its transmission time and the turnaround instead.
+
+use std::io;
+use std::time::Duration;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::time::Instant;
+
+/// What a request came back with.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Reply {
+    /// The reply PDU (function code first), in the client's buffer.
+    Pdu,
+    /// An exception code.
+    Exception(u8),
+    /// A broadcast: no reply by design.
+    Broadcast,
+}
+
+/// Why a request got no usable reply.
+#[derive(Debug, thiserror::Error)]
+pub enum ClientError {
+    /// The connection failed or closed.
+    #[error("{0}")]
+    Io(#[from] io::Error),
+    /// A reply that is not one (bad CRC, wrong unit or function, impossible length).
+    #[error("bad reply: {0}")]
+    Bad(String),
+}
+
+/// The CRC-16/MODBUS of `data` (polynomial 0xA001 reflected, initial 0xFFFF).
+pub fn crc16(data: &[u8]) -> u16 {
+    let mut crc = 0xFFFFu16;
+    for b in data {
+        crc ^= u16::from(*b);
+        for _ in 0..8 {
+            crc = if crc & 1 != 0 {
+                (crc >> 1) ^ 0xA001
+            } else {
+                crc >> 1
+            };
+        }
+    }
+    crc
+}
+
+/// The silence between RTU frames at `baud`: 3.5 characters of 11 bits, 1.75 ms above
+/// 19200 baud (the specification's fixed value there).
+pub fn t35(baud: u32) -> Duration {
+    if baud > 19_200 {
+        Duration::from_micros(1750)
+    } else {
+        Duration::from_secs_f64(3.5 * 11.0 / f64::from(baud.max(1)))
+    }
+}
+
+/// A connection to a line.
+pub enum Client {
+    /// Modbus TCP.
+    Tcp {
+        /// The connection.
+        stream: tokio::net::TcpStream,
+        /// The last transaction id used.
+        tid: u16,
+    },
+    /// Modbus RTU on a serial port.
+    Rtu {
+        /// The port.
+        port: tokio_serial::SerialStream,
+        /// Bits per second (for the silence and the transmission time).
+        baud: u32,
+        /// Extra wait after each frame before the next request.
+        turnaround: Duration,
+        /// The line is quiet enough for a request from then on.
+        quiet_from: Instant,
+    },
+}
+
+impl Client {
+    /// Sends `pdu` to `unit` and reads the reply PDU into `out` (cleared first). Replies to
+    /// other transactions are dropped and counted in `stale`. No timeout of its own: the
+    /// caller bounds it.
+    pub async fn request(
+        &mut self,
+        unit: u8,
+        pdu: &[u8],
+        out: &mut Vec<u8>,
+        stale: &mut u64,
+    ) -> Result<Reply, ClientError> {
+        out.clear();
+        match self {
+            Client::Tcp { stream, tid } => tcp(stream, tid, unit, pdu, out, stale).await,
+            Client::Rtu {
+                port,
+                baud,
+                turnaround,
+                quiet_from,
+            } => rtu(port, *baud, *turnaround, quiet_from, unit, pdu, out).await,
+        }
+    }
+}
+
+async fn tcp(
+    stream: &mut tokio::net::TcpStream,
+    tid: &mut u16,
+    unit: u8,
+    pdu: &[u8],
+    out: &mut Vec<u8>,
+    stale: &mut u64,
+) -> Result<Reply, ClientError> {
+    *tid = tid.wrapping_add(1);
+    let mut frame = Vec::with_capacity(7 + pdu.len());
+    frame.extend_from_slice(&tid.to_be_bytes());
+    frame.extend_from_slice(&[0, 0]);
+    frame.extend_from_slice(&((pdu.len() + 1) as u16).to_be_bytes());
+    frame.push(unit);
+    frame.extend_from_slice(pdu);
+    stream.write_all(&frame).await?;
+    loop {
+        let mut head = [0u8; 7];
+        stream.read_exact(&mut head).await?;
+        let len = usize::from(u16::from_be_bytes([head[4], head[5]]));
+        if head[2..4] != [0, 0] || !(2..=254).contains(&len) {
+            return Err(io::Error::new(
+                io::ErrorKind::InvalidData,
+                format!("not a Modbus TCP header: {head:02x?}"),
+            )
+            .into());
+        }
+        out.resize(len - 1, 0);
+        stream.read_exact(out).await?;
+        if u16::from_be_bytes([head[0], head[1]]) != *tid {
+            // A late answer to an earlier request: not this one's.
+            *stale += 1;
+            continue;
+        }
+        if head[6] != unit {
+            return Err(ClientError::Bad(format!(
+                "unit {} answered, not {unit}",
+                head[6]
+            )));
+        }
+        return pdu_reply(pdu[0], out);
+    }
+}
+
+/// Reads a reply PDU: an exception, or the function's own reply.
+fn pdu_reply(function: u8, out: &[u8]) -> Result<Reply, ClientError> {
+    match out {
+        [f, code] if *f == function | 0x80 => Ok(Reply::Exception(*code)),
+        [f, ..] if *f == function => Ok(Reply::Pdu),
+        _ => Err(ClientError::Bad(format!(
+            "function {function} answered {out:02x?}"
+        ))),
+    }
+}
+
+async fn rtu(
+    port: &mut tokio_serial::SerialStream,
+    baud: u32,
+    turnaround: Duration,
+    quiet_from: &mut Instant,
+    unit: u8,
+    pdu: &[u8],
+    out: &mut Vec<u8>,
+) -> Result<Reply, ClientError> {
+    let mut frame = Vec::with_capacity(pdu.len() + 3);
+    frame.push(unit);
+    frame.extend_from_slice(pdu);
+    frame.extend_from_slice(&crc16(&frame).to_le_bytes());
+    tokio::time::sleep_until(*quiet_from).await;
+    // Whatever a late unit sent since is not this request's reply.
+    let mut junk = [0u8; 256];
+    while let Ok(Ok(n)) = tokio::time::timeout(Duration::ZERO, port.read(&mut junk)).await {
+        if n == 0 {
+            break;
+        }
+    }
+    port.write_all(&frame).await?;
+    let sent = Instant::now();
+    // The frame's own time on the wire (the port's buffer empties at the baud rate).
+    let on_wire = Duration::from_secs_f64(frame.len() as f64 * 11.0 / f64::from(baud.max(1)));
+    if unit == 0 {
+        *quiet_from = sent + on_wire + t35(baud) + turnaround;
+        return Ok(Reply::Broadcast);
+    }
+    // unit, function, then: an exception code; a byte count and that many bytes; or the
+    // echoed address and value (writes). Then the CRC.
+    let mut head = [0u8; 3];
+    port.read_exact(&mut head).await?;
+    let rest = match head[1] {
+        f if f & 0x80 != 0 => 2,
+        1..=4 => usize::from(head[2]) + 2,
+        5 | 6 | 15 | 16 => 5,
+        f => return Err(ClientError::Bad(format!("unknown function {f} in a reply"))),
+    };
+    let mut tail = vec![0u8; rest];
+    port.read_exact(&mut tail).await?;
+    *quiet_from = Instant::now() + t35(baud) + turnaround;
+    let mut whole = head.to_vec();
+    whole.extend_from_slice(&tail);
+    let n = whole.len();
+    if crc16(&whole[..n - 2]).to_le_bytes() != [whole[n - 2], whole[n - 1]] {
+        return Err(ClientError::Bad("CRC error".into()));
+    }
+    if whole[0] != unit {
+        return Err(ClientError::Bad(format!(
+            "unit {} answered, not {unit}",
+            whole[0]
+        )));
+    }
+    out.extend_from_slice(&whole[1..n - 2]);
+    pdu_reply(pdu[0], out)
+}
+
+/// The request PDU of `read` into `pdu` (cleared first).
+pub fn read_request(read: &crate::plan::Read, pdu: &mut Vec<u8>) {
+    pdu.clear();
+    pdu.push(read.table.read_function());
+    pdu.extend_from_slice(&read.start.to_be_bytes());
+    pdu.extend_from_slice(&read.count.to_be_bytes());
+}
+
+/// The request PDU of `w` into `pdu` (cleared first).
+pub fn write_request(w: &crate::card::Write, pdu: &mut Vec<u8>) {
+    use crate::card::Write;
+    pdu.clear();
+    match w {
+        Write::Coil { address, value } => {
+            pdu.push(5);
+            pdu.extend_from_slice(&address.to_be_bytes());
+            pdu.extend_from_slice(&[if *value { 0xFF } else { 0 }, 0]);
+        }
+        Write::Register { address, value } => {
+            pdu.push(6);
+            pdu.extend_from_slice(&address.to_be_bytes());
+            pdu.extend_from_slice(&value.to_be_bytes());
+        }
+        Write::Coils { address, values } => {
+            pdu.push(15);
+            pdu.extend_from_slice(&address.to_be_bytes());
+            pdu.extend_from_slice(&(values.len() as u16).to_be_bytes());
+            let bytes = values.len().div_ceil(8);
+            pdu.push(bytes as u8);
+            let at = pdu.len();
+            pdu.resize(at + bytes, 0);
+            for (i, v) in values.iter().enumerate() {
+                pdu[at + i / 8] |= u8::from(*v) << (i % 8);
+            }
+        }
+        Write::Registers { address, values } => {
+            pdu.push(16);
+            pdu.extend_from_slice(&address.to_be_bytes());
+            pdu.extend_from_slice(&(values.len() as u16).to_be_bytes());
+            pdu.push((2 * values.len()) as u8);
+            for v in values {
+                pdu.extend_from_slice(&v.to_be_bytes());
+            }
+        }
+    }
+}
+
+/// The values of a read's reply PDU (function, byte count, data), checked against the read.
+pub(crate) fn read_data(
+    read: &crate::plan::Read,
+    reply: &[u8],
+) -> Result<crate::line::Data, String> {
+    use crate::line::Data;
+    let count = usize::from(read.count);
+    let [_, bytes, data @ ..] = reply else {
+        return Err(format!("a reply of {} bytes", reply.len()));
+    };
+    let want = if read.table.is_bits() {
+        count.div_ceil(8)
+    } else {
+        2 * count
+    };
+    if usize::from(*bytes) != want || data.len() != want {
+        return Err(format!(
+            "{} data bytes (byte count {bytes}) for {count} {}, {want} expected",
+            data.len(),
+            if read.table.is_bits() {
+                "bits"
+            } else {
+                "registers"
+            }
+        ));
+    }
+    Ok(if read.table.is_bits() {
+        Data::Bits(
+            (0..count)
+                .map(|i| data[i / 8] >> (i % 8) & 1 == 1)
+                .collect(),
+        )
+    } else {
+        Data::Words(
+            data.chunks_exact(2)
+                .map(|w| u16::from_be_bytes([w[0], w[1]]))
+                .collect(),
+        )
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn crc_and_silence() {
+        // The specification's example: 01 03 00 00 00 0A -> CRC C5 CD (low byte first).
+        assert_eq!(
+            crc16(&[0x01, 0x03, 0x00, 0x00, 0x00, 0x0A]).to_le_bytes(),
+            [0xC5, 0xCD]
+        );
+        assert_eq!(t35(9600), Duration::from_secs_f64(38.5 / 9600.0));
+        assert_eq!(t35(115_200), Duration::from_micros(1750));
+    }
+}
