@@ -377,3 +377,51 @@ fn hostile_requests_get_the_specifications_exceptions_and_the_server_survives() 
     );
     gw.shutdown();
 }
+
+/// The two requests that panic tokio-modbus 0.17's server decoder, sent to the real `hwgw`
+/// binary: answered with exception 03, and nothing about a panic in its output.
+#[test]
+fn the_requests_that_panic_tokio_modbus_leave_no_trace_in_hwgws_output() {
+    let dir = testkit::TempDir::new("modbus-hostile-config");
+    let config = dir.path().join("srv.toml");
+    std::fs::write(&config, SERVED).unwrap();
+    let gw = testkit::Service::start(
+        env!("CARGO_BIN_EXE_hwgw"),
+        "modbus-hostile",
+        &[&config],
+        &[],
+    )
+    .unwrap();
+    let mut addr = None;
+    wait_until("the server listening", || {
+        let status: serde_json::Value = gw
+            .out(&["status", "--json"])
+            .ok()
+            .and_then(|s| serde_json::from_str(&s).ok())
+            .unwrap_or_default();
+        addr = status["servers"][0]["bus"]
+            .as_str()
+            .and_then(|a| a.parse().ok());
+        addr.is_some_and(|a: std::net::SocketAddr| a.port() != 0)
+    });
+    let mut s = connect(addr.unwrap());
+    assert_eq!(
+        exchange(&mut s, 1, &[15, 0, 0, 0, 100, 1, 0xFF]).unwrap(),
+        [0x8F, 3]
+    );
+    assert_eq!(
+        exchange(&mut s, 2, &[16, 0, 10, 0x80, 0, 0]).unwrap(),
+        [0x90, 3]
+    );
+    assert_eq!(
+        exchange(&mut s, 3, &[3, 0, 10, 0, 1]).unwrap(),
+        [3, 2, 0, 0]
+    );
+    let stopped = gw.terminate();
+    assert!(stopped.status.success(), "{}", stopped.log);
+    assert!(
+        !stopped.log.contains("panicked") && !stopped.log.contains("backtrace"),
+        "hwgw's output mentions a panic:\n{}",
+        stopped.log
+    );
+}

@@ -225,10 +225,9 @@ impl driver_api::Server for TableServer {
             .as_ref()
             .map(ModbusServer::counters)
             .unwrap_or_default();
-        Some(driver_api::CardStatus::new(
-            self.listen.to_string(),
-            &counters,
-        ))
+        // Where it listens: the bound address once running (a port 0 given is chosen then).
+        let at = running.as_ref().map_or(self.listen, ModbusServer::addr);
+        Some(driver_api::CardStatus::new(at.to_string(), &counters))
     }
 
     fn health(&self) -> Result<(), String> {
