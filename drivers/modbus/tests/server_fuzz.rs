@@ -209,3 +209,49 @@ fn a_million_hostile_requests_no_panic_and_well_formed_replies() {
         "{answered} {exceptions}"
     );
 }
+
+/// The storm's kind of frames, 20 000 of them, through the real server over one TCP
+/// connection: each answered and well formed, the server still running and answering a
+/// plain read after it.
+#[test]
+fn the_server_answers_every_hostile_frame_over_tcp() {
+    use driver_modbus::listener::{Limits, ModbusServer};
+    use std::io::{Read, Write};
+    let server =
+        ModbusServer::start("127.0.0.1:0".parse().unwrap(), table(), Limits::default()).unwrap();
+    let mut s = std::net::TcpStream::connect(server.addr()).unwrap();
+    s.set_read_timeout(Some(std::time::Duration::from_secs(10)))
+        .unwrap();
+    let seeds = seeds();
+    let mut rng = Rng(0x0BAD_5EED);
+    let mut frame = Vec::new();
+    for i in 0..20_000u32 {
+        let mut pdu: Vec<u8> = if i % 2 == 0 {
+            (0..1 + rng.below(252)).map(|_| rng.next() as u8).collect()
+        } else {
+            seeds[rng.below(seeds.len() as u64) as usize].clone()
+        };
+        let at = rng.below(pdu.len() as u64) as usize;
+        pdu[at] ^= rng.next() as u8;
+        frame.clear();
+        frame.extend_from_slice(&(i as u16).to_be_bytes());
+        frame.extend_from_slice(&[0, 0]);
+        frame.extend_from_slice(&((pdu.len() + 1) as u16).to_be_bytes());
+        frame.push(1);
+        frame.extend_from_slice(&pdu);
+        s.write_all(&frame).unwrap();
+        let mut head = [0u8; 7];
+        s.read_exact(&mut head).unwrap();
+        assert_eq!(head[..2], (i as u16).to_be_bytes());
+        let mut body = vec![0u8; usize::from(u16::from_be_bytes([head[4], head[5]])) - 1];
+        s.read_exact(&mut body).unwrap();
+        check_reply(&pdu, &body);
+    }
+    let c = server.counters();
+    assert!(c.running && c.panics == 0 && c.requests == 20_000, "{c:?}");
+    // A plain read still answers.
+    s.write_all(&[0, 1, 0, 0, 0, 6, 1, 4, 0, 0, 0, 1]).unwrap();
+    let mut reply = [0u8; 11];
+    s.read_exact(&mut reply).unwrap();
+    assert_eq!(reply[7..9], [4, 2]);
+}
