@@ -15,6 +15,14 @@ use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::time::Instant;
 
+/// A read reply's values.
+pub(crate) enum Data {
+    /// Coils or discrete inputs.
+    Bits(Vec<bool>),
+    /// Registers.
+    Words(Vec<u16>),
+}
+
 /// What a request came back with.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Reply {
@@ -270,11 +278,7 @@ pub fn write_request(w: &crate::card::Write, pdu: &mut Vec<u8>) {
 }
 
 /// The values of a read's reply PDU (function, byte count, data), checked against the read.
-pub(crate) fn read_data(
-    read: &crate::plan::Read,
-    reply: &[u8],
-) -> Result<crate::line::Data, String> {
-    use crate::line::Data;
+pub(crate) fn read_data(read: &crate::plan::Read, reply: &[u8]) -> Result<Data, String> {
     let count = usize::from(read.count);
     let [_, bytes, data @ ..] = reply else {
         return Err(format!("a reply of {} bytes", reply.len()));

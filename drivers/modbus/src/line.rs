@@ -17,7 +17,7 @@
 //!   next poll, never dropped.
 
 use crate::card::{ModbusCard, ReadData};
-use crate::client::{Client, ClientError, Reply};
+use crate::client::{Client, ClientError, Data, Reply};
 use crate::plan::Read;
 use device_interface::time::Timestamp;
 use device_interface::{DeviceError, Status};
@@ -516,10 +516,4 @@ async fn exchange(
             Ok(())
         }
     }
-}
-
-/// A read reply's values.
-pub(crate) enum Data {
-    Bits(Vec<bool>),
-    Words(Vec<u16>),
 }
