@@ -280,11 +280,44 @@ fn connect(addr: std::net::SocketAddr) -> std::net::TcpStream {
     s
 }
 
-/// True when the server closed `s` (a read gets end of file or a reset).
+/// True when the server closed `s` (a read gets end of file or a reset); false when the
+/// read times out (10 s: the connection is still open) or returns data.
 fn closed(s: &mut std::net::TcpStream) -> bool {
-    use std::io::Read;
+    use std::io::{ErrorKind, Read};
     let mut b = [0u8; 1];
-    matches!(s.read(&mut b), Ok(0) | Err(_))
+    match s.read(&mut b) {
+        Ok(0) => true,
+        Ok(_) => false,
+        Err(e) => matches!(
+            e.kind(),
+            ErrorKind::ConnectionReset | ErrorKind::ConnectionAborted | ErrorKind::BrokenPipe
+        ),
+    }
+}
+
+/// A client that sends requests and never reads the replies (its receive buffer made
+/// small), until the server stops taking them: its writes time out.
+fn flood_without_reading(addr: std::net::SocketAddr) -> std::net::TcpStream {
+    use std::io::Write;
+    let s = connect(addr);
+    nix::sys::socket::setsockopt(&s, nix::sys::socket::sockopt::RcvBuf, &4096).unwrap();
+    s.set_write_timeout(Some(std::time::Duration::from_millis(300)))
+        .unwrap();
+    let batch: Vec<u8> = (0..1000u16)
+        .flat_map(|i| {
+            let [a, b] = i.to_be_bytes();
+            [a, b, 0, 0, 0, 6, 1, 3, 0, 10, 0, 1]
+        })
+        .collect();
+    let t0 = std::time::Instant::now();
+    let mut s = s;
+    while s.write_all(&batch).is_ok() {
+        assert!(
+            t0.elapsed() < std::time::Duration::from_secs(60),
+            "the server kept taking requests nobody reads the replies of"
+        );
+    }
+    s
 }
 
 #[test]
@@ -360,6 +393,18 @@ fn hostile_requests_get_the_specifications_exceptions_and_the_server_survives() 
         "{:?}",
         t0.elapsed()
     );
+    // A client that sends and never reads is closed once its replies waited that long.
+    let idle = |gw: &Gateway| {
+        gw.server_status()[0].status.counters["idle_closed"]
+            .as_u64()
+            .unwrap()
+    };
+    let before = idle(&gw);
+    let greedy = flood_without_reading(addr);
+    wait_until("the client that never reads closed", || {
+        idle(&gw) > before && gw.server_status()[0].status.counters["clients"] == json!(0)
+    });
+    drop(greedy);
     let status = serde_json::to_value(gw.server_status()).unwrap();
     let c = &status[0]["counters"];
     assert_eq!(c["running"], json!(true), "{status}");

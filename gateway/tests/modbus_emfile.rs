@@ -1,6 +1,6 @@
 //! The Modbus server when the process runs out of file descriptors: `accept` fails with
-//! EMFILE, the server counts it and retries with a backoff, and serves again once
-//! descriptors are free. A test binary of its own: it lowers this process's descriptor
+//! EMFILE, the server counts it and retries with a backoff (unhealthy to the watchdog once
+//! it has failed for 5 s), and serves again once descriptors are free. A test binary of its own: it lowers this process's descriptor
 //! limit.
 
 #![allow(
@@ -78,7 +78,15 @@ fn the_server_survives_running_out_of_descriptors() {
         counters()["accept_errors"].as_u64().unwrap() > 0
     });
     assert_eq!(counters()["running"], json!(true));
+    // A short spell of failures is not yet unhealthy (the limit is 5 s); a long one is, and
+    // says why (the connection left in the backlog keeps accept failing).
     assert!(gw.health().is_ok(), "{:?}", gw.health());
+    wait_until(
+        "the watchdog's health fails after 5 s of failing accepts",
+        || gw.health().is_err(),
+    );
+    let why = format!("{:?}", gw.health());
+    assert!(why.contains("accepted no connection"), "{why}");
 
     // Descriptors back: the server serves again.
     drop(clients);
@@ -89,5 +97,6 @@ fn the_server_survives_running_out_of_descriptors() {
     let c = counters();
     assert_eq!(c["running"], json!(true), "{c:?}");
     assert_eq!(c["panics"], json!(0), "{c:?}");
+    assert!(gw.health().is_ok(), "healthy again: {:?}", gw.health());
     gw.shutdown();
 }

@@ -4,15 +4,18 @@
 //! - At most `max_clients` connections at once; one more is accepted and closed at once
 //!   (counted), so a flood cannot take every descriptor.
 //! - A connection quiet for `idle_timeout` is closed (counted); so is one that stops in the
-//!   middle of a frame for as long.
+//!   middle of a frame for as long, or that does not take its reply for as long (a client
+//!   that sends and never reads cannot hold a slot).
 //! - A frame whose MBAP header is not Modbus (protocol id ≠ 0, length outside 2–254) cannot
 //!   be resynchronised on a stream: the connection is closed (counted as malformed).
 //! - `accept` failing (out of descriptors: EMFILE/ENFILE, or any other error) is counted and
 //!   retried after 10 ms, doubling up to 1 s: the loop never ends but at stop.
-//! - A panic while answering (a device's bug) is caught, answered 04 and counted.
+//! - A panic while answering (a device's bug) is caught, answered 04, counted and logged
+//!   (not printed by the default panic hook).
 //!
 //! [`ServerCounters`] says all of it; [`ModbusServer::health`] is `Err` while the loop does
-//! not run (what the gateway's watchdog sees).
+//! not run (stopped, or its thread ended by a panic) and while `accept` has failed without
+//! a success for [`ACCEPT_FAILING_LIMIT`] — what the gateway's watchdog sees.
 
 use crate::pdu::{self, Refusal, exception};
 use crate::server::RegisterTable;
@@ -41,9 +44,14 @@ impl Default for Limits {
     }
 }
 
+/// How long `accept` may fail without a success before the server is unhealthy.
+pub const ACCEPT_FAILING_LIMIT: Duration = Duration::from_secs(5);
+
 #[derive(Debug, Default)]
 struct Stats {
     running: AtomicBool,
+    /// When `accept` started failing (ns since `epoch`, plus 1), 0 while it succeeds.
+    failing_since: AtomicU64,
     clients: AtomicUsize,
     connections: AtomicU64,
     refused_clients: AtomicU64,
@@ -72,7 +80,7 @@ pub struct ServerCounters {
     pub exceptions: u64,
     /// Connections closed on a frame that is not Modbus TCP.
     pub malformed: u64,
-    /// Connections closed after `idle_timeout` of silence.
+    /// Connections closed after `idle_timeout` of silence, or of a reply not taken.
     pub idle_closed: u64,
     /// Failed `accept` calls (e.g. out of descriptors), each retried after a backoff.
     pub accept_errors: u64,
@@ -88,6 +96,7 @@ fn bump(c: &AtomicU64) {
 pub struct ModbusServer {
     addr: SocketAddr,
     stats: Arc<Stats>,
+    epoch: std::time::Instant,
     stop: Option<tokio::sync::oneshot::Sender<()>>,
     thread: Option<std::thread::JoinHandle<()>>,
 }
@@ -107,18 +116,22 @@ impl ModbusServer {
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
         let stats = Arc::new(Stats::default());
         stats.running.store(true, Ordering::Release);
+        quiet_panics();
+        let epoch = std::time::Instant::now();
         let (table, s) = (Arc::new(table), stats.clone());
         let thread = std::thread::Builder::new()
-            .name("modbus-server".into())
+            .name(SERVER_THREAD.into())
             .spawn(move || {
-                rt.block_on(accept_loop(listener, table, s.clone(), limits, rx));
-                s.running.store(false, Ordering::Release);
+                // Not running once this thread ends, however it ends (a panic too).
+                let _running = Running(s.clone());
+                rt.block_on(accept_loop(listener, table, s, limits, rx, epoch));
                 // Dropping the runtime here cancels every connection's task.
             })?;
         tracing::info!("modbus server listening on {addr}");
         Ok(ModbusServer {
             addr,
             stats,
+            epoch,
             stop: Some(tx),
             thread: Some(thread),
         })
@@ -147,14 +160,56 @@ impl ModbusServer {
         }
     }
 
-    /// `Ok` while the accept loop runs.
+    /// `Ok` while the accept loop runs and accepts: `Err` once it stopped, or while
+    /// `accept` has failed for [`ACCEPT_FAILING_LIMIT`] without a success.
     pub fn health(&self) -> Result<(), String> {
-        if self.stats.running.load(Ordering::Acquire) {
-            Ok(())
-        } else {
-            Err(format!("the modbus server on {} has stopped", self.addr))
+        if !self.stats.running.load(Ordering::Acquire) {
+            return Err(format!("the modbus server on {} has stopped", self.addr));
         }
+        let since = self.stats.failing_since.load(Ordering::Acquire);
+        if since != 0 {
+            let now = self.epoch.elapsed().as_nanos() as u64;
+            let failing = Duration::from_nanos(now.saturating_sub(since - 1));
+            if failing >= ACCEPT_FAILING_LIMIT {
+                return Err(format!(
+                    "the modbus server on {} has accepted no connection for {:.1} s: accept fails ({} failures; out of file descriptors?)",
+                    self.addr,
+                    failing.as_secs_f64(),
+                    self.stats.accept_errors.load(Ordering::Relaxed)
+                ));
+            }
+        }
+        Ok(())
     }
+}
+
+/// The server thread's name (its panics are logged, not printed: see [`quiet_panics`]).
+const SERVER_THREAD: &str = "modbus-server";
+
+/// Marks the server stopped when dropped (its thread's end, a panic included).
+struct Running(Arc<Stats>);
+
+impl Drop for Running {
+    fn drop(&mut self) {
+        self.0.running.store(false, Ordering::Release);
+    }
+}
+
+/// Installs, once, a panic hook that logs a panic on the server's thread through tracing
+/// (where it is caught and answered 04) and hands every other panic to the hook that was
+/// there before.
+fn quiet_panics() {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        let previous = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            if std::thread::current().name() == Some(SERVER_THREAD) {
+                tracing::error!("modbus server: a device panicked while answering: {info}");
+            } else {
+                previous(info);
+            }
+        }));
+    });
 }
 
 impl Drop for ModbusServer {
@@ -174,6 +229,7 @@ async fn accept_loop(
     stats: Arc<Stats>,
     limits: Limits,
     mut stop: tokio::sync::oneshot::Receiver<()>,
+    epoch: std::time::Instant,
 ) {
     const FIRST: Duration = Duration::from_millis(10);
     let mut backoff = FIRST;
@@ -185,6 +241,7 @@ async fn accept_loop(
         match accepted {
             Ok((stream, peer)) => {
                 backoff = FIRST;
+                stats.failing_since.store(0, Ordering::Release);
                 if stats.clients.load(Ordering::Acquire) >= limits.max_clients {
                     bump(&stats.refused_clients);
                     drop(stream);
@@ -202,6 +259,13 @@ async fn accept_loop(
                 });
             }
             Err(e) => {
+                let now = epoch.elapsed().as_nanos() as u64 + 1;
+                let _ = stats.failing_since.compare_exchange(
+                    0,
+                    now,
+                    Ordering::AcqRel,
+                    Ordering::Relaxed,
+                );
                 if stats
                     .accept_errors
                     .fetch_add(1, Ordering::Relaxed)
@@ -262,7 +326,14 @@ async fn connection(
         respond(table, stats, pdu, &mut out);
         let n = (out.len() - 6) as u16;
         out[4..6].copy_from_slice(&n.to_be_bytes());
-        stream.write_all(&out).await?;
+        match tokio::time::timeout(idle, stream.write_all(&out)).await {
+            Err(_) => {
+                // The client does not take its replies.
+                bump(&stats.idle_closed);
+                return Ok(());
+            }
+            Ok(r) => r?,
+        }
     }
 }
 

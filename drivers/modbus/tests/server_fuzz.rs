@@ -107,27 +107,84 @@ fn seeds() -> Vec<Vec<u8>> {
     ]
 }
 
-/// Checks a reply PDU's shape against its request.
+/// The exception the Modbus specification (v1.1b3, §6 and its state diagrams) gives a
+/// request for its shape alone, written out here apart from hwgw's `pdu` module: None for
+/// a well-formed request, which the table then answers (a reply, 02 for an address it
+/// does not serve, 03 for a value a device refuses, 04 for a device that fails).
+fn spec_exception(req: &[u8]) -> Option<u8> {
+    let Some(&f) = req.first() else {
+        return Some(1);
+    };
+    let word = |i: usize| u16::from_be_bytes([req[i], req[i + 1]]);
+    let past_end = |start: u16, q: u16| u32::from(start) + u32::from(q) > 0x1_0000;
+    match f {
+        1..=4 => {
+            let limit = if f <= 2 { 0x07D0 } else { 0x007D };
+            if req.len() != 5 || word(3) == 0 || word(3) > limit {
+                Some(3)
+            } else if past_end(word(1), word(3)) {
+                Some(2)
+            } else {
+                None
+            }
+        }
+        5 => (req.len() != 5 || !matches!(word(3), 0x0000 | 0xFF00)).then_some(3),
+        6 => (req.len() != 5).then_some(3),
+        15 | 16 => {
+            if req.len() < 6 {
+                return Some(3);
+            }
+            let (q, n) = (word(3), usize::from(req[5]));
+            let (limit, bytes) = if f == 15 {
+                (0x07B0, usize::from(q).div_ceil(8))
+            } else {
+                (0x007B, 2 * usize::from(q))
+            };
+            if q == 0 || q > limit || n != bytes || req.len() != 6 + n {
+                Some(3)
+            } else if past_end(word(1), q) {
+                Some(2)
+            } else {
+                None
+            }
+        }
+        _ => Some(1),
+    }
+}
+
+/// Checks a reply PDU against its request: the specification's exception where the
+/// request's shape calls for one, else a reply of the function's own shape or an
+/// exception the table may give.
 fn check_reply(req: &[u8], reply: &[u8]) {
     let f = req.first().copied().unwrap_or(0);
     assert!(
         !reply.is_empty() && reply.len() <= 253,
         "{req:x?} -> {reply:x?}"
     );
+    if let Some(code) = spec_exception(req) {
+        assert_eq!(reply, [f | 0x80, code], "{req:x?}");
+        return;
+    }
     if reply[0] & 0x80 != 0 {
         assert_eq!(reply.len(), 2, "{req:x?} -> {reply:x?}");
         assert_eq!(reply[0], f | 0x80, "{req:x?} -> {reply:x?}");
-        assert!((1..=4).contains(&reply[1]), "{req:x?} -> {reply:x?}");
+        let allowed: &[u8] = if matches!(f, 5 | 6 | 15 | 16) {
+            &[2, 3, 4]
+        } else {
+            &[2, 4]
+        };
+        assert!(allowed.contains(&reply[1]), "{req:x?} -> {reply:x?}");
         return;
     }
     assert_eq!(reply[0], f, "{req:x?} -> {reply:x?}");
     match f {
-        1..=4 => assert_eq!(
-            usize::from(reply[1]) + 2,
-            reply.len(),
-            "{req:x?} -> {reply:x?}"
-        ),
-        5 | 6 | 15 | 16 => assert_eq!(&reply[..5], &req[..5], "{req:x?} -> {reply:x?}"),
+        1..=4 => {
+            let q = usize::from(u16::from_be_bytes([req[3], req[4]]));
+            let bytes = if f <= 2 { q.div_ceil(8) } else { 2 * q };
+            assert_eq!(usize::from(reply[1]), bytes, "{req:x?} -> {reply:x?}");
+            assert_eq!(reply.len(), bytes + 2, "{req:x?} -> {reply:x?}");
+        }
+        5 | 6 | 15 | 16 => assert_eq!(reply, &req[..5], "{req:x?} -> {reply:x?}"),
         _ => panic!("function {f} answered: {req:x?} -> {reply:x?}"),
     }
 }
@@ -250,6 +307,71 @@ fn the_server_answers_every_hostile_frame_over_tcp() {
     let c = server.counters();
     assert!(c.running && c.panics == 0 && c.requests == 20_000, "{c:?}");
     // A plain read still answers.
+    s.write_all(&[0, 1, 0, 0, 0, 6, 1, 4, 0, 0, 0, 1]).unwrap();
+    let mut reply = [0u8; 11];
+    s.read_exact(&mut reply).unwrap();
+    assert_eq!(reply[7..9], [4, 2]);
+}
+
+/// Frames whose MBAP header is mutated (transaction and protocol ids, length, unit), each
+/// on a connection of its own that the client then half-closes: whatever comes back is
+/// whole Modbus TCP frames (a reply per request the server could frame), or nothing where
+/// the header is not Modbus; the server keeps running, panics nothing and answers after.
+#[test]
+fn mutated_mbap_headers_are_answered_or_closed_never_more() {
+    use driver_modbus::listener::{Limits, ModbusServer};
+    use std::io::{Read, Write};
+    let server =
+        ModbusServer::start("127.0.0.1:0".parse().unwrap(), table(), Limits::default()).unwrap();
+    let seeds = seeds();
+    let mut rng = Rng(0x4D42_4150);
+    for i in 0..2_000u32 {
+        let pdu = &seeds[rng.below(seeds.len() as u64) as usize];
+        let mut frame = Vec::new();
+        frame.extend_from_slice(&(i as u16).to_be_bytes());
+        frame.extend_from_slice(&[0, 0]);
+        frame.extend_from_slice(&((pdu.len() + 1) as u16).to_be_bytes());
+        frame.push(1);
+        frame.extend_from_slice(pdu);
+        let field = rng.below(4);
+        match field {
+            0 => frame[2 + rng.below(2) as usize] = rng.next() as u8,
+            1 => {
+                let len = [0u16, 1, 2, 255, 256, 0xFFFF, rng.next() as u16][rng.below(7) as usize];
+                frame[4..6].copy_from_slice(&len.to_be_bytes());
+            }
+            2 => frame[6] = rng.next() as u8,
+            _ => frame.truncate(rng.below(frame.len() as u64) as usize),
+        }
+        let mut s = std::net::TcpStream::connect(server.addr()).unwrap();
+        s.set_read_timeout(Some(std::time::Duration::from_secs(10)))
+            .unwrap();
+        // The server may have closed already (a foreign header): a write or shutdown that
+        // fails then is the server's answer, not the test's failure.
+        let _ = s.write_all(&frame);
+        let _ = s.shutdown(std::net::Shutdown::Write);
+        let mut back = Vec::new();
+        // End of file or a reset: the server closed the connection either way.
+        let _ = s.read_to_end(&mut back);
+        let mut rest = &back[..];
+        while !rest.is_empty() {
+            assert!(rest.len() >= 9, "{frame:x?} -> {back:x?}");
+            let len = usize::from(u16::from_be_bytes([rest[4], rest[5]]));
+            assert_eq!(rest[2..4], [0, 0], "{frame:x?} -> {back:x?}");
+            assert!(rest.len() >= 6 + len, "{frame:x?} -> {back:x?}");
+            rest = &rest[6 + len..];
+        }
+        if frame.len() >= 7 && frame[2..4] != [0, 0] {
+            assert!(
+                back.is_empty(),
+                "a foreign protocol id answered: {frame:x?}"
+            );
+        }
+    }
+    let c = server.counters();
+    assert!(c.running && c.panics == 0, "{c:?}");
+    assert!(server.health().is_ok());
+    let mut s = std::net::TcpStream::connect(server.addr()).unwrap();
     s.write_all(&[0, 1, 0, 0, 0, 6, 1, 4, 0, 0, 0, 1]).unwrap();
     let mut reply = [0u8; 11];
     s.read_exact(&mut reply).unwrap();
