@@ -87,9 +87,10 @@ fn main() {
     );
 }
 
-/// The fewest reads that cover `spans`, each whole in one read of at most the table's limit:
-/// per table, `best[i]` = 1 + `best[j]` for the first span `j` (by start) a read starting at
-/// span `i` cannot reach; the spans here do not overlap.
+/// The fewest reads that cover `spans`, each whole in one read of at most the table's limit,
+/// by dynamic programming over every way to cut (not the planner's greedy rule): per table,
+/// `best[i]` = 1 + the least `best[k]` over every `k` such that one read from span `i`
+/// covers spans `i..k` whole; the spans here do not overlap.
 fn protocol_minimum(spans: &[Span]) -> usize {
     let mut total = 0;
     for table in [
@@ -113,8 +114,14 @@ fn protocol_minimum(spans: &[Span]) -> usize {
         let mut best = vec![0usize; n + 1];
         for i in (0..n).rev() {
             let limit = s[i].0 + u32::from(table.max_read());
-            let j = (i..n).find(|&j| s[j].1 > limit).unwrap_or(n);
-            best[i] = 1 + best[j];
+            let mut least = usize::MAX;
+            for k in i + 1..=n {
+                if s[i..k].iter().any(|x| x.1 > limit) {
+                    break;
+                }
+                least = least.min(best[k]);
+            }
+            best[i] = 1 + least;
         }
         total += best[0];
     }

@@ -319,10 +319,13 @@ impl ModbusCard {
     }
 
     /// The outputs written since the last call, as requests: runs of consecutive
-    /// addresses become one function code 15 or 16 request.
+    /// addresses become one function code 15 or 16 request, cut at the protocol's limits
+    /// (1968 coils, 123 registers) between points, so a multi-register value goes out whole
+    /// in one request.
     pub fn take_writes(&self) -> Vec<Write> {
-        let mut regs: Vec<(u16, u16)> = Vec::new();
-        let mut coils: Vec<(u16, bool)> = Vec::new();
+        // (address, (word, first word of its point)).
+        let mut regs: Vec<(u16, (u16, bool))> = Vec::new();
+        let mut coils: Vec<(u16, (bool, bool))> = Vec::new();
         for p in self.map.points() {
             let dirty = match p.role {
                 Role::AnalogOut => &self.ao_dirty,
@@ -334,7 +337,8 @@ impl ModbusCard {
                 continue;
             }
             if p.role == Role::DigitalOut {
-                coils.push((p.span.address, self.dout.get(p.channel).unwrap_or(false)));
+                let on = self.dout.get(p.channel).unwrap_or(false);
+                coils.push((p.span.address, (on, true)));
                 continue;
             }
             let word = self.ao[p.channel as usize].load(Ordering::Acquire);
@@ -342,34 +346,34 @@ impl ModbusCard {
             // rather than panic.
             if let Ok(words) = p.layout.encode(value::number(p, word)) {
                 for (k, w) in words.as_slice().iter().enumerate() {
-                    regs.push((p.span.address + k as u16, *w));
+                    regs.push((p.span.address + k as u16, (*w, k == 0)));
                 }
             }
         }
         let mut out = Vec::new();
         regs.sort_by_key(|r| r.0);
-        for run in runs(&regs) {
+        for run in runs(&regs, usize::from(crate::pdu::MAX_WRITE_REGISTERS)) {
             out.push(match run {
-                [(a, v)] => Write::Register {
+                [(a, (v, _))] => Write::Register {
                     address: *a,
                     value: *v,
                 },
                 _ => Write::Registers {
                     address: run[0].0,
-                    values: run.iter().map(|r| r.1).collect(),
+                    values: run.iter().map(|r| r.1.0).collect(),
                 },
             });
         }
         coils.sort_by_key(|c| c.0);
-        for run in runs(&coils) {
+        for run in runs(&coils, usize::from(crate::pdu::MAX_WRITE_COILS)) {
             out.push(match run {
-                [(a, v)] => Write::Coil {
+                [(a, (v, _))] => Write::Coil {
                     address: *a,
                     value: *v,
                 },
                 _ => Write::Coils {
                     address: run[0].0,
-                    values: run.iter().map(|c| c.1).collect(),
+                    values: run.iter().map(|c| c.1.0).collect(),
                 },
             });
         }
@@ -444,17 +448,29 @@ impl ModbusCard {
     }
 }
 
-/// Splits sorted (address, value) pairs into runs of consecutive addresses.
-fn runs<T>(items: &[(u16, T)]) -> Vec<&[(u16, T)]> {
+/// Splits sorted (address, (value, first of its point)) pairs into runs of consecutive
+/// addresses of at most `max` items, each cut before the first item of a point (a point
+/// is at most 4 registers, so a run always has a place to be cut).
+fn runs<T>(items: &[(u16, (T, bool))], max: usize) -> Vec<&[(u16, (T, bool))]> {
     let mut out = Vec::new();
-    let mut start = 0;
-    for i in 1..=items.len() {
-        if i == items.len() || u32::from(items[i].0) != u32::from(items[i - 1].0) + 1 {
-            if start < i {
-                out.push(&items[start..i]);
-            }
-            start = i;
+    let (mut start, mut cut_at) = (0, 0);
+    for i in 0..items.len() {
+        if i > start && u32::from(items[i].0) != u32::from(items[i - 1].0) + 1 {
+            out.push(&items[start..i]);
+            (start, cut_at) = (i, i);
         }
+        if items[i].1.1 {
+            cut_at = i;
+        }
+        if i + 1 - start > max {
+            // Cut before the point under way (or here, if one point were longer than max).
+            let cut = if cut_at > start { cut_at } else { i };
+            out.push(&items[start..cut]);
+            start = cut;
+        }
+    }
+    if start < items.len() {
+        out.push(&items[start..]);
     }
     out
 }

@@ -79,6 +79,12 @@ pub enum Client {
         stream: tokio::net::TcpStream,
         /// The last transaction id used.
         tid: u16,
+        /// A request is partly sent: cancelled now (its timeout), the stream is in the
+        /// middle of a frame, so the connection is no longer usable.
+        mid_frame: bool,
+        /// Bytes received and not yet taken (a reply read in part when its request was
+        /// cancelled is completed by the next request's reads and dropped by its id).
+        rx: Vec<u8>,
     },
     /// Modbus RTU on a serial port.
     Rtu {
@@ -94,9 +100,23 @@ pub enum Client {
 }
 
 impl Client {
+    /// A TCP connection whose last request was cancelled while it was being sent: the
+    /// stream is out of step and must be closed. A request cancelled while its reply was
+    /// awaited or read in part leaves the connection usable: what arrived stays buffered,
+    /// and the late reply is told apart by its transaction id.
+    pub fn out_of_step(&self) -> bool {
+        matches!(
+            self,
+            Client::Tcp {
+                mid_frame: true,
+                ..
+            }
+        )
+    }
+
     /// Sends `pdu` to `unit` and reads the reply PDU into `out` (cleared first). Replies to
     /// other transactions are dropped and counted in `stale`. No timeout of its own: the
-    /// caller bounds it.
+    /// caller bounds it (and drops the connection when [`out_of_step`](Self::out_of_step)).
     pub async fn request(
         &mut self,
         unit: u8,
@@ -106,7 +126,12 @@ impl Client {
     ) -> Result<Reply, ClientError> {
         out.clear();
         match self {
-            Client::Tcp { stream, tid } => tcp(stream, tid, unit, pdu, out, stale).await,
+            Client::Tcp {
+                stream,
+                tid,
+                mid_frame,
+                rx,
+            } => tcp(stream, tid, mid_frame, rx, unit, pdu, out, stale).await,
             Client::Rtu {
                 port,
                 baud,
@@ -117,9 +142,28 @@ impl Client {
     }
 }
 
+/// A TCP client's connection state (see [`Client::Tcp`]).
+pub fn tcp_client(stream: tokio::net::TcpStream) -> Client {
+    Client::Tcp {
+        stream,
+        tid: 0,
+        mid_frame: false,
+        rx: Vec::with_capacity(2 * TCP_FRAME_MAX),
+    }
+}
+
+/// The longest Modbus TCP frame: a 7-byte header and a 253-byte PDU.
+const TCP_FRAME_MAX: usize = 260;
+
+#[allow(
+    clippy::too_many_arguments,
+    reason = "the fields of Client::Tcp, borrowed apart, and the request's own"
+)]
 async fn tcp(
     stream: &mut tokio::net::TcpStream,
     tid: &mut u16,
+    mid_frame: &mut bool,
+    rx: &mut Vec<u8>,
     unit: u8,
     pdu: &[u8],
     out: &mut Vec<u8>,
@@ -132,40 +176,62 @@ async fn tcp(
     frame.extend_from_slice(&((pdu.len() + 1) as u16).to_be_bytes());
     frame.push(unit);
     frame.extend_from_slice(pdu);
+    *mid_frame = true;
     stream.write_all(&frame).await?;
+    *mid_frame = false;
     loop {
-        let mut head = [0u8; 7];
-        stream.read_exact(&mut head).await?;
-        let len = usize::from(u16::from_be_bytes([head[4], head[5]]));
-        if head[2..4] != [0, 0] || !(2..=254).contains(&len) {
-            return Err(io::Error::new(
-                io::ErrorKind::InvalidData,
-                format!("not a Modbus TCP header: {head:02x?}"),
-            )
-            .into());
+        // A whole frame buffered? (At most one frame and a read's worth are ever kept.)
+        if rx.len() >= 7 {
+            let len = usize::from(u16::from_be_bytes([rx[4], rx[5]]));
+            if rx[2..4] != [0, 0] || !(2..=254).contains(&len) {
+                let head = &rx[..7];
+                return Err(io::Error::new(
+                    io::ErrorKind::InvalidData,
+                    format!("not a Modbus TCP header: {head:02x?}"),
+                )
+                .into());
+            }
+            if rx.len() >= 6 + len {
+                let (id, from) = (u16::from_be_bytes([rx[0], rx[1]]), rx[6]);
+                out.clear();
+                out.extend_from_slice(&rx[7..6 + len]);
+                rx.drain(..6 + len);
+                if id != *tid {
+                    // A late answer to an earlier request: not this one's.
+                    *stale += 1;
+                    continue;
+                }
+                if from != unit {
+                    return Err(ClientError::Bad(format!(
+                        "unit {from} answered, not {unit}"
+                    )));
+                }
+                return pdu_reply(pdu, out);
+            }
         }
-        out.resize(len - 1, 0);
-        stream.read_exact(out).await?;
-        if u16::from_be_bytes([head[0], head[1]]) != *tid {
-            // A late answer to an earlier request: not this one's.
-            *stale += 1;
-            continue;
+        // Cancel-safe: what a read returns is in `rx` before the next await.
+        rx.reserve(TCP_FRAME_MAX);
+        if stream.read_buf(rx).await? == 0 {
+            return Err(io::Error::from(io::ErrorKind::UnexpectedEof).into());
         }
-        if head[6] != unit {
-            return Err(ClientError::Bad(format!(
-                "unit {} answered, not {unit}",
-                head[6]
-            )));
-        }
-        return pdu_reply(pdu[0], out);
     }
 }
 
-/// Reads a reply PDU: an exception, or the function's own reply.
-fn pdu_reply(function: u8, out: &[u8]) -> Result<Reply, ClientError> {
+/// Reads a reply PDU to `request`: an exception, or the function's own reply — a write's
+/// (FC5, 6, 15, 16) echoing the request's address and value or quantity.
+fn pdu_reply(request: &[u8], out: &[u8]) -> Result<Reply, ClientError> {
+    let function = request[0];
     match out {
         [f, code] if *f == function | 0x80 => Ok(Reply::Exception(*code)),
-        [f, ..] if *f == function => Ok(Reply::Pdu),
+        [f, ..] if *f == function => {
+            if matches!(function, 5 | 6 | 15 | 16) && out.get(..5) != request.get(..5) {
+                return Err(ClientError::Bad(format!(
+                    "the write {:02x?} answered {out:02x?}: not its echo",
+                    request.get(..5).unwrap_or(request)
+                )));
+            }
+            Ok(Reply::Pdu)
+        }
         _ => Err(ClientError::Bad(format!(
             "function {function} answered {out:02x?}"
         ))),
@@ -227,7 +293,7 @@ async fn rtu(
         )));
     }
     out.extend_from_slice(&whole[1..n - 2]);
-    pdu_reply(pdu[0], out)
+    pdu_reply(pdu, out)
 }
 
 /// The request PDU of `read` into `pdu` (cleared first).
@@ -238,9 +304,15 @@ pub fn read_request(read: &crate::plan::Read, pdu: &mut Vec<u8>) {
     pdu.extend_from_slice(&read.count.to_be_bytes());
 }
 
-/// The request PDU of `w` into `pdu` (cleared first).
-pub fn write_request(w: &crate::card::Write, pdu: &mut Vec<u8>) {
+/// The request PDU of `w` into `pdu` (cleared first); a run longer than one request may
+/// carry (1968 coils, 123 registers: [`ModbusCard::take_writes`](crate::card::ModbusCard::take_writes)
+/// never makes one) is refused.
+pub fn write_request(w: &crate::card::Write, pdu: &mut Vec<u8>) -> Result<(), ClientError> {
     use crate::card::Write;
+    use crate::pdu::{MAX_WRITE_COILS, MAX_WRITE_REGISTERS};
+    let too_long = |n: usize, max: u16, what: &str| {
+        ClientError::Bad(format!("{n} {what} in one request: at most {max}"))
+    };
     pdu.clear();
     match w {
         Write::Coil { address, value } => {
@@ -254,11 +326,18 @@ pub fn write_request(w: &crate::card::Write, pdu: &mut Vec<u8>) {
             pdu.extend_from_slice(&value.to_be_bytes());
         }
         Write::Coils { address, values } => {
+            let n = u16::try_from(values.len())
+                .ok()
+                .filter(|n| (1..=MAX_WRITE_COILS).contains(n))
+                .ok_or_else(|| too_long(values.len(), MAX_WRITE_COILS, "coils"))?;
             pdu.push(15);
             pdu.extend_from_slice(&address.to_be_bytes());
-            pdu.extend_from_slice(&(values.len() as u16).to_be_bytes());
+            pdu.extend_from_slice(&n.to_be_bytes());
             let bytes = values.len().div_ceil(8);
-            pdu.push(bytes as u8);
+            pdu.push(
+                u8::try_from(bytes)
+                    .map_err(|_| too_long(values.len(), MAX_WRITE_COILS, "coils"))?,
+            );
             let at = pdu.len();
             pdu.resize(at + bytes, 0);
             for (i, v) in values.iter().enumerate() {
@@ -266,15 +345,21 @@ pub fn write_request(w: &crate::card::Write, pdu: &mut Vec<u8>) {
             }
         }
         Write::Registers { address, values } => {
+            let n = u16::try_from(values.len())
+                .ok()
+                .filter(|n| (1..=MAX_WRITE_REGISTERS).contains(n))
+                .ok_or_else(|| too_long(values.len(), MAX_WRITE_REGISTERS, "registers"))?;
             pdu.push(16);
             pdu.extend_from_slice(&address.to_be_bytes());
-            pdu.extend_from_slice(&(values.len() as u16).to_be_bytes());
-            pdu.push((2 * values.len()) as u8);
+            pdu.extend_from_slice(&n.to_be_bytes());
+            // n <= 123: 2n fits a byte.
+            pdu.push((2 * n) as u8);
             for v in values {
                 pdu.extend_from_slice(&v.to_be_bytes());
             }
         }
     }
+    Ok(())
 }
 
 /// The values of a read's reply PDU (function, byte count, data), checked against the read.

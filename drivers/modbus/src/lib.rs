@@ -5,6 +5,7 @@
 //!   order;
 //! - [`plan`]: coalescing a register map into as few reads as the protocol allows;
 //! - [`map`]: the register map, and which device channel each point is;
+//! - [`holes`]: the unmapped addresses a unit refuses, found by reading parts of a refused read;
 //! - [`card`]: a unit's devices — images fed by replies, outputs turned into writes;
 //! - [`line`](mod@line): the poller of one connection and the units on it;
 //! - [`client`]: the poller's Modbus TCP and RTU framing (silences, broadcast, stale replies);
@@ -27,12 +28,14 @@ pub mod client;
 pub mod codec;
 pub mod component;
 pub mod config;
+pub mod holes;
 pub mod line;
 pub mod listener;
 pub mod map;
 pub mod pdu;
 pub mod plan;
 pub mod plugin;
+mod point;
 pub mod served;
 pub mod server;
 #[cfg(feature = "test-server")]

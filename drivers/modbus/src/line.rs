@@ -11,14 +11,16 @@
 //! - an offline unit is probed with a backoff that starts at four timeouts and doubles up
 //!   to `backoff_max`, so a dead unit takes at most a quarter of the line's time (less as
 //!   its backoff grows) and the healthy units keep their poll rate;
-//! - a timeout or transport error drops the connection (a late reply must not be taken for
-//!   the next request's) and the line reconnects on the next poll;
+//! - a transport error drops the connection and the line reconnects on the next poll; so
+//!   does a timeout on RTU (a late reply there cannot be told from the next request's) or
+//!   one that cut a TCP request short while it was being sent; a late TCP reply is dropped
+//!   by its transaction id ([`client`](crate::client));
 //! - an exception reply surfaces with its code; a write that fails is sent again at the
 //!   next poll, never dropped.
 
 use crate::card::{ModbusCard, ReadData};
 use crate::client::{Client, ClientError, Data, Reply};
-use crate::plan::Read;
+use crate::plan::{Barrier, Read};
 use device_interface::time::Timestamp;
 use device_interface::{DeviceError, Status};
 use std::net::SocketAddr;
@@ -62,7 +64,8 @@ pub struct UnitStats {
     pub write_retries: AtomicU64,
     /// Complete good polls.
     pub polls: AtomicU64,
-    /// Reads split where the unit has holes (each after an IllegalDataAddress).
+    /// Holes learned: gaps of the map where the unit refuses reads (found after an
+    /// IllegalDataAddress by reading parts of the refused read; see [`holes`](crate::holes)).
     pub splits: AtomicU64,
     /// TCP replies to another transaction (late answers), dropped.
     pub stale_replies: AtomicU64,
@@ -90,7 +93,7 @@ pub struct UnitCounters {
     pub bad_replies: u64,
     /// Writes that failed and will be sent again.
     pub write_retries: u64,
-    /// Reads split where the unit has holes.
+    /// Holes learned: gaps of the map where the unit refuses reads.
     pub splits: u64,
     /// TCP replies to another transaction, dropped.
     pub stale_replies: u64,
@@ -170,10 +173,32 @@ pub enum Transport {
 }
 
 impl Transport {
-    fn describe(&self) -> String {
+    /// Where the line goes: the address, or the serial device's path.
+    pub fn describe(&self) -> String {
         match self {
             Transport::Tcp(a) => a.to_string(),
             Transport::Rtu(s) => s.device.display().to_string(),
+        }
+    }
+
+    /// True when both go to the same address or serial device (whatever their settings).
+    pub fn same_place(&self, other: &Transport) -> bool {
+        match (self, other) {
+            (Transport::Tcp(a), Transport::Tcp(b)) => a == b,
+            (Transport::Rtu(a), Transport::Rtu(b)) => a.device == b.device,
+            _ => false,
+        }
+    }
+
+    /// The line's settings, for messages: "19200 baud, even parity, 1 stop bit, turnaround
+    /// 0 µs".
+    pub fn settings(&self) -> String {
+        match self {
+            Transport::Tcp(a) => format!("TCP to {a}"),
+            Transport::Rtu(s) => format!(
+                "{} baud, {:?} parity, {} stop bits, turnaround {} µs",
+                s.baud, s.parity, s.stop_bits, s.turnaround_us
+            ),
         }
     }
 
@@ -183,7 +208,7 @@ impl Transport {
             Transport::Tcp(addr) => {
                 let stream = tokio::net::TcpStream::connect(addr).await?;
                 let _ = stream.set_nodelay(true);
-                Ok(Client::Tcp { stream, tid: 0 })
+                Ok(crate::client::tcp_client(stream))
             }
             Transport::Rtu(s) => {
                 use tokio_serial::SerialPortBuilderExt;
@@ -223,6 +248,8 @@ enum PollError {
         unit: u8,
         what: String,
         timeout: Duration,
+        /// Cancelled while the request was being sent: the stream is out of step.
+        out_of_step: bool,
     },
     #[error("unit {unit}: {what}: {source}")]
     Transport {
@@ -243,15 +270,15 @@ enum PollError {
 }
 
 impl PollError {
-    /// Whether the connection must be dropped: after a timeout a late reply could be taken
-    /// for the next request's.
-    /// On TCP a late reply is told apart by its transaction id, so only a broken
-    /// connection is dropped; RTU has no transaction id, so a timeout or a garbled reply
-    /// reopens the port too (discarding what a late unit may still send).
+    /// Whether the connection must be dropped. On TCP a late reply is told apart by its
+    /// transaction id, so only a broken connection, or one a timeout left in the middle of
+    /// sending a request, is dropped; RTU has no transaction id, so a timeout or a garbled
+    /// reply reopens the port too (discarding what a late unit may still send).
     fn breaks_connection(&self, rtu: bool) -> bool {
         match self {
             PollError::Transport { .. } => true,
-            PollError::Timeout { .. } | PollError::Garbled { .. } => rtu,
+            PollError::Timeout { out_of_step, .. } => rtu || *out_of_step,
+            PollError::Garbled { .. } => rtu,
             PollError::Exception { .. } | PollError::BadReply { .. } => false,
         }
     }
@@ -265,8 +292,10 @@ pub(crate) struct UnitState {
     pub(crate) failures: u32,
     /// The wait before the next probe while offline.
     pub(crate) backoff: Duration,
-    /// The unit's own plan once a read was split where it has holes (None: the map's).
+    /// The unit's own plan once holes were found (None: the map's).
     pub(crate) plan: Option<Vec<Read>>,
+    /// The gaps where the unit has holes, found so far.
+    pub(crate) holes: Vec<Barrier>,
 }
 
 impl UnitState {
@@ -276,6 +305,7 @@ impl UnitState {
             failures: 0,
             backoff: first_backoff(t),
             plan: None,
+            holes: Vec::new(),
         }
     }
 }
@@ -296,7 +326,7 @@ pub(crate) async fn poll_and_schedule(
     now: &dyn Fn() -> Timestamp,
 ) {
     let t = unit.timing;
-    match poll_unit(ctx, transport, unit, &mut state.plan).await {
+    match poll_unit(ctx, transport, unit, state).await {
         Ok(()) => {
             unit.card.poll_succeeded();
             bump(&unit.stats.polls);
@@ -352,7 +382,7 @@ async fn poll_unit(
     ctx: &mut Option<Client>,
     transport: &Transport,
     unit: &LineUnit,
-    plan: &mut Option<Vec<Read>>,
+    state: &mut UnitState,
 ) -> Result<(), PollError> {
     let t = unit.timing;
     let stats = &unit.stats;
@@ -375,6 +405,7 @@ async fn poll_unit(
                     unit: t.unit,
                     what: what(),
                     timeout: t.timeout,
+                    out_of_step: false,
                 });
             }
         }
@@ -389,26 +420,51 @@ async fn poll_unit(
     let map = unit.card.map();
     let (mut pdu, mut out) = (Vec::with_capacity(260), Vec::with_capacity(260));
     let mut ri = 0;
-    while let Some(read) = plan.as_deref().unwrap_or(map.reads()).get(ri) {
+    while let Some(read) = state.plan.as_deref().unwrap_or(map.reads()).get(ri) {
         let what = || describe_read(read);
         crate::client::read_request(read, &mut pdu);
         let reply = exchange(c, t, stats, &pdu, &mut out, what).await;
         if let Err(PollError::Exception { code: 2, .. }) = &reply
             && map.learns_holes()
-            && let Some((a, b)) = map.split(read)
         {
-            // The unit has holes in this read's gaps: poll the halves (now, and from now
-            // on), splitting further until each read covers no hole.
-            bump(&stats.splits);
-            let was = read.to_string();
-            let reads = plan.get_or_insert_with(|| map.reads().to_vec());
-            tracing::info!(
-                "modbus unit {}: {was} refused (IllegalDataAddress): split into {a} and {b}; {} reads a poll now",
-                t.unit,
-                reads.len() + 1
-            );
-            reads.splice(ri..=ri, [a, b]);
-            continue;
+            let read = read.clone();
+            let found = crate::holes::find(map, &read, async |part: &Read| {
+                let mut pdu = Vec::with_capacity(12);
+                crate::client::read_request(part, &mut pdu);
+                match exchange(c, t, stats, &pdu, &mut out, || describe_read(part)).await {
+                    Ok(()) => Ok(true),
+                    Err(PollError::Exception { code: 2, .. }) => Ok(false),
+                    Err(e) => Err(e),
+                }
+            })
+            .await?;
+            let new: Vec<Barrier> = found
+                .into_iter()
+                .filter(|b| !state.holes.contains(b))
+                .collect();
+            if !new.is_empty() {
+                // The unit has holes in this read's gaps: the plan is made anew around
+                // them, and this poll starts over on it (so no point misses it).
+                stats.splits.fetch_add(new.len() as u64, Ordering::Relaxed);
+                state.holes.extend_from_slice(&new);
+                let reads = map.reads_around(&state.holes);
+                let list = |v: &[Barrier]| {
+                    v.iter()
+                        .map(|b| b.to_string())
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                };
+                tracing::info!(
+                    "modbus unit {}: {read} refused (IllegalDataAddress): holes in {}; {} reads a poll now (holes so far: {})",
+                    t.unit,
+                    list(&new),
+                    reads.len(),
+                    list(&state.holes)
+                );
+                state.plan = Some(reads);
+                ri = 0;
+                continue;
+            }
         }
         reply?;
         let applied = match crate::client::read_data(read, &out) {
@@ -435,8 +491,15 @@ async fn poll_unit(
     }
     let writes = unit.card.take_writes();
     for (k, w) in writes.iter().enumerate() {
-        crate::client::write_request(w, &mut pdu);
-        if let Err(e) = exchange(c, t, stats, &pdu, &mut out, || format!("{w:?}")).await {
+        let sent = match crate::client::write_request(w, &mut pdu) {
+            Ok(()) => exchange(c, t, stats, &pdu, &mut out, || format!("{w:?}")).await,
+            Err(e) => Err(PollError::Garbled {
+                unit: t.unit,
+                what: format!("{w:?}"),
+                why: e.to_string(),
+            }),
+        };
+        if let Err(e) = sent {
             // This write and the ones not yet sent go out again at the next poll.
             for w in &writes[k..] {
                 unit.card.retry(w);
@@ -485,6 +548,7 @@ async fn exchange(
                 unit: t.unit,
                 what: what(),
                 timeout: t.timeout,
+                out_of_step: c.out_of_step(),
             })
         }
         Ok(Err(ClientError::Io(source))) => {

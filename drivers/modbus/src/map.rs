@@ -14,11 +14,14 @@
 //! The physical value is `register value * scale + offset`, in `unit`. An analog point's
 //! raw value is the register value for integer types. A float register's value is read
 //! and written exactly (`read`, `write`, `read_back`; see [`value`](crate::value)); it has
-//! no integer, so its *raw* value (`read_raw`, `write_raw`) counts steps of `resolution`
-//! (default 0.001 register units) over the range the type represents exactly at that step:
-//! ±2^23 steps for `f32` (±8388.608 at the default), ±2^52 for `f64`. That range is the
-//! channel's declared range, what `write` accepts; a value read beyond it is still read
-//! exactly, and `read_raw` says it is out of range. NaN and infinities are the channel's
+//! no integer, so its *raw* value (`read_raw`, `write_raw`) counts steps over a range of
+//! ±2^23 steps (`f32`) or ±2^52 (`f64`). By default that range is the type's own, nearly
+//! all of it (±2^127 register units for `f32`, ±2^1000 for `f64`): every finite value the
+//! register can hold (scaled) is the channel's range, what `write` accepts, and the steps
+//! are coarse. A point given `resolution` (a step in register units, e.g. 0.001) has a fine
+//! raw grid instead and a range of ±2^23 or ±2^52 steps of it (±8388.608 for an `f32` at
+//! 0.001): `write` refuses beyond it; a value read beyond it is still read exactly, and
+//! `read_raw` says it is out of range. NaN and infinities are the channel's
 //! status ([`DeviceError::NotANumber`](device_interface::DeviceError::NotANumber)), not a
 //! fault of the card.
 //!
@@ -40,8 +43,10 @@
 //! ```
 
 use crate::codec::{ByteOrder, Layout, ValueType, WordOrder};
-use crate::plan::{PlanError, Read, Span, Table, plan};
-use device_interface::{RawRange, Scale, Unit};
+use crate::plan::{Barrier, PlanError, Read, Span, Table, plan, plan_around};
+pub use crate::point::default_float_step;
+use crate::point::raw_range;
+use device_interface::{Scale, Unit};
 use serde::Deserialize;
 
 /// One point of a register map, as configured.
@@ -159,26 +164,6 @@ pub enum MapError {
     Plan(#[from] PlanError),
 }
 
-/// The default `resolution` of float points.
-pub const DEFAULT_FLOAT_STEP: f64 = 0.001;
-
-fn raw_range(ty: ValueType) -> RawRange {
-    // The bounds below are all valid ranges; RawRange::new only refuses min >= max.
-    let r = |min: i64, max: i64| RawRange { min, max };
-    match ty {
-        ValueType::U16 => r(0, i64::from(u16::MAX)),
-        ValueType::I16 => r(i64::from(i16::MIN), i64::from(i16::MAX)),
-        ValueType::U32 => r(0, i64::from(u32::MAX)),
-        ValueType::I32 => r(i64::from(i32::MIN), i64::from(i32::MAX)),
-        ValueType::U64 => r(0, i64::MAX),
-        ValueType::I64 => r(i64::MIN, i64::MAX),
-        // Steps the type represents exactly: every multiple of the step up to there
-        // survives the round trip through the register (half an ulp < half a step).
-        ValueType::F32 => r(-(1 << 23), 1 << 23),
-        ValueType::F64 => r(-(1 << 52), 1 << 52),
-    }
-}
-
 /// A card's register map: points with their channels, and the reads that poll it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Map {
@@ -191,55 +176,10 @@ pub struct Map {
     read_back: bool,
     /// A read refused with IllegalDataAddress is split where the unit has holes.
     learn_holes: bool,
-}
-
-/// Refuses point `i` where it shares an address with an earlier point of the same table
-/// in a way that cannot be meant: two outputs on one coil, values that overlap in part
-/// (a u32 at 10 and a u16 at 11), two outputs on one register, the same bit of a register
-/// twice, or a bit of a register an output value covers (writing the value would change
-/// the bit). Several read-only views of one address may share it (an output's value read
-/// back as an input, a counter as an encoder and as a value), as may bits of one register.
-fn overlap(configs: &[PointConfig], i: usize, bit_table: bool) -> Result<(), String> {
-    let c = &configs[i];
-    let span = |p: &PointConfig| {
-        let w = if bit_table {
-            1
-        } else {
-            p.ty.registers() as u32
-        };
-        (u32::from(p.address), u32::from(p.address) + w)
-    };
-    let writable = |p: &PointConfig| {
-        matches!(p.table, Table::HoldingRegisters | Table::Coils)
-            && !p.read_only
-            && p.bit.is_none()
-            && p.encoder.is_none()
-    };
-    let (s, e) = span(c);
-    for (j, o) in configs[..i].iter().enumerate() {
-        let (os, oe) = span(o);
-        if o.table != c.table || s >= oe || os >= e {
-            continue;
-        }
-        let clash = match (c.bit, o.bit) {
-            _ if bit_table => writable(c) || writable(o),
-            (Some(a), Some(b)) => a == b,
-            (Some(_), None) => writable(o),
-            (None, Some(_)) => writable(c),
-            (None, None) => (s, e) != (os, oe) || (writable(c) && writable(o)),
-        };
-        if clash {
-            return Err(format!(
-                "{} {}: point[{j}] is there already ({} {}{})",
-                c.table.name(),
-                c.address,
-                o.table.name(),
-                o.address,
-                o.bit.map(|b| format!(", bit {b}")).unwrap_or_default()
-            ));
-        }
-    }
-    Ok(())
+    /// The gap coalesced across.
+    max_gap: u16,
+    /// The points polled (inputs, and outputs with read_back), in map order.
+    polled: Vec<usize>,
 }
 
 /// The `max_gap` that coalesces across any gap the protocol's read limits allow.
@@ -271,97 +211,9 @@ impl Map {
                 key,
                 problem,
             };
+            let (role, step) =
+                crate::point::check(configs, i).map_err(|(key, problem)| bad(key, problem))?;
             let bit_table = c.table.is_bits();
-            if bit_table
-                && (c.ty != ValueType::U16 || c.bit.is_some() || c.scale != 1.0 || c.offset != 0.0)
-            {
-                return Err(bad(
-                    "table",
-                    format!(
-                        "{:?} hold single bits: no type, bit, scale or offset",
-                        c.table
-                    ),
-                ));
-            }
-            if let Some(b) = c.bit {
-                if b > 15 {
-                    return Err(bad("bit", format!("{b}: a register has bits 0..=15")));
-                }
-                if c.ty.registers() != 1 {
-                    return Err(bad(
-                        "bit",
-                        format!("a bit field needs a 16-bit type, not {:?}", c.ty),
-                    ));
-                }
-            }
-            // Every point, read or only written, must fit the 65536 addresses of its table.
-            let width = if bit_table {
-                1
-            } else {
-                c.ty.registers() as u32
-            };
-            if u32::from(c.address) + width > 65_536 {
-                return Err(bad(
-                    "address",
-                    format!(
-                        "{}: a {:?} point of {width} {} runs past address 65535",
-                        c.address,
-                        c.ty,
-                        if bit_table { "bit" } else { "registers" }
-                    ),
-                ));
-            }
-            if c.read_only && matches!(c.table, Table::InputRegisters | Table::DiscreteInputs) {
-                return Err(bad(
-                    "read_only",
-                    format!(
-                        "{} are read-only already; read_only makes a coil or a holding register an input",
-                        c.table.name()
-                    ),
-                ));
-            }
-            overlap(configs, i, bit_table).map_err(|m| bad("address", m))?;
-            if let Some(e) = c.encoder {
-                if c.table.is_bits() || c.bit.is_some() || c.ty.is_float() {
-                    return Err(bad("encoder", "an encoder is an integer counter register: no bit table, bit field or float".into()));
-                }
-                if e.resolution == 0 || e.resolution == i64::MIN {
-                    return Err(bad(
-                        "encoder",
-                        format!(
-                            "resolution {}: expected counts per turn, not 0",
-                            e.resolution
-                        ),
-                    ));
-                }
-            }
-            let role = match (c.table, c.bit, c.read_only) {
-                _ if c.encoder.is_some() => Role::Encoder,
-                (Table::Coils, _, true) => Role::DigitalIn,
-                (Table::Coils, _, false) => Role::DigitalOut,
-                (Table::DiscreteInputs, _, _) | (_, Some(_), _) => Role::DigitalIn,
-                (Table::InputRegisters, None, _) | (Table::HoldingRegisters, None, true) => {
-                    Role::AnalogIn
-                }
-                (Table::HoldingRegisters, None, false) => Role::AnalogOut,
-            };
-            let step = match (c.resolution, c.ty.is_float()) {
-                (None, false) => 1.0,
-                (None, true) => DEFAULT_FLOAT_STEP,
-                (Some(r), true) if r.is_finite() && r > 0.0 => r,
-                (Some(r), true) => {
-                    return Err(bad("resolution", format!("{r}: expected a step above 0")));
-                }
-                (Some(_), false) => {
-                    return Err(bad(
-                        "resolution",
-                        format!(
-                            "only float points have a resolution; {:?} counts whole units",
-                            c.ty
-                        ),
-                    ));
-                }
-            };
             let unit = Unit::new(&c.unit).map_err(|e| bad("unit", e.to_string()))?;
             let factor = c.scale * step;
             let scale = Scale::from_factor(raw_range(c.ty), factor, c.offset, unit)
@@ -423,6 +275,8 @@ impl Map {
             read_points,
             read_back,
             learn_holes: false,
+            max_gap,
+            polled,
         })
     }
 
@@ -438,41 +292,20 @@ impl Map {
         self.learn_holes
     }
 
-    /// Read `read` split in two at its widest gap between points (each half covering its
-    /// own points), or None when its points leave no gap (a refusal is then the unit's
-    /// answer about a mapped address).
-    pub fn split(&self, read: &Read) -> Option<(Read, Read)> {
-        let mut pts: Vec<usize> = read.points.clone();
-        pts.sort_by_key(|&p| self.points.get(p).map_or(0, |x| x.span.address));
-        let end = |p: usize| {
-            self.points
-                .get(p)
-                .map_or(0, |x| u32::from(x.span.address) + u32::from(x.span.count))
-        };
-        let start = |p: usize| self.points.get(p).map_or(0, |x| u32::from(x.span.address));
-        // The widest gap between what the points before cover and the next point.
-        let mut reach = 0u32;
-        let mut best: Option<(u32, usize)> = None;
-        for (k, &p) in pts.iter().enumerate() {
-            if k > 0 && start(p) > reach && best.is_none_or(|(g, _)| start(p) - reach > g) {
-                best = Some((start(p) - reach, k));
+    /// The reads of one poll that never cross `barriers` (the holes a unit was found to
+    /// have), as few as the protocol then allows; the map's own reads with none.
+    pub fn reads_around(&self, barriers: &[Barrier]) -> Vec<Read> {
+        let spans: Vec<Span> = self.polled.iter().map(|&i| self.points[i].span).collect();
+        // The same spans planned at build, so this cannot fail; the map's reads if it did.
+        match plan_around(&spans, self.max_gap, barriers) {
+            Ok(mut reads) => {
+                for r in &mut reads {
+                    r.points = r.points.iter().map(|&k| self.polled[k]).collect();
+                }
+                reads
             }
-            reach = reach.max(end(p));
+            Err(_) => self.reads.clone(),
         }
-        let (_, at) = best?;
-        let half = |ps: &[usize]| {
-            let s = ps.iter().map(|&p| start(p)).min().unwrap_or(0);
-            let e = ps.iter().map(|&p| end(p)).max().unwrap_or(s);
-            let mut points = ps.to_vec();
-            points.sort_unstable();
-            Read {
-                table: read.table,
-                start: s as u16,
-                count: (e - s) as u16,
-                points,
-            }
-        };
-        Some((half(&pts[..at]), half(&pts[at..])))
     }
 
     /// The points, in map order.
@@ -589,10 +422,17 @@ mod tests {
     fn float_raw_values_count_resolution_steps() {
         let map = Map::new(&points("[[point]]\ntable = \"input_registers\"\naddress = 0\ntype = \"f32\"\nscale = 2.0\noffset = 1.0\n[[point]]\ntable = \"input_registers\"\naddress = 2\ntype = \"f32\"\nresolution = 0.5\n"), 0).unwrap();
         let s = map.points()[0].scale;
-        assert_eq!(s.to_physical(1500), 4.0, "register 1.5 -> 1.5 * 2 + 1");
-        assert!((s.resolution() - 0.002).abs() < 1e-15);
-        let coarse = map.points()[1].scale;
-        assert_eq!(coarse.range().highest, 4194304.0, "2^23 steps of 0.5");
+        let step = 2f64.powi(104);
+        assert_eq!(
+            s.range().highest,
+            2f64.powi(127) * 2.0 + 1.0,
+            "the type's range, scaled: register 2^127 -> 2^127 * 2 + 1"
+        );
+        assert_eq!(s.to_physical(3), 3.0 * step * 2.0 + 1.0);
+        assert_eq!(s.resolution(), step * 2.0);
+        let fine = map.points()[1].scale;
+        assert_eq!(fine.range().highest, 4194304.0, "2^23 steps of 0.5");
+        assert_eq!(fine.to_physical(3), 1.5);
     }
 
     #[test]

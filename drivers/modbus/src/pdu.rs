@@ -17,6 +17,12 @@
 //!
 //! A PDU of the wrong length for its function is answered 03 (illegal data value).
 
+/// The most coils one FC15 request writes (its byte count is one byte: 246 bytes of data
+/// fit the 253-byte PDU).
+pub const MAX_WRITE_COILS: u16 = 1968;
+/// The most registers one FC16 request writes.
+pub const MAX_WRITE_REGISTERS: u16 = 123;
+
 /// Exception codes hwgw answers with.
 pub mod exception {
     /// The function is not served.
@@ -176,9 +182,9 @@ pub fn parse(pdu: &[u8]) -> Result<Req, Refusal> {
             }
             let (start, count, bytes) = (word(pdu, 1), word(pdu, 3), usize::from(pdu[5]));
             let (max, need) = if function == 15 {
-                (1968, usize::from(count).div_ceil(8))
+                (MAX_WRITE_COILS, usize::from(count).div_ceil(8))
             } else {
-                (123, 2 * usize::from(count))
+                (MAX_WRITE_REGISTERS, 2 * usize::from(count))
             };
             if count == 0 || count > max || bytes != need || pdu.len() != 6 + bytes {
                 return Err(value());

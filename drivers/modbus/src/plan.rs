@@ -175,9 +175,40 @@ impl PlanError {
     }
 }
 
+/// Unmapped addresses `from..to` of `table` between two spans, of which the unit refuses
+/// at least one: no read may cover them (a unit's learned holes; see
+/// [`holes`](crate::holes)).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct Barrier {
+    /// The table.
+    pub table: Table,
+    /// First unmapped address of the gap.
+    pub from: u32,
+    /// One past its last (the next span's first address).
+    pub to: u32,
+}
+
+impl fmt::Display for Barrier {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{} {}..={}", self.table.name(), self.from, self.to - 1)
+    }
+}
+
 /// The reads that cover every span, coalescing spans at most `max_gap` addresses apart
 /// within the protocol's limits. Reads are ordered by table, then address.
 pub fn plan(spans: &[Span], max_gap: u16) -> Result<Vec<Read>, PlanError> {
+    plan_around(spans, max_gap, &[])
+}
+
+/// As [`plan`], never reading across a gap that holds one of `barriers`. Greedy from the
+/// lowest address, which is the fewest reads: no read may be longer than the protocol's
+/// limit nor cross a barrier, and taking each span into the read under way whenever it
+/// may never needs more reads than cutting earlier.
+pub fn plan_around(
+    spans: &[Span],
+    max_gap: u16,
+    barriers: &[Barrier],
+) -> Result<Vec<Read>, PlanError> {
     for (i, s) in spans.iter().enumerate() {
         let end = u32::from(s.address) + u32::from(s.count);
         if s.count == 0 {
@@ -220,7 +251,11 @@ pub fn plan(spans: &[Span], max_gap: u16) -> Result<Vec<Read>, PlanError> {
             let r_end = u32::from(r.start) + u32::from(r.count);
             let new_end = r_end.max(end);
             let near = start <= r_end + u32::from(max_gap);
-            if near && new_end - u32::from(r.start) <= u32::from(s.table.max_read()) {
+            let blocked = start > r_end
+                && barriers
+                    .iter()
+                    .any(|b| b.table == s.table && b.from < start && r_end < b.to);
+            if near && !blocked && new_end - u32::from(r.start) <= u32::from(s.table.max_read()) {
                 // Fits: checked against max_read (<= 2000) just above.
                 r.count = (new_end - u32::from(r.start)) as u16;
                 r.points.push(i);

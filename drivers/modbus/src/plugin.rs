@@ -70,6 +70,20 @@ pub fn build(config: &ModbusConfig, ctx: &mut CardContext<'_>) -> Result<Box<dyn
         stats: stats.clone(),
     };
     let lines: &mut Lines = ctx.shared();
+    if let Some(other) = lines
+        .0
+        .iter()
+        .find(|l| l.transport.same_place(&transport) && l.transport != transport)
+    {
+        return Err(CardError::at(
+            "transport",
+            format!(
+                "{} is a line already, with other settings ({}); every unit on one port shares its baud rate, parity, stop bits and turnaround",
+                transport.describe(),
+                other.transport.settings()
+            ),
+        ));
+    }
     let (line, first) = match lines.0.iter().find(|l| l.transport == transport) {
         Some(l) => (l.clone(), false),
         None => {

@@ -255,6 +255,95 @@ fn replies_decode_every_layout_into_physical_values() {
     assert_eq!(card.read_sequence(0, 3).unwrap(), 0b1010);
 }
 
+/// A float setpoint takes any finite value its register holds, far past the 0.001 grid
+/// of old (±8388.608 for an f32), and exactly; beyond the type's range it is refused.
+#[test]
+fn float_outputs_take_the_types_whole_range_exactly() {
+    let card = card();
+    Unit::new().poll(&card);
+    let _ = card.take_writes();
+    for v in [12345.678f32, 1.0e6, -3.25e9, 0.0004, 1.0e30] {
+        card.write(1, f64::from(v)).unwrap();
+        assert_eq!(card.read_back(1).unwrap(), f64::from(v));
+        let f = v.to_bits();
+        assert_eq!(
+            card.take_writes(),
+            vec![Write::Registers {
+                address: 11,
+                values: vec![(f >> 16) as u16, f as u16]
+            }],
+            "{v} sent as its f32"
+        );
+    }
+    assert!(matches!(
+        card.write(1, 1.0e39),
+        Err(DeviceError::ValueOutOfRange { channel: 1, .. })
+    ));
+    assert_eq!(
+        card.read_back(1).unwrap(),
+        f64::from(1.0e30f32),
+        "a refusal keeps the value"
+    );
+}
+
+/// 64 f32 setpoints (128 registers) and 2000 coils in a row: each request within the
+/// protocol's limits (123 registers, 1968 coils), no value cut between two requests.
+#[test]
+fn write_runs_are_cut_at_the_protocols_limits_between_points() {
+    let mut map = String::new();
+    for i in 0..64 {
+        map += &format!(
+            "[[point]]\ntable = \"holding_registers\"\naddress = {}\ntype = \"f32\"\n",
+            1000 + 2 * i
+        );
+    }
+    for i in 0..2000 {
+        map += &format!("[[point]]\ntable = \"coils\"\naddress = {i}\n");
+    }
+    let card = driver_modbus::testing::card(&map, 0);
+    card.poll_succeeded();
+    for ch in 0..64 {
+        card.write(ch, f64::from(ch) + 0.5).unwrap();
+    }
+    for bit in 0..2000 {
+        card.set_bit(bit, bit % 3 == 0).unwrap();
+    }
+    let writes = card.take_writes();
+    let mut words = Vec::new();
+    let mut bits = Vec::new();
+    for w in &writes {
+        match w {
+            Write::Registers { address, values } => {
+                assert!(
+                    values.len() <= 123,
+                    "{} registers in one FC16",
+                    values.len()
+                );
+                assert_eq!(
+                    usize::from(*address),
+                    1000 + words.len(),
+                    "in order, no hole"
+                );
+                assert_eq!(values.len() % 2, 0, "an f32 cut in two at {address}");
+                words.extend_from_slice(values);
+            }
+            Write::Coils { address, values } => {
+                assert!(values.len() <= 1968, "{} coils in one FC15", values.len());
+                assert_eq!(usize::from(*address), bits.len());
+                bits.extend_from_slice(values);
+            }
+            other => panic!("unexpected {other:?}"),
+        }
+    }
+    assert_eq!(writes.len(), 4, "{writes:?}");
+    let floats: Vec<f32> = words
+        .chunks(2)
+        .map(|w| f32::from_bits(u32::from(w[0]) << 16 | u32::from(w[1])))
+        .collect();
+    assert_eq!(floats, (0..64).map(|c| c as f32 + 0.5).collect::<Vec<_>>());
+    assert_eq!(bits, (0..2000).map(|b| b % 3 == 0).collect::<Vec<_>>());
+}
+
 #[test]
 fn output_writes_become_coalesced_requests() {
     let card = card();
