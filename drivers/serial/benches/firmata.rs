@@ -3,7 +3,8 @@
 //! a jumper in the simulator carries it to pin 2, the firmware reports it, the client sees
 //! it) as p50/p99, and analog reports received per second with A0–A5 reported every 1 ms
 //! (the 57600-baud line is the limit). The simulation runs at 0.7–0.95× real time: compare
-//! the ratio, not the absolute figures.
+//! the ratio, not the absolute figures. hwgw's card goes first; its stop turns the board's
+//! reports off, so pyfirmata2 starts on a quiet line as hwgw did.
 #![allow(clippy::unwrap_used, reason = "bench code")]
 
 use device_interface::time::MonotonicClock;
@@ -38,6 +39,8 @@ for i in range(trips):
     seen.clear(); t0 = time.perf_counter(); d12.write(want)
     while level[0] != want:
         seen.wait(1.0); seen.clear()
+        if time.perf_counter() - t0 > 10:
+            sys.exit("pyfirmata2: round trip %d not back in 10 s" % i)
     times.append(time.perf_counter() - t0)
 count = [0]
 pins = [board.get_pin('a:%d:i' % c) for c in range(6)]
@@ -82,6 +85,10 @@ fn hwgw(port: &str) -> (f64, f64, f64) {
         let t0 = Instant::now();
         card.set_bit(0, want).unwrap();
         while card.read_bit(0).ok() != Some(want) {
+            assert!(
+                t0.elapsed() < Duration::from_secs(10),
+                "hwgw: round trip {i} not back in 10 s"
+            );
             std::thread::sleep(Duration::from_micros(50));
         }
         times.push(t0.elapsed().as_secs_f64());

@@ -17,10 +17,12 @@
 //! [`MAX_BACKOFF`]; a port that comes back (at its path, or its stable name pointing
 //! elsewhere) is set up again from scratch.
 
+mod setup;
+
 use crate::board::BoardInfo;
-use crate::card::{CHECK_ASKED, CHECK_FAILED, CHECK_OK, CHECK_QUERYING, FirmataCard};
+use crate::card::FirmataCard;
 use crate::line::{Line, Opener, open_port, send};
-use crate::protocol::{Decoder, Frame, mode, sysex, write};
+use crate::protocol::{Decoder, Frame, sysex, write};
 use device_interface::time::Timestamp;
 use std::io;
 use std::os::fd::BorrowedFd;
@@ -40,8 +42,10 @@ pub const REPORT_WAIT: Duration = Duration::from_secs(1);
 pub const PROBE_AFTER: Duration = Duration::from_secs(1);
 /// A line quiet this long is lost.
 pub const SILENCE_LIMIT: Duration = Duration::from_millis(3500);
-/// The most bytes waiting to be sent before the line counts as stuck.
-pub const MAX_PENDING: usize = 64 * 1024;
+/// The most bytes one step takes off the line: a flood (a board gone mad, a fast native
+/// USB port) cannot keep the bus side from its timers and outputs; it is called again at
+/// once for the rest.
+pub const MAX_RX_PER_STEP: usize = 16 * 1024;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Phase {
@@ -103,6 +107,13 @@ pub struct FirmataBus {
     /// Output pins whose state the settle check still waits for, and the state.
     checks: Vec<(u8, u32)>,
     refused: Option<String>,
+    /// The refused port's device (see [`identity`](crate::line::identity)): it is not
+    /// opened again (an Uno resets when opened) until its path leads to another.
+    refused_port: Option<(u64, u64, u64, i64)>,
+    /// The board takes SET_DIGITAL_PIN_VALUE (protocol 2.5 on): outputs pin by pin.
+    pin_writes: bool,
+    /// The last step stopped reading at [`MAX_RX_PER_STEP`]: more is waiting.
+    more: bool,
     was_online: bool,
 }
 
@@ -131,6 +142,9 @@ impl FirmataBus {
             sysex: Vec::with_capacity(crate::protocol::MAX_SYSEX),
             checks: Vec::with_capacity(crate::board::MAX_PINS),
             refused: None,
+            refused_port: None,
+            pin_writes: false,
+            more: false,
             was_online: false,
         }
     }
@@ -150,13 +164,42 @@ impl FirmataBus {
         }
     }
 
-    /// Closes the line (the bus side stops); the next step opens it again.
+    /// Closes the line (the bus side stops); the next step opens it again, a refused board
+    /// too. An online board is asked to stop its reports first (its outputs stay as they
+    /// are): a quiet line for whoever opens the port next.
     pub fn release(&mut self) {
+        if let Link::Online { line, .. } = &mut self.link {
+            self.tx.clear();
+            let c = &self.card.config;
+            for ch in &c.analog_in {
+                write::report_analog(&mut self.tx, ch.channel, false);
+            }
+            let ports = c.digital_in.iter().fold(0u32, |m, p| m | 1 << (p.pin / 8));
+            for port in (0..16).filter(|p| ports & 1 << p != 0) {
+                write::report_digital(&mut self.tx, port, false);
+            }
+            if !c.encoder.is_empty() {
+                write::encoder(&mut self.tx, crate::protocol::encoder::REPORT_AUTO, &[0]);
+            }
+            // Best effort: the port is closed next whatever happens.
+            let _ = send(line.as_mut(), &self.tx, &self.card.bytes_sent);
+        }
         self.close(None);
+        self.forget_refusal();
         self.backoff = FIRST_BACKOFF;
         self.link = Link::Closed {
             retry_at: self.card.now(),
         };
+    }
+
+    /// Forgets that the board was refused: the next step opens its port (a start asked
+    /// for again tries it again).
+    pub fn forget_refusal(&mut self) {
+        self.refused = None;
+        self.refused_port = None;
+        if let Link::Closed { retry_at } = &mut self.link {
+            *retry_at = (*retry_at).min(self.card.now());
+        }
     }
 
     fn set_link(&self, link: &'static str, error: Option<String>) {
@@ -199,11 +242,22 @@ impl FirmataBus {
             if now < retry_at {
                 return (self.outcome(), retry_at);
             }
+            if self.refused_port.is_some()
+                && crate::line::identity(&self.card.config.port) == self.refused_port
+            {
+                // Still the board that was refused: looked at again later, not opened.
+                let retry_at = after(now, MAX_BACKOFF);
+                self.link = Link::Closed { retry_at };
+                return (self.outcome(), retry_at);
+            }
             self.open_line(now);
         }
-        if let Err(e) = self.receive(now) {
-            self.close(Some(e));
-            return (self.outcome(), self.deadline(now));
+        match self.receive(now) {
+            Ok(more) => self.more = more,
+            Err(e) => {
+                self.close(Some(e));
+                return (self.outcome(), self.deadline(now));
+            }
         }
         if let Err(e) = self.timers(now) {
             self.close(Some(e));
@@ -223,6 +277,9 @@ impl FirmataBus {
     }
 
     fn deadline(&self, now: Timestamp) -> Timestamp {
+        if self.more && !matches!(self.link, Link::Closed { .. }) {
+            return now;
+        }
         match &self.link {
             Link::Closed { retry_at } => *retry_at,
             Link::Handshake { deadline, .. } => *deadline,
@@ -255,23 +312,29 @@ impl FirmataBus {
         }
     }
 
-    /// Reads what the line has and takes each frame.
-    fn receive(&mut self, now: Timestamp) -> Result<(), String> {
+    /// Reads what the line has, up to [`MAX_RX_PER_STEP`] bytes, and takes each frame;
+    /// true when it stopped at that bound with more waiting.
+    fn receive(&mut self, now: Timestamp) -> Result<bool, String> {
+        let mut taken = 0;
         loop {
+            if taken >= MAX_RX_PER_STEP {
+                return Ok(true);
+            }
             let n = match &mut self.link {
-                Link::Closed { .. } => return Ok(()),
+                Link::Closed { .. } => return Ok(false),
                 Link::Handshake { line, .. } | Link::Online { line, .. } => match line
                     .read(&mut self.rx)
                 {
                     Ok(0) => return Err(format!("{}: the port hung up", self.card.config.port)),
                     Ok(n) => n,
-                    Err(e) if e.kind() == io::ErrorKind::WouldBlock => return Ok(()),
+                    Err(e) if e.kind() == io::ErrorKind::WouldBlock => return Ok(false),
                     Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
                     Err(e) => {
                         return Err(format!("{}: read: {e} (unplugged?)", self.card.config.port));
                     }
                 },
             };
+            taken += n;
             for i in 0..n {
                 let byte = self.rx[i];
                 let frame = match self.decoder.push(byte) {
@@ -354,7 +417,7 @@ impl FirmataBus {
                 write::query(&mut self.tx, sysex::REPORT_FIRMWARE);
                 write::query(&mut self.tx, sysex::CAPABILITY_QUERY);
                 write::query(&mut self.tx, sysex::ANALOG_MAPPING_QUERY);
-                send(line.as_mut(), &self.tx)?;
+                send(line.as_mut(), &self.tx, &self.card.bytes_sent)?;
                 *phase = Phase::Describe;
                 *deadline = after(now, REPLY_WAIT);
             }
@@ -386,110 +449,6 @@ impl FirmataBus {
             }
             (other, Phase::Reports(_)) => self.report(other),
             _ => {}
-        }
-        Ok(())
-    }
-
-    /// Checks the board and sends the set-up.
-    fn set_up(&mut self, now: Timestamp) -> Result<(), String> {
-        let Link::Handshake {
-            line,
-            phase,
-            deadline,
-            board,
-            ..
-        } = &mut self.link
-        else {
-            return Ok(());
-        };
-        if let Err(e) = self.card.config.check_board(board) {
-            let key = e.key.map(|k| format!("firmata.{k}: ")).unwrap_or_default();
-            let why = format!("{}: {key}{}", self.card.config.port, e.message);
-            self.refused = Some(why.clone());
-            self.card
-                .shared
-                .lock()
-                .unwrap_or_else(PoisonError::into_inner)
-                .board = Some(board.clone());
-            self.close(Some(why));
-            self.backoff = MAX_BACKOFF;
-            return Ok(());
-        }
-        self.refused = None;
-        let c = &self.card.config;
-        let new_pullup = board.protocol_at_least(2, 5);
-        let tx = &mut self.tx;
-        tx.clear();
-        for p in &c.digital_in {
-            let m = if p.pullup && new_pullup && board.resolution(p.pin, mode::PULLUP).is_some() {
-                mode::PULLUP
-            } else {
-                mode::INPUT
-            };
-            write::pin_mode(tx, p.pin, m);
-        }
-        for p in &c.digital_out {
-            write::pin_mode(tx, p.pin, mode::OUTPUT);
-        }
-        for p in &c.servo {
-            write::servo_config(tx, p.pin, p.min_us, p.max_us);
-        }
-        for a in &self.card.ao {
-            write::pin_mode(tx, a.pin, if a.servo { mode::SERVO } else { mode::PWM });
-        }
-        for ch in &c.analog_in {
-            if let Some(pin) = board.analog_pin(ch.channel) {
-                write::pin_mode(tx, pin, mode::ANALOG);
-            }
-        }
-        for (i, e) in c.encoder.iter().enumerate() {
-            write::encoder(tx, crate::protocol::encoder::ATTACH, &[i as u8, e.a, e.b]);
-        }
-        if !c.encoder.is_empty() {
-            write::encoder(tx, crate::protocol::encoder::REPORT_AUTO, &[1]);
-        }
-        write::sampling_interval(tx, c.sampling_ms);
-        // Every output as the card holds it, whatever was marked.
-        let written = self.card.written.load(Ordering::Acquire);
-        self.card.dirty_ports.store(0, Ordering::Release);
-        let ports = c
-            .digital_out
-            .iter()
-            .map(|p| p.pin / 8)
-            .fold(0u32, |m, p| m | 1 << p);
-        for port in 0..16 {
-            if ports & 1 << port != 0 {
-                write::digital_port(tx, port, port_value(&self.card, port));
-            }
-        }
-        for a in &self.card.ao {
-            a.dirty.store(false, Ordering::Release);
-            write::analog(tx, a.pin, a.raw.load(Ordering::Acquire));
-        }
-        for ch in &c.analog_in {
-            write::report_analog(tx, ch.channel, true);
-        }
-        let inputs = c
-            .digital_in
-            .iter()
-            .map(|p| p.pin / 8)
-            .fold(0u32, |m, p| m | 1 << p);
-        for port in 0..16 {
-            if inputs & 1 << port != 0 {
-                write::report_digital(tx, port, true);
-            }
-        }
-        send(line.as_mut(), tx)?;
-        self.card.sent.store(written, Ordering::Release);
-        self.card
-            .shared
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .board = Some(board.clone());
-        *phase = Phase::Reports(inputs);
-        *deadline = after(now, REPORT_WAIT);
-        if inputs == 0 {
-            self.go_online(now);
         }
         Ok(())
     }
@@ -534,7 +493,7 @@ impl FirmataBus {
                     Phase::Banner => {
                         self.tx.clear();
                         write::version_query(&mut self.tx);
-                        send(line.as_mut(), &self.tx)?;
+                        send(line.as_mut(), &self.tx, &self.card.bytes_sent)?;
                         *phase = Phase::Version;
                         *deadline = after(now, REPLY_WAIT);
                         Ok(())
@@ -567,7 +526,7 @@ impl FirmataBus {
                 if now >= *probe_at {
                     self.tx.clear();
                     write::version_query(&mut self.tx);
-                    send(line.as_mut(), &self.tx)?;
+                    send(line.as_mut(), &self.tx, &self.card.bytes_sent)?;
                     self.card.probes.fetch_add(1, Ordering::Relaxed);
                     *probe_at = after(now, PROBE_AFTER);
                 }
@@ -576,7 +535,9 @@ impl FirmataBus {
         }
     }
 
-    /// Sends the outputs the devices marked.
+    /// Sends the outputs the devices marked: the marked ports whole (protocol 2.4), or
+    /// each output pin of them (2.5 on, SET_DIGITAL_PIN_VALUE: pins hwgw does not drive
+    /// are not written).
     fn send_outputs(&mut self) -> Result<(), String> {
         let Link::Online { line, .. } = &mut self.link else {
             return Ok(());
@@ -584,9 +545,17 @@ impl FirmataBus {
         let written = self.card.written.load(Ordering::Acquire);
         let ports = self.card.dirty_ports.swap(0, Ordering::AcqRel);
         self.tx.clear();
-        for port in 0..16u8 {
-            if ports & 1 << port != 0 {
-                write::digital_port(&mut self.tx, port, port_value(&self.card, port));
+        if self.pin_writes {
+            for (i, p) in self.card.config.digital_out.iter().enumerate() {
+                if ports >> (p.pin / 8) & 1 == 1 {
+                    write::digital_pin(&mut self.tx, p.pin, self.card.output(i));
+                }
+            }
+        } else {
+            for port in 0..16u8 {
+                if ports & 1 << port != 0 {
+                    write::digital_port(&mut self.tx, port, setup::port_value(&self.card, port));
+                }
             }
         }
         for a in &self.card.ao {
@@ -595,87 +564,11 @@ impl FirmataBus {
             }
         }
         if !self.tx.is_empty() {
-            send(line.as_mut(), &self.tx)?;
-            self.card
-                .bytes_sent
-                .fetch_add(self.tx.len() as u64, Ordering::Relaxed);
+            send(line.as_mut(), &self.tx, &self.card.bytes_sent)?;
         }
         self.card.sent.fetch_max(written, Ordering::AcqRel);
         Ok(())
     }
-}
-
-impl FirmataBus {
-    /// Asked by settle: queries the state of every output pin (everything marked was sent
-    /// just before, on this same step).
-    fn query_states(&mut self) -> Result<(), String> {
-        let Link::Online { line, .. } = &mut self.link else {
-            return Ok(());
-        };
-        if self.card.check.load(Ordering::Acquire) != CHECK_ASKED {
-            return Ok(());
-        }
-        self.card.expected_states(&mut self.checks);
-        self.tx.clear();
-        for (pin, _) in &self.checks {
-            write::query_pin(&mut self.tx, *pin);
-        }
-        send(line.as_mut(), &self.tx)?;
-        self.card.check.store(CHECK_QUERYING, Ordering::Release);
-        Ok(())
-    }
-
-    /// A PIN_STATE_RESPONSE (pin, mode, state in 7-bit groups): one output confirmed, or
-    /// the check failed.
-    fn pin_state(&mut self) {
-        if self.card.check.load(Ordering::Acquire) != CHECK_QUERYING {
-            return;
-        }
-        let [pin, _mode, state @ ..] = self.sysex.as_slice() else {
-            return;
-        };
-        let value = state
-            .iter()
-            .take(5)
-            .rev()
-            .fold(0u32, |acc, b| (acc << 7) | u32::from(*b));
-        let Some(i) = self.checks.iter().position(|(p, _)| p == pin) else {
-            return;
-        };
-        let (pin, expected) = self.checks.swap_remove(i);
-        if value != expected {
-            let why = format!(
-                "{}: pin {pin} is {value} on the board, not {expected} as written",
-                self.card.config.port
-            );
-            self.card
-                .shared
-                .lock()
-                .unwrap_or_else(PoisonError::into_inner)
-                .check_error = Some(why);
-            self.card.check.store(CHECK_FAILED, Ordering::Release);
-        } else if self.checks.is_empty() {
-            self.card.check.store(CHECK_OK, Ordering::Release);
-        }
-    }
-}
-
-/// A port's DIGITAL_MESSAGE value: its outputs' bits, and its inputs' pull-ups (a 1 written
-/// to an input turns its pull-up on, the protocol's way before INPUT_PULLUP).
-fn port_value(card: &FirmataCard, port: u8) -> u8 {
-    let c = card.config();
-    let mut v = 0u8;
-    for (i, p) in c.digital_out.iter().enumerate() {
-        if p.pin / 8 == port && card.output(i) {
-            v |= 1 << (p.pin % 8);
-        }
-    }
-    for p in &c.digital_in {
-        if p.pin / 8 == port && p.pullup {
-            v |= 1 << (p.pin % 8);
-        }
-    }
-    v
 }
 
 /// A frame taken off the decoder (a sysex's payload is copied into the bus's own buffer,

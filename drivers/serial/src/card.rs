@@ -6,8 +6,8 @@
 //! no system call, no lock. Outputs go into the output image and mark their port or pin to
 //! be sent; the write wakes the bus side, which sends what is marked on its next step.
 //! Until the board has answered and been set up, and after it went away, every call fails
-//! with [`DeviceError::Offline`]; an analog input not reported since is
-//! [`DeviceError::Stale`].
+//! with [`DeviceError::Offline`]; an analog input, or a digital input whose port, not
+//! reported since is [`DeviceError::Stale`].
 
 use crate::board::BoardInfo;
 use crate::config::FirmataConfig;
@@ -70,6 +70,8 @@ pub struct FirmataCounters {
     pub open_failures: u64,
     /// Liveness probes sent (version queries on a quiet line).
     pub probes: u64,
+    /// Analog reports above the channel's resolution (a corrupted message), dropped.
+    pub bad_values: u64,
     /// The last error, if any.
     pub last_error: Option<String>,
 }
@@ -100,6 +102,10 @@ pub struct FirmataCard {
     servo_scale: Scale,
     /// Ports (pins 8·n … 8·n+7) with outputs to send, one bit each (16 ports).
     pub(crate) dirty_ports: AtomicU32,
+    /// Ports whose levels the board reported since it came online, one bit each.
+    reported: AtomicU32,
+    /// The port of each digital input bit.
+    in_ports: Vec<u8>,
     pub(crate) online: AtomicBool,
     pub(crate) closing: AtomicBool,
     /// The settle check ([`CHECK_NONE`] …).
@@ -113,6 +119,7 @@ pub struct FirmataCard {
     pub(crate) reopens: AtomicU64,
     pub(crate) open_failures: AtomicU64,
     pub(crate) probes: AtomicU64,
+    bad_values: AtomicU64,
     pub(crate) shared: Mutex<Shared>,
     waker: OnceLock<Arc<dyn Waker>>,
 }
@@ -181,6 +188,8 @@ impl FirmataCard {
             pwm_scale,
             servo_scale,
             dirty_ports: AtomicU32::new(0),
+            reported: AtomicU32::new(0),
+            in_ports: config.digital_in.iter().map(|p| p.pin / 8).collect(),
             online: AtomicBool::new(false),
             closing: AtomicBool::new(false),
             check: AtomicU8::new(CHECK_NONE),
@@ -192,6 +201,7 @@ impl FirmataCard {
             reopens: AtomicU64::new(0),
             open_failures: AtomicU64::new(0),
             probes: AtomicU64::new(0),
+            bad_values: AtomicU64::new(0),
             shared: Mutex::new(Shared {
                 link: "closed",
                 ..Shared::default()
@@ -254,6 +264,7 @@ impl FirmataCard {
             reopens: self.reopens.load(Ordering::Relaxed),
             open_failures: self.open_failures.load(Ordering::Relaxed),
             probes: self.probes.load(Ordering::Relaxed),
+            bad_values: self.bad_values.load(Ordering::Relaxed),
             last_error: s.last_error.clone(),
         }
     }
@@ -266,17 +277,26 @@ impl FirmataCard {
             .store(now.as_nanos().max(1), Ordering::Release);
     }
 
-    /// A DIGITAL_MESSAGE: the inputs on `port` take their levels.
+    /// A DIGITAL_MESSAGE: the inputs on `port` take their levels (and are current from
+    /// now on).
     pub(crate) fn digital_report(&self, port: u8, value: u8) {
         for (i, p) in self.config.digital_in.iter().enumerate() {
             if p.pin / 8 == port {
                 let _ = self.inputs.set(i as u32, value >> (p.pin % 8) & 1 == 1);
             }
         }
+        if let Some(bit) = 1u32.checked_shl(u32::from(port)) {
+            self.reported.fetch_or(bit, Ordering::AcqRel);
+        }
     }
 
-    /// An ANALOG_MESSAGE of channel `channel`.
+    /// An ANALOG_MESSAGE of channel `channel`; a value above the channel's resolution (a
+    /// message corrupted on the line) is dropped and counted.
     pub(crate) fn analog_report(&self, channel: u8, value: u16) {
+        if i64::from(value) > self.ai_scale.raw_range().max {
+            self.bad_values.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
         for (i, c) in self.config.analog_in.iter().enumerate() {
             if c.channel == channel {
                 self.ai[i].store(VALID | u64::from(value), Ordering::Release);
@@ -295,6 +315,7 @@ impl FirmataCard {
     /// encoders' next reports start new baselines.
     pub(crate) fn set_online(&self, online: bool) {
         if !online {
+            self.reported.store(0, Ordering::Release);
             for a in &self.ai {
                 a.store(0, Ordering::Release);
             }
@@ -453,8 +474,22 @@ impl DigitalInputImage for FirmataCard {
         &self.inputs
     }
 
-    fn check_inputs(&self, _span: BitSpan) -> Result<(), DeviceError> {
-        self.check_online()
+    /// Online, and every port under `span` reported since (a port the board did not
+    /// report yet reads as stale, not as the levels of before).
+    fn check_inputs(&self, span: BitSpan) -> Result<(), DeviceError> {
+        self.check_online()?;
+        let reported = self.reported.load(Ordering::Acquire);
+        let all = span.bits().all(|(bit, _)| {
+            self.in_ports
+                .get(bit as usize)
+                .is_some_and(|p| reported >> p & 1 == 1)
+        });
+        if all {
+            return Ok(());
+        }
+        let last = self.last_good.load(Ordering::Acquire);
+        let age = (last != 0).then(|| self.clock.now().duration_since(Timestamp::from_nanos(last)));
+        Err(DeviceError::Stale { age })
     }
 }
 
@@ -480,8 +515,10 @@ impl DigitalOutputImage for FirmataCard {
 }
 
 impl EncoderHost for FirmataCard {
+    /// `index` is one this card handed to [`CardEncoder`] (the trait's contract), so it is
+    /// in range, as every card indexes.
     fn encoder_counter(&self, index: usize) -> &EncoderCounter {
-        self.encoders[index.min(self.encoders.len().saturating_sub(1))].counter()
+        self.encoders[index].counter()
     }
 
     fn check_encoder(&self, index: usize) -> Result<(), DeviceError> {

@@ -104,6 +104,8 @@ impl Component for FirmataIo {
     fn start_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
         // Output writes wake this activity, which sends them at once.
         self.bus.card().set_waker(ctx.activity().waker());
+        // A start asked for (again) tries a board refused before.
+        self.bus.forget_refusal();
         self.wait_for_board().map_err(HookError::new)?;
         self.rewatch(ctx)?;
         self.update_hook(ctx)

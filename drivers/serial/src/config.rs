@@ -191,6 +191,13 @@ fn pin_bound(key: String, pin: u8) -> Result<(), CardError> {
 impl FirmataConfig {
     /// Checks the section alone: bounds, and no pin in two places.
     pub fn check(&self) -> Result<(), CardError> {
+        self.check_line()?;
+        self.check_pins()?;
+        self.check_analog_in()
+    }
+
+    /// The port, the line's and the board's numbers.
+    fn check_line(&self) -> Result<(), CardError> {
         if self.port.is_empty() || self.port.len() > 4096 || self.port.contains('\0') {
             return Err(CardError::at(
                 "port",
@@ -229,6 +236,11 @@ impl FirmataConfig {
                 return Err(CardError::at(key, format!("{bits}: 1-16 bits")));
             }
         }
+        Ok(())
+    }
+
+    /// Every pin list: each pin in one place only, the outputs' values within bounds.
+    fn check_pins(&self) -> Result<(), CardError> {
         let mut used: Vec<(u8, String)> = Vec::new();
         let mut claim = |key: String, pin: u8| -> Result<(), CardError> {
             pin_bound(key.clone(), pin)?;
@@ -294,6 +306,11 @@ impl FirmataConfig {
                 ));
             }
         }
+        Ok(())
+    }
+
+    /// The analog inputs: channels Firmata reports, each once.
+    fn check_analog_in(&self) -> Result<(), CardError> {
         let mut channels: Vec<u8> = Vec::new();
         for (i, c) in self.analog_in.iter().enumerate() {
             let key = format!("analog_in[{i}].channel");

@@ -87,14 +87,39 @@ pub fn open_port(path: &str, baud: u32) -> io::Result<Box<dyn Line>> {
     Ok(Box::new(stream))
 }
 
-/// Writes all of `data`; a line whose buffer stays full is stuck.
-pub fn send(line: &mut dyn Line, data: &[u8]) -> Result<(), String> {
+/// The device node a path leads to now (following links): its file system, inode, device
+/// number and change time, or None when there is none. A board plugged back gets a node
+/// made anew (a new change time, even where the inode and number are reused), and a stable
+/// name pointed elsewhere leads to another node.
+pub fn identity(path: &str) -> Option<(u64, u64, u64, i64)> {
+    use std::os::unix::fs::MetadataExt;
+    let m = std::fs::metadata(path).ok()?;
+    Some((
+        m.dev(),
+        m.ino(),
+        m.rdev(),
+        m.ctime()
+            .saturating_mul(1_000_000_000)
+            .saturating_add(m.ctime_nsec()),
+    ))
+}
+
+/// Writes all of `data`, counting what went out in `sent`; a line whose buffer stays full
+/// is stuck.
+pub fn send(
+    line: &mut dyn Line,
+    data: &[u8],
+    sent: &std::sync::atomic::AtomicU64,
+) -> Result<(), String> {
     let mut rest = data;
     let mut waits = 0;
     while !rest.is_empty() {
         match line.write(rest) {
             Ok(0) => return Err("write: the port took nothing".into()),
-            Ok(n) => rest = &rest[n..],
+            Ok(n) => {
+                sent.fetch_add(n as u64, std::sync::atomic::Ordering::Relaxed);
+                rest = &rest[n..];
+            }
             Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
             Err(e) if e.kind() == io::ErrorKind::WouldBlock && waits < 100 => {
                 // The line's buffer is full (a slow baud rate): wait for room, 1 s at most.

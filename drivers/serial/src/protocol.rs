@@ -307,6 +307,10 @@ impl Decoder {
             self.resync(false);
         }
         if byte == END_SYSEX {
+            if cut {
+                // A channel message cut short by it: counted once, above.
+                return None;
+            }
             let was = std::mem::replace(&mut self.state, State::Idle);
             return match was {
                 State::Sysex if !self.buf.is_empty() => {

@@ -8,8 +8,8 @@ use crate::card::FirmataCard;
 use crate::config::FirmataConfig;
 use crate::line::Line;
 use crate::protocol::{Decoder, encoder_positions, mode, sysex};
-use device_interface::time::{Clock, MonotonicClock};
-use device_interface::{DigitalIn, DigitalOut};
+use device_interface::time::{Clock, MonotonicClock, Timestamp};
+use device_interface::{AnalogIn, DeviceError, DigitalIn, DigitalOut};
 use std::io::{Read, Write};
 use std::os::fd::{AsFd, BorrowedFd};
 use std::os::unix::net::UnixStream;
@@ -276,24 +276,47 @@ fn drive(
     }
 }
 
-#[test]
-fn a_protocol_2_5_board_with_encoders_is_set_up_and_read() {
-    let config = section(
-        "banner_ms = 100\ndigital_in = [{ pin = 4, pullup = true }]\ndigital_out = [{ pin = 9, initial = true }]\nencoder = [{ a = 2, b = 3, resolution = 400 }]",
-    );
+/// The card, its bus side, the board's end of the line and how many opens were tried.
+type Fake = (
+    Arc<FirmataCard>,
+    FirmataBus,
+    UnixStream,
+    Arc<std::sync::atomic::AtomicU32>,
+);
+
+/// A card of `section` and its bus side over a socket pair, opened once (then "unplugged").
+fn fake(section_text: &str) -> Fake {
+    fake_at(section_text, "/dev/ttyACM0")
+}
+
+/// [`fake`] with `port` as the section's port.
+fn fake_at(section_text: &str, port: &str) -> Fake {
+    let mut config = section(section_text);
+    config.port = port.to_string();
     config.check().unwrap();
     let card = Arc::new(FirmataCard::new(&config, Arc::new(MonotonicClock)).unwrap());
-    let (host, mut board) = UnixStream::pair().unwrap();
+    let (host, board) = UnixStream::pair().unwrap();
     host.set_nonblocking(true).unwrap();
     board.set_nonblocking(true).unwrap();
     let mut host = Some(host);
-    let mut bus = FirmataBus::with_opener(
+    let opens = Arc::new(std::sync::atomic::AtomicU32::new(0));
+    let counted = opens.clone();
+    let bus = FirmataBus::with_opener(
         card.clone(),
         Box::new(move |_, _| {
+            counted.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
             host.take()
                 .map(|h| Box::new(Sock(h)) as Box<dyn Line>)
                 .ok_or_else(|| std::io::Error::other("unplugged"))
         }),
+    );
+    (card, bus, board, opens)
+}
+
+#[test]
+fn a_protocol_2_5_board_with_encoders_is_set_up_and_read() {
+    let (card, mut bus, mut board, _) = fake(
+        "banner_ms = 100\ndigital_in = [{ pin = 4, pullup = true }]\ndigital_out = [{ pin = 9, initial = true }]\nencoder = [{ a = 2, b = 3, resolution = 400 }]",
     );
     let mut sent = Vec::new();
     drive(&mut bus, &mut board, &mut sent, |_, _| card.is_online());
@@ -308,7 +331,11 @@ fn a_protocol_2_5_board_with_encoders_is_set_up_and_read() {
         has(&sent, &[0xF0, 0x61, 0x00, 0, 2, 3, 0xF7]),
         "encoder attached: {sent:x?}"
     );
-    assert!(has(&sent, &[0x91, 0x02, 0x00]), "pin 9 high: {sent:x?}");
+    assert!(
+        has(&sent, &[0xF5, 9, 1]),
+        "pin 9 high, pin by pin from 2.5: {sent:x?}"
+    );
+    assert!(!has(&sent, &[0x91]), "no port-wide write on 2.5: {sent:x?}");
     assert!(card.read_bit(0).unwrap(), "pin 4 high");
     // Encoder reports: +300, then −50 (sign bit), counted through.
     let enc = card.devices().encoders.remove(0).1;
@@ -326,11 +353,11 @@ fn a_protocol_2_5_board_with_encoders_is_set_up_and_read() {
     drive(&mut bus, &mut board, &mut sent, |_, _| {
         enc.position().ok() == Some(50) && enc.turn().ok() == Some(-1)
     });
-    // An output write is one port message.
+    // An output write is one SET_DIGITAL_PIN_VALUE (2.5: the port's other pins untouched).
     let from = sent.len();
     card.set_bit(0, false).unwrap();
     drive(&mut bus, &mut board, &mut sent, |_, s| {
-        has(&s[from..], &[0x91, 0x00, 0x00])
+        has(&s[from..], &[0xF5, 9, 0])
     });
     // Settling: the board is asked for pin 9's state and says high, not low as written.
     let from = sent.len();
@@ -364,6 +391,100 @@ fn a_protocol_2_5_board_with_encoders_is_set_up_and_read() {
         "{:?}",
         card.counters()
     );
+}
+
+/// An input whose port the board has not reported is stale, not its level of before; an
+/// analog report beyond 10 bits is dropped and counted; a flood is taken 16 KiB a step;
+/// the stop turns the board's reports off.
+#[test]
+fn unreported_inputs_are_stale_and_bad_reports_dropped() {
+    let (card, mut bus, mut board, _) = fake(
+        "banner_ms = 100\ndigital_in = [{ pin = 4 }, { pin = 10 }]\nanalog_in = [{ channel = 0 }]",
+    );
+    let mut sent = Vec::new();
+    drive(&mut bus, &mut board, &mut sent, |_, _| card.is_online());
+    // Port 0 was reported at once; port 1 (pin 10) never was: online after the wait.
+    assert!(card.read_bit(0).unwrap());
+    assert!(
+        matches!(card.read_bit(1), Err(DeviceError::Stale { .. })),
+        "{:?}",
+        card.read_bit(1)
+    );
+    board.write_all(&[0x91, 0x04, 0x00]).unwrap();
+    drive(&mut bus, &mut board, &mut sent, |_, _| {
+        card.read_bit(1).is_ok()
+    });
+    assert!(card.read_bit(1).unwrap(), "pin 10 high");
+    // 16383 on a 10-bit channel: dropped and counted; 1023 taken.
+    board.write_all(&[0xE0, 0x7F, 0x7F]).unwrap();
+    drive(&mut bus, &mut board, &mut sent, |_, _| {
+        card.counters().bad_values == 1
+    });
+    assert!(matches!(card.read_raw(0), Err(DeviceError::Stale { .. })));
+    board.write_all(&[0xE0, 0x7F, 0x07]).unwrap();
+    drive(&mut bus, &mut board, &mut sent, |_, _| {
+        card.read_raw(0).ok() == Some(1023)
+    });
+    // 40 KiB at once: one step takes 16 KiB and asks to be called again at once.
+    let before = card.counters().line.bytes;
+    board.write_all(&[0x12; 40 * 1024]).unwrap();
+    let now = MonotonicClock.now();
+    let (_, next) = bus.step(now);
+    let took = card.counters().line.bytes - before;
+    assert_eq!(took, crate::bus::MAX_RX_PER_STEP as u64);
+    assert!(next <= MonotonicClock.now(), "called again at once");
+    // Stopping: the reports are turned off before the port closes.
+    let from = sent.len();
+    bus.release();
+    let mut rest = Vec::new();
+    let _ = board.read_to_end(&mut rest);
+    sent.extend_from_slice(&rest);
+    let off = &sent[from..];
+    let has = |w: &[u8]| off.windows(w.len()).any(|x| x == w);
+    assert!(
+        has(&[0xC0, 0]) && has(&[0xD0, 0]) && has(&[0xD1, 0]),
+        "{off:x?}"
+    );
+}
+
+/// A board that lacks what the section asks for is not opened again (each open resets an
+/// Uno) until its port leads to another device.
+#[test]
+fn a_refused_board_is_not_reopened_until_its_port_changes() {
+    let dir = std::env::temp_dir().join(format!("hwgw-refused-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let port = dir.join("uno");
+    std::fs::write(&port, "").unwrap();
+    let (card, mut bus, mut board, opens) = fake_at(
+        "banner_ms = 100\npwm = [{ pin = 3 }]",
+        port.to_str().unwrap(),
+    );
+    let mut sent = Vec::new();
+    drive(&mut bus, &mut board, &mut sent, |b, _| {
+        card.counters().link == "refused" && b.fd().is_none()
+    });
+    let opened = opens.load(std::sync::atomic::Ordering::Relaxed);
+    let t = MonotonicClock.now();
+    for s in 1..=5u64 {
+        let (outcome, _) = bus.step(Timestamp::from_nanos(t.as_nanos() + s * 10_000_000_000));
+        assert!(matches!(outcome, Outcome::Refused(_)), "{outcome:?}");
+    }
+    assert_eq!(
+        opens.load(std::sync::atomic::Ordering::Relaxed),
+        opened,
+        "not opened again while the port is the same device"
+    );
+    // The port made anew (a board plugged back): opened again.
+    let same = crate::line::identity(port.to_str().unwrap());
+    while crate::line::identity(port.to_str().unwrap()) == same {
+        // Until the file system's clock has moved on (its change time tells them apart).
+        std::fs::remove_file(&port).unwrap();
+        std::thread::sleep(Duration::from_millis(2));
+        std::fs::write(&port, "").unwrap();
+    }
+    let _ = bus.step(Timestamp::from_nanos(t.as_nanos() + 100_000_000_000));
+    assert_eq!(opens.load(std::sync::atomic::Ordering::Relaxed), opened + 1);
+    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 #[test]

@@ -56,7 +56,7 @@ fn up(port: &str, section: &str) -> Result<Up, String> {
 }
 
 const PINS: &str = r#"
-digital_in = [{ pin = 2 }, { pin = 3 }, { pin = 4 }, { pin = 7 }]
+digital_in = [{ pin = 2 }, { pin = 3 }, { pin = 4, pullup = true }, { pin = 7 }]
 digital_out = [{ pin = 8 }, { pin = 10 }, { pin = 12 }, { pin = 13, initial = true }]
 analog_in = [{ channel = 0 }, { channel = 1 }, { channel = 5 }]
 pwm = [{ pin = 5, initial = 0.5 }, { pin = 6 }]
@@ -76,8 +76,11 @@ fn inputs_outputs_and_pwm_on_standard_firmata() {
         Some("StandardFirmata.ino 2.4 (protocol 2.4), 20 pins"),
         "{c:?}"
     );
-    // The initial outputs were sent at set-up.
+    // The initial outputs were sent at set-up; pin 4's pull-up is on (protocol 2.4: a 1
+    // written to the input through its port, which has no digital output), pin 2's is not.
     assert!(sim.pin(13).unwrap().level);
+    assert!(sim.pullup(4).unwrap(), "pin 4's pull-up");
+    assert!(!sim.pullup(2).unwrap(), "pin 2 has none");
     let pwm = sim.pin(5).unwrap();
     assert!((pwm.duty - 0.5).abs() < 0.01, "{pwm:?}");
     // Digital inputs, each alone.

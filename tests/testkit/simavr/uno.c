@@ -8,6 +8,8 @@
  *   wire A B      a jumper: output pin A drives input pin B from now on
  *   unwire A      takes A's jumper off
  *   get P         prints "@ pin P out O level L duty D period_us T edges E"
+ *   pullup P      prints "@ pullup P U": U is 1 while P is an input with its pull-up on
+ *                 (its PORT bit set, its DDR bit clear)
  *   cycle         prints "@ cycle C" (simulated cycles since reset)
  *   inject HEX    writes the bytes HEX (two hex digits each) to the host's side of the
  *                 line, between what the firmware sends: garbage on the wire
@@ -18,7 +20,8 @@
  * simavr's own.
  *
  * Pins are watched through simavr's IO port IRQs: a change is an output edge only while the
- * pin's DDR bit is set. The duty of a toggling pin is measured over its last whole period
+ * pin's DDR bit is set. A pin driven with "in" (or by a wire) stays at that level, as with
+ * a real driver, though the firmware writes its port's PORT register. The duty of a toggling pin is measured over its last whole period
  * (rise to rise); a pin quiet for more than 4 of its periods (or 50 ms) reads as its level.
  */
 #include <errno.h>
@@ -38,8 +41,9 @@
 
 #define PINS 20
 #define FREQ 16000000ULL
-/* data-space addresses of DDRB, DDRC, DDRD on the ATmega328P */
+/* data-space addresses of DDRB, DDRC, DDRD and PORTB, PORTC, PORTD on the ATmega328P */
 static const int ddr_addr[3] = {0x24, 0x27, 0x2A};
+static const int port_addr[3] = {0x25, 0x28, 0x2B};
 
 typedef struct {
     char port;        /* 'B', 'C' or 'D' */
@@ -47,6 +51,7 @@ typedef struct {
     avr_irq_t *irq;
     int level;
     int driving;      /* set while we raise the irq ourselves */
+    int ext;          /* the level the harness drives the pin at, or -1 */
     int wire;         /* pin this one drives, or -1 */
     unsigned long long edges;
     avr_cycle_count_t rise_prev, rise_last, fall_last, last_edge;
@@ -56,6 +61,7 @@ typedef struct {
 
 static avr_t *avr;
 static pin_t pins[PINS];
+static int reassert; /* an externally driven input was overwritten: drive it again */
 static uart_pty_t pty;
 
 static void pin_map(int p, char *port, int *bit) {
@@ -71,13 +77,22 @@ static void pin_map(int p, char *port, int *bit) {
     }
 }
 
+static int port_index(const pin_t *pin) { return pin->port == 'B' ? 0 : pin->port == 'C' ? 1 : 2; }
+
 static int is_output(const pin_t *pin) {
-    int i = pin->port == 'B' ? 0 : pin->port == 'C' ? 1 : 2;
-    return (avr->data[ddr_addr[i]] >> pin->bit) & 1;
+    return (avr->data[ddr_addr[port_index(pin)]] >> pin->bit) & 1;
+}
+
+static int pulled_up(const pin_t *pin) {
+    return !is_output(pin) && ((avr->data[port_addr[port_index(pin)]] >> pin->bit) & 1);
 }
 
 static void drive(int p, int level) {
+    pins[p].ext = level ? 1 : 0;
     pins[p].driving = 1;
+    /* simavr drops a raise of the value its IRQ holds already, and an input whose pull-up
+     * is on reads high while that value is 0: the raise must always reach the port. */
+    pins[p].irq->value = level ? 0 : 1;
     avr_raise_irq(pins[p].irq, level ? 1 : 0);
     pins[p].driving = 0;
 }
@@ -85,8 +100,17 @@ static void drive(int p, int level) {
 static void on_pin(struct avr_irq_t *irq, uint32_t value, void *param) {
     (void)irq;
     pin_t *pin = param;
-    if (pin->driving || !is_output(pin))
+    if (pin->driving)
         return;
+    if (!is_output(pin)) {
+        /* simavr raises every pin's IRQ with its PORT bit when the firmware writes the
+         * PORT register (a digitalWrite on another pin of the port), which sets an input's
+         * PIN bit to its pull-up: a pin the harness drives is driven again at once, as a
+         * real driver would keep it. */
+        if (pin->ext >= 0 && (int)(value & 1) != pin->ext)
+            reassert = 1;
+        return;
+    }
     int level = value & 1;
     if (level == pin->level)
         return;
@@ -140,6 +164,8 @@ static void command(char *line) {
         printf("@ pin %d out %d level %d duty %.4f period_us %.1f edges %llu\n", a,
                is_output(pin), pin->level, duty_now(pin),
                (double)pin->period * 1e6 / (double)FREQ, pin->edges);
+    } else if (sscanf(line, "pullup %d", &a) == 1 && valid_pin(a)) {
+        printf("@ pullup %d %d\n", a, pulled_up(&pins[a]));
     } else if (strncmp(line, "inject ", 7) == 0) {
         unsigned char bytes[1024];
         size_t n = 0;
@@ -215,6 +241,7 @@ int main(int argc, char **argv) {
         pin_map(p, &pin->port, &pin->bit);
         pin->irq = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ(pin->port), pin->bit);
         pin->wire = -1;
+        pin->ext = -1;
         pin->duty = -1;
         avr_irq_register_notify(pin->irq, on_pin, pin);
     }
@@ -242,6 +269,14 @@ int main(int argc, char **argv) {
             printf("@ error the AVR stopped (state %d)\n", state);
             fflush(stdout);
             return 1;
+        }
+        if (reassert) {
+            /* within the instruction that overwrote it */
+            reassert = 0;
+            for (int p = 0; p < PINS; p++)
+                if (pins[p].ext >= 0 && !is_output(&pins[p]) &&
+                    (int)pins[p].irq->value != pins[p].ext)
+                    drive(p, pins[p].ext);
         }
         if (avr->cycle < next_check)
             continue;

@@ -18,8 +18,8 @@ pub enum Probe {
     /// Python modules that must import in [`PYTHON`] (comma-separated, as `import` takes
     /// them).
     Python(&'static str),
-    /// A file a package installs (a header, a library).
-    File(&'static str),
+    /// Files packages install (headers, libraries): all of them.
+    Files(&'static [&'static str]),
 }
 
 /// A third-party peer of the tests.
@@ -86,7 +86,11 @@ pub const CYCLICTEST: Peer = Peer {
 /// without libelf's .pc, so the flags are given by hand).
 pub const SIMAVR: Peer = Peer {
     name: "simavr",
-    probe: Probe::File("/usr/lib/x86_64-linux-gnu/libsimavrparts.a"),
+    // Headers: the same paths on every architecture (the libraries' are not).
+    probe: Probe::Files(&[
+        "/usr/include/simavr/parts/uart_pty.h",
+        "/usr/include/libelf.h",
+    ]),
     packages: &["libsimavr-dev", "libelf-dev", "gcc", "libc6-dev"],
 };
 
@@ -122,7 +126,7 @@ pub struct PeerError {
 pub fn present(peer: &Peer) -> bool {
     match peer.probe {
         Probe::Command(c) => kernel_rig::prepare::which(c),
-        Probe::File(f) => std::path::Path::new(f).is_file(),
+        Probe::Files(f) => f.iter().all(|f| std::path::Path::new(f).is_file()),
         Probe::Python(modules) => Command::new(PYTHON)
             .args(["-c", &format!("import {modules}")])
             .output()

@@ -11,7 +11,7 @@ pub fn with_peer(rig: Rig, peer: &Peer) -> Rig {
             .packages
             .iter()
             .fold(rig, |rig, package| rig.tool(command, package)),
-        Probe::Python(_) | Probe::File(_) => {
+        Probe::Python(_) | Probe::Files(_) => {
             // Installed now, on the host (in the guest this only checks); a test that
             // still lacks it fails on its own `ensure` with the same message.
             if let Err(e) = require(peer) {

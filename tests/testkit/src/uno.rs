@@ -273,6 +273,17 @@ impl SimUno {
         })
     }
 
+    /// True while pin `pin` is an input with its pull-up on (the AVR's PORT bit set, its
+    /// DDR bit clear).
+    pub fn pullup(&mut self, pin: u8) -> io::Result<bool> {
+        let a = self.command(&format!("pullup {pin}"))?;
+        match a.split_whitespace().nth(2) {
+            Some("1") => Ok(true),
+            Some("0") => Ok(false),
+            _ => Err(fail(format!("bad pullup answer {a:?}"))),
+        }
+    }
+
     /// Kills the simulation (the board unplugged: its pty goes away).
     pub fn kill(&mut self) {
         let _ = self.child.kill();
