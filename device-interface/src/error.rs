@@ -142,6 +142,17 @@ pub enum DeviceError {
 }
 
 impl DeviceError {
+    /// True for a condition of the device or its bus that may pass by itself — offline,
+    /// stale, a bus error — as opposed to a call that can never succeed (a channel, value
+    /// or operation the device does not have) or outputs held at stop. A component may
+    /// wait such a condition out in RunTimeError rather than fail.
+    pub fn is_transient(&self) -> bool {
+        matches!(
+            self,
+            DeviceError::Offline | DeviceError::Stale { .. } | DeviceError::Bus { .. }
+        )
+    }
+
     /// Wraps any error as a bus error.
     ///
     /// Allocates once; do it on the card's bus activity, not on a real-time path, and clone

@@ -1,7 +1,8 @@
 //! Component types built into the binary, chosen by `type` in the deployment file.
 //!
 //! - `blinker`: toggles one bit of a DigitalOut device at each step (properties `device`,
-//!   `bit`).
+//!   `bit`); while the device is offline or stale it waits in RunTimeError, trying the
+//!   write at each step, and runs on when the device is back.
 //! - `follow`: `out = in * gain + offset`, from an input port to an output port (connect
 //!   an analog input's port to `in` and `out` to an analog output's port).
 //! - `reporter`: writes chosen ports to a CSV file at its period, every step or only when a
@@ -160,13 +161,33 @@ impl Component for Blinker {
         Ok(())
     }
 
-    fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
+    fn update_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
         if let Some(d) = &self.device {
-            self.state = !self.state;
-            d.set_bit(self.bit.get(), self.state)?;
-            self.toggles.write(&self.state);
+            match d.set_bit(self.bit.get(), !self.state) {
+                Ok(()) => {
+                    self.state = !self.state;
+                    self.toggles.write(&self.state);
+                }
+                Err(e) if e.is_transient() => {
+                    tracing::warn!(
+                        "blinker {:?}: {e}: waiting for the device",
+                        self.device_name.get()
+                    );
+                    ctx.error();
+                }
+                Err(e) => return Err(e.into()),
+            }
         }
         Ok(())
+    }
+
+    fn error_hook(&mut self, ctx: &mut Context<'_>) {
+        if let Some(d) = &self.device
+            && d.set_bit(self.bit.get(), self.state).is_ok()
+        {
+            tracing::info!("blinker {:?}: the device is back", self.device_name.get());
+            ctx.recover();
+        }
     }
 
     fn stop_hook(&mut self, _: &mut Context<'_>) {

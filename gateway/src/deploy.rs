@@ -177,7 +177,10 @@ impl Gateway {
     }
 
     /// `Ok` while every component that should run is running and every periodic activity
-    /// keeps its period; else what is wrong. This is what feeds the systemd watchdog.
+    /// keeps its period; else what is wrong. This is what feeds the systemd watchdog. A
+    /// component in RunTimeError (waiting out a device that is offline, stepping on time)
+    /// counts as running: restarting the service would not bring the device back; its
+    /// state shows in `hwgw ls` and `status`.
     pub fn health(&self) -> Result<(), String> {
         self.health_since(&mut Vec::new())
     }
@@ -193,7 +196,7 @@ impl Gateway {
             let stats = t.stats();
             let spells = std::mem::replace(seen, stats.unhealthy_spells);
             match t.state() {
-                TaskState::Running => {}
+                TaskState::Running | TaskState::RunTimeError => {}
                 s if *start => wrong.push(format!("{} is {s}", t.name())),
                 _ => continue,
             }

@@ -1,11 +1,13 @@
 //! `hwgw` on `config/firmata.toml` against the genuine StandardFirmata on a simulated Uno
-//! (its port pointed at the simulator's pty): inputs driven in the simulator read through
-//! `hwgw get`, outputs and PWM written by `hwgw set` and by a component seen on the
-//! simulated pins, the safe values on the pins after SIGTERM; then pyfirmata2, an
+//! (its port a stable name linked to the simulator's pty): inputs driven in the simulator
+//! read through `hwgw get`, outputs and PWM written by `hwgw set` and by a component seen
+//! on the simulated pins; the board unplugged and back on another pty behind the same name,
+//! set up again by itself; the safe values on the pins after SIGTERM; then pyfirmata2, an
 //! independent Firmata client, on the same board reads the same values.
 #![allow(clippy::unwrap_used, reason = "test code")]
 
 use std::io::{BufRead, BufReader};
+use std::path::Path;
 use std::process::{Command, Stdio};
 use testkit::peers::PYTHON;
 use testkit::uno::pyfirmata2;
@@ -53,36 +55,92 @@ sys.stdin.readline()
 board.exit()
 "#;
 
+/// `hwgw status --json` of the running gateway.
+fn status(gw: &Service) -> String {
+    gw.out(&["status", "--json"]).unwrap_or_default()
+}
+
+/// `hwgw get uno.<port> <name>` as printed.
+fn get(gw: &Service, port: &str, name: &str) -> Option<String> {
+    gw.out(&["get", &format!("uno.{port}"), name]).ok()
+}
+
+/// Inputs driven in the simulator, read with hwgw get: the four digital inputs (pin 4's
+/// pull-up on, as the deployment asks) and A0, A1 in volts.
+fn inputs_through_hwgw(gw: &Service, sim: &mut SimUno) {
+    assert!(sim.pullup(4).unwrap(), "d4's pull-up on the board");
+    for (pin, name) in [(2, "button"), (3, "d3"), (4, "d4"), (7, "d7")] {
+        for level in [true, false] {
+            sim.input(pin, level).unwrap();
+            wait_until(&format!("{name} {level}"), || {
+                get(gw, "di", name).as_deref() == Some(if level { "true" } else { "false" })
+            });
+        }
+    }
+    sim.input(2, true).unwrap();
+    wait_until("button on", || {
+        get(gw, "di", "button").as_deref() == Some("true")
+    });
+    for (ch, mv, name) in [(1u8, 1234u32, "a1"), (0, 2500, "a0")] {
+        sim.adc(ch, mv).unwrap();
+        let volts = f64::from(mv * 1023 / 5000) / 1023.0 * 5.0;
+        wait_until(&format!("{name} at {volts} V"), || {
+            get(gw, "ai", name).and_then(|v| v.parse::<f64>().ok()) == Some(volts)
+        });
+    }
+}
+
+/// The board unplugged and plugged back on another pty behind the same stable name (the
+/// next simulation started first, so the kernel cannot hand it the number just freed):
+/// offline, then back by itself with the outputs hwgw holds, without a restart.
+fn replugged(gw: &Service, sim: SimUno, link: &Path) -> SimUno {
+    let mut next = SimUno::start().unwrap();
+    assert_ne!(sim.pty(), next.pty());
+    drop(sim);
+    wait_until("the board offline", || {
+        let s = status(gw);
+        s.contains("\"link\"") && !s.contains("\"link\": \"online\"")
+    });
+    std::fs::remove_file(link).unwrap();
+    std::os::unix::fs::symlink(next.pty(), link).unwrap();
+    wait_until("the board back online", || {
+        status(gw).contains("\"link\": \"online\"")
+    });
+    wait_until("the LED restored", || next.pin(13).unwrap().level);
+    wait_until("pwm5 restored", || {
+        (next.pin(5).unwrap().duty - 65.0 / 256.0).abs() < 0.002
+    });
+    let edges = next.pin(8).unwrap().edges;
+    wait_until("pin 8 blinking again", || {
+        next.pin(8).unwrap().edges >= edges + 4
+    });
+    let s = status(gw);
+    assert!(s.contains("\"reopens\": 1"), "{s}");
+    next
+}
+
 #[test]
 fn hwgw_and_pyfirmata2_on_standard_firmata() {
     let py = pyfirmata2().unwrap();
-    let mut sim = SimUno::start().unwrap();
+    let sim = SimUno::start().unwrap();
     let dir = TempDir::new("firmata-gw");
-    let config = deployment(&dir, sim.pty().to_str().unwrap());
+    // The port by a stable name (as /dev/serial/by-id/… or udev/65-hwgw.rules give).
+    let link = dir.path().join("uno");
+    std::os::unix::fs::symlink(sim.pty(), &link).unwrap();
+    let config = deployment(&dir, link.to_str().unwrap());
     let gw = Service::start(HWGW, "firmata", &[config.as_os_str()], &[]).unwrap();
-    let mut status = String::new();
+    let mut s = String::new();
     wait_until("the board online", || {
-        status = gw.out(&["status", "--json"]).unwrap_or_default();
-        status.contains("\"link\": \"online\"")
+        s = status(&gw);
+        s.contains("\"link\": \"online\"")
     });
     assert!(
-        status.contains("StandardFirmata.ino 2.4 (protocol 2.4), 20 pins"),
-        "{status}"
+        s.contains("StandardFirmata.ino 2.4 (protocol 2.4), 20 pins"),
+        "{s}"
     );
-
-    // Inputs driven in the simulator, read with hwgw get.
-    sim.input(2, true).unwrap();
-    wait_until("button on", || {
-        gw.out(&["get", "uno.di", "button"]).ok().as_deref() == Some("true")
-    });
-    sim.adc(0, 2500).unwrap();
+    let mut sim = sim;
+    inputs_through_hwgw(&gw, &mut sim);
     let volts = 511.0 / 1023.0 * 5.0;
-    wait_until("a0 at 511", || {
-        gw.out(&["get", "uno.ai", "a0"])
-            .ok()
-            .and_then(|v| v.parse::<f64>().ok())
-            == Some(volts)
-    });
     // Outputs and PWM written with hwgw set, seen on the pins.
     gw.out(&["set", "uno.do", "led", "true"]).unwrap();
     wait_until("pin 13 high", || sim.pin(13).unwrap().level);
@@ -94,6 +152,9 @@ fn hwgw_and_pyfirmata2_on_standard_firmata() {
     // The blinker component toggles d8 (pin 8) through the card.
     let edges = sim.pin(8).unwrap().edges;
     wait_until("pin 8 blinking", || sim.pin(8).unwrap().edges >= edges + 4);
+    let mut sim = replugged(&gw, sim, &link);
+    sim.input(2, true).unwrap();
+    sim.adc(0, 2500).unwrap();
 
     // SIGTERM: the blinker stops first, then every output goes to its safe value.
     let stopped = gw.terminate();
