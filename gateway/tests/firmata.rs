@@ -14,6 +14,14 @@ use testkit::uno::pyfirmata2;
 use testkit::{Service, SimUno, TempDir, wait_until};
 
 const HWGW: &str = env!("CARGO_BIN_EXE_hwgw");
+
+/// One simulation at a time (each takes a whole core of the two).
+static ONE: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+fn one() -> std::sync::MutexGuard<'static, ()> {
+    ONE.lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
 const CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../config/firmata.toml");
 
 /// config/firmata.toml on `pty`, with a blinker component toggling d8 every 100 ms.
@@ -121,6 +129,7 @@ fn replugged(gw: &Service, sim: SimUno, link: &Path) -> SimUno {
 
 #[test]
 fn hwgw_and_pyfirmata2_on_standard_firmata() {
+    let _one = one();
     let py = pyfirmata2().unwrap();
     let sim = SimUno::start().unwrap();
     let dir = TempDir::new("firmata-gw");
@@ -199,4 +208,53 @@ fn hwgw_and_pyfirmata2_on_standard_firmata() {
     // pyfirmata2 gives the fraction of 1023 rounded to 4 places: the same code, 511.
     assert_eq!((a0 * 1023.0).round(), 511.0, "{seen}");
     assert!((a0 - volts / 5.0).abs() <= 0.5e-4, "{seen}");
+}
+
+/// config/firmata.toml asking for an analog input the Uno lacks (A6): `hwgw run` fails at
+/// start, naming the key and what the board has, and exits.
+#[test]
+fn hwgw_run_refuses_a_board_without_what_the_deployment_asks() {
+    let _one = one();
+    let sim = SimUno::start().unwrap();
+    let dir = TempDir::new("firmata-refused");
+    let text = std::fs::read_to_string(CONFIG).unwrap();
+    let (port, analog) = (
+        "port = \"/dev/ttyACM0\"",
+        "analog_in = [{ channel = 0 }, { channel = 1 }]",
+    );
+    assert!(text.contains(port) && text.contains(analog));
+    let text = text
+        .replace(port, &format!("port = \"{}\"", sim.pty().display()))
+        .replace(analog, "analog_in = [{ channel = 0 }, { channel = 6 }]");
+    let config = dir.path().join("firmata.toml");
+    std::fs::write(&config, text).unwrap();
+    let mut child = Command::new(HWGW)
+        .arg("run")
+        .arg(&config)
+        .arg("--socket")
+        .arg(dir.path().join("hwgw.sock"))
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(dir.path().join("hwgw.log")).unwrap())
+        .spawn()
+        .unwrap();
+    // The hand-shake takes the banner's 2 s and the replies': it exits well within 60 s.
+    let end = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        if std::time::Instant::now() > end {
+            let _ = child.kill();
+            panic!("hwgw run did not exit on a refused board");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    };
+    let log = std::fs::read_to_string(dir.path().join("hwgw.log")).unwrap();
+    assert!(!status.success(), "{log}");
+    assert!(
+        log.contains(
+            "firmata.analog_in[1].channel: the board has no A6 (its analog channels: A0 (pin 14)"
+        ),
+        "{log}"
+    );
 }

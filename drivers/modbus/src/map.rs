@@ -42,89 +42,11 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
-use crate::codec::{ByteOrder, Layout, ValueType, WordOrder};
-use crate::plan::{Barrier, PlanError, Read, Span, Table, plan, plan_around};
-pub use crate::point::default_float_step;
+use crate::codec::Layout;
+use crate::plan::{Barrier, PlanError, Read, Span, plan, plan_around};
 use crate::point::raw_range;
+pub use crate::point::{EncoderPoint, PointConfig, Role, default_float_step};
 use device_interface::{Scale, Unit};
-use serde::Deserialize;
-
-/// One point of a register map, as configured.
-#[derive(Debug, Clone, PartialEq, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct PointConfig {
-    /// The table.
-    pub table: Table,
-    /// The address, 0-based as on the wire (register 40001 of the old notation is
-    /// holding register 0).
-    pub address: u16,
-    /// Value type of a register point (default u16).
-    #[serde(default, rename = "type")]
-    pub ty: ValueType,
-    /// Word order of a multi-register value.
-    #[serde(default)]
-    pub words: WordOrder,
-    /// Byte order inside each register.
-    #[serde(default)]
-    pub bytes: ByteOrder,
-    /// Physical value = register value * scale + offset.
-    #[serde(default = "one")]
-    pub scale: f64,
-    /// Added after the scale.
-    #[serde(default)]
-    pub offset: f64,
-    /// Unit of the physical value.
-    #[serde(default)]
-    pub unit: String,
-    /// Make this point one bit (0..=15) of a 16-bit register: a DigitalIn.
-    #[serde(default)]
-    pub bit: Option<u8>,
-    /// A holding register read as an input instead of written as an output.
-    #[serde(default)]
-    pub read_only: bool,
-    /// For f32/f64 points: the register-value step one raw count stands for (the raw grid
-    /// and the writable range; reads are exact).
-    #[serde(default)]
-    pub resolution: Option<f64>,
-    /// Make this counter register an Encoder: counts per turn and direction. Turns are
-    /// counted on the counter's wrap at its register width.
-    #[serde(default)]
-    pub encoder: Option<EncoderPoint>,
-}
-
-/// A counter register read as an encoder.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct EncoderPoint {
-    /// Counts per turn (negative: positions run from resolution+1 to 0).
-    pub resolution: i64,
-    /// True when counting up is the positive direction (default true).
-    #[serde(default = "yes")]
-    pub upcounting: bool,
-}
-
-fn yes() -> bool {
-    true
-}
-
-fn one() -> f64 {
-    1.0
-}
-
-/// The device interface a point serves.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum Role {
-    /// An AnalogIn channel.
-    AnalogIn,
-    /// An AnalogOut channel.
-    AnalogOut,
-    /// A DigitalIn bit.
-    DigitalIn,
-    /// A DigitalOut bit.
-    DigitalOut,
-    /// An Encoder (one per point).
-    Encoder,
-}
 
 /// A validated point.
 #[derive(Debug, Clone, PartialEq)]

@@ -2,10 +2,87 @@
 //! fields go together, the overlaps that cannot be meant, the interface it serves and the
 //! register value one raw count stands for (the [`map`](crate::map)'s building blocks).
 
-use crate::codec::ValueType;
-use crate::map::{PointConfig, Role};
+use crate::codec::{ByteOrder, ValueType, WordOrder};
 use crate::plan::Table;
 use device_interface::RawRange;
+use serde::Deserialize;
+
+/// One point of a register map, as configured.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PointConfig {
+    /// The table.
+    pub table: Table,
+    /// The address, 0-based as on the wire (register 40001 of the old notation is
+    /// holding register 0).
+    pub address: u16,
+    /// Value type of a register point (default u16).
+    #[serde(default, rename = "type")]
+    pub ty: ValueType,
+    /// Word order of a multi-register value.
+    #[serde(default)]
+    pub words: WordOrder,
+    /// Byte order inside each register.
+    #[serde(default)]
+    pub bytes: ByteOrder,
+    /// Physical value = register value * scale + offset.
+    #[serde(default = "one")]
+    pub scale: f64,
+    /// Added after the scale.
+    #[serde(default)]
+    pub offset: f64,
+    /// Unit of the physical value.
+    #[serde(default)]
+    pub unit: String,
+    /// Make this point one bit (0..=15) of a 16-bit register: a DigitalIn.
+    #[serde(default)]
+    pub bit: Option<u8>,
+    /// A holding register read as an input instead of written as an output.
+    #[serde(default)]
+    pub read_only: bool,
+    /// For f32/f64 points: the register-value step one raw count stands for (the raw grid
+    /// and the writable range; reads are exact).
+    #[serde(default)]
+    pub resolution: Option<f64>,
+    /// Make this counter register an Encoder: counts per turn and direction. Turns are
+    /// counted on the counter's wrap at its register width.
+    #[serde(default)]
+    pub encoder: Option<EncoderPoint>,
+}
+
+/// A counter register read as an encoder.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EncoderPoint {
+    /// Counts per turn (negative: positions run from resolution+1 to 0).
+    pub resolution: i64,
+    /// True when counting up is the positive direction (default true).
+    #[serde(default = "yes")]
+    pub upcounting: bool,
+}
+
+fn yes() -> bool {
+    true
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+/// The device interface a point serves.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Role {
+    /// An AnalogIn channel.
+    AnalogIn,
+    /// An AnalogOut channel.
+    AnalogOut,
+    /// A DigitalIn bit.
+    DigitalIn,
+    /// A DigitalOut bit.
+    DigitalOut,
+    /// An Encoder (one per point).
+    Encoder,
+}
 
 /// Checks point `i` of `configs`; its role and its raw step, or the key at fault and why.
 pub(crate) fn check(
