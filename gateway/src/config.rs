@@ -229,7 +229,12 @@ pub enum ActivityConfig {
         max_overruns: Option<u32>,
     },
     /// When woken by an event port, an operation or a trigger.
-    NonPeriodic,
+    NonPeriodic {
+        /// How long its thread spins for the next trigger before it parks, µs (default
+        /// 20; 0: park at once; at most 10000).
+        #[serde(default)]
+        spin_us: Option<u32>,
+    },
 }
 
 impl ActivityConfig {
@@ -248,11 +253,17 @@ impl ActivityConfig {
                     policy: *policy,
                     priority: *priority,
                     cpus: cpus.clone(),
+                    ..rtt::ThreadOptions::default()
                 },
                 timing: rtt::Timing::Absolute,
                 max_overruns: *max_overruns,
             },
-            ActivityConfig::NonPeriodic => rtt::ActivitySpec::non_periodic(),
+            ActivityConfig::NonPeriodic { spin_us } => rtt::ActivitySpec::NonPeriodic {
+                thread: rtt::ThreadOptions {
+                    spin_us: spin_us.unwrap_or(rtt::activity::DEFAULT_SPIN_US),
+                    ..rtt::ThreadOptions::default()
+                },
+            },
         }
     }
 }

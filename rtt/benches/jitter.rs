@@ -91,6 +91,7 @@ fn run_rtt(loops: u64, fifo: bool, priority: i32) -> Figures {
             },
             priority,
             cpus: Vec::new(),
+            ..ThreadOptions::default()
         },
         timing: Timing::Absolute,
         max_overruns: None,

@@ -3,7 +3,9 @@
 //! - data-port write+read of an f64 and of a 64-byte struct; buffer-port push+pop;
 //! - a ClientThread call, beside a direct call of the same closure through `dyn Fn`;
 //! - an OwnThread call round trip to a non-periodic component, beside the floor: a bare
-//!   crossbeam-channel round trip to an echo thread.
+//!   crossbeam-channel round trip to an echo thread; each back to back (the callee still
+//!   spinning from the call before) and with 1 ms between calls (the callee parked, woken
+//!   by the scheduler; only the call is timed).
 //!
 //! Run: `cargo bench -p rtt --bench runtime`.
 
@@ -96,8 +98,61 @@ fn reference_dyn_fn_call(b: Bencher) {
 struct Count(i64);
 impl Component for Count {}
 
+/// A started non-periodic component with OwnThread operation `add`.
+fn counter(rt: &Runtime) -> rtt::TaskContext {
+    let t = rt
+        .add(
+            "c",
+            ActivitySpec::non_periodic(),
+            rtt::InitialState::Stopped,
+            |iface| {
+                iface.own_operation("add", "", &[], |c: &mut Count, (n,): (i64,)| {
+                    c.0 += n;
+                    c.0
+                })?;
+                Ok(Count(0))
+            },
+        )
+        .unwrap();
+    t.start().unwrap();
+    t
+}
+
+/// The pause between the parked benches' calls: far past the spin (20 µs by default).
+const PARKED_GAP: std::time::Duration = std::time::Duration::from_millis(1);
+
+#[divan::bench(sample_count = 500)]
+fn call_parked_own_thread(b: Bencher) {
+    let rt = Runtime::new(Arc::new(Registry::new()), RuntimeOptions::default()).unwrap();
+    let t = counter(&rt);
+    let op = t.operation::<(i64,), i64>("add").unwrap();
+    b.with_inputs(|| std::thread::sleep(PARKED_GAP))
+        .bench_local_values(|()| black_box(op.call(black_box((1,))).unwrap()));
+    t.stop().unwrap();
+}
+
+#[divan::bench(sample_count = 500)]
+fn call_parked_reference_channel(b: Bencher) {
+    let (req_tx, req_rx) = bounded::<i64>(1);
+    let (rep_tx, rep_rx) = bounded::<i64>(1);
+    let echo = std::thread::spawn(move || {
+        while let Ok(n) = req_rx.recv() {
+            if rep_tx.send(n).is_err() {
+                break;
+            }
+        }
+    });
+    b.with_inputs(|| std::thread::sleep(PARKED_GAP))
+        .bench_local_values(|()| {
+            req_tx.send(black_box(1)).unwrap();
+            black_box(rep_rx.recv().unwrap())
+        });
+    drop(req_tx);
+    echo.join().unwrap();
+}
+
 #[divan::bench(sample_count = 2000)]
-fn own_thread_call_round_trip(b: Bencher) {
+fn call_awake_own_thread(b: Bencher) {
     let rt = Runtime::new(Arc::new(Registry::new()), RuntimeOptions::default()).unwrap();
     let t = rt
         .add(
@@ -120,7 +175,7 @@ fn own_thread_call_round_trip(b: Bencher) {
 }
 
 #[divan::bench(sample_count = 2000)]
-fn reference_channel_round_trip(b: Bencher) {
+fn call_awake_reference_channel(b: Bencher) {
     let (req_tx, req_rx) = bounded::<i64>(1);
     let (rep_tx, rep_rx) = bounded::<i64>(1);
     let echo = std::thread::spawn(move || {

@@ -66,6 +66,7 @@ pub mod port;
 pub mod property;
 pub mod runtime;
 pub mod scope;
+mod spin;
 pub mod state;
 
 /// Monotonic time for the runtime (shared with the device interfaces).

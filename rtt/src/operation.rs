@@ -150,8 +150,10 @@ pub(crate) type Message = Box<dyn FnOnce(&mut dyn Any) + Send>;
 
 /// What queues OwnThread calls: the component's engine.
 pub(crate) trait Engine: Send + Sync {
-    /// Queues `msg` and wakes the engine, or says why not.
-    fn submit(&self, operation: &str, msg: Message) -> Result<(), CallError>;
+    /// Queues `msg` and wakes the engine, or says why not; `Ok` carries how long the caller
+    /// may spin for the result before it parks (the engine's thread option `spin_us` for a
+    /// non-periodic engine, which answers at once; zero for the others).
+    fn submit(&self, operation: &str, msg: Message) -> Result<Duration, CallError>;
 }
 
 /// The result slot of a sent call.
@@ -166,7 +168,10 @@ impl<R> Slot<R> {
         *crate::lock::lock(&self.result) = Some(r);
         self.done.store(true, Ordering::Release);
         if let Some(t) = crate::lock::lock(&self.waiter).as_ref() {
+            // The caller parked: waking it is a scheduler wake-up, and this thread should
+            // give way rather than spin after its step.
             t.unpark();
+            crate::spin::note_woke_another();
         }
     }
 }
@@ -202,7 +207,8 @@ pub struct SendHandle<R> {
 
 enum HandleState<R> {
     Ready(Result<R, CallError>),
-    Pending(Arc<Slot<R>>),
+    /// Queued: the result to come, and how long `collect` spins for it before parking.
+    Pending(Arc<Slot<R>>, Duration),
     Taken,
 }
 
@@ -212,15 +218,15 @@ impl<R> SendHandle<R> {
         match std::mem::replace(&mut self.state, HandleState::Taken) {
             HandleState::Ready(r) => r,
             HandleState::Taken => Err(CallError::AlreadyCollected),
-            HandleState::Pending(slot) => {
-                *crate::lock::lock(&slot.waiter) = Some(std::thread::current());
-                let backoff = crossbeam_utils::Backoff::new();
-                while !slot.done.load(Ordering::Acquire) {
-                    if backoff.is_completed() {
+            HandleState::Pending(slot, spin) => {
+                // A result within the spin is taken at once; after it, the caller parks
+                // until the engine unparks it (the waiter is set before `done` is looked
+                // at again, and `complete` sets `done` before it looks at the waiter).
+                if !crate::spin::spin_until(spin, || slot.done.load(Ordering::Acquire)) {
+                    *crate::lock::lock(&slot.waiter) = Some(std::thread::current());
+                    while !slot.done.load(Ordering::Acquire) {
                         // Bounded park: a wake-up aimed at another thread cannot strand us.
                         std::thread::park_timeout(Duration::from_millis(1));
-                    } else {
-                        backoff.snooze();
                     }
                 }
                 crate::lock::lock(&slot.result)
@@ -234,14 +240,14 @@ impl<R> SendHandle<R> {
     /// result gives [`CallError::AlreadyCollected`].
     pub fn collect_if_done(&mut self) -> Option<Result<R, CallError>> {
         match &self.state {
-            HandleState::Pending(slot) if !slot.done.load(Ordering::Acquire) => return None,
+            HandleState::Pending(slot, _) if !slot.done.load(Ordering::Acquire) => return None,
             _ => {}
         }
         Some(
             match std::mem::replace(&mut self.state, HandleState::Taken) {
                 HandleState::Ready(r) => r,
                 HandleState::Taken => Err(CallError::AlreadyCollected),
-                HandleState::Pending(slot) => crate::lock::lock(&slot.result)
+                HandleState::Pending(slot, _) => crate::lock::lock(&slot.result)
                     .take()
                     .unwrap_or(Err(CallError::AlreadyCollected)),
             },
@@ -338,8 +344,8 @@ where
             completer.complete(result);
         });
         match engine.submit(&self.name, msg) {
-            Ok(()) => SendHandle {
-                state: HandleState::Pending(slot),
+            Ok(spin) => SendHandle {
+                state: HandleState::Pending(slot, spin),
             },
             Err(e) => SendHandle {
                 state: HandleState::Ready(Err(e)),

@@ -257,6 +257,7 @@ fn refused_fifo_falls_back_to_other_and_still_runs() {
             policy: SchedPolicy::Fifo,
             priority,
             cpus: vec![0],
+            ..ThreadOptions::default()
         },
         timing: Timing::Relative,
         max_overruns: None,
@@ -428,5 +429,22 @@ fn thread_scope_needs_its_output() {
     assert_eq!(
         e.to_string(),
         "ThreadScope is on, but no DigitalOut named \"ThreadScope\"; registered: none"
+    );
+}
+
+/// A spin beyond 10 ms is refused; 0 (park at once) and the default are taken.
+#[test]
+fn spin_is_bounded() {
+    let mut t = ThreadOptions {
+        spin_us: rtt::activity::MAX_SPIN_US + 1,
+        ..ThreadOptions::default()
+    };
+    let e = t.check().unwrap_err();
+    assert!(e.contains("at most 10000"), "{e}");
+    t.spin_us = 0;
+    assert!(t.check().is_ok());
+    assert_eq!(
+        ThreadOptions::default().spin_us,
+        rtt::activity::DEFAULT_SPIN_US
     );
 }

@@ -44,6 +44,7 @@ use std::any::Any;
 use std::fmt;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, Weak};
+use std::time::Duration;
 
 /// Why a hook failed: a message (any error converts into one).
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -341,7 +342,7 @@ impl TaskCore {
 }
 
 impl Engine for TaskCore {
-    fn submit(&self, operation: &str, msg: Message) -> Result<(), CallError> {
+    fn submit(&self, operation: &str, msg: Message) -> Result<Duration, CallError> {
         let state = self.state();
         if !self.activity.is_running()
             || !matches!(state, TaskState::Running | TaskState::RunTimeError)
@@ -359,7 +360,14 @@ impl Engine for TaskCore {
         }
         self.queue.push(msg);
         self.activity.trigger();
-        Ok(())
+        // A non-periodic engine answers at once (a caller spinning, yielding after 2 µs,
+        // takes the result without a wake-up); the others step on their own schedule.
+        Ok(match self.activity.spec() {
+            ActivitySpec::NonPeriodic { thread } => {
+                Duration::from_micros(u64::from(thread.spin_us))
+            }
+            _ => Duration::ZERO,
+        })
     }
 }
 

@@ -15,18 +15,25 @@
 //! When the process may not use SCHED_FIFO the activity says so once, with the reason, and
 //! runs SCHED_OTHER.
 
-use crate::scope::{ThreadScope, set_thread_number};
-use arc_swap::ArcSwapOption;
+mod realtime;
+mod stats;
+mod thread;
+
+pub use stats::{ActivityStats, HISTOGRAM_BUCKETS};
+
+use crate::scope::ThreadScope;
 use device_interface::time::{Clock, MonotonicClock, Timestamp};
-use nix::sys::epoll::{Epoll, EpollCreateFlags, EpollEvent, EpollFlags, EpollTimeout};
+use nix::sys::epoll::{Epoll, EpollCreateFlags, EpollEvent, EpollFlags};
 use nix::sys::eventfd::{EfdFlags, EventFd};
 use nix::sys::timerfd::{ClockId, Expiration, TimerFd, TimerFlags, TimerSetTimeFlags};
 use serde::{Deserialize, Serialize};
+use stats::StatsCell;
 use std::os::fd::{AsFd, AsRawFd, BorrowedFd, OwnedFd, RawFd};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
-use std::thread::{JoinHandle, Thread};
+use std::thread::JoinHandle;
 use std::time::Duration;
+use thread::{Signal, thread_main};
 
 /// Something that makes an activity step soon. Never blocks, never allocates.
 pub trait Waker: Send + Sync {
@@ -46,7 +53,7 @@ pub enum SchedPolicy {
 }
 
 /// Where and how an activity's thread runs.
-#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ThreadOptions {
     /// Scheduling class.
@@ -58,6 +65,33 @@ pub struct ThreadOptions {
     /// CPUs the thread may run on; empty: any.
     #[serde(default)]
     pub cpus: Vec<usize>,
+    /// How long a non-periodic activity's thread spins for its next trigger before it
+    /// parks, and a caller of its OwnThread operations for the result, µs (default
+    /// [`DEFAULT_SPIN_US`]; 0: park at once; at most [`MAX_SPIN_US`]). A call or trigger
+    /// within the spin is seen in nanoseconds instead of a scheduler wake-up; the cost is
+    /// at most this much busy time after each step.
+    #[serde(default = "default_spin_us")]
+    pub spin_us: u32,
+}
+
+/// The default spin of a non-periodic activity and its callers, µs.
+pub const DEFAULT_SPIN_US: u32 = 20;
+/// The longest spin an activity may be given, µs.
+pub const MAX_SPIN_US: u32 = 10_000;
+
+fn default_spin_us() -> u32 {
+    DEFAULT_SPIN_US
+}
+
+impl Default for ThreadOptions {
+    fn default() -> Self {
+        ThreadOptions {
+            policy: SchedPolicy::Other,
+            priority: 0,
+            cpus: Vec::new(),
+            spin_us: DEFAULT_SPIN_US,
+        }
+    }
 }
 
 /// What a periodic activity does after a step that ran past its next wake-up.
@@ -113,6 +147,12 @@ impl ThreadOptions {
             return Err(format!(
                 "priority {}: SCHED_FIFO takes 1 to 99",
                 self.priority
+            ));
+        }
+        if self.spin_us > MAX_SPIN_US {
+            return Err(format!(
+                "spin_us {}: at most {MAX_SPIN_US} µs",
+                self.spin_us
             ));
         }
         let configured = cpus_configured();
@@ -248,121 +288,6 @@ impl FdEvents {
     }
 }
 
-/// Number of lateness histogram buckets: bucket `i` holds lateness in `[2^i, 2^(i+1))` ns.
-pub const HISTOGRAM_BUCKETS: usize = 40;
-
-/// A snapshot of an activity's statistics.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct ActivityStats {
-    /// Steps run.
-    pub steps: u64,
-    /// Wake-ups that came after the next one was due (periodic only).
-    pub overruns: u64,
-    /// Overruns in a row, now.
-    pub consecutive_overruns: u64,
-    /// False while consecutive overruns exceed the configured maximum.
-    pub healthy: bool,
-    /// Times it became unhealthy (so a watcher that looks now and then sees a spell that
-    /// was over before it looked).
-    #[serde(default)]
-    pub unhealthy_spells: u64,
-    /// Lateness histogram: bucket `i` counts wake-ups `2^i..2^(i+1)` ns late.
-    pub lateness_histogram: Vec<u64>,
-    /// Largest lateness seen, ns.
-    pub lateness_max_ns: u64,
-    /// Longest step, ns.
-    pub step_max_ns: u64,
-    /// Total time in steps, ns.
-    pub step_total_ns: u64,
-    /// True when the thread got the real-time class it asked for.
-    pub realtime: bool,
-}
-
-impl ActivityStats {
-    /// Mean step duration.
-    pub fn step_mean(&self) -> Duration {
-        Duration::from_nanos(self.step_total_ns.checked_div(self.steps).unwrap_or(0))
-    }
-
-    /// Upper bound of the lateness below which fraction `q` (0..=1) of the wake-ups fell.
-    pub fn lateness_quantile(&self, q: f64) -> Duration {
-        let total: u64 = self.lateness_histogram.iter().sum();
-        if total == 0 {
-            return Duration::ZERO;
-        }
-        let want = (q.clamp(0.0, 1.0) * total as f64).ceil() as u64;
-        let mut seen = 0;
-        for (i, n) in self.lateness_histogram.iter().enumerate() {
-            seen += n;
-            if seen >= want {
-                return Duration::from_nanos((1u64 << (i + 1)).min(self.lateness_max_ns.max(1)));
-            }
-        }
-        Duration::from_nanos(self.lateness_max_ns)
-    }
-}
-
-struct StatsCell {
-    steps: AtomicU64,
-    overruns: AtomicU64,
-    consecutive: AtomicU64,
-    healthy: AtomicBool,
-    spells: AtomicU64,
-    histogram: [AtomicU64; HISTOGRAM_BUCKETS],
-    lateness_max: AtomicU64,
-    step_max: AtomicU64,
-    step_total: AtomicU64,
-    realtime: AtomicBool,
-}
-
-impl StatsCell {
-    fn new() -> Self {
-        StatsCell {
-            steps: AtomicU64::new(0),
-            overruns: AtomicU64::new(0),
-            consecutive: AtomicU64::new(0),
-            healthy: AtomicBool::new(true),
-            spells: AtomicU64::new(0),
-            histogram: std::array::from_fn(|_| AtomicU64::new(0)),
-            lateness_max: AtomicU64::new(0),
-            step_max: AtomicU64::new(0),
-            step_total: AtomicU64::new(0),
-            realtime: AtomicBool::new(false),
-        }
-    }
-
-    fn lateness(&self, ns: u64) {
-        let bucket = (63 - ns.max(1).leading_zeros() as usize).min(HISTOGRAM_BUCKETS - 1);
-        self.histogram[bucket].fetch_add(1, Ordering::Relaxed);
-        self.lateness_max.fetch_max(ns, Ordering::Relaxed);
-    }
-
-    fn step(&self, ns: u64) {
-        self.steps.fetch_add(1, Ordering::Relaxed);
-        self.step_total.fetch_add(ns, Ordering::Relaxed);
-        self.step_max.fetch_max(ns, Ordering::Relaxed);
-    }
-
-    fn snapshot(&self) -> ActivityStats {
-        ActivityStats {
-            steps: self.steps.load(Ordering::Relaxed),
-            overruns: self.overruns.load(Ordering::Relaxed),
-            consecutive_overruns: self.consecutive.load(Ordering::Relaxed),
-            healthy: self.healthy.load(Ordering::Relaxed),
-            unhealthy_spells: self.spells.load(Ordering::Relaxed),
-            lateness_histogram: self
-                .histogram
-                .iter()
-                .map(|a| a.load(Ordering::Relaxed))
-                .collect(),
-            lateness_max_ns: self.lateness_max.load(Ordering::Relaxed),
-            step_max_ns: self.step_max.load(Ordering::Relaxed),
-            step_total_ns: self.step_total.load(Ordering::Relaxed),
-            realtime: self.realtime.load(Ordering::Relaxed),
-        }
-    }
-}
-
 /// When a step was due and when it began, on the monotonic clock.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct StepTiming {
@@ -391,55 +316,6 @@ impl StepTiming {
 /// What an activity steps.
 pub(crate) trait Runner: Send + Sync {
     fn step(&self, events: &FdEvents, timing: StepTiming);
-}
-
-/// Wakes a parked thread: a flag, a short spin, then park/unpark.
-struct Signal {
-    pending: AtomicBool,
-    woken_at: AtomicU64,
-    thread: ArcSwapOption<Thread>,
-    parked: AtomicBool,
-}
-
-impl Signal {
-    fn new() -> Self {
-        Signal {
-            pending: AtomicBool::new(false),
-            woken_at: AtomicU64::new(0),
-            thread: ArcSwapOption::empty(),
-            parked: AtomicBool::new(false),
-        }
-    }
-
-    fn wait(&self) -> u64 {
-        let backoff = crossbeam_utils::Backoff::new();
-        loop {
-            if self.pending.swap(false, Ordering::AcqRel) {
-                return self.woken_at.swap(0, Ordering::AcqRel);
-            }
-            if backoff.is_completed() {
-                self.parked.store(true, Ordering::SeqCst);
-                if !self.pending.load(Ordering::SeqCst) {
-                    std::thread::park();
-                }
-                self.parked.store(false, Ordering::SeqCst);
-            } else {
-                backoff.snooze();
-            }
-        }
-    }
-
-    fn notify(&self, now_ns: u64) {
-        let _ =
-            self.woken_at
-                .compare_exchange(0, now_ns.max(1), Ordering::AcqRel, Ordering::Relaxed);
-        self.pending.store(true, Ordering::SeqCst);
-        if self.parked.load(Ordering::SeqCst)
-            && let Some(t) = self.thread.load().as_deref()
-        {
-            t.unpark();
-        }
-    }
 }
 
 struct FdState {
@@ -755,233 +631,3 @@ impl Drop for Activity {
 const WAKE_EVENT: u64 = u64::MAX;
 /// epoll data of the activity's deadline timer (`wake_at`).
 const DEADLINE_EVENT: u64 = u64::MAX - 1;
-
-static RT_WARNED: AtomicBool = AtomicBool::new(false);
-
-/// Applies the thread options to the calling thread; true when SCHED_FIFO was granted.
-fn apply_thread_options(name: &str, opts: &ThreadOptions) -> bool {
-    if !opts.cpus.is_empty() {
-        let mut set = nix::sched::CpuSet::new();
-        for &c in &opts.cpus {
-            if set.set(c).is_err() {
-                tracing::warn!(
-                    activity = name,
-                    cpu = c,
-                    "CPU {c} is beyond what this system can address; ignored"
-                );
-            }
-        }
-        if let Err(e) = nix::sched::sched_setaffinity(nix::unistd::Pid::from_raw(0), &set) {
-            tracing::warn!(activity = name, cpus = ?opts.cpus, "could not pin the thread to CPUs {:?}: {e}", opts.cpus);
-        }
-    }
-    if opts.policy != SchedPolicy::Fifo {
-        return false;
-    }
-    match set_fifo(opts.priority) {
-        Ok(()) => true,
-        Err(e) => {
-            if !RT_WARNED.swap(true, Ordering::Relaxed) {
-                tracing::warn!(
-                    activity = name,
-                    priority = opts.priority,
-                    "SCHED_FIFO at priority {} is not available ({e}); running SCHED_OTHER. \
-                     Real-time scheduling needs CAP_SYS_NICE or an RLIMIT_RTPRIO of at least \
-                     the priority (systemd: LimitRTPRIO=, AmbientCapabilities=CAP_SYS_NICE).",
-                    opts.priority
-                );
-            }
-            false
-        }
-    }
-}
-
-#[allow(unsafe_code)]
-fn set_fifo(priority: i32) -> std::io::Result<()> {
-    let param = libc::sched_param {
-        sched_priority: priority,
-    };
-    // SAFETY: pthread_self() is the calling thread, and `param` is a valid sched_param
-    // that outlives the call.
-    let rc = unsafe { libc::pthread_setschedparam(libc::pthread_self(), libc::SCHED_FIFO, &param) };
-    if rc == 0 {
-        Ok(())
-    } else {
-        Err(std::io::Error::from_raw_os_error(rc))
-    }
-}
-
-fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
-    if let Some(n) = shared.thread_number {
-        set_thread_number(n);
-    }
-    let clock = MonotonicClock;
-    let stats = &shared.stats;
-    match &shared.spec {
-        ActivitySpec::Periodic {
-            period,
-            thread,
-            timing,
-            max_overruns,
-        } => {
-            stats.realtime.store(
-                apply_thread_options(&shared.name, thread),
-                Ordering::Relaxed,
-            );
-            let period_ns = u64::try_from(period.as_nanos()).unwrap_or(u64::MAX);
-            let mut next = clock.now().as_nanos();
-            let events = FdEvents::default();
-            let mut unhealthy_logged = false;
-            while shared.running.load(Ordering::Acquire) {
-                sleep_until_or_stopped(next, &shared.running);
-                if !shared.running.load(Ordering::Acquire) {
-                    break;
-                }
-                let woke = clock.now().as_nanos();
-                stats.lateness(woke.saturating_sub(next));
-                let step_timing = StepTiming {
-                    scheduled: Timestamp::from_nanos(next),
-                    started: Timestamp::from_nanos(woke),
-                };
-                shared.scope.pulse(|| runner.step(&events, step_timing));
-                let end = clock.now().as_nanos();
-                stats.step(end.saturating_sub(woke));
-                next = match timing {
-                    Timing::Absolute => next.saturating_add(period_ns),
-                    Timing::Relative => woke.saturating_add(period_ns),
-                };
-                if end > next {
-                    stats.overruns.fetch_add(1, Ordering::Relaxed);
-                    let run = stats.consecutive.fetch_add(1, Ordering::Relaxed) + 1;
-                    if let Timing::Absolute = timing {
-                        // Skip the wake-ups already missed, keeping the grid.
-                        let missed = (end - next) / period_ns + 1;
-                        next = next.saturating_add(missed.saturating_mul(period_ns));
-                    }
-                    if max_overruns.is_some_and(|m| run > u64::from(m)) {
-                        if stats.healthy.swap(false, Ordering::Relaxed) {
-                            stats.spells.fetch_add(1, Ordering::Relaxed);
-                        }
-                        if !unhealthy_logged {
-                            unhealthy_logged = true;
-                            tracing::error!(activity = %shared.name, overruns = run, "{} overruns in a row: activity unhealthy", run);
-                        }
-                    }
-                } else {
-                    stats.consecutive.store(0, Ordering::Relaxed);
-                    if !stats.healthy.swap(true, Ordering::Relaxed) {
-                        unhealthy_logged = false;
-                        tracing::info!(activity = %shared.name, "on time again: activity healthy");
-                    }
-                }
-            }
-        }
-        ActivitySpec::NonPeriodic { thread } => {
-            stats.realtime.store(
-                apply_thread_options(&shared.name, thread),
-                Ordering::Relaxed,
-            );
-            let events = FdEvents::default();
-            loop {
-                let woken_at = shared.signal.wait();
-                if !shared.running.load(Ordering::Acquire) {
-                    break;
-                }
-                let start = clock.now().as_nanos();
-                if woken_at != 0 {
-                    stats.lateness(start.saturating_sub(woken_at));
-                }
-                let timing = StepTiming {
-                    scheduled: Timestamp::from_nanos(if woken_at == 0 { start } else { woken_at }),
-                    started: Timestamp::from_nanos(start),
-                };
-                shared.scope.pulse(|| runner.step(&events, timing));
-                stats.step(clock.now().as_nanos().saturating_sub(start));
-            }
-        }
-        ActivitySpec::FileDescriptor { timeout, thread } => {
-            stats.realtime.store(
-                apply_thread_options(&shared.name, thread),
-                Ordering::Relaxed,
-            );
-            let Some(fd) = &shared.fd else { return };
-            let epoll_timeout = match timeout {
-                None => EpollTimeout::NONE,
-                Some(t) => EpollTimeout::try_from(*t).unwrap_or(EpollTimeout::MAX),
-            };
-            let mut ready = [EpollEvent::empty(); FdEvents::MAX];
-            while shared.running.load(Ordering::Acquire) {
-                let n = match fd.epoll.wait(&mut ready, epoll_timeout) {
-                    Ok(n) => n,
-                    Err(nix::Error::EINTR) => continue,
-                    Err(e) => {
-                        tracing::error!(activity = %shared.name, "epoll_wait failed: {e}; activity stops");
-                        break;
-                    }
-                };
-                if !shared.running.load(Ordering::Acquire) {
-                    break;
-                }
-                let mut events = FdEvents {
-                    timeout: n == 0,
-                    ..FdEvents::default()
-                };
-                for ev in &ready[..n] {
-                    if ev.data() == WAKE_EVENT {
-                        let _ = fd.wake.read();
-                    } else if ev.data() == DEADLINE_EVENT {
-                        // Reading clears the expiry; a re-armed timer may already be unread.
-                        let _ = fd.timer.wait();
-                        events.deadline = true;
-                    } else if events.count < FdEvents::MAX {
-                        events.ready[events.count] = ev.data() as RawFd;
-                        events.count += 1;
-                    }
-                }
-                let start = clock.now().as_nanos();
-                let timing = StepTiming::now();
-                shared.scope.pulse(|| runner.step(&events, timing));
-                stats.step(clock.now().as_nanos().saturating_sub(start));
-            }
-        }
-        ActivitySpec::Slave => {}
-    }
-}
-
-/// Longest uninterrupted sleep of a periodic activity: a stop is seen within this long
-/// whatever the period (a period of a day must not make a stop wait a day).
-const STOP_SLICE_NS: u64 = 50_000_000;
-
-/// Sleeps until `ns` on the monotonic clock, in slices of at most [`STOP_SLICE_NS`],
-/// returning early once `running` is cleared. A wake-up within a slice of `ns` is the same
-/// single absolute sleep as ever.
-fn sleep_until_or_stopped(ns: u64, running: &AtomicBool) {
-    loop {
-        let now = MonotonicClock.now().as_nanos();
-        if now >= ns {
-            return;
-        }
-        let until = ns.min(now.saturating_add(STOP_SLICE_NS));
-        sleep_until(until);
-        if until == ns || !running.load(Ordering::Acquire) {
-            return;
-        }
-    }
-}
-
-fn sleep_until(ns: u64) {
-    let ts = nix::sys::time::TimeSpec::new(
-        (ns / 1_000_000_000) as libc::time_t,
-        (ns % 1_000_000_000) as libc::c_long,
-    );
-    loop {
-        match nix::time::clock_nanosleep(
-            nix::time::ClockId::CLOCK_MONOTONIC,
-            nix::time::ClockNanosleepFlags::TIMER_ABSTIME,
-            &ts,
-        ) {
-            Err(nix::Error::EINTR) => continue,
-            _ => return,
-        }
-    }
-}

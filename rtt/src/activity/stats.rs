@@ -1,0 +1,121 @@
+//! An activity's timing statistics: steps, a histogram of wake-up lateness, step
+//! durations and overruns, kept in atomics by the activity's thread and read as a snapshot.
+
+use serde::{Deserialize, Serialize};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::Duration;
+
+/// Number of lateness histogram buckets: bucket `i` holds lateness in `[2^i, 2^(i+1))` ns.
+pub const HISTOGRAM_BUCKETS: usize = 40;
+
+/// A snapshot of an activity's statistics.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ActivityStats {
+    /// Steps run.
+    pub steps: u64,
+    /// Wake-ups that came after the next one was due (periodic only).
+    pub overruns: u64,
+    /// Overruns in a row, now.
+    pub consecutive_overruns: u64,
+    /// False while consecutive overruns exceed the configured maximum.
+    pub healthy: bool,
+    /// Times it became unhealthy (so a watcher that looks now and then sees a spell that
+    /// was over before it looked).
+    #[serde(default)]
+    pub unhealthy_spells: u64,
+    /// Lateness histogram: bucket `i` counts wake-ups `2^i..2^(i+1)` ns late.
+    pub lateness_histogram: Vec<u64>,
+    /// Largest lateness seen, ns.
+    pub lateness_max_ns: u64,
+    /// Longest step, ns.
+    pub step_max_ns: u64,
+    /// Total time in steps, ns.
+    pub step_total_ns: u64,
+    /// True when the thread got the real-time class it asked for.
+    pub realtime: bool,
+}
+
+impl ActivityStats {
+    /// Mean step duration.
+    pub fn step_mean(&self) -> Duration {
+        Duration::from_nanos(self.step_total_ns.checked_div(self.steps).unwrap_or(0))
+    }
+
+    /// Upper bound of the lateness below which fraction `q` (0..=1) of the wake-ups fell.
+    pub fn lateness_quantile(&self, q: f64) -> Duration {
+        let total: u64 = self.lateness_histogram.iter().sum();
+        if total == 0 {
+            return Duration::ZERO;
+        }
+        let want = (q.clamp(0.0, 1.0) * total as f64).ceil() as u64;
+        let mut seen = 0;
+        for (i, n) in self.lateness_histogram.iter().enumerate() {
+            seen += n;
+            if seen >= want {
+                return Duration::from_nanos((1u64 << (i + 1)).min(self.lateness_max_ns.max(1)));
+            }
+        }
+        Duration::from_nanos(self.lateness_max_ns)
+    }
+}
+
+pub(crate) struct StatsCell {
+    pub(crate) steps: AtomicU64,
+    pub(crate) overruns: AtomicU64,
+    pub(crate) consecutive: AtomicU64,
+    pub(crate) healthy: AtomicBool,
+    pub(crate) spells: AtomicU64,
+    pub(crate) histogram: [AtomicU64; HISTOGRAM_BUCKETS],
+    pub(crate) lateness_max: AtomicU64,
+    pub(crate) step_max: AtomicU64,
+    pub(crate) step_total: AtomicU64,
+    pub(crate) realtime: AtomicBool,
+}
+
+impl StatsCell {
+    pub(crate) fn new() -> Self {
+        StatsCell {
+            steps: AtomicU64::new(0),
+            overruns: AtomicU64::new(0),
+            consecutive: AtomicU64::new(0),
+            healthy: AtomicBool::new(true),
+            spells: AtomicU64::new(0),
+            histogram: std::array::from_fn(|_| AtomicU64::new(0)),
+            lateness_max: AtomicU64::new(0),
+            step_max: AtomicU64::new(0),
+            step_total: AtomicU64::new(0),
+            realtime: AtomicBool::new(false),
+        }
+    }
+
+    pub(crate) fn lateness(&self, ns: u64) {
+        let bucket = (63 - ns.max(1).leading_zeros() as usize).min(HISTOGRAM_BUCKETS - 1);
+        self.histogram[bucket].fetch_add(1, Ordering::Relaxed);
+        self.lateness_max.fetch_max(ns, Ordering::Relaxed);
+    }
+
+    pub(crate) fn step(&self, ns: u64) {
+        self.steps.fetch_add(1, Ordering::Relaxed);
+        self.step_total.fetch_add(ns, Ordering::Relaxed);
+        self.step_max.fetch_max(ns, Ordering::Relaxed);
+    }
+
+    pub(crate) fn snapshot(&self) -> ActivityStats {
+        ActivityStats {
+            steps: self.steps.load(Ordering::Relaxed),
+            overruns: self.overruns.load(Ordering::Relaxed),
+            consecutive_overruns: self.consecutive.load(Ordering::Relaxed),
+            healthy: self.healthy.load(Ordering::Relaxed),
+            unhealthy_spells: self.spells.load(Ordering::Relaxed),
+            lateness_histogram: self
+                .histogram
+                .iter()
+                .map(|a| a.load(Ordering::Relaxed))
+                .collect(),
+            lateness_max_ns: self.lateness_max.load(Ordering::Relaxed),
+            step_max_ns: self.step_max.load(Ordering::Relaxed),
+            step_total_ns: self.step_total.load(Ordering::Relaxed),
+            realtime: self.realtime.load(Ordering::Relaxed),
+        }
+    }
+}
