@@ -58,3 +58,60 @@ fn set_fifo(priority: i32) -> std::io::Result<()> {
         Err(std::io::Error::from_raw_os_error(rc))
     }
 }
+
+/// Bytes of stack a periodic thread touches before its first wake-up.
+const PREFAULT_STACK: usize = 256 * 1024;
+
+/// The process's memory lock: 0 not tried, 1 locked, 2 refused.
+static MEMORY_LOCK: std::sync::atomic::AtomicU8 = std::sync::atomic::AtomicU8::new(0);
+
+/// What a periodic activity's thread does before its first wake-up, as cyclictest does:
+/// its timer slack at the minimum (1 ns: a SCHED_OTHER thread's sleeps are not rounded up
+/// by the default 50 µs), its stack's first [`PREFAULT_STACK`] bytes touched (no page
+/// fault in a step), and — for a thread that got SCHED_FIFO, once per process — all
+/// memory locked (`mlockall(MCL_CURRENT | MCL_FUTURE)`: no page is ever paged out or
+/// faulted in lazily), said once with the reason when that is refused. True when the
+/// process's memory is locked.
+pub(super) fn prepare_periodic(name: &str, realtime: bool) -> bool {
+    if let Err(e) = nix::sys::prctl::set_timerslack(1) {
+        tracing::debug!(activity = name, "timer slack stays as it was: {e}");
+    }
+    prefault_stack();
+    if realtime && MEMORY_LOCK.load(Ordering::Acquire) == 0 {
+        lock_memory(name);
+    }
+    MEMORY_LOCK.load(Ordering::Acquire) == 1
+}
+
+#[inline(never)]
+fn prefault_stack() {
+    let mut stack = [0u8; PREFAULT_STACK];
+    for page in stack.chunks_mut(4096) {
+        page[0] = 1;
+    }
+    std::hint::black_box(&stack);
+}
+
+fn lock_memory(name: &str) {
+    use nix::sys::mman::{MlockAllFlags, mlockall};
+    let locked = mlockall(MlockAllFlags::MCL_CURRENT | MlockAllFlags::MCL_FUTURE);
+    let state = if locked.is_ok() { 1 } else { 2 };
+    if MEMORY_LOCK
+        .compare_exchange(0, state, Ordering::AcqRel, Ordering::Acquire)
+        .is_err()
+    {
+        return;
+    }
+    match locked {
+        Ok(()) => tracing::info!(
+            activity = name,
+            "memory locked (mlockall) for real-time activities"
+        ),
+        Err(e) => tracing::warn!(
+            activity = name,
+            "memory cannot be locked ({e}): a real-time step may wait for a page fault. \
+             Locking needs CAP_IPC_LOCK or an RLIMIT_MEMLOCK above the process's size \
+             (systemd: LimitMEMLOCK=infinity)."
+        ),
+    }
+}

@@ -33,6 +33,10 @@ pub struct ActivityStats {
     pub step_total_ns: u64,
     /// True when the thread got the real-time class it asked for.
     pub realtime: bool,
+    /// True when the process's memory is locked (a periodic SCHED_FIFO activity locks it;
+    /// see the activity module).
+    #[serde(default)]
+    pub memory_locked: bool,
 }
 
 impl ActivityStats {
@@ -70,6 +74,7 @@ pub(crate) struct StatsCell {
     pub(crate) step_max: AtomicU64,
     pub(crate) step_total: AtomicU64,
     pub(crate) realtime: AtomicBool,
+    pub(crate) memory_locked: AtomicBool,
 }
 
 impl StatsCell {
@@ -85,6 +90,7 @@ impl StatsCell {
             step_max: AtomicU64::new(0),
             step_total: AtomicU64::new(0),
             realtime: AtomicBool::new(false),
+            memory_locked: AtomicBool::new(false),
         }
     }
 
@@ -116,6 +122,7 @@ impl StatsCell {
             step_max_ns: self.step_max.load(Ordering::Relaxed),
             step_total_ns: self.step_total.load(Ordering::Relaxed),
             realtime: self.realtime.load(Ordering::Relaxed),
+            memory_locked: self.memory_locked.load(Ordering::Relaxed),
         }
     }
 }

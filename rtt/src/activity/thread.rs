@@ -2,7 +2,7 @@
 //! `clock_nanosleep`, the non-periodic wait for a trigger, the file-descriptor epoll wait;
 //! and the signal that wakes a non-periodic thread.
 
-use super::realtime::apply_thread_options;
+use super::realtime::{apply_thread_options, prepare_periodic};
 use super::{
     ActivitySpec, DEADLINE_EVENT, FdEvents, Runner, Shared, StepTiming, Timing, WAKE_EVENT,
 };
@@ -86,10 +86,11 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
             timing,
             max_overruns,
         } => {
-            stats.realtime.store(
-                apply_thread_options(&shared.name, thread),
-                Ordering::Relaxed,
-            );
+            let realtime = apply_thread_options(&shared.name, thread);
+            stats.realtime.store(realtime, Ordering::Relaxed);
+            stats
+                .memory_locked
+                .store(prepare_periodic(&shared.name, realtime), Ordering::Relaxed);
             let period_ns = u64::try_from(period.as_nanos()).unwrap_or(u64::MAX);
             let mut next = clock.now().as_nanos();
             let events = FdEvents::default();

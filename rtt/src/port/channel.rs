@@ -1,0 +1,390 @@
+//! One connection between an output and an input port: what both ends share (its
+//! identity, state and counters), the writing and the reading end with their samples (the
+//! last value of a data connection, the queues of a buffer), and the list of a port's
+//! connections that other threads add to.
+
+use super::latest::{LatestIn, LatestOut, latest};
+use super::{ConnKind, ConnPolicy, ConnectError, ConnectionInfo};
+use crate::activity::Waker;
+use crate::lock::lock;
+use crossbeam_queue::ArrayQueue;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, Weak};
+
+static NEXT_CONNECTION: AtomicU64 = AtomicU64::new(1);
+
+/// Adds one to a counter only one thread writes: a plain load and store, no atomic
+/// read-modify-write on the hot path.
+#[inline]
+fn bump(counter: &AtomicU64) {
+    counter.store(
+        counter.load(Ordering::Relaxed).wrapping_add(1),
+        Ordering::Relaxed,
+    );
+}
+
+/// What both ends of one connection share: its identity, state and counters. `written`
+/// and `dropped` are only written by the writer, `read` only by the reader.
+pub(crate) struct Channel<T> {
+    id: u64,
+    from: Arc<str>,
+    to: Arc<str>,
+    policy: ConnPolicy,
+    /// The sample pool of a buffer connection; `None` for a data connection, whose last
+    /// value's halves live in the two ends.
+    queues: Option<Queues<T>>,
+    /// Closed for good: disconnected, or its reader went away. Neither end uses it again.
+    pub(super) closed: AtomicBool,
+    /// Its writer went away: the reader still takes what was written, then lets go.
+    writer_gone: AtomicBool,
+    /// The "look at your connections" flags of the output and of the input port: set
+    /// whenever this connection closes or loses an end.
+    out_changed: Arc<AtomicBool>,
+    in_changed: Arc<AtomicBool>,
+    written: AtomicU64,
+    read: AtomicU64,
+    dropped: AtomicU64,
+    waker: Option<Arc<dyn Waker>>,
+}
+
+/// A buffer connection's samples, cycling between `free` and `full`.
+struct Queues<T> {
+    free: ArrayQueue<T>,
+    full: ArrayQueue<T>,
+}
+
+impl<T> Channel<T> {
+    #[inline]
+    pub(super) fn is_closed(&self) -> bool {
+        self.closed.load(Ordering::Acquire)
+    }
+
+    /// Closes it for good and tells both ports to look.
+    pub(super) fn close(&self) {
+        self.closed.store(true, Ordering::Release);
+        self.out_changed.store(true, Ordering::Release);
+        self.in_changed.store(true, Ordering::Release);
+    }
+
+    /// True when the connection carries nothing any more: closed, or its writer gone.
+    #[inline]
+    fn is_finished(&self) -> bool {
+        self.is_closed() || self.writer_gone.load(Ordering::Acquire)
+    }
+
+    pub(super) fn info(&self) -> ConnectionInfo {
+        ConnectionInfo {
+            id: self.id,
+            from: self.from.to_string(),
+            to: self.to.to_string(),
+            policy: self.policy,
+            written: self.written.load(Ordering::Relaxed),
+            read: self.read.load(Ordering::Relaxed),
+            dropped: self.dropped.load(Ordering::Relaxed),
+        }
+    }
+}
+
+/// The writing end of one connection, owned by its output port.
+pub(crate) struct Writer<T: Send> {
+    pub(super) ch: Arc<Channel<T>>,
+    latest: Option<LatestIn<T>>,
+    /// Samples written (this end is the only writer of the channel's `written`).
+    written: u64,
+}
+
+/// The reading end of one connection, owned by its input port.
+pub(crate) struct Reader<T: Send> {
+    pub(super) ch: Arc<Channel<T>>,
+    latest: Option<LatestOut<T>>,
+    /// Samples taken (this end is the only writer of the channel's `read`).
+    read: u64,
+}
+
+// An end that goes away ends its connection, so the other end lets go of it (a flag: no
+// allocation, no lock on either side). A reader that goes away closes it: the writer lets
+// go at its next write. A writer that goes away leaves what it wrote to be read: the reader
+// lets go once it has taken it; the writer wakes an event port's component so that happens
+// at once rather than at its next wake-up.
+impl<T: Send> Drop for Writer<T> {
+    fn drop(&mut self) {
+        if !self.ch.writer_gone.swap(true, Ordering::AcqRel) {
+            self.ch.in_changed.store(true, Ordering::Release);
+            if let Some(w) = &self.ch.waker {
+                w.wake();
+            }
+        }
+    }
+}
+
+impl<T: Send> Drop for Reader<T> {
+    fn drop(&mut self) {
+        self.ch.close();
+    }
+}
+
+/// Makes a connection and its two ends.
+pub(super) fn channel<T: Clone + Send + 'static>(
+    (from, out_changed): (Arc<str>, Arc<AtomicBool>),
+    (to, in_changed): (Arc<str>, Arc<AtomicBool>),
+    policy: ConnPolicy,
+    sample: &T,
+    waker: Option<Arc<dyn Waker>>,
+) -> (Writer<T>, Reader<T>) {
+    let (queues, halves) = match policy.kind {
+        ConnKind::Data => (None, Some(latest(sample))),
+        ConnKind::Buffer { size } | ConnKind::CircularBuffer { size } => {
+            let capacity = size.max(1);
+            // Room for a full queue, the sample the writer fills and the one the reader
+            // empties.
+            let pool = capacity + 2;
+            let free = ArrayQueue::new(pool);
+            for _ in 0..pool {
+                let _ = free.push(sample.clone());
+            }
+            let full = ArrayQueue::new(capacity);
+            (Some(Queues { free, full }), None)
+        }
+    };
+    let ch = Arc::new(Channel {
+        id: NEXT_CONNECTION.fetch_add(1, Ordering::Relaxed),
+        from,
+        to,
+        policy,
+        queues,
+        closed: AtomicBool::new(false),
+        writer_gone: AtomicBool::new(false),
+        out_changed,
+        in_changed,
+        written: AtomicU64::new(0),
+        read: AtomicU64::new(0),
+        dropped: AtomicU64::new(0),
+        waker,
+    });
+    let (input, output) = match halves {
+        Some((i, o)) => (Some(i), Some(o)),
+        None => (None, None),
+    };
+    (
+        Writer {
+            ch: ch.clone(),
+            latest: input,
+            written: 0,
+        },
+        Reader {
+            ch,
+            latest: output,
+            read: 0,
+        },
+    )
+}
+
+impl<T: Clone + Send + 'static> Writer<T> {
+    /// Writer side. Wait-free for data, lock-free for buffers; allocation-free when
+    /// `clone_from` is.
+    #[inline]
+    pub(super) fn push(&mut self, value: &T) {
+        if let Some(input) = &mut self.latest {
+            // An unread value replaced is what a data connection is for: not a drop.
+            input.publish(value);
+        } else if !self.push_buffered(value) {
+            return;
+        }
+        let ch = &*self.ch;
+        self.written += 1;
+        ch.written.store(self.written, Ordering::Relaxed);
+        if let Some(w) = &ch.waker {
+            w.wake();
+        }
+    }
+
+    /// A buffer connection's write (kept out of the data connections' path); false when
+    /// the sample was dropped (counted).
+    #[inline(never)]
+    fn push_buffered(&mut self, value: &T) -> bool {
+        let ch = &*self.ch;
+        let Some(q) = &ch.queues else {
+            return false;
+        };
+        let drop_newest = matches!(ch.policy.kind, ConnKind::Buffer { .. });
+        if drop_newest && q.full.is_full() {
+            bump(&ch.dropped);
+            return false;
+        }
+        // The pool is sized so a free sample always exists for the single writer.
+        let Some(mut slot) = q.free.pop() else {
+            bump(&ch.dropped);
+            return false;
+        };
+        slot.clone_from(value);
+        if let Err(slot) = q.full.push(slot) {
+            if drop_newest {
+                let _ = q.free.push(slot);
+                bump(&ch.dropped);
+                return false;
+            }
+            // Make room by dropping the oldest; only this writer pushes, so room stays.
+            if let Some(old) = q.full.pop() {
+                let _ = q.free.push(old);
+                bump(&ch.dropped);
+            }
+            if let Err(slot) = q.full.push(slot) {
+                let _ = q.free.push(slot);
+                bump(&ch.dropped);
+                return false;
+            }
+        }
+        true
+    }
+}
+
+impl<T: Clone + Send + 'static> Reader<T> {
+    /// True when nothing more will come: closed, or the writer gone and all it wrote taken.
+    #[inline]
+    pub(super) fn is_done(&self) -> bool {
+        let ch = &*self.ch;
+        if ch.is_closed() {
+            return true;
+        }
+        if !ch.writer_gone.load(Ordering::Acquire) {
+            return false;
+        }
+        match (&self.latest, &ch.queues) {
+            (Some(out), _) => !out.has_new(),
+            (None, Some(q)) => q.full.is_empty(),
+            (None, None) => true,
+        }
+    }
+
+    /// Reader side: copies the next sample into `into`, if there is one.
+    #[inline]
+    pub(super) fn pop_into(&mut self, into: &mut T) -> bool {
+        let got = match &mut self.latest {
+            Some(output) => output.take(into),
+            None => self.pop_buffered(into),
+        };
+        if got {
+            self.read += 1;
+            self.ch.read.store(self.read, Ordering::Relaxed);
+        }
+        got
+    }
+
+    /// A buffer connection's read (kept out of the data connections' path).
+    #[inline(never)]
+    fn pop_buffered(&mut self, into: &mut T) -> bool {
+        let Some(q) = &self.ch.queues else {
+            return false;
+        };
+        match q.full.pop() {
+            Some(slot) => {
+                into.clone_from(&slot);
+                let _ = q.free.push(slot);
+                true
+            }
+            None => false,
+        }
+    }
+}
+
+/// How many connections may wait for a port's owner to take them up.
+const PENDING: usize = 64;
+
+/// Connections of one port, as seen from other threads: new ends wait in `pending` until
+/// the owner's next read or write takes them; `all` lists the connections.
+pub(super) struct Links<E, T> {
+    pending: ArrayQueue<E>,
+    /// Set when an end is put in `pending` and when one of the port's connections closes
+    /// or loses an end: the owner's fast path looks at this flag only.
+    pub(super) changed: Arc<AtomicBool>,
+    all: Mutex<Vec<Weak<Channel<T>>>>,
+}
+
+impl<E, T> Links<E, T> {
+    pub(super) fn new() -> Self {
+        Links {
+            pending: ArrayQueue::new(PENDING),
+            changed: Arc::new(AtomicBool::new(false)),
+            all: Mutex::new(Vec::new()),
+        }
+    }
+
+    pub(super) fn offer(
+        &self,
+        port: &str,
+        ch: &Arc<Channel<T>>,
+        end: E,
+        channel: impl Fn(&E) -> &Channel<T>,
+    ) -> Result<(), ConnectError> {
+        let end = match self.pending.push(end) {
+            Ok(()) => None,
+            Err(end) => {
+                // Full of ends the owner has not taken up: let go of those already closed
+                // (their other end went away), then try once more.
+                for _ in 0..self.pending.len() {
+                    if let Some(e) = self.pending.pop()
+                        && !channel(&e).is_finished()
+                    {
+                        let _ = self.pending.push(e);
+                    }
+                }
+                self.pending.push(end).err()
+            }
+        };
+        if end.is_some() {
+            return Err(ConnectError::TooManyPending {
+                port: port.to_string(),
+                limit: PENDING,
+            });
+        }
+        self.changed.store(true, Ordering::Release);
+        let mut all = lock(&self.all);
+        all.retain(|w| w.strong_count() > 0);
+        all.push(Arc::downgrade(ch));
+        Ok(())
+    }
+
+    fn live(&self) -> Vec<Arc<Channel<T>>> {
+        lock(&self.all)
+            .iter()
+            .filter_map(Weak::upgrade)
+            .filter(|c| !c.is_finished())
+            .collect()
+    }
+
+    pub(super) fn info(&self) -> Vec<ConnectionInfo> {
+        self.live().iter().map(|c| c.info()).collect()
+    }
+
+    pub(super) fn disconnect(&self, id: Option<u64>) -> usize {
+        let mut n = 0;
+        for c in self.live() {
+            if id.is_none_or(|id| c.id == id) {
+                c.close();
+                n += 1;
+            }
+        }
+        n
+    }
+
+    /// Owner side, once its copy of [`changed`](Self::changed) was found set (the common
+    /// case, nothing changed, is that one load): takes up pending ends and forgets the
+    /// ends `done` says are done.
+    #[cold]
+    pub(super) fn refresh_changed(&self, local: &mut Vec<E>, done: impl Fn(&E) -> bool) {
+        // Cleared before anything is looked at (a full barrier): a change after the look
+        // sets it again.
+        if !self.changed.swap(false, Ordering::AcqRel) {
+            return;
+        }
+        while let Some(end) = self.pending.pop() {
+            // Capacity is reserved when the port is made; beyond it this allocates once,
+            // when a connection is taken up.
+            local.push(end);
+        }
+        local.retain(|e| !done(e));
+    }
+}
+
+/// How many connections a port holds before taking up one more allocates.
+pub(super) const RESERVED_CONNECTIONS: usize = 8;

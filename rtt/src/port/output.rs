@@ -1,0 +1,134 @@
+//! The writing end of a data flow: [`OutputPort`], and what other threads see of it
+//! (its connections, its last value for introspection and for `init` connections).
+
+use super::ConnectionInfo;
+use super::channel::{Links, RESERVED_CONNECTIONS, Writer};
+use super::latest::{LatestIn, LatestOut, snapshot};
+use crate::lock::lock;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+
+/// What other threads see of an output port.
+pub(crate) struct OutputShared<T: Send> {
+    pub(crate) name: Arc<str>,
+    pub(super) links: Links<Writer<T>, T>,
+    sample: Mutex<T>,
+    /// Set at the first write: the last value below is real.
+    written: AtomicBool,
+    /// The reading half of the last written value, for `init` and introspection, and the
+    /// last value taken from it.
+    last: Mutex<(LatestOut<T>, T)>,
+}
+
+impl<T: Clone + Send + 'static> OutputShared<T> {
+    /// A copy of the data sample new connections pre-allocate from.
+    pub(crate) fn sample_clone(&self) -> T {
+        lock(&self.sample).clone()
+    }
+
+    /// The last value written, if any. Not for real-time paths (locks, clones).
+    pub(crate) fn last_written(&self) -> Option<T> {
+        if !self.written.load(Ordering::Acquire) {
+            return None;
+        }
+        let mut last = lock(&self.last);
+        let (out, value) = &mut *last;
+        out.take(value);
+        Some(value.clone())
+    }
+
+    pub(crate) fn connections(&self) -> Vec<ConnectionInfo> {
+        self.links.info()
+    }
+
+    pub(crate) fn disconnect(&self, id: Option<u64>) -> usize {
+        self.links.disconnect(id)
+    }
+}
+
+/// The writing end of a data flow.
+pub struct OutputPort<T: Send> {
+    shared: Arc<OutputShared<T>>,
+    /// The port's "look at your connections" flag (a pointer away, not three).
+    changed: Arc<AtomicBool>,
+    pub(super) conns: Vec<Writer<T>>,
+    last: LatestIn<T>,
+    written: bool,
+}
+
+impl<T: Clone + Send + 'static> OutputPort<T> {
+    /// An output port named `name`, with `T::default()` as its data sample.
+    pub fn new(name: &str) -> Self
+    where
+        T: Default,
+    {
+        Self::with_sample(name, T::default())
+    }
+
+    /// An output port named `name` whose connections pre-allocate copies of `sample`: size a
+    /// `Vec` sample to the longest value written and writing never allocates.
+    pub fn with_sample(name: &str, sample: T) -> Self {
+        let (last_in, last_out) = snapshot(&sample);
+        let links = Links::new();
+        OutputPort {
+            changed: links.changed.clone(),
+            shared: Arc::new(OutputShared {
+                name: Arc::from(name),
+                links,
+                last: Mutex::new((last_out, sample.clone())),
+                sample: Mutex::new(sample),
+                written: AtomicBool::new(false),
+            }),
+            conns: Vec::with_capacity(RESERVED_CONNECTIONS),
+            last: last_in,
+            written: false,
+        }
+    }
+
+    /// Sends `value` to every connection. Never blocks; a full buffer drops and counts.
+    #[inline(always)]
+    pub fn write(&mut self, value: &T) {
+        if self.changed.load(Ordering::Relaxed) {
+            self.shared
+                .links
+                .refresh_changed(&mut self.conns, |w| w.ch.is_closed());
+        }
+        for c in &mut self.conns {
+            c.push(value);
+        }
+        self.last.publish(value);
+        if !self.written {
+            self.written = true;
+            self.shared.written.store(true, Ordering::Release);
+        }
+    }
+
+    /// Replaces the data sample future connections pre-allocate from.
+    pub fn set_data_sample(&self, sample: T) {
+        *lock(&self.shared.sample) = sample;
+    }
+
+    /// The last value written, if any. Not for real-time paths (locks, clones).
+    pub fn last_written(&self) -> Option<T> {
+        self.shared.last_written()
+    }
+
+    /// The port's name.
+    pub fn name(&self) -> &str {
+        &self.shared.name
+    }
+
+    /// Live connections with their counters.
+    pub fn connections(&self) -> Vec<ConnectionInfo> {
+        self.shared.connections()
+    }
+
+    /// Closes connection `id` (or every connection with `None`); returns how many closed.
+    pub fn disconnect(&self, id: Option<u64>) -> usize {
+        self.shared.disconnect(id)
+    }
+
+    pub(crate) fn shared(&self) -> &Arc<OutputShared<T>> {
+        &self.shared
+    }
+}
