@@ -397,7 +397,12 @@ fn thread_scope_closed_waits_for_its_pulses_and_writes_no_more() {
         )
         .unwrap();
     t.start().unwrap();
-    std::thread::sleep(Duration::from_millis(30));
+    // Two steps under way or done (not a sleep: a loaded machine may start it late).
+    let end = Instant::now() + Duration::from_secs(20);
+    while t.stats().steps < 2 {
+        assert!(Instant::now() < end, "the slow component never stepped");
+        std::thread::sleep(Duration::from_millis(1));
+    }
     // Closed in the middle of a 5 ms step: it waits for that step's low.
     assert!(
         rt.thread_scope()

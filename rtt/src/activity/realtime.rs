@@ -69,8 +69,8 @@ static MEMORY_LOCK: std::sync::atomic::AtomicU8 = std::sync::atomic::AtomicU8::n
 /// its timer slack at the minimum (1 ns: a SCHED_OTHER thread's sleeps are not rounded up
 /// by the default 50 µs), its stack's first [`PREFAULT_STACK`] bytes touched (no page
 /// fault in a step), and — for a thread that got SCHED_FIFO, once per process — all
-/// memory locked (`mlockall(MCL_CURRENT | MCL_FUTURE)`: no page is ever paged out or
-/// faulted in lazily), said once with the reason when that is refused. True when the
+/// memory locked (`mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT)`: a page touched is
+/// never paged out), said once with the reason when that is refused. True when the
 /// process's memory is locked.
 pub(super) fn prepare_periodic(name: &str, realtime: bool) -> bool {
     if let Err(e) = nix::sys::prctl::set_timerslack(1) {
@@ -94,7 +94,12 @@ fn prefault_stack() {
 
 fn lock_memory(name: &str) {
     use nix::sys::mman::{MlockAllFlags, mlockall};
-    let locked = mlockall(MlockAllFlags::MCL_CURRENT | MlockAllFlags::MCL_FUTURE);
+    // MCL_ONFAULT: pages are locked as they are touched, not all populated at once (which
+    // stalls every thread of a large process while it runs, and fills each new thread's
+    // whole stack); the real-time thread touches its own stack first.
+    let flags =
+        MlockAllFlags::from_bits_retain(libc::MCL_CURRENT | libc::MCL_FUTURE | libc::MCL_ONFAULT);
+    let locked = mlockall(flags);
     let state = if locked.is_ok() { 1 } else { 2 };
     if MEMORY_LOCK
         .compare_exchange(0, state, Ordering::AcqRel, Ordering::Acquire)
