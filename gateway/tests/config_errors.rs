@@ -68,7 +68,7 @@ fn every_broken_config_gets_its_exact_error() {
         ("11-bit id too large", format!("{CAN}interface = \"can7\"\n[[card.socketcan.tx]]\nid = 0x800\ncycle_ms = 10\n"),
          "t.toml:7:6: card[0].socketcan.tx[0].id: card \"can\": 0x800 does not fit an 11-bit id (largest 0x7ff)"),
         ("unknown key in a card's thread", "[[card]]\nname = \"x\"\ndriver = \"sim\"\nthread = { prio = 3 }\n[card.sim]\n".into(),
-         "t.toml:4:12: card[0].thread.prio: unknown field `prio`, expected one of `policy`, `priority`, `cpus`"),
+         "t.toml:4:12: card[0].thread.prio: unknown field `prio`, expected one of `policy`, `priority`, `cpus`, `spin_us`"),
         ("unknown key in the CAN section", format!("{CAN}interface = \"can7\"\nbitrate = 500000\n"),
          "t.toml:6:1: card[0].socketcan.bitrate: unknown field `bitrate`, expected one of `interface`, `dbc`, `stale_after_cycles`, `link_check_ms`, `rx`, `tx`"),
         ("unknown key in a card", "[[card]]\nname = \"x\"\ndriver = \"sim\"\nperiod = 5\n[card.sim]\n".into(),
