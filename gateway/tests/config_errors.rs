@@ -55,10 +55,12 @@ fn every_broken_config_gets_its_exact_error() {
          "t.toml:1:1: card[0]: missing field `name`"),
         ("unknown driver", "[[card]]\nname = \"x\"\ndriver = \"canbus\"\n".into(),
          "t.toml:3:10: card[0].driver: unknown driver \"canbus\"; this build has: comedi, firmata, gpio, i2c, modbus, sim, socketcan"),
-        ("CAN interface missing", format!("{CAN}interface = \"can7\"\n"),
-         "t.toml:5:13: card[0].socketcan.interface: card \"can\": interface \"can7\": no such network interface (CAN interfaces here: none)"),
-        ("malformed DBC file", format!("{CAN}interface = \"can7\"\ndbc = \"tests/data/broken.dbc\"\n"),
-         "t.toml:6:7: card[0].socketcan.dbc: card \"can\": tests/data/broken.dbc:3: signal Speed: byte order in \"0|16@2+\": expected @1 (Intel) or @0 (Motorola)"),
+        // A CAN interface that is not here checks (the summary warns; `run` needs it).
+        ("CAN interface missing", format!("{CAN}interface = \"can7\"\n"), "ok"),
+        // A message that does not parse is refused where it is mapped, not before.
+        ("malformed DBC file, unmapped", format!("{CAN}interface = \"can7\"\ndbc = \"tests/data/broken.dbc\"\n"), "ok"),
+        ("malformed DBC message, mapped", format!("{CAN}interface = \"can7\"\ndbc = \"tests/data/broken.dbc\"\n[[card.socketcan.rx]]\nmessage = \"Motion\"\n"),
+         "t.toml:8:11: card[0].socketcan.rx[0].message: card \"can\": tests/data/broken.dbc:3: signal Speed: byte order @2: expected @1 (Intel) or @0 (Motorola)"),
         ("DBC message missing", format!("{CAN}interface = \"can7\"\ndbc = \"../drivers/can/tests/data/motion.dbc\"\n[[card.socketcan.rx]]\nmessage = \"Motoin\"\n"),
          "t.toml:8:11: card[0].socketcan.rx[0].message: card \"can\": the DBC file has no message \"Motoin\" (it has: Motion, Temps, Command)"),
         ("inline signal without a start bit", format!("{CAN}interface = \"can7\"\n[[card.socketcan.rx]]\nid = 0x100\nsignal = [{{ name = \"speed\", length = 16 }}]\n"),
@@ -70,7 +72,7 @@ fn every_broken_config_gets_its_exact_error() {
         ("unknown key in a card's thread", "[[card]]\nname = \"x\"\ndriver = \"sim\"\nthread = { prio = 3 }\n[card.sim]\n".into(),
          "t.toml:4:12: card[0].thread.prio: unknown field `prio`, expected one of `policy`, `priority`, `cpus`, `spin_us`"),
         ("unknown key in the CAN section", format!("{CAN}interface = \"can7\"\nbitrate = 500000\n"),
-         "t.toml:6:1: card[0].socketcan.bitrate: unknown field `bitrate`, expected one of `interface`, `dbc`, `stale_after_cycles`, `link_check_ms`, `rx`, `tx`"),
+         "t.toml:6:1: card[0].socketcan.bitrate: unknown field `bitrate`, expected one of `interface`, `dbc`, `encoding`, `stale_after_cycles`, `link_check_ms`, `rx`, `tx`"),
         ("unknown key in a card", "[[card]]\nname = \"x\"\ndriver = \"sim\"\nperiod = 5\n[card.sim]\n".into(),
          "t.toml:4:1: card[0].period: unknown key \"period\"; a card has name, driver, period_ms, sample_period_ms, safe_analog_out, safe_digital_out_on, outputs, thread, names, and its driver's section [card.sim]"),
         ("another driver's section", "[[card]]\nname = \"x\"\ndriver = \"sim\"\n[card.sim]\n[card.modbus]\nunit = 1\n".into(),
@@ -168,7 +170,7 @@ fn every_broken_config_gets_its_exact_error() {
         ("CPU 999", with_card("[[component]]\nname = \"f\"\ntype = \"follow\"\nactivity = { type = \"periodic\", period_ms = 10, cpus = [999] }\n"),
          &*Box::leak(format!("t.toml:14:12: component[0].activity: cpu 999 does not exist (this machine has {cpus}: 0..={})", cpus - 1).into_boxed_str())),
         ("a DBC file that never ends", format!("{CAN}interface = \"can7\"\ndbc = \"/dev/zero\"\n"),
-         "t.toml:6:7: card[0].socketcan.dbc: card \"can\": /dev/zero:0: not a regular file (a DBC file is text)"),
+         "t.toml:6:7: card[0].socketcan.dbc: card \"can\": /dev/zero: not a regular file (a DBC file is text)"),
         ("a socket path that is a file", format!("control_socket = \"{}\"\n{CARD}", concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/broken.dbc")),
          &*Box::leak(format!("t.toml:1:18: control_socket: {}/tests/data/broken.dbc: exists and is not a socket; refusing to replace it (choose another --socket)", env!("CARGO_MANIFEST_DIR")).into_boxed_str())),
         ("control limits out of range", format!("control_clients = 0\ncontrol_idle_s = 0\n{CARD}"),
@@ -208,20 +210,10 @@ fn the_shipped_examples_are_valid() {
             let file = path.display().to_string();
             let got = errors_in(&text, &file);
             if path.ends_with("can.toml") {
-                // This host has no CAN interfaces: opening vcan0 fails, and so the
-                // connections to the card's components; nothing else may
-                // (gateway/tests/kernel_can.rs runs it for real in the kernel rig).
-                let mut lines = got.lines();
-                assert!(
-                    lines.next().is_some_and(|l| l.ends_with(
-                        "card \"can\": interface \"vcan0\": no such network interface (CAN interfaces here: none)"
-                    )),
-                    "{got}"
-                );
-                assert!(
-                    lines.all(|l| l.contains("no component named \"can.a")),
-                    "{got}"
-                );
+                // This host has no CAN interfaces: the deployment checks all the same (the
+                // interface is for `hwgw run` to find; the summary warns of it, and
+                // gateway/tests/kernel_can.rs runs it for real in the kernel rig).
+                assert_eq!(got, "ok", "{file}");
             } else if path.ends_with("gpio.toml") {
                 // Nor GPIO chips: its chip is not found, and nothing else is wrong
                 // (gateway/tests/kernel_gpio.rs runs it on gpio-sim in the kernel rig).

@@ -16,12 +16,13 @@
 //! ```
 
 use crate::bus::CanBus;
-use crate::card::CanCounters;
+use crate::card::{CanCard, CanCounters};
 use rtt::component::IntrospectError;
 use rtt::port::OutputPort;
-use rtt::{Component, Context, HookResult, InterfaceBuilder};
+use rtt::{Component, Context, HookError, HookResult, InterfaceBuilder};
 use serde::{Deserialize, Serialize};
 use std::os::fd::AsRawFd;
+use std::sync::Arc;
 
 /// One received frame as published on its message's port.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -36,7 +37,9 @@ pub struct CanMessage {
 
 /// The bus component.
 pub struct CanIo {
-    bus: CanBus,
+    /// The bus; none until the start opens it when the interface was missing at build.
+    bus: Option<CanBus>,
+    card: Arc<CanCard>,
     ports: Vec<OutputPort<CanMessage>>,
     sample: CanMessage,
 }
@@ -50,13 +53,33 @@ impl CanIo {
         bus: CanBus,
         thread: rtt::ThreadOptions,
     ) -> Result<rtt::TaskContext, rtt::RuntimeError> {
-        driver_api::fd_bus(runtime, name, thread, move |iface| CanIo::new(bus, iface))
+        let card = bus.card().clone();
+        driver_api::fd_bus(runtime, name, thread, move |iface| {
+            CanIo::new(card, Some(bus), iface)
+        })
+    }
+
+    /// As [`add`](Self::add) for a card whose interface was not there at build
+    /// (`hwgw check` of a deployment before it is installed): the start opens it, and fails
+    /// naming it when it is still missing.
+    pub fn add_unopened(
+        runtime: &rtt::Runtime,
+        name: &str,
+        card: Arc<CanCard>,
+        thread: rtt::ThreadOptions,
+    ) -> Result<rtt::TaskContext, rtt::RuntimeError> {
+        driver_api::fd_bus(runtime, name, thread, move |iface| {
+            CanIo::new(card, None, iface)
+        })
     }
 
     /// Builds the component's interface: port `rx.<message>` per received frame (the DBC
     /// name, or the id in hex) and the `counters` operation.
-    pub fn new(bus: CanBus, iface: &mut InterfaceBuilder<CanIo>) -> Result<CanIo, IntrospectError> {
-        let card = bus.card().clone();
+    pub fn new(
+        card: Arc<CanCard>,
+        bus: Option<CanBus>,
+        iface: &mut InterfaceBuilder<CanIo>,
+    ) -> Result<CanIo, IntrospectError> {
         let widest = card.map().widest_rx();
         let mut ports = Vec::new();
         for f in card.map().rx() {
@@ -84,6 +107,7 @@ impl CanIo {
         )?;
         Ok(CanIo {
             bus,
+            card,
             ports,
             sample: CanMessage {
                 values: Vec::with_capacity(widest),
@@ -95,14 +119,23 @@ impl CanIo {
 
 impl Component for CanIo {
     fn start_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
-        ctx.activity().watch(self.bus.fd())?;
+        let bus = match &mut self.bus {
+            Some(bus) => bus,
+            None => self.bus.insert(
+                CanBus::open(self.card.clone()).map_err(|e| HookError::new(e.to_string()))?,
+            ),
+        };
+        ctx.activity().watch(bus.fd())?;
         // Send the first cyclic frames and learn the link state at once.
         self.update_hook(ctx)
     }
 
     fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
         let (ports, sample) = (&mut self.ports, &mut self.sample);
-        self.bus.service(&mut |f, values, at| {
+        let Some(bus) = &mut self.bus else {
+            return Ok(());
+        };
+        bus.service(&mut |f, values, at| {
             let Some(port) = ports.get_mut(f) else { return };
             // The card decoded the frame once, for its channels and these values alike.
             sample.values.clear();
@@ -118,6 +151,8 @@ impl Component for CanIo {
     }
 
     fn stop_hook(&mut self, ctx: &mut Context<'_>) {
-        ctx.activity().unwatch(self.bus.fd().as_raw_fd());
+        if let Some(bus) = &self.bus {
+            ctx.activity().unwatch(bus.fd().as_raw_fd());
+        }
     }
 }

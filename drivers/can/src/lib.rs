@@ -1,8 +1,10 @@
 //! SocketCAN cards for hwgw.
 //!
-//! - [`signal`]: DBC-model signals in frame payloads (Intel/Motorola, signed, factor,
-//!   offset, limits); [`dbc`]: messages and signals from a DBC file.
-//! - [`map`]: a card's `[card.socketcan]` section resolved into frames and channels.
+//! - [`signal`]: DBC-model signals in frame payloads (Intel/Motorola, signed, 64-bit,
+//!   IEEE float and double, factor, offset, limits); [`dbc`]: messages and signals from a
+//!   DBC file, read by its grammar.
+//! - [`section`]: a card's `[card.socketcan]` section as the TOML says it; [`map`]: that
+//!   section resolved into frames and channels.
 //! - [`card`]: the devices (AnalogIn/Out, DigitalIn/Out, Encoder) over those frames, with
 //!   per-frame staleness, link state and bus error counters; no I/O of its own.
 //! - [`bus`]: the socket side — a CAN_RAW socket with kernel filters for exactly the
@@ -26,4 +28,5 @@ pub mod component;
 pub mod dbc;
 pub mod map;
 pub mod plugin;
+pub mod section;
 pub mod signal;

@@ -36,134 +36,12 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
-use crate::dbc::{Dbc, DbcError};
+pub use crate::section::{CanConfig, FrameConfig, SignalConfig, SignalRole};
+
+use crate::dbc::{Dbc, DbcError, DbcSignal, Mux};
 use crate::signal::{ByteOrder, Signal, SignalError};
-use serde::Deserialize;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Duration;
-
-/// A card's `[card.socketcan]` section.
-#[derive(Debug, Clone, PartialEq, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct CanConfig {
-    /// The network interface (`can0`, `vcan0`).
-    pub interface: String,
-    /// A DBC file to take messages from (relative to the deployment file's directory).
-    #[serde(default)]
-    pub dbc: Option<PathBuf>,
-    /// A received frame's channels go stale after this many missed cycles (default 3).
-    #[serde(default = "default_stale_cycles")]
-    pub stale_after_cycles: u32,
-    /// How often the link state is checked while nothing else happens, in ms (default 100).
-    #[serde(default = "default_link_check")]
-    pub link_check_ms: f64,
-    /// Frames to receive.
-    #[serde(default)]
-    pub rx: Vec<FrameConfig>,
-    /// Frames to send.
-    #[serde(default)]
-    pub tx: Vec<FrameConfig>,
-}
-
-fn default_stale_cycles() -> u32 {
-    3
-}
-
-fn default_link_check() -> f64 {
-    100.0
-}
-
-/// One `[[rx]]` or `[[tx]]` frame.
-#[derive(Debug, Clone, Default, PartialEq, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct FrameConfig {
-    /// A DBC message by name (then id, length and signals come from the file).
-    #[serde(default)]
-    pub message: Option<String>,
-    /// The CAN id (inline frames).
-    #[serde(default)]
-    pub id: Option<u32>,
-    /// A 29-bit id (inline frames).
-    #[serde(default)]
-    pub extended: bool,
-    /// Payload bytes (inline frames; default 8).
-    #[serde(default)]
-    pub length: Option<usize>,
-    /// A CAN FD frame.
-    #[serde(default)]
-    pub fd: bool,
-    /// rx: the sender's cycle (for staleness); tx: the send period.
-    #[serde(default)]
-    pub cycle_ms: Option<f64>,
-    /// rx: stale after this long without the frame (overrides `stale_after_cycles`).
-    #[serde(default)]
-    pub timeout_ms: Option<f64>,
-    /// tx: send as soon as an output changes (default: only when there is no cycle).
-    #[serde(default)]
-    pub on_change: Option<bool>,
-    /// Inline signals, or settings for DBC signals by name.
-    #[serde(default)]
-    pub signal: Vec<SignalConfig>,
-}
-
-/// What a signal is as a device channel.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum SignalRole {
-    /// An analog channel (the default for signals longer than one bit).
-    Analog,
-    /// Digital bits (the default for 1-bit signals).
-    Digital,
-    /// A position counter (received signals only).
-    Encoder,
-}
-
-/// One signal table.
-#[derive(Debug, Clone, Default, PartialEq, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct SignalConfig {
-    /// Its name (a DBC signal's name on DBC messages).
-    pub name: String,
-    /// DBC start bit.
-    #[serde(default)]
-    pub start: Option<u32>,
-    /// Length in bits.
-    #[serde(default)]
-    pub length: Option<u32>,
-    /// Byte order (default Intel).
-    #[serde(default)]
-    pub byte_order: Option<ByteOrder>,
-    /// Signed (default false).
-    #[serde(default)]
-    pub signed: Option<bool>,
-    /// `physical = raw * factor + offset` (default 1).
-    #[serde(default)]
-    pub factor: Option<f64>,
-    /// Default 0.
-    #[serde(default)]
-    pub offset: Option<f64>,
-    /// Physical minimum (with `max`; default none).
-    #[serde(default)]
-    pub min: Option<f64>,
-    /// Physical maximum.
-    #[serde(default)]
-    pub max: Option<f64>,
-    /// Unit.
-    #[serde(default)]
-    pub unit: Option<String>,
-    /// The channel kind.
-    #[serde(default, rename = "as")]
-    pub role: Option<SignalRole>,
-    /// Encoders: counts per turn.
-    #[serde(default)]
-    pub resolution: Option<i64>,
-    /// Encoders: counting direction (default up).
-    #[serde(default)]
-    pub upcounting: Option<bool>,
-    /// tx: the physical value sent before the first write (default: raw 0).
-    #[serde(default)]
-    pub initial: Option<f64>,
-}
 
 /// Why a CAN section was refused.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -194,6 +72,10 @@ fn bad(path: impl Into<String>, message: impl Into<String>) -> MapError {
 pub struct MappedSignal {
     /// Its name.
     pub name: String,
+    /// Its channel's port name (and an encoder's device name): its name, or
+    /// `Message__Signal` when another mapped message of the card has a signal of the same
+    /// name (see [`QUALIFIER`]).
+    pub port: String,
     /// Layout and scale (limits applied).
     pub signal: Signal,
     /// Its kind.
@@ -204,6 +86,14 @@ pub struct MappedSignal {
     pub encoder: Option<(i64, bool)>,
     /// tx: the raw value before the first write.
     pub initial_raw: i64,
+    /// Present only when its message's multiplexer holds this value (DBC `m<k>`).
+    pub mux: Option<u64>,
+    /// The multiplexer of its message (DBC `M`).
+    pub multiplexer: bool,
+    /// Its DBC comment (`CM_`).
+    pub comment: Option<String>,
+    /// Its DBC value descriptions (`VAL_`): raw value and name.
+    pub values: Vec<(i64, String)>,
 }
 
 impl MappedSignal {
@@ -278,7 +168,7 @@ impl CanMap {
             return Err(bad("stale_after_cycles", "expected 1 or more"));
         }
         let dbc = match &config.dbc {
-            Some(p) => Some(Dbc::load(&base.join(p))?),
+            Some(p) => Some(Dbc::load(&base.join(p), config.encoding)?),
             None => None,
         };
         let mut next = [0u32; 5]; // AI, AO, DI, DO, encoders
@@ -301,7 +191,8 @@ impl CanMap {
                 frames[usize::from(tx)].push(frame);
             }
         }
-        let [rx, tx] = frames;
+        let [mut rx, mut tx] = frames;
+        qualify(&mut rx, &mut tx);
         Ok(CanMap {
             interface: config.interface.clone(),
             link_check: millis("link_check_ms", config.link_check_ms)?,
@@ -389,6 +280,33 @@ fn frame(
                     "id, extended and length come from the DBC message; remove them",
                 ));
             }
+            // What is wrong with a message matters once it is mapped.
+            if let Some(e) = msg.problems.first() {
+                return Err(bad(format!("{path}.message"), e.to_string()));
+            }
+            if msg.extended_mux {
+                return Err(bad(
+                    format!("{path}.message"),
+                    format!(
+                        "message {m} uses extended multiplexing (SG_MUL_VAL_ or a signal both multiplexed and a multiplexer), which hwgw does not decode"
+                    ),
+                ));
+            }
+            let muxed = msg.signals.iter().any(|s| matches!(s.mux, Mux::When(_)));
+            if muxed && msg.multiplexer().is_none() {
+                return Err(bad(
+                    format!("{path}.message"),
+                    format!("message {m} has multiplexed signals but no multiplexer (M)"),
+                ));
+            }
+            if muxed && tx {
+                return Err(bad(
+                    format!("{path}.message"),
+                    format!(
+                        "message {m} is multiplexed: hwgw receives multiplexed messages, it does not send them"
+                    ),
+                ));
+            }
             (
                 msg.name.clone(),
                 msg.id,
@@ -430,10 +348,11 @@ fn frame(
             },
         ));
     }
-    let cycle = f
-        .cycle_ms
-        .map(|ms| millis(&format!("{path}.cycle_ms"), ms))
-        .transpose()?;
+    // The TOML's cycle, else the DBC message's GenMsgCycleTime.
+    let cycle = match f.cycle_ms {
+        Some(ms) => Some(millis(&format!("{path}.cycle_ms"), ms)?),
+        None => base.and_then(|m| m.cycle),
+    };
     let timeout = match (f.timeout_ms, cycle) {
         (_, _) if tx && f.timeout_ms.is_some() => {
             return Err(bad(
@@ -464,25 +383,19 @@ fn frame(
     };
 
     // Signals: the DBC message's, each possibly adjusted by a table; or the tables alone.
-    let mut signals = Vec::new();
+    let mut signals: Vec<MappedSignal> = Vec::new();
     let mut used = vec![false; f.signal.len()];
-    // (name, the DBC signal with its [min|max], the index of its table)
-    type Entry = (String, Option<(Signal, f64, f64)>, Option<usize>);
-    let list: Vec<Entry> = match base {
+    let list: Vec<(&str, Option<&DbcSignal>, Option<usize>)> = match base {
         Some(msg) => msg
             .signals
             .iter()
             .map(|s| {
                 let table = f.signal.iter().position(|t| t.name == s.name);
-                (
-                    s.name.clone(),
-                    Some((s.signal.clone(), s.min, s.max)),
-                    table,
-                )
+                (s.name.as_str(), Some(s), table)
             })
             .collect(),
         None => (0..f.signal.len())
-            .map(|k| (f.signal[k].name.clone(), None, Some(k)))
+            .map(|k| (f.signal[k].name.as_str(), None, Some(k)))
             .collect(),
     };
     for (name, from_dbc, table) in list {
@@ -494,148 +407,16 @@ fn frame(
             used[k] = true;
             &f.signal[k]
         });
-        let here = |e: SignalError| bad(format!("{spath} ({name})"), e.to_string());
-        let signal = match (from_dbc, t) {
-            (Some((s, min, max)), t) => {
-                if let Some(t) = t
-                    && (t.start.is_some()
-                        || t.length.is_some()
-                        || t.byte_order.is_some()
-                        || t.signed.is_some()
-                        || t.factor.is_some()
-                        || t.offset.is_some()
-                        || t.min.is_some()
-                        || t.max.is_some()
-                        || t.unit.is_some())
-                {
-                    return Err(bad(
-                        format!("{spath} ({name})"),
-                        "the layout and scale of a DBC signal come from the DBC file; \
-                         only as, resolution, upcounting and initial can be set here",
-                    ));
-                }
-                s.with_limits(min, max).map_err(here)?
-            }
-            (None, Some(t)) => {
-                let (Some(start), Some(bits)) = (t.start, t.length) else {
-                    return Err(bad(
-                        format!("{spath} ({name})"),
-                        "an inline signal needs start and length",
-                    ));
-                };
-                let s = Signal::new(
-                    start,
-                    bits,
-                    t.byte_order.unwrap_or(ByteOrder::Intel),
-                    t.signed.unwrap_or(false),
-                    t.factor.unwrap_or(1.0),
-                    t.offset.unwrap_or(0.0),
-                    t.unit.as_deref().unwrap_or(""),
-                )
-                .map_err(here)?;
-                let s = match (t.min, t.max) {
-                    (None, None) => s,
-                    (Some(min), Some(max)) => s.with_limits(min, max).map_err(here)?,
-                    _ => {
-                        return Err(bad(
-                            format!("{spath} ({name})"),
-                            "give both min and max, or neither",
-                        ));
-                    }
-                };
-                if s.bytes_needed() > length {
-                    return Err(bad(
-                        format!("{spath} ({name})"),
-                        format!(
-                            "it reaches byte {} but the frame has {length} bytes",
-                            s.bytes_needed()
-                        ),
-                    ));
-                }
-                s
-            }
-            (None, None) => {
-                return Err(bad(
-                    spath,
-                    "a signal with neither a DBC definition nor a table",
-                ));
-            }
-        };
-        let len = signal.layout().1;
-        let role = t.and_then(|t| t.role).unwrap_or(if len == 1 {
-            SignalRole::Digital
-        } else {
-            SignalRole::Analog
-        });
-        let encoder = match role {
-            SignalRole::Encoder if tx => {
-                return Err(bad(
-                    format!("{spath} ({name})"),
-                    "an encoder is an input: map it in an rx frame",
-                ));
-            }
-            SignalRole::Encoder => {
-                let Some(resolution) = t.and_then(|t| t.resolution) else {
-                    return Err(bad(
-                        format!("{spath} ({name})"),
-                        "an encoder needs resolution (counts per turn)",
-                    ));
-                };
-                Some((resolution, t.and_then(|t| t.upcounting).unwrap_or(true)))
-            }
-            _ => {
-                if t.is_some_and(|t| t.resolution.is_some() || t.upcounting.is_some()) {
-                    return Err(bad(
-                        format!("{spath} ({name})"),
-                        "resolution and upcounting are for as = \"encoder\"",
-                    ));
-                }
-                None
-            }
-        };
-        let initial = t.and_then(|t| t.initial);
-        let initial_raw = match initial {
-            _ if !tx && initial.is_some() => {
-                return Err(bad(
-                    format!("{spath} ({name})"),
-                    "initial is for sent signals",
-                ));
-            }
-            Some(v) => signal.scale().to_raw(v).ok_or_else(|| {
-                bad(
-                    format!("{spath} ({name})"),
-                    format!("initial {v} is outside the signal's range"),
-                )
-            })?,
-            None => signal.scale().raw_range().clamp(0),
-        };
+        let mapped = map_signal(name, from_dbc, t, &spath, length, tx, next)?;
         // tx frames are packed from these signals: overlapping ones would clobber
         // each other.
-        if tx
-            && let Some(o) = signals
-                .iter()
-                .find(|o: &&MappedSignal| o.signal.overlaps(&signal))
-        {
+        if tx && let Some(o) = signals.iter().find(|o| o.signal.overlaps(&mapped.signal)) {
             return Err(bad(
                 format!("{spath} ({name})"),
                 format!("it overlaps signal {} in a sent frame", o.name),
             ));
         }
-        let slot = match (role, tx) {
-            (SignalRole::Analog, false) => 0,
-            (SignalRole::Analog, true) => 1,
-            (SignalRole::Digital, false) => 2,
-            (SignalRole::Digital, true) => 3,
-            (SignalRole::Encoder, _) => 4,
-        };
-        let mapped = MappedSignal {
-            name,
-            signal,
-            role,
-            channel: next[slot],
-            encoder,
-            initial_raw,
-        };
+        let slot = slot(mapped.role, tx);
         next[slot] += mapped.width();
         signals.push(mapped);
     }
@@ -656,4 +437,189 @@ fn frame(
         on_change,
         signals,
     })
+}
+
+/// What joins a message's name and a signal's in the port name of a signal whose name
+/// another mapped message has too (`EngineData__Counter`): port names cannot hold dots.
+pub const QUALIFIER: &str = "__";
+
+/// Gives every signal its port name: its own name, unique across the card's mapped
+/// messages, else `Message__Signal` for each signal whose name is repeated.
+fn qualify(rx: &mut [MappedFrame], tx: &mut [MappedFrame]) {
+    let mut seen: std::collections::HashMap<String, usize> = std::collections::HashMap::new();
+    for f in rx.iter().chain(tx.iter()) {
+        for s in &f.signals {
+            *seen.entry(s.name.clone()).or_default() += 1;
+        }
+    }
+    for f in rx.iter_mut().chain(tx.iter_mut()) {
+        for s in &mut f.signals {
+            s.port = if seen.get(&s.name).copied().unwrap_or(0) > 1 {
+                format!("{}{QUALIFIER}{}", f.name, s.name)
+            } else {
+                s.name.clone()
+            };
+        }
+    }
+}
+
+/// Which of the channel counters (AI, AO, DI, DO, encoders) a signal of `role` takes from.
+fn slot(role: SignalRole, tx: bool) -> usize {
+    match (role, tx) {
+        (SignalRole::Analog, false) => 0,
+        (SignalRole::Analog, true) => 1,
+        (SignalRole::Digital, false) => 2,
+        (SignalRole::Digital, true) => 3,
+        (SignalRole::Encoder, _) => 4,
+    }
+}
+
+/// One signal of a frame: a DBC signal (`from_dbc`, adjusted by its table `t`), or the
+/// table alone (inline); its channel is the next of its kind in `next`.
+fn map_signal(
+    name: &str,
+    from_dbc: Option<&DbcSignal>,
+    t: Option<&SignalConfig>,
+    spath: &str,
+    length: usize,
+    tx: bool,
+    next: &[u32; 5],
+) -> Result<MappedSignal, MapError> {
+    let here_path = format!("{spath} ({name})");
+    let here = |e: SignalError| bad(&here_path, e.to_string());
+    let signal = match (from_dbc, t) {
+        (Some(d), t) => {
+            if let Some(t) = t
+                && (t.start.is_some()
+                    || t.length.is_some()
+                    || t.byte_order.is_some()
+                    || t.signed.is_some()
+                    || t.factor.is_some()
+                    || t.offset.is_some()
+                    || t.min.is_some()
+                    || t.max.is_some()
+                    || t.unit.is_some())
+            {
+                return Err(bad(
+                    &here_path,
+                    "the layout and scale of a DBC signal come from the DBC file; \
+                     only as, resolution, upcounting and initial can be set here",
+                ));
+            }
+            d.signal.clone().with_limits(d.min, d.max).map_err(here)?
+        }
+        (None, Some(t)) => inline_signal(t, &here_path, length)?,
+        (None, None) => {
+            return Err(bad(
+                spath,
+                "a signal with neither a DBC definition nor a table",
+            ));
+        }
+    };
+    let len = signal.layout().1;
+    let role = t.and_then(|t| t.role).unwrap_or(if len == 1 {
+        SignalRole::Digital
+    } else {
+        SignalRole::Analog
+    });
+    let encoder = match role {
+        SignalRole::Encoder if tx => {
+            return Err(bad(
+                &here_path,
+                "an encoder is an input: map it in an rx frame",
+            ));
+        }
+        SignalRole::Encoder => {
+            let Some(resolution) = t.and_then(|t| t.resolution) else {
+                return Err(bad(
+                    &here_path,
+                    "an encoder needs resolution (counts per turn)",
+                ));
+            };
+            Some((resolution, t.and_then(|t| t.upcounting).unwrap_or(true)))
+        }
+        _ => {
+            if t.is_some_and(|t| t.resolution.is_some() || t.upcounting.is_some()) {
+                return Err(bad(
+                    &here_path,
+                    "resolution and upcounting are for as = \"encoder\"",
+                ));
+            }
+            None
+        }
+    };
+    if role != SignalRole::Analog && signal.kind() != crate::signal::ValueKind::Integer {
+        return Err(bad(
+            &here_path,
+            "a float signal is an analog channel (as = \"analog\")",
+        ));
+    }
+    let initial = t.and_then(|t| t.initial);
+    let initial_raw = match initial {
+        _ if !tx && initial.is_some() => {
+            return Err(bad(&here_path, "initial is for sent signals"));
+        }
+        Some(v) => signal.raw_of(v).ok_or_else(|| {
+            bad(
+                &here_path,
+                format!("initial {v} is outside the signal's range"),
+            )
+        })?,
+        None => match signal.kind() {
+            crate::signal::ValueKind::Integer => signal.scale().raw_range().clamp(0),
+            // A float's raw is its bits: 0.0's are all zero.
+            _ => signal.raw_of(0.0).unwrap_or(0),
+        },
+    };
+    let (mux, multiplexer) = match from_dbc.map(|d| d.mux) {
+        Some(Mux::When(k)) => (Some(k), false),
+        Some(Mux::Multiplexer) => (None, true),
+        _ => (None, false),
+    };
+    Ok(MappedSignal {
+        name: name.to_string(),
+        port: name.to_string(),
+        channel: next[slot(role, tx)],
+        signal,
+        role,
+        encoder,
+        initial_raw,
+        mux,
+        multiplexer,
+        comment: from_dbc.and_then(|d| d.comment.clone()),
+        values: from_dbc.map(|d| d.values.clone()).unwrap_or_default(),
+    })
+}
+
+/// An inline signal from its table.
+fn inline_signal(t: &SignalConfig, path: &str, length: usize) -> Result<Signal, MapError> {
+    let here = |e: SignalError| bad(path, e.to_string());
+    let (Some(start), Some(bits)) = (t.start, t.length) else {
+        return Err(bad(path, "an inline signal needs start and length"));
+    };
+    let s = Signal::new(
+        start,
+        bits,
+        t.byte_order.unwrap_or(ByteOrder::Intel),
+        t.signed.unwrap_or(false),
+        t.factor.unwrap_or(1.0),
+        t.offset.unwrap_or(0.0),
+        t.unit.as_deref().unwrap_or(""),
+    )
+    .map_err(here)?;
+    let s = match (t.min, t.max) {
+        (None, None) => s,
+        (Some(min), Some(max)) => s.with_limits(min, max).map_err(here)?,
+        _ => return Err(bad(path, "give both min and max, or neither")),
+    };
+    if s.bytes_needed() > length {
+        return Err(bad(
+            path,
+            format!(
+                "it reaches byte {} but the frame has {length} bytes",
+                s.bytes_needed()
+            ),
+        ));
+    }
+    Ok(s)
 }

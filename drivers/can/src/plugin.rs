@@ -1,8 +1,10 @@
 //! The SocketCAN card as an hwgw driver plug-in (`driver = "socketcan"`, section
 //! [`CanConfig`]).
 //!
-//! Building opens the interface (a missing one is an error `hwgw check` reports); the bus
-//! side is the [`CanIo`] component named after the card. Channels take their signals'
+//! Building opens the interface; one that is not there is a warning in the card's summary
+//! (`hwgw check` validates a deployment before it is installed) and the bus component's
+//! start opens it, failing `hwgw run` with its name when it is still missing. The bus side
+//! is the [`CanIo`] component named after the card. Channels take their signals'
 //! names as port names. At stop the card sends every tx frame once more, carrying the safe
 //! values, before its bus component stops.
 
@@ -20,6 +22,8 @@ struct CanPlugin {
     card: Arc<CanCard>,
     /// The opened bus, until its component takes it.
     bus: Mutex<Option<CanBus>>,
+    /// The interface was not there at build: why (the bus component's start opens it).
+    missing: Option<String>,
     thread: rtt::ThreadOptions,
     /// The bus component, once added.
     task: Mutex<Option<rtt::TaskContext>>,
@@ -30,10 +34,22 @@ struct CanPlugin {
 pub fn build(config: &CanConfig, ctx: &mut CardContext<'_>) -> Result<Box<dyn Card>, CardError> {
     let map = crate::map::CanMap::new(config, ctx.base()).map_err(keyed)?;
     let card = CanCard::new(map, ctx.clock());
-    let bus = CanBus::open(card.clone()).map_err(|e| CardError::at("interface", e))?;
+    // An interface that is not here is for the start to find (`hwgw check` validates a
+    // deployment before it is installed); one that is here must be a CAN interface that
+    // can carry what is mapped.
+    let (bus, missing) = match CanBus::open(card.clone()) {
+        Ok(bus) => (Some(bus), None),
+        Err(e @ crate::bus::BusError::NoInterface { .. }) => {
+            let why = format!("{e}; the bus component's start needs it (hwgw run)");
+            tracing::warn!(card = ctx.name(), "{why}");
+            (None, Some(why))
+        }
+        Err(e) => return Err(CardError::at("interface", e)),
+    };
     Ok(Box::new(CanPlugin {
         card,
-        bus: Mutex::new(Some(bus)),
+        bus: Mutex::new(bus),
+        missing,
         thread: ctx.thread().clone(),
         task: Mutex::new(None),
     }))
@@ -64,8 +80,8 @@ fn signal_names(frames: &[MappedFrame], role: SignalRole) -> Vec<String> {
         .filter(|s| s.role == role)
     {
         match s.width() {
-            1 => all.push(s.name.clone()),
-            w => all.extend((0..w).map(|k| format!("{}_{k}", s.name))),
+            1 => all.push(s.port.clone()),
+            w => all.extend((0..w).map(|k| format!("{}_{k}", s.port))),
         }
     }
     let mut unique = all.clone();
@@ -129,22 +145,45 @@ impl Card for CanPlugin {
         runtime: &rtt::Runtime,
         name: &str,
     ) -> Result<Vec<rtt::TaskContext>, rtt::RuntimeError> {
-        let Some(bus) = rtt::lock(&self.bus).take() else {
+        if rtt::lock(&self.task).is_some() {
             // Already added once: the bus belongs to that component.
             return Ok(Vec::new());
+        }
+        let task = match rtt::lock(&self.bus).take() {
+            Some(bus) => CanIo::add(runtime, name, bus, self.thread.clone())?,
+            None => CanIo::add_unopened(runtime, name, self.card.clone(), self.thread.clone())?,
         };
-        let task = CanIo::add(runtime, name, bus, self.thread.clone())?;
         *rtt::lock(&self.task) = Some(task.clone());
         Ok(vec![task])
     }
 
     fn summary(&self) -> String {
         let map = self.card.map();
+        let renamed: Vec<String> = map
+            .rx()
+            .iter()
+            .chain(map.tx())
+            .flat_map(|f| &f.signals)
+            .filter(|s| s.port != s.name)
+            .map(|s| s.port.clone())
+            .collect();
         format!(
-            "{}: receives {}; sends {}",
+            "{}: receives {}; sends {}{}{}",
             map.interface(),
             frame_list(map.rx()),
             frame_list(map.tx()),
+            match &self.missing {
+                Some(why) => format!("; WARNING: {why}"),
+                None => String::new(),
+            },
+            if renamed.is_empty() {
+                String::new()
+            } else {
+                format!(
+                    "; signals whose name two messages share are Message__Signal: {}",
+                    renamed.join(", ")
+                )
+            }
         )
     }
 

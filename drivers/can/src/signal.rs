@@ -26,6 +26,18 @@
 use device_interface::{RawRange, Scale, ScaleError, Unit};
 use serde::Deserialize;
 
+/// How a signal's bits hold its value (DBC `SIG_VALTYPE_`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum ValueKind {
+    /// An integer, signed or not (the default).
+    #[default]
+    Integer,
+    /// An IEEE 754 single (`SIG_VALTYPE_ … : 1`, 32 bits).
+    Float32,
+    /// An IEEE 754 double (`SIG_VALTYPE_ … : 2`, 64 bits).
+    Float64,
+}
+
 /// The DBC byte orders.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -75,6 +87,16 @@ pub enum SignalError {
     /// Factor, offset or unit that make no scale.
     #[error(transparent)]
     Scale(#[from] ScaleError),
+    /// A float value type on a signal of the wrong length.
+    #[error("a {kind} signal is {need} bits long, not {length}")]
+    FloatLength {
+        /// "float" or "double".
+        kind: &'static str,
+        /// The length it must have.
+        need: u32,
+        /// Its length.
+        length: u32,
+    },
 }
 
 /// One signal of a frame.
@@ -84,8 +106,12 @@ pub struct Signal {
     length: u32,
     order: ByteOrder,
     signed: bool,
+    kind: ValueKind,
     factor: f64,
     offset: f64,
+    /// A float signal's declared physical [min|max], if given (its raw grid cannot carry
+    /// them).
+    float_limits: Option<(f64, f64)>,
     scale: Scale,
     /// Payload bit (as `byte * 8 + bit`, bit 0 the least significant of its byte) of each
     /// signal bit, most significant first.
@@ -155,11 +181,104 @@ impl Signal {
             length,
             order,
             signed,
+            kind: ValueKind::Integer,
             factor,
             offset,
+            float_limits: None,
             scale,
             bits,
         })
+    }
+
+    /// The same signal holding an IEEE float (32 bits) or double (64 bits). Its value is
+    /// the float times the factor plus the offset; its scale's raw values are coarse steps
+    /// over the type's whole range (±2^23 steps for a float, ±2^52 for a double, as the
+    /// Modbus driver's floats): the value itself is exact, read with [`physical`](Self::physical).
+    pub fn with_kind(mut self, kind: ValueKind) -> Result<Signal, SignalError> {
+        let (need, name, steps, step) = match kind {
+            ValueKind::Integer => return Ok(self),
+            ValueKind::Float32 => (32, "float", 1i64 << 23, 2f64.powi(127 - 23)),
+            ValueKind::Float64 => (64, "double", 1i64 << 52, 2f64.powi(1000 - 52)),
+        };
+        if self.length != need {
+            return Err(SignalError::FloatLength {
+                kind: name,
+                need,
+                length: self.length,
+            });
+        }
+        self.kind = kind;
+        self.scale = Scale::from_factor(
+            RawRange {
+                min: -steps,
+                max: steps,
+            },
+            self.factor * step,
+            self.offset,
+            self.scale.unit(),
+        )?;
+        Ok(self)
+    }
+
+    /// How the bits hold the value.
+    pub fn kind(&self) -> ValueKind {
+        self.kind
+    }
+
+    /// The physical value of raw bits `raw` (as [`extract`](Self::extract) returns them):
+    /// `raw * factor + offset` with the raw value as the DBC says — signed, unsigned (all 64
+    /// bits unsigned up to 2^64 − 1), or the IEEE float the bits hold — computed in f64 as
+    /// cantools computes it.
+    pub fn physical(&self, raw: i64) -> f64 {
+        let value = match self.kind {
+            ValueKind::Float32 => f64::from(f32::from_bits(raw as u32)),
+            ValueKind::Float64 => f64::from_bits(raw as u64),
+            ValueKind::Integer if !self.signed && self.length == 64 => (raw as u64) as f64,
+            ValueKind::Integer => return self.scale.to_physical(raw),
+        };
+        value * self.factor + self.offset
+    }
+
+    /// The raw bits that carry physical `value`, if it is one the signal can carry (a
+    /// number within its range; a float's bits for float signals).
+    pub fn raw_of(&self, value: f64) -> Option<i64> {
+        let r = self.scale.range();
+        if !(value >= r.lowest && value <= r.highest) {
+            return None;
+        }
+        if let Some((min, max)) = self.float_limits
+            && !(value >= min && value <= max)
+        {
+            return None;
+        }
+        let x = (value - self.offset) / self.factor;
+        match self.kind {
+            ValueKind::Float32 => {
+                let f = x as f32;
+                f.is_finite().then_some(i64::from(f.to_bits()))
+            }
+            ValueKind::Float64 => x.is_finite().then_some(x.to_bits() as i64),
+            ValueKind::Integer => self.scale.to_raw(value),
+        }
+    }
+
+    /// True when raw bits `raw` (a received value) lie in the signal's declared range.
+    pub fn in_range(&self, raw: i64) -> bool {
+        match self.kind {
+            ValueKind::Integer if !self.signed && self.length == 64 && raw < 0 => {
+                // Above 2^63: within the range only when the range reaches there (it never
+                // does: the raw range stops at 2^63 − 1).
+                false
+            }
+            ValueKind::Integer => self.scale.raw_range().contains(raw),
+            _ => {
+                let v = self.physical(raw);
+                let (min, max) = self
+                    .float_limits
+                    .unwrap_or((f64::NEG_INFINITY, f64::INFINITY));
+                v >= min && v <= max
+            }
+        }
     }
 
     /// The same signal with its raw range narrowed to the raw values whose physical value
@@ -172,6 +291,10 @@ impl Signal {
         let bad = SignalError::Limits { min, max };
         if !(min.is_finite() && max.is_finite() && min <= max) {
             return Err(bad);
+        }
+        if self.kind != ValueKind::Integer {
+            self.float_limits = Some((min, max));
+            return Ok(self);
         }
         // A raw value within a millionth of a step of the limit counts as on it: DBC
         // limits are decimal texts of values that are exact in raw steps.
@@ -256,13 +379,15 @@ impl Signal {
 
     /// The physical value in `payload`.
     pub fn decode(&self, payload: &[u8]) -> Result<f64, SignalError> {
-        Ok(self.scale.to_physical(self.extract(payload)?))
+        Ok(self.physical(self.extract(payload)?))
     }
 
     /// Writes `raw` into `payload`; the other bits keep their values.
     pub fn insert(&self, payload: &mut [u8], raw: i64) -> Result<(), SignalError> {
         self.check(payload.len())?;
-        if !self.scale.raw_range().contains(raw) {
+        // A float's bits, and an unsigned 64-bit value's above 2^63, are any 64-bit pattern.
+        let any_bits = self.kind != ValueKind::Integer || (!self.signed && self.length == 64);
+        if !any_bits && !self.scale.raw_range().contains(raw) {
             return Err(SignalError::RawOutOfRange {
                 raw,
                 length: self.length,

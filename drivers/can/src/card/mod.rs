@@ -28,152 +28,21 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
+mod devices;
+mod status;
+
+pub use devices::CanEncoder;
+pub use status::{BusState, CanCounters, ErrorReport, MessageState};
+
 use crate::map::{CanMap, MappedFrame, SignalRole};
 use arc_swap::ArcSwapOption;
-use device_interface::bits::{BitImage, BitSpan};
+use device_interface::bits::BitImage;
 use device_interface::encoder::WrappingCounter;
 use device_interface::time::{Clock, Timestamp};
-use device_interface::{
-    AnalogIn, AnalogOut, Device, DeviceError, DigitalIn, DigitalOut, Health, Scale, Status,
-};
+use device_interface::{AnalogIn, AnalogOut, DeviceError, DigitalIn, DigitalOut, Scale};
+use status::{BusStateError, Counters, bump};
 use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU8, AtomicU64, Ordering};
 use std::sync::{Arc, OnceLock};
-
-/// The controller's error state, as error frames report it.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum BusState {
-    /// Normal operation (also the state before any error frame).
-    ErrorActive,
-    /// An error counter passed 96.
-    ErrorWarning,
-    /// An error counter passed 127: the controller no longer sends active error flags.
-    ErrorPassive,
-    /// The transmit error counter passed 255: the controller is off the bus.
-    BusOff,
-}
-
-impl BusState {
-    fn from_u8(v: u8) -> BusState {
-        match v {
-            1 => BusState::ErrorWarning,
-            2 => BusState::ErrorPassive,
-            3 => BusState::BusOff,
-            _ => BusState::ErrorActive,
-        }
-    }
-}
-
-/// What an error frame reported, decoded by the bus side.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct ErrorReport {
-    /// The controller went bus-off.
-    pub bus_off: bool,
-    /// The controller was restarted (back to error-active).
-    pub restarted: bool,
-    /// Controller reached error-warning.
-    pub warning: bool,
-    /// Controller reached error-passive.
-    pub passive: bool,
-    /// Controller is back to error-active.
-    pub active: bool,
-    /// RX or TX buffer overflow in the controller.
-    pub overflow: bool,
-    /// No acknowledgement of a sent frame.
-    pub no_ack: bool,
-    /// Arbitration lost.
-    pub lost_arbitration: bool,
-    /// A protocol violation (bit, form, stuff, CRC …).
-    pub protocol: bool,
-    /// A transceiver (wiring) fault.
-    pub transceiver: bool,
-    /// The driver timed out sending.
-    pub tx_timeout: bool,
-}
-
-/// A snapshot of a card's counters.
-#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize)]
-pub struct CanCounters {
-    /// Mapped frames received and decoded.
-    pub rx_frames: u64,
-    /// Frames with an id the card does not map (the kernel filters should drop these).
-    pub rx_unknown_id: u64,
-    /// Mapped frames with the wrong payload length (not decoded).
-    pub rx_bad_length: u64,
-    /// Mapped frames of the wrong kind (classic for FD or the reverse, remote frames).
-    pub rx_bad_kind: u64,
-    /// Received signal values outside their declared [min|max] (decoded anyway).
-    pub rx_out_of_range: u64,
-    /// Frames the kernel dropped because the socket's queue was full.
-    pub rx_dropped: u64,
-    /// Frames sent.
-    pub tx_frames: u64,
-    /// Sends that failed (buffer full, link down, controller off).
-    pub tx_errors: u64,
-    /// Cycles of cyclic frames left out because the bus thread woke too late for them
-    /// (the schedule keeps its phase instead of sending a burst).
-    pub tx_skipped_cycles: u64,
-    /// Times a received frame went stale.
-    pub stale_events: u64,
-    /// Times the link went down.
-    pub link_down_events: u64,
-    /// Error frames.
-    pub error_frames: u64,
-    /// Bus-off events.
-    pub bus_off: u64,
-    /// Error-passive events.
-    pub error_passive: u64,
-    /// Error-warning events.
-    pub error_warning: u64,
-    /// Controller restarts.
-    pub restarted: u64,
-    /// Controller buffer overflows.
-    pub controller_overflow: u64,
-    /// Missing acknowledgements.
-    pub no_ack: u64,
-    /// Lost arbitrations.
-    pub lost_arbitration: u64,
-    /// Protocol violations.
-    pub protocol_violations: u64,
-    /// Transceiver faults.
-    pub transceiver_faults: u64,
-    /// Driver transmit timeouts.
-    pub tx_timeouts: u64,
-    /// The controller state now.
-    pub bus_state: Option<BusState>,
-    /// The link is up.
-    pub link_up: bool,
-}
-
-#[derive(Default)]
-struct Counters {
-    rx_frames: AtomicU64,
-    rx_unknown_id: AtomicU64,
-    rx_bad_length: AtomicU64,
-    rx_bad_kind: AtomicU64,
-    rx_out_of_range: AtomicU64,
-    rx_dropped: AtomicU64,
-    tx_frames: AtomicU64,
-    tx_errors: AtomicU64,
-    tx_skipped_cycles: AtomicU64,
-    stale_events: AtomicU64,
-    link_down_events: AtomicU64,
-    error_frames: AtomicU64,
-    bus_off: AtomicU64,
-    error_passive: AtomicU64,
-    error_warning: AtomicU64,
-    restarted: AtomicU64,
-    controller_overflow: AtomicU64,
-    no_ack: AtomicU64,
-    lost_arbitration: AtomicU64,
-    protocol_violations: AtomicU64,
-    transceiver_faults: AtomicU64,
-    tx_timeouts: AtomicU64,
-}
-
-fn bump(c: &AtomicU64) {
-    c.fetch_add(1, Ordering::Relaxed);
-}
 
 /// Per received frame.
 struct RxState {
@@ -181,6 +50,11 @@ struct RxState {
     last: AtomicU64,
     /// Counted as stale (so each episode counts once).
     stale: AtomicBool,
+    /// Frames received.
+    count: AtomicU64,
+    /// A multiplexed frame's: when each signal last came (as `last`; only multiplexed
+    /// signals use theirs). Empty for a frame without multiplexing.
+    signals: Box<[AtomicU64]>,
 }
 
 /// What [`CanCard::receive`] made of a frame.
@@ -208,9 +82,9 @@ pub struct CanCard {
     /// each digital output bit.
     ai_at: Box<[(u32, u32)]>,
     di: BitImage,
-    di_frame: Box<[u32]>,
+    di_at: Box<[(u32, u32)]>,
     encoders: Box<[WrappingCounter]>,
-    enc_frame: Box<[u32]>,
+    enc_at: Box<[(u32, u32)]>,
     ao: Box<[AtomicI64]>,
     ao_at: Box<[(u32, u32)]>,
     dout: BitImage,
@@ -228,8 +102,8 @@ impl CanCard {
     pub fn new(map: CanMap, clock: Arc<dyn Clock>) -> Arc<CanCard> {
         let [ai, ao, di, dout] = map.counts();
         let mut ai_at = vec![(0, 0); ai as usize];
-        let mut di_frame = vec![0; di as usize];
-        let mut enc_frame = vec![0; map.encoder_count() as usize];
+        let mut di_at = vec![(0, 0); di as usize];
+        let mut enc_at = vec![(0, 0); map.encoder_count() as usize];
         let mut ao_at = vec![(0, 0); ao as usize];
         let mut do_frame = vec![0; dout as usize];
         let ao_init: Vec<AtomicI64> = (0..ao).map(|_| AtomicI64::new(0)).collect();
@@ -238,26 +112,22 @@ impl CanCard {
             for (f, frame) in frames.iter().enumerate() {
                 for (k, s) in frame.signals.iter().enumerate() {
                     let (from, to) = (s.channel as usize, (s.channel + s.width()) as usize);
-                    let table = match (s.role, dir) {
-                        (SignalRole::Analog, false) => {
-                            ai_at[from] = (f as u32, k as u32);
-                            continue;
-                        }
+                    let at = (f as u32, k as u32);
+                    match (s.role, dir) {
+                        (SignalRole::Analog, false) => ai_at[from] = at,
                         (SignalRole::Analog, true) => {
-                            ao_at[from] = (f as u32, k as u32);
+                            ao_at[from] = at;
                             ao_init[from].store(s.initial_raw, Ordering::Relaxed);
-                            continue;
                         }
-                        (SignalRole::Digital, false) => &mut di_frame,
-                        (SignalRole::Encoder, _) => &mut enc_frame,
+                        (SignalRole::Digital, false) => di_at[from..to].fill(at),
+                        (SignalRole::Encoder, _) => enc_at[from..to].fill(at),
                         (SignalRole::Digital, true) => {
                             for k in 0..s.width() {
                                 let _ = dout_image.set(s.channel + k, s.initial_raw >> k & 1 == 1);
                             }
-                            &mut do_frame
+                            do_frame[from..to].fill(f as u32);
                         }
-                    };
-                    table[from..to].fill(f as u32);
+                    }
                 }
             }
         }
@@ -272,17 +142,23 @@ impl CanCard {
             rx: map
                 .rx()
                 .iter()
-                .map(|_| RxState {
+                .map(|f| RxState {
                     last: AtomicU64::new(0),
                     stale: AtomicBool::new(false),
+                    count: AtomicU64::new(0),
+                    signals: if f.signals.iter().any(|s| s.mux.is_some()) {
+                        f.signals.iter().map(|_| AtomicU64::new(0)).collect()
+                    } else {
+                        Box::new([])
+                    },
                 })
                 .collect(),
             ai: (0..ai).map(|_| AtomicI64::new(0)).collect(),
             ai_at: ai_at.into(),
             di: BitImage::new(di),
-            di_frame: di_frame.into(),
+            di_at: di_at.into(),
             encoders,
-            enc_frame: enc_frame.into(),
+            enc_at: enc_at.into(),
             ao: ao_init.into(),
             ao_at: ao_at.into(),
             dout: dout_image,
@@ -317,7 +193,7 @@ impl CanCard {
                 .enumerate()
                 .map(|(i, s)| {
                     (
-                        s.name.clone(),
+                        s.port.clone(),
                         Arc::new(CanEncoder::new(self.clone(), i))
                             as Arc<dyn device_interface::Encoder>,
                     )
@@ -389,7 +265,21 @@ impl CanCard {
             bump(&self.counters.rx_bad_length);
             return Received::BadLength;
         }
-        for s in &frame.signals {
+        // A multiplexed message carries the signals of its multiplexer's value only.
+        let mux = frame
+            .signals
+            .iter()
+            .find(|s| s.multiplexer)
+            .and_then(|s| s.signal.extract(data).ok())
+            .map(|raw| raw as u64);
+        let stamp = at.as_nanos().saturating_add(1);
+        for (k, s) in frame.signals.iter().enumerate() {
+            if s.mux.is_some() && s.mux != mux {
+                if let Some(v) = values.as_deref_mut() {
+                    v.push(f64::NAN);
+                }
+                continue;
+            }
             // The length was checked against the map, which checked every signal fits.
             let Ok(raw) = s.signal.extract(data) else {
                 if let Some(v) = values.as_deref_mut() {
@@ -398,10 +288,15 @@ impl CanCard {
                 continue;
             };
             if let Some(v) = values.as_deref_mut() {
-                v.push(s.signal.scale().to_physical(raw));
+                v.push(s.signal.physical(raw));
             }
-            if !s.signal.scale().raw_range().contains(raw) {
+            if !s.signal.in_range(raw) {
                 bump(&self.counters.rx_out_of_range);
+            }
+            if s.mux.is_some()
+                && let Some(t) = self.rx[f].signals.get(k)
+            {
+                t.store(stamp, Ordering::Release);
             }
             match s.role {
                 SignalRole::Analog => self.ai[s.channel as usize].store(raw, Ordering::Release),
@@ -413,9 +308,8 @@ impl CanCard {
                 SignalRole::Encoder => self.encoders[s.channel as usize].sample(raw),
             }
         }
-        self.rx[f]
-            .last
-            .store(at.as_nanos().saturating_add(1), Ordering::Release);
+        self.rx[f].last.store(stamp, Ordering::Release);
+        bump(&self.rx[f].count);
         if self.rx[f].stale.swap(false, Ordering::AcqRel) {
             tracing::info!(frame = %frame.name, "fresh again");
         }
@@ -593,7 +487,32 @@ impl CanCard {
             tx_timeouts: l(&c.tx_timeouts),
             bus_state: Some(self.bus_state()),
             link_up: self.link_up(),
+            messages: self.message_states(),
         }
+    }
+
+    /// Each received message's state now.
+    fn message_states(&self) -> Vec<MessageState> {
+        let now = self.clock.now();
+        self.map
+            .rx()
+            .iter()
+            .enumerate()
+            .map(|(f, frame)| {
+                let last = self.rx[f].last.load(Ordering::Acquire);
+                MessageState {
+                    name: frame.name.clone(),
+                    id: frame.id,
+                    received: self.rx[f].count.load(Ordering::Relaxed),
+                    age_ms: (last != 0).then(|| {
+                        now.duration_since(Timestamp::from_nanos(last - 1))
+                            .as_secs_f64()
+                            * 1000.0
+                    }),
+                    stale: self.frame_age_error(f, frame, now).is_some(),
+                }
+            })
+            .collect()
     }
 
     /// Why frame `f`'s channels cannot be read now, if they cannot.
@@ -623,16 +542,34 @@ impl CanCard {
         }
     }
 
-    /// `Ok` when rx frame `f`'s channels are fresh and the link is up.
-    fn check_frame(&self, f: u32) -> Result<(), DeviceError> {
+    /// `Ok` when signal `k` of rx frame `f` is fresh and the link is up: its frame came
+    /// within the frame's timeout, and — a multiplexed signal — its own multiplexer value
+    /// did too (a frame that keeps coming with other values leaves it stale).
+    fn check_signal(&self, (f, k): (u32, u32)) -> Result<(), DeviceError> {
         self.check_link()?;
-        let f = f as usize;
-        match self.map.rx().get(f) {
-            Some(frame) => match self.frame_age_error(f, frame, self.clock.now()) {
-                Some(e) => Err(e),
-                None => Ok(()),
-            },
-            None => Ok(()),
+        let (f, k) = (f as usize, k as usize);
+        let Some(frame) = self.map.rx().get(f) else {
+            return Ok(());
+        };
+        let now = self.clock.now();
+        if let Some(e) = self.frame_age_error(f, frame, now) {
+            return Err(e);
+        }
+        let Some(seen) = self.rx[f].signals.get(k) else {
+            return Ok(());
+        };
+        if frame.signals.get(k).is_none_or(|s| s.mux.is_none()) {
+            return Ok(());
+        }
+        match seen.load(Ordering::Acquire) {
+            0 => Err(DeviceError::Stale { age: None }),
+            t => {
+                let age = now.duration_since(Timestamp::from_nanos(t - 1));
+                match frame.timeout {
+                    Some(limit) if age > limit => Err(DeviceError::Stale { age: Some(age) }),
+                    _ => Ok(()),
+                }
+            }
         }
     }
 
@@ -664,136 +601,22 @@ impl CanCard {
     }
 
     fn scale_of(&self, tx: bool, channel: u32) -> Result<Scale, DeviceError> {
-        let (f, k) = self.analog_at(tx, channel)?;
+        let at = self.analog_at(tx, channel)?;
+        Ok(*self.signal_at(tx, at).scale())
+    }
+
+    /// The signal at (frame, signal) of the rx or tx frames (a place the map made).
+    fn signal_at(&self, tx: bool, (f, k): (u32, u32)) -> &crate::signal::Signal {
         let frames = if tx { self.map.tx() } else { self.map.rx() };
-        Ok(*frames[f as usize].signals[k as usize].signal.scale())
-    }
-}
-
-/// A bus state as a device error cause.
-#[derive(Debug, thiserror::Error)]
-#[error("CAN controller is {0:?}")]
-struct BusStateError(BusState);
-
-impl Device for CanCard {
-    fn health(&self) -> Health {
-        let now = self.clock.now();
-        let mut status = Status::Online;
-        let mut oldest: Option<u64> = None;
-        for (f, frame) in self.map.rx().iter().enumerate() {
-            if self.frame_age_error(f, frame, now).is_some() {
-                status = Status::Stale;
-            }
-            let t = self.rx[f].last.load(Ordering::Acquire);
-            oldest = Some(oldest.map_or(t, |o| o.min(t)));
-        }
-        if !self.link_up() || self.bus_state() == BusState::BusOff {
-            status = Status::Offline;
-        }
-        Health {
-            status,
-            last_good: oldest
-                .filter(|&t| t != 0)
-                .map(|t| Timestamp::from_nanos(t - 1)),
-            checked_at: now,
-            last_error: self.last_error.load().as_deref().cloned(),
-        }
-    }
-}
-
-impl AnalogIn for CanCard {
-    fn channel_count(&self) -> u32 {
-        self.map.counts()[0]
+        &frames[f as usize].signals[k as usize].signal
     }
 
-    fn scale(&self, channel: u32) -> Result<Scale, DeviceError> {
-        self.scale_of(false, channel)
-    }
-
-    fn read_raw(&self, channel: u32) -> Result<i64, DeviceError> {
-        let (f, _) = self.analog_at(false, channel)?;
-        self.check_frame(f)?;
-        Ok(self.ai[channel as usize].load(Ordering::Acquire))
-    }
-}
-
-impl AnalogOut for CanCard {
-    fn channel_count(&self) -> u32 {
-        self.map.counts()[1]
-    }
-
-    fn scale(&self, channel: u32) -> Result<Scale, DeviceError> {
-        self.scale_of(true, channel)
-    }
-
-    fn write_raw(&self, channel: u32, raw: i64) -> Result<(), DeviceError> {
-        let scale = self.scale_of(true, channel)?;
-        scale.check_raw(channel, raw)?;
+    /// Stores analog output `channel`'s bits (checked by the caller) and sends its frame
+    /// when it goes on change.
+    fn store_output(&self, channel: u32, bits: i64) -> Result<(), DeviceError> {
         self.check_link()?;
-        self.ao[channel as usize].store(raw, Ordering::Release);
+        self.ao[channel as usize].store(bits, Ordering::Release);
         self.output(self.ao_at[channel as usize].0);
         Ok(())
-    }
-
-    fn read_back_raw(&self, channel: u32) -> Result<i64, DeviceError> {
-        self.analog_at(true, channel)?;
-        Ok(self.ao[channel as usize].load(Ordering::Acquire))
-    }
-}
-
-impl device_interface::bits::DigitalInputImage for CanCard {
-    fn inputs(&self) -> &BitImage {
-        &self.di
-    }
-
-    fn check_inputs(&self, span: BitSpan) -> Result<(), DeviceError> {
-        // Each bit is as fresh as the frame it came in.
-        for b in span.start()..=span.stop() {
-            self.check_frame(self.di_frame[b as usize])?;
-        }
-        Ok(())
-    }
-}
-
-impl device_interface::bits::DigitalOutputImage for CanCard {
-    fn outputs(&self) -> &BitImage {
-        &self.dout
-    }
-
-    fn check_outputs_writable(&self) -> Result<(), DeviceError> {
-        self.check_link()
-    }
-
-    fn outputs_written(&self, written: device_interface::bits::Written) {
-        use device_interface::bits::Written;
-        let (start, stop) = match written {
-            Written::Bit { bit, .. } => (bit, bit),
-            Written::Span { span, .. } => (span.start(), span.stop()),
-        };
-        let mut last = None;
-        for b in start..=stop {
-            let f = self.do_frame[b as usize];
-            if last != Some(f) {
-                self.output(f);
-                last = Some(f);
-            }
-        }
-    }
-}
-
-/// One position-counter signal of a [`CanCard`], as a device of its own.
-pub type CanEncoder = device_interface::encoder::CardEncoder<CanCard>;
-
-impl device_interface::encoder::EncoderHost for CanCard {
-    fn encoder_counter(&self, index: usize) -> &device_interface::encoder::EncoderCounter {
-        self.encoders[index].counter()
-    }
-
-    fn check_encoder(&self, index: usize) -> Result<(), DeviceError> {
-        self.check_frame(self.enc_frame[index])
-    }
-
-    fn check_writable(&self) -> Result<(), DeviceError> {
-        self.check_link()
     }
 }

@@ -1,0 +1,227 @@
+//! The device interfaces of a CAN card: its channels read from and written to the images
+//! the bus side fills and empties, each checked against its own frame's (or multiplexed
+//! signal's) freshness and the link.
+
+use super::{BusState, CanCard};
+use crate::signal::{Signal, ValueKind};
+use device_interface::bits::{BitImage, BitSpan};
+use device_interface::time::Timestamp;
+use device_interface::{AnalogIn, AnalogOut, Device, DeviceError, Health, Scale, Status};
+use std::sync::atomic::Ordering;
+
+/// The health of the card's devices, per received message: online while the link is up
+/// and any received message is fresh (one message never seen, or slow, makes only its own
+/// channels stale — each channel's read says so); stale when every one is; offline when
+/// the link is down or the controller off the bus. `hwgw status` lists each message's age.
+impl Device for CanCard {
+    fn health(&self) -> Health {
+        let now = self.clock.now();
+        let mut fresh = self.map.rx().is_empty();
+        let mut newest: u64 = 0;
+        for (f, frame) in self.map.rx().iter().enumerate() {
+            if self.frame_age_error(f, frame, now).is_none() {
+                fresh = true;
+            }
+            newest = newest.max(self.rx[f].last.load(Ordering::Acquire));
+        }
+        let status = if !self.link_up() || self.bus_state() == BusState::BusOff {
+            Status::Offline
+        } else if fresh {
+            Status::Online
+        } else {
+            Status::Stale
+        };
+        Health {
+            status,
+            last_good: (newest != 0).then(|| Timestamp::from_nanos(newest - 1)),
+            checked_at: now,
+            last_error: self.last_error.load().as_deref().cloned(),
+        }
+    }
+}
+
+impl CanCard {
+    /// Analog input `channel`'s raw bits, its signal fresh.
+    fn input_bits(&self, channel: u32) -> Result<(i64, &Signal), DeviceError> {
+        let at = self.analog_at(false, channel)?;
+        self.check_signal(at)?;
+        let bits = self.ai[channel as usize].load(Ordering::Acquire);
+        Ok((bits, self.signal_at(false, at)))
+    }
+
+    /// The physical value of `bits` of `signal` on `channel`: an error for NaN and the
+    /// infinities a float signal can carry.
+    fn value_of(channel: u32, signal: &Signal, bits: i64) -> Result<f64, DeviceError> {
+        let v = signal.physical(bits);
+        if v.is_finite() {
+            return Ok(v);
+        }
+        Err(DeviceError::NotANumber {
+            channel,
+            what: if v.is_nan() {
+                "NaN"
+            } else if v > 0.0 {
+                "+inf"
+            } else {
+                "-inf"
+            },
+        })
+    }
+
+    /// The raw value of `bits` as the channel's scale counts it: the integer itself; a
+    /// float's nearest step; an unsigned 64-bit value above 2^63 − 1 is out of the raw
+    /// range (`read` gives it).
+    fn raw_of_bits(channel: u32, signal: &Signal, bits: i64) -> Result<i64, DeviceError> {
+        let scale = signal.scale();
+        match signal.kind() {
+            ValueKind::Integer if signal.layout().1 == 64 && !signal.layout().3 && bits < 0 => {
+                let r = scale.range();
+                Err(DeviceError::ValueOutOfRange {
+                    channel,
+                    value: signal.physical(bits),
+                    lowest: r.lowest,
+                    highest: r.highest,
+                })
+            }
+            ValueKind::Integer => Ok(bits),
+            _ => Ok(scale.to_raw_saturating(Self::value_of(channel, signal, bits)?)),
+        }
+    }
+}
+
+impl AnalogIn for CanCard {
+    fn channel_count(&self) -> u32 {
+        self.map.counts()[0]
+    }
+
+    fn scale(&self, channel: u32) -> Result<Scale, DeviceError> {
+        self.scale_of(false, channel)
+    }
+
+    fn read_raw(&self, channel: u32) -> Result<i64, DeviceError> {
+        let (bits, signal) = self.input_bits(channel)?;
+        Self::raw_of_bits(channel, signal, bits)
+    }
+
+    fn read(&self, channel: u32) -> Result<f64, DeviceError> {
+        let (bits, signal) = self.input_bits(channel)?;
+        Self::value_of(channel, signal, bits)
+    }
+}
+
+impl AnalogOut for CanCard {
+    fn channel_count(&self) -> u32 {
+        self.map.counts()[1]
+    }
+
+    fn scale(&self, channel: u32) -> Result<Scale, DeviceError> {
+        self.scale_of(true, channel)
+    }
+
+    fn write(&self, channel: u32, value: f64) -> Result<(), DeviceError> {
+        let signal = self.signal_at(true, self.analog_at(true, channel)?);
+        let bits = signal.raw_of(value).ok_or_else(|| {
+            let r = signal.scale().range();
+            DeviceError::ValueOutOfRange {
+                channel,
+                value,
+                lowest: r.lowest,
+                highest: r.highest,
+            }
+        })?;
+        self.store_output(channel, bits)
+    }
+
+    fn write_raw(&self, channel: u32, raw: i64) -> Result<(), DeviceError> {
+        let signal = self.signal_at(true, self.analog_at(true, channel)?);
+        signal.scale().check_raw(channel, raw)?;
+        let bits = match signal.kind() {
+            ValueKind::Integer => raw,
+            // A float's raw value is a step of its scale: sent as the float it stands for.
+            _ => signal.raw_of(signal.scale().to_physical(raw)).ok_or(
+                DeviceError::RawOutOfRange {
+                    channel,
+                    raw,
+                    min: signal.scale().raw_range().min,
+                    max: signal.scale().raw_range().max,
+                },
+            )?,
+        };
+        self.store_output(channel, bits)
+    }
+
+    fn read_back(&self, channel: u32) -> Result<f64, DeviceError> {
+        let signal = self.signal_at(true, self.analog_at(true, channel)?);
+        Self::value_of(
+            channel,
+            signal,
+            self.ao[channel as usize].load(Ordering::Acquire),
+        )
+    }
+
+    fn read_back_raw(&self, channel: u32) -> Result<i64, DeviceError> {
+        let signal = self.signal_at(true, self.analog_at(true, channel)?);
+        Self::raw_of_bits(
+            channel,
+            signal,
+            self.ao[channel as usize].load(Ordering::Acquire),
+        )
+    }
+}
+
+impl device_interface::bits::DigitalInputImage for CanCard {
+    fn inputs(&self) -> &BitImage {
+        &self.di
+    }
+
+    fn check_inputs(&self, span: BitSpan) -> Result<(), DeviceError> {
+        // Each bit is as fresh as the frame it came in.
+        for b in span.start()..=span.stop() {
+            self.check_signal(self.di_at[b as usize])?;
+        }
+        Ok(())
+    }
+}
+
+impl device_interface::bits::DigitalOutputImage for CanCard {
+    fn outputs(&self) -> &BitImage {
+        &self.dout
+    }
+
+    fn check_outputs_writable(&self) -> Result<(), DeviceError> {
+        self.check_link()
+    }
+
+    fn outputs_written(&self, written: device_interface::bits::Written) {
+        use device_interface::bits::Written;
+        let (start, stop) = match written {
+            Written::Bit { bit, .. } => (bit, bit),
+            Written::Span { span, .. } => (span.start(), span.stop()),
+        };
+        let mut last = None;
+        for b in start..=stop {
+            let f = self.do_frame[b as usize];
+            if last != Some(f) {
+                self.output(f);
+                last = Some(f);
+            }
+        }
+    }
+}
+
+/// One position-counter signal of a [`CanCard`], as a device of its own.
+pub type CanEncoder = device_interface::encoder::CardEncoder<CanCard>;
+
+impl device_interface::encoder::EncoderHost for CanCard {
+    fn encoder_counter(&self, index: usize) -> &device_interface::encoder::EncoderCounter {
+        self.encoders[index].counter()
+    }
+
+    fn check_encoder(&self, index: usize) -> Result<(), DeviceError> {
+        self.check_signal(self.enc_at[index])
+    }
+
+    fn check_writable(&self) -> Result<(), DeviceError> {
+        self.check_link()
+    }
+}

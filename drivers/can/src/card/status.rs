@@ -1,0 +1,163 @@
+//! What a CAN card reports of its bus: the controller's error state, what error frames
+//! said, and the counters of frames, errors and staleness (`hwgw status`).
+
+use std::sync::atomic::{AtomicU64, Ordering};
+
+/// The controller's error state, as error frames report it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum BusState {
+    /// Normal operation (also the state before any error frame).
+    ErrorActive,
+    /// An error counter passed 96.
+    ErrorWarning,
+    /// An error counter passed 127: the controller no longer sends active error flags.
+    ErrorPassive,
+    /// The transmit error counter passed 255: the controller is off the bus.
+    BusOff,
+}
+
+impl BusState {
+    pub(super) fn from_u8(v: u8) -> BusState {
+        match v {
+            1 => BusState::ErrorWarning,
+            2 => BusState::ErrorPassive,
+            3 => BusState::BusOff,
+            _ => BusState::ErrorActive,
+        }
+    }
+}
+
+/// What an error frame reported, decoded by the bus side.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ErrorReport {
+    /// The controller went bus-off.
+    pub bus_off: bool,
+    /// The controller was restarted (back to error-active).
+    pub restarted: bool,
+    /// Controller reached error-warning.
+    pub warning: bool,
+    /// Controller reached error-passive.
+    pub passive: bool,
+    /// Controller is back to error-active.
+    pub active: bool,
+    /// RX or TX buffer overflow in the controller.
+    pub overflow: bool,
+    /// No acknowledgement of a sent frame.
+    pub no_ack: bool,
+    /// Arbitration lost.
+    pub lost_arbitration: bool,
+    /// A protocol violation (bit, form, stuff, CRC …).
+    pub protocol: bool,
+    /// A transceiver (wiring) fault.
+    pub transceiver: bool,
+    /// The driver timed out sending.
+    pub tx_timeout: bool,
+}
+
+/// A snapshot of a card's counters.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct CanCounters {
+    /// Mapped frames received and decoded.
+    pub rx_frames: u64,
+    /// Frames with an id the card does not map (the kernel filters should drop these).
+    pub rx_unknown_id: u64,
+    /// Mapped frames with the wrong payload length (not decoded).
+    pub rx_bad_length: u64,
+    /// Mapped frames of the wrong kind (classic for FD or the reverse, remote frames).
+    pub rx_bad_kind: u64,
+    /// Received signal values outside their declared [min|max] (decoded anyway).
+    pub rx_out_of_range: u64,
+    /// Frames the kernel dropped because the socket's queue was full.
+    pub rx_dropped: u64,
+    /// Frames sent.
+    pub tx_frames: u64,
+    /// Sends that failed (buffer full, link down, controller off).
+    pub tx_errors: u64,
+    /// Cycles of cyclic frames left out because the bus thread woke too late for them
+    /// (the schedule keeps its phase instead of sending a burst).
+    pub tx_skipped_cycles: u64,
+    /// Times a received frame went stale.
+    pub stale_events: u64,
+    /// Times the link went down.
+    pub link_down_events: u64,
+    /// Error frames.
+    pub error_frames: u64,
+    /// Bus-off events.
+    pub bus_off: u64,
+    /// Error-passive events.
+    pub error_passive: u64,
+    /// Error-warning events.
+    pub error_warning: u64,
+    /// Controller restarts.
+    pub restarted: u64,
+    /// Controller buffer overflows.
+    pub controller_overflow: u64,
+    /// Missing acknowledgements.
+    pub no_ack: u64,
+    /// Lost arbitrations.
+    pub lost_arbitration: u64,
+    /// Protocol violations.
+    pub protocol_violations: u64,
+    /// Transceiver faults.
+    pub transceiver_faults: u64,
+    /// Driver transmit timeouts.
+    pub tx_timeouts: u64,
+    /// The controller state now.
+    pub bus_state: Option<BusState>,
+    /// The link is up.
+    pub link_up: bool,
+    /// Each received message: how many came, how long ago the last, whether it is stale
+    /// (its own channels then read as stale; the others not).
+    pub messages: Vec<MessageState>,
+}
+
+/// One received message's state.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct MessageState {
+    /// Its name (the DBC message's, or the id in hex).
+    pub name: String,
+    /// Its CAN id.
+    pub id: u32,
+    /// Frames of it received.
+    pub received: u64,
+    /// Since the last one, ms (none: never received).
+    pub age_ms: Option<f64>,
+    /// Not received within its timeout (or never).
+    pub stale: bool,
+}
+
+#[derive(Default)]
+pub(super) struct Counters {
+    pub(super) rx_frames: AtomicU64,
+    pub(super) rx_unknown_id: AtomicU64,
+    pub(super) rx_bad_length: AtomicU64,
+    pub(super) rx_bad_kind: AtomicU64,
+    pub(super) rx_out_of_range: AtomicU64,
+    pub(super) rx_dropped: AtomicU64,
+    pub(super) tx_frames: AtomicU64,
+    pub(super) tx_errors: AtomicU64,
+    pub(super) tx_skipped_cycles: AtomicU64,
+    pub(super) stale_events: AtomicU64,
+    pub(super) link_down_events: AtomicU64,
+    pub(super) error_frames: AtomicU64,
+    pub(super) bus_off: AtomicU64,
+    pub(super) error_passive: AtomicU64,
+    pub(super) error_warning: AtomicU64,
+    pub(super) restarted: AtomicU64,
+    pub(super) controller_overflow: AtomicU64,
+    pub(super) no_ack: AtomicU64,
+    pub(super) lost_arbitration: AtomicU64,
+    pub(super) protocol_violations: AtomicU64,
+    pub(super) transceiver_faults: AtomicU64,
+    pub(super) tx_timeouts: AtomicU64,
+}
+
+pub(super) fn bump(c: &AtomicU64) {
+    c.fetch_add(1, Ordering::Relaxed);
+}
+
+/// A bus state as a device error cause.
+#[derive(Debug, thiserror::Error)]
+#[error("CAN controller is {0:?}")]
+pub(super) struct BusStateError(pub(super) BusState);

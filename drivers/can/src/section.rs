@@ -1,0 +1,134 @@
+//! A CAN card's section of a deployment (`[card.socketcan]`): the interface, the DBC file,
+//! and the frames to receive and send with their signals, as the TOML says them (serde,
+//! unknown keys refused). [`CanMap`](crate::map::CanMap) resolves and checks them.
+
+use crate::signal::ByteOrder;
+use serde::Deserialize;
+use std::path::PathBuf;
+
+/// A card's `[card.socketcan]` section.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CanConfig {
+    /// The network interface (`can0`, `vcan0`).
+    pub interface: String,
+    /// A DBC file to take messages from (relative to the deployment file's directory).
+    #[serde(default)]
+    pub dbc: Option<PathBuf>,
+    /// The DBC file's text encoding: `auto` (UTF-8 when it is, else Windows-1252, the
+    /// default), `utf8` or `cp1252`.
+    #[serde(default)]
+    pub encoding: crate::dbc::Encoding,
+    /// A received frame's channels go stale after this many missed cycles (default 3).
+    #[serde(default = "default_stale_cycles")]
+    pub stale_after_cycles: u32,
+    /// How often the link state is checked while nothing else happens, in ms (default 100).
+    #[serde(default = "default_link_check")]
+    pub link_check_ms: f64,
+    /// Frames to receive.
+    #[serde(default)]
+    pub rx: Vec<FrameConfig>,
+    /// Frames to send.
+    #[serde(default)]
+    pub tx: Vec<FrameConfig>,
+}
+
+fn default_stale_cycles() -> u32 {
+    3
+}
+
+fn default_link_check() -> f64 {
+    100.0
+}
+
+/// One `[[rx]]` or `[[tx]]` frame.
+#[derive(Debug, Clone, Default, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FrameConfig {
+    /// A DBC message by name (then id, length and signals come from the file).
+    #[serde(default)]
+    pub message: Option<String>,
+    /// The CAN id (inline frames).
+    #[serde(default)]
+    pub id: Option<u32>,
+    /// A 29-bit id (inline frames).
+    #[serde(default)]
+    pub extended: bool,
+    /// Payload bytes (inline frames; default 8).
+    #[serde(default)]
+    pub length: Option<usize>,
+    /// A CAN FD frame.
+    #[serde(default)]
+    pub fd: bool,
+    /// rx: the sender's cycle (for staleness); tx: the send period.
+    #[serde(default)]
+    pub cycle_ms: Option<f64>,
+    /// rx: stale after this long without the frame (overrides `stale_after_cycles`).
+    #[serde(default)]
+    pub timeout_ms: Option<f64>,
+    /// tx: send as soon as an output changes (default: only when there is no cycle).
+    #[serde(default)]
+    pub on_change: Option<bool>,
+    /// Inline signals, or settings for DBC signals by name.
+    #[serde(default)]
+    pub signal: Vec<SignalConfig>,
+}
+
+/// What a signal is as a device channel.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SignalRole {
+    /// An analog channel (the default for signals longer than one bit).
+    Analog,
+    /// Digital bits (the default for 1-bit signals).
+    Digital,
+    /// A position counter (received signals only).
+    Encoder,
+}
+
+/// One signal table.
+#[derive(Debug, Clone, Default, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SignalConfig {
+    /// Its name (a DBC signal's name on DBC messages).
+    pub name: String,
+    /// DBC start bit.
+    #[serde(default)]
+    pub start: Option<u32>,
+    /// Length in bits.
+    #[serde(default)]
+    pub length: Option<u32>,
+    /// Byte order (default Intel).
+    #[serde(default)]
+    pub byte_order: Option<ByteOrder>,
+    /// Signed (default false).
+    #[serde(default)]
+    pub signed: Option<bool>,
+    /// `physical = raw * factor + offset` (default 1).
+    #[serde(default)]
+    pub factor: Option<f64>,
+    /// Default 0.
+    #[serde(default)]
+    pub offset: Option<f64>,
+    /// Physical minimum (with `max`; default none).
+    #[serde(default)]
+    pub min: Option<f64>,
+    /// Physical maximum.
+    #[serde(default)]
+    pub max: Option<f64>,
+    /// Unit.
+    #[serde(default)]
+    pub unit: Option<String>,
+    /// The channel kind.
+    #[serde(default, rename = "as")]
+    pub role: Option<SignalRole>,
+    /// Encoders: counts per turn.
+    #[serde(default)]
+    pub resolution: Option<i64>,
+    /// Encoders: counting direction (default up).
+    #[serde(default)]
+    pub upcounting: Option<bool>,
+    /// tx: the physical value sent before the first write (default: raw 0).
+    #[serde(default)]
+    pub initial: Option<f64>,
+}
