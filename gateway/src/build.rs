@@ -346,7 +346,8 @@ impl Build<'_, '_, '_> {
                 Err(e) => self.problems.at(&c.config, e),
             }
             let sample = millis(cfg.sample_period_ms.unwrap_or(cfg.period_ms));
-            match io::build(runtime, &c.name, sample, &c.names) {
+            let details = c.card.channel_details();
+            match io::build(runtime, &c.name, sample, &c.names, &details) {
                 Ok(ts) => order.extend(ts),
                 Err(e) => self.problems.at(&c.config, e),
             }

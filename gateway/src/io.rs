@@ -14,6 +14,7 @@ use crate::config::ChannelNames;
 use device_interface::{
     AnalogIn, AnalogOut, Device, DeviceError, DigitalIn, DigitalOut, Encoder, Health, Interface,
 };
+use driver_api::{ChannelDetail, ChannelDetails};
 use rtt::component::{IntrospectError, PortData};
 use rtt::port::{FlowStatus, InputPort, OutputPort};
 use rtt::{
@@ -366,15 +367,57 @@ impl<D: ?Sized + Writable> Component for Driven<D> {
     }
 }
 
+/// A channel port's documentation: what it is, and what the driver says of it.
+fn port_doc(kind: &str, channel: u32, detail: Option<&ChannelDetail>) -> String {
+    match detail.and_then(|d| d.doc.as_deref()) {
+        Some(doc) => format!("{kind} {channel}: {doc}"),
+        None => format!("{kind} {channel}"),
+    }
+}
+
+/// Gives a channel port the value names the driver has for it, as the port's type carries
+/// them (a digital port's 0 and 1 as false and true).
+fn name_values<C: Send + 'static, V: serde::Serialize + 'static>(
+    iface: &mut rtt::InterfaceBuilder<C>,
+    port: &str,
+    detail: Option<&ChannelDetail>,
+) -> Result<(), IntrospectError> {
+    let Some(d) = detail.filter(|d| !d.values.is_empty()) else {
+        return Ok(());
+    };
+    let digital = std::any::TypeId::of::<V>() == std::any::TypeId::of::<bool>();
+    let values = d
+        .values
+        .iter()
+        .filter_map(|(v, name)| {
+            let value = if digital {
+                match *v {
+                    0.0 => serde_json::Value::Bool(false),
+                    1.0 => serde_json::Value::Bool(true),
+                    _ => return None,
+                }
+            } else {
+                serde_json::Number::from_f64(*v).map(serde_json::Value::Number)?
+            };
+            Some(rtt::component::NamedValue {
+                name: name.clone(),
+                value,
+            })
+        })
+        .collect();
+    iface.name_values(port, values)
+}
+
 /// The sampling IO component of input device `name`.
 fn sampled<D: ?Sized + Channels>(
     runtime: &Runtime,
     name: &str,
     device: Arc<D>,
-    names: &[String],
+    (names, details): (&[String], &[ChannelDetail]),
     sample: Duration,
 ) -> Result<TaskContext, RuntimeError> {
     let names = names.to_vec();
+    let details = details.to_vec();
     let component = format!("{name}.{}", D::SUFFIX);
     let spec = ActivitySpec::Periodic {
         period: sample,
@@ -386,9 +429,12 @@ fn sampled<D: ?Sized + Channels>(
         let ports = (0..device.count())
             .map(|c| {
                 let port = ChannelNames::port(&names, D::PREFIX, c);
-                iface.output(&port, &format!("{} {c}", D::DOC))
+                let detail = details.get(c as usize);
+                let p = iface.output(&port, &port_doc(D::DOC, c, detail))?;
+                name_values::<_, D::Value>(iface, &port, detail)?;
+                Ok(p)
             })
-            .collect::<Result<_, _>>()?;
+            .collect::<Result<_, IntrospectError>>()?;
         D::operations(&device, iface)?;
         health_op(iface, &device)?;
         Ok(Sampled { device, ports })
@@ -401,9 +447,10 @@ fn driven<D: ?Sized + Writable>(
     runtime: &Runtime,
     name: &str,
     device: Arc<D>,
-    names: &[String],
+    (names, details): (&[String], &[ChannelDetail]),
 ) -> Result<TaskContext, RuntimeError> {
     let names = names.to_vec();
+    let details = details.to_vec();
     let component = format!("{name}.{}", D::SUFFIX);
     runtime.add(
         &component,
@@ -414,14 +461,17 @@ fn driven<D: ?Sized + Writable>(
                 .map(|c| {
                     let port = ChannelNames::port(&names, D::PREFIX, c);
                     let (d, k) = (device.clone(), device.clone());
-                    iface.event_input_driving(
+                    let detail = details.get(c as usize);
+                    let p = iface.event_input_driving(
                         &port,
-                        &format!("{} {c}", D::DOC),
+                        &port_doc(D::DOC, c, detail),
                         move || d.get(c).ok(),
                         move |v| k.accepts(c, *v).map_err(|e| e.to_string()),
-                    )
+                    )?;
+                    name_values::<_, D::Value>(iface, &port, detail)?;
+                    Ok(p)
                 })
-                .collect::<Result<_, _>>()?;
+                .collect::<Result<_, IntrospectError>>()?;
             D::operations(&device, iface)?;
             health_op(iface, &device)?;
             Ok(Driven {
@@ -497,6 +547,7 @@ pub fn build(
     card: &str,
     sample: Duration,
     names: &ChannelNames,
+    details: &ChannelDetails,
 ) -> Result<Vec<TaskContext>, RuntimeError> {
     let registry = runtime.registry().clone();
     let mut out = Vec::new();
@@ -506,22 +557,32 @@ pub fn build(
         }
         let n = e.info.name.as_str();
         let task = match e.interface {
-            Interface::AnalogIn => registry
-                .analog_in()
-                .get(n)
-                .map(|d| sampled(runtime, n, d, &names.analog_in, sample)),
-            Interface::DigitalIn => registry
-                .digital_in()
-                .get(n)
-                .map(|d| sampled(runtime, n, d, &names.digital_in, sample)),
+            Interface::AnalogIn => registry.analog_in().get(n).map(|d| {
+                sampled(
+                    runtime,
+                    n,
+                    d,
+                    (&names.analog_in, &details.analog_in),
+                    sample,
+                )
+            }),
+            Interface::DigitalIn => registry.digital_in().get(n).map(|d| {
+                sampled(
+                    runtime,
+                    n,
+                    d,
+                    (&names.digital_in, &details.digital_in),
+                    sample,
+                )
+            }),
             Interface::AnalogOut => registry
                 .analog_out()
                 .get(n)
-                .map(|d| driven(runtime, n, d, &names.analog_out)),
+                .map(|d| driven(runtime, n, d, (&names.analog_out, &details.analog_out))),
             Interface::DigitalOut => registry
                 .digital_out()
                 .get(n)
-                .map(|d| driven(runtime, n, d, &names.digital_out)),
+                .map(|d| driven(runtime, n, d, (&names.digital_out, &details.digital_out))),
             Interface::Encoder => registry
                 .encoder()
                 .get(n)

@@ -87,6 +87,32 @@ fn plain(v: &Value) -> String {
     }
 }
 
+/// A counter that is a list of records (a CAN card's messages) as a table of its own, a
+/// column a field (named after the first record's); `None` for any other value.
+fn rows_of(v: &Value) -> Option<String> {
+    let list = v.as_array()?;
+    let first = list.first()?.as_object()?;
+    let columns: Vec<String> = first.keys().map(|k| k.to_uppercase()).collect();
+    let rows: Vec<Vec<String>> = list
+        .iter()
+        .map(|r| {
+            first
+                .keys()
+                .map(|k| match r.get(k) {
+                    None | Some(Value::Null) => "-".into(),
+                    Some(Value::Number(n)) if n.is_f64() => {
+                        n.as_f64().map_or(n.to_string(), |x| format!("{x:.1}"))
+                    }
+                    Some(Value::Array(a)) => a.iter().map(plain).collect::<Vec<_>>().join(","),
+                    Some(x) => plain(x),
+                })
+                .collect()
+        })
+        .collect();
+    let columns: Vec<&str> = columns.iter().map(String::as_str).collect();
+    Some(table(&columns, &rows))
+}
+
 /// `hwgw status`: health, then devices, cards and components.
 pub fn status(s: &StatusReport) -> String {
     let mut out = vec![format!("health: {}", s.health), String::new()];
@@ -109,6 +135,7 @@ pub fn status(s: &StatusReport) -> String {
     ));
     if !s.cards.is_empty() {
         out.push(String::new());
+        let mut lists = Vec::new();
         let cards: Vec<Vec<String>> = s
             .cards
             .iter()
@@ -117,7 +144,13 @@ pub fn status(s: &StatusReport) -> String {
                     .status
                     .counters
                     .iter()
-                    .map(|(k, v)| format!("{k}={}", plain(v)))
+                    .filter_map(|(k, v)| match rows_of(v) {
+                        Some(rows) => {
+                            lists.push(format!("{} {k}:\n{}", c.name, rows));
+                            None
+                        }
+                        None => Some(format!("{k}={}", plain(v))),
+                    })
                     .collect();
                 vec![
                     c.name.clone(),
@@ -128,6 +161,10 @@ pub fn status(s: &StatusReport) -> String {
             })
             .collect();
         out.push(table(&["CARD", "DRIVER", "BUS", "COUNTERS"], &cards));
+        for l in lists {
+            out.push(String::new());
+            out.push(l);
+        }
     }
     if !s.servers.is_empty() {
         out.push(String::new());
@@ -200,12 +237,14 @@ pub fn description(d: &Description, values: &[Option<Value>]) -> String {
     let mut out = vec![format!("{} [{}]", d.name, state(d.state))];
     out.push("ports:".into());
     for (i, p) in d.ports.iter().enumerate() {
-        let value = values
-            .get(i)
-            .cloned()
-            .flatten()
-            .map(|v| v.to_string())
+        let current = values.get(i).cloned().flatten();
+        // A value with a name (a DBC value description) shows it.
+        let named = current
+            .as_ref()
+            .and_then(|v| p.values.iter().find(|n| n.value == *v))
+            .map(|n| format!(" ({})", n.name))
             .unwrap_or_default();
+        let value = current.map(|v| format!("{v}{named}")).unwrap_or_default();
         let dir = match p.direction {
             rtt::component::Direction::Output => "out",
             rtt::component::Direction::Input => "in",
@@ -219,6 +258,14 @@ pub fn description(d: &Description, values: &[Option<Value>]) -> String {
             "  {:<3} {:<16} {:<8} {:<12} {:<14} {}",
             dir, p.name, p.type_name, value, links, p.doc
         ));
+        if !p.values.is_empty() {
+            let names: Vec<String> = p
+                .values
+                .iter()
+                .map(|n| format!("{} = {}", n.value, n.name))
+                .collect();
+            out.push(format!("      values: {}", names.join(", ")));
+        }
     }
     out.push("operations:".into());
     for o in &d.operations {

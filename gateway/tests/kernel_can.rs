@@ -103,13 +103,296 @@ fn hwgw_reads_writes_and_leaves_safe_frames() -> Result<(), Failed> {
     Ok(())
 }
 
+/// The DBC file as CANdb++ writes them: Windows-1252 (°), a message pseudo-placed for
+/// unplaced signals, names repeated across messages, an IEEE float, a 64-bit unsigned
+/// value, a Motorola signal, simple multiplexing, value tables, comments over lines and a
+/// cycle time from an attribute. `\xB0` is the degree sign in Windows-1252.
+const VEHICLE_DBC: &[u8] = b"VERSION \"\"\r
+\r
+NS_ :\r
+\tNS_DESC_\r
+\tCM_\r
+\tBA_DEF_\r
+\tBA_\r
+\tVAL_\r
+\tSIG_VALTYPE_\r
+\r
+BS_:\r
+\r
+BU_: ECU GW\r
+\r
+BO_ 256 EngineData: 8 ECU\r
+ SG_ Counter : 0|4@1+ (1,0) [0|15] \"\" GW\r
+ SG_ CRC : 8|8@1+ (1,0) [0|255] \"\" GW\r
+ SG_ OilTemp : 16|8@1+ (1,-40) [-40|215] \"\xB0C\" GW\r
+ SG_ Level : 24|32@1+ (1,0) [0|100] \"%\" GW\r
+\r
+BO_ 257 Brake: 8 ECU\r
+ SG_ Counter : 0|4@1+ (1,0) [0|15] \"\" GW\r
+ SG_ CRC : 8|8@1+ (1,0) [0|255] \"\" GW\r
+ SG_ Pressure : 23|16@0+ (0.1,0) [0|6553.5] \"bar\" GW\r
+\r
+BO_ 258 Odometer: 8 ECU\r
+ SG_ Total : 0|64@1+ (1,0) [0|18446744073709551615] \"m\" GW\r
+\r
+BO_ 259 Diag : 4 ECU\r
+ SG_ Page M : 0|8@1+ (1,0) [0|255] \"\" GW\r
+ SG_ Volts m1 : 8|16@1+ (0.001,0) [0|65.535] \"V\" GW\r
+ SG_ Amps m2 : 8|16@1- (0.01,0) [-327.68|327.67] \"A\" GW\r
+\r
+BO_ 260 Event: 1 ECU\r
+ SG_ Alarm : 0|1@1+ (1,0) [0|1] \"\" GW\r
+\r
+BO_ 512 Command: 2 GW\r
+ SG_ Gear : 0|3@1+ (1,0) [0|7] \"\" ECU\r
+ SG_ Lamp : 8|1@1+ (1,0) [0|1] \"\" ECU\r
+\r
+BO_ 3221225472 VECTOR__INDEPENDENT_SIG_MSG: 0 Vector__XXX\r
+ SG_ Orphan : 0|8@1+ (1,0) [0|0] \"\" Vector__XXX\r
+\r
+CM_ BO_ 260 \"Sent on change only\";\r
+CM_ SG_ 256 OilTemp \"Oil temperature in \xB0C,\r
+at the sump\";\r
+BA_DEF_ BO_  \"GenMsgCycleTime\" INT 0 65535;\r
+BA_DEF_DEF_  \"GenMsgCycleTime\" 0;\r
+BA_ \"GenMsgCycleTime\" BO_ 256 100;\r
+VAL_ 512 Gear 0 \"P\" 1 \"R\" 2 \"N\" 3 \"D\" ;\r
+VAL_ 512 Lamp 0 \"off\" 1 \"on\" ;\r
+SIG_VALTYPE_ 256 Level : 1;\r
+";
+
+/// A deployment of [`VEHICLE_DBC`] on `vcan1`: everything received, Command sent.
+const VEHICLE_TOML: &str = r#"
+[[card]]
+name = "can"
+driver = "socketcan"
+sample_period_ms = 10
+safe_analog_out = [0.0]
+safe_digital_out_on = []
+
+[card.socketcan]
+interface = "vcan1"
+dbc = "vehicle.dbc"
+
+[[card.socketcan.rx]]
+message = "EngineData"
+
+[[card.socketcan.rx]]
+message = "Brake"
+
+[[card.socketcan.rx]]
+message = "Odometer"
+
+[[card.socketcan.rx]]
+message = "Diag"
+
+[[card.socketcan.rx]]
+message = "Event"
+
+[[card.socketcan.tx]]
+message = "Command"
+cycle_ms = 10
+"#;
+
+/// `hwgw get COMPONENT PORT` as a number.
+fn number(gw: &Service, component: &str, port: &str) -> Result<f64, Failed> {
+    let text = out(gw, &["get", component, port])?;
+    Ok(text
+        .trim()
+        .parse::<f64>()
+        .map_err(|e| format!("get {component} {port}: {text:?}: {e}"))?)
+}
+
+/// The card's message states from `hwgw status --json`, by name: (received, stale).
+fn messages(gw: &Service) -> Result<Vec<(String, u64, bool)>, Failed> {
+    let status: serde_json::Value = serde_json::from_str(&out(gw, &["--json", "status"])?)?;
+    let list = status["cards"][0]["counters"]["messages"]
+        .as_array()
+        .ok_or_else(|| format!("no messages in {status}"))?;
+    Ok(list
+        .iter()
+        .map(|m| {
+            (
+                m["name"].as_str().unwrap_or("").to_string(),
+                m["received"].as_u64().unwrap_or(0),
+                m["stale"].as_bool().unwrap_or(false),
+            )
+        })
+        .collect())
+}
+
+/// The status of the card's devices in `hwgw status --json` (one health for the card's
+/// devices of every interface).
+fn card_status(gw: &Service) -> Result<Vec<String>, Failed> {
+    let status: serde_json::Value = serde_json::from_str(&out(gw, &["--json", "status"])?)?;
+    let list = status["devices"]
+        .as_array()
+        .ok_or_else(|| format!("no devices in {status}"))?;
+    Ok(list
+        .iter()
+        .filter(|d| d["name"] == "can")
+        .map(|d| d["status"].as_str().unwrap_or("").to_string())
+        .collect())
+}
+
+/// `hwgw call can.ai read CHANNEL`: the answer's `Ok` value, or its error text.
+fn read_channel(gw: &Service, channel: u32) -> Result<Result<f64, String>, Failed> {
+    let text = out(
+        gw,
+        &["--json", "call", "can.ai", "read", &channel.to_string()],
+    )?;
+    let v: serde_json::Value = serde_json::from_str(&text)?;
+    Ok(match (v["Ok"].as_f64(), v["Err"].as_str()) {
+        (Some(x), _) => Ok(x),
+        (_, Some(e)) => Err(e.to_string()),
+        _ => Err(text),
+    })
+}
+
+fn a_vehicle_dbc_as_tools_write_it() -> Result<(), Failed> {
+    sh("ip link add vcan1 type vcan && ip link set vcan1 up")?;
+    let dir = testkit::TempDir::new("can-vehicle-files");
+    std::fs::write(dir.path().join("vehicle.dbc"), VEHICLE_DBC)?;
+    let toml = dir.path().join("vehicle.toml");
+    std::fs::write(&toml, VEHICLE_TOML)?;
+    let gw = Service::start(HWGW, "can-vehicle", &[&toml], &[])?;
+
+    // Counter and CRC are in two messages: each is Message__Signal; the others keep
+    // their names, and the summary says so.
+    let log = gw.log_text();
+    assert!(log.contains("EngineData__Counter"), "{log}");
+    let ports = out(&gw, &["ls", "can.ai"])?;
+    for p in [
+        "EngineData__Counter",
+        "EngineData__CRC",
+        "Brake__Counter",
+        "Brake__CRC",
+        "OilTemp",
+        "Level",
+        "Pressure",
+        "Total",
+        "Page",
+        "Volts",
+        "Amps",
+    ] {
+        assert!(ports.contains(p), "{p}: {ports}");
+    }
+    // The comment (read as Windows-1252, over two lines) is OilTemp's port doc.
+    assert!(
+        ports.contains("channel 2: Oil temperature in \u{b0}C, at the sump"),
+        "{ports}"
+    );
+
+    // Each value as cantools computes it: raw * factor + offset, floats from their bits,
+    // 64-bit unsigned exact up to f64.
+    let level = 72.25f32;
+    let level_bytes = level.to_le_bytes();
+    let engine = format!(
+        "100#05AB82{:02X}{:02X}{:02X}{:02X}00",
+        level_bytes[0], level_bytes[1], level_bytes[2], level_bytes[3]
+    );
+    sh(&format!(
+        "cansend vcan1 {engine} && cansend vcan1 101#093C123400000000 && \
+         cansend vcan1 102#FFFFFFFFFFFFFFFF && cansend vcan1 103#01393000"
+    ))?;
+    wait_ok("Volts decoded", || {
+        Ok(number(&gw, "can.ai", "Volts")? != 0.0)
+    })?;
+    let expected = [
+        ("EngineData__Counter", 5.0),
+        ("EngineData__CRC", 171.0),
+        ("OilTemp", 130.0 * 1.0 - 40.0),
+        ("Level", f64::from(level)),
+        ("Brake__Counter", 9.0),
+        ("Brake__CRC", 60.0),
+        ("Pressure", f64::from(0x1234u16) * 0.1),
+        ("Total", u64::MAX as f64),
+        ("Page", 1.0),
+        ("Volts", 12345.0 * 0.001),
+    ];
+    for (port, want) in expected {
+        assert_eq!(number(&gw, "can.ai", port)?, want, "{port}");
+    }
+    // Amps (mux value 2) has not come: its channel alone is stale; Volts reads.
+    let amps = 10;
+    let stale = read_channel(&gw, amps)?;
+    assert!(
+        stale.as_ref().is_err_and(|e| e.contains("stale")),
+        "{stale:?}"
+    );
+    assert_eq!(read_channel(&gw, 9)?, Ok(12345.0 * 0.001));
+    // Mux value 2: Amps -2.5 A (raw 0xFF06 signed), and Volts keeps its value.
+    sh("cansend vcan1 103#0206FF00")?;
+    wait_ok("Amps decoded", || Ok(read_channel(&gw, amps)?.is_ok()))?;
+    assert_eq!(read_channel(&gw, amps)?, Ok(-250.0 * 0.01));
+    wait_ok("Page 2 sampled", || {
+        Ok(number(&gw, "can.ai", "Page")? == 2.0)
+    })?;
+    assert_eq!(number(&gw, "can.ai", "Amps")?, -250.0 * 0.01);
+    assert_eq!(number(&gw, "can.ai", "Volts")?, 12345.0 * 0.001);
+
+    // Event (on change, never sent) is stale alone: the devices are online. EngineData
+    // (GenMsgCycleTime 100 ms) goes stale after its timeout; Brake (no cycle) does not.
+    let listed = messages(&gw)?;
+    assert!(
+        listed.contains(&("Event".to_string(), 0, true)),
+        "{listed:?}"
+    );
+    assert!(
+        listed.contains(&("Brake".to_string(), 1, false)),
+        "{listed:?}"
+    );
+    assert_eq!(card_status(&gw)?, ["online"; 4]);
+    wait_ok("EngineData stale after its GenMsgCycleTime timeout", || {
+        Ok(messages(&gw)?.contains(&("EngineData".to_string(), 1, true)))
+    })?;
+    assert!(read_channel(&gw, 2)?.is_err(), "OilTemp");
+    assert_eq!(read_channel(&gw, 6)?, Ok(f64::from(0x1234u16) * 0.1));
+    assert_eq!(card_status(&gw)?, ["online"; 4]);
+    let table = out(&gw, &["status"])?;
+    assert!(table.contains("can messages:"), "{table}");
+    // Every value was within its declared range (2^64 - 1 included).
+    let counters = out(&gw, &["call", "can", "counters"])?;
+    assert!(counters.contains("\"rx_out_of_range\": 0"), "{counters}");
+
+    // Value names: describe lists them, set takes them.
+    let described = out(&gw, &["ls", "can.ao"])?;
+    assert!(
+        described.contains("values: 0.0 = P, 1.0 = R, 2.0 = N, 3.0 = D"),
+        "{described}"
+    );
+    out(&gw, &["set", "can.ao", "Gear", "D"])?;
+    out(&gw, &["set", "can.do", "Lamp", "on"])?;
+    wait_ok("Gear D and Lamp on read back", || {
+        Ok(out(&gw, &["get", "can.ao", "Gear"])? == "3.0"
+            && out(&gw, &["get", "can.do", "Lamp"])? == "true")
+    })?;
+    let got = frames(Candump::start(&["-n", "3", "-T", "3000", "vcan1,200:7FF"])?)?;
+    assert_eq!(got, vec!["200#0301"; 3]);
+    assert!(out(&gw, &["ls", "can.ao"])?.contains("3.0 (D)"));
+    let refused = gw.cli(&["set", "can.ao", "Gear", "X"]);
+    let text = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        !refused.status.success() && text.contains("one of P, R, N, D"),
+        "{text}"
+    );
+    terminate(gw)?;
+    Ok(())
+}
+
 fn main() -> std::process::ExitCode {
     let rig = testkit::rig::vcan();
     kernel_rig::harness(
         &rig,
-        vec![Trial::test(
-            "hwgw_reads_writes_and_leaves_safe_frames",
-            hwgw_reads_writes_and_leaves_safe_frames,
-        )],
+        vec![
+            Trial::test(
+                "hwgw_reads_writes_and_leaves_safe_frames",
+                hwgw_reads_writes_and_leaves_safe_frames,
+            ),
+            Trial::test(
+                "a_vehicle_dbc_as_tools_write_it",
+                a_vehicle_dbc_as_tools_write_it,
+            ),
+        ],
     )
 }

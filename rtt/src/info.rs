@@ -27,6 +27,17 @@ impl fmt::Display for Direction {
 pub trait PortData: Clone + Send + Sync + Serialize + DeserializeOwned + 'static {}
 impl<T: Clone + Send + Sync + Serialize + DeserializeOwned + 'static> PortData for T {}
 
+/// A value of a port that has a name (a DBC value description: gear 3 is "D"): shown when
+/// the port is described, and accepted in its place when the port is written through the
+/// dynamic layer (`hwgw set … D`).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, serde::Deserialize)]
+pub struct NamedValue {
+    /// The name.
+    pub name: String,
+    /// The value it stands for, as the port carries it.
+    pub value: serde_json::Value,
+}
+
 /// A port, as listed.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, serde::Deserialize)]
 pub struct PortInfo {
@@ -40,4 +51,7 @@ pub struct PortInfo {
     pub type_name: String,
     /// True for an input port that wakes its component.
     pub event: bool,
+    /// Its values that have names.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub values: Vec<NamedValue>,
 }

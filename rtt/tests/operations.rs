@@ -305,6 +305,85 @@ fn ports_by_name_with_dynamic_values() {
 }
 
 #[test]
+fn named_values_are_listed_and_written_by_name() {
+    use rtt::component::NamedValue;
+    let rt = runtime();
+    let named = |name: &str, value| NamedValue {
+        name: name.into(),
+        value,
+    };
+    let (t, _) = counter(&rt, "c", ActivitySpec::Slave);
+    let port = t.port("in").unwrap();
+    assert!(port.info().values.is_empty());
+    assert!(port.name_values(vec![named("P", json!(0.0)), named("D", json!(3.0))]));
+    // Once only.
+    assert!(!port.name_values(vec![]));
+    assert_eq!(
+        t.port("in").unwrap().info().values,
+        [named("P", json!(0.0)), named("D", json!(3.0))]
+    );
+    // A name is written as its value, a number as itself; a name the port does not have is
+    // refused as any string is.
+    let mut w = port.writer(ConnPolicy::buffer(4)).unwrap();
+    let mut r = t
+        .port("out")
+        .unwrap()
+        .reader(ConnPolicy::buffer(4))
+        .unwrap();
+    t.start().unwrap();
+    let e = w.write(json!("X")).unwrap_err();
+    assert!(
+        e.to_string()
+            .starts_with("port \"in\": expected f64 or one of P, D: invalid type: string"),
+        "{e}"
+    );
+    w.write(json!("D")).unwrap();
+    t.step().unwrap();
+    assert_eq!(r.read(), (FlowStatus::NewData, Some(json!(3.0))));
+    w.write(json!(1.0)).unwrap();
+    t.step().unwrap();
+    assert_eq!(r.read(), (FlowStatus::NewData, Some(json!(1.0))));
+
+    // The builder names a port's values; a port it does not have is an error listing those
+    // it has.
+    struct One;
+    impl Component for One {}
+    let e = rt
+        .add(
+            "h",
+            ActivitySpec::Slave,
+            rtt::InitialState::Stopped,
+            |iface| {
+                let _a: InputPort<f64> = iface.input("a", "")?;
+                iface.name_values("b", vec![])?;
+                Ok(One)
+            },
+        )
+        .err()
+        .unwrap();
+    assert!(
+        e.to_string().contains("has no port \"b\"; it has: a"),
+        "{e}"
+    );
+    let h = rt
+        .add(
+            "k",
+            ActivitySpec::Slave,
+            rtt::InitialState::Stopped,
+            |iface| {
+                let _a: InputPort<f64> = iface.input("a", "")?;
+                iface.name_values("a", vec![named("on", json!(1.0))])?;
+                Ok(One)
+            },
+        )
+        .unwrap();
+    assert_eq!(
+        h.port("a").unwrap().info().values,
+        [named("on", json!(1.0))]
+    );
+}
+
+#[test]
 fn components_connect_by_name_and_types_are_checked() {
     let rt = runtime();
     let (a, _) = counter(&rt, "a", ActivitySpec::Slave);

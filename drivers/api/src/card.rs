@@ -99,6 +99,12 @@ pub trait Card: Send + Sync {
         ChannelNames::default()
     }
 
+    /// What the driver knows of its channels beyond their names (from a CAN database: a
+    /// comment, named values), for their ports. Default: nothing.
+    fn channel_details(&self) -> crate::ChannelDetails {
+        crate::ChannelDetails::default()
+    }
+
     /// Adds the card's bus side to `runtime`: the component(s) doing its bus I/O, on their
     /// own activities, not started. `name` is the card's name (a bus component is usually
     /// named after it). The gateway starts them before the IO components and stops them

@@ -59,5 +59,5 @@ mod server;
 
 pub use card::{Card, CardStatus, ReadBack, fd_bus, periodic_bus};
 pub use context::{BuildFn, CardContext, CardError};
-pub use names::{ChannelNames, NamesError, is_port_name};
+pub use names::{ChannelDetail, ChannelDetails, ChannelNames, NamesError, is_port_name};
 pub use server::Server;

@@ -103,3 +103,27 @@ impl ChannelNames {
         Ok(())
     }
 }
+
+/// What a driver knows of one channel beyond its name.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ChannelDetail {
+    /// What the channel is (a DBC comment): its port's documentation.
+    pub doc: Option<String>,
+    /// Values with names (a DBC value description, in the port's units): `describe` lists
+    /// them and `set` takes a name for its value. A digital channel's are 0 and 1.
+    pub values: Vec<(f64, String)>,
+}
+
+/// [`ChannelDetail`]s for a card's channels, in channel order, as [`ChannelNames`] lists
+/// names (a list shorter than the channels leaves the rest without details).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ChannelDetails {
+    /// Analog inputs.
+    pub analog_in: Vec<ChannelDetail>,
+    /// Analog outputs.
+    pub analog_out: Vec<ChannelDetail>,
+    /// Digital inputs.
+    pub digital_in: Vec<ChannelDetail>,
+    /// Digital outputs.
+    pub digital_out: Vec<ChannelDetail>,
+}

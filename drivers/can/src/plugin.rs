@@ -13,7 +13,10 @@ use crate::card::CanCard;
 use crate::component::CanIo;
 use crate::map::{CanConfig, MappedFrame, SignalRole};
 use device_interface::CardDevices;
-use driver_api::{Card, CardContext, CardError, CardStatus, ChannelNames, is_port_name};
+use driver_api::{
+    Card, CardContext, CardError, CardStatus, ChannelDetail, ChannelDetails, ChannelNames,
+    is_port_name,
+};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -94,6 +97,44 @@ fn signal_names(frames: &[MappedFrame], role: SignalRole) -> Vec<String> {
     }
 }
 
+/// What the DBC file says of one role's signals in `frames`, channel by channel: the
+/// signal's comment, and its value descriptions as physical values (bit by bit for a
+/// multi-bit digital signal, which then has no named values).
+fn signal_details(frames: &[MappedFrame], role: SignalRole) -> Vec<ChannelDetail> {
+    let mut out = Vec::new();
+    for s in frames
+        .iter()
+        .flat_map(|f| &f.signals)
+        .filter(|s| s.role == role)
+    {
+        // A port's doc is one line: a comment's line breaks (CR LF from Windows tools)
+        // and runs of white space become single spaces.
+        let comment = s
+            .comment
+            .as_deref()
+            .map(|c| c.split_whitespace().collect::<Vec<_>>().join(" "));
+        let values: Vec<(f64, String)> = s
+            .values
+            .iter()
+            .map(|(raw, name)| (s.signal.physical(*raw), name.clone()))
+            .collect();
+        match s.width() {
+            1 => out.push(ChannelDetail {
+                doc: comment,
+                values,
+            }),
+            w => out.extend((0..w).map(|k| ChannelDetail {
+                doc: Some(match &comment {
+                    Some(c) => format!("bit {k} of {}: {c}", s.name),
+                    None => format!("bit {k} of {}", s.name),
+                }),
+                values: Vec::new(),
+            })),
+        }
+    }
+    out
+}
+
 fn frame_list(frames: &[MappedFrame]) -> String {
     if frames.is_empty() {
         return "nothing".into();
@@ -137,6 +178,16 @@ impl Card for CanPlugin {
             digital_in: signal_names(map.rx(), SignalRole::Digital),
             analog_out: signal_names(map.tx(), SignalRole::Analog),
             digital_out: signal_names(map.tx(), SignalRole::Digital),
+        }
+    }
+
+    fn channel_details(&self) -> ChannelDetails {
+        let map = self.card.map();
+        ChannelDetails {
+            analog_in: signal_details(map.rx(), SignalRole::Analog),
+            digital_in: signal_details(map.rx(), SignalRole::Digital),
+            analog_out: signal_details(map.tx(), SignalRole::Analog),
+            digital_out: signal_details(map.tx(), SignalRole::Digital),
         }
     }
 

@@ -266,9 +266,11 @@ impl Signal {
     pub fn in_range(&self, raw: i64) -> bool {
         match self.kind {
             ValueKind::Integer if !self.signed && self.length == 64 && raw < 0 => {
-                // Above 2^63: within the range only when the range reaches there (it never
-                // does: the raw range stops at 2^63 − 1).
-                false
+                // Above 2^63, beyond what the raw range (i64) holds: the declared limits
+                // decide, in physical units; none declared, the type's range holds it.
+                let v = self.physical(raw);
+                self.float_limits
+                    .is_none_or(|(min, max)| v >= min && v <= max)
             }
             ValueKind::Integer => self.scale.raw_range().contains(raw),
             _ => {
@@ -295,6 +297,10 @@ impl Signal {
         if self.kind != ValueKind::Integer {
             self.float_limits = Some((min, max));
             return Ok(self);
+        }
+        if !self.signed && self.length == 64 {
+            // Raw values above 2^63 are checked against these (see `in_range`).
+            self.float_limits = Some((min, max));
         }
         // A raw value within a millionth of a step of the limit counts as on it: DBC
         // limits are decimal texts of values that are exact in raw steps.

@@ -66,6 +66,27 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
         }
     }
 
+    /// Gives port `port`'s values names (a DBC value description: 3 is "D"): `describe`
+    /// lists them, and a write through the dynamic layer takes a name for its value.
+    pub fn name_values(
+        &mut self,
+        port: &str,
+        values: Vec<crate::info::NamedValue>,
+    ) -> Result<(), IntrospectError> {
+        let entry = self
+            .ports
+            .iter()
+            .find(|p| p.info().name == port)
+            .ok_or_else(|| IntrospectError::NotFound {
+                component: self.name.clone(),
+                kind: "port",
+                name: port.to_string(),
+                known: self.ports.iter().map(|p| p.info().name).collect(),
+            })?;
+        entry.name_values(values);
+        Ok(())
+    }
+
     fn check_port_name(&self, name: &str) -> Result<(), IntrospectError> {
         if self.ports.iter().any(|p| p.info().name == name) {
             return Err(IntrospectError::Duplicate {
@@ -98,6 +119,7 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
         self.ports.push(Arc::new(OutEntry {
             shared: port.shared().clone(),
             doc: doc.to_string(),
+            values: std::sync::OnceLock::new(),
         }));
         Ok(port)
     }
@@ -171,6 +193,7 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
         self.ports.push(Arc::new(InEntry {
             shared: port.shared().clone(),
             doc: doc.to_string(),
+            values: std::sync::OnceLock::new(),
             sample,
             event,
             read_back,

@@ -2,7 +2,7 @@
 //! written as JSON values, connected without knowing its type at compile time.
 
 use crate::error::IntrospectError;
-use crate::info::{Direction, PortData, PortInfo};
+use crate::info::{Direction, NamedValue, PortData, PortInfo};
 use crate::port::{
     ConnPolicy, ConnectError, ConnectionInfo, FlowStatus, InputPort, InputShared, OutputPort,
     OutputShared, connect_shared,
@@ -10,7 +10,7 @@ use crate::port::{
 use serde::Serialize;
 use serde_json::Value;
 use std::any::Any;
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
 /// Reads a port's data as dynamically typed values (made by [`DynPort::reader`]).
 pub trait DynReader: Send {
@@ -48,12 +48,37 @@ pub trait DynPort: Send + Sync {
     fn disconnect(&self, id: Option<u64>) -> usize;
     /// For typed downcasts.
     fn as_any(&self) -> &dyn Any;
+    /// Gives the port's values names (once; false if it had them already).
+    fn name_values(&self, values: Vec<NamedValue>) -> bool;
+}
+
+/// The value `value` names among `values` (a string that is one of the names), else
+/// `value` itself.
+fn unname(values: &[NamedValue], value: Value) -> Value {
+    match &value {
+        Value::String(s) => values
+            .iter()
+            .find(|v| v.name == *s)
+            .map_or(value, |v| v.value.clone()),
+        _ => value,
+    }
+}
+
+/// What a port of type `T` with named values `values` takes.
+fn expected<T>(values: &[NamedValue]) -> String {
+    let t = std::any::type_name::<T>();
+    if values.is_empty() {
+        return t.to_string();
+    }
+    let names: Vec<&str> = values.iter().map(|v| v.name.as_str()).collect();
+    format!("{t} or one of {}", names.join(", "))
 }
 
 /// An output port as the dynamic layer holds it.
 pub(crate) struct OutEntry<T: Send> {
     pub(crate) shared: Arc<OutputShared<T>>,
     pub(crate) doc: String,
+    pub(crate) values: OnceLock<Vec<NamedValue>>,
 }
 
 /// A port's value as JSON. A number that is not finite becomes the string `"NaN"`,
@@ -81,6 +106,7 @@ pub(crate) type Check<T> = Arc<dyn Fn(&T) -> Result<(), String> + Send + Sync>;
 pub(crate) struct InEntry<T: Send> {
     pub(crate) shared: Arc<InputShared<T>>,
     pub(crate) doc: String,
+    pub(crate) values: OnceLock<Vec<NamedValue>>,
     pub(crate) sample: T,
     pub(crate) event: bool,
     pub(crate) read_back: Option<ReadBack<T>>,
@@ -118,13 +144,15 @@ struct ValueWriter<T: Send> {
     port: OutputPort<T>,
     what: String,
     check: Option<Check<T>>,
+    values: Vec<NamedValue>,
 }
 
 impl<T: PortData> DynWriter for ValueWriter<T> {
     fn write(&mut self, value: Value) -> Result<(), IntrospectError> {
+        let value = unname(&self.values, value);
         let v: T = serde_json::from_value(value).map_err(|e| IntrospectError::BadValue {
             what: self.what.clone(),
-            expected: std::any::type_name::<T>().to_string(),
+            expected: expected::<T>(&self.values),
             detail: e.to_string(),
         })?;
         if let Some(check) = &self.check {
@@ -146,6 +174,7 @@ impl<T: PortData> DynPort for OutEntry<T> {
             direction: Direction::Output,
             type_name: std::any::type_name::<T>().to_string(),
             event: false,
+            values: self.values.get().cloned().unwrap_or_default(),
         }
     }
 
@@ -209,6 +238,10 @@ impl<T: PortData> DynPort for OutEntry<T> {
     fn as_any(&self) -> &dyn Any {
         self
     }
+
+    fn name_values(&self, values: Vec<NamedValue>) -> bool {
+        self.values.set(values).is_ok()
+    }
 }
 
 impl<T: PortData> DynPort for InEntry<T> {
@@ -219,6 +252,7 @@ impl<T: PortData> DynPort for InEntry<T> {
             direction: Direction::Input,
             type_name: std::any::type_name::<T>().to_string(),
             event: self.event,
+            values: self.values.get().cloned().unwrap_or_default(),
         }
     }
 
@@ -250,6 +284,7 @@ impl<T: PortData> DynPort for InEntry<T> {
             port,
             what: format!("port {:?}", self.shared.name),
             check: self.check.clone(),
+            values: self.values.get().cloned().unwrap_or_default(),
         }))
     }
 
@@ -271,5 +306,9 @@ impl<T: PortData> DynPort for InEntry<T> {
 
     fn as_any(&self) -> &dyn Any {
         self
+    }
+
+    fn name_values(&self, values: Vec<NamedValue>) -> bool {
+        self.values.set(values).is_ok()
     }
 }

@@ -23,7 +23,7 @@ mod dynport;
 mod lookup;
 
 pub use crate::error::{CallOrIntrospect, IntrospectError, LifecycleError, RuntimeError};
-pub use crate::info::{Direction, PortData, PortInfo};
+pub use crate::info::{Direction, NamedValue, PortData, PortInfo};
 pub use crate::state::{InitialState, TaskState};
 pub use builder::InterfaceBuilder;
 pub use dynport::{DynPort, DynReader, DynWriter};

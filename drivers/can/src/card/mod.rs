@@ -510,6 +510,7 @@ impl CanCard {
                             * 1000.0
                     }),
                     stale: self.frame_age_error(f, frame, now).is_some(),
+                    channels: frame.signals.iter().map(|s| s.port.clone()).collect(),
                 }
             })
             .collect()

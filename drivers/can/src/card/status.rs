@@ -125,6 +125,8 @@ pub struct MessageState {
     pub age_ms: Option<f64>,
     /// Not received within its timeout (or never).
     pub stale: bool,
+    /// The ports of its signals (each multiplexed one stale on its own too).
+    pub channels: Vec<String>,
 }
 
 #[derive(Default)]

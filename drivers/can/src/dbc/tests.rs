@@ -171,6 +171,20 @@ fn floats_doubles_and_64_bit_values() {
     let u = &plain.messages[0].signals[0].signal;
     assert_eq!(u.decode(&[0xFF; 8]).unwrap(), 18446744073709551615.0);
     assert_eq!(u.decode(&[0xFF; 8]).unwrap(), 1.8446744073709552e19);
+    // Values above 2^63 are in range when the declared range (or, none declared, the
+    // type's) reaches them, and counted out of it when it does not.
+    let all = u.extract(&[0xFF; 8]).unwrap();
+    assert!(u.in_range(all));
+    let ranged = |max: &str| {
+        let text = format!("BO_ 303 U: 8 X\n SG_ U64 : 0|64@1+ (1,0) [0|{max}] \"\" Y\n");
+        let dbc = Dbc::parse("u.dbc", &text).unwrap();
+        let d = &dbc.messages[0].signals[0];
+        d.signal.clone().with_limits(d.min, d.max).unwrap()
+    };
+    assert!(ranged("18446744073709551615").in_range(all));
+    assert!(!ranged("1000").in_range(all));
+    assert!(ranged("1000").in_range(1000));
+    assert!(!ranged("9223372036854775807").in_range(all));
     // A float type on a signal of the wrong length: that message's problem only.
     let bad = Dbc::parse(
         "b.dbc",
