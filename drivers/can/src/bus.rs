@@ -143,6 +143,9 @@ pub struct CanBus {
     cmsg: Vec<u8>,
     /// The physical values of the frame just received (room for the widest rx frame).
     values: Vec<f64>,
+    /// Whether the interface is a real controller with a state to ask netlink for
+    /// (unknown until asked; asked again when the interface is replaced).
+    controller: Option<bool>,
 }
 
 const SOCKET: u64 = 0;
@@ -232,6 +235,7 @@ impl CanBus {
             buf: [0; 64],
             cmsg: nix::cmsg_space!(TimeSpec, u32),
             values: Vec::with_capacity(widest),
+            controller: None,
         };
         bus.open_socket().map_err(os("open socket"))?;
         bus.check_link();
@@ -478,6 +482,7 @@ impl CanBus {
                     // A new interface of the same name: the old socket is bound to the
                     // old index.
                     self.ifindex = index;
+                    self.controller = None;
                     if let Err(e) = self.open_socket() {
                         tracing::warn!(interface = %name, "cannot reopen: {e}");
                         self.card.set_link(false, Some(DeviceError::bus(e)));
@@ -495,6 +500,29 @@ impl CanBus {
                     up,
                     (!up).then(|| DeviceError::bus(std::io::Error::from(nix::Error::ENETDOWN))),
                 );
+                self.ask_controller();
+            }
+        }
+    }
+
+    /// Asks netlink for the controller's state, unless the interface is virtual (once
+    /// asked, a vcan is not asked again). A failing query is said once and counted as an
+    /// unknown state.
+    fn ask_controller(&mut self) {
+        if self.controller == Some(false) {
+            return;
+        }
+        match crate::netlink::query(self.ifindex) {
+            Ok(c) => {
+                self.controller = Some(c.is_some());
+                self.card.set_controller(c);
+            }
+            Err(e) => {
+                if self.controller.is_none() {
+                    tracing::warn!(interface = %self.card.map().interface(), "controller state not readable: {e}");
+                    self.controller = Some(true);
+                }
+                self.card.set_controller(None);
             }
         }
     }

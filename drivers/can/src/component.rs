@@ -4,7 +4,9 @@
 //! frames are decoded into the card's channels (which the gateway's IO components and any
 //! component holding the devices read) and, frame by frame, published on one output port
 //! per received message, so a component can see every frame rather than a sample of them.
-//! An operation `counters` returns the card's counters.
+//! On a real controller, port `controller` carries its state from netlink (error state,
+//! error counters, restart delay), written when it changes. An operation `counters` returns
+//! the card's counters.
 //!
 //! ```no_run
 //! # use std::sync::Arc;
@@ -17,6 +19,7 @@
 
 use crate::bus::CanBus;
 use crate::card::{CanCard, CanCounters};
+use crate::netlink::Controller;
 use rtt::component::IntrospectError;
 use rtt::port::OutputPort;
 use rtt::{Component, Context, HookError, HookResult, InterfaceBuilder};
@@ -42,6 +45,9 @@ pub struct CanIo {
     card: Arc<CanCard>,
     ports: Vec<OutputPort<CanMessage>>,
     sample: CanMessage,
+    /// A real controller's state, written when it changes.
+    controller: OutputPort<Controller>,
+    controller_seen: Option<Controller>,
 }
 
 impl CanIo {
@@ -74,7 +80,7 @@ impl CanIo {
     }
 
     /// Builds the component's interface: port `rx.<message>` per received frame (the DBC
-    /// name, or the id in hex) and the `counters` operation.
+    /// name, or the id in hex), port `controller` and the `counters` operation.
     pub fn new(
         card: Arc<CanCard>,
         bus: Option<CanBus>,
@@ -98,6 +104,11 @@ impl CanIo {
                 },
             )?);
         }
+        let controller = iface.output(
+            "controller",
+            "a real controller's state from netlink (error state, error counters, restart \
+             delay, bit rate, restarts seen), written when it changes; never on vcan",
+        )?;
         let c = card.clone();
         iface.client_operation(
             "counters",
@@ -113,6 +124,8 @@ impl CanIo {
                 values: Vec::with_capacity(widest),
                 ..CanMessage::default()
             },
+            controller,
+            controller_seen: None,
         })
     }
 }
@@ -147,6 +160,13 @@ impl Component for CanIo {
             };
             port.write(sample);
         });
+        let c = self.card.controller();
+        if c != self.controller_seen {
+            if let Some(c) = &c {
+                self.controller.write(c);
+            }
+            self.controller_seen = c;
+        }
         Ok(())
     }
 

@@ -10,6 +10,8 @@
 //! - [`bus`]: the socket side — a CAN_RAW socket with kernel filters for exactly the
 //!   mapped ids, error frames, timestamps, cyclic and on-change sending, link loss and
 //!   return — serviced from one file descriptor.
+//! - [`netlink`]: a real controller's error state, counters and restart delay from
+//!   rtnetlink.
 //! - [`component`]: that bus as an rtt component on a file-descriptor activity.
 //!
 //! ```
@@ -27,6 +29,7 @@ pub mod card;
 pub mod component;
 pub mod dbc;
 pub mod map;
+pub mod netlink;
 pub mod plugin;
 pub mod section;
 pub mod signal;

@@ -9,6 +9,7 @@ use driver_can::bus::CanBus;
 use driver_can::card::{BusState, CanCard};
 use driver_can::component::CanIo;
 use driver_can::map::{CanConfig, CanMap};
+use driver_can::netlink::{Controller, ControllerState};
 use kernel_rig::{Failed, Trial, sh};
 use rtt::{Runtime, RuntimeOptions, TaskContext};
 use std::sync::Arc;
@@ -268,6 +269,9 @@ fn link_down_and_up_goes_offline_and_back() -> Result<(), Failed> {
     assert_eq!(frames.len(), 1, "frames flow on the new interface");
     assert!(c.counters().link_down_events >= 2);
     assert_eq!(u.task.state(), rtt::TaskState::Running);
+    // A vcan has no controller state: none in the counters, nothing on the port.
+    assert_eq!(c.controller(), None);
+    assert_eq!(u.task.port("controller")?.last_value()?, None);
     Ok(())
 }
 
@@ -434,6 +438,28 @@ signal = [{ name = "y", start = 0, length = 8 }]
             return Err(format!("can0 lacks {want:?}: {details}").into());
         }
     }
+    // The controller's state from netlink: in the counters (hwgw status) and on the
+    // bus component's port.
+    let want = Controller {
+        state: ControllerState::ErrorActive,
+        tx_errors: 0,
+        rx_errors: 0,
+        restart_ms: 100,
+        bitrate: 500_000,
+        restarts: 0,
+    };
+    wait_until("the controller state read", Duration::from_secs(2), || {
+        c.controller() == Some(want)
+    })?;
+    assert_eq!(c.counters().controller, Some(want));
+    let port = || -> Result<Option<serde_json::Value>, Failed> {
+        Ok(u.task.port("controller")?.last_value()?)
+    };
+    wait_until(
+        "the controller port written",
+        Duration::from_secs(2),
+        || port().ok().flatten() == Some(serde_json::to_value(want).unwrap()),
+    )?;
     // Frames cross the emulated bus both ways.
     cansend("can0", "123#FEFF")?;
     wait_until("received over the bus", Duration::from_secs(2), || {
@@ -446,11 +472,29 @@ signal = [{ name = "y", start = 0, length = 8 }]
         dumped(dump)?.first().map(|(_, f)| f.as_str()),
         Some("321#07")
     );
-    // The controller stopped (ip link down): the card goes offline; back up: online.
+    // The controller stopped (ip link down): the card goes offline, the state says
+    // stopped; a new restart delay set meanwhile shows once it is back up.
     sh("ip link set can1 down")?;
     wait_until("offline", Duration::from_secs(2), || !c.link_up())?;
-    sh("ip link set can1 up")?;
+    wait_until("stopped", Duration::from_secs(2), || {
+        c.controller().map(|c| c.state) == Some(ControllerState::Stopped)
+    })?;
+    sh("ip link set can1 type can restart-ms 250 && ip link set can1 up")?;
     wait_until("online", Duration::from_secs(2), || c.link_up())?;
+    let restarted = Controller {
+        restart_ms: 250,
+        ..want
+    };
+    wait_until("restart-ms 250", Duration::from_secs(2), || {
+        c.controller() == Some(restarted)
+    })?;
+    wait_until("the port says so", Duration::from_secs(2), || {
+        port().ok().flatten() == Some(serde_json::to_value(restarted).unwrap())
+    })?;
+    // A restart by hand is refused by the kernel while the controller is not bus-off
+    // (qemu's SJA1000 models no bus errors, so it never is): nothing changes.
+    assert!(sh("ip link set can1 type can restart").is_err());
+    assert_eq!(c.controller(), Some(restarted));
     let _ = sh("pkill -f systemd-networkd");
     Ok(())
 }

@@ -93,6 +93,8 @@ pub struct CanCard {
     waker: OnceLock<Box<dyn Fn() + Send + Sync>>,
     link_up: AtomicBool,
     bus_state: AtomicU8,
+    /// What netlink last said of a real controller (none for vcan).
+    controller: ArcSwapOption<crate::netlink::Controller>,
     counters: Counters,
     last_error: ArcSwapOption<DeviceError>,
 }
@@ -167,6 +169,7 @@ impl CanCard {
             waker: OnceLock::new(),
             link_up: AtomicBool::new(false),
             bus_state: AtomicU8::new(0),
+            controller: ArcSwapOption::empty(),
             counters: Counters::default(),
             last_error: ArcSwapOption::empty(),
             map,
@@ -429,12 +432,17 @@ impl CanCard {
             None
         };
         if let Some(s) = state {
-            let old = BusState::from_u8(self.bus_state.swap(s as u8, Ordering::AcqRel));
-            if old != s {
-                tracing::warn!(interface = %self.map.interface(), "bus state {old:?} -> {s:?}");
-                self.last_error
-                    .store(Some(Arc::new(DeviceError::bus(BusStateError(s)))));
-            }
+            self.follow_state(s);
+        }
+    }
+
+    /// Takes `s` as the controller state, saying so when it changed.
+    fn follow_state(&self, s: BusState) {
+        let old = BusState::from_u8(self.bus_state.swap(s as u8, Ordering::AcqRel));
+        if old != s {
+            tracing::warn!(interface = %self.map.interface(), "bus state {old:?} -> {s:?}");
+            self.last_error
+                .store(Some(Arc::new(DeviceError::bus(BusStateError(s)))));
         }
     }
 
@@ -486,6 +494,7 @@ impl CanCard {
             transceiver_faults: l(&c.transceiver_faults),
             tx_timeouts: l(&c.tx_timeouts),
             bus_state: Some(self.bus_state()),
+            controller: self.controller(),
             link_up: self.link_up(),
             messages: self.message_states(),
         }

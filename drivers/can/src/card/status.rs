@@ -1,6 +1,9 @@
 //! What a CAN card reports of its bus: the controller's error state, what error frames
 //! said, and the counters of frames, errors and staleness (`hwgw status`).
 
+use super::CanCard;
+use crate::netlink::{Controller, ControllerState};
+use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 /// The controller's error state, as error frames report it.
@@ -107,6 +110,8 @@ pub struct CanCounters {
     pub bus_state: Option<BusState>,
     /// The link is up.
     pub link_up: bool,
+    /// A real controller's state from netlink (none on vcan).
+    pub controller: Option<Controller>,
     /// Each received message: how many came, how long ago the last, whether it is stale
     /// (its own channels then read as stale; the others not).
     pub messages: Vec<MessageState>,
@@ -163,3 +168,36 @@ pub(super) fn bump(c: &AtomicU64) {
 #[derive(Debug, thiserror::Error)]
 #[error("CAN controller is {0:?}")]
 pub(super) struct BusStateError(pub(super) BusState);
+
+impl CanCard {
+    /// Takes what netlink said of the controller (the bus side asks at each link check);
+    /// its error state becomes the card's bus state.
+    pub fn set_controller(&self, c: Option<Controller>) {
+        if let Some(c) = &c {
+            let s = match c.state {
+                ControllerState::ErrorActive => Some(BusState::ErrorActive),
+                ControllerState::ErrorWarning => Some(BusState::ErrorWarning),
+                ControllerState::ErrorPassive => Some(BusState::ErrorPassive),
+                ControllerState::BusOff => Some(BusState::BusOff),
+                // Down or asleep: the link state says so.
+                ControllerState::Stopped | ControllerState::Sleeping => None,
+            };
+            if let Some(s) = s {
+                self.follow_state(s);
+            }
+        }
+        let old = self.controller.load();
+        if old.as_deref() != c.as_ref() {
+            self.controller.store(c.map(Arc::new));
+        }
+    }
+
+    /// A real controller's state (as netlink last said, with the restarts seen); none for
+    /// a virtual interface or before the first link check.
+    pub fn controller(&self) -> Option<Controller> {
+        self.controller.load().as_deref().map(|c| Controller {
+            restarts: self.counters.restarted.load(Ordering::Relaxed),
+            ..*c
+        })
+    }
+}
