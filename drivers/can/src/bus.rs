@@ -2,11 +2,14 @@
 //!
 //! [`CanBus::open`] binds a CAN_RAW socket (FD-capable) to the card's interface with
 //! kernel filters for exactly the mapped receive ids and every error class, and asks the
-//! kernel for a receive timestamp and a drop count with each frame. [`CanBus::fd`] is an
-//! epoll descriptor that becomes readable when a frame arrives, when a frame is due to be
-//! sent (a timerfd at the next deadline), or when an output changed on an on-change frame;
-//! an rtt file-descriptor activity watches it and calls [`CanBus::service`], which never
-//! blocks.
+//! kernel for a receive timestamp and a drop count with each frame. [`CanBus::fds`] are
+//! the descriptors that become readable when a frame arrives (the socket), when a frame is
+//! due to be sent (a timerfd at the next deadline), or when an output changed on an
+//! on-change frame (an eventfd); an rtt file-descriptor activity watches them and calls
+//! [`CanBus::service`], which never blocks. They are watched directly, not through an
+//! epoll set of the bus's own: a frame wakes the thread through one wait queue, as it wakes
+//! a plain blocking read. The socket is replaced when the interface is
+//! ([`CanBus::socket_generation`] says when).
 //!
 //! The link is watched through the socket's errors and `/sys/class/net/IF`: when it goes
 //! down the card goes offline; when it comes back — even as a new interface of the same
@@ -17,7 +20,7 @@
 //! # fn demo(card: Arc<driver_can::card::CanCard>) -> Result<(), driver_can::bus::BusError> {
 //! let mut bus = driver_can::bus::CanBus::open(card)?;
 //! loop {
-//!     // (an fd activity waits for bus.fd() instead)
+//!     // (an fd activity waits for bus.fds() instead)
 //!     std::thread::sleep(std::time::Duration::from_millis(1));
 //!     bus.service(&mut |_frame, _payload, _received| {});
 //! }
@@ -27,7 +30,6 @@
 use crate::card::{CanCard, ErrorReport, Received};
 use device_interface::DeviceError;
 use device_interface::time::Timestamp;
-use nix::sys::epoll::{Epoll, EpollCreateFlags, EpollEvent, EpollFlags, EpollTimeout};
 use nix::sys::eventfd::{EfdFlags, EventFd};
 use nix::sys::socket::{ControlMessageOwned, MsgFlags, recvmsg, setsockopt, sockopt};
 use nix::sys::time::TimeSpec;
@@ -35,6 +37,7 @@ use nix::sys::timerfd::{ClockId, Expiration, TimerFd, TimerFlags, TimerSetTimeFl
 use socketcan::{CanFdSocket, CanFilter, Socket, SocketOptions};
 use std::os::fd::{AsFd, AsRawFd, BorrowedFd};
 use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 /// Why a bus could not be opened.
@@ -124,14 +127,27 @@ fn link(iface: &str) -> Option<(bool, u32)> {
     Some((up, index))
 }
 
-/// A card's socket, timer and wake-up, behind one epoll descriptor.
+/// CLOCK_MONOTONIC minus CLOCK_REALTIME now, ns.
+fn realtime_offset() -> i128 {
+    let real = nix::time::clock_gettime(nix::time::ClockId::CLOCK_REALTIME)
+        .map(|t| t.tv_sec() as i128 * 1_000_000_000 + t.tv_nsec() as i128)
+        .unwrap_or(0);
+    now_ns() as i128 - real
+}
+
+/// A card's socket, timer and wake-up.
 pub struct CanBus {
     card: Arc<CanCard>,
     socket: Option<CanFdSocket>,
     ifindex: u32,
-    epoll: Epoll,
+    /// Counts the sockets opened (see [`CanBus::socket_generation`]).
+    generation: u64,
     timer: TimerFd,
     wake: Arc<EventFd>,
+    /// Set with each wake-up written to `wake` (so it is read only when written).
+    woken: Arc<AtomicBool>,
+    /// The deadline the timer is armed for (ns; 0: none).
+    armed: u64,
     /// Next send time (ns) of each cyclic tx frame.
     next_tx: Vec<Option<u64>>,
     next_check: u64,
@@ -147,10 +163,6 @@ pub struct CanBus {
     /// (unknown until asked; asked again when the interface is replaced).
     controller: Option<bool>,
 }
-
-const SOCKET: u64 = 0;
-const TIMER: u64 = 1;
-const WAKE: u64 = 2;
 
 fn now_ns() -> u64 {
     use device_interface::time::{Clock, MonotonicClock};
@@ -194,7 +206,6 @@ impl CanBus {
                 frame: f.name.clone(),
             });
         }
-        let epoll = Epoll::new(EpollCreateFlags::EPOLL_CLOEXEC).map_err(nix_os("epoll_create"))?;
         let timer = TimerFd::new(
             ClockId::CLOCK_MONOTONIC,
             TimerFlags::TFD_NONBLOCK | TimerFlags::TFD_CLOEXEC,
@@ -204,14 +215,11 @@ impl CanBus {
             EventFd::from_value_and_flags(0, EfdFlags::EFD_NONBLOCK | EfdFlags::EFD_CLOEXEC)
                 .map_err(nix_os("eventfd"))?,
         );
-        epoll
-            .add(timer.as_fd(), EpollEvent::new(EpollFlags::EPOLLIN, TIMER))
-            .map_err(nix_os("epoll_ctl"))?;
-        epoll
-            .add(wake.as_fd(), EpollEvent::new(EpollFlags::EPOLLIN, WAKE))
-            .map_err(nix_os("epoll_ctl"))?;
         let w = wake.clone();
+        let woken = Arc::new(AtomicBool::new(false));
+        let flag = woken.clone();
         card.set_waker(Box::new(move || {
+            flag.store(true, Ordering::Release);
             let _ = w.write(1);
         }));
         let now = now_ns();
@@ -226,9 +234,11 @@ impl CanBus {
             card,
             socket: None,
             ifindex,
-            epoll,
+            generation: 0,
             timer,
             wake,
+            woken,
+            armed: 0,
             next_tx,
             next_check: now,
             drops_seen: 0,
@@ -244,9 +254,7 @@ impl CanBus {
     }
 
     fn open_socket(&mut self) -> std::io::Result<()> {
-        if let Some(old) = self.socket.take() {
-            let _ = self.epoll.delete(old.as_fd());
-        }
+        self.socket = None;
         let map = self.card.map();
         let s = CanFdSocket::open(map.interface())?;
         let filters: Vec<CanFilter> = map
@@ -268,17 +276,33 @@ impl CanBus {
         s.set_nonblocking(true)?;
         setsockopt(&s, sockopt::ReceiveTimestampns, &true).map_err(std::io::Error::from)?;
         setsockopt(&s, sockopt::RxqOvfl, &1).map_err(std::io::Error::from)?;
-        self.epoll
-            .add(s.as_fd(), EpollEvent::new(EpollFlags::EPOLLIN, SOCKET))
-            .map_err(std::io::Error::from)?;
         self.drops_seen = 0;
         self.socket = Some(s);
+        self.generation += 1;
         Ok(())
     }
 
-    /// The descriptor to wait on: readable when [`service`](Self::service) has work.
-    pub fn fd(&self) -> BorrowedFd<'_> {
-        self.epoll.0.as_fd()
+    /// The descriptors to wait on, any of them readable when [`service`](Self::service)
+    /// has work: the socket (none while the interface cannot be opened), the timer and the
+    /// wake-up.
+    pub fn fds(&self) -> impl Iterator<Item = BorrowedFd<'_>> {
+        self.socket
+            .as_ref()
+            .map(|s| s.as_fd())
+            .into_iter()
+            .chain([self.timer.as_fd(), self.wake.as_fd()])
+    }
+
+    /// The socket's descriptor, if open.
+    pub fn socket_fd(&self) -> Option<BorrowedFd<'_>> {
+        self.socket.as_ref().map(|s| s.as_fd())
+    }
+
+    /// Changes whenever the socket is replaced (a new interface of the same name, or the
+    /// first open after a failed one): whoever watches [`socket_fd`](Self::socket_fd) must
+    /// then watch the new one (and let go of the old, which a duplicate would keep open).
+    pub fn socket_generation(&self) -> u64 {
+        self.generation
     }
 
     /// The card.
@@ -288,32 +312,27 @@ impl CanBus {
 
     /// Does what is due without blocking: receives every queued frame (calling
     /// `on_frame(rx index, its signals' physical values, kernel receive time)` for each
-    /// decoded one), sends
-    /// changed and due frames, checks staleness and the link, and re-arms the timer.
+    /// decoded one), sends changed and due frames, checks staleness and the link, and
+    /// re-arms the timer.
+    ///
+    /// The socket comes first and costs one `recvmsg` per frame and one more (the EAGAIN
+    /// that ends the batch); the wake-up and the timer are read only when they can have
+    /// fired (a flag set with the wake-up; the deadline armed), and the timer is re-armed
+    /// only when its deadline moves. A frame thus costs no other system call.
     pub fn service(&mut self, on_frame: &mut dyn FnMut(usize, &[f64], Timestamp)) {
-        // Which of the three is ready: one epoll_wait instead of a blind read of each.
-        // Reading the timer and the eventfd clears their readiness (and the set's).
-        let mut events = [EpollEvent::empty(); 3];
-        let n = self
-            .epoll
-            .wait(&mut events, EpollTimeout::ZERO)
-            .unwrap_or(0);
-        let mut socket = n == 0; // called without readiness (at start): look anyway
-        for e in &events[..n] {
-            match e.data() {
-                TIMER => {
-                    let _ = self.timer.wait();
-                }
-                WAKE => {
-                    let _ = self.wake.read();
-                }
-                _ => socket = true,
-            }
-        }
-        if socket {
-            self.receive(on_frame);
+        self.receive(on_frame);
+        if self.woken.swap(false, Ordering::AcqRel) {
+            // Clears the eventfd's readiness; a wake-up after the swap leaves it readable
+            // and its flag set, for the next call.
+            let _ = self.wake.read();
         }
         let now = now_ns();
+        if self.armed != 0 && now >= self.armed {
+            // Clears the expiry (EAGAIN if the kernel has not quite fired it: the re-arm
+            // below then replaces it).
+            let _ = self.timer.wait();
+            self.armed = 0;
+        }
         if now >= self.next_check {
             self.check_link();
             self.card.check_stale();
@@ -341,13 +360,9 @@ impl CanBus {
         let Some(socket) = &self.socket else { return };
         let fd = socket.as_raw_fd();
         // The kernel stamps frames with CLOCK_REALTIME; the card's time base is
-        // CLOCK_MONOTONIC. One offset per batch is exact to well under a microsecond.
-        let offset = {
-            let real = nix::time::clock_gettime(nix::time::ClockId::CLOCK_REALTIME)
-                .map(|t| t.tv_sec() as i128 * 1_000_000_000 + t.tv_nsec() as i128)
-                .unwrap_or(0);
-            now_ns() as i128 - real
-        };
+        // CLOCK_MONOTONIC. One offset per batch (taken at its first frame) is exact to
+        // well under a microsecond.
+        let mut offset = None;
         let mut raw = [0u8; CANFD_MTU];
         loop {
             let (n, stamp, drops) = {
@@ -392,7 +407,10 @@ impl CanBus {
                 self.drops_seen = d;
             }
             let at = match stamp {
-                Some(real) => Timestamp::from_nanos((real + offset).max(0) as u64),
+                Some(real) => {
+                    let offset = *offset.get_or_insert_with(realtime_offset);
+                    Timestamp::from_nanos((real + offset).max(0) as u64)
+                }
                 None => Timestamp::from_nanos(now_ns()),
             };
             if n != CAN_MTU && n != CANFD_MTU {
@@ -596,7 +614,8 @@ impl CanBus {
     }
 
     /// Sets the timer to the earliest of the next send and the next check.
-    fn arm(&self) {
+    /// Arms the timer for the next send or check, unless it is armed for that already.
+    fn arm(&mut self) {
         let next = self
             .next_tx
             .iter()
@@ -604,11 +623,16 @@ impl CanBus {
             .copied()
             .chain([self.next_check])
             .min()
-            .unwrap_or(self.next_check);
-        let ts = TimeSpec::from_duration(Duration::from_nanos(next.max(1)));
+            .unwrap_or(self.next_check)
+            .max(1);
+        if next == self.armed {
+            return;
+        }
+        let ts = TimeSpec::from_duration(Duration::from_nanos(next));
         let _ = self.timer.set(
             Expiration::OneShot(ts),
             TimerSetTimeFlags::TFD_TIMER_ABSTIME,
         );
+        self.armed = next;
     }
 }

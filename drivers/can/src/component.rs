@@ -1,6 +1,6 @@
 //! A CAN bus as an rtt component on a file-descriptor activity.
 //!
-//! The component watches [`CanBus::fd`] and services the bus on every wake-up: received
+//! The component watches [`CanBus::fds`] and services the bus on every wake-up: received
 //! frames are decoded into the card's channels (which the gateway's IO components and any
 //! component holding the devices read) and, frame by frame, published on one output port
 //! per received message, so a component can see every frame rather than a sample of them.
@@ -24,7 +24,7 @@ use rtt::component::IntrospectError;
 use rtt::port::OutputPort;
 use rtt::{Component, Context, HookError, HookResult, InterfaceBuilder};
 use serde::{Deserialize, Serialize};
-use std::os::fd::AsRawFd;
+use std::os::fd::{AsRawFd, RawFd};
 use std::sync::Arc;
 
 /// One received frame as published on its message's port.
@@ -45,6 +45,8 @@ pub struct CanIo {
     card: Arc<CanCard>,
     ports: Vec<OutputPort<CanMessage>>,
     sample: CanMessage,
+    /// The socket the activity watches: its descriptor and [`CanBus::socket_generation`].
+    watched: Option<(RawFd, u64)>,
     /// A real controller's state, written when it changes.
     controller: OutputPort<Controller>,
     controller_seen: Option<Controller>,
@@ -126,7 +128,32 @@ impl CanIo {
             },
             controller,
             controller_seen: None,
+            watched: None,
         })
+    }
+}
+
+impl CanIo {
+    /// Watches the bus's socket when it is not the one watched (the first, or a new one
+    /// after the interface was replaced), letting go of the old. A failed watch is said
+    /// and tried again at the next step (the timer steps the bus at each link check).
+    fn watch_socket(&mut self, ctx: &mut Context<'_>) {
+        let Some(bus) = &self.bus else { return };
+        let generation = bus.socket_generation();
+        if self.watched.is_some_and(|(_, g)| g == generation) {
+            return;
+        }
+        if let Some((old, _)) = self.watched.take() {
+            ctx.activity().unwatch(old);
+        }
+        if let Some(fd) = bus.socket_fd() {
+            match ctx.activity().watch(fd) {
+                Ok(()) => self.watched = Some((fd.as_raw_fd(), generation)),
+                Err(e) => {
+                    tracing::warn!(interface = %self.card.map().interface(), "cannot watch the socket: {e}")
+                }
+            }
+        }
     }
 }
 
@@ -138,12 +165,20 @@ impl Component for CanIo {
                 CanBus::open(self.card.clone()).map_err(|e| HookError::new(e.to_string()))?,
             ),
         };
-        ctx.activity().watch(bus.fd())?;
+        // The timer and the wake-up; the socket on its own, as it can be replaced.
+        for fd in bus
+            .fds()
+            .filter(|fd| Some(fd.as_raw_fd()) != bus.socket_fd().map(|s| s.as_raw_fd()))
+        {
+            ctx.activity().watch(fd)?;
+        }
+        self.watched = None;
+        self.watch_socket(ctx);
         // Send the first cyclic frames and learn the link state at once.
         self.update_hook(ctx)
     }
 
-    fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
+    fn update_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
         let (ports, sample) = (&mut self.ports, &mut self.sample);
         let Some(bus) = &mut self.bus else {
             return Ok(());
@@ -160,6 +195,7 @@ impl Component for CanIo {
             };
             port.write(sample);
         });
+        self.watch_socket(ctx);
         let c = self.card.controller();
         if c != self.controller_seen {
             if let Some(c) = &c {
@@ -172,7 +208,12 @@ impl Component for CanIo {
 
     fn stop_hook(&mut self, ctx: &mut Context<'_>) {
         if let Some(bus) = &self.bus {
-            ctx.activity().unwatch(bus.fd().as_raw_fd());
+            for fd in bus.fds() {
+                ctx.activity().unwatch(fd.as_raw_fd());
+            }
+        }
+        if let Some((old, _)) = self.watched.take() {
+            ctx.activity().unwatch(old);
         }
     }
 }

@@ -116,6 +116,62 @@ pub struct Signal {
     /// Payload bit (as `byte * 8 + bit`, bit 0 the least significant of its byte) of each
     /// signal bit, most significant first.
     bits: Vec<u32>,
+    /// The whole bytes the bits lie in, as one integer: see [`Window`].
+    window: Window,
+}
+
+/// Where a signal's bits are, as whole bytes: `bytes` bytes from `first`, read as one
+/// integer (little endian for Intel, big endian for Motorola), hold the value at `shift`
+/// bits up. A signal's bits are contiguous in that integer in both byte orders, so a value
+/// is read with at most nine byte loads and one shift instead of bit by bit.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Window {
+    first: usize,
+    bytes: usize,
+    shift: u32,
+}
+
+impl Window {
+    fn new(start: u32, length: u32, order: ByteOrder) -> Window {
+        let (first, last, shift) = match order {
+            ByteOrder::Intel => (start / 8, (start + length - 1) / 8, start % 8),
+            ByteOrder::Motorola => {
+                // Bits numbered from the first byte's most significant, downwards through
+                // each byte and on into the next: the MSB at `msb`, the LSB `length - 1`
+                // further.
+                let msb = start / 8 * 8 + (7 - start % 8);
+                let lsb = msb + length - 1;
+                (msb / 8, lsb / 8, 7 - lsb % 8)
+            }
+        };
+        Window {
+            first: first as usize,
+            bytes: (last - first + 1) as usize,
+            shift,
+        }
+    }
+
+    /// The window's bytes of `payload` as one integer.
+    fn load(&self, order: ByteOrder, payload: &[u8]) -> u128 {
+        let bytes = &payload[self.first..self.first + self.bytes];
+        match order {
+            ByteOrder::Intel => bytes.iter().rev().fold(0, |a, &b| a << 8 | u128::from(b)),
+            ByteOrder::Motorola => bytes.iter().fold(0, |a, &b| a << 8 | u128::from(b)),
+        }
+    }
+
+    /// Writes `v` (the window's integer) back into `payload`.
+    fn store(&self, order: ByteOrder, payload: &mut [u8], mut v: u128) {
+        let bytes = &mut payload[self.first..self.first + self.bytes];
+        let mut put = |b: &mut u8| {
+            *b = v as u8;
+            v >>= 8;
+        };
+        match order {
+            ByteOrder::Intel => bytes.iter_mut().for_each(&mut put),
+            ByteOrder::Motorola => bytes.iter_mut().rev().for_each(&mut put),
+        }
+    }
 }
 
 impl Signal {
@@ -187,6 +243,7 @@ impl Signal {
             float_limits: None,
             scale,
             bits,
+            window: Window::new(start, length, order),
         })
     }
 
@@ -342,11 +399,7 @@ impl Signal {
 
     /// The payload bytes the signal reaches into.
     pub fn bytes_needed(&self) -> usize {
-        self.bits
-            .iter()
-            .map(|b| (b / 8) as usize + 1)
-            .max()
-            .unwrap_or(0)
+        self.window.first + self.window.bytes
     }
 
     /// The raw-to-physical scale (raw range from length and signedness).
@@ -370,10 +423,8 @@ impl Signal {
     /// The raw value in `payload` (sign-extended when signed).
     pub fn extract(&self, payload: &[u8]) -> Result<i64, SignalError> {
         self.check(payload.len())?;
-        let mut v: u64 = 0;
-        for &b in &self.bits {
-            v = (v << 1) | u64::from(payload[(b / 8) as usize] >> (b % 8) & 1);
-        }
+        let v = (self.window.load(self.order, payload) >> self.window.shift) as u64
+            & (u64::MAX >> (64 - self.length));
         Ok(
             if self.signed && self.length < 64 && v >> (self.length - 1) & 1 == 1 {
                 (v | (u64::MAX << self.length)) as i64
@@ -400,201 +451,13 @@ impl Signal {
                 signed: self.signed,
             });
         }
-        let v = raw as u64;
-        for (i, &b) in self.bits.iter().enumerate() {
-            let bit = v >> (self.length as usize - 1 - i) & 1;
-            let (byte, mask) = ((b / 8) as usize, 1u8 << (b % 8));
-            payload[byte] = if bit == 1 {
-                payload[byte] | mask
-            } else {
-                payload[byte] & !mask
-            };
-        }
+        let mask = u128::from(u64::MAX >> (64 - self.length)) << self.window.shift;
+        let v = u128::from(raw as u64) << self.window.shift & mask;
+        let w = self.window.load(self.order, payload);
+        self.window.store(self.order, payload, w & !mask | v);
         Ok(())
     }
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn sig(start: u32, len: u32, order: ByteOrder, signed: bool) -> Signal {
-        Signal::new(start, len, order, signed, 1.0, 0.0, "").unwrap()
-    }
-
-    #[test]
-    fn intel_bits() {
-        assert_eq!(
-            sig(0, 16, ByteOrder::Intel, false)
-                .extract(&[0x34, 0x12])
-                .unwrap(),
-            0x1234
-        );
-        // 12 bits from bit 4: the high nibble of byte 0 and all of byte 1.
-        assert_eq!(
-            sig(4, 12, ByteOrder::Intel, false)
-                .extract(&[0xA0, 0xBC])
-                .unwrap(),
-            0xBCA
-        );
-        assert_eq!(
-            sig(8, 12, ByteOrder::Intel, true)
-                .extract(&[0x00, 0xFF, 0x0F])
-                .unwrap(),
-            -1
-        );
-        assert_eq!(
-            sig(0, 64, ByteOrder::Intel, false)
-                .extract(&[1, 0, 0, 0, 0, 0, 0, 0x80])
-                .unwrap(),
-            i64::MIN + 1,
-            "all 64 bits"
-        );
-    }
-
-    #[test]
-    fn motorola_bits() {
-        assert_eq!(
-            sig(7, 16, ByteOrder::Motorola, false)
-                .extract(&[0x12, 0x34])
-                .unwrap(),
-            0x1234
-        );
-        // MSB at bit 4 of byte 0: five bits of byte 0, then bits 7..5 of byte 1.
-        assert_eq!(
-            sig(4, 8, ByteOrder::Motorola, false)
-                .extract(&[0x1F, 0xE0])
-                .unwrap(),
-            0xFF
-        );
-        assert_eq!(
-            sig(4, 8, ByteOrder::Motorola, false)
-                .extract(&[0x10, 0x00])
-                .unwrap(),
-            0x80
-        );
-        assert_eq!(
-            sig(23, 12, ByteOrder::Motorola, true)
-                .extract(&[0, 0, 0x80, 0x00])
-                .unwrap(),
-            -2048
-        );
-        assert_eq!(sig(7, 8, ByteOrder::Motorola, false).bytes_needed(), 1);
-        assert_eq!(sig(4, 8, ByteOrder::Motorola, false).bytes_needed(), 2);
-    }
-
-    #[test]
-    fn physical_values_use_factor_and_offset() {
-        let rpm = Signal::new(24, 16, ByteOrder::Intel, false, 0.25, 0.0, "rpm").unwrap();
-        assert_eq!(rpm.decode(&[0, 0, 0, 0x40, 0x1F, 0, 0, 0]).unwrap(), 2000.0);
-        let temp = Signal::new(0, 8, ByteOrder::Intel, true, 0.5, -10.0, "degC").unwrap();
-        assert_eq!(temp.decode(&[0xF6]).unwrap(), -15.0, "raw -10");
-        assert_eq!(temp.scale().range().unit.as_str(), "degC");
-    }
-
-    #[test]
-    fn insert_is_extracts_inverse_and_leaves_other_bits() {
-        let mut seed = 0x9E37_79B9_u64;
-        let mut next = |m: u64| {
-            seed = seed
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (seed >> 33) % m
-        };
-        for _ in 0..2000 {
-            let order = if next(2) == 0 {
-                ByteOrder::Intel
-            } else {
-                ByteOrder::Motorola
-            };
-            let length = 1 + next(64) as u32;
-            let signed = next(2) == 0 && length > 1;
-            let start = next(64) as u32;
-            let Ok(s) = Signal::new(start, length, order, signed, 1.0, 0.0, "") else {
-                continue;
-            };
-            let mut payload = vec![0u8; s.bytes_needed()];
-            for b in payload.iter_mut() {
-                *b = next(256) as u8;
-            }
-            let before = payload.clone();
-            let r = s.scale().raw_range();
-            let span = (r.max as i128 - r.min as i128 + 1).min(1 << 62) as u64;
-            let raw = (r.min as i128 + i128::from(next(span))) as i64;
-            s.insert(&mut payload, raw).unwrap();
-            assert_eq!(
-                s.extract(&payload).unwrap(),
-                raw,
-                "{order:?} start {start} len {length} signed {signed}"
-            );
-            for (i, (a, b)) in before.iter().zip(&payload).enumerate() {
-                let mine: u8 = s
-                    .bits
-                    .iter()
-                    .filter(|&&bit| (bit / 8) as usize == i)
-                    .fold(0, |m, bit| m | 1 << (bit % 8));
-                assert_eq!(a & !mine, b & !mine, "other bits of byte {i} untouched");
-            }
-        }
-    }
-
-    #[test]
-    fn limits_narrow_the_raw_range() {
-        let s = Signal::new(0, 16, ByteOrder::Intel, true, 0.1, 0.0, "Nm").unwrap();
-        let l = s.clone().with_limits(-100.0, 250.5).unwrap();
-        assert_eq!(
-            l.scale().raw_range(),
-            RawRange {
-                min: -1000,
-                max: 2505
-            }
-        );
-        // Negative factor: the limits swap ends in raw.
-        let n = Signal::new(0, 8, ByteOrder::Intel, false, -0.5, 100.0, "").unwrap();
-        let n = n.with_limits(0.0, 50.0).unwrap();
-        assert_eq!(n.scale().raw_range(), RawRange { min: 100, max: 200 });
-        // 0|0 is "no limits"; limits past the raw range keep it.
-        assert_eq!(s.clone().with_limits(0.0, 0.0).unwrap(), s);
-        let w = s.clone().with_limits(-1e9, 1e9).unwrap();
-        assert_eq!(w.scale().raw_range(), s.scale().raw_range());
-        assert!(matches!(
-            s.clone().with_limits(5.0, 1.0),
-            Err(SignalError::Limits { .. })
-        ));
-        assert!(matches!(
-            s.with_limits(1e9, 2e9),
-            Err(SignalError::Limits { .. })
-        ));
-    }
-
-    #[test]
-    fn bad_signals_and_short_frames() {
-        assert_eq!(
-            Signal::new(0, 0, ByteOrder::Intel, false, 1.0, 0.0, "").unwrap_err(),
-            SignalError::Length(0)
-        );
-        assert_eq!(
-            Signal::new(0, 65, ByteOrder::Intel, false, 1.0, 0.0, "").unwrap_err(),
-            SignalError::Length(65)
-        );
-        assert!(
-            Signal::new(0, 8, ByteOrder::Intel, false, 0.0, 0.0, "").is_err(),
-            "zero factor"
-        );
-        let s = sig(60, 8, ByteOrder::Intel, false);
-        assert_eq!(
-            s.extract(&[0; 8]).unwrap_err().to_string(),
-            "the signal needs 9 bytes of payload, the frame has 8"
-        );
-        let mut p = [0u8; 2];
-        assert_eq!(
-            sig(0, 4, ByteOrder::Intel, false)
-                .insert(&mut p, 16)
-                .unwrap_err()
-                .to_string(),
-            "raw value 16 does not fit 4 unsigned bits"
-        );
-        assert!(sig(0, 4, ByteOrder::Intel, true).insert(&mut p, -8).is_ok());
-        assert!(sig(0, 4, ByteOrder::Intel, true).insert(&mut p, 8).is_err());
-    }
-}
+mod tests;
