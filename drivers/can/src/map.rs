@@ -401,7 +401,9 @@ fn frame(
     for (name, from_dbc, table) in list {
         let spath = match table {
             Some(k) => format!("{path}.signal[{k}]"),
-            None => format!("{path} ({name})"),
+            // A DBC signal the TOML does not list: the message's path (the name is added
+            // where a problem is reported).
+            None => path.to_string(),
         };
         let t = table.map(|k| {
             used[k] = true;
@@ -511,7 +513,7 @@ fn map_signal(
         (None, Some(t)) => inline_signal(t, &here_path, length)?,
         (None, None) => {
             return Err(bad(
-                spath,
+                here_path,
                 "a signal with neither a DBC definition nor a table",
             ));
         }

@@ -306,6 +306,11 @@ impl Rng {
 /// value, never a panic. Prints how many texts it read.
 #[test]
 fn hostile_text_never_panics() {
+    // DBC_FUZZ_SCALE multiplies the texts (a longer run by hand: 40 is a million).
+    let scale: usize = std::env::var("DBC_FUZZ_SCALE")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(1);
     let mut rng = Rng(0xDBC0_F022);
     let pieces = [
         "\"",
@@ -335,7 +340,7 @@ fn hostile_text_never_panics() {
     ];
     let base: Vec<char> = DBC.chars().collect();
     let mut read = 0u64;
-    for _ in 0..20_000 {
+    for _ in 0..20_000 * scale {
         let mut t = base.clone();
         for _ in 0..=rng.next() % 8 {
             let at = (rng.next() % (t.len() as u64 + 1)) as usize;
@@ -355,7 +360,7 @@ fn hostile_text_never_panics() {
         let _ = Dbc::parse("fuzz.dbc", &text);
         read += 1;
     }
-    for _ in 0..5_000 {
+    for _ in 0..5_000 * scale {
         let len = (rng.next() % 400) as usize;
         let text: String = (0..len)
             .map(|_| char::from_u32((rng.next() % 128) as u32).unwrap_or(' '))
