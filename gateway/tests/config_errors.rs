@@ -67,6 +67,8 @@ fn every_broken_config_gets_its_exact_error() {
          "t.toml:8:11: card[0].socketcan.rx[0].signal[0]: card \"can\": signal speed: an inline signal needs start and length"),
         ("DBC range no raw value reaches", format!("{CAN}interface = \"can7\"\ndbc = \"tests/data/unreachable.dbc\"\n[[card.socketcan.rx]]\nmessage = \"M\"\n"),
          "t.toml:7:1: card[0].socketcan.rx[0]: card \"can\": signal S: no raw value of the signal lies in its range [1000|2000]"),
+        ("an encoder of resolution 0", format!("{CAN}interface = \"can7\"\n[[card.socketcan.rx]]\nid = 0x10\nlength = 2\nsignal = [{{ name = \"P\", start = 0, length = 16, as = \"encoder\", resolution = 0 }}]\n"),
+         "t.toml:9:11: card[0].socketcan.rx[0].signal[0]: card \"can\": signal P: resolution 0: expected a count of steps per turn, not 0"),
         ("DBC signal given a scale", format!("{CAN}interface = \"can7\"\ndbc = \"../drivers/can/tests/data/motion.dbc\"\n[[card.socketcan.rx]]\nmessage = \"Motion\"\nsignal = [{{ name = \"Speed\", factor = 2 }}]\n"),
          "t.toml:9:11: card[0].socketcan.rx[0].signal[0]: card \"can\": signal Speed: the layout and scale of a DBC signal come from the DBC file; only as, resolution, upcounting and initial can be set here"),
         ("11-bit id too large", format!("{CAN}interface = \"can7\"\n[[card.socketcan.tx]]\nid = 0x800\ncycle_ms = 10\n"),

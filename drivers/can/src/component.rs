@@ -140,7 +140,9 @@ impl CanIo {
     fn watch_socket(&mut self, ctx: &mut Context<'_>) {
         let Some(bus) = &self.bus else { return };
         let generation = bus.socket_generation();
-        if self.watched.is_some_and(|(_, g)| g == generation) {
+        // The socket now (none after a failed reopen: the old one is let go of too).
+        let current = bus.socket_fd().map(|fd| (fd.as_raw_fd(), generation));
+        if self.watched == current {
             return;
         }
         if let Some((old, _)) = self.watched.take() {
@@ -148,7 +150,7 @@ impl CanIo {
         }
         if let Some(fd) = bus.socket_fd() {
             match ctx.activity().watch(fd) {
-                Ok(()) => self.watched = Some((fd.as_raw_fd(), generation)),
+                Ok(()) => self.watched = current,
                 Err(e) => {
                     tracing::warn!(interface = %self.card.map().interface(), "cannot watch the socket: {e}")
                 }

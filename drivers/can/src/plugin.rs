@@ -12,6 +12,7 @@ use crate::bus::CanBus;
 use crate::card::CanCard;
 use crate::component::CanIo;
 use crate::map::{CanConfig, MappedFrame, SignalRole};
+use crate::signal::ValueKind;
 use device_interface::CardDevices;
 use driver_api::{
     Card, CardContext, CardError, CardStatus, ChannelDetail, ChannelDetails, ChannelNames,
@@ -113,10 +114,22 @@ fn signal_details(frames: &[MappedFrame], role: SignalRole) -> Vec<ChannelDetail
             .comment
             .as_deref()
             .map(|c| c.split_whitespace().collect::<Vec<_>>().join(" "));
+        // A VAL_ key is the raw integer value (for a float signal too, as cantools reads
+        // it: the number, not the float's bits); a digital channel's value is its bit.
         let values: Vec<(f64, String)> = s
             .values
             .iter()
-            .map(|(raw, name)| (s.signal.physical(*raw), name.clone()))
+            .map(|(raw, name)| {
+                let v = match (s.role, s.signal.kind()) {
+                    (SignalRole::Digital, _) => *raw as f64,
+                    (_, ValueKind::Integer) => s.signal.physical(*raw),
+                    _ => {
+                        let (factor, offset) = s.signal.factor_offset();
+                        *raw as f64 * factor + offset
+                    }
+                };
+                (v, name.clone())
+            })
             .collect();
         match s.width() {
             1 => out.push(ChannelDetail {
@@ -259,5 +272,38 @@ impl Card for CanPlugin {
             return Err("safe values not sent before stopping".into());
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, reason = "test code")]
+    use super::*;
+
+    #[test]
+    fn value_names_are_the_channels_values() {
+        // A VAL_ key is the raw number: scaled for an integer, the number itself (not its
+        // bits) for a float, the bit for a digital channel whatever its factor and offset.
+        let dir = std::env::temp_dir().join(format!("hwgw-can-vals-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(
+            dir.join("v.dbc"),
+            "BO_ 1 M: 8 X\n SG_ Gear : 0|8@1+ (2,1) [0|0] \"\" Y\n \
+             SG_ F : 8|32@1+ (1,0) [0|0] \"\" Y\n SG_ Lamp : 40|1@1+ (1,1) [0|0] \"\" Y\n\
+             VAL_ 1 Gear 0 \"P\" 3 \"D\" ;\nVAL_ 1 F 1 \"One\" ;\nVAL_ 1 Lamp 0 \"off\" 1 \"on\" ;\n\
+             SIG_VALTYPE_ 1 F : 1;\nCM_ SG_ 1 Gear \"the\r\n  gear\";\n",
+        )
+        .unwrap();
+        let config: CanConfig =
+            toml::from_str("interface = \"vcan0\"\ndbc = \"v.dbc\"\n[[rx]]\nmessage = \"M\"\n")
+                .unwrap();
+        let map = crate::map::CanMap::new(&config, &dir).unwrap();
+        let analog = signal_details(map.rx(), SignalRole::Analog);
+        assert_eq!(analog[0].values, [(1.0, "P".into()), (7.0, "D".into())]);
+        assert_eq!(analog[0].doc.as_deref(), Some("the gear"));
+        assert_eq!(analog[1].values, [(1.0, "One".into())]);
+        let digital = signal_details(map.rx(), SignalRole::Digital);
+        assert_eq!(digital[0].values, [(0.0, "off".into()), (1.0, "on".into())]);
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

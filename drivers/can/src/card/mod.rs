@@ -41,8 +41,8 @@ use device_interface::encoder::WrappingCounter;
 use device_interface::time::{Clock, Timestamp};
 use device_interface::{AnalogIn, AnalogOut, DeviceError, DigitalIn, DigitalOut, Scale};
 use status::{BusStateError, Counters, bump};
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU8, AtomicU64, Ordering};
-use std::sync::{Arc, OnceLock};
 
 /// Per received frame.
 struct RxState {
@@ -90,7 +90,8 @@ pub struct CanCard {
     dout: BitImage,
     do_frame: Box<[u32]>,
     tx_dirty: Box<[AtomicBool]>,
-    waker: OnceLock<Box<dyn Fn() + Send + Sync>>,
+    /// The bus side's wake-up (replaced when a new bus opens the card).
+    waker: ArcSwapOption<Box<dyn Fn() + Send + Sync>>,
     link_up: AtomicBool,
     bus_state: AtomicU8,
     /// What netlink last said of a real controller (none for vcan).
@@ -166,7 +167,7 @@ impl CanCard {
             dout: dout_image,
             do_frame: do_frame.into(),
             tx_dirty: map.tx().iter().map(|_| AtomicBool::new(false)).collect(),
-            waker: OnceLock::new(),
+            waker: ArcSwapOption::empty(),
             link_up: AtomicBool::new(false),
             bus_state: AtomicU8::new(0),
             controller: ArcSwapOption::empty(),
@@ -205,10 +206,10 @@ impl CanCard {
         }
     }
 
-    /// Sets what is called when an on-change frame needs sending (the bus side's wake-up).
-    /// Only the first call takes effect.
+    /// Sets what is called when an on-change frame needs sending (the bus side's wake-up);
+    /// a bus opened anew on the card replaces the old one's.
     pub fn set_waker(&self, wake: Box<dyn Fn() + Send + Sync>) {
-        let _ = self.waker.set(wake);
+        self.waker.store(Some(Arc::new(wake)));
     }
 
     /// Decodes a received frame's payload into the channels, timestamped `at`; `fd` says
@@ -466,65 +467,6 @@ impl CanCard {
         }
     }
 
-    /// The counters now.
-    pub fn counters(&self) -> CanCounters {
-        let c = &self.counters;
-        let l = |a: &AtomicU64| a.load(Ordering::Relaxed);
-        CanCounters {
-            rx_frames: l(&c.rx_frames),
-            rx_unknown_id: l(&c.rx_unknown_id),
-            rx_bad_length: l(&c.rx_bad_length),
-            rx_bad_kind: l(&c.rx_bad_kind),
-            rx_out_of_range: l(&c.rx_out_of_range),
-            rx_dropped: l(&c.rx_dropped),
-            tx_frames: l(&c.tx_frames),
-            tx_errors: l(&c.tx_errors),
-            tx_skipped_cycles: l(&c.tx_skipped_cycles),
-            stale_events: l(&c.stale_events),
-            link_down_events: l(&c.link_down_events),
-            error_frames: l(&c.error_frames),
-            bus_off: l(&c.bus_off),
-            error_passive: l(&c.error_passive),
-            error_warning: l(&c.error_warning),
-            restarted: l(&c.restarted),
-            controller_overflow: l(&c.controller_overflow),
-            no_ack: l(&c.no_ack),
-            lost_arbitration: l(&c.lost_arbitration),
-            protocol_violations: l(&c.protocol_violations),
-            transceiver_faults: l(&c.transceiver_faults),
-            tx_timeouts: l(&c.tx_timeouts),
-            bus_state: Some(self.bus_state()),
-            controller: self.controller(),
-            link_up: self.link_up(),
-            messages: self.message_states(),
-        }
-    }
-
-    /// Each received message's state now.
-    fn message_states(&self) -> Vec<MessageState> {
-        let now = self.clock.now();
-        self.map
-            .rx()
-            .iter()
-            .enumerate()
-            .map(|(f, frame)| {
-                let last = self.rx[f].last.load(Ordering::Acquire);
-                MessageState {
-                    name: frame.name.clone(),
-                    id: frame.id,
-                    received: self.rx[f].count.load(Ordering::Relaxed),
-                    age_ms: (last != 0).then(|| {
-                        now.duration_since(Timestamp::from_nanos(last - 1))
-                            .as_secs_f64()
-                            * 1000.0
-                    }),
-                    stale: self.frame_age_error(f, frame, now).is_some(),
-                    channels: frame.signals.iter().map(|s| s.port.clone()).collect(),
-                }
-            })
-            .collect()
-    }
-
     /// Why frame `f`'s channels cannot be read now, if they cannot.
     fn frame_age_error(
         &self,
@@ -588,7 +530,7 @@ impl CanCard {
     fn output(&self, tx: u32) {
         if self.map.tx().get(tx as usize).is_some_and(|f| f.on_change) {
             self.tx_dirty[tx as usize].store(true, Ordering::Release);
-            if let Some(w) = self.waker.get() {
+            if let Some(w) = self.waker.load().as_deref() {
                 w();
             }
         }
@@ -599,7 +541,7 @@ impl CanCard {
         for d in self.tx_dirty.iter() {
             d.store(true, Ordering::Release);
         }
-        if let Some(w) = self.waker.get() {
+        if let Some(w) = self.waker.load().as_deref() {
             w();
         }
     }

@@ -3,6 +3,7 @@
 
 use super::CanCard;
 use crate::netlink::{Controller, ControllerState};
+use device_interface::time::Timestamp;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -199,5 +200,64 @@ impl CanCard {
             restarts: self.counters.restarted.load(Ordering::Relaxed),
             ..*c
         })
+    }
+
+    /// The counters now.
+    pub fn counters(&self) -> CanCounters {
+        let c = &self.counters;
+        let l = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        CanCounters {
+            rx_frames: l(&c.rx_frames),
+            rx_unknown_id: l(&c.rx_unknown_id),
+            rx_bad_length: l(&c.rx_bad_length),
+            rx_bad_kind: l(&c.rx_bad_kind),
+            rx_out_of_range: l(&c.rx_out_of_range),
+            rx_dropped: l(&c.rx_dropped),
+            tx_frames: l(&c.tx_frames),
+            tx_errors: l(&c.tx_errors),
+            tx_skipped_cycles: l(&c.tx_skipped_cycles),
+            stale_events: l(&c.stale_events),
+            link_down_events: l(&c.link_down_events),
+            error_frames: l(&c.error_frames),
+            bus_off: l(&c.bus_off),
+            error_passive: l(&c.error_passive),
+            error_warning: l(&c.error_warning),
+            restarted: l(&c.restarted),
+            controller_overflow: l(&c.controller_overflow),
+            no_ack: l(&c.no_ack),
+            lost_arbitration: l(&c.lost_arbitration),
+            protocol_violations: l(&c.protocol_violations),
+            transceiver_faults: l(&c.transceiver_faults),
+            tx_timeouts: l(&c.tx_timeouts),
+            bus_state: Some(self.bus_state()),
+            controller: self.controller(),
+            link_up: self.link_up(),
+            messages: self.message_states(),
+        }
+    }
+
+    /// Each received message's state now.
+    fn message_states(&self) -> Vec<MessageState> {
+        let now = self.clock.now();
+        self.map
+            .rx()
+            .iter()
+            .enumerate()
+            .map(|(f, frame)| {
+                let last = self.rx[f].last.load(Ordering::Acquire);
+                MessageState {
+                    name: frame.name.clone(),
+                    id: frame.id,
+                    received: self.rx[f].count.load(Ordering::Relaxed),
+                    age_ms: (last != 0).then(|| {
+                        now.duration_since(Timestamp::from_nanos(last - 1))
+                            .as_secs_f64()
+                            * 1000.0
+                    }),
+                    stale: self.frame_age_error(f, frame, now).is_some(),
+                    channels: frame.signals.iter().map(|s| s.port.clone()).collect(),
+                }
+            })
+            .collect()
     }
 }

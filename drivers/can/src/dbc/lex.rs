@@ -31,6 +31,11 @@ pub struct Token<'a> {
 /// The longest string taken (a comment may be long; a runaway one stops here).
 pub const MAX_STRING: usize = 1 << 20;
 
+/// The most tokens taken from one file: a 16 MiB DBC file of real statements has about
+/// three million; more is a file of stray characters, and the tokens' memory (at most
+/// this many times `size_of::<Token>()`, 40 bytes: 160 MB) stops here.
+pub const MAX_TOKENS: usize = 4_000_000;
+
 /// Why the text could not be cut into tokens.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct LexError {
@@ -56,6 +61,12 @@ pub fn tokens(text: &str) -> Result<Vec<Token<'_>>, LexError> {
         if c.is_ascii_whitespace() {
             i += 1;
             continue;
+        }
+        if out.len() >= MAX_TOKENS {
+            return Err(LexError {
+                line,
+                problem: format!("more than {MAX_TOKENS} tokens (not a DBC file of statements)"),
+            });
         }
         let start = i;
         let tok = if c.is_ascii_alphabetic() || c == b'_' {

@@ -1,10 +1,13 @@
 //! The statements of a DBC file, read from its tokens by their keywords (see the module
 //! [`dbc`](super)).
 
+mod finish;
+
 use super::lex::{Tok, Token, tokens};
 use super::{DbcError, DbcSignal, Message, Mux};
-use crate::signal::{ByteOrder, Signal, SignalError, ValueKind};
-use std::time::Duration;
+use crate::signal::{ByteOrder, Signal, SignalError};
+use finish::finish;
+use std::collections::HashSet;
 
 /// The extended-id flag DBC files put on 29-bit ids.
 const EXTENDED: u64 = 0x8000_0000;
@@ -57,7 +60,7 @@ type SignalKey = (u64, String);
 /// What statements after the messages say about them, applied at the end.
 #[derive(Default)]
 struct Extras {
-    kinds: Vec<(SignalKey, u8, usize)>,
+    kinds: Vec<(SignalKey, u64, usize)>,
     signal_comments: Vec<(SignalKey, String)>,
     message_comments: Vec<(u64, String)>,
     values: Vec<(SignalKey, Vec<(i64, String)>)>,
@@ -72,6 +75,8 @@ struct Raw {
     message: Message,
     /// A pseudo-message (read, then left out).
     pseudo: bool,
+    /// Its signals' names (a repeated one is found without a scan of them all).
+    names: HashSet<String>,
 }
 
 struct Parser<'a> {
@@ -330,6 +335,7 @@ fn message(p: &mut Parser<'_>, line: usize) -> Step<Raw> {
     Ok(Raw {
         id,
         pseudo,
+        names: HashSet::new(),
         message: Message {
             id: (can_id & 0x1FFF_FFFF) as u32,
             extended,
@@ -446,7 +452,7 @@ fn signal(p: &mut Parser<'_>, r: &mut Raw, line: usize) -> Step<()> {
             ),
         ));
     }
-    if m.signal(&name).is_some() {
+    if !r.names.insert(name.clone()) {
         return Err((
             line,
             format!("message {} already has a signal of that name", m.name),
@@ -521,9 +527,12 @@ fn values(p: &mut Parser<'_>, x: &mut Extras) -> Step<()> {
     let mut list = Vec::new();
     while let Some(Tok::Num(n)) = p.peek().map(|t| &t.tok) {
         let line = p.line();
+        // An unsigned 64-bit signal's values above 2^63 - 1 are kept as their bits, as
+        // the signal's raw values are.
         let v = n
             .parse::<i64>()
             .ok()
+            .or_else(|| n.parse::<u64>().ok().map(|u| u as i64))
             .or_else(|| {
                 n.parse::<f64>()
                     .ok()
@@ -545,73 +554,7 @@ fn value_type(p: &mut Parser<'_>, x: &mut Extras, line: usize) -> Step<()> {
     let name = p.ident("a signal name")?.to_string();
     p.maybe(':');
     let kind = p.uint("a value type (1 float, 2 double)")?;
-    x.kinds.push(((id, name), kind as u8, line));
+    x.kinds.push(((id, name), kind, line));
     p.skip_statement();
     Ok(())
-}
-
-/// The messages with what the later statements said about them.
-fn finish(raws: Vec<Raw>, x: Extras, p: &Parser<'_>) -> Vec<Message> {
-    let mut out: Vec<(u64, Message)> = raws
-        .into_iter()
-        .filter(|r| !r.pseudo)
-        .map(|r| (r.id, r.message))
-        .collect();
-    let find = |out: &mut Vec<(u64, Message)>, id: u64| -> Option<usize> {
-        out.iter().position(|(i, _)| *i == id)
-    };
-    for ((id, name), kind, line) in x.kinds {
-        let Some(m) = find(&mut out, id) else {
-            continue;
-        };
-        let m = &mut out[m].1;
-        let Some(s) = m.signals.iter_mut().find(|s| s.name == name) else {
-            continue;
-        };
-        let k = match kind {
-            1 => ValueKind::Float32,
-            2 => ValueKind::Float64,
-            _ => ValueKind::Integer,
-        };
-        match s.signal.clone().with_kind(k) {
-            Ok(sig) => s.signal = sig,
-            Err(e) => m.problems.push(p.error(line, Some(&name), e.to_string())),
-        }
-    }
-    for ((id, name), text) in x.signal_comments {
-        if let Some(m) = find(&mut out, id)
-            && let Some(s) = out[m].1.signals.iter_mut().find(|s| s.name == name)
-        {
-            s.comment = Some(text);
-        }
-    }
-    for (id, text) in x.message_comments {
-        if let Some(m) = find(&mut out, id) {
-            out[m].1.comment = Some(text);
-        }
-    }
-    for ((id, name), list) in x.values {
-        if let Some(m) = find(&mut out, id)
-            && let Some(s) = out[m].1.signals.iter_mut().find(|s| s.name == name)
-        {
-            s.values = list;
-        }
-    }
-    let cycle = |ms: f64| {
-        (ms.is_finite() && ms > 0.0 && ms < 1e9).then(|| Duration::from_secs_f64(ms / 1000.0))
-    };
-    for (_, m) in &mut out {
-        m.cycle = x.default_cycle.and_then(cycle);
-    }
-    for (id, ms) in x.cycles {
-        if let Some(m) = find(&mut out, id) {
-            out[m].1.cycle = cycle(ms);
-        }
-    }
-    for id in x.extended_mux {
-        if let Some(m) = find(&mut out, id) {
-            out[m].1.extended_mux = true;
-        }
-    }
-    out.into_iter().map(|(_, m)| m).collect()
 }

@@ -370,3 +370,32 @@ fn hostile_text_never_panics() {
     }
     println!("DBC reader fuzz: {read} texts, 0 panics");
 }
+
+#[test]
+fn large_hostile_files_are_read_in_bounded_time_and_memory() {
+    use super::lex::{MAX_TOKENS, Token};
+    // The token bound's memory, as its doc says.
+    assert!(std::mem::size_of::<Token<'_>>() <= 40);
+    // Too many tokens: refused with the line, not read into gigabytes.
+    let text = "(".repeat(MAX_TOKENS + 1);
+    let e = Dbc::parse("paren.dbc", &text).unwrap_err();
+    assert!(e.to_string().contains("more than 4000000 tokens"), "{e}");
+    // One message of 100 000 signals, each with a comment and a value table: linear.
+    let mut text = String::from("BO_ 1 M: 64 X\n");
+    for k in 0..100_000 {
+        text.push_str(&format!(" SG_ S{k} : 0|1@1+ (1,0) [0|1] \"\" Y\n"));
+    }
+    for k in 0..100_000 {
+        text.push_str(&format!(
+            "CM_ SG_ 1 S{k} \"c\";\nVAL_ 1 S{k} 0 \"off\" 1 \"on\";\n"
+        ));
+    }
+    let start = std::time::Instant::now();
+    let dbc = Dbc::parse("many.dbc", &text).unwrap();
+    let took = start.elapsed();
+    let m = dbc.message("M").unwrap();
+    assert_eq!(m.signals.len(), 100_000);
+    assert_eq!(m.signals[99_999].values.len(), 2);
+    // Not a timing assertion: a quadratic reading of this file takes minutes.
+    println!("100 000 signals with comments and values read in {took:?}");
+}

@@ -282,6 +282,11 @@ impl Signal {
         self.kind
     }
 
+    /// The DBC factor and offset.
+    pub fn factor_offset(&self) -> (f64, f64) {
+        (self.factor, self.offset)
+    }
+
     /// The physical value of raw bits `raw` (as [`extract`](Self::extract) returns them):
     /// `raw * factor + offset` with the raw value as the DBC says — signed, unsigned (all 64
     /// bits unsigned up to 2^64 − 1), or the IEEE float the bits hold — computed in f64 as
@@ -329,7 +334,13 @@ impl Signal {
                 self.float_limits
                     .is_none_or(|(min, max)| v >= min && v <= max)
             }
-            ValueKind::Integer => self.scale.raw_range().contains(raw),
+            ValueKind::Integer => {
+                self.scale.raw_range().contains(raw)
+                    && self.float_limits.is_none_or(|(min, max)| {
+                        let v = self.physical(raw);
+                        v >= min && v <= max
+                    })
+            }
             _ => {
                 let v = self.physical(raw);
                 let (min, max) = self
@@ -387,6 +398,12 @@ impl Signal {
         } else {
             hi as i64
         };
+        if lo == hi {
+            // One raw value (a constant or reserved signal, [5|5]): a scale needs two, so
+            // the limits are checked as physical values instead.
+            self.float_limits = Some((min, max));
+            return Ok(self);
+        }
         let range = RawRange::new(lo, hi).map_err(|_| bad)?;
         self.scale = Scale::from_factor(range, self.factor, self.offset, self.scale.unit())?;
         Ok(self)

@@ -147,9 +147,17 @@ fn limits_narrow_the_raw_range() {
         Err(SignalError::Limits { .. })
     ));
     assert!(matches!(
-        s.with_limits(1e9, 2e9),
+        s.clone().with_limits(1e9, 2e9),
         Err(SignalError::Limits { .. })
     ));
+    // One raw value in range (a constant signal, [5|5]): taken, and checked.
+    let one = sig(0, 8, ByteOrder::Intel, false)
+        .with_limits(5.0, 5.0)
+        .unwrap();
+    assert!(one.in_range(5));
+    assert!(!one.in_range(6));
+    assert_eq!(one.raw_of(5.0), Some(5));
+    assert_eq!(one.raw_of(6.0), None);
 }
 
 #[test]

@@ -38,8 +38,13 @@
 
 pub use crate::section::{CanConfig, FrameConfig, SignalConfig, SignalRole};
 
+mod signals;
+
+pub use signals::QUALIFIER;
+
 use crate::dbc::{Dbc, DbcError, DbcSignal, Mux};
-use crate::signal::{ByteOrder, Signal, SignalError};
+use crate::signal::Signal;
+use signals::{map_signal, qualify, slot, some_names};
 use std::path::Path;
 use std::time::Duration;
 
@@ -143,12 +148,25 @@ pub struct CanMap {
 /// The payload lengths a CAN FD frame can have.
 const FD_LENGTHS: [usize; 16] = [0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64];
 
-fn millis(path: &str, ms: f64) -> Result<Duration, MapError> {
-    if ms.is_finite() && ms > 0.0 && ms < 1e9 {
+/// The shortest cycle or timeout, ms: 100 µs, about one classic frame at 1 Mbit/s (a
+/// shorter one would only keep the bus thread busy).
+pub const MIN_CYCLE_MS: f64 = 0.1;
+
+/// `ms` as a duration of at least `min` ms and under a million seconds.
+fn millis_at_least(path: &str, ms: f64, min: f64) -> Result<Duration, MapError> {
+    if ms.is_finite() && ms >= min && ms < 1e9 {
         Ok(Duration::from_secs_f64(ms / 1000.0))
     } else {
-        Err(bad(path, format!("{ms} ms: expected a time above 0")))
+        Err(bad(
+            path,
+            format!("{ms} ms: expected a time from {min} ms to a million seconds"),
+        ))
     }
+}
+
+/// A cycle or timeout from the TOML.
+fn millis(path: &str, ms: f64) -> Result<Duration, MapError> {
+    millis_at_least(path, ms, MIN_CYCLE_MS)
 }
 
 impl CanMap {
@@ -195,7 +213,7 @@ impl CanMap {
         qualify(&mut rx, &mut tx);
         Ok(CanMap {
             interface: config.interface.clone(),
-            link_check: millis("link_check_ms", config.link_check_ms)?,
+            link_check: millis_at_least("link_check_ms", config.link_check_ms, 1.0)?,
             rx,
             tx,
             counts: [next[0], next[1], next[2], next[3]],
@@ -265,15 +283,30 @@ fn frame(
                 ));
             };
             let Some(msg) = dbc.message(m) else {
-                let names: Vec<&str> = dbc.messages.iter().map(|m| m.name.as_str()).collect();
                 return Err(bad(
                     format!("{path}.message"),
                     format!(
                         "the DBC file has no message {m:?} (it has: {})",
-                        names.join(", ")
+                        some_names(dbc.messages.iter().map(|m| m.name.as_str()))
                     ),
                 ));
             };
+            let same: Vec<String> = dbc
+                .messages
+                .iter()
+                .filter(|d| d.name == *m)
+                .map(|d| format!("{:#x}", d.id))
+                .collect();
+            if same.len() > 1 {
+                return Err(bad(
+                    format!("{path}.message"),
+                    format!(
+                        "the DBC file has {} messages named {m:?} (ids {}): map it by id and length",
+                        same.len(),
+                        same.join(", ")
+                    ),
+                ));
+            }
             if f.id.is_some() || f.length.is_some() || f.extended {
                 return Err(bad(
                     path,
@@ -348,9 +381,12 @@ fn frame(
             },
         ));
     }
-    // The TOML's cycle, else the DBC message's GenMsgCycleTime.
+    // The TOML's cycle, else (for a received frame) the DBC message's GenMsgCycleTime. A
+    // sent frame is cyclic only when the TOML says so: a DBC attribute is not reason
+    // enough to start writing a bus.
     let cycle = match f.cycle_ms {
         Some(ms) => Some(millis(&format!("{path}.cycle_ms"), ms)?),
+        None if tx => None,
         None => base.and_then(|m| m.cycle),
     };
     let timeout = match (f.timeout_ms, cycle) {
@@ -439,189 +475,4 @@ fn frame(
         on_change,
         signals,
     })
-}
-
-/// What joins a message's name and a signal's in the port name of a signal whose name
-/// another mapped message has too (`EngineData__Counter`): port names cannot hold dots.
-pub const QUALIFIER: &str = "__";
-
-/// Gives every signal its port name: its own name, unique across the card's mapped
-/// messages, else `Message__Signal` for each signal whose name is repeated.
-fn qualify(rx: &mut [MappedFrame], tx: &mut [MappedFrame]) {
-    let mut seen: std::collections::HashMap<String, usize> = std::collections::HashMap::new();
-    for f in rx.iter().chain(tx.iter()) {
-        for s in &f.signals {
-            *seen.entry(s.name.clone()).or_default() += 1;
-        }
-    }
-    for f in rx.iter_mut().chain(tx.iter_mut()) {
-        for s in &mut f.signals {
-            s.port = if seen.get(&s.name).copied().unwrap_or(0) > 1 {
-                format!("{}{QUALIFIER}{}", f.name, s.name)
-            } else {
-                s.name.clone()
-            };
-        }
-    }
-}
-
-/// Which of the channel counters (AI, AO, DI, DO, encoders) a signal of `role` takes from.
-fn slot(role: SignalRole, tx: bool) -> usize {
-    match (role, tx) {
-        (SignalRole::Analog, false) => 0,
-        (SignalRole::Analog, true) => 1,
-        (SignalRole::Digital, false) => 2,
-        (SignalRole::Digital, true) => 3,
-        (SignalRole::Encoder, _) => 4,
-    }
-}
-
-/// One signal of a frame: a DBC signal (`from_dbc`, adjusted by its table `t`), or the
-/// table alone (inline); its channel is the next of its kind in `next`.
-fn map_signal(
-    name: &str,
-    from_dbc: Option<&DbcSignal>,
-    t: Option<&SignalConfig>,
-    spath: &str,
-    length: usize,
-    tx: bool,
-    next: &[u32; 5],
-) -> Result<MappedSignal, MapError> {
-    let here_path = format!("{spath} ({name})");
-    let here = |e: SignalError| bad(&here_path, e.to_string());
-    let signal = match (from_dbc, t) {
-        (Some(d), t) => {
-            if let Some(t) = t
-                && (t.start.is_some()
-                    || t.length.is_some()
-                    || t.byte_order.is_some()
-                    || t.signed.is_some()
-                    || t.factor.is_some()
-                    || t.offset.is_some()
-                    || t.min.is_some()
-                    || t.max.is_some()
-                    || t.unit.is_some())
-            {
-                return Err(bad(
-                    &here_path,
-                    "the layout and scale of a DBC signal come from the DBC file; \
-                     only as, resolution, upcounting and initial can be set here",
-                ));
-            }
-            d.signal.clone().with_limits(d.min, d.max).map_err(here)?
-        }
-        (None, Some(t)) => inline_signal(t, &here_path, length)?,
-        (None, None) => {
-            return Err(bad(
-                here_path,
-                "a signal with neither a DBC definition nor a table",
-            ));
-        }
-    };
-    let len = signal.layout().1;
-    let role = t.and_then(|t| t.role).unwrap_or(if len == 1 {
-        SignalRole::Digital
-    } else {
-        SignalRole::Analog
-    });
-    let encoder = match role {
-        SignalRole::Encoder if tx => {
-            return Err(bad(
-                &here_path,
-                "an encoder is an input: map it in an rx frame",
-            ));
-        }
-        SignalRole::Encoder => {
-            let Some(resolution) = t.and_then(|t| t.resolution) else {
-                return Err(bad(
-                    &here_path,
-                    "an encoder needs resolution (counts per turn)",
-                ));
-            };
-            Some((resolution, t.and_then(|t| t.upcounting).unwrap_or(true)))
-        }
-        _ => {
-            if t.is_some_and(|t| t.resolution.is_some() || t.upcounting.is_some()) {
-                return Err(bad(
-                    &here_path,
-                    "resolution and upcounting are for as = \"encoder\"",
-                ));
-            }
-            None
-        }
-    };
-    if role != SignalRole::Analog && signal.kind() != crate::signal::ValueKind::Integer {
-        return Err(bad(
-            &here_path,
-            "a float signal is an analog channel (as = \"analog\")",
-        ));
-    }
-    let initial = t.and_then(|t| t.initial);
-    let initial_raw = match initial {
-        _ if !tx && initial.is_some() => {
-            return Err(bad(&here_path, "initial is for sent signals"));
-        }
-        Some(v) => signal.raw_of(v).ok_or_else(|| {
-            bad(
-                &here_path,
-                format!("initial {v} is outside the signal's range"),
-            )
-        })?,
-        None => match signal.kind() {
-            crate::signal::ValueKind::Integer => signal.scale().raw_range().clamp(0),
-            // A float's raw is its bits: 0.0's are all zero.
-            _ => signal.raw_of(0.0).unwrap_or(0),
-        },
-    };
-    let (mux, multiplexer) = match from_dbc.map(|d| d.mux) {
-        Some(Mux::When(k)) => (Some(k), false),
-        Some(Mux::Multiplexer) => (None, true),
-        _ => (None, false),
-    };
-    Ok(MappedSignal {
-        name: name.to_string(),
-        port: name.to_string(),
-        channel: next[slot(role, tx)],
-        signal,
-        role,
-        encoder,
-        initial_raw,
-        mux,
-        multiplexer,
-        comment: from_dbc.and_then(|d| d.comment.clone()),
-        values: from_dbc.map(|d| d.values.clone()).unwrap_or_default(),
-    })
-}
-
-/// An inline signal from its table.
-fn inline_signal(t: &SignalConfig, path: &str, length: usize) -> Result<Signal, MapError> {
-    let here = |e: SignalError| bad(path, e.to_string());
-    let (Some(start), Some(bits)) = (t.start, t.length) else {
-        return Err(bad(path, "an inline signal needs start and length"));
-    };
-    let s = Signal::new(
-        start,
-        bits,
-        t.byte_order.unwrap_or(ByteOrder::Intel),
-        t.signed.unwrap_or(false),
-        t.factor.unwrap_or(1.0),
-        t.offset.unwrap_or(0.0),
-        t.unit.as_deref().unwrap_or(""),
-    )
-    .map_err(here)?;
-    let s = match (t.min, t.max) {
-        (None, None) => s,
-        (Some(min), Some(max)) => s.with_limits(min, max).map_err(here)?,
-        _ => return Err(bad(path, "give both min and max, or neither")),
-    };
-    if s.bytes_needed() > length {
-        return Err(bad(
-            path,
-            format!(
-                "it reaches byte {} but the frame has {length} bytes",
-                s.bytes_needed()
-            ),
-        ));
-    }
-    Ok(s)
 }

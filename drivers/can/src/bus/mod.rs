@@ -27,9 +27,13 @@
 //! # }
 //! ```
 
+mod link;
+
+pub use link::can_interfaces;
+
 use crate::card::{CanCard, ErrorReport, Received};
-use device_interface::DeviceError;
 use device_interface::time::Timestamp;
+use link::{ARPHRD_CAN, link, sys_u32};
 use nix::sys::eventfd::{EfdFlags, EventFd};
 use nix::sys::socket::{ControlMessageOwned, MsgFlags, recvmsg, setsockopt, sockopt};
 use nix::sys::time::TimeSpec;
@@ -83,49 +87,9 @@ const CAN_ERR_FLAG: u32 = 0x2000_0000;
 const CAN_SFF_MASK: u32 = 0x7FF;
 const CAN_EFF_MASK: u32 = 0x1FFF_FFFF;
 const CAN_ERR_MASK: u32 = 0x1FFF_FFFF;
-/// ARPHRD_CAN, the link type of CAN interfaces in /sys/class/net/IF/type.
-const ARPHRD_CAN: u32 = 280;
 /// Size of a classic `struct can_frame` and of a `struct canfd_frame`.
 const CAN_MTU: usize = 16;
 const CANFD_MTU: usize = 72;
-
-fn sys(iface: &str, file: &str) -> Option<String> {
-    std::fs::read_to_string(format!("/sys/class/net/{iface}/{file}"))
-        .ok()
-        .map(|s| s.trim().to_string())
-}
-
-fn sys_u32(iface: &str, file: &str) -> Option<u32> {
-    let s = sys(iface, file)?;
-    match s.strip_prefix("0x") {
-        Some(hex) => u32::from_str_radix(hex, 16).ok(),
-        None => s.parse().ok(),
-    }
-}
-
-/// The CAN interfaces of this host.
-pub fn can_interfaces() -> Vec<String> {
-    let mut v: Vec<String> = std::fs::read_dir("/sys/class/net")
-        .map(|d| {
-            d.filter_map(|e| e.ok())
-                .map(|e| e.file_name().to_string_lossy().into_owned())
-                .filter(|n| sys_u32(n, "type") == Some(ARPHRD_CAN))
-                .collect()
-        })
-        .unwrap_or_default();
-    v.sort();
-    v
-}
-
-/// The link state and identity of an interface, from sysfs.
-fn link(iface: &str) -> Option<(bool, u32)> {
-    let flags = sys_u32(iface, "flags")?;
-    let index = sys_u32(iface, "ifindex")?;
-    // Administratively up (IFF_UP) with the carrier on: a CAN controller drops its carrier
-    // at bus-off; `carrier` cannot be read while the interface is down.
-    let up = flags & 0x1 != 0 && sys(iface, "carrier").as_deref() == Some("1");
-    Some((up, index))
-}
 
 /// CLOCK_MONOTONIC minus CLOCK_REALTIME now, ns.
 fn realtime_offset() -> i128 {
@@ -321,10 +285,11 @@ impl CanBus {
     /// only when its deadline moves. A frame thus costs no other system call.
     pub fn service(&mut self, on_frame: &mut dyn FnMut(usize, &[f64], Timestamp)) {
         self.receive(on_frame);
-        if self.woken.swap(false, Ordering::AcqRel) {
-            // Clears the eventfd's readiness; a wake-up after the swap leaves it readable
-            // and its flag set, for the next call.
-            let _ = self.wake.read();
+        if self.woken.swap(false, Ordering::AcqRel) && self.wake.read().is_err() {
+            // The waker set the flag and has not yet written: the write is coming, and
+            // must not leave the eventfd readable with nobody to read it (the activity
+            // would step in a loop). The next call reads it.
+            self.woken.store(true, Ordering::Release);
         }
         let now = now_ns();
         if self.armed != 0 && now >= self.armed {
@@ -474,77 +439,6 @@ impl CanBus {
         self.card.error_frame(r);
     }
 
-    fn link_lost(&self, e: nix::Error) {
-        if self.card.link_up() {
-            tracing::warn!(interface = %self.card.map().interface(), "link down: {e}");
-        }
-        self.card
-            .set_link(false, Some(DeviceError::bus(std::io::Error::from(e))));
-    }
-
-    fn check_link(&mut self) {
-        let card = self.card.clone();
-        let name = card.map().interface();
-        match link(name) {
-            None => {
-                if self.card.link_up() {
-                    tracing::warn!(interface = %name, "interface gone");
-                }
-                self.card.set_link(
-                    false,
-                    Some(DeviceError::bus(std::io::Error::from(nix::Error::ENODEV))),
-                );
-            }
-            Some((up, index)) => {
-                if index != self.ifindex || self.socket.is_none() {
-                    // A new interface of the same name: the old socket is bound to the
-                    // old index.
-                    self.ifindex = index;
-                    self.controller = None;
-                    if let Err(e) = self.open_socket() {
-                        tracing::warn!(interface = %name, "cannot reopen: {e}");
-                        self.card.set_link(false, Some(DeviceError::bus(e)));
-                        return;
-                    }
-                }
-                if up != self.card.link_up() {
-                    if up {
-                        tracing::info!(interface = %name, "link up");
-                    } else {
-                        tracing::warn!(interface = %name, "link down");
-                    }
-                }
-                self.card.set_link(
-                    up,
-                    (!up).then(|| DeviceError::bus(std::io::Error::from(nix::Error::ENETDOWN))),
-                );
-                self.ask_controller();
-            }
-        }
-    }
-
-    /// Asks netlink for the controller's state, unless the interface is virtual (once
-    /// asked, a vcan is not asked again). A failing query is said once and counted as an
-    /// unknown state.
-    fn ask_controller(&mut self) {
-        if self.controller == Some(false) {
-            return;
-        }
-        match crate::netlink::query(self.ifindex) {
-            Ok(c) => {
-                self.controller = Some(c.is_some());
-                self.card.set_controller(c);
-            }
-            Err(e) => {
-                if self.controller.is_none() {
-                    tracing::warn!(interface = %self.card.map().interface(), "controller state not readable: {e}");
-                    self.controller = Some(true);
-                }
-                self.card.set_controller(None);
-            }
-        }
-    }
-
     fn send_due(&mut self, now: u64) {
         let frames = self.card.map().tx().len();
         for t in 0..frames {
@@ -554,7 +448,8 @@ impl CanBus {
                 continue;
             }
             if let (true, Some(c)) = (due, cycle) {
-                let c = c.as_nanos() as u64;
+                // At least 1 ns (the map refuses cycles under 100 µs).
+                let c = (c.as_nanos() as u64).max(1);
                 let mut next = self.next_tx[t].unwrap_or(now) + c;
                 // After a stall, keep the phase but do not send a burst of late frames;
                 // the cycles left out are counted.
@@ -629,10 +524,14 @@ impl CanBus {
             return;
         }
         let ts = TimeSpec::from_duration(Duration::from_nanos(next));
-        let _ = self.timer.set(
+        // Only a timer that took the deadline counts as armed for it (else the next call
+        // tries again).
+        self.armed = match self.timer.set(
             Expiration::OneShot(ts),
             TimerSetTimeFlags::TFD_TIMER_ABSTIME,
-        );
-        self.armed = next;
+        ) {
+            Ok(()) => next,
+            Err(_) => 0,
+        };
     }
 }
