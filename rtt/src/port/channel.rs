@@ -2,8 +2,14 @@
 //! identity, state and counters), the writing and the reading end with their samples (the
 //! last value of a data connection, the queues of a buffer), and the list of a port's
 //! connections that other threads add to.
+//!
+//! A data connection of a one-word sample has no register of its own: its reader reads the
+//! output port's register (the port's last value), each reader with its own last version
+//! taken, so the port's write is one register write however many such connections it has,
+//! and its writing end is touched per write only to wake an event port.
 
 use super::latest::{LatestIn, LatestOut, latest};
+use super::word::WordCell;
 use super::{ConnKind, ConnPolicy, ConnectError, ConnectionInfo};
 use crate::activity::Waker;
 use crate::lock::lock;
@@ -33,6 +39,8 @@ pub(crate) struct Channel<T> {
     /// The sample pool of a buffer connection; `None` for a data connection, whose last
     /// value's halves live in the two ends.
     queues: Option<Queues<T>>,
+    /// A data connection reading its output port's register: what it counts from.
+    shared: Option<SharedWord>,
     /// Closed for good: disconnected, or its reader went away. Neither end uses it again.
     pub(super) closed: AtomicBool,
     /// Its writer went away: the reader still takes what was written, then lets go.
@@ -45,6 +53,15 @@ pub(crate) struct Channel<T> {
     read: AtomicU64,
     dropped: AtomicU64,
     waker: Option<Arc<dyn Waker>>,
+}
+
+/// A data connection of a one-word sample, reading the output port's register.
+struct SharedWord {
+    cell: Arc<WordCell>,
+    /// The register's version when the connection was made.
+    base: u64,
+    /// 1 when the connection started with the last value written (`init`), else 0.
+    init: u64,
 }
 
 /// A buffer connection's samples, cycling between `free` and `full`.
@@ -78,7 +95,12 @@ impl<T> Channel<T> {
             from: self.from.to_string(),
             to: self.to.to_string(),
             policy: self.policy,
-            written: self.written.load(Ordering::Relaxed),
+            // A shared register's writes since the connection was made are the
+            // connection's: no counter to keep per write.
+            written: match &self.shared {
+                Some(w) => w.cell.version().wrapping_sub(w.base) + w.init,
+                None => self.written.load(Ordering::Relaxed),
+            },
             read: self.read.load(Ordering::Relaxed),
             dropped: self.dropped.load(Ordering::Relaxed),
         }
@@ -123,17 +145,47 @@ impl<T: Send> Drop for Reader<T> {
     }
 }
 
-/// Makes a connection and its two ends.
+/// The output end's side of a new connection: its port's name and "look" flag, and its
+/// register when its samples are one word.
+pub(super) struct From {
+    pub(super) name: Arc<str>,
+    pub(super) changed: Arc<AtomicBool>,
+    pub(super) word: Option<Arc<WordCell>>,
+}
+
+/// Makes a connection and its two ends. A data connection from a port with a register
+/// reads that register; with `init` it starts with the value last written, if any.
 pub(super) fn channel<T: Clone + Send + 'static>(
-    (from, out_changed): (Arc<str>, Arc<AtomicBool>),
+    from: From,
     (to, in_changed): (Arc<str>, Arc<AtomicBool>),
     policy: ConnPolicy,
     sample: &T,
     waker: Option<Arc<dyn Waker>>,
 ) -> (Writer<T>, Reader<T>) {
-    let (queues, halves) = match policy.kind {
-        ConnKind::Data => (None, Some(latest(sample))),
-        ConnKind::Buffer { size } | ConnKind::CircularBuffer { size } => {
+    let From {
+        name: from,
+        changed: out_changed,
+        word,
+    } = from;
+    let mut shared = None;
+    let (queues, halves) = match (policy.kind, word) {
+        (ConnKind::Data, Some(cell)) => {
+            let base = cell.version();
+            let init = u64::from(policy.init && base > 0);
+            // With `init` the version before the latest: the reader takes the latest as new.
+            let seen = base - init;
+            let out = LatestOut::Word {
+                cell: cell.clone(),
+                seen,
+            };
+            shared = Some(SharedWord { cell, base, init });
+            (None, Some((None, out)))
+        }
+        (ConnKind::Data, None) => {
+            let (i, o) = latest(sample);
+            (None, Some((Some(i), o)))
+        }
+        (ConnKind::Buffer { size } | ConnKind::CircularBuffer { size }, _) => {
             let capacity = size.max(1);
             // Room for a full queue, the sample the writer fills and the one the reader
             // empties.
@@ -152,6 +204,7 @@ pub(super) fn channel<T: Clone + Send + 'static>(
         to,
         policy,
         queues,
+        shared,
         closed: AtomicBool::new(false),
         writer_gone: AtomicBool::new(false),
         out_changed,
@@ -162,7 +215,7 @@ pub(super) fn channel<T: Clone + Send + 'static>(
         waker,
     });
     let (input, output) = match halves {
-        Some((i, o)) => (Some(i), Some(o)),
+        Some((i, o)) => (i, Some(o)),
         None => (None, None),
     };
     (
@@ -180,13 +233,30 @@ pub(super) fn channel<T: Clone + Send + 'static>(
 }
 
 impl<T: Clone + Send + 'static> Writer<T> {
-    /// Writer side. Wait-free for data, lock-free for buffers; allocation-free when
-    /// `clone_from` is.
+    /// True when the connection reads its output port's register: nothing to copy.
+    pub(super) fn reads_register(&self) -> bool {
+        self.ch.shared.is_some()
+    }
+
+    /// True when the port must call [`push`](Self::push) at each write: the connection
+    /// keeps its own copy of the value, or it wakes an event port.
+    pub(super) fn needs_push(&self) -> bool {
+        !self.reads_register() || self.ch.waker.is_some()
+    }
+
+    /// Writer side, after the port's own register was written. Wait-free for data,
+    /// lock-free for buffers; allocation-free when `clone_from` is.
     #[inline]
     pub(super) fn push(&mut self, value: &T) {
         if let Some(input) = &mut self.latest {
             // An unread value replaced is what a data connection is for: not a drop.
             input.publish(value);
+        } else if self.ch.shared.is_some() {
+            // The port's register holds it, and counts it.
+            if let Some(w) = &self.ch.waker {
+                w.wake();
+            }
+            return;
         } else if !self.push_buffered(value) {
             return;
         }

@@ -1,5 +1,6 @@
 //! The last value passed from one writer to its reader: what a data connection carries,
-//! and what a port keeps of its last sample for introspection. A one-word sample
+//! and what a port keeps of its last sample for introspection (an output port's one-word
+//! register is both: its data connections read it). A one-word sample
 //! (`f64`, `bool`, the integers, `char`) goes through a [`WordCell`]: plain loads and
 //! stores, as cheap as a seqlock, and wait-free; any other type through a triple buffer
 //! (one atomic exchange on each side), which copies with `clone_from` and so allocates
@@ -40,8 +41,8 @@ pub(crate) enum LatestOut<T: Send> {
     Triple(triple_buffer::Output<T>),
 }
 
-/// A writing and a reading half for a port's own last value, looked at now and then from
-/// another thread: a one-word sample is one relaxed store per write (no version: every
+/// A writing and a reading half for an input port's last read value, looked at now and
+/// then from another thread: a one-word sample is one relaxed store per read (no version: every
 /// look takes the value as it is).
 pub(crate) fn snapshot<T: Clone + Send + 'static>(sample: &T) -> (LatestIn<T>, LatestOut<T>) {
     if is_word::<T>() {

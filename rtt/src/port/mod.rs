@@ -231,8 +231,13 @@ pub(crate) fn connect_shared<T: Clone + Send + 'static>(
         }
     }
     let sample = out.sample_clone();
+    let from = channel::From {
+        name: out.name.clone(),
+        changed: out.links.changed.clone(),
+        word: out.word.clone(),
+    };
     let (mut writer, reader) = channel(
-        (out.name.clone(), out.links.changed.clone()),
+        from,
         (inp.name.clone(), inp.links.changed.clone()),
         policy,
         &sample,
@@ -240,6 +245,7 @@ pub(crate) fn connect_shared<T: Clone + Send + 'static>(
     );
     let ch = writer.ch.clone();
     if policy.init
+        && !writer.reads_register()
         && let Some(v) = out.last_written()
     {
         // Before either end is handed over, so this thread is the only writer.
@@ -335,6 +341,60 @@ mod tests {
         let mut buffered = InputPort::new("buffered");
         connect(&out, &buffered, ConnPolicy::buffer(4).with_init(true)).unwrap();
         assert_eq!(drain(&mut buffered), vec![42]);
+    }
+
+    #[test]
+    fn data_connections_of_one_word_share_the_ports_register() {
+        let mut out = OutputPort::<f64>::new("out");
+        out.write(&1.0);
+        let mut plain = InputPort::<f64>::new("plain");
+        let mut init = InputPort::<f64>::new("init");
+        connect(&out, &plain, ConnPolicy::data()).unwrap();
+        connect(&out, &init, ConnPolicy::data().with_init(true)).unwrap();
+        let mut x = 0.0;
+        assert_eq!(plain.read(&mut x), FlowStatus::NoData, "written before it");
+        assert_eq!((init.read(&mut x), x), (FlowStatus::NewData, 1.0));
+        assert!(!out.push, "nothing to do per write for register readers");
+        for v in [2.0, 3.0] {
+            out.write(&v);
+        }
+        for inp in [&mut plain, &mut init] {
+            assert_eq!((inp.read(&mut x), x), (FlowStatus::NewData, 3.0));
+            assert_eq!((inp.read(&mut x), x), (FlowStatus::OldData, 3.0));
+        }
+        let counts: Vec<(u64, u64)> = out
+            .connections()
+            .iter()
+            .map(|c| (c.written, c.read))
+            .collect();
+        assert_eq!(
+            counts,
+            vec![(2, 1), (3, 2)],
+            "written since connected, + init"
+        );
+        assert_eq!(out.last_written(), Some(3.0));
+        // A buffer beside them gets every write; the register readers the latest.
+        let mut buffered = InputPort::<f64>::new("buffered");
+        connect(&out, &buffered, ConnPolicy::buffer(4)).unwrap();
+        out.write(&4.0);
+        out.write(&5.0);
+        assert!(out.push);
+        let mut got = Vec::new();
+        while buffered.read(&mut x) == FlowStatus::NewData {
+            got.push(x);
+        }
+        assert_eq!(got, vec![4.0, 5.0]);
+        assert_eq!((plain.read(&mut x), x), (FlowStatus::NewData, 5.0));
+        drop(buffered);
+        out.write(&6.0);
+        assert!(!out.push, "the buffer's end let go");
+        assert_eq!(init.disconnect(None), 1);
+        out.write(&7.0);
+        assert_eq!((init.read(&mut x), x), (FlowStatus::OldData, 3.0));
+        assert_eq!((plain.read(&mut x), x), (FlowStatus::NewData, 7.0));
+        drop(out);
+        assert_eq!(plain.read(&mut x), FlowStatus::OldData);
+        assert!(plain.conns.is_empty(), "writer gone, all taken: let go");
     }
 
     #[test]

@@ -1,9 +1,14 @@
 //! The writing end of a data flow: [`OutputPort`], and what other threads see of it
 //! (its connections, its last value for introspection and for `init` connections).
+//!
+//! A one-word sample's last value is a [`WordCell`] register that the port's data
+//! connections read directly; a write touches the connections' ends only when one keeps
+//! its own copy (a buffer, a larger sample) or wakes an event port.
 
 use super::ConnectionInfo;
 use super::channel::{Links, RESERVED_CONNECTIONS, Writer};
-use super::latest::{LatestIn, LatestOut, snapshot};
+use super::latest::{LatestIn, LatestOut, latest};
+use super::word::{WordCell, from_word};
 use crate::lock::lock;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -15,6 +20,8 @@ pub(crate) struct OutputShared<T: Send> {
     sample: Mutex<T>,
     /// Set at the first write: the last value below is real.
     written: AtomicBool,
+    /// A one-word sample's register: the port's last value, read by its data connections.
+    pub(super) word: Option<Arc<WordCell>>,
     /// The reading half of the last written value, for `init` and introspection, and the
     /// last value taken from it.
     last: Mutex<(LatestOut<T>, T)>,
@@ -30,6 +37,11 @@ impl<T: Clone + Send + 'static> OutputShared<T> {
     pub(crate) fn last_written(&self) -> Option<T> {
         if !self.written.load(Ordering::Acquire) {
             return None;
+        }
+        if let Some(cell) = &self.word {
+            let mut value = self.sample_clone();
+            from_word(cell.latest()?, &mut value);
+            return Some(value);
         }
         let mut last = lock(&self.last);
         let (out, value) = &mut *last;
@@ -52,6 +64,8 @@ pub struct OutputPort<T: Send> {
     /// The port's "look at your connections" flag (a pointer away, not three).
     changed: Arc<AtomicBool>,
     pub(super) conns: Vec<Writer<T>>,
+    /// Some connection's end needs each write (see [`Writer::needs_push`]).
+    pub(super) push: bool,
     last: LatestIn<T>,
     written: bool,
 }
@@ -68,7 +82,11 @@ impl<T: Clone + Send + 'static> OutputPort<T> {
     /// An output port named `name` whose connections pre-allocate copies of `sample`: size a
     /// `Vec` sample to the longest value written and writing never allocates.
     pub fn with_sample(name: &str, sample: T) -> Self {
-        let (last_in, last_out) = snapshot(&sample);
+        let (last_in, last_out) = latest(&sample);
+        let word = match &last_in {
+            LatestIn::Word { cell, .. } => Some(cell.clone()),
+            _ => None,
+        };
         let links = Links::new();
         OutputPort {
             changed: links.changed.clone(),
@@ -78,8 +96,10 @@ impl<T: Clone + Send + 'static> OutputPort<T> {
                 last: Mutex::new((last_out, sample.clone())),
                 sample: Mutex::new(sample),
                 written: AtomicBool::new(false),
+                word,
             }),
             conns: Vec::with_capacity(RESERVED_CONNECTIONS),
+            push: false,
             last: last_in,
             written: false,
         }
@@ -89,18 +109,28 @@ impl<T: Clone + Send + 'static> OutputPort<T> {
     #[inline(always)]
     pub fn write(&mut self, value: &T) {
         if self.changed.load(Ordering::Relaxed) {
-            self.shared
-                .links
-                .refresh_changed(&mut self.conns, |w| w.ch.is_closed());
+            self.refresh();
         }
-        for c in &mut self.conns {
-            c.push(value);
-        }
+        // First: the connections reading the register see it before an event port wakes.
         self.last.publish(value);
+        if self.push {
+            for c in &mut self.conns {
+                c.push(value);
+            }
+        }
         if !self.written {
             self.written = true;
             self.shared.written.store(true, Ordering::Release);
         }
+    }
+
+    /// Takes up new connections and forgets closed ones.
+    #[cold]
+    fn refresh(&mut self) {
+        self.shared
+            .links
+            .refresh_changed(&mut self.conns, |w| w.ch.is_closed());
+        self.push = self.conns.iter().any(Writer::needs_push);
     }
 
     /// Replaces the data sample future connections pre-allocate from.

@@ -98,6 +98,20 @@ impl<A: Word> WordCell<A> {
         self.seq.load(Ordering::Acquire)
     }
 
+    /// The latest value written, for a look from another thread (`None`: never written).
+    /// Never waits: a reader overtaken [`TRIES`] times takes the slot of the latest version
+    /// as it is then — a value the writer wrote at that version or after (each slot is one
+    /// atomic word, never torn).
+    pub fn latest(&self) -> Option<u64> {
+        match self.read(0) {
+            Found::New { value, .. } => Some(value),
+            Found::Nothing => {
+                let s = self.seq.load(Ordering::Acquire);
+                (s != 0).then(|| self.slots[(s % SLOTS) as usize].load(Ordering::Acquire))
+            }
+        }
+    }
+
     /// The latest value if its version is not `seen`.
     #[inline]
     pub fn read(&self, seen: u64) -> Found {
