@@ -30,7 +30,7 @@ fn bump(counter: &AtomicU64) {
 }
 
 /// What both ends of one connection share: its identity, state and counters. `written`
-/// and `dropped` are only written by the writer, `read` only by the reader.
+/// and `dropped` are only written by the writer, `read` only by the reader (see [`bump`]).
 pub(crate) struct Channel<T> {
     id: u64,
     from: Arc<str>,
@@ -111,16 +111,12 @@ impl<T> Channel<T> {
 pub(crate) struct Writer<T: Send> {
     pub(super) ch: Arc<Channel<T>>,
     latest: Option<LatestIn<T>>,
-    /// Samples written (this end is the only writer of the channel's `written`).
-    written: u64,
 }
 
 /// The reading end of one connection, owned by its input port.
 pub(crate) struct Reader<T: Send> {
     pub(super) ch: Arc<Channel<T>>,
     latest: Option<LatestOut<T>>,
-    /// Samples taken (this end is the only writer of the channel's `read`).
-    read: u64,
 }
 
 // An end that goes away ends its connection, so the other end lets go of it (a flag: no
@@ -222,13 +218,8 @@ pub(super) fn channel<T: Clone + Send + 'static>(
         Writer {
             ch: ch.clone(),
             latest: input,
-            written: 0,
         },
-        Reader {
-            ch,
-            latest: output,
-            read: 0,
-        },
+        Reader { ch, latest: output },
     )
 }
 
@@ -261,8 +252,7 @@ impl<T: Clone + Send + 'static> Writer<T> {
             return;
         }
         let ch = &*self.ch;
-        self.written += 1;
-        ch.written.store(self.written, Ordering::Relaxed);
+        bump(&ch.written);
         if let Some(w) = &ch.waker {
             w.wake();
         }
@@ -334,8 +324,7 @@ impl<T: Clone + Send + 'static> Reader<T> {
             None => self.pop_buffered(into),
         };
         if got {
-            self.read += 1;
-            self.ch.read.store(self.read, Ordering::Relaxed);
+            bump(&self.ch.read);
         }
         got
     }
