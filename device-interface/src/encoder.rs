@@ -236,6 +236,12 @@ pub trait EncoderHost: crate::Device + Send + Sync + 'static {
     fn check_encoder(&self, index: usize) -> Result<(), DeviceError>;
     /// `Ok` when the card takes writes (homing an encoder is refused while offline).
     fn check_writable(&self) -> Result<(), DeviceError>;
+    /// Encoder `index`'s health: the card's, unless the card can say better (an encoder
+    /// fed by a message of its own).
+    fn encoder_health(&self, index: usize) -> crate::Health {
+        let _ = index;
+        self.health()
+    }
 }
 
 /// Encoder `index` of a card, as a device of its own. Homing (`set_position`,
@@ -275,7 +281,7 @@ impl<H: EncoderHost> CardEncoder<H> {
 
 impl<H: EncoderHost> crate::Device for CardEncoder<H> {
     fn health(&self) -> crate::Health {
-        self.host.health()
+        self.host.encoder_health(self.index)
     }
 }
 

@@ -221,9 +221,9 @@ fn messages(gw: &Service) -> Result<Vec<(String, u64, bool)>, Failed> {
         .collect())
 }
 
-/// The status of the card's devices in `hwgw status --json` (one health for the card's
-/// devices of every interface).
-fn card_status(gw: &Service) -> Result<Vec<String>, Failed> {
+/// The status of the card's devices in `hwgw status --json`, as (interface, status),
+/// sorted by interface: each device is as healthy as its own messages.
+fn card_status(gw: &Service) -> Result<Vec<(String, String)>, Failed> {
     let status: serde_json::Value = serde_json::from_str(&out(gw, &["--json", "status"])?)?;
     let list = status["devices"]
         .as_array()
@@ -231,8 +231,25 @@ fn card_status(gw: &Service) -> Result<Vec<String>, Failed> {
     Ok(list
         .iter()
         .filter(|d| d["name"] == "can")
-        .map(|d| d["status"].as_str().unwrap_or("").to_string())
+        .map(|d| {
+            let text = |v: &serde_json::Value| v.as_str().unwrap_or("").to_string();
+            (text(&d["interface"]), text(&d["status"]))
+        })
+        .collect::<std::collections::BTreeSet<_>>()
+        .into_iter()
         .collect())
+}
+
+/// The expected [`card_status`]: analog_in, analog_out, digital_in, digital_out.
+fn health(statuses: &[&str; 4]) -> Vec<(String, String)> {
+    let interfaces = ["analog_in", "analog_out", "digital_in", "digital_out"];
+    let mut v: Vec<(String, String)> = interfaces
+        .iter()
+        .zip(statuses)
+        .map(|(i, s)| (i.to_string(), s.to_string()))
+        .collect();
+    v.sort();
+    v
 }
 
 /// `hwgw call can.ai read CHANNEL`: the answer's `Ok` value, or its error text.
@@ -331,8 +348,9 @@ fn a_vehicle_dbc_as_tools_write_it() -> Result<(), Failed> {
     assert_eq!(number(&gw, "can.ai", "Amps")?, -250.0 * 0.01);
     assert_eq!(number(&gw, "can.ai", "Volts")?, 12345.0 * 0.001);
 
-    // Event (on change, never sent) is stale alone: the devices are online. EngineData
-    // (GenMsgCycleTime 100 ms) goes stale after its timeout; Brake (no cycle) does not.
+    // Event (on change, never sent) is stale alone: the devices are online but for the
+    // digital inputs, whose one bit (Alarm) only Event carries. EngineData (GenMsgCycleTime
+    // 100 ms) goes stale after its timeout; Brake (no cycle) does not.
     let listed = messages(&gw)?;
     assert!(
         listed.contains(&("Event".to_string(), 0, true)),
@@ -342,13 +360,23 @@ fn a_vehicle_dbc_as_tools_write_it() -> Result<(), Failed> {
         listed.contains(&("Brake".to_string(), 1, false)),
         "{listed:?}"
     );
-    assert_eq!(card_status(&gw)?, ["online"; 4]);
+    assert_eq!(
+        card_status(&gw)?,
+        health(&["online", "online", "stale", "online"])
+    );
     wait_ok("EngineData stale after its GenMsgCycleTime timeout", || {
         Ok(messages(&gw)?.contains(&("EngineData".to_string(), 1, true)))
     })?;
     assert!(read_channel(&gw, 2)?.is_err(), "OilTemp");
     assert_eq!(read_channel(&gw, 6)?, Ok(f64::from(0x1234u16) * 0.1));
-    assert_eq!(card_status(&gw)?, ["online"; 4]);
+    assert_eq!(
+        card_status(&gw)?,
+        health(&["online", "online", "stale", "online"])
+    );
+    sh("cansend vcan1 104#01")?;
+    wait_ok("Event received: the digital inputs online", || {
+        Ok(card_status(&gw)? == health(&["online"; 4]))
+    })?;
     let table = out(&gw, &["status"])?;
     assert!(table.contains("can messages:"), "{table}");
     // Every value was within its declared range (2^64 - 1 included).

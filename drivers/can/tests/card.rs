@@ -77,7 +77,10 @@ fn conformance_every_rule() {
         s.signal.insert(&mut images.borrow_mut()[f], raw).unwrap();
         resend(f);
     };
-    conformance::check_analog_in(&*card, Some(&mut set_ai)).assert_complete();
+    // The devices as registered: each a view of the card.
+    let devices = card.devices();
+    let analog_in = devices.analog_in.clone().unwrap();
+    conformance::check_analog_in(&*analog_in, Some(&mut set_ai)).assert_complete();
     let mut set_di = |bit: u32, v: bool| {
         let (f, s) = find(SignalRole::Digital, bit);
         let mut raw = s.signal.extract(&images.borrow()[f]).unwrap();
@@ -86,10 +89,10 @@ fn conformance_every_rule() {
         s.signal.insert(&mut images.borrow_mut()[f], raw).unwrap();
         resend(f);
     };
-    conformance::check_digital_in(&*card, Some(&mut set_di)).assert_complete();
-    conformance::check_analog_out(&*card).assert_complete();
-    conformance::check_digital_out(&*card).assert_complete();
-    let devices = card.devices();
+    let digital_in = devices.digital_in.clone().unwrap();
+    conformance::check_digital_in(&*digital_in, Some(&mut set_di)).assert_complete();
+    conformance::check_analog_out(&*devices.analog_out.clone().unwrap()).assert_complete();
+    conformance::check_digital_out(&*devices.digital_out.clone().unwrap()).assert_complete();
     let (f, s) = find(SignalRole::Encoder, 0);
     let mut motion = |n: i64| {
         let raw = s.signal.extract(&images.borrow()[f]).unwrap();
@@ -136,4 +139,40 @@ fn outputs_pack_into_frames_and_staleness_is_per_frame() {
     card.set_link(false, None);
     assert_eq!(card.health().status, Status::Offline);
     assert!(matches!(card.read(2), Err(DeviceError::Offline)));
+}
+
+#[test]
+fn each_device_is_as_healthy_as_its_own_messages() {
+    let clock = Arc::new(SimClock::new(Timestamp::from_nanos(1_000_000)));
+    let card = card(clock.clone());
+    let d = card.devices();
+    let statuses = || {
+        [
+            d.analog_in.as_ref().unwrap().health().status,
+            d.digital_in.as_ref().unwrap().health().status,
+            d.encoders[0].1.health().status,
+            d.analog_out.as_ref().unwrap().health().status,
+            d.digital_out.as_ref().unwrap().health().status,
+            card.health().status,
+        ]
+    };
+    use Status::{Offline, Online, Stale};
+    // Nothing received yet: the inputs stale, the outputs usable.
+    assert_eq!(statuses(), [Stale, Stale, Stale, Online, Online, Stale]);
+    // Temps (the analog inputs, no cycle) comes; Motion (the digital input and the
+    // encoder) does not: only Motion's devices stay stale.
+    card.receive(0x18FE_EE05, true, false, &[0; 4], clock.now());
+    assert_eq!(statuses(), [Online, Stale, Stale, Online, Online, Online]);
+    card.receive(0x100, false, false, &[0; 8], clock.now());
+    assert_eq!(statuses(), [Online; 6]);
+    let motion_at = d.digital_in.as_ref().unwrap().health().last_good;
+    clock.advance(Duration::from_millis(31));
+    assert_eq!(statuses(), [Online, Stale, Stale, Online, Online, Online]);
+    assert_eq!(
+        d.digital_in.as_ref().unwrap().health().last_good,
+        motion_at,
+        "last good: when its own message last came"
+    );
+    card.set_link(false, None);
+    assert_eq!(statuses(), [Offline; 6]);
 }

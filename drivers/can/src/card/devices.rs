@@ -9,21 +9,50 @@ use device_interface::time::Timestamp;
 use device_interface::{AnalogIn, AnalogOut, Device, DeviceError, Health, Scale, Status};
 use std::sync::atomic::Ordering;
 
-/// The health of the card's devices, per received message: online while the link is up
-/// and any received message is fresh (one message never seen, or slow, makes only its own
-/// channels stale — each channel's read says so); stale when every one is; offline when
-/// the link is down or the controller off the bus. `hwgw status` lists each message's age.
+/// The card as a whole: online while the link is up and any received message is fresh;
+/// stale when every one is; offline when the link is down or the controller off the bus.
+/// Each registered device judges by its own messages instead (see [`super::sides`]).
 impl Device for CanCard {
     fn health(&self) -> Health {
+        self.health_of(Feeds::Frames(&self.feeds.all))
+    }
+}
+
+/// What a device's health is judged by.
+#[derive(Clone, Copy)]
+pub(super) enum Feeds<'a> {
+    /// The received frames its channels come from: fresh while any of them is.
+    Frames(&'a [usize]),
+    /// Nothing received: outputs, which only need the link.
+    Link,
+}
+
+impl CanCard {
+    /// Health judged by `feeds`: offline when the link is down or the controller off the
+    /// bus; else online while any frame of `feeds` is fresh (or it has none), stale when
+    /// none is. `last_good` is the newest frame's receive time.
+    pub(super) fn health_of(&self, feeds: Feeds<'_>) -> Health {
         let now = self.clock.now();
-        let mut fresh = self.map.rx().is_empty();
-        let mut newest: u64 = 0;
-        for (f, frame) in self.map.rx().iter().enumerate() {
-            if self.frame_age_error(f, frame, now).is_none() {
-                fresh = true;
+        let rx = self.map.rx();
+        let fresh = match feeds {
+            Feeds::Link => true,
+            Feeds::Frames(frames) => {
+                frames.is_empty()
+                    || frames.iter().any(|&f| {
+                        rx.get(f)
+                            .is_some_and(|frame| self.frame_age_error(f, frame, now).is_none())
+                    })
             }
-            newest = newest.max(self.rx[f].last.load(Ordering::Acquire));
+        };
+        let newest = match feeds {
+            Feeds::Link => &self.feeds.all[..],
+            Feeds::Frames(frames) => frames,
         }
+        .iter()
+        .filter_map(|&f| self.rx.get(f))
+        .map(|r| r.last.load(Ordering::Acquire))
+        .max()
+        .unwrap_or(0);
         let status = if !self.link_up() || self.bus_state() == BusState::BusOff {
             Status::Offline
         } else if fresh {
@@ -38,9 +67,7 @@ impl Device for CanCard {
             last_error: self.last_error.load().as_deref().cloned(),
         }
     }
-}
 
-impl CanCard {
     /// Analog input `channel`'s raw bits, its signal fresh.
     fn input_bits(&self, channel: u32) -> Result<(i64, &Signal), DeviceError> {
         let at = self.analog_at(false, channel)?;
@@ -213,6 +240,13 @@ impl device_interface::bits::DigitalOutputImage for CanCard {
 pub type CanEncoder = device_interface::encoder::CardEncoder<CanCard>;
 
 impl device_interface::encoder::EncoderHost for CanCard {
+    fn encoder_health(&self, index: usize) -> Health {
+        match self.enc_at.get(index) {
+            Some(&(f, _)) => self.health_of(Feeds::Frames(&[f as usize])),
+            None => self.health(),
+        }
+    }
+
     fn encoder_counter(&self, index: usize) -> &device_interface::encoder::EncoderCounter {
         self.encoders[index].counter()
     }

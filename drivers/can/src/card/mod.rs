@@ -29,9 +29,11 @@
 //! ```
 
 mod devices;
+mod sides;
 mod status;
 
 pub use devices::CanEncoder;
+pub use sides::{CanAnalogIn, CanAnalogOut, CanDigitalIn, CanDigitalOut};
 pub use status::{BusState, CanCounters, ErrorReport, MessageState};
 
 use crate::map::{CanMap, MappedFrame, SignalRole};
@@ -90,6 +92,8 @@ pub struct CanCard {
     dout: BitImage,
     do_frame: Box<[u32]>,
     tx_dirty: Box<[AtomicBool]>,
+    /// The received frames the whole card, its analog and its digital inputs come from.
+    feeds: sides::Feeding,
     /// The bus side's wake-up (replaced when a new bus opens the card).
     waker: ArcSwapOption<Box<dyn Fn() + Send + Sync>>,
     link_up: AtomicBool,
@@ -141,7 +145,9 @@ impl CanCard {
                 WrappingCounter::new(res, up, s.signal.layout().1).ok()
             })
             .collect();
+        let feeds = sides::Feeding::new(map.rx().len(), &ai_at, &di_at);
         Arc::new(CanCard {
+            feeds,
             rx: map
                 .rx()
                 .iter()
@@ -186,11 +192,13 @@ impl CanCard {
     /// The card's devices, for registration.
     pub fn devices(self: &Arc<Self>) -> device_interface::CardDevices {
         let [ai, ao, di, dout] = self.map.counts();
+        // Each a view of its own, so that its health is judged by its own messages.
         device_interface::CardDevices {
-            analog_in: (ai > 0).then(|| self.clone() as Arc<dyn AnalogIn>),
-            analog_out: (ao > 0).then(|| self.clone() as Arc<dyn AnalogOut>),
-            digital_in: (di > 0).then(|| self.clone() as Arc<dyn DigitalIn>),
-            digital_out: (dout > 0).then(|| self.clone() as Arc<dyn DigitalOut>),
+            analog_in: (ai > 0).then(|| Arc::new(CanAnalogIn::new(self)) as Arc<dyn AnalogIn>),
+            analog_out: (ao > 0).then(|| Arc::new(CanAnalogOut::new(self)) as Arc<dyn AnalogOut>),
+            digital_in: (di > 0).then(|| Arc::new(CanDigitalIn::new(self)) as Arc<dyn DigitalIn>),
+            digital_out: (dout > 0)
+                .then(|| Arc::new(CanDigitalOut::new(self)) as Arc<dyn DigitalOut>),
             encoders: self
                 .map
                 .encoders()
