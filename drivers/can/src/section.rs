@@ -57,9 +57,10 @@ pub struct FrameConfig {
     /// Payload bytes (inline frames; default 8).
     #[serde(default)]
     pub length: Option<usize>,
-    /// A CAN FD frame.
+    /// A CAN FD frame (default: as the DBC message's `VFrameFormat` says, or when it is
+    /// longer than 8 bytes; an inline frame: classic).
     #[serde(default)]
-    pub fd: bool,
+    pub fd: Option<bool>,
     /// rx: the sender's cycle (for staleness); tx: the send period.
     #[serde(default)]
     pub cycle_ms: Option<f64>,

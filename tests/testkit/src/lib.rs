@@ -14,12 +14,14 @@
 //! - [`i2cstub`]: the kernel's I2C stub, its chips' registers set and read with i2c-tools;
 //! - [`uno`]: an Arduino Uno running the genuine StandardFirmata in simavr, its pins driven
 //!   and watched; pyfirmata2 as the other client;
+//! - [`pypi`]: pinned Python packages the tests compare with (cantools, pyfirmata2);
 //! - [`rig`]: kernel rig presets (vcan);
 //! - [`service`]: an `hwgw` binary running a deployment on a socket of its own;
 //! - [`logs`]: what a gateway built in the test's own process logs, captured;
 //! - [`layout`]: checks of the source tree's shape (module cycles, function lengths).
 
 pub mod bench;
+mod cache;
 pub mod candump;
 pub mod comedi;
 pub mod fixtures;
@@ -29,6 +31,7 @@ pub mod layout;
 pub mod logs;
 pub mod mbpoll;
 pub mod peers;
+pub mod pypi;
 pub mod rig;
 pub mod service;
 pub mod uno;

@@ -108,6 +108,14 @@ pub const PYSERIAL: Peer = Peer {
     packages: &["python3-serial", "python3-pip"],
 };
 
+/// Debian's Python with pip: PyPI packages the tests compare with are installed with it
+/// ([`crate::pypi`]).
+pub const PIP: Peer = Peer {
+    name: "pip",
+    probe: Probe::Python("pip"),
+    packages: &["python3-pip"],
+};
+
 /// Why a peer is not there.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error(

@@ -11,7 +11,8 @@
 //! a whole core (timings are loose); simavr 1.6 drives the pins of timer 0's fast PWM (pins
 //! 5 and 6) but not the phase-correct PWM of timers 1 and 2, so a PWM duty is seen on 5 and 6.
 
-use crate::peers::{NPM, PYSERIAL, PYTHON, SIMAVR, ensure};
+use crate::cache::{cached, fail, peer_dir, run};
+use crate::peers::{NPM, PYSERIAL, SIMAVR, ensure};
 use std::io::{self, BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, ChildStdin, Command, Stdio};
@@ -24,45 +25,6 @@ const HARNESS: &str = include_str!("../simavr/uno.c");
 const AVRGIRL: &str = "avrgirl-arduino@5.0.1";
 /// The pyfirmata2 release the tests compare with.
 pub const PYFIRMATA2: &str = "pyFirmata2==2.5.1";
-
-/// Where downloaded and built peers are kept: `$CARGO_TARGET_DIR/peers`, or this
-/// workspace's `target/peers`.
-pub fn peer_dir() -> PathBuf {
-    kernel_rig::rig_dir()
-        .parent()
-        .map_or_else(|| PathBuf::from("target/peers"), |t| t.join("peers"))
-}
-
-fn fail(what: impl std::fmt::Display) -> io::Error {
-    io::Error::other(what.to_string())
-}
-
-/// Makes `path` by `make` (into a temporary path beside it, then renamed: tests running
-/// at once each get a whole file) unless it is there.
-fn cached(path: &Path, make: impl FnOnce(&Path) -> io::Result<()>) -> io::Result<PathBuf> {
-    if path.is_file() {
-        return Ok(path.to_path_buf());
-    }
-    if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir)?;
-    }
-    let tmp = path.with_extension(format!("tmp{}", std::process::id()));
-    make(&tmp)?;
-    std::fs::rename(&tmp, path)?;
-    Ok(path.to_path_buf())
-}
-
-fn run(cmd: &mut Command) -> io::Result<()> {
-    let out = cmd.output().map_err(|e| fail(format!("{cmd:?}: {e}")))?;
-    if !out.status.success() {
-        return Err(fail(format!(
-            "{cmd:?}: {}{}",
-            String::from_utf8_lossy(&out.stdout),
-            String::from_utf8_lossy(&out.stderr)
-        )));
-    }
-    Ok(())
-}
 
 /// StandardFirmata for the Uno, as avrgirl-arduino 5.0.1 ships it (fetched once).
 pub fn firmware() -> io::Result<PathBuf> {
@@ -122,23 +84,7 @@ pub fn harness() -> io::Result<PathBuf> {
 /// put on `PYTHONPATH`.
 pub fn pyfirmata2() -> io::Result<PathBuf> {
     ensure(&PYSERIAL);
-    let dir = peer_dir().join("pyfirmata2-2.5.1");
-    let marker = dir.join("installed");
-    cached(&marker, |tmp| {
-        run(Command::new(PYTHON).args([
-            "-m",
-            "pip",
-            "install",
-            "--quiet",
-            "--disable-pip-version-check",
-            "--no-deps",
-            "--target",
-            &dir.to_string_lossy(),
-            PYFIRMATA2,
-        ]))?;
-        std::fs::write(tmp, PYFIRMATA2)
-    })?;
-    Ok(dir)
+    crate::pypi::install("pyfirmata2-2.5.1", &[PYFIRMATA2])
 }
 
 /// A pin as the harness sees it.

@@ -78,6 +78,9 @@ pub struct Message {
     pub id: u32,
     /// True for a 29-bit id.
     pub extended: bool,
+    /// A CAN FD frame: its `VFrameFormat` says so (`StandardCAN_FD`, `ExtendedCAN_FD`, or
+    /// the attribute's default), or it is longer than 8 bytes.
+    pub fd: bool,
     /// The message's name.
     pub name: String,
     /// Payload length in bytes.

@@ -67,6 +67,11 @@ struct Extras {
     cycles: Vec<(u64, f64)>,
     default_cycle: Option<f64>,
     extended_mux: Vec<u64>,
+    /// `VFrameFormat`: its enum's names (`BA_DEF_`), its default (`BA_DEF_DEF_`) and each
+    /// message's value (`BA_`, an index into the names).
+    frame_format_names: Vec<String>,
+    frame_format_default: Option<String>,
+    frame_formats: Vec<(u64, u64)>,
 }
 
 /// A message being read, with its id as written (flag included).
@@ -265,6 +270,7 @@ pub(super) fn messages(file: &str, text: &str) -> Result<Vec<Message>, DbcError>
                 Ok(())
             }
             "CM_" => comment(&mut p, &mut extras),
+            "BA_DEF_" => attribute_definition(&mut p, &mut extras),
             "BA_DEF_DEF_" => attribute_default(&mut p, &mut extras),
             "BA_" => attribute(&mut p, &mut extras),
             "VAL_" => values(&mut p, &mut extras),
@@ -339,6 +345,7 @@ fn message(p: &mut Parser<'_>, line: usize) -> Step<Raw> {
         message: Message {
             id: (can_id & 0x1FFF_FFFF) as u32,
             extended,
+            fd: false,
             name,
             length: length.min(64) as usize,
             signals: Vec::new(),
@@ -493,23 +500,50 @@ fn comment(p: &mut Parser<'_>, x: &mut Extras) -> Step<()> {
     Ok(())
 }
 
-/// `BA_DEF_DEF_ "GenMsgCycleTime" 100;`
-fn attribute_default(p: &mut Parser<'_>, x: &mut Extras) -> Step<()> {
-    if p.string("an attribute name")? == "GenMsgCycleTime" {
-        x.default_cycle = p.float("a cycle time").ok();
+/// `BA_DEF_ BO_ "VFrameFormat" ENUM "StandardCAN","ExtendedCAN",…,"StandardCAN_FD";`
+/// (other definitions are skipped)
+fn attribute_definition(p: &mut Parser<'_>, x: &mut Extras) -> Step<()> {
+    if matches!(p.peek().map(|t| &t.tok), Some(Tok::Ident("BO_"))) {
+        p.at += 1;
+        if p.string("an attribute name")? == "VFrameFormat"
+            && matches!(p.peek().map(|t| &t.tok), Some(Tok::Ident("ENUM")))
+        {
+            p.at += 1;
+            let mut names = Vec::new();
+            while let Some(Tok::Str(_)) = p.peek().map(|t| &t.tok) {
+                names.push(p.string("a frame format")?);
+                p.maybe(',');
+            }
+            x.frame_format_names = names;
+        }
     }
     p.skip_statement();
     Ok(())
 }
 
-/// `BA_ "GenMsgCycleTime" BO_ 291 100;`
+/// `BA_DEF_DEF_ "GenMsgCycleTime" 100;`, `BA_DEF_DEF_ "VFrameFormat" "StandardCAN";`
+fn attribute_default(p: &mut Parser<'_>, x: &mut Extras) -> Step<()> {
+    match p.string("an attribute name")?.as_str() {
+        "GenMsgCycleTime" => x.default_cycle = p.float("a cycle time").ok(),
+        "VFrameFormat" => x.frame_format_default = p.string("a frame format").ok(),
+        _ => {}
+    }
+    p.skip_statement();
+    Ok(())
+}
+
+/// `BA_ "GenMsgCycleTime" BO_ 291 100;`, `BA_ "VFrameFormat" BO_ 291 14;`
 fn attribute(p: &mut Parser<'_>, x: &mut Extras) -> Step<()> {
     let name = p.string("an attribute name")?;
-    if name == "GenMsgCycleTime" && matches!(p.peek().map(|t| &t.tok), Some(Tok::Ident("BO_"))) {
+    let of_message = matches!(p.peek().map(|t| &t.tok), Some(Tok::Ident("BO_")));
+    if of_message && (name == "GenMsgCycleTime" || name == "VFrameFormat") {
         p.at += 1;
         let id = p.uint("a message id")?;
-        let ms = p.float("a cycle time")?;
-        x.cycles.push((id, ms));
+        if name == "GenMsgCycleTime" {
+            x.cycles.push((id, p.float("a cycle time")?));
+        } else {
+            x.frame_formats.push((id, p.uint("a frame format")?));
+        }
     }
     p.skip_statement();
     Ok(())

@@ -215,6 +215,31 @@ fn multiplexing_simple_and_extended() {
 }
 
 #[test]
+fn can_fd_messages_by_their_frame_format_or_length() {
+    // As CANdb++ writes it: the enum's names, a default, and one message's own value.
+    let text = "BO_ 100 Classic: 8 X\nBO_ 101 Fd: 8 X\nBO_ 2147483750 Long: 64 X\n\
+                BA_DEF_ BO_  \"VFrameFormat\" ENUM  \"StandardCAN\",\"ExtendedCAN\",\"reserved\",\"reserved\",\"reserved\",\"reserved\",\"reserved\",\"reserved\",\"reserved\",\"reserved\",\"reserved\",\"reserved\",\"reserved\",\"reserved\",\"StandardCAN_FD\",\"ExtendedCAN_FD\";\n\
+                BA_DEF_DEF_  \"VFrameFormat\" \"StandardCAN\";\n\
+                BA_ \"VFrameFormat\" BO_ 101 14;\n";
+    let dbc = Dbc::parse("fd.dbc", text).unwrap();
+    let fd = |name: &str| dbc.message(name).unwrap().fd;
+    assert_eq!((fd("Classic"), fd("Fd"), fd("Long")), (false, true, true));
+    // Without the enum's definition, Vector's indices; a default of CAN FD for all.
+    let bare = Dbc::parse(
+        "fd.dbc",
+        "BO_ 101 Fd: 8 X\nBA_ \"VFrameFormat\" BO_ 101 15;\n",
+    )
+    .unwrap();
+    assert!(bare.message("Fd").unwrap().fd);
+    let all = Dbc::parse(
+        "fd.dbc",
+        "BO_ 1 A: 8 X\nBA_DEF_DEF_ \"VFrameFormat\" \"StandardCAN_FD\";\n",
+    )
+    .unwrap();
+    assert!(all.message("A").unwrap().fd);
+}
+
+#[test]
 fn problems_stay_with_their_message() {
     let text = "BO_ 1 Good: 8 X\n SG_ A : 0|8@1+ (1,0) [0|0] \"\" Y\n\
                 BO_ 2 Bad: 2 X\n SG_ A : 16|8@1+ (1,0) [0|0] \"\" Y\n SG_ B : 0|8@2+ (1,0) [0|0] \"\" Y\n SG_ C : 0|8@1+ (1;0) [0|0] \"\" Y\n SG_ D : 0|65@1+ (1,0) [0|0] \"\" Y\n SG_ E : 0|8@1+ (0,0) [0|0] \"\" Y\n SG_ F : 0|8@1+ (1,0) [0|0] \"\" Y\n SG_ F : 8|8@1+ (1,0) [0|0] \"\" Y\n\

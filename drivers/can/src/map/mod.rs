@@ -371,10 +371,12 @@ fn frame(
             ),
         ));
     }
-    if f.fd && !FD_LENGTHS.contains(&length) || !f.fd && length > 8 {
+    // The TOML's word, else the DBC message's frame format.
+    let fd = f.fd.unwrap_or(base.is_some_and(|m| m.fd));
+    if fd && !FD_LENGTHS.contains(&length) || !fd && length > 8 {
         return Err(bad(
             format!("{path}.length"),
-            if f.fd {
+            if fd {
                 format!("{length} bytes: a CAN FD frame has 0-8, 12, 16, 20, 24, 32, 48 or 64")
             } else {
                 format!("{length} bytes: a classic frame has 0 to 8 (set fd = true for more)")
@@ -469,7 +471,7 @@ fn frame(
         id,
         extended,
         length,
-        fd: f.fd,
+        fd,
         cycle,
         timeout,
         on_change,

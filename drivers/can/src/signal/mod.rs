@@ -289,14 +289,22 @@ impl Signal {
 
     /// The physical value of raw bits `raw` (as [`extract`](Self::extract) returns them):
     /// `raw * factor + offset` with the raw value as the DBC says — signed, unsigned (all 64
-    /// bits unsigned up to 2^64 − 1), or the IEEE float the bits hold — computed in f64 as
-    /// cantools computes it.
+    /// bits unsigned up to 2^64 − 1), or the IEEE float the bits hold — computed as cantools
+    /// computes it: an integral factor or offset is an integer there, multiplied and added
+    /// exactly (then rounded once to f64), any other in f64. (cantools keeps a factor the
+    /// file writes as `1.0` a float; the two differ only for raw values beyond 2^53.)
     pub fn physical(&self, raw: i64) -> f64 {
         let value = match self.kind {
             ValueKind::Float32 => f64::from(f32::from_bits(raw as u32)),
             ValueKind::Float64 => f64::from_bits(raw as u64),
-            ValueKind::Integer if !self.signed && self.length == 64 => (raw as u64) as f64,
-            ValueKind::Integer => return self.scale.to_physical(raw),
+            ValueKind::Integer => {
+                let raw = if !self.signed && self.length == 64 {
+                    i128::from(raw as u64)
+                } else {
+                    i128::from(raw)
+                };
+                return linear(raw, self.factor, self.offset);
+            }
         };
         value * self.factor + self.offset
     }
@@ -473,6 +481,22 @@ impl Signal {
         let w = self.window.load(self.order, payload);
         self.window.store(self.order, payload, w & !mask | v);
         Ok(())
+    }
+}
+
+/// `x` as the integer it is, when it is one a product with a 64-bit raw value cannot
+/// overflow in i128.
+fn integral(x: f64) -> Option<i128> {
+    (x.fract() == 0.0 && x.abs() < 9.2e18).then_some(x as i128)
+}
+
+/// `raw * factor + offset` with Python's number rules, as cantools decodes: integers exact,
+/// an integer meeting a float converted to the nearest f64 first.
+fn linear(raw: i128, factor: f64, offset: f64) -> f64 {
+    match (integral(factor), integral(offset)) {
+        (Some(f), Some(o)) => (raw * f + o) as f64,
+        (Some(f), None) => (raw * f) as f64 + offset,
+        (None, _) => raw as f64 * factor + offset,
     }
 }
 

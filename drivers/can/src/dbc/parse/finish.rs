@@ -70,6 +70,24 @@ pub(super) fn finish(raws: Vec<Raw>, x: Extras, p: &Parser<'_>) -> Vec<Message> 
             out[m].1.cycle = cycle(ms);
         }
     }
+    // VFrameFormat: a message is CAN FD when its format's name ends in _FD (Vector's
+    // StandardCAN_FD, ExtendedCAN_FD); without the enum's names, its indices 14 and 15.
+    let is_fd = |n: u64| match x.frame_format_names.get(n as usize) {
+        Some(name) => name.ends_with("_FD"),
+        None => x.frame_format_names.is_empty() && matches!(n, 14 | 15),
+    };
+    let default_fd = x
+        .frame_format_default
+        .as_deref()
+        .is_some_and(|d| d.ends_with("_FD"));
+    for (_, m) in &mut out {
+        m.fd = default_fd || m.length > 8;
+    }
+    for (id, n) in x.frame_formats {
+        if let Some(&m) = by_id.get(&id) {
+            out[m].1.fd = is_fd(n) || out[m].1.length > 8;
+        }
+    }
     for id in x.extended_mux {
         if let Some(&m) = by_id.get(&id) {
             out[m].1.extended_mux = true;

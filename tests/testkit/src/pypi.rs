@@ -1,0 +1,52 @@
+//! Python packages from PyPI that the tests compare with, pinned, installed for Debian's
+//! Python into the peers directory (never into the system's site-packages): put the
+//! returned directory on `PYTHONPATH`. pip comes from Debian (`python3-pip`), installed
+//! when missing.
+
+use crate::cache::{cached, peer_dir, run};
+use crate::peers::{PIP, PYTHON, ensure};
+use std::io;
+use std::path::PathBuf;
+use std::process::Command;
+
+/// cantools and its dependencies, pinned: the independent DBC reader and decoder.
+pub const CANTOOLS: &[&str] = &[
+    "cantools==45.1.0",
+    "argparse_addons==0.12.0",
+    "bitstruct==8.24.0",
+    "crccheck==1.3.1",
+    "packaging==26.3",
+    "python-can==4.6.1",
+    "textparser==0.26.2",
+    "typing_extensions==4.16.0",
+    "wrapt==1.17.3",
+];
+
+/// `requirements` (exact pins, dependencies listed: nothing else is fetched) installed
+/// into the peers directory's `name`, once: the directory to put on `PYTHONPATH`.
+pub fn install(name: &str, requirements: &[&str]) -> io::Result<PathBuf> {
+    ensure(&PIP);
+    let dir = peer_dir().join(name);
+    let marker = dir.join("installed");
+    cached(&marker, |tmp| {
+        run(Command::new(PYTHON)
+            .args([
+                "-m",
+                "pip",
+                "install",
+                "--quiet",
+                "--disable-pip-version-check",
+                "--no-deps",
+                "--target",
+                &dir.to_string_lossy(),
+            ])
+            .args(requirements))?;
+        std::fs::write(tmp, requirements.join("\n"))
+    })?;
+    Ok(dir)
+}
+
+/// cantools ([`CANTOOLS`]): the directory to put on `PYTHONPATH`.
+pub fn cantools() -> io::Result<PathBuf> {
+    install("cantools-45.1.0", CANTOOLS)
+}
