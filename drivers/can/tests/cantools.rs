@@ -14,7 +14,7 @@
 )]
 
 use device_interface::time::{Clock, SimClock, Timestamp};
-use device_interface::{AnalogIn, DeviceError, DigitalIn};
+use device_interface::{AnalogIn, AnalogOut, DeviceError, DigitalIn, DigitalOut};
 use driver_can::card::{CanCard, Received};
 use driver_can::map::{CanConfig, CanMap, MappedFrame, SignalRole};
 use serde::Deserialize;
@@ -39,6 +39,9 @@ struct Message {
     cycle_ms: Option<u64>,
     signals: BTreeMap<String, SignalInfo>,
     frames: Vec<Frame>,
+    /// The same values as cantools encodes them (messages without multiplexing, finite
+    /// values).
+    sent: Vec<Frame>,
 }
 
 #[derive(Deserialize)]
@@ -61,14 +64,19 @@ fn env_or(name: &str, default: u64) -> u64 {
         .unwrap_or(default)
 }
 
-/// The generator's files and expectations, in a fresh directory.
-fn generate(dir: &std::path::Path, seed: u64, files: u64) -> Vec<File> {
+/// The generator's files and expectations, in a fresh directory of its own (`name`).
+fn generate(name: &str) -> (std::path::PathBuf, Vec<File>) {
+    let seed = env_or("CANTOOLS_SEED", 1);
+    let files = env_or("CANTOOLS_FILES", 60);
+    let dir = std::env::temp_dir().join(format!("hwgw-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
     let path = testkit::pypi::cantools().unwrap();
     let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/cantools_random.py");
     let out = Command::new(testkit::peers::PYTHON)
         .env("PYTHONPATH", &path)
         .arg(script)
-        .arg(dir)
+        .arg(&dir)
         .args([seed.to_string(), files.to_string(), "20".to_string()])
         .output()
         .unwrap();
@@ -77,14 +85,20 @@ fn generate(dir: &std::path::Path, seed: u64, files: u64) -> Vec<File> {
         "the cantools generator failed: {}",
         String::from_utf8_lossy(&out.stderr)
     );
-    serde_json::from_slice(&std::fs::read(dir.join("expected.json")).unwrap()).unwrap()
+    let files = serde_json::from_slice(&std::fs::read(dir.join("expected.json")).unwrap());
+    (dir, files.unwrap())
 }
 
-/// A deployment mapping every message of `file` as received.
-fn deployment(file: &File) -> CanConfig {
+/// A deployment mapping every message of `file` as received, or every one cantools
+/// encoded values of as sent.
+fn deployment(file: &File, tx: bool) -> CanConfig {
     let mut toml = format!("interface = \"vcan0\"\ndbc = \"{}\"\n", file.file);
     for m in &file.messages {
-        toml.push_str(&format!("[[rx]]\nmessage = \"{}\"\n", m.name));
+        if !tx {
+            toml.push_str(&format!("[[rx]]\nmessage = \"{}\"\n", m.name));
+        } else if !m.sent.is_empty() {
+            toml.push_str(&format!("[[tx]]\nmessage = \"{}\"\n", m.name));
+        }
     }
     toml::from_str(&toml).unwrap()
 }
@@ -221,18 +235,84 @@ fn check_values(
     compared
 }
 
+/// Writes each of cantools' encoded value sets through the card's output devices and
+/// compares the frame the card composes with cantools' bytes; returns how many frames.
+fn check_sent(
+    file: &str,
+    m: &Message,
+    f: usize,
+    frame: &MappedFrame,
+    card: &CanCard,
+    bad: &mut Vec<String>,
+) -> usize {
+    for sent in &m.sent {
+        let at = format!("{file} {} {:?}", m.name, sent.values);
+        for (name, [raw, value]) in &sent.values {
+            let Some(s) = frame.signals.iter().find(|s| &s.name == name) else {
+                bad.push(format!("{at}: hwgw has no signal {name}"));
+                continue;
+            };
+            let written = match s.role {
+                SignalRole::Digital => card.set_bit(s.channel, raw != "0"),
+                _ => card.write(s.channel, value.parse().unwrap()),
+            };
+            if let Err(e) = written {
+                bad.push(format!("{at}: {name} = {value} refused: {e}"));
+            }
+        }
+        let mut buf = [0u8; 64];
+        let n = card.compose(f, &mut buf);
+        let got: String = buf[..n].iter().map(|b| format!("{b:02x}")).collect();
+        if got != sent.data {
+            bad.push(format!("{at}: sent {got}, cantools encodes {}", sent.data));
+        }
+    }
+    m.sent.len()
+}
+
+#[test]
+fn random_dbc_messages_are_sent_as_cantools_encodes_them() {
+    let (dir, files) = generate("cantools-tx");
+    let clock = Arc::new(SimClock::new(Timestamp::from_nanos(1_000_000)));
+    let (mut bad, mut frames) = (Vec::new(), 0);
+    for file in &files {
+        let map = match CanMap::new(&deployment(file, true), &dir) {
+            Ok(map) => map,
+            Err(e) => {
+                bad.push(format!("{}: refused: {e}", file.file));
+                continue;
+            }
+        };
+        let card = CanCard::new(map, clock.clone());
+        card.set_link(true, None);
+        for m in file.messages.iter().filter(|m| !m.sent.is_empty()) {
+            let tx = card.map().tx();
+            let Some(f) = tx.iter().position(|f| f.name == m.name) else {
+                bad.push(format!("{} {}: not mapped", file.file, m.name));
+                continue;
+            };
+            frames += check_sent(&file.file, m, f, &tx[f], &card, &mut bad);
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+    eprintln!("cantools: {frames} frames sent, {} differences", bad.len());
+    assert!(frames > 1000, "too few frames compared: {frames}");
+    assert!(
+        bad.is_empty(),
+        "{} differences from cantools, the first:\n{}",
+        bad.len(),
+        bad.iter().take(25).cloned().collect::<Vec<_>>().join("\n")
+    );
+}
+
 #[test]
 fn random_dbc_files_read_and_decode_as_cantools_does() {
     let seed = env_or("CANTOOLS_SEED", 1);
-    let count = env_or("CANTOOLS_FILES", 60);
-    let dir = std::env::temp_dir().join(format!("hwgw-cantools-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    let files = generate(&dir, seed, count);
+    let (dir, files) = generate("cantools-rx");
     let clock = Arc::new(SimClock::new(Timestamp::from_nanos(1_000_000)));
     let (mut bad, mut values, mut messages) = (Vec::new(), 0, 0);
     for file in &files {
-        let map = match CanMap::new(&deployment(file), &dir) {
+        let map = match CanMap::new(&deployment(file, false), &dir) {
             Ok(map) => map,
             Err(e) => {
                 bad.push(format!("{}: refused: {e}", file.file));

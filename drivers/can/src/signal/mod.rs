@@ -252,10 +252,13 @@ impl Signal {
     /// over the type's whole range (±2^23 steps for a float, ±2^52 for a double, as the
     /// Modbus driver's floats): the value itself is exact, read with [`physical`](Self::physical).
     pub fn with_kind(mut self, kind: ValueKind) -> Result<Signal, SignalError> {
+        // Steps spanning the type's range (2^128 for a float; for a double as near 2^1024
+        // as the factor lets the ends stay finite).
+        let span = |top: i32| top - (self.factor.abs().log2().ceil().max(0.0) as i32);
         let (need, name, steps, step) = match kind {
             ValueKind::Integer => return Ok(self),
-            ValueKind::Float32 => (32, "float", 1i64 << 23, 2f64.powi(127 - 23)),
-            ValueKind::Float64 => (64, "double", 1i64 << 52, 2f64.powi(1000 - 52)),
+            ValueKind::Float32 => (32, "float", 1i64 << 23, 2f64.powi(128 - 23)),
+            ValueKind::Float64 => (64, "double", 1i64 << 52, 2f64.powi(span(1023) - 52)),
         };
         if self.length != need {
             return Err(SignalError::FloatLength {
@@ -309,13 +312,10 @@ impl Signal {
         value * self.factor + self.offset
     }
 
-    /// The raw bits that carry physical `value`, if it is one the signal can carry (a
-    /// number within its range; a float's bits for float signals).
+    /// The raw bits that carry physical `value`, if it is one the signal can carry: a
+    /// number within its DBC range, and then an integer signal's raw value in its bits
+    /// (an unsigned 64-bit one up to 2^64 − 1), a float's any finite value of its type.
     pub fn raw_of(&self, value: f64) -> Option<i64> {
-        let r = self.scale.range();
-        if !(value >= r.lowest && value <= r.highest) {
-            return None;
-        }
         if let Some((min, max)) = self.float_limits
             && !(value >= min && value <= max)
         {
@@ -328,7 +328,19 @@ impl Signal {
                 f.is_finite().then_some(i64::from(f.to_bits()))
             }
             ValueKind::Float64 => x.is_finite().then_some(x.to_bits() as i64),
-            ValueKind::Integer => self.scale.to_raw(value),
+            ValueKind::Integer => {
+                let r = self.scale.range();
+                if value >= r.lowest && value <= r.highest {
+                    return self.scale.to_raw(value);
+                }
+                // Above 2^63 − 1, beyond the scale's raw range (i64): the bits of the
+                // unsigned value, rounded as the scale rounds.
+                let raw = x.round();
+                // 2^63 to 2^64, both exact in f64.
+                let above = 2f64.powi(63)..2f64.powi(64);
+                (!self.signed && self.length == 64 && above.contains(&raw))
+                    .then_some(raw as u64 as i64)
+            }
         }
     }
 

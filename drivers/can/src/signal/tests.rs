@@ -259,3 +259,34 @@ fn byte_windows_read_and_write_as_the_bits_say() {
     }
     assert!(checked > 40_000, "{checked}");
 }
+
+#[test]
+fn values_at_the_ends_of_their_types_are_written_and_read_back() {
+    // An unsigned 64-bit counter above 2^63 − 1, and with an integral offset: exact.
+    let total = Signal::new(0, 64, ByteOrder::Intel, false, 1.0, 0.0, "m").unwrap();
+    let top = 1.8e19;
+    let bits = total.raw_of(top).unwrap();
+    assert_eq!(bits as u64, 18_000_000_000_000_000_000);
+    assert_eq!(total.physical(bits), top);
+    assert_eq!(total.raw_of(2f64.powi(64)), None, "beyond 2^64 − 1");
+    let shifted = Signal::new(0, 64, ByteOrder::Intel, true, 1.0, 100.0, "").unwrap();
+    assert_eq!(
+        shifted.physical(-5_739_657_946_639_245_890),
+        -5_739_657_946_639_245_790f64,
+        "signed: raw + 100 exactly, then rounded once"
+    );
+    // Floats: any finite value of the type, scaled.
+    let f = Signal::new(0, 32, ByteOrder::Intel, false, 2.0, 0.0, "")
+        .unwrap()
+        .with_kind(ValueKind::Float32)
+        .unwrap();
+    let big = f64::from(f32::MAX) * 2.0;
+    assert_eq!(f.physical(f.raw_of(big).unwrap()), big);
+    assert_eq!(f.raw_of(big * 1.01), None, "beyond the float's range");
+    let d = Signal::new(0, 64, ByteOrder::Intel, false, 1.0, 0.0, "")
+        .unwrap()
+        .with_kind(ValueKind::Float64)
+        .unwrap();
+    assert_eq!(d.physical(d.raw_of(f64::MAX).unwrap()), f64::MAX);
+    assert_eq!(d.raw_of(f64::NAN), None);
+}

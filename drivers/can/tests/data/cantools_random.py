@@ -177,17 +177,29 @@ def main():
                 signals[s.name] = {"comment": comment, "choices": choices,
                                    "multiplexer": s.is_multiplexer}
             decoded = []
+            sent = []
             for _ in range(frames):
                 data = payload(rng, msg)
                 raw = msg.decode(data, decode_choices=False, scaling=False)
                 scaled = msg.decode(data, decode_choices=False, scaling=True)
                 decoded.append({"data": data.hex(),
                                 "values": {k: [repr(raw[k]), repr(scaled[k])] for k in scaled}})
+                # The same values sent: cantools' encoding of them, unused bits 0. A
+                # multiplexed message is received only; NaN and infinities are not written.
+                finite = all(not isinstance(v, float) or v == v and abs(v) != float("inf")
+                             for v in scaled.values())
+                # Values as an f64 carries them (hwgw's outputs take f64).
+                if not msg.is_multiplexed() and finite:
+                    as_f64 = {k: float(v) for k, v in scaled.items()}
+                    out_data = msg.encode(as_f64, scaling=True, padding=False, strict=False)
+                    sent.append({"data": out_data.hex(),
+                                 "values": {k: [repr(raw[k]), repr(as_f64[k])]
+                                            for k in scaled}})
             entry["messages"].append({"name": msg.name, "id": msg.frame_id,
                                       "extended": msg.is_extended_frame,
                                       "fd": msg.is_fd,
                                       "cycle_ms": msg.cycle_time, "signals": signals,
-                                      "frames": decoded})
+                                      "frames": decoded, "sent": sent})
         expected.append(entry)
     with open(os.path.join(out, "expected.json"), "w", encoding="utf-8") as f:
         json.dump(expected, f)
