@@ -16,22 +16,10 @@ use driver_modbus::server::{Entry, RegisterTable, Source};
 use std::sync::Arc;
 use std::time::Instant;
 use testkit::fixtures::MODBUS_MAP;
+use testkit::rng::Rng;
 
 /// Frames in the storm.
 const FRAMES: u64 = 1_000_000;
-
-struct Rng(u64);
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 ^= self.0 >> 12;
-        self.0 ^= self.0 << 25;
-        self.0 ^= self.0 >> 27;
-        self.0.wrapping_mul(0x2545_F491_4F6C_DD1D)
-    }
-    fn below(&mut self, n: u64) -> u64 {
-        self.next() % n
-    }
-}
 
 fn table() -> RegisterTable {
     let card = driver_modbus::testing::card(MODBUS_MAP, 4);
@@ -193,7 +181,7 @@ fn check_reply(req: &[u8], reply: &[u8]) {
 fn a_million_hostile_requests_no_panic_and_well_formed_replies() {
     let table = table();
     let seeds = seeds();
-    let mut rng = Rng(0x005E_ED0F_F022);
+    let mut rng = Rng::new(0x005E_ED0F_F022);
     let (mut out, mut frame) = (Vec::with_capacity(260), Vec::with_capacity(260));
     let (mut exceptions, mut answered) = (0u64, 0u64);
     let t0 = Instant::now();
@@ -201,7 +189,7 @@ fn a_million_hostile_requests_no_panic_and_well_formed_replies() {
         frame.clear();
         if i % 2 == 0 {
             let len = rng.below(254) as usize;
-            frame.extend((0..len).map(|_| rng.next() as u8));
+            frame.extend((0..len).map(|_| rng.next_u64() as u8));
             if len > 0 && rng.below(2) == 0 {
                 frame[0] = [1, 2, 3, 4, 5, 6, 15, 16][rng.below(8) as usize];
             }
@@ -211,9 +199,9 @@ fn a_million_hostile_requests_no_panic_and_well_formed_replies() {
                 match rng.below(4) {
                     0 if !frame.is_empty() => {
                         let at = rng.below(frame.len() as u64) as usize;
-                        frame[at] = rng.next() as u8;
+                        frame[at] = rng.next_u64() as u8;
                     }
-                    1 => frame.push(rng.next() as u8),
+                    1 => frame.push(rng.next_u64() as u8),
                     2 if frame.len() > 1 => {
                         frame.pop();
                     }
@@ -280,16 +268,18 @@ fn the_server_answers_every_hostile_frame_over_tcp() {
     s.set_read_timeout(Some(std::time::Duration::from_secs(10)))
         .unwrap();
     let seeds = seeds();
-    let mut rng = Rng(0x0BAD_5EED);
+    let mut rng = Rng::new(0x0BAD_5EED);
     let mut frame = Vec::new();
     for i in 0..20_000u32 {
         let mut pdu: Vec<u8> = if i % 2 == 0 {
-            (0..1 + rng.below(252)).map(|_| rng.next() as u8).collect()
+            (0..1 + rng.below(252))
+                .map(|_| rng.next_u64() as u8)
+                .collect()
         } else {
             seeds[rng.below(seeds.len() as u64) as usize].clone()
         };
         let at = rng.below(pdu.len() as u64) as usize;
-        pdu[at] ^= rng.next() as u8;
+        pdu[at] ^= rng.next_u64() as u8;
         frame.clear();
         frame.extend_from_slice(&(i as u16).to_be_bytes());
         frame.extend_from_slice(&[0, 0]);
@@ -324,7 +314,7 @@ fn mutated_mbap_headers_are_answered_or_closed_never_more() {
     let server =
         ModbusServer::start("127.0.0.1:0".parse().unwrap(), table(), Limits::default()).unwrap();
     let seeds = seeds();
-    let mut rng = Rng(0x4D42_4150);
+    let mut rng = Rng::new(0x4D42_4150);
     for i in 0..2_000u32 {
         let pdu = &seeds[rng.below(seeds.len() as u64) as usize];
         let mut frame = Vec::new();
@@ -335,12 +325,13 @@ fn mutated_mbap_headers_are_answered_or_closed_never_more() {
         frame.extend_from_slice(pdu);
         let field = rng.below(4);
         match field {
-            0 => frame[2 + rng.below(2) as usize] = rng.next() as u8,
+            0 => frame[2 + rng.below(2) as usize] = rng.next_u64() as u8,
             1 => {
-                let len = [0u16, 1, 2, 255, 256, 0xFFFF, rng.next() as u16][rng.below(7) as usize];
+                let len =
+                    [0u16, 1, 2, 255, 256, 0xFFFF, rng.next_u64() as u16][rng.below(7) as usize];
                 frame[4..6].copy_from_slice(&len.to_be_bytes());
             }
-            2 => frame[6] = rng.next() as u8,
+            2 => frame[6] = rng.next_u64() as u8,
             _ => frame.truncate(rng.below(frame.len() as u64) as usize),
         }
         let mut s = std::net::TcpStream::connect(server.addr()).unwrap();

@@ -15,6 +15,7 @@ use std::os::fd::{AsFd, BorrowedFd};
 use std::os::unix::net::UnixStream;
 use std::sync::Arc;
 use std::time::Duration;
+use testkit::rng::Rng;
 
 fn frames(bytes: &[u8]) -> (Vec<String>, Decoder) {
     let mut d = Decoder::new();
@@ -57,25 +58,14 @@ fn frames_decode_and_errors_are_counted_exactly() {
     assert_eq!(c.bytes, 24);
 }
 
-/// xorshift64*: the same hostile streams on every run.
-struct Rng(u64);
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 ^= self.0 >> 12;
-        self.0 ^= self.0 << 25;
-        self.0 ^= self.0 >> 27;
-        self.0.wrapping_mul(0x2545_F491_4F6C_DD1D)
-    }
-}
-
 #[test]
 fn random_garbage_never_panics_nor_sticks_the_decoder() {
-    let mut rng = Rng(0x9E37_79B9_7F4A_7C15);
+    let mut rng = Rng::new(0x9E37_79B9_7F4A_7C15);
     let mut d = Decoder::new();
     for round in 0..20_000 {
-        let len = (rng.next() % 300) as usize;
+        let len = (rng.next_u64() % 300) as usize;
         for _ in 0..len {
-            let r = rng.next();
+            let r = rng.next_u64();
             // Mostly command-ish and data bytes, sometimes a sysex start or end.
             let b = match r % 8 {
                 0 => 0xF0,

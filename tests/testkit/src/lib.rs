@@ -15,6 +15,7 @@
 //! - [`uno`]: an Arduino Uno running the genuine StandardFirmata in simavr, its pins driven
 //!   and watched; pyfirmata2 as the other client;
 //! - [`pypi`]: pinned Python packages the tests compare with (cantools, pyfirmata2);
+//! - [`rng`]: the fuzz tests' seeded random source;
 //! - [`rig`]: kernel rig presets (vcan);
 //! - [`service`]: an `hwgw` binary running a deployment on a socket of its own;
 //! - [`logs`]: what a gateway built in the test's own process logs, captured;
@@ -33,6 +34,7 @@ pub mod mbpoll;
 pub mod peers;
 pub mod pypi;
 pub mod rig;
+pub mod rng;
 pub mod service;
 pub mod uno;
 pub mod wait;

@@ -9,6 +9,7 @@
 
 use super::*;
 use crate::signal::ValueKind;
+use testkit::rng::Rng;
 
 const DBC: &str = r#"VERSION ""
 
@@ -315,17 +316,6 @@ fn windows_1252_files_are_read() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// xorshift64*: the same hostile texts on every run.
-struct Rng(u64);
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 ^= self.0 >> 12;
-        self.0 ^= self.0 << 25;
-        self.0 ^= self.0 >> 27;
-        self.0.wrapping_mul(0x2545_F491_4F6C_DD1D)
-    }
-}
-
 /// The reader's fuzz run: the test file mutated (characters inserted, deleted, replaced by
 /// the grammar's own punctuation, keywords and digits) and random text: every result is a
 /// value, never a panic. Prints how many texts it read.
@@ -336,7 +326,7 @@ fn hostile_text_never_panics() {
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(1);
-    let mut rng = Rng(0xDBC0_F022);
+    let mut rng = Rng::new(0xDBC0_F022);
     let pieces = [
         "\"",
         "(",
@@ -367,14 +357,14 @@ fn hostile_text_never_panics() {
     let mut read = 0u64;
     for _ in 0..20_000 * scale {
         let mut t = base.clone();
-        for _ in 0..=rng.next() % 8 {
-            let at = (rng.next() % (t.len() as u64 + 1)) as usize;
-            match rng.next() % 3 {
+        for _ in 0..=rng.next_u64() % 8 {
+            let at = (rng.next_u64() % (t.len() as u64 + 1)) as usize;
+            match rng.next_u64() % 3 {
                 0 if at < t.len() => {
                     t.remove(at);
                 }
                 _ => {
-                    let p = pieces[(rng.next() % pieces.len() as u64) as usize];
+                    let p = pieces[(rng.next_u64() % pieces.len() as u64) as usize];
                     for (k, c) in p.chars().enumerate() {
                         t.insert(at + k, c);
                     }
@@ -386,9 +376,9 @@ fn hostile_text_never_panics() {
         read += 1;
     }
     for _ in 0..5_000 * scale {
-        let len = (rng.next() % 400) as usize;
+        let len = (rng.next_u64() % 400) as usize;
         let text: String = (0..len)
-            .map(|_| char::from_u32((rng.next() % 128) as u32).unwrap_or(' '))
+            .map(|_| char::from_u32((rng.next_u64() % 128) as u32).unwrap_or(' '))
             .collect();
         let _ = Dbc::parse("random.dbc", &text);
         read += 1;
