@@ -1,0 +1,168 @@
+//! Hostile deployments: the shipped examples mutated at random — values replaced by the
+//! extremes of every TOML type (huge, negative, NaN and infinite numbers, empty and
+//! 100 000-character strings, empty and long arrays, tables where values go), lines
+//! deleted, duplicated and swapped — and checked as `hwgw check` does. Each gets an
+//! answer (ok, or its errors) within a bound, never a panic, and checking writes no file.
+//! `CONFIG_FUZZ_CASES` sets the cases per example (default 200), `CONFIG_FUZZ_SEED` the
+//! seed.
+
+use hwgw::config::Deployment;
+use hwgw::deploy::Gateway;
+use std::panic::{AssertUnwindSafe, catch_unwind};
+use std::sync::mpsc;
+use std::time::Duration;
+use testkit::rng::Rng;
+
+/// How long one check may take before the test calls it a hang.
+const BOUND: Duration = Duration::from_secs(60);
+
+/// What `hwgw check` would say: "ok" or the errors, or the panic's message.
+fn check(text: &str, file: &str) -> Result<String, String> {
+    catch_unwind(AssertUnwindSafe(|| {
+        let d = match Deployment::parse(text, file) {
+            Ok(d) => d,
+            Err(e) => return e.to_string(),
+        };
+        match Gateway::build(&d, file, text, &hwgw::types::Types::builtin()) {
+            Ok(_) => "ok".to_string(),
+            Err(problems) => problems
+                .iter()
+                .map(|p| p.to_string())
+                .collect::<Vec<_>>()
+                .join("\n"),
+        }
+    }))
+    .map_err(|p| {
+        p.downcast_ref::<String>()
+            .cloned()
+            .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
+            .unwrap_or_else(|| "a panic".into())
+    })
+}
+
+/// A hostile value of some TOML type.
+fn hostile(rng: &mut Rng) -> String {
+    let long = format!("\"{}\"", "x".repeat(100_000));
+    let many = format!("[{}]", vec!["1"; 10_000].join(","));
+    let values = [
+        "0",
+        "-1",
+        "1",
+        "9223372036854775807",
+        "-9223372036854775808",
+        "4294967296",
+        "1e308",
+        "-1e308",
+        "5e-324",
+        "nan",
+        "inf",
+        "-inf",
+        "0.5",
+        "true",
+        "\"\"",
+        "\"\\u0000\"",
+        "\"ä€\\n\"",
+        "\"../../../../../etc/passwd\"",
+        "[]",
+        "[[]]",
+        "{}",
+        "{ a = 1 }",
+        "1979-05-27T07:32:00Z",
+        long.as_str(),
+        many.as_str(),
+    ];
+    rng.pick(&values)
+        .map_or_else(String::new, |v| v.to_string())
+}
+
+/// `text` with 1 to 3 random mutations.
+fn mutate(text: &str, rng: &mut Rng) -> String {
+    let mut lines: Vec<String> = text.lines().map(str::to_string).collect();
+    for _ in 0..1 + rng.below(3) {
+        if lines.is_empty() {
+            break;
+        }
+        let at = rng.below(lines.len() as u64) as usize;
+        match rng.below(4) {
+            0 => {
+                // A value replaced (the first `=` of the line: a key, or an inline table's).
+                if let Some(eq) = lines[at].find('=') {
+                    lines[at] = format!("{}= {}", &lines[at][..eq], hostile(rng));
+                }
+            }
+            1 => {
+                lines.remove(at);
+            }
+            2 => {
+                let line = lines[at].clone();
+                lines.insert(at, line);
+            }
+            _ => {
+                let other = rng.below(lines.len() as u64) as usize;
+                lines.swap(at, other);
+            }
+        }
+    }
+    lines.join("\n")
+}
+
+#[test]
+fn mutated_examples_get_an_answer_never_a_panic() {
+    let cases: u64 = std::env::var("CONFIG_FUZZ_CASES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(200);
+    let seed: u64 = std::env::var("CONFIG_FUZZ_SEED")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0xC0F1_6F22);
+    let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/../config");
+    let mut examples = vec![("demo.toml".to_string(), hwgw::DEMO.to_string())];
+    for entry in std::fs::read_dir(dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "toml") {
+            let text = std::fs::read_to_string(&path).unwrap();
+            examples.push((path.display().to_string(), text));
+        }
+    }
+    // Checked from an empty directory of its own: it must stay empty.
+    let cwd = std::env::temp_dir().join(format!("hwgw-config-fuzz-{}", std::process::id()));
+    std::fs::create_dir_all(&cwd).unwrap();
+    std::env::set_current_dir(&cwd).unwrap();
+    let (jobs, work) = mpsc::channel::<(String, String)>();
+    let (answers, answered) = mpsc::channel();
+    std::thread::spawn(move || {
+        for (text, file) in work {
+            if answers.send(check(&text, &file)).is_err() {
+                break;
+            }
+        }
+    });
+    let mut rng = Rng::new(seed);
+    let (mut ok, mut refused, mut panics) = (0u64, 0u64, Vec::new());
+    for (file, text) in &examples {
+        for case in 0..cases {
+            let mutated = mutate(text, &mut rng);
+            jobs.send((mutated.clone(), file.clone())).unwrap();
+            match answered.recv_timeout(BOUND) {
+                Ok(Ok(answer)) if answer == "ok" => ok += 1,
+                Ok(Ok(_)) => refused += 1,
+                Ok(Err(panic)) => panics.push(format!("{file} case {case}: {panic}")),
+                Err(_) => panic!(
+                    "{file} case {case}: no answer within {BOUND:?} for:\n{}",
+                    mutated.chars().take(4000).collect::<String>()
+                ),
+            }
+        }
+    }
+    let left: Vec<_> = std::fs::read_dir(&cwd).unwrap().collect();
+    let _ = std::fs::remove_dir_all(&cwd);
+    eprintln!(
+        "config fuzz: {} examples x {cases} cases: {ok} ok, {refused} refused, {} panics",
+        examples.len(),
+        panics.len()
+    );
+    assert!(panics.is_empty(), "panics:\n{}", panics.join("\n"));
+    assert!(left.is_empty(), "checking wrote files: {left:?}");
+    assert!(refused > 0 && ok > 0, "the mutations reach both answers");
+}
