@@ -79,6 +79,24 @@ impl Gateway {
     ) -> Result<Gateway, Vec<Problem>> {
         build(deployment, file, text, types)
     }
+
+    /// Parses a deployment's `text` (read from `file`) and builds it, as `hwgw check` and
+    /// `hwgw run` do: the gateway and the deployment, or every problem, one a line.
+    pub fn from_text(
+        text: &str,
+        file: &str,
+        types: &Types,
+    ) -> Result<(Gateway, Deployment), String> {
+        let d = Deployment::parse(text, file).map_err(|e| e.to_string())?;
+        let gw = build(&d, file, text, types).map_err(|problems| {
+            problems
+                .iter()
+                .map(|p| p.to_string())
+                .collect::<Vec<_>>()
+                .join("\n")
+        })?;
+        Ok((gw, d))
+    }
 }
 
 fn build(d: &Deployment, file: &str, text: &str, types: &Types) -> Result<Gateway, Vec<Problem>> {

@@ -75,27 +75,27 @@ fn reload_with(gw: &Gateway, config: Option<&PathBuf>, current: &mut Deployment)
     }
 }
 
-fn load(config: Option<&PathBuf>) -> Result<(Deployment, String, String), String> {
+/// The deployment's text and the name errors give it: the file's, or the embedded demo's.
+fn load(config: Option<&PathBuf>) -> Result<(String, String), String> {
     match config {
-        None => Deployment::parse(crate::DEMO, "<embedded demo>")
-            .map(|d| (d, crate::DEMO.to_string(), "<embedded demo>".to_string()))
-            .map_err(|e| e.to_string()),
-        Some(p) => Deployment::load(p)
-            .map(|(d, text)| (d, text, p.display().to_string()))
-            .map_err(|e| e.to_string()),
+        None => Ok((crate::DEMO.to_string(), "<embedded demo>".to_string())),
+        Some(p) => {
+            let file = p.display().to_string();
+            let text = std::fs::read_to_string(p).map_err(|e| {
+                crate::config::ConfigError::Read {
+                    file: file.clone(),
+                    message: e.to_string(),
+                }
+                .to_string()
+            })?;
+            Ok((text, file))
+        }
     }
 }
 
 fn build(config: Option<&PathBuf>, types: &Types) -> Result<(Gateway, Deployment), String> {
-    let (d, text, file) = load(config)?;
-    let gw = Gateway::build(&d, &file, &text, types).map_err(|problems| {
-        problems
-            .iter()
-            .map(|p| p.to_string())
-            .collect::<Vec<_>>()
-            .join("\n")
-    })?;
-    Ok((gw, d))
+    let (text, file) = load(config)?;
+    Gateway::from_text(&text, &file, types)
 }
 
 /// `hwgw check CONFIG`: every problem, or the summary and `ok`.

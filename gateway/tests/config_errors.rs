@@ -1,7 +1,6 @@
 //! Broken deployments and the exact error each must produce: file, line, column, key path
 //! and what was expected. The same code path as `hwgw check` and `hwgw run`.
 
-use hwgw::config::Deployment;
 use hwgw::deploy::Gateway;
 
 const CARD: &str = r#"[[card]]
@@ -25,17 +24,9 @@ fn errors(text: &str) -> String {
 
 /// As [`errors`], for `text` read from `file` (files it names are relative to it).
 fn errors_in(text: &str, file: &str) -> String {
-    let d = match Deployment::parse(text, file) {
-        Ok(d) => d,
-        Err(e) => return e.to_string(),
-    };
-    match Gateway::build(&d, file, text, &hwgw::types::Types::builtin()) {
+    match Gateway::from_text(text, file, &hwgw::types::Types::builtin()) {
         Ok(_) => "ok".to_string(),
-        Err(problems) => problems
-            .iter()
-            .map(|p| p.to_string())
-            .collect::<Vec<_>>()
-            .join("\n"),
+        Err(e) => e,
     }
 }
 

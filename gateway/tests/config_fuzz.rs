@@ -6,7 +6,6 @@
 //! `CONFIG_FUZZ_CASES` sets the cases per example (default 200), `CONFIG_FUZZ_SEED` the
 //! seed.
 
-use hwgw::config::Deployment;
 use hwgw::deploy::Gateway;
 use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::sync::mpsc;
@@ -19,17 +18,9 @@ const BOUND: Duration = Duration::from_secs(60);
 /// What `hwgw check` would say: "ok" or the errors, or the panic's message.
 fn check(text: &str, file: &str) -> Result<String, String> {
     catch_unwind(AssertUnwindSafe(|| {
-        let d = match Deployment::parse(text, file) {
-            Ok(d) => d,
-            Err(e) => return e.to_string(),
-        };
-        match Gateway::build(&d, file, text, &hwgw::types::Types::builtin()) {
+        match Gateway::from_text(text, file, &hwgw::types::Types::builtin()) {
             Ok(_) => "ok".to_string(),
-            Err(problems) => problems
-                .iter()
-                .map(|p| p.to_string())
-                .collect::<Vec<_>>()
-                .join("\n"),
+            Err(e) => e,
         }
     }))
     .map_err(|p| {

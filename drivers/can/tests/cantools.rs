@@ -103,6 +103,28 @@ fn deployment(file: &File, tx: bool) -> CanConfig {
     toml::from_str(&toml).unwrap()
 }
 
+/// A card with `file`'s deployment ([`deployment`]), its link up; `None` (said in `bad`)
+/// when hwgw refuses the file.
+fn card(
+    file: &File,
+    tx: bool,
+    dir: &std::path::Path,
+    clock: &Arc<SimClock>,
+    bad: &mut Vec<String>,
+) -> Option<Arc<CanCard>> {
+    match CanMap::new(&deployment(file, tx), dir) {
+        Ok(map) => {
+            let card = CanCard::new(map, clock.clone());
+            card.set_link(true, None);
+            Some(card)
+        }
+        Err(e) => {
+            bad.push(format!("{}: refused: {e}", file.file));
+            None
+        }
+    }
+}
+
 fn bytes(hex: &str) -> Vec<u8> {
     (0..hex.len())
         .step_by(2)
@@ -276,15 +298,9 @@ fn random_dbc_messages_are_sent_as_cantools_encodes_them() {
     let clock = Arc::new(SimClock::new(Timestamp::from_nanos(1_000_000)));
     let (mut bad, mut frames) = (Vec::new(), 0);
     for file in &files {
-        let map = match CanMap::new(&deployment(file, true), &dir) {
-            Ok(map) => map,
-            Err(e) => {
-                bad.push(format!("{}: refused: {e}", file.file));
-                continue;
-            }
+        let Some(card) = card(file, true, &dir, &clock, &mut bad) else {
+            continue;
         };
-        let card = CanCard::new(map, clock.clone());
-        card.set_link(true, None);
         for m in file.messages.iter().filter(|m| !m.sent.is_empty()) {
             let tx = card.map().tx();
             let Some(f) = tx.iter().position(|f| f.name == m.name) else {
@@ -312,15 +328,9 @@ fn random_dbc_files_read_and_decode_as_cantools_does() {
     let clock = Arc::new(SimClock::new(Timestamp::from_nanos(1_000_000)));
     let (mut bad, mut values, mut messages) = (Vec::new(), 0, 0);
     for file in &files {
-        let map = match CanMap::new(&deployment(file, false), &dir) {
-            Ok(map) => map,
-            Err(e) => {
-                bad.push(format!("{}: refused: {e}", file.file));
-                continue;
-            }
+        let Some(card) = card(file, false, &dir, &clock, &mut bad) else {
+            continue;
         };
-        let card = CanCard::new(map, clock.clone());
-        card.set_link(true, None);
         let mut shared: HashMap<&str, usize> = HashMap::new();
         for m in &file.messages {
             for name in m.signals.keys() {
