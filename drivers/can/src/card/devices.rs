@@ -11,7 +11,8 @@ use std::sync::atomic::Ordering;
 
 /// The card as a whole: online while the link is up and any received message is fresh;
 /// stale when every one is; offline when the link is down or the controller off the bus.
-/// Each registered device judges by its own messages instead (see [`super::sides`]).
+/// Each registered device judges by its own messages instead (see [`super::CanDigitalIn`]
+/// and its siblings).
 impl Device for CanCard {
     fn health(&self) -> Health {
         self.health_of(Feeds::Frames(&self.feeds.all))
