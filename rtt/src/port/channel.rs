@@ -299,6 +299,11 @@ impl<T: Clone + Send + 'static> Writer<T> {
 }
 
 impl<T: Clone + Send + 'static> Reader<T> {
+    /// True when its writer is gone but what it wrote is not all taken yet.
+    pub(super) fn lingers(&self) -> bool {
+        self.ch.writer_gone.load(Ordering::Acquire) && !self.is_done()
+    }
+
     /// True when nothing more will come: closed, or the writer gone and all it wrote taken.
     #[inline]
     pub(super) fn is_done(&self) -> bool {
@@ -428,9 +433,16 @@ impl<E, T> Links<E, T> {
 
     /// Owner side, once its copy of [`changed`](Self::changed) was found set (the common
     /// case, nothing changed, is that one load): takes up pending ends and forgets the
-    /// ends `done` says are done.
+    /// ends `done` says are done. An end `lingers` says will be done later (its writer
+    /// gone, what it wrote not all taken yet) sets the flag again, so the owner looks once
+    /// more after its next read rather than keep the end for ever.
     #[cold]
-    pub(super) fn refresh_changed(&self, local: &mut Vec<E>, done: impl Fn(&E) -> bool) {
+    pub(super) fn refresh_changed(
+        &self,
+        local: &mut Vec<E>,
+        done: impl Fn(&E) -> bool,
+        lingers: impl Fn(&E) -> bool,
+    ) {
         // Cleared before anything is looked at (a full barrier): a change after the look
         // sets it again.
         if !self.changed.swap(false, Ordering::AcqRel) {
@@ -442,6 +454,9 @@ impl<E, T> Links<E, T> {
             local.push(end);
         }
         local.retain(|e| !done(e));
+        if local.iter().any(lingers) {
+            self.changed.store(true, Ordering::Release);
+        }
     }
 }
 

@@ -94,7 +94,7 @@ impl<T: Clone + Send + 'static> InputPort<T> {
         if self.changed.load(Ordering::Relaxed) {
             self.shared
                 .links
-                .refresh_changed(&mut self.conns, Reader::is_done);
+                .refresh_changed(&mut self.conns, Reader::is_done, Reader::lingers);
         }
         for c in &mut self.conns {
             if c.pop_into(&mut self.last) {

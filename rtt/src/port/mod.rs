@@ -354,10 +354,11 @@ mod tests {
         let mut x = 0.0;
         assert_eq!(plain.read(&mut x), FlowStatus::NoData, "written before it");
         assert_eq!((init.read(&mut x), x), (FlowStatus::NewData, 1.0));
-        assert!(!out.push, "nothing to do per write for register readers");
         for v in [2.0, 3.0] {
             out.write(&v);
         }
+        assert_eq!(out.conns.len(), 2);
+        assert!(!out.push, "nothing to do per write for register readers");
         for inp in [&mut plain, &mut init] {
             assert_eq!((inp.read(&mut x), x), (FlowStatus::NewData, 3.0));
             assert_eq!((inp.read(&mut x), x), (FlowStatus::OldData, 3.0));
@@ -395,6 +396,46 @@ mod tests {
         drop(out);
         assert_eq!(plain.read(&mut x), FlowStatus::OldData);
         assert!(plain.conns.is_empty(), "writer gone, all taken: let go");
+    }
+
+    #[test]
+    fn a_reader_lets_go_once_it_took_what_a_gone_writer_left() {
+        for policy in [ConnPolicy::data(), ConnPolicy::buffer(4)] {
+            let (mut out, mut inp) = pair::<f64>(policy);
+            out.write(&1.0);
+            out.write(&2.0);
+            drop(out);
+            let mut x = 0.0;
+            assert_eq!(inp.read(&mut x), FlowStatus::NewData, "{policy:?}");
+            while inp.read(&mut x) == FlowStatus::NewData {}
+            assert_eq!((inp.read(&mut x), x), (FlowStatus::OldData, 2.0));
+            assert!(
+                inp.conns.is_empty(),
+                "{policy:?}: still holds the connection"
+            );
+        }
+    }
+
+    #[test]
+    fn an_event_port_is_woken_by_each_write_of_a_data_connection() {
+        struct Count(std::sync::atomic::AtomicU64);
+        impl crate::activity::Waker for Count {
+            fn wake(&self) {
+                self.0.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            }
+        }
+        let count = Arc::new(Count(std::sync::atomic::AtomicU64::new(0)));
+        let mut out = OutputPort::<f64>::new("out");
+        let mut inp = InputPort::<f64>::new("in");
+        let _ = inp.shared().waker.set(count.clone());
+        connect(&out, &inp, ConnPolicy::data()).unwrap();
+        for v in 0..3 {
+            out.write(&f64::from(v));
+        }
+        assert!(out.push, "an event port's end is woken at each write");
+        assert_eq!(count.0.load(std::sync::atomic::Ordering::Relaxed), 3);
+        let mut x = 0.0;
+        assert_eq!((inp.read(&mut x), x), (FlowStatus::NewData, 2.0));
     }
 
     #[test]

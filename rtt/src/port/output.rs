@@ -23,7 +23,8 @@ pub(crate) struct OutputShared<T: Send> {
     /// A one-word sample's register: the port's last value, read by its data connections.
     pub(super) word: Option<Arc<WordCell>>,
     /// The reading half of the last written value, for `init` and introspection, and the
-    /// last value taken from it.
+    /// last value taken from it (a sample wider than a word: a one-word sample's last value
+    /// is read from `word`, and this half is unused).
     last: Mutex<(LatestOut<T>, T)>,
 }
 
@@ -129,7 +130,7 @@ impl<T: Clone + Send + 'static> OutputPort<T> {
     fn refresh(&mut self) {
         self.shared
             .links
-            .refresh_changed(&mut self.conns, |w| w.ch.is_closed());
+            .refresh_changed(&mut self.conns, |w| w.ch.is_closed(), |_| false);
         self.push = self.conns.iter().any(Writer::needs_push);
     }
 
