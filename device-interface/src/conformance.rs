@@ -517,7 +517,8 @@ pub fn check_analog_out(dev: &dyn AnalogOut) -> Report {
         // Physical values across the range read back within half a step.
         let tol = scale.resolution() * (0.5 + 1e-6);
         for i in 0..=10 {
-            let value = r.lowest + (r.highest - r.lowest) * f64::from(i) / 10.0;
+            // (The fraction first: a double's span times 10 would overflow.)
+            let value = r.lowest + (r.highest - r.lowest) * (f64::from(i) / 10.0);
             let w = dev.write(c, value);
             let back = dev.read_back(c);
             report.expect(AoReadBack, w.is_ok() && matches!(back, Ok(b) if close(b, value, tol)), || {

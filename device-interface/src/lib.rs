@@ -44,4 +44,4 @@ pub use interfaces::{
 pub use registry::{
     CardDevices, Interface, NameInfo, NameServer, Registry, RegistryEntry, RegistryError,
 };
-pub use scale::{AnalogRange, RawRange, Scale, ScaleError, Unit};
+pub use scale::{AnalogRange, RawRange, Scale, ScaleError, Unit, linear};

@@ -223,6 +223,27 @@ pub struct Scale {
     /// How a raw value becomes physical.
     formula: Formula,
     unit: Unit,
+    /// A value half a step between two raw values goes to the even one (else away from
+    /// zero).
+    ties_to_even: bool,
+}
+
+/// `raw × factor + offset` rounded once where it can be: an integral factor and offset are
+/// multiplied and added as integers (exact), then rounded to f64; an integral factor
+/// with a fractional offset rounds the exact product, then adds; any other factor is
+/// f64 arithmetic. For values below 2^53 all three are the plain f64 formula; beyond, this
+/// is what cantools computes (Python's integers are exact) and never less exact than it.
+pub fn linear(raw: i128, factor: f64, offset: f64) -> f64 {
+    /// `x` as the integer it is, when a product with a 64-bit raw value cannot overflow
+    /// i128 (|x| < 2^63).
+    fn integral(x: f64) -> Option<i128> {
+        (x.fract() == 0.0 && x.abs() < 9.2e18).then_some(x as i128)
+    }
+    match (integral(factor), integral(offset)) {
+        (Some(f), Some(o)) => (raw * f + o) as f64,
+        (Some(f), None) => (raw * f) as f64 + offset,
+        (None, _) => raw as f64 * factor + offset,
+    }
 }
 
 /// How a [`Scale`] computes a physical value, so that it is the value the device's own
@@ -256,6 +277,7 @@ impl Scale {
             at_max: highest,
             formula: Formula::Ends,
             unit,
+            ties_to_even: false,
         })
     }
 
@@ -285,8 +307,8 @@ impl Scale {
         if !(factor.is_finite() && offset.is_finite() && factor != 0.0) {
             return Err(ScaleError::InvalidFactor { factor, offset });
         }
-        let at_min = raw.min as f64 * factor + offset;
-        let at_max = raw.max as f64 * factor + offset;
+        let at_min = linear(i128::from(raw.min), factor, offset);
+        let at_max = linear(i128::from(raw.max), factor, offset);
         if !(at_min.is_finite() && at_max.is_finite()) || at_min == at_max {
             return Err(ScaleError::InvalidFactor { factor, offset });
         }
@@ -296,7 +318,15 @@ impl Scale {
             at_max,
             formula: Formula::Factor(factor, offset),
             unit,
+            ties_to_even: false,
         })
+    }
+
+    /// The same scale rounding a value half a step between two raw values to the even
+    /// one, as IEEE 754 and Python do (cantools encodes so), instead of away from zero.
+    pub fn ties_to_even(mut self) -> Scale {
+        self.ties_to_even = true;
+        self
     }
 
     /// The raw range.
@@ -328,7 +358,7 @@ impl Scale {
         let t = (i128::from(raw) - i128::from(self.raw.min)) as f64 / self.raw.steps();
         match self.formula {
             // The documented formula, which also gave the range's ends (so they are exact).
-            Formula::Factor(factor, offset) => return raw as f64 * factor + offset,
+            Formula::Factor(factor, offset) => return linear(i128::from(raw), factor, offset),
             Formula::Fraction => return t * (self.at_max - self.at_min) + self.at_min,
             Formula::Ends => {}
         }
@@ -394,14 +424,25 @@ impl Scale {
     fn nearest_raw(&self, value: f64) -> i64 {
         if let Formula::Factor(factor, offset) = self.formula {
             // Rounded and clamped in f64 first, so infinities saturate; `as` then saturates too.
-            let steps = ((value - offset) / factor).round();
+            let q = (value - offset) / factor;
+            let steps = if self.ties_to_even {
+                q.round_ties_even()
+            } else {
+                q.round()
+            };
             return self
                 .raw
                 .clamp(steps.clamp(self.raw.min as f64, self.raw.max as f64) as i64);
         }
         let t = (value - self.at_min) / (self.at_max - self.at_min);
         // Clamped in step space, so infinities saturate and the sum stays within the range.
-        let steps = (t * self.raw.steps()).round().clamp(0.0, self.raw.steps());
+        let q = t * self.raw.steps();
+        let steps = if self.ties_to_even {
+            q.round_ties_even()
+        } else {
+            q.round()
+        }
+        .clamp(0.0, self.raw.steps());
         let raw = i128::from(self.raw.min) + steps as i128;
         self.raw
             .clamp(raw.clamp(i128::from(i64::MIN), i128::from(i64::MAX)) as i64)

@@ -33,6 +33,10 @@ signal = [
     { name = "lamps", start = 0, length = 40, as = "digital" },
     { name = "level", start = 40, length = 16, signed = true, factor = 0.25, offset = 1 },
 ]
+[[tx]]
+message = "Trims"
+fd = true
+cycle_ms = 10
 "#;
 
 fn card(clock: Arc<SimClock>) -> Arc<CanCard> {

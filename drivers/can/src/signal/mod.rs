@@ -231,7 +231,8 @@ impl Signal {
         } else {
             RawRange::unsigned_bits(length)?
         };
-        let scale = Scale::from_factor(raw, factor, offset, Unit::new(unit)?)?;
+        // Ties to even, as cantools (Python) encodes.
+        let scale = Scale::from_factor(raw, factor, offset, Unit::new(unit)?)?.ties_to_even();
         Ok(Signal {
             start,
             length,
@@ -252,13 +253,18 @@ impl Signal {
     /// over the type's whole range (±2^23 steps for a float, ±2^52 for a double, as the
     /// Modbus driver's floats): the value itself is exact, read with [`physical`](Self::physical).
     pub fn with_kind(mut self, kind: ValueKind) -> Result<Signal, SignalError> {
-        // Steps spanning the type's range (2^128 for a float; for a double as near 2^1024
-        // as the factor lets the ends stay finite).
-        let span = |top: i32| top - (self.factor.abs().log2().ceil().max(0.0) as i32);
+        // Steps of a power of two, so every step is a value of the type: for a float
+        // ±(2^24 − 1) steps of 2^104, exactly its finite values (f32::MAX is (2^24 − 1) ×
+        // 2^104); for a double ±(2^53 − 1) steps of 2^970, up to 2^1023 — half its largest
+        // value, so that the scale's span stays finite — or less by the factor's power of
+        // two.
         let (need, name, steps, step) = match kind {
             ValueKind::Integer => return Ok(self),
-            ValueKind::Float32 => (32, "float", 1i64 << 23, 2f64.powi(128 - 23)),
-            ValueKind::Float64 => (64, "double", 1i64 << 52, 2f64.powi(span(1023) - 52)),
+            ValueKind::Float32 => (32, "float", (1i64 << 24) - 1, 2f64.powi(104)),
+            ValueKind::Float64 => {
+                let k = self.factor.abs().log2().ceil().max(0.0) as i32;
+                (64, "double", (1i64 << 53) - 1, 2f64.powi(970 - k))
+            }
         };
         if self.length != need {
             return Err(SignalError::FloatLength {
@@ -276,7 +282,8 @@ impl Signal {
             self.factor * step,
             self.offset,
             self.scale.unit(),
-        )?;
+        )?
+        .ties_to_even();
         Ok(self)
     }
 
@@ -294,8 +301,10 @@ impl Signal {
     /// `raw * factor + offset` with the raw value as the DBC says — signed, unsigned (all 64
     /// bits unsigned up to 2^64 − 1), or the IEEE float the bits hold — computed as cantools
     /// computes it: an integral factor or offset is an integer there, multiplied and added
-    /// exactly (then rounded once to f64), any other in f64. (cantools keeps a factor the
-    /// file writes as `1.0` a float; the two differ only for raw values beyond 2^53.)
+    /// exactly (then rounded once to f64), any other in f64 ([`device_interface::linear`],
+    /// as the channel's scale computes it); a float with factor 1 and offset 0 is the float
+    /// itself (−0.0 included). (cantools keeps a factor the file writes as `1.0` a float;
+    /// the two differ only for raw values beyond 2^53.)
     pub fn physical(&self, raw: i64) -> f64 {
         let value = match self.kind {
             ValueKind::Float32 => f64::from(f32::from_bits(raw as u32)),
@@ -306,15 +315,19 @@ impl Signal {
                 } else {
                     i128::from(raw)
                 };
-                return linear(raw, self.factor, self.offset);
+                return device_interface::linear(raw, self.factor, self.offset);
             }
         };
-        value * self.factor + self.offset
+        if self.factor == 1.0 && self.offset == 0.0 {
+            value
+        } else {
+            value * self.factor + self.offset
+        }
     }
 
     /// The raw bits that carry physical `value`, if it is one the signal can carry: a
     /// number within its DBC range, and then an integer signal's raw value in its bits
-    /// (an unsigned 64-bit one up to 2^64 − 1), a float's any finite value of its type.
+    /// (an unsigned 64-bit one up to 2^64 − 1), a float's value within its scale's range.
     pub fn raw_of(&self, value: f64) -> Option<i64> {
         if let Some((min, max)) = self.float_limits
             && !(value >= min && value <= max)
@@ -322,6 +335,10 @@ impl Signal {
             return None;
         }
         let x = (value - self.offset) / self.factor;
+        let r = self.scale.range();
+        if self.kind != ValueKind::Integer && !(value >= r.lowest && value <= r.highest) {
+            return None;
+        }
         match self.kind {
             ValueKind::Float32 => {
                 let f = x as f32;
@@ -329,17 +346,15 @@ impl Signal {
             }
             ValueKind::Float64 => x.is_finite().then_some(x.to_bits() as i64),
             ValueKind::Integer => {
-                let r = self.scale.range();
-                if value >= r.lowest && value <= r.highest {
-                    return self.scale.to_raw(value);
+                // (value − offset) / factor to the nearest raw value, a tie to the even one,
+                // as cantools encodes (the signal's scale rounds so too). An unsigned 64-bit
+                // value from 2^63 on is beyond the scale's raw range (i64): the bits of the
+                // unsigned value (2^63 and 2^64 are exact in f64).
+                let raw = x.round_ties_even();
+                if !self.signed && self.length == 64 && raw >= 2f64.powi(63) {
+                    return (raw < 2f64.powi(64)).then_some(raw as u64 as i64);
                 }
-                // Above 2^63 − 1, beyond the scale's raw range (i64): the bits of the
-                // unsigned value, rounded as the scale rounds.
-                let raw = x.round();
-                // 2^63 to 2^64, both exact in f64.
-                let above = 2f64.powi(63)..2f64.powi(64);
-                (!self.signed && self.length == 64 && above.contains(&raw))
-                    .then_some(raw as u64 as i64)
+                self.scale.to_raw(value)
             }
         }
     }
@@ -425,7 +440,8 @@ impl Signal {
             return Ok(self);
         }
         let range = RawRange::new(lo, hi).map_err(|_| bad)?;
-        self.scale = Scale::from_factor(range, self.factor, self.offset, self.scale.unit())?;
+        self.scale =
+            Scale::from_factor(range, self.factor, self.offset, self.scale.unit())?.ties_to_even();
         Ok(self)
     }
 
@@ -493,22 +509,6 @@ impl Signal {
         let w = self.window.load(self.order, payload);
         self.window.store(self.order, payload, w & !mask | v);
         Ok(())
-    }
-}
-
-/// `x` as the integer it is, when it is one a product with a 64-bit raw value cannot
-/// overflow in i128.
-fn integral(x: f64) -> Option<i128> {
-    (x.fract() == 0.0 && x.abs() < 9.2e18).then_some(x as i128)
-}
-
-/// `raw * factor + offset` with Python's number rules, as cantools decodes: integers exact,
-/// an integer meeting a float converted to the nearest f64 first.
-fn linear(raw: i128, factor: f64, offset: f64) -> f64 {
-    match (integral(factor), integral(offset)) {
-        (Some(f), Some(o)) => (raw * f + o) as f64,
-        (Some(f), None) => (raw * f) as f64 + offset,
-        (None, _) => raw as f64 * factor + offset,
     }
 }
 

@@ -287,6 +287,55 @@ fn values_at_the_ends_of_their_types_are_written_and_read_back() {
         .unwrap()
         .with_kind(ValueKind::Float64)
         .unwrap();
-    assert_eq!(d.physical(d.raw_of(f64::MAX).unwrap()), f64::MAX);
+    let half = 2f64.powi(1023) * (1.0 - f64::EPSILON);
+    assert_eq!(d.physical(d.raw_of(half).unwrap()), half);
+    assert_eq!(d.raw_of(f64::MAX), None, "a double's scale ends at 2^1023");
     assert_eq!(d.raw_of(f64::NAN), None);
+    assert_eq!(d.physical(i64::MIN), -0.0, "-0.0 is the float itself");
+    assert!(d.physical(i64::MIN).is_sign_negative());
+}
+
+#[test]
+fn the_ends_of_the_advertised_ranges_are_writable() {
+    for (kind, length) in [(ValueKind::Float32, 32), (ValueKind::Float64, 64)] {
+        for (factor, offset) in [(1.0, 0.0), (2.0, 0.0), (0.5, -40.0), (1e-3, 1e6)] {
+            let s = Signal::new(0, length, ByteOrder::Intel, false, factor, offset, "")
+                .unwrap()
+                .with_kind(kind)
+                .unwrap();
+            let r = s.scale().range();
+            let raw = s.scale().raw_range();
+            for v in [
+                r.lowest,
+                r.highest,
+                s.scale().to_physical(raw.min),
+                s.scale().to_physical(raw.max),
+            ] {
+                assert!(
+                    s.raw_of(v).is_some(),
+                    "{kind:?} factor {factor} offset {offset}: {v} is in [{}, {}]",
+                    r.lowest,
+                    r.highest
+                );
+            }
+        }
+    }
+    // The unsigned 64-bit boundary: 2^63 is the unsigned value's bits, not i64::MAX.
+    let u = Signal::new(0, 64, ByteOrder::Intel, false, 1.0, 0.0, "").unwrap();
+    assert_eq!(u.raw_of(2f64.powi(63)).map(|b| b as u64), Some(1 << 63));
+    let u2 = Signal::new(0, 64, ByteOrder::Intel, false, 2.0, 0.0, "").unwrap();
+    assert_eq!(u2.raw_of(2f64.powi(64)).map(|b| b as u64), Some(1 << 63));
+}
+
+#[test]
+fn the_physical_value_is_the_scales() {
+    // Beyond 2^53, where one rounding and two differ: read() and scale() agree.
+    let s = Signal::new(0, 64, ByteOrder::Intel, true, 1.0, 259.0, "").unwrap();
+    for raw in [-3_074_457_345_618_258_603, i64::MIN, i64::MAX, 0, 1 << 60] {
+        assert_eq!(s.physical(raw), s.scale().to_physical(raw), "raw {raw}");
+    }
+    let t = Signal::new(0, 64, ByteOrder::Intel, true, 3.0, 0.5, "").unwrap();
+    for raw in [i64::MIN / 3, (1 << 55) + 1] {
+        assert_eq!(t.physical(raw), t.scale().to_physical(raw), "raw {raw}");
+    }
 }

@@ -10,6 +10,7 @@ decoding (raw and scaled, values as Python's repr so floats and big integers sur
 """
 
 import json
+import math
 import os
 import random
 import struct
@@ -30,7 +31,7 @@ OFFSETS = [0, 0, 0, -40, 100, -0.5, 1000, -273.15]
 def number(rng, pool):
     """A factor or offset: mostly a round one, sometimes an arbitrary decimal."""
     if rng.random() < 0.2:
-        return float("%.6g" % rng.uniform(-100, 100) or 1)
+        return float("%.6g" % rng.uniform(-100, 100)) or 1.0
     return rng.choice(pool)
 
 
@@ -47,10 +48,12 @@ def candidate(rng, name, length_bytes, mux_ids=None, mux_name=None):
         length = 64
     elif kind < 0.35:
         length = 1
+    elif kind < 0.5:
+        length = rng.randint(2, min(64, bits))
     else:
         length = rng.randint(2, min(32, bits))
     byte_order = rng.choice(["little_endian", "big_endian"])
-    if length == 64:
+    if length == 64 and rng.random() < 0.5:
         start = 0 if byte_order == "little_endian" else 7
     else:
         start = rng.randrange(bits)
@@ -62,6 +65,13 @@ def candidate(rng, name, length_bytes, mux_ids=None, mux_name=None):
         top = (1 << length) - 1
         keys = sorted(set(rng.randint(0, min(top, 20)) for _ in range(rng.randint(1, 4))))
         choices = {k: "state %d \u00e4" % k if rng.random() < 0.3 else "S%d" % k for k in keys}
+    # Limits as CANdb++ writes them: the raw type's whole range, scaled.
+    minimum = maximum = None
+    if not is_float and rng.random() < 0.3:
+        lo = -(1 << (length - 1)) if signed else 0
+        hi = (1 << (length - 1)) - 1 if signed else (1 << length) - 1
+        ends = sorted([lo * scale + offset, hi * scale + offset])
+        minimum, maximum = ends
     comment = None
     if rng.random() < 0.3:
         comment = rng.choice(["Measured at the sump, \u00b0C", "Two\nlines", "Plain"])
@@ -74,6 +84,8 @@ def candidate(rng, name, length_bytes, mux_ids=None, mux_name=None):
         conversion=BaseConversion.factory(scale=scale, offset=offset, choices=choices,
                                           is_float=is_float),
         unit=rng.choice(UNITS),
+        minimum=minimum,
+        maximum=maximum,
         comment=comment,
         receivers=["GW"],
         multiplexer_ids=mux_ids,
@@ -129,6 +141,12 @@ def random_raw(rng, s):
     lo = -(1 << (s.length - 1)) if s.is_signed else 0
     hi = (1 << (s.length - 1)) - 1 if s.is_signed else (1 << s.length) - 1
     return rng.randint(lo, hi)
+
+
+def double_reach(s):
+    """The raw magnitude a double signal's scale in hwgw reaches (see Signal::with_kind)."""
+    k = max(0, math.ceil(math.log2(abs(s.scale)))) if s.scale else 0
+    return 2.0 ** (1023 - k)
 
 
 def payload(rng, msg):
@@ -188,6 +206,10 @@ def main():
                 # multiplexed message is received only; NaN and infinities are not written.
                 finite = all(not isinstance(v, float) or v == v and abs(v) != float("inf")
                              for v in scaled.values())
+                # hwgw's double outputs reach 2^1023 (half the type's largest value), less
+                # by the factor's power of two.
+                finite = finite and all(abs(raw.get(s.name, 0.0)) < double_reach(s)
+                                        for s in msg.signals if s.is_float)
                 # Values as an f64 carries them (hwgw's outputs take f64).
                 if not msg.is_multiplexed() and finite:
                     as_f64 = {k: float(v) for k, v in scaled.items()}
