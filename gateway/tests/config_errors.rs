@@ -53,7 +53,7 @@ fn every_broken_config_gets_its_exact_error() {
         ("malformed DBC message, mapped", format!("{CAN}interface = \"can7\"\ndbc = \"tests/data/broken.dbc\"\n[[card.socketcan.rx]]\nmessage = \"Motion\"\n"),
          "t.toml:8:11: card[0].socketcan.rx[0].message: card \"can\": tests/data/broken.dbc:3: signal Speed: byte order @2: expected @1 (Intel) or @0 (Motorola)"),
         ("DBC message missing", format!("{CAN}interface = \"can7\"\ndbc = \"../drivers/can/tests/data/motion.dbc\"\n[[card.socketcan.rx]]\nmessage = \"Motoin\"\n"),
-         "t.toml:8:11: card[0].socketcan.rx[0].message: card \"can\": the DBC file has no message \"Motoin\" (it has: Motion, Temps, Command)"),
+         "t.toml:8:11: card[0].socketcan.rx[0].message: card \"can\": the DBC file has no message \"Motoin\" (it has: Motion, Temps, Command, Trims)"),
         ("inline signal without a start bit", format!("{CAN}interface = \"can7\"\n[[card.socketcan.rx]]\nid = 0x100\nsignal = [{{ name = \"speed\", length = 16 }}]\n"),
          "t.toml:8:11: card[0].socketcan.rx[0].signal[0]: card \"can\": signal speed: an inline signal needs start and length"),
         ("DBC range no raw value reaches", format!("{CAN}interface = \"can7\"\ndbc = \"tests/data/unreachable.dbc\"\n[[card.socketcan.rx]]\nmessage = \"M\"\n"),
