@@ -421,28 +421,28 @@ impl Scale {
         self.nearest_raw(value)
     }
 
+    /// `q` to the nearest integer, a tie as this scale rounds ties.
+    fn round(&self, q: f64) -> f64 {
+        if self.ties_to_even {
+            q.round_ties_even()
+        } else {
+            q.round()
+        }
+    }
+
     fn nearest_raw(&self, value: f64) -> i64 {
         if let Formula::Factor(factor, offset) = self.formula {
             // Rounded and clamped in f64 first, so infinities saturate; `as` then saturates too.
-            let q = (value - offset) / factor;
-            let steps = if self.ties_to_even {
-                q.round_ties_even()
-            } else {
-                q.round()
-            };
+            let steps = self.round((value - offset) / factor);
             return self
                 .raw
                 .clamp(steps.clamp(self.raw.min as f64, self.raw.max as f64) as i64);
         }
         let t = (value - self.at_min) / (self.at_max - self.at_min);
         // Clamped in step space, so infinities saturate and the sum stays within the range.
-        let q = t * self.raw.steps();
-        let steps = if self.ties_to_even {
-            q.round_ties_even()
-        } else {
-            q.round()
-        }
-        .clamp(0.0, self.raw.steps());
+        let steps = self
+            .round(t * self.raw.steps())
+            .clamp(0.0, self.raw.steps());
         let raw = i128::from(self.raw.min) + steps as i128;
         self.raw
             .clamp(raw.clamp(i128::from(i64::MIN), i128::from(i64::MAX)) as i64)
