@@ -16,6 +16,9 @@ pub enum RuntimeError {
     /// ThreadScope is on but no DigitalOut is registered as "ThreadScope".
     #[error("ThreadScope is on, but {0}")]
     ThreadScope(#[source] RegistryError),
+    /// The ThreadScope recording could not be made.
+    #[error(transparent)]
+    ThreadScopeVcd(#[from] crate::scope::vcd::VcdError),
     /// Two components with one name.
     #[error("a component named {0:?} already exists")]
     Duplicate(String),

@@ -16,6 +16,9 @@ use std::sync::{Arc, Mutex};
 pub struct RuntimeOptions {
     /// Pulse each runtime thread's bit on the DigitalOut named "ThreadScope".
     pub thread_scope: bool,
+    /// Record each runtime thread's bit into this VCD file (created new, never
+    /// overwritten; see [`crate::scope::vcd`]), with or without `thread_scope`.
+    pub thread_scope_vcd: Option<std::path::PathBuf>,
     /// The clock components read through their context.
     pub clock: Arc<dyn Clock>,
     /// Ask the kernel (PM QoS, `/dev/cpu_dma_latency`) to keep CPU wake-up latency at or
@@ -29,6 +32,7 @@ impl Default for RuntimeOptions {
     fn default() -> Self {
         RuntimeOptions {
             thread_scope: false,
+            thread_scope_vcd: None,
             clock: Arc::new(MonotonicClock),
             cpu_dma_latency_us: None,
         }
@@ -88,6 +92,9 @@ impl Runtime {
         } else {
             ThreadScope::off()
         };
+        if let Some(path) = &options.thread_scope_vcd {
+            scope.record_vcd(path)?;
+        }
         scope::set_thread_number(0);
         Ok(Runtime {
             registry,

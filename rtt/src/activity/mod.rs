@@ -432,6 +432,9 @@ impl Activity {
             _ => None,
         };
         let thread_number = spec.has_thread().then(thread_number);
+        if let Some(n) = thread_number {
+            scope.name_thread(n, name);
+        }
         if let (Some(n), true) = (thread_number, scope.is_on()) {
             tracing::info!(
                 activity = name,

@@ -37,6 +37,7 @@ pub mod rig;
 pub mod rng;
 pub mod service;
 pub mod uno;
+pub mod vcd;
 pub mod wait;
 
 pub use candump::Candump;

@@ -101,6 +101,14 @@ pub const NPM: Peer = Peer {
     packages: &["npm"],
 };
 
+/// sigrok-cli, which reads ThreadScope's VCD recordings (its `counter` decoder counts
+/// each thread's pulses; the decoders come with its libsigrokdecode dependency).
+pub const SIGROK: Peer = Peer {
+    name: "sigrok-cli",
+    probe: Probe::Command("sigrok-cli"),
+    packages: &["sigrok-cli"],
+};
+
 /// Debian's Python with pip and pyserial: pyfirmata2 (from PyPI) is installed with them.
 pub const PYSERIAL: Peer = Peer {
     name: "pyserial and pip",

@@ -6,11 +6,19 @@
 //! `"ThreadScope"` goes high, and just after it goes low, so an oscilloscope (or the sim
 //! card's output record) shows which thread ran when and for how long. The mapping of
 //! threads to bits is logged. With ThreadScope off, a step costs one branch more.
+//!
+//! The same bits can be recorded into a VCD file instead of, or besides, the output
+//! ([`vcd`]): a logic analyser's view without the hardware.
+
+pub mod vcd;
 
 use device_interface::DigitalOut;
 use std::cell::Cell;
+use std::path::Path;
 use std::sync::Arc;
+use std::sync::OnceLock;
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
+use vcd::{ThreadNames, VcdError, VcdTrace};
 
 thread_local! {
     static THREAD_NUMBER: Cell<Option<u32>> = const { Cell::new(None) };
@@ -34,6 +42,10 @@ pub struct ThreadScope {
     closed: AtomicBool,
     /// Pulses begun and not yet ended (their bit high).
     active: AtomicU32,
+    /// The recording of the bits, once started.
+    vcd: OnceLock<VcdTrace>,
+    /// The activity threads' names, for the recording's signals.
+    names: ThreadNames,
 }
 
 impl ThreadScope {
@@ -44,6 +56,8 @@ impl ThreadScope {
             errors: AtomicU64::new(0),
             closed: AtomicBool::new(false),
             active: AtomicU32::new(0),
+            vcd: OnceLock::new(),
+            names: ThreadNames::default(),
         }
     }
 
@@ -54,12 +68,44 @@ impl ThreadScope {
             errors: AtomicU64::new(0),
             closed: AtomicBool::new(false),
             active: AtomicU32::new(0),
+            vcd: OnceLock::new(),
+            names: ThreadNames::default(),
         }
     }
 
-    /// True when on.
+    /// Starts recording every thread's bit into a new VCD file at `path` (never
+    /// overwriting one), besides the output if there is one. Once per ThreadScope: a second
+    /// call is refused. Its pulses are recorded from now on; time 0 in the file is now.
+    pub fn record_vcd(&self, path: &Path) -> Result<&VcdTrace, VcdError> {
+        if self.vcd.get().is_some() {
+            return Err(VcdError::AlreadyRecording {
+                path: path.to_path_buf(),
+            });
+        }
+        let trace = VcdTrace::create(path, self.names.clone())?;
+        self.vcd
+            .set(trace)
+            .map_err(|_| VcdError::AlreadyRecording {
+                path: path.to_path_buf(),
+            })?;
+        self.vcd.get().ok_or(VcdError::AlreadyRecording {
+            path: path.to_path_buf(),
+        })
+    }
+
+    /// True when on: driving an output, recording, or both.
     pub fn is_on(&self) -> bool {
-        self.out.is_some()
+        self.out.is_some() || self.vcd.get().is_some()
+    }
+
+    /// The recording, if one was started.
+    pub fn vcd(&self) -> Option<&VcdTrace> {
+        self.vcd.get()
+    }
+
+    /// Gives thread `thread` its activity's name (for a recording's signal names).
+    pub(crate) fn name_thread(&self, thread: u32, name: &str) {
+        self.names.set(thread, name);
     }
 
     /// Writes to the output that failed (a bit past its end, an offline card).
@@ -70,7 +116,10 @@ impl ThreadScope {
     /// Runs `f` with the calling thread's bit high. Nested pulses on one thread (a slave
     /// stepped from its master's step) keep the bit high until the outermost ends.
     pub(crate) fn pulse<R>(&self, f: impl FnOnce() -> R) -> R {
-        let (Some(out), Some(bit)) = (&self.out, current_thread_number()) else {
+        if !self.is_on() {
+            return f();
+        }
+        let Some(bit) = current_thread_number() else {
             return f();
         };
         let outer = DEPTH.with(|d| {
@@ -89,11 +138,11 @@ impl ThreadScope {
             open
         };
         if write {
-            self.set(out.as_ref(), bit, true);
+            self.set(bit, true);
         }
         let r = f();
         if write {
-            self.set(out.as_ref(), bit, false);
+            self.set(bit, false);
             self.active.fetch_sub(1, Ordering::SeqCst);
         }
         DEPTH.with(|d| d.set(d.get().saturating_sub(1)));
@@ -115,9 +164,20 @@ impl ThreadScope {
         true
     }
 
-    fn set(&self, out: &dyn DigitalOut, bit: u32, value: bool) {
-        if out.set_bit(bit, value).is_err() {
+    /// The bit to the output and into the recording. The recording's edge is taken just
+    /// after the output's rise and just before its fall, so it lies within the pulse.
+    fn set(&self, bit: u32, value: bool) {
+        let vcd = self.vcd.get();
+        if !value && let Some(v) = vcd {
+            v.record(bit, false);
+        }
+        if let Some(out) = &self.out
+            && out.set_bit(bit, value).is_err()
+        {
             self.errors.fetch_add(1, Ordering::Relaxed);
+        }
+        if value && let Some(v) = vcd {
+            v.record(bit, true);
         }
     }
 }
