@@ -127,10 +127,13 @@ fn build(d: &Deployment, file: &str, text: &str, types: &Types) -> Result<Gatewa
         start.push(true);
     }
     let servers = b.servers(&runtime);
+    let scope_vcd = b.scope_vcd();
     if !b.problems.is_empty() {
         return Err(b.problems.into_vec());
     }
-    Ok(Gateway::new(runtime, cards, servers, order, start, b.hold))
+    let mut gw = Gateway::new(runtime, cards, servers, order, start, b.hold);
+    gw.scope_vcd = scope_vcd;
+    Ok(gw)
 }
 
 impl Build<'_, '_, '_> {
@@ -327,6 +330,20 @@ impl Build<'_, '_, '_> {
         for (i, a) in self.d.aliases.iter().enumerate() {
             if let Err(e) = registry.alias(a.interface, &a.name, &a.target) {
                 self.problems.at(&KeyPath::top("alias").index(i), e);
+            }
+        }
+    }
+
+    /// The ThreadScope recording's file, resolved against the deployment's folder and
+    /// checked as `run` will create it (not created here: `check` makes no file).
+    fn scope_vcd(&mut self) -> Option<std::path::PathBuf> {
+        let file = self.d.thread_scope_vcd.as_ref()?;
+        let path = self.base.join(file);
+        match checks::new_file(&path) {
+            Ok(()) => Some(path),
+            Err(msg) => {
+                self.problems.at(&KeyPath::top("thread_scope_vcd"), msg);
+                None
             }
         }
     }

@@ -5,6 +5,7 @@
 use crate::config::{ConnectionConfig, Deployment, split_port};
 use rtt::{ActivitySpec, Runtime};
 use std::collections::HashMap;
+use std::path::Path;
 use std::time::Duration;
 
 /// The longest period or time a deployment may give, ms (a day).
@@ -131,4 +132,27 @@ pub fn spin_loops(connections: &[ConnectionConfig], runtime: &Runtime) -> Vec<(u
         done.push(start);
     }
     out
+}
+
+/// Whether a new file can be made at `path` at start, without making it now: it must not
+/// exist (never overwritten), and its folder must exist and be writable by this process.
+pub fn new_file(path: &Path) -> Result<(), String> {
+    let show = path.display();
+    if std::fs::symlink_metadata(path).is_ok() {
+        return Err(format!(
+            "{show} exists: it is never overwritten; remove it or name another file"
+        ));
+    }
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    if !dir.is_dir() {
+        return Err(format!(
+            "{show}: the directory {} does not exist",
+            dir.display()
+        ));
+    }
+    nix::unistd::access(dir, nix::unistd::AccessFlags::W_OK)
+        .map_err(|e| format!("{show}: cannot create it in {}: {e}", dir.display()))
 }

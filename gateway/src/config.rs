@@ -48,6 +48,11 @@ pub struct Deployment {
     /// Pulse each runtime thread's bit on the DigitalOut aliased "ThreadScope".
     #[serde(default)]
     pub thread_scope: bool,
+    /// Record each runtime thread's bit into this VCD file while running (relative to the
+    /// deployment file's folder; created new at `run`, never overwritten; `check` only
+    /// checks it could be).
+    #[serde(default)]
+    pub thread_scope_vcd: Option<String>,
     /// Hold CPU wake-up latency at this many µs while running (`/dev/cpu_dma_latency`).
     #[serde(default)]
     pub cpu_dma_latency_us: Option<u32>,

@@ -70,6 +70,8 @@ pub struct Gateway {
     start: Vec<bool>,
     /// Held when the stop begins: the guarded outputs refuse every write from then on.
     hold: Arc<Hold>,
+    /// Where ThreadScope records each thread's bit once started ([`Self::record_thread_scope`]).
+    pub(crate) scope_vcd: Option<std::path::PathBuf>,
 }
 
 impl Gateway {
@@ -88,7 +90,18 @@ impl Gateway {
             order,
             start,
             hold,
+            scope_vcd: None,
         }
+    }
+
+    /// Starts the ThreadScope recording the deployment asks for (`thread_scope_vcd`), if
+    /// any: its file is created here, at `run`, never at `check`. Before [`start`](Self::start),
+    /// so that every step is recorded.
+    pub fn record_thread_scope(&self) -> Result<(), rtt::scope::vcd::VcdError> {
+        if let Some(path) = &self.scope_vcd {
+            self.runtime.thread_scope().record_vcd(path)?;
+        }
+        Ok(())
     }
 
     /// Applies the properties of `new` (the deployment file read again) to the running
@@ -111,10 +124,12 @@ impl Gateway {
         }
         if (
             old.thread_scope,
+            &old.thread_scope_vcd,
             old.cpu_dma_latency_us,
             &old.control_socket,
         ) != (
             new.thread_scope,
+            &new.thread_scope_vcd,
             new.cpu_dma_latency_us,
             &new.control_socket,
         ) {
@@ -313,6 +328,10 @@ impl Gateway {
             .close(Instant::now() + Duration::from_secs(1))
         {
             tracing::warn!("ThreadScope: a step still under way after 1 s; its bit may stay high");
+        }
+        // Every pulse has ended: the recording is complete (finish logs its counts).
+        if let Some(vcd) = self.runtime.thread_scope().vcd() {
+            let _ = vcd.finish();
         }
         // From here on only the safe values are written: every other write is refused.
         self.hold_outputs();

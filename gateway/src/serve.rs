@@ -208,6 +208,11 @@ pub fn run(config: Option<PathBuf>, socket: Option<PathBuf>, types: &Types) -> E
         server,
         stopped: false,
     };
+    if let Err(e) = gw.record_thread_scope() {
+        eprintln!("hwgw: thread_scope_vcd: {e}");
+        stopper.stop();
+        return ExitCode::FAILURE;
+    }
     if let Err(e) = gw.start() {
         eprintln!("hwgw: {e}");
         stopper.stop();

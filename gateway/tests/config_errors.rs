@@ -39,7 +39,7 @@ fn every_broken_config_gets_its_exact_error() {
     let cpus = std::thread::available_parallelism().map_or(1, usize::from);
     let cases: Vec<(&str, String, &str)> = vec![
         ("unknown top-level key", "thread_scop = true\n".into(),
-         "t.toml:1:1: thread_scop: unknown field `thread_scop`, expected one of `thread_scope`, `cpu_dma_latency_us`, `control_socket`, `control_clients`, `control_idle_s`, `card`, `alias`, `component`, `connection`, `modbus_server`"),
+         "t.toml:1:1: thread_scop: unknown field `thread_scop`, expected one of `thread_scope`, `thread_scope_vcd`, `cpu_dma_latency_us`, `control_socket`, `control_clients`, `control_idle_s`, `card`, `alias`, `component`, `connection`, `modbus_server`"),
         ("wrong type", "thread_scope = \"yes\"\n".into(),
          "t.toml:1:16: thread_scope: invalid type: string \"yes\", expected a boolean"),
         ("missing card name", "[[card]]\ndriver = \"sim\"\n".into(),
@@ -172,6 +172,10 @@ fn every_broken_config_gets_its_exact_error() {
          "t.toml:1:19: control_clients: 0: expected 1 to 1024 clients\nt.toml:2:18: control_idle_s: 0 s: expected 1 to 86400 seconds"),
         ("a report nobody can write", with_card("[[component]]\nname = \"rec\"\ntype = \"reporter\"\nactivity = { type = \"periodic\", period_ms = 10 }\nproperties = { file = \"/nonexistent/r.csv\", ports = [\"sim0.ai.ch0\"] }\n"),
          "t.toml:11:1: component[0]: component \"rec\": configure_hook failed: /nonexistent/r.csv: the directory /nonexistent does not exist"),
+        ("a ThreadScope recording over a file", format!("thread_scope_vcd = \"{}\"\n{CARD}", concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/broken.dbc")),
+         &*Box::leak(format!("t.toml:1:20: thread_scope_vcd: {}/tests/data/broken.dbc exists: it is never overwritten; remove it or name another file", env!("CARGO_MANIFEST_DIR")).into_boxed_str())),
+        ("a ThreadScope recording in no folder", format!("thread_scope_vcd = \"/nonexistent/s.vcd\"\n{CARD}"),
+         "t.toml:1:20: thread_scope_vcd: /nonexistent/s.vcd: the directory /nonexistent does not exist"),
         ("not TOML", "[[card]\nname = \"x\"\n".into(),
          "t.toml:1:8: unclosed array table, expected `]`"),
     ];
