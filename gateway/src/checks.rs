@@ -138,6 +138,9 @@ pub fn spin_loops(connections: &[ConnectionConfig], runtime: &Runtime) -> Vec<(u
 /// exist (never overwritten), and its folder must exist and be writable by this process.
 pub fn new_file(path: &Path) -> Result<(), String> {
     let show = path.display();
+    if path.file_name().is_none() || path.as_os_str().as_encoded_bytes().ends_with(b"/") {
+        return Err(format!("{:?}: expected a file name", show.to_string()));
+    }
     if std::fs::symlink_metadata(path).is_ok() {
         return Err(format!(
             "{show} exists: it is never overwritten; remove it or name another file"

@@ -329,10 +329,6 @@ impl Gateway {
         {
             tracing::warn!("ThreadScope: a step still under way after 1 s; its bit may stay high");
         }
-        // Every pulse has ended: the recording is complete (finish logs its counts).
-        if let Some(vcd) = self.runtime.thread_scope().vcd() {
-            let _ = vcd.finish();
-        }
         // From here on only the safe values are written: every other write is refused.
         self.hold_outputs();
         for s in &self.servers {
@@ -365,6 +361,11 @@ impl Gateway {
         });
         for t in self.order.iter().rev().filter(|t| self.is_bus(t)) {
             stop(t);
+        }
+        // Last, the outputs safe: the ThreadScope recording, complete since its close
+        // above (finish logs its counts; a disk that hangs holds the stop 5 s at most).
+        if let Some(vcd) = self.runtime.thread_scope().vcd() {
+            let _ = vcd.finish();
         }
         self.cards.iter().map(CardRt::outputs_line).collect()
     }

@@ -176,6 +176,8 @@ fn every_broken_config_gets_its_exact_error() {
          &*Box::leak(format!("t.toml:1:20: thread_scope_vcd: {}/tests/data/broken.dbc exists: it is never overwritten; remove it or name another file", env!("CARGO_MANIFEST_DIR")).into_boxed_str())),
         ("a ThreadScope recording in no folder", format!("thread_scope_vcd = \"/nonexistent/s.vcd\"\n{CARD}"),
          "t.toml:1:20: thread_scope_vcd: /nonexistent/s.vcd: the directory /nonexistent does not exist"),
+        ("a ThreadScope recording named as a folder", format!("thread_scope_vcd = \"/tmp/\"\n{CARD}"),
+         "t.toml:1:20: thread_scope_vcd: \"/tmp/\": expected a file name"),
         ("not TOML", "[[card]\nname = \"x\"\n".into(),
          "t.toml:1:8: unclosed array table, expected `]`"),
     ];

@@ -83,6 +83,13 @@ impl ThreadScope {
             });
         }
         let trace = VcdTrace::create(path, self.names.clone())?;
+        for n in self.names.named() {
+            tracing::info!(
+                "ThreadScope: thread {n} is signal {} in {}",
+                self.names.signal(n),
+                path.display()
+            );
+        }
         self.vcd
             .set(trace)
             .map_err(|_| VcdError::AlreadyRecording {
