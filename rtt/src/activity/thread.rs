@@ -211,8 +211,9 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                         events.count += 1;
                     }
                 }
-                let start = clock.now().as_nanos();
+                // One clock read for the step's start and its timing.
                 let timing = StepTiming::now();
+                let start = timing.started.as_nanos();
                 shared.scope.pulse(|| runner.step(&events, timing));
                 stats.step(clock.now().as_nanos().saturating_sub(start));
             }
