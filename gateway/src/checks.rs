@@ -146,6 +146,13 @@ pub fn new_file(path: &Path) -> Result<(), String> {
             "{show} exists: it is never overwritten; remove it or name another file"
         ));
     }
+    creatable(path)
+}
+
+/// Whether a file `path` that does not exist could be created: its folder exists and this
+/// process may write to it.
+pub fn creatable(path: &Path) -> Result<(), String> {
+    let show = path.display();
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),

@@ -100,24 +100,7 @@ fn writable(path: &std::path::Path) -> Result<(), HookError> {
             .open(path)
             .map(drop)
             .map_err(|e| HookError::new(format!("{show}: cannot write: {e}"))),
-        Err(_) => {
-            let dir = match path.parent() {
-                Some(d) if !d.as_os_str().is_empty() => d,
-                _ => std::path::Path::new("."),
-            };
-            if !dir.is_dir() {
-                return Err(HookError::new(format!(
-                    "{show}: the directory {} does not exist",
-                    dir.display()
-                )));
-            }
-            nix::unistd::access(dir, nix::unistd::AccessFlags::W_OK).map_err(|e| {
-                HookError::new(format!(
-                    "{show}: cannot create it in {}: {e}",
-                    dir.display()
-                ))
-            })
-        }
+        Err(_) => crate::checks::creatable(path).map_err(HookError::new),
     }
 }
 
