@@ -469,6 +469,26 @@ mod ring {
         Ok(())
     }
 
+    /// Sets SOL_PACKET option `name` of socket `fd` to `value`.
+    fn packet_option<T>(
+        fd: libc::c_int,
+        name: libc::c_int,
+        value: &T,
+        what: &str,
+    ) -> Result<(), Failed> {
+        // SAFETY: `value` is a valid `T` of the size given for the call's duration.
+        let r = unsafe {
+            libc::setsockopt(
+                fd,
+                libc::SOL_PACKET,
+                name,
+                (value as *const T).cast(),
+                size_of::<T>() as u32,
+            )
+        };
+        check(r, what)
+    }
+
     impl Ring {
         pub fn open(iface: &str) -> Result<Ring, Failed> {
             let index = nix::net::if_::if_nametoindex(iface)?;
@@ -485,29 +505,8 @@ mod ring {
                 tp_frame_size: FRAME as u32,
                 tp_frame_nr: (BLOCK / FRAME * BLOCKS) as u32,
             };
-            // SAFETY: the option values are valid for their sizes for the calls' duration.
-            unsafe {
-                check(
-                    libc::setsockopt(
-                        raw,
-                        libc::SOL_PACKET,
-                        libc::PACKET_VERSION,
-                        (&raw const version).cast(),
-                        size_of_val(&version) as u32,
-                    ),
-                    "PACKET_VERSION",
-                )?;
-                check(
-                    libc::setsockopt(
-                        raw,
-                        libc::SOL_PACKET,
-                        libc::PACKET_RX_RING,
-                        (&raw const req).cast(),
-                        size_of_val(&req) as u32,
-                    ),
-                    "PACKET_RX_RING",
-                )?;
-            }
+            packet_option(raw, libc::PACKET_VERSION, &version, "PACKET_VERSION")?;
+            packet_option(raw, libc::PACKET_RX_RING, &req, "PACKET_RX_RING")?;
             // SAFETY: maps the ring the kernel just made for this socket.
             let map = unsafe {
                 libc::mmap(

@@ -65,11 +65,7 @@ impl ThreadScope {
     pub fn on(out: Arc<dyn DigitalOut>) -> Self {
         ThreadScope {
             out: Some(out),
-            errors: AtomicU64::new(0),
-            closed: AtomicBool::new(false),
-            active: AtomicU32::new(0),
-            vcd: OnceLock::new(),
-            names: ThreadNames::default(),
+            ..ThreadScope::off()
         }
     }
 
@@ -77,10 +73,12 @@ impl ThreadScope {
     /// overwriting one), besides the output if there is one. Once per ThreadScope: a second
     /// call is refused. Its pulses are recorded from now on; time 0 in the file is now.
     pub fn record_vcd(&self, path: &Path) -> Result<&VcdTrace, VcdError> {
+        let already = || VcdError::AlreadyRecording {
+            path: path.to_path_buf(),
+        };
+        // Checked first, so that a refused call creates no file.
         if self.vcd.get().is_some() {
-            return Err(VcdError::AlreadyRecording {
-                path: path.to_path_buf(),
-            });
+            return Err(already());
         }
         let trace = VcdTrace::create(path, self.names.clone())?;
         for n in self.names.named() {
@@ -90,14 +88,8 @@ impl ThreadScope {
                 path.display()
             );
         }
-        self.vcd
-            .set(trace)
-            .map_err(|_| VcdError::AlreadyRecording {
-                path: path.to_path_buf(),
-            })?;
-        self.vcd.get().ok_or(VcdError::AlreadyRecording {
-            path: path.to_path_buf(),
-        })
+        self.vcd.set(trace).map_err(|_| already())?;
+        self.vcd.get().ok_or_else(already)
     }
 
     /// True when on: driving an output, recording, or both.
