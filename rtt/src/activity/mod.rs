@@ -17,9 +17,11 @@
 
 mod realtime;
 mod stats;
+pub mod steps;
 mod thread;
 
 pub use stats::{ActivityStats, HISTOGRAM_BUCKETS};
+pub use steps::{StepRecord, StepTap};
 
 use crate::scope::ThreadScope;
 use device_interface::time::{Clock, MonotonicClock, Timestamp};
@@ -457,6 +459,12 @@ impl Activity {
         })
     }
 
+    /// A tap on this activity's steps from now on, holding at most `capacity` steps not yet
+    /// drained (clamped to 1..=[`steps::MAX_TAP`]); see [`steps`].
+    pub fn tap_steps(&self, capacity: usize) -> StepTap {
+        StepTap::new(&self.shared.stats.taps, capacity)
+    }
+
     /// The activity's kind and parameters.
     pub fn spec(&self) -> &ActivitySpec {
         &self.shared.spec
@@ -617,9 +625,8 @@ impl Activity {
         self.shared
             .scope
             .pulse(|| runner.step(&FdEvents::default(), timing));
-        self.shared
-            .stats
-            .step(clock.now().duration_since(t0).as_nanos() as u64);
+        let t0 = t0.as_nanos();
+        self.shared.stats.step(t0, t0, clock.now().as_nanos());
         Ok(())
     }
 }

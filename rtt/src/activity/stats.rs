@@ -1,7 +1,9 @@
 //! An activity's timing statistics: steps, a histogram of wake-up lateness, step
 //! durations and overruns, kept in atomics by the activity's thread and read as a snapshot.
 
+use super::steps::{StepRecord, StepTaps};
 use serde::{Deserialize, Serialize};
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::Duration;
 
@@ -75,6 +77,7 @@ pub(crate) struct StatsCell {
     pub(crate) step_total: AtomicU64,
     pub(crate) realtime: AtomicBool,
     pub(crate) memory_locked: AtomicBool,
+    pub(crate) taps: Arc<StepTaps>,
 }
 
 impl StatsCell {
@@ -91,6 +94,7 @@ impl StatsCell {
             step_total: AtomicU64::new(0),
             realtime: AtomicBool::new(false),
             memory_locked: AtomicBool::new(false),
+            taps: Arc::new(StepTaps::new()),
         }
     }
 
@@ -100,7 +104,15 @@ impl StatsCell {
         self.lateness_max.fetch_max(ns, Ordering::Relaxed);
     }
 
-    pub(crate) fn step(&self, ns: u64) {
+    /// A step that was due at `scheduled`, began at `started` and ended at `ended` (ns on
+    /// the monotonic clock): counted, and given to the step taps.
+    pub(crate) fn step(&self, scheduled: u64, started: u64, ended: u64) {
+        let ns = ended.saturating_sub(started);
+        self.taps.push(StepRecord {
+            scheduled,
+            started,
+            ended,
+        });
         self.steps.fetch_add(1, Ordering::Relaxed);
         self.step_total.fetch_add(ns, Ordering::Relaxed);
         self.step_max.fetch_max(ns, Ordering::Relaxed);

@@ -108,7 +108,7 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                 };
                 shared.scope.pulse(|| runner.step(&events, step_timing));
                 let end = clock.now().as_nanos();
-                stats.step(end.saturating_sub(woke));
+                stats.step(next, woke, end);
                 next = match timing {
                     Timing::Absolute => next.saturating_add(period_ns),
                     Timing::Relative => woke.saturating_add(period_ns),
@@ -169,7 +169,7 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                 };
                 shared.scope.pulse(|| runner.step(&events, timing));
                 last_end = clock.now().as_nanos();
-                stats.step(last_end.saturating_sub(start));
+                stats.step(timing.scheduled.as_nanos(), start, last_end);
             }
         }
         ActivitySpec::FileDescriptor { timeout, thread } => {
@@ -215,7 +215,7 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                 let timing = StepTiming::now();
                 let start = timing.started.as_nanos();
                 shared.scope.pulse(|| runner.step(&events, timing));
-                stats.step(clock.now().as_nanos().saturating_sub(start));
+                stats.step(start, start, clock.now().as_nanos());
             }
         }
         ActivitySpec::Slave => {}

@@ -5,17 +5,31 @@ use crate::error::IntrospectError;
 use crate::info::{Direction, NamedValue, PortData, PortInfo};
 use crate::port::{
     ConnPolicy, ConnectError, ConnectionInfo, FlowStatus, InputPort, InputShared, OutputPort,
-    OutputShared, connect_shared,
+    OutputShared, connect_shared, connect_with,
 };
+use device_interface::time::Clock;
 use serde::Serialize;
 use serde_json::Value;
 use std::any::Any;
 use std::sync::{Arc, OnceLock};
 
-/// Reads a port's data as dynamically typed values (made by [`DynPort::reader`]).
+/// Reads a port's data as dynamically typed values (made by [`DynPort::reader`] and
+/// [`DynPort::stamped_reader`]).
 pub trait DynReader: Send {
     /// The next sample, as [`InputPort::read`] gives it, serialised.
     fn read(&mut self) -> (FlowStatus, Option<Value>);
+
+    /// The next sample and, when new and the connection is stamped, the time it was
+    /// written (ns on the connection's clock; 0 from an unstamped connection).
+    fn read_at(&mut self) -> (FlowStatus, Option<Value>, u64) {
+        let (status, value) = self.read();
+        (status, value, 0)
+    }
+
+    /// Samples lost so far on this reader's connection because its buffer was full.
+    fn dropped(&self) -> u64 {
+        0
+    }
 }
 
 /// Writes dynamically typed values into an input port (made by [`DynPort::writer`]).
@@ -36,6 +50,13 @@ pub trait DynPort: Send + Sync {
     fn last_value(&self) -> Result<Option<Value>, IntrospectError>;
     /// A new connection from this output port to a reader of serialised values.
     fn reader(&self, policy: ConnPolicy) -> Result<Box<dyn DynReader>, IntrospectError>;
+    /// A new stamped buffer connection (see [`crate::port::connect_stamped`]) from this
+    /// output port to a reader of serialised values with the time each was written.
+    fn stamped_reader(
+        &self,
+        policy: ConnPolicy,
+        clock: Arc<dyn Clock>,
+    ) -> Result<Box<dyn DynReader>, IntrospectError>;
     /// A new connection from a writer of serialised values to this input port.
     fn writer(&self, policy: ConnPolicy) -> Result<Box<dyn DynWriter>, IntrospectError>;
     /// Connects this output port to `input`.
@@ -133,10 +154,20 @@ struct ValueReader<T: Send> {
 
 impl<T: PortData> DynReader for ValueReader<T> {
     fn read(&mut self) -> (FlowStatus, Option<Value>) {
-        match self.port.read(&mut self.sample) {
-            FlowStatus::NoData => (FlowStatus::NoData, None),
-            s => (s, to_json(&self.sample)),
+        let (status, value, _) = self.read_at();
+        (status, value)
+    }
+
+    fn read_at(&mut self) -> (FlowStatus, Option<Value>, u64) {
+        let mut at = 0;
+        match self.port.read_at(&mut self.sample, &mut at) {
+            FlowStatus::NoData => (FlowStatus::NoData, None, 0),
+            s => (s, to_json(&self.sample), at),
         }
+    }
+
+    fn dropped(&self) -> u64 {
+        self.port.connections().iter().map(|c| c.dropped).sum()
     }
 }
 
@@ -166,6 +197,22 @@ impl<T: PortData> DynWriter for ValueWriter<T> {
     }
 }
 
+impl<T: PortData> OutEntry<T> {
+    fn value_reader(
+        &self,
+        policy: ConnPolicy,
+        clock: Option<Arc<dyn Clock>>,
+    ) -> Result<Box<dyn DynReader>, IntrospectError> {
+        let sample = match self.shared.last_written() {
+            Some(v) => v,
+            None => self.shared.sample_clone(),
+        };
+        let port = InputPort::with_sample(&format!("{}.reader", self.shared.name), sample.clone());
+        connect_with(&self.shared, port.shared(), policy, clock)?;
+        Ok(Box::new(ValueReader { port, sample }))
+    }
+}
+
 impl<T: PortData> DynPort for OutEntry<T> {
     fn info(&self) -> PortInfo {
         PortInfo {
@@ -187,13 +234,15 @@ impl<T: PortData> DynPort for OutEntry<T> {
     }
 
     fn reader(&self, policy: ConnPolicy) -> Result<Box<dyn DynReader>, IntrospectError> {
-        let sample = match self.shared.last_written() {
-            Some(v) => v,
-            None => self.shared.sample_clone(),
-        };
-        let port = InputPort::with_sample(&format!("{}.reader", self.shared.name), sample.clone());
-        connect_shared(&self.shared, port.shared(), policy)?;
-        Ok(Box::new(ValueReader { port, sample }))
+        self.value_reader(policy, None)
+    }
+
+    fn stamped_reader(
+        &self,
+        policy: ConnPolicy,
+        clock: Arc<dyn Clock>,
+    ) -> Result<Box<dyn DynReader>, IntrospectError> {
+        self.value_reader(policy, Some(clock))
     }
 
     fn writer(&self, _policy: ConnPolicy) -> Result<Box<dyn DynWriter>, IntrospectError> {
@@ -274,6 +323,14 @@ impl<T: PortData> DynPort for InEntry<T> {
             Direction::Input,
             "watching",
         ))
+    }
+
+    fn stamped_reader(
+        &self,
+        policy: ConnPolicy,
+        _clock: Arc<dyn Clock>,
+    ) -> Result<Box<dyn DynReader>, IntrospectError> {
+        self.reader(policy)
     }
 
     fn writer(&self, policy: ConnPolicy) -> Result<Box<dyn DynWriter>, IntrospectError> {

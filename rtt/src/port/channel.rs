@@ -14,6 +14,7 @@ use super::{ConnKind, ConnPolicy, ConnectError, ConnectionInfo};
 use crate::activity::Waker;
 use crate::lock::lock;
 use crossbeam_queue::ArrayQueue;
+use device_interface::time::Clock;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 
@@ -53,6 +54,9 @@ pub(crate) struct Channel<T> {
     read: AtomicU64,
     dropped: AtomicU64,
     waker: Option<Arc<dyn Waker>>,
+    /// A stamped buffer connection: each sample carries the time it was written, read on
+    /// this clock by the writer (one clock read per write, on this connection only).
+    clock: Option<Arc<dyn Clock>>,
 }
 
 /// A data connection of a one-word sample, reading the output port's register.
@@ -64,10 +68,17 @@ struct SharedWord {
     init: u64,
 }
 
+/// One sample of a buffer connection, with the time it was written (0 unless the
+/// connection is stamped).
+struct Slot<T> {
+    at: u64,
+    value: T,
+}
+
 /// A buffer connection's samples, cycling between `free` and `full`.
 struct Queues<T> {
-    free: ArrayQueue<T>,
-    full: ArrayQueue<T>,
+    free: ArrayQueue<Slot<T>>,
+    full: ArrayQueue<Slot<T>>,
 }
 
 impl<T> Channel<T> {
@@ -149,15 +160,30 @@ pub(super) struct From {
     pub(super) word: Option<Arc<WordCell>>,
 }
 
+/// The input end's side of a new connection: its port's name and "look" flag, the waker
+/// of an event port, and the clock of a stamped connection.
+pub(super) struct To {
+    pub(super) name: Arc<str>,
+    pub(super) changed: Arc<AtomicBool>,
+    pub(super) waker: Option<Arc<dyn Waker>>,
+    pub(super) clock: Option<Arc<dyn Clock>>,
+}
+
 /// Makes a connection and its two ends. A data connection from a port with a register
-/// reads that register; with `init` it starts with the value last written, if any.
+/// reads that register; with `init` it starts with the value last written, if any. A
+/// buffer connection with a `clock` stamps each sample with the time it was written.
 pub(super) fn channel<T: Clone + Send + 'static>(
     from: From,
-    (to, in_changed): (Arc<str>, Arc<AtomicBool>),
+    to: To,
     policy: ConnPolicy,
     sample: &T,
-    waker: Option<Arc<dyn Waker>>,
 ) -> (Writer<T>, Reader<T>) {
+    let To {
+        name: to,
+        changed: in_changed,
+        waker,
+        clock,
+    } = to;
     let From {
         name: from,
         changed: out_changed,
@@ -188,7 +214,10 @@ pub(super) fn channel<T: Clone + Send + 'static>(
             let pool = capacity + 2;
             let free = ArrayQueue::new(pool);
             for _ in 0..pool {
-                let _ = free.push(sample.clone());
+                let _ = free.push(Slot {
+                    at: 0,
+                    value: sample.clone(),
+                });
             }
             let full = ArrayQueue::new(capacity);
             (Some(Queues { free, full }), None)
@@ -209,6 +238,7 @@ pub(super) fn channel<T: Clone + Send + 'static>(
         read: AtomicU64::new(0),
         dropped: AtomicU64::new(0),
         waker,
+        clock,
     });
     let (input, output) = match halves {
         Some((i, o)) => (i, Some(o)),
@@ -276,7 +306,10 @@ impl<T: Clone + Send + 'static> Writer<T> {
             bump(&ch.dropped);
             return false;
         };
-        slot.clone_from(value);
+        slot.value.clone_from(value);
+        if let Some(clock) = &ch.clock {
+            slot.at = clock.now().as_nanos();
+        }
         if let Err(slot) = q.full.push(slot) {
             if drop_newest {
                 let _ = q.free.push(slot);
@@ -321,12 +354,13 @@ impl<T: Clone + Send + 'static> Reader<T> {
         }
     }
 
-    /// Reader side: copies the next sample into `into`, if there is one.
+    /// Reader side: copies the next sample into `into`, if there is one, and the time it
+    /// was written into `at` (a stamped buffer connection; else `at` is left alone).
     #[inline]
-    pub(super) fn pop_into(&mut self, into: &mut T) -> bool {
+    pub(super) fn pop_into(&mut self, into: &mut T, at: &mut u64) -> bool {
         let got = match &mut self.latest {
             Some(output) => output.take(into),
-            None => self.pop_buffered(into),
+            None => self.pop_buffered(into, at),
         };
         if got {
             bump(&self.ch.read);
@@ -336,13 +370,14 @@ impl<T: Clone + Send + 'static> Reader<T> {
 
     /// A buffer connection's read (kept out of the data connections' path).
     #[inline(never)]
-    fn pop_buffered(&mut self, into: &mut T) -> bool {
+    fn pop_buffered(&mut self, into: &mut T, at: &mut u64) -> bool {
         let Some(q) = &self.ch.queues else {
             return false;
         };
         match q.full.pop() {
             Some(slot) => {
-                into.clone_from(&slot);
+                into.clone_from(&slot.value);
+                *at = slot.at;
                 let _ = q.free.push(slot);
                 true
             }

@@ -91,13 +91,21 @@ impl<T: Clone + Send + 'static> InputPort<T> {
     /// is left alone. Never blocks.
     #[inline(always)]
     pub fn read(&mut self, sample: &mut T) -> FlowStatus {
+        self.read_at(sample, &mut 0)
+    }
+
+    /// [`read`](Self::read), and for new data from a stamped connection (see
+    /// [`connect_stamped`](super::connect_stamped)) the time it was written, in ns on that
+    /// connection's clock, into `at` (left alone otherwise).
+    #[inline(always)]
+    pub fn read_at(&mut self, sample: &mut T, at: &mut u64) -> FlowStatus {
         if self.changed.load(Ordering::Relaxed) {
             self.shared
                 .links
                 .refresh_changed(&mut self.conns, Reader::is_done, Reader::lingers);
         }
         for c in &mut self.conns {
-            if c.pop_into(&mut self.last) {
+            if c.pop_into(&mut self.last, at) {
                 sample.clone_from(&self.last);
                 self.published.publish(&self.last);
                 if !self.has_last {

@@ -50,6 +50,7 @@ pub use output::OutputPort;
 pub(crate) use output::OutputShared;
 
 use channel::channel;
+use device_interface::time::Clock;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
@@ -169,6 +170,9 @@ pub enum ConnectError {
         /// The limit.
         limit: usize,
     },
+    /// A stamped connection asked with a data policy.
+    #[error("a stamped connection needs a buffer or circular_buffer policy, not data")]
+    NotBuffered,
     /// A buffer policy with a size of zero.
     #[error("a buffer connection needs a size of at least 1")]
     ZeroSize,
@@ -214,11 +218,36 @@ pub fn connect<T: Clone + Send + 'static>(
     connect_shared(output.shared(), input.shared(), policy)
 }
 
+/// Connects `output` to `input` with a buffer `policy` whose samples carry the time they
+/// were written, read on `clock` by the writer: [`InputPort::read_at`] gives it back. The
+/// writer reads the clock once per write on this connection; a data policy is refused
+/// ([`ConnectError::NotBuffered`]): a stamp belongs to a sample kept for the reader.
+pub fn connect_stamped<T: Clone + Send + 'static>(
+    output: &OutputPort<T>,
+    input: &InputPort<T>,
+    policy: ConnPolicy,
+    clock: Arc<dyn Clock>,
+) -> Result<ConnectionInfo, ConnectError> {
+    connect_with(output.shared(), input.shared(), policy, Some(clock))
+}
+
 pub(crate) fn connect_shared<T: Clone + Send + 'static>(
     out: &Arc<OutputShared<T>>,
     inp: &Arc<InputShared<T>>,
     policy: ConnPolicy,
 ) -> Result<ConnectionInfo, ConnectError> {
+    connect_with(out, inp, policy, None)
+}
+
+pub(crate) fn connect_with<T: Clone + Send + 'static>(
+    out: &Arc<OutputShared<T>>,
+    inp: &Arc<InputShared<T>>,
+    policy: ConnPolicy,
+    clock: Option<Arc<dyn Clock>>,
+) -> Result<ConnectionInfo, ConnectError> {
+    if clock.is_some() && policy.kind == ConnKind::Data {
+        return Err(ConnectError::NotBuffered);
+    }
     if let ConnKind::Buffer { size } | ConnKind::CircularBuffer { size } = policy.kind {
         if size == 0 {
             return Err(ConnectError::ZeroSize);
@@ -236,13 +265,13 @@ pub(crate) fn connect_shared<T: Clone + Send + 'static>(
         changed: out.links.changed.clone(),
         word: out.word.clone(),
     };
-    let (mut writer, reader) = channel(
-        from,
-        (inp.name.clone(), inp.links.changed.clone()),
-        policy,
-        &sample,
-        inp.waker.get().cloned(),
-    );
+    let to = channel::To {
+        name: inp.name.clone(),
+        changed: inp.links.changed.clone(),
+        waker: inp.waker.get().cloned(),
+        clock,
+    };
+    let (mut writer, reader) = channel(from, to, policy, &sample);
     let ch = writer.ch.clone();
     if policy.init
         && !writer.reads_register()
