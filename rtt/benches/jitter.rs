@@ -59,19 +59,6 @@ fn figures(h: &Histogram<u64>) -> Figures {
     }
 }
 
-fn can_fifo(priority: i32) -> bool {
-    let ok = std::thread::spawn(move || {
-        let p = libc::sched_param {
-            sched_priority: priority,
-        };
-        #[allow(unsafe_code)]
-        // SAFETY: sets the calling (short-lived) thread's own policy with a valid param.
-        let rc = unsafe { libc::pthread_setschedparam(libc::pthread_self(), libc::SCHED_FIFO, &p) };
-        rc == 0
-    });
-    ok.join().unwrap_or(false)
-}
-
 fn run_rtt(loops: u64, fifo: bool, priority: i32) -> Figures {
     let hist = Arc::new(Mutex::new(
         Histogram::<u64>::new_with_bounds(1, 1_000_000, 3).unwrap(),
@@ -183,7 +170,7 @@ fn main() -> ExitCode {
         .and_then(|v| v.parse().ok())
         .unwrap_or(80);
     let loops = secs * 1_000_000 / PERIOD_US;
-    let fifo = can_fifo(priority);
+    let fifo = testkit::bench::can_fifo(priority);
     println!(
         "periodic wake-up lateness, {} µs period, {loops} wake-ups each, {}",
         PERIOD_US,

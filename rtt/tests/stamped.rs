@@ -1,39 +1,47 @@
-//! Stamped buffer connections carry the time each sample was written, on the clock the
-//! connection was made with, through the typed and the dynamic ports; a data policy is
-//! refused; a full buffer counts what it lost. Step taps see each step's times.
+//! Stamped buffer connections carry the time each sample was written — the start of the
+//! step that wrote it, or the monotonic clock outside a step — through the typed and the
+//! dynamic ports; a data policy is refused; a full buffer counts what it lost. Step taps
+//! see each step's times.
 
 use device_interface::Registry;
-use device_interface::time::{Clock, SimClock, Timestamp};
+use device_interface::time::{Clock, MonotonicClock};
 use rtt::port::{ConnPolicy, ConnectError, FlowStatus, InputPort, OutputPort, connect_stamped};
 use rtt::{ActivitySpec, Component, Context, HookResult, InitialState, Runtime, RuntimeOptions};
 use std::sync::Arc;
 use std::time::Duration;
 
 #[test]
-fn each_sample_carries_the_time_it_was_written() {
-    let clock = Arc::new(SimClock::new(Timestamp::from_nanos(1_000)));
+fn outside_a_step_each_sample_carries_the_time_it_was_written() {
     let mut out = OutputPort::<f64>::new("out");
     let mut inp = InputPort::<f64>::new("in");
-    connect_stamped(&out, &inp, ConnPolicy::buffer(8), clock.clone()).expect("buffer");
+    connect_stamped(&out, &inp, ConnPolicy::buffer(8)).expect("buffer");
+    let mut bounds = Vec::new();
     for v in [1.0, 2.0, 3.0] {
+        let before = MonotonicClock.now().as_nanos();
         out.write(&v);
-        clock.advance(Duration::from_micros(250));
+        bounds.push((before, MonotonicClock.now().as_nanos()));
+        std::thread::sleep(Duration::from_micros(200));
     }
     let (mut x, mut at) = (0.0, 0);
     let mut got = Vec::new();
     while inp.read_at(&mut x, &mut at) == FlowStatus::NewData {
         got.push((x, at));
     }
-    assert_eq!(got, vec![(1.0, 1_000), (2.0, 251_000), (3.0, 501_000)]);
+    assert_eq!(got.iter().map(|g| g.0).collect::<Vec<_>>(), [1.0, 2.0, 3.0]);
+    for ((_, at), (before, after)) in got.iter().zip(&bounds) {
+        assert!(
+            (before..=after).contains(&at),
+            "{before} <= {at} <= {after}"
+        );
+    }
 }
 
 #[test]
 fn a_data_policy_cannot_be_stamped() {
     let out = OutputPort::<f64>::new("out");
     let inp = InputPort::<f64>::new("in");
-    let clock: Arc<dyn Clock> = Arc::new(SimClock::default());
     assert_eq!(
-        connect_stamped(&out, &inp, ConnPolicy::data(), clock),
+        connect_stamped(&out, &inp, ConnPolicy::data()),
         Err(ConnectError::NotBuffered)
     );
 }
@@ -52,8 +60,7 @@ impl Component for Counter {
 }
 
 #[test]
-fn the_dynamic_reader_gives_stamps_and_counts_losses_and_the_tap_gives_steps() {
-    let clock = Arc::new(SimClock::new(Timestamp::from_nanos(5)));
+fn in_a_step_samples_carry_the_steps_start_and_the_tap_gives_the_steps() {
     let rt = Runtime::new(Arc::new(Registry::new()), RuntimeOptions::default()).expect("runtime");
     let task = rt
         .add("counter", ActivitySpec::Slave, InitialState::Stopped, |i| {
@@ -64,31 +71,25 @@ fn the_dynamic_reader_gives_stamps_and_counts_losses_and_the_tap_gives_steps() {
         })
         .expect("component");
     let port = task.port("out").expect("port");
-    let mut r = port
-        .stamped_reader(ConnPolicy::buffer(3), clock.clone())
-        .expect("stamped");
+    let mut r = port.stamped_reader(ConnPolicy::buffer(3)).expect("stamped");
     let tap = task.activity().tap_steps(16);
     task.start().expect("start");
     for _ in 0..5 {
         task.step().expect("step");
-        clock.advance(Duration::from_millis(1));
+        std::thread::sleep(Duration::from_micros(100));
     }
     let mut got = Vec::new();
     while let (FlowStatus::NewData, Some(v), at) = r.read_at() {
         got.push((v, at));
     }
-    assert_eq!(
-        got,
-        vec![
-            (serde_json::json!(1), 5),
-            (serde_json::json!(2), 1_000_005),
-            (serde_json::json!(3), 2_000_005),
-        ]
-    );
-    assert_eq!(r.dropped(), 2, "two samples did not fit a buffer of three");
     let mut steps = Vec::new();
     tap.drain(&mut steps);
     assert_eq!(steps.len(), 5);
+    let want: Vec<_> = (1..=3)
+        .map(|n| (serde_json::json!(n), steps[n - 1].started))
+        .collect();
+    assert_eq!(got, want, "each sample has its step's start");
+    assert_eq!(r.dropped(), 2, "two samples did not fit a buffer of three");
     assert!(steps.windows(2).all(|w| w[0].ended <= w[1].started));
     assert!(
         steps

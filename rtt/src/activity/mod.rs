@@ -21,7 +21,8 @@ pub mod steps;
 mod thread;
 
 pub use stats::{ActivityStats, HISTOGRAM_BUCKETS};
-pub use steps::{StepRecord, StepTap};
+use steps::in_step;
+pub use steps::{StepRecord, StepTap, stamp_now};
 
 use crate::scope::ThreadScope;
 use device_interface::time::{Clock, MonotonicClock, Timestamp};
@@ -622,9 +623,11 @@ impl Activity {
             scheduled: t0,
             started: t0,
         };
-        self.shared
-            .scope
-            .pulse(|| runner.step(&FdEvents::default(), timing));
+        self.shared.scope.pulse(|| {
+            in_step(timing.started.as_nanos(), || {
+                runner.step(&FdEvents::default(), timing)
+            })
+        });
         let t0 = t0.as_nanos();
         self.shared.stats.step(t0, t0, clock.now().as_nanos());
         Ok(())

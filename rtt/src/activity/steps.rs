@@ -10,6 +10,8 @@
 use crate::lock::lock;
 use arc_swap::ArcSwap;
 use crossbeam_queue::ArrayQueue;
+use device_interface::time::{Clock, MonotonicClock};
+use std::cell::Cell;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
@@ -34,6 +36,33 @@ impl StepRecord {
     /// How long it took, ns.
     pub fn duration_ns(&self) -> u64 {
         self.ended.saturating_sub(self.started)
+    }
+}
+
+thread_local! {
+    /// The start of the step this thread is running (monotonic ns), 0 outside a step.
+    static STEP_START: Cell<u64> = const { Cell::new(0) };
+}
+
+/// Runs `f` as the step that began at `started` (monotonic ns): what it writes to stamped
+/// connections takes that time.
+#[inline]
+pub(crate) fn in_step<R>(started: u64, f: impl FnOnce() -> R) -> R {
+    STEP_START.set(started.max(1));
+    let r = f();
+    STEP_START.set(0);
+    r
+}
+
+/// The time a sample written now is stamped with (monotonic ns): the start of the step
+/// this thread is running — the one clock read the step made, so a step's samples share
+/// their step's time and a write costs no clock read — or, outside any step (a control
+/// client's write), the monotonic clock now.
+#[inline]
+pub fn stamp_now() -> u64 {
+    match STEP_START.get() {
+        0 => MonotonicClock.now().as_nanos(),
+        t => t,
     }
 }
 

@@ -3,6 +3,7 @@
 //! and the signal that wakes a non-periodic thread.
 
 use super::realtime::{apply_thread_options, prepare_periodic};
+use super::steps::in_step;
 use super::{
     ActivitySpec, DEADLINE_EVENT, FdEvents, Runner, Shared, StepTiming, Timing, WAKE_EVENT,
 };
@@ -106,7 +107,9 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                     scheduled: Timestamp::from_nanos(next),
                     started: Timestamp::from_nanos(woke),
                 };
-                shared.scope.pulse(|| runner.step(&events, step_timing));
+                shared
+                    .scope
+                    .pulse(|| in_step(woke, || runner.step(&events, step_timing)));
                 let end = clock.now().as_nanos();
                 stats.step(next, woke, end);
                 next = match timing {
@@ -167,7 +170,9 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                     scheduled: Timestamp::from_nanos(if woken_at == 0 { start } else { woken_at }),
                     started: Timestamp::from_nanos(start),
                 };
-                shared.scope.pulse(|| runner.step(&events, timing));
+                shared
+                    .scope
+                    .pulse(|| in_step(start, || runner.step(&events, timing)));
                 last_end = clock.now().as_nanos();
                 stats.step(timing.scheduled.as_nanos(), start, last_end);
             }
@@ -214,7 +219,9 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                 // One clock read for the step's start and its timing.
                 let timing = StepTiming::now();
                 let start = timing.started.as_nanos();
-                shared.scope.pulse(|| runner.step(&events, timing));
+                shared
+                    .scope
+                    .pulse(|| in_step(start, || runner.step(&events, timing)));
                 stats.step(start, start, clock.now().as_nanos());
             }
         }

@@ -7,7 +7,6 @@ use crate::port::{
     ConnPolicy, ConnectError, ConnectionInfo, FlowStatus, InputPort, InputShared, OutputPort,
     OutputShared, connect_shared, connect_with,
 };
-use device_interface::time::Clock;
 use serde::Serialize;
 use serde_json::Value;
 use std::any::Any;
@@ -20,7 +19,7 @@ pub trait DynReader: Send {
     fn read(&mut self) -> (FlowStatus, Option<Value>);
 
     /// The next sample and, when new and the connection is stamped, the time it was
-    /// written (ns on the connection's clock; 0 from an unstamped connection).
+    /// written (ns on the monotonic clock; 0 from an unstamped connection).
     fn read_at(&mut self) -> (FlowStatus, Option<Value>, u64) {
         let (status, value) = self.read();
         (status, value, 0)
@@ -52,11 +51,7 @@ pub trait DynPort: Send + Sync {
     fn reader(&self, policy: ConnPolicy) -> Result<Box<dyn DynReader>, IntrospectError>;
     /// A new stamped buffer connection (see [`crate::port::connect_stamped`]) from this
     /// output port to a reader of serialised values with the time each was written.
-    fn stamped_reader(
-        &self,
-        policy: ConnPolicy,
-        clock: Arc<dyn Clock>,
-    ) -> Result<Box<dyn DynReader>, IntrospectError>;
+    fn stamped_reader(&self, policy: ConnPolicy) -> Result<Box<dyn DynReader>, IntrospectError>;
     /// A new connection from a writer of serialised values to this input port.
     fn writer(&self, policy: ConnPolicy) -> Result<Box<dyn DynWriter>, IntrospectError>;
     /// Connects this output port to `input`.
@@ -201,14 +196,14 @@ impl<T: PortData> OutEntry<T> {
     fn value_reader(
         &self,
         policy: ConnPolicy,
-        clock: Option<Arc<dyn Clock>>,
+        stamped: bool,
     ) -> Result<Box<dyn DynReader>, IntrospectError> {
         let sample = match self.shared.last_written() {
             Some(v) => v,
             None => self.shared.sample_clone(),
         };
         let port = InputPort::with_sample(&format!("{}.reader", self.shared.name), sample.clone());
-        connect_with(&self.shared, port.shared(), policy, clock)?;
+        connect_with(&self.shared, port.shared(), policy, stamped)?;
         Ok(Box::new(ValueReader { port, sample }))
     }
 }
@@ -234,15 +229,11 @@ impl<T: PortData> DynPort for OutEntry<T> {
     }
 
     fn reader(&self, policy: ConnPolicy) -> Result<Box<dyn DynReader>, IntrospectError> {
-        self.value_reader(policy, None)
+        self.value_reader(policy, false)
     }
 
-    fn stamped_reader(
-        &self,
-        policy: ConnPolicy,
-        clock: Arc<dyn Clock>,
-    ) -> Result<Box<dyn DynReader>, IntrospectError> {
-        self.value_reader(policy, Some(clock))
+    fn stamped_reader(&self, policy: ConnPolicy) -> Result<Box<dyn DynReader>, IntrospectError> {
+        self.value_reader(policy, true)
     }
 
     fn writer(&self, _policy: ConnPolicy) -> Result<Box<dyn DynWriter>, IntrospectError> {
@@ -325,11 +316,7 @@ impl<T: PortData> DynPort for InEntry<T> {
         ))
     }
 
-    fn stamped_reader(
-        &self,
-        policy: ConnPolicy,
-        _clock: Arc<dyn Clock>,
-    ) -> Result<Box<dyn DynReader>, IntrospectError> {
+    fn stamped_reader(&self, policy: ConnPolicy) -> Result<Box<dyn DynReader>, IntrospectError> {
         self.reader(policy)
     }
 

@@ -152,11 +152,6 @@ impl Context<'_> {
         self.core.clock.now()
     }
 
-    /// The runtime's clock itself (to stamp a connection on it).
-    pub fn clock(&self) -> &Arc<dyn Clock> {
-        &self.core.clock
-    }
-
     /// From `update_hook`: go to RunTimeError after this step (the error hook then runs
     /// instead of update until [`recover`](Self::recover)).
     pub fn error(&mut self) {

@@ -14,7 +14,6 @@ use super::{ConnKind, ConnPolicy, ConnectError, ConnectionInfo};
 use crate::activity::Waker;
 use crate::lock::lock;
 use crossbeam_queue::ArrayQueue;
-use device_interface::time::Clock;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 
@@ -54,9 +53,9 @@ pub(crate) struct Channel<T> {
     read: AtomicU64,
     dropped: AtomicU64,
     waker: Option<Arc<dyn Waker>>,
-    /// A stamped buffer connection: each sample carries the time it was written, read on
-    /// this clock by the writer (one clock read per write, on this connection only).
-    clock: Option<Arc<dyn Clock>>,
+    /// A stamped buffer connection: each sample carries the time it was written (see
+    /// [`crate::activity::stamp_now`]).
+    stamped: bool,
 }
 
 /// A data connection of a one-word sample, reading the output port's register.
@@ -161,17 +160,17 @@ pub(super) struct From {
 }
 
 /// The input end's side of a new connection: its port's name and "look" flag, the waker
-/// of an event port, and the clock of a stamped connection.
+/// of an event port, and whether its samples are stamped.
 pub(super) struct To {
     pub(super) name: Arc<str>,
     pub(super) changed: Arc<AtomicBool>,
     pub(super) waker: Option<Arc<dyn Waker>>,
-    pub(super) clock: Option<Arc<dyn Clock>>,
+    pub(super) stamped: bool,
 }
 
 /// Makes a connection and its two ends. A data connection from a port with a register
 /// reads that register; with `init` it starts with the value last written, if any. A
-/// buffer connection with a `clock` stamps each sample with the time it was written.
+/// stamped buffer connection stamps each sample with the time it was written.
 pub(super) fn channel<T: Clone + Send + 'static>(
     from: From,
     to: To,
@@ -182,7 +181,7 @@ pub(super) fn channel<T: Clone + Send + 'static>(
         name: to,
         changed: in_changed,
         waker,
-        clock,
+        stamped,
     } = to;
     let From {
         name: from,
@@ -238,7 +237,7 @@ pub(super) fn channel<T: Clone + Send + 'static>(
         read: AtomicU64::new(0),
         dropped: AtomicU64::new(0),
         waker,
-        clock,
+        stamped,
     });
     let (input, output) = match halves {
         Some((i, o)) => (i, Some(o)),
@@ -307,8 +306,8 @@ impl<T: Clone + Send + 'static> Writer<T> {
             return false;
         };
         slot.value.clone_from(value);
-        if let Some(clock) = &ch.clock {
-            slot.at = clock.now().as_nanos();
+        if ch.stamped {
+            slot.at = crate::activity::stamp_now();
         }
         if let Err(slot) = q.full.push(slot) {
             if drop_newest {

@@ -95,8 +95,8 @@ impl<T: Clone + Send + 'static> InputPort<T> {
     }
 
     /// [`read`](Self::read), and for new data from a stamped connection (see
-    /// [`connect_stamped`](super::connect_stamped)) the time it was written, in ns on that
-    /// connection's clock, into `at` (left alone otherwise).
+    /// [`connect_stamped`](super::connect_stamped)) the time it was written, in ns on the
+    /// monotonic clock, into `at` (left alone otherwise).
     #[inline(always)]
     pub fn read_at(&mut self, sample: &mut T, at: &mut u64) -> FlowStatus {
         if self.changed.load(Ordering::Relaxed) {

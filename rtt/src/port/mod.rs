@@ -50,7 +50,6 @@ pub use output::OutputPort;
 pub(crate) use output::OutputShared;
 
 use channel::channel;
-use device_interface::time::Clock;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
@@ -219,16 +218,16 @@ pub fn connect<T: Clone + Send + 'static>(
 }
 
 /// Connects `output` to `input` with a buffer `policy` whose samples carry the time they
-/// were written, read on `clock` by the writer: [`InputPort::read_at`] gives it back. The
-/// writer reads the clock once per write on this connection; a data policy is refused
+/// were written, [`InputPort::read_at`] gives it back: the start of the activity step that
+/// wrote it, or the monotonic clock's time of the write when no step was under way (see
+/// [`crate::activity::stamp_now`]). A data policy is refused
 /// ([`ConnectError::NotBuffered`]): a stamp belongs to a sample kept for the reader.
 pub fn connect_stamped<T: Clone + Send + 'static>(
     output: &OutputPort<T>,
     input: &InputPort<T>,
     policy: ConnPolicy,
-    clock: Arc<dyn Clock>,
 ) -> Result<ConnectionInfo, ConnectError> {
-    connect_with(output.shared(), input.shared(), policy, Some(clock))
+    connect_with(output.shared(), input.shared(), policy, true)
 }
 
 pub(crate) fn connect_shared<T: Clone + Send + 'static>(
@@ -236,16 +235,16 @@ pub(crate) fn connect_shared<T: Clone + Send + 'static>(
     inp: &Arc<InputShared<T>>,
     policy: ConnPolicy,
 ) -> Result<ConnectionInfo, ConnectError> {
-    connect_with(out, inp, policy, None)
+    connect_with(out, inp, policy, false)
 }
 
 pub(crate) fn connect_with<T: Clone + Send + 'static>(
     out: &Arc<OutputShared<T>>,
     inp: &Arc<InputShared<T>>,
     policy: ConnPolicy,
-    clock: Option<Arc<dyn Clock>>,
+    stamped: bool,
 ) -> Result<ConnectionInfo, ConnectError> {
-    if clock.is_some() && policy.kind == ConnKind::Data {
+    if stamped && policy.kind == ConnKind::Data {
         return Err(ConnectError::NotBuffered);
     }
     if let ConnKind::Buffer { size } | ConnKind::CircularBuffer { size } = policy.kind {
@@ -269,7 +268,7 @@ pub(crate) fn connect_with<T: Clone + Send + 'static>(
         name: inp.name.clone(),
         changed: inp.links.changed.clone(),
         waker: inp.waker.get().cloned(),
-        clock,
+        stamped,
     };
     let (mut writer, reader) = channel(from, to, policy, &sample);
     let ch = writer.ch.clone();

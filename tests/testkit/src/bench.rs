@@ -20,3 +20,18 @@ pub fn mean(v: impl Iterator<Item = f64>) -> f64 {
     let (sum, n) = v.fold((0.0, 0.0), |(s, n), x| (s + x, n + 1.0));
     sum / n
 }
+
+/// Whether this process may run a thread SCHED_FIFO at `priority` (tried on a short-lived
+/// thread of its own).
+pub fn can_fifo(priority: i32) -> bool {
+    let ok = std::thread::spawn(move || {
+        let p = libc::sched_param {
+            sched_priority: priority,
+        };
+        #[allow(unsafe_code, reason = "pthread_setschedparam has no safe wrapper")]
+        // SAFETY: sets the calling (short-lived) thread's own policy with a valid param.
+        let rc = unsafe { libc::pthread_setschedparam(libc::pthread_self(), libc::SCHED_FIFO, &p) };
+        rc == 0
+    });
+    ok.join().unwrap_or(false)
+}

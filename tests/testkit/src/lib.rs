@@ -14,7 +14,9 @@
 //! - [`i2cstub`]: the kernel's I2C stub, its chips' registers set and read with i2c-tools;
 //! - [`uno`]: an Arduino Uno running the genuine StandardFirmata in simavr, its pins driven
 //!   and watched; pyfirmata2 as the other client;
-//! - [`pypi`]: pinned Python packages the tests compare with (cantools, pyfirmata2);
+//! - [`pypi`]: pinned Python packages the tests compare with (cantools, pyfirmata2, mcap);
+//! - [`picture`]: pixel statistics of a PNG picture; [`mcapread`]: an MCAP file read by
+//!   the `mcap` package;
 //! - [`rng`]: the fuzz tests' seeded random source;
 //! - [`rig`]: kernel rig presets (vcan);
 //! - [`service`]: an `hwgw` binary running a deployment on a socket of its own;
@@ -31,7 +33,9 @@ pub mod i2cstub;
 pub mod layout;
 pub mod logs;
 pub mod mbpoll;
+pub mod mcapread;
 pub mod peers;
+pub mod picture;
 pub mod pypi;
 pub mod rig;
 pub mod rng;

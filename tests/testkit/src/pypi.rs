@@ -50,3 +50,12 @@ pub fn install(name: &str, requirements: &[&str]) -> io::Result<PathBuf> {
 pub fn cantools() -> io::Result<PathBuf> {
     install("cantools-45.1.0", CANTOOLS)
 }
+
+/// The `mcap` package, the independent MCAP reader. Its codecs (`lz4`, `zstandard`) are
+/// left out: hwgw writes uncompressed chunks, which it reads without them.
+pub const MCAP: &[&str] = &["mcap==1.6.0"];
+
+/// mcap ([`MCAP`]): the directory to put on `PYTHONPATH`.
+pub fn mcap() -> io::Result<PathBuf> {
+    install("mcap-1.6.0", MCAP)
+}

@@ -1,0 +1,85 @@
+//! A capture: a [`Recorder`] fed through a trigger [`Window`] when there is one, so the
+//! recorder component and `hwgw record` share one way of deciding what is written.
+
+use crate::item::Item;
+use crate::trigger::Window;
+use crate::write::{Closing, RecordError, Recorder};
+use std::collections::BTreeMap;
+use std::io::{Seek, Write};
+
+/// A recording, triggered or not.
+pub struct Capture<W: Write + Seek = std::io::BufWriter<std::fs::File>> {
+    recorder: Recorder<W>,
+    window: Option<Window>,
+    wall_offset_ns: i128,
+    pass: Vec<Item>,
+}
+
+impl<W: Write + Seek> Capture<W> {
+    /// Writes everything offered to `recorder`, or only the window of `window`.
+    /// `wall_offset_ns` is the recorder's offset (for the window's times in the metadata).
+    pub fn new(recorder: Recorder<W>, window: Option<Window>, wall_offset_ns: i128) -> Self {
+        Capture {
+            recorder,
+            window,
+            wall_offset_ns,
+            pass: Vec::new(),
+        }
+    }
+
+    /// Takes items (in about time order); `now_ns` is when they were taken.
+    pub fn offer(&mut self, items: Vec<Item>, now_ns: u64) -> Result<(), RecordError> {
+        let Some(window) = &mut self.window else {
+            for item in &items {
+                self.recorder.write(item, now_ns)?;
+            }
+            return Ok(());
+        };
+        self.pass.clear();
+        for item in items {
+            window.offer(item, &mut self.pass);
+        }
+        for item in &self.pass {
+            self.recorder.write(item, now_ns)?;
+        }
+        Ok(())
+    }
+
+    /// True when a triggered capture has its whole window.
+    pub fn done(&self) -> bool {
+        self.window.as_ref().is_some_and(Window::done)
+    }
+
+    /// True when a triggered capture's trigger came.
+    pub fn triggered(&self) -> bool {
+        self.window
+            .as_ref()
+            .is_some_and(|w| w.triggered_at().is_some())
+    }
+
+    /// Messages written so far.
+    pub fn written(&self) -> u64 {
+        self.recorder.written()
+    }
+
+    /// Finishes the file, with the window's facts in the metadata.
+    pub fn finish(self, mut closing: Closing) -> Result<BTreeMap<String, String>, RecordError> {
+        if let Some(w) = &self.window {
+            let wall = |t: u64| (i128::from(t) + self.wall_offset_ns).to_string();
+            let notes = &mut closing.notes;
+            match w.bounds() {
+                Some((start, end)) => {
+                    notes.insert("trigger.at_ns".into(), wall(w.triggered_at().unwrap_or(0)));
+                    notes.insert("trigger.window_start_ns".into(), wall(start));
+                    notes.insert("trigger.window_end_ns".into(), wall(end));
+                }
+                None => {
+                    notes.insert("trigger.at_ns".into(), "never".into());
+                }
+            }
+            notes.insert("trigger.ring_overflow".into(), w.ring_overflow.to_string());
+            notes.insert("trigger.not_numbers".into(), w.not_numbers.to_string());
+        }
+        self.recorder.finish(&closing)
+    }
+}
