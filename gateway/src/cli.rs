@@ -56,7 +56,42 @@ enum Command {
     /// An interactive console on a running gateway (cd, ls, get, set, call, TAB completion).
     Browse,
     /// Device health, card counters, component states and timing.
-    Status,
+    Status {
+        /// Also draw every activity's live lateness histogram into this new PNG or SVG.
+        #[arg(long, value_name = "FILE")]
+        plot: Option<PathBuf>,
+    },
+    /// Record ports and activity steps of the running gateway into a new MCAP file
+    /// (Foxglove and PlotJuggler open it): until --duration or Ctrl-C, or the window
+    /// around --trigger.
+    Record(crate::recorder::cli::RecordArgs),
+    /// Draw a recording into a new PNG or SVG file: port values, the activities' timing
+    /// diagram, or their lateness histograms.
+    Plot {
+        /// The MCAP recording.
+        recording: PathBuf,
+        /// The new picture (.png or .svg).
+        #[arg(long, short)]
+        output: PathBuf,
+        /// What to draw.
+        #[arg(long, value_enum, default_value = "values")]
+        kind: crate::recorder::cli::PlotKind,
+        /// Only these ports (values); repeat for more.
+        #[arg(long = "port", value_name = "PORT")]
+        ports: Vec<String>,
+        /// Start this long after the recording's start (values, timing).
+        #[arg(long, value_parser = crate::recorder::cli::parse_duration)]
+        from: Option<Duration>,
+        /// Draw this long (values, timing).
+        #[arg(long, value_parser = crate::recorder::cli::parse_duration)]
+        span: Option<Duration>,
+        /// Width in pixels.
+        #[arg(long, default_value_t = 1280)]
+        width: u32,
+        /// Height in pixels.
+        #[arg(long, default_value_t = 720)]
+        height: u32,
+    },
     /// Print each new value of an output port as it comes (Ctrl-C to stop).
     Watch {
         component: String,
@@ -163,6 +198,38 @@ pub fn main(types: Types) -> ExitCode {
         } => client
             .watch(&component, &port, count, None, |v| print(&v.to_string()))
             .map(|_| None),
+        Command::Record(args) => {
+            return finish(crate::recorder::cli::record(&client, args).map_err(|e| e.to_string()));
+        }
+        Command::Plot {
+            recording,
+            output,
+            kind,
+            ports,
+            from,
+            span,
+            width,
+            height,
+        } => {
+            let frame = plot::Frame {
+                path: &output,
+                size: plot::Size { width, height },
+            };
+            let span = plot::Span {
+                from_s: from.map_or(0.0, |d| d.as_secs_f64()),
+                span_s: span.map(|d| d.as_secs_f64()),
+            };
+            return finish(crate::recorder::cli::plot(
+                &recording, kind, &ports, span, &frame,
+            ));
+        }
+        Command::Status { plot: Some(output) } => {
+            let frame = plot::Frame {
+                path: &output,
+                size: plot::Size::default(),
+            };
+            return finish(crate::recorder::cli::status_plot(&client, &frame));
+        }
         command => one_shot(&client, command, cli.json),
     };
     match result {
@@ -171,6 +238,20 @@ pub fn main(types: Types) -> ExitCode {
             ExitCode::SUCCESS
         }
         Ok(None) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("hwgw: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// Prints what a command says on success, or its error, as the exit code says.
+fn finish(result: Result<String, String>) -> ExitCode {
+    match result {
+        Ok(text) => {
+            print(&text);
+            ExitCode::SUCCESS
+        }
         Err(e) => {
             eprintln!("hwgw: {e}");
             ExitCode::FAILURE
@@ -201,7 +282,7 @@ fn one_shot(client: &Client, command: Command, json: bool) -> Result<Option<Stri
                 table::description(&d, &values)
             }
         }
-        Command::Status => {
+        Command::Status { .. } => {
             let s: StatusReport = client.typed(&Request::Status)?;
             if json {
                 pretty(&serde_json::to_value(&s).unwrap_or_default())
@@ -269,7 +350,12 @@ fn one_shot(client: &Client, command: Command, json: bool) -> Result<Option<Stri
             operation,
             args: args.iter().map(|a| json_arg(a)).collect(),
         })?),
-        Command::Run { .. } | Command::Check { .. } | Command::Browse | Command::Watch { .. } => {
+        Command::Run { .. }
+        | Command::Check { .. }
+        | Command::Browse
+        | Command::Watch { .. }
+        | Command::Record(_)
+        | Command::Plot { .. } => {
             return Ok(None);
         }
     };

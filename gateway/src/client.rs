@@ -143,7 +143,7 @@ impl Client {
         match self.reply(&mut r)?.body {
             Body::Ok(v) => Ok(v),
             Body::Error(e) => Err(ClientError::Refused(e)),
-            Body::Event(_) => Err(self.bad("an event where a reply was due")),
+            Body::Event(_) | Body::Records(_) => Err(self.bad("a stream where a reply was due")),
         }
     }
 
@@ -151,6 +151,27 @@ impl Client {
     pub fn typed<T: DeserializeOwned>(&self, req: &Request) -> Result<T, ClientError> {
         let v = self.request(req)?;
         serde_json::from_value(v).map_err(|e| self.bad(e))
+    }
+
+    /// Sends a streaming request: its acknowledgement (within the timeout), and the
+    /// stream of what follows.
+    pub fn stream(&self, req: &Request) -> Result<(Value, Stream), ClientError> {
+        let mut r = self.send(req)?;
+        let ack = match self.reply(&mut r)?.body {
+            Body::Ok(v) => v,
+            Body::Error(e) => return Err(ClientError::Refused(e)),
+            Body::Event(_) | Body::Records(_) => {
+                return Err(self.bad("a stream before the acknowledgement"));
+            }
+        };
+        Ok((
+            ack,
+            Stream {
+                client: self.clone(),
+                reader: r,
+                line: String::new(),
+            },
+        ))
     }
 
     /// Watches an output port: `each` gets every new value until it returns false (then
@@ -170,48 +191,15 @@ impl Client {
             port: port.into(),
             count,
         };
-        let mut r = self.send(&req)?;
-        match self.reply(&mut r)?.body {
-            Body::Ok(_) => {}
-            Body::Error(e) => return Err(ClientError::Refused(e)),
-            Body::Event(_) => return Err(self.bad("an event before the acknowledgement")),
-        }
-        r.get_ref()
-            .set_read_timeout(event_timeout)
-            .map_err(|e| self.io(e))?;
-        loop {
-            let mut line = String::new();
-            match r.read_line(&mut line) {
-                Ok(0) => return Ok(true),
-                Ok(_) => {}
-                Err(e) => {
-                    return Err(match event_timeout {
-                        Some(after)
-                            if matches!(
-                                e.kind(),
-                                std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
-                            ) =>
-                        {
-                            ClientError::Timeout {
-                                path: self.path.clone(),
-                                after,
-                            }
-                        }
-                        _ => self.io(e),
-                    });
-                }
-            }
-            let reply: Reply = serde_json::from_str(&line).map_err(|e| self.bad(e))?;
-            match reply.body {
-                Body::Event(ev) => {
-                    if !each(&ev.value) {
-                        return Ok(false);
-                    }
-                }
-                Body::Error(e) => return Err(ClientError::Refused(e)),
-                Body::Ok(_) => {}
+        let (_, mut stream) = self.stream(&req)?;
+        while let Some(body) = stream.next(event_timeout)? {
+            if let Body::Event(ev) = body
+                && !each(&ev.value)
+            {
+                return Ok(false);
             }
         }
+        Ok(true)
     }
 
     /// The current value of each of `d`'s ports (none where it has none yet).
@@ -227,5 +215,54 @@ impl Client {
                 .filter(|v| !v.is_null())
             })
             .collect()
+    }
+}
+
+/// What follows a streaming request's acknowledgement.
+pub struct Stream {
+    client: Client,
+    reader: BufReader<UnixStream>,
+    line: String,
+}
+
+impl Stream {
+    /// The next event or batch: `Ok(None)` when the gateway ended the stream; an error
+    /// reply is an error; with `timeout`, a wait longer than it is
+    /// [`ClientError::Timeout`].
+    pub fn next(&mut self, timeout: Option<Duration>) -> Result<Option<Body>, ClientError> {
+        let c = &self.client;
+        self.reader
+            .get_ref()
+            .set_read_timeout(timeout)
+            .map_err(|e| c.io(e))?;
+        loop {
+            self.line.clear();
+            match self.reader.read_line(&mut self.line) {
+                Ok(0) => return Ok(None),
+                Ok(_) => {}
+                Err(e) => {
+                    return Err(match timeout {
+                        Some(after)
+                            if matches!(
+                                e.kind(),
+                                std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                            ) =>
+                        {
+                            ClientError::Timeout {
+                                path: c.path.clone(),
+                                after,
+                            }
+                        }
+                        _ => c.io(e),
+                    });
+                }
+            }
+            let reply: Reply = serde_json::from_str(&self.line).map_err(|e| c.bad(e))?;
+            match reply.body {
+                Body::Error(e) => return Err(ClientError::Refused(e)),
+                Body::Ok(_) => {}
+                body => return Ok(Some(body)),
+            }
+        }
     }
 }

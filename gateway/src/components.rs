@@ -7,6 +7,8 @@
 //!   an analog input's port to `in` and `out` to an analog output's port).
 //! - `reporter`: writes chosen ports to a CSV file at its period, every step or only when a
 //!   port has new data (OCL's ReportingComponent).
+//! - `recorder`: records ports and activity steps into an MCAP file, whole or the window
+//!   around a trigger (see [`crate::recorder::component`]).
 //!
 //! A user's own types go into a [`ComponentTypes`] beside these, in a binary of their own
 //! that calls [`cli::main`](crate::cli::main) (see `examples/custom-component`).
@@ -42,7 +44,7 @@ impl ComponentTypes {
         }
     }
 
-    /// The types built into hwgw: blinker, follow, reporter.
+    /// The types built into hwgw: blinker, follow, reporter, recorder.
     pub fn builtin() -> Self {
         let mut t = Self::empty();
         t.types.insert("blinker".into(), |rt, name, spec| {
@@ -53,6 +55,14 @@ impl ComponentTypes {
         });
         t.types.insert("reporter".into(), |rt, name, spec| {
             rt.add(name, spec, rtt::InitialState::PreOperational, Reporter::new)
+        });
+        t.types.insert("recorder".into(), |rt, name, spec| {
+            rt.add(
+                name,
+                spec,
+                rtt::InitialState::PreOperational,
+                crate::recorder::component::McapRecorder::new,
+            )
         });
         t
     }

@@ -25,6 +25,7 @@
 //! | `cleanup` | `component` | the new state |
 //! | `recover` | `component` | the new state |
 //! | `watch` | `component`, `port`, optional `count` | `"watching"`, then a stream: one `{"id", "event": {"status", "value"}}` line per new value (all of them, `count` at most), until the client closes |
+//! | `record` | `ports` (`component.port` or `component`), optional `devices`, `steps`, `buffer` | `{"ports", "activities", "wall_minus_clock_ns"}`, then a stream of `{"id", "records": {"items", "ports_lost", "steps_lost", "now_ns"}}` batches until the client closes |
 //!
 //! Error kinds: `parse`, `too_long`, `bad_request`, `unknown_command`, `not_found`,
 //! `failed`, `busy` (too many clients), `stopping` (the gateway is stopping: no request is
@@ -452,6 +453,26 @@ fn serve_client(shared: &Shared, conn: UnixStream) {
                         Ok(()) => return,
                         Err(Fail(kind, message)) => Reply::error(id, kind, message),
                     },
+                    Ok((
+                        id,
+                        Request::Record {
+                            ports,
+                            devices,
+                            steps,
+                            buffer,
+                        },
+                    )) => {
+                        let ask = crate::recorder::stream::Ask {
+                            ports: &ports,
+                            devices,
+                            steps,
+                            buffer,
+                        };
+                        match record(shared, &ask, &id, out) {
+                            Ok(()) => return,
+                            Err(Fail(kind, message)) => Reply::error(id, kind, message),
+                        }
+                    }
                     Ok((id, req)) => carry_out(shared, id, &req, &mut writers),
                 }
             }
@@ -589,6 +610,32 @@ fn watch(
             }
         }
     }
+    Ok(())
+}
+
+/// A `record` stream: what it records, then batches until the client goes away or the
+/// server closes.
+fn record(
+    shared: &Shared,
+    ask: &crate::recorder::stream::Ask<'_>,
+    id: &Value,
+    out: &UnixStream,
+) -> Result<(), Fail> {
+    use crate::recorder::stream;
+    let (taps, start) = stream::open(&shared.gw, ask).map_err(not_found)?;
+    let ack = Reply {
+        id: id.clone(),
+        body: Body::Ok(serde_json::to_value(start).map_err(failed)?),
+    };
+    send(out, &ack).map_err(failed)?;
+    let batch = |b| {
+        let reply = Reply {
+            id: id.clone(),
+            body: Body::Records(b),
+        };
+        send(out, &reply).is_ok() && !peer_closed(out)
+    };
+    stream::pump(taps, batch, || shared.closing.load(Ordering::Acquire));
     Ok(())
 }
 

@@ -11,6 +11,8 @@
 //! - [`outputs`]: the output policy — safe values, `keep`, the output watchdog — and the
 //!   guards that refuse writes once the gateway stops;
 //! - [`components`]: the component types built into the binary;
+//! - [`recorder`]: recording ports and activity steps to MCAP (the `recorder` type, the
+//!   control socket's `record` stream behind `hwgw record`);
 //! - [`protocol`]: the control protocol's typed requests and replies; [`control`]: its
 //!   server on a Unix socket (requests carried out by the `requests` module), placed and
 //!   guarded by [`socket`]; [`client`]: its client, with a timeout on every reply;
@@ -43,6 +45,7 @@ pub mod io;
 pub mod outputs;
 pub mod problems;
 pub mod protocol;
+pub mod recorder;
 mod requests;
 pub mod serve;
 pub mod socket;

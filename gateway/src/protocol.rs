@@ -118,6 +118,46 @@ pub enum Request {
         #[serde(default)]
         count: Option<u64>,
     },
+    /// Streams stamped samples of output ports and activity steps, for a recording.
+    Record {
+        /// `component.port`, or `component` for all its output ports.
+        #[serde(default)]
+        ports: Vec<String>,
+        /// Every device's channels too (the output ports of every card's components).
+        #[serde(default)]
+        devices: bool,
+        /// Every activity's steps too.
+        #[serde(default)]
+        steps: bool,
+        /// Samples each port may hold between two batches (default 4096).
+        #[serde(default)]
+        buffer: Option<usize>,
+    },
+}
+
+/// What a `record` stream carries first: what it records, and how to make its times UNIX
+/// times.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RecordStart {
+    /// The ports, in the order of the samples' `port` numbers.
+    pub ports: Vec<recording::PortSpec>,
+    /// The activities (component names), in the order of the steps' `activity` numbers.
+    pub activities: Vec<String>,
+    /// UNIX time minus the runtime clock's, ns, when the stream began.
+    pub wall_minus_clock_ns: i128,
+}
+
+/// One batch of a `record` stream.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RecordBatch {
+    /// Samples and steps since the last batch.
+    pub items: Vec<recording::Item>,
+    /// Samples each port's buffer dropped so far.
+    pub ports_lost: Vec<u64>,
+    /// Steps each activity's tap dropped so far.
+    pub steps_lost: Vec<u64>,
+    /// The runtime clock when the batch was taken, ns.
+    pub now_ns: u64,
 }
 
 /// One command of the protocol: its name, its fields, and what `ok` holds.
@@ -132,7 +172,7 @@ pub struct Command {
 }
 
 /// Every command, in the order the documentation lists them.
-pub const COMMANDS: [Command; 13] = [
+pub const COMMANDS: [Command; 14] = [
     Command {
         cmd: "ls",
         fields: "—",
@@ -198,6 +238,11 @@ pub const COMMANDS: [Command; 13] = [
         fields: "`component`, `port`, optional `count`",
         ok: "`\"watching\"`, then a stream: one `{\"id\", \"event\": {\"status\", \"value\"}}` line per new value (all of them, `count` at most), until the client closes",
     },
+    Command {
+        cmd: "record",
+        fields: "`ports` (`component.port` or `component`), optional `devices`, `steps`, `buffer`",
+        ok: "`{\"ports\", \"activities\", \"wall_minus_clock_ns\"}`, then a stream of `{\"id\", \"records\": {\"items\", \"ports_lost\", \"steps_lost\", \"now_ns\"}}` batches until the client closes",
+    },
 ];
 
 impl Request {
@@ -217,6 +262,7 @@ impl Request {
             Request::Cleanup { .. } => "cleanup",
             Request::Recover { .. } => "recover",
             Request::Watch { .. } => "watch",
+            Request::Record { .. } => "record",
         }
     }
 
@@ -299,6 +345,8 @@ pub enum Body {
     Error(ErrorBody),
     /// A watched value.
     Event(Event),
+    /// A batch of a `record` stream.
+    Records(RecordBatch),
 }
 
 /// One reply line: the request's `id` echoed, and the body.

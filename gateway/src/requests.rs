@@ -173,9 +173,9 @@ pub(crate) fn handle(
         Request::Stop { component: c } => lifecycle(component(c)?, |t| t.stop()),
         Request::Cleanup { component: c } => lifecycle(component(c)?, |t| t.cleanup()),
         Request::Recover { component: c } => lifecycle(component(c)?, |t| t.recover()),
-        Request::Watch { .. } => Err(Fail(
+        Request::Watch { .. } | Request::Record { .. } => Err(Fail(
             ErrorKind::BadRequest,
-            "watch streams: it is served on its own".into(),
+            format!("{} streams: it is served on its own", req.cmd()),
         )),
     }
 }

@@ -87,7 +87,7 @@ fn every_broken_config_gets_its_exact_error() {
         ("ThreadScope without its output", format!("thread_scope = true\n{CARD}"),
          "t.toml:1:16: thread_scope: ThreadScope is on, but no DigitalOut named \"ThreadScope\"; registered: sim0 (add an [[alias]] with interface = \"digital_out\" and name = \"ThreadScope\")"),
         ("unknown component type", with_card("[[component]]\nname = \"c\"\ntype = \"pid\"\nactivity = { type = \"non_periodic\" }\n"),
-         "t.toml:13:8: component[0].type: unknown component type \"pid\"; this build has: blinker, follow, reporter"),
+         "t.toml:13:8: component[0].type: unknown component type \"pid\"; this build has: blinker, follow, recorder, reporter"),
         ("duplicate component", with_card("[[component]]\nname = \"c\"\ntype = \"follow\"\nactivity = { type = \"non_periodic\" }\n[[component]]\nname = \"c\"\ntype = \"follow\"\nactivity = { type = \"non_periodic\" }\n"),
          "t.toml:16:8: component[1].name: a component named \"c\" already exists"),
         ("property of the wrong type", with_card("[[component]]\nname = \"b\"\ntype = \"blinker\"\nactivity = { type = \"periodic\", period_ms = 100 }\nproperties = { device = \"sim0\", bit = \"three\" }\n"),
@@ -178,6 +178,18 @@ fn every_broken_config_gets_its_exact_error() {
          "t.toml:1:20: thread_scope_vcd: /nonexistent/s.vcd: the directory /nonexistent does not exist"),
         ("a ThreadScope recording named as a folder", format!("thread_scope_vcd = \"/tmp/\"\n{CARD}"),
          "t.toml:1:20: thread_scope_vcd: \"/tmp/\": expected a file name"),
+        ("a recording of a port that does not exist", with_card(&recorder("ports = [\"sim0.ai.ch7\"], file = \"/tmp/never.mcap\"")),
+         "t.toml:11:1: component[0]: component \"rec\": configure_hook failed: \"sim0.ai.ch7\": \"sim0.ai\" has no port \"ch7\"; it has: ch0"),
+        ("a recording of an input port", with_card(&recorder("ports = [\"sim0.ao.ch0\"], file = \"/tmp/never.mcap\"")),
+         "t.toml:11:1: component[0]: component \"rec\": configure_hook failed: \"sim0.ao.ch0\" is an input port: a recording takes output ports (outputs of sim0.ao: none)"),
+        ("a recording triggered by a port it does not record", with_card(&recorder("ports = [\"sim0.ai\"], trigger = \"sim0.do.bit0 > 0\", file = \"/tmp/never.mcap\"")),
+         "t.toml:11:1: component[0]: component \"rec\": configure_hook failed: trigger port \"sim0.do.bit0\" is not among the ports recorded"),
+        ("a recording with a trigger that does not parse", with_card(&recorder("ports = [\"sim0.ai\"], trigger = \"sim0.ai.ch0 >> 1\", file = \"/tmp/never.mcap\"")),
+         "t.toml:11:1: component[0]: component \"rec\": configure_hook failed: trigger \"sim0.ai.ch0 >> 1\": \"> 1\" is not a number (expected \"component.port OP number\", OP one of > >= < <= == !=)"),
+        ("a recording over a file", with_card(&recorder(&format!("ports = [\"sim0.ai\"], file = \"{}\"", concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/broken.dbc")))),
+         &*Box::leak(format!("t.toml:11:1: component[0]: component \"rec\": configure_hook failed: {}/tests/data/broken.dbc exists: it is never overwritten; remove it or name another file", env!("CARGO_MANIFEST_DIR")).into_boxed_str())),
+        ("a recording of nothing", with_card(&recorder("file = \"/tmp/never.mcap\"")),
+         "t.toml:11:1: component[0]: component \"rec\": configure_hook failed: properties ports and activities are empty: name what to record"),
         ("not TOML", "[[card]\nname = \"x\"\n".into(),
          "t.toml:1:8: unclosed array table, expected `]`"),
     ];
@@ -282,4 +294,11 @@ fn the_shipped_examples_are_valid() {
         hwgw::DEMO,
         "config/demo.toml is the embedded default"
     );
+}
+
+/// A `recorder` component with `properties`.
+fn recorder(properties: &str) -> String {
+    format!(
+        "[[component]]\nname = \"rec\"\ntype = \"recorder\"\nactivity = {{ type = \"periodic\", period_ms = 20 }}\nproperties = {{ {properties} }}\n"
+    )
 }
