@@ -4,7 +4,7 @@
 use crate::protocol::{Body, Description, ErrorBody, Reply, Request, Target};
 use serde::de::DeserializeOwned;
 use serde_json::Value;
-use std::io::{BufRead, BufReader, Write};
+use std::io::{BufRead, BufReader, Read, Write};
 use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -169,7 +169,7 @@ impl Client {
             Stream {
                 client: self.clone(),
                 reader: r,
-                line: String::new(),
+                line: Vec::new(),
             },
         ))
     }
@@ -218,11 +218,16 @@ impl Client {
     }
 }
 
+/// The longest line a stream may send (a `record` batch is split well below it).
+pub const MAX_STREAM_LINE: u64 = 64 << 20;
+
 /// What follows a streaming request's acknowledgement.
 pub struct Stream {
     client: Client,
     reader: BufReader<UnixStream>,
-    line: String,
+    /// What came of the next line so far (bytes: a read cut by the timeout may end
+    /// inside a character).
+    line: Vec<u8>,
 }
 
 impl Stream {
@@ -236,9 +241,17 @@ impl Stream {
             .set_read_timeout(timeout)
             .map_err(|e| c.io(e))?;
         loop {
-            self.line.clear();
-            match self.reader.read_line(&mut self.line) {
+            // A line cut by the timeout stays in `line`: the next call reads on from there.
+            let room = MAX_STREAM_LINE.saturating_sub(self.line.len() as u64);
+            match (&mut self.reader)
+                .take(room)
+                .read_until(b'\n', &mut self.line)
+            {
+                Ok(0) if self.line.len() as u64 >= MAX_STREAM_LINE => {
+                    return Err(c.bad(format!("a line over {MAX_STREAM_LINE} bytes")));
+                }
                 Ok(0) => return Ok(None),
+                Ok(_) if !self.line.ends_with(b"\n") => continue,
                 Ok(_) => {}
                 Err(e) => {
                     return Err(match timeout {
@@ -257,8 +270,9 @@ impl Stream {
                     });
                 }
             }
-            let reply: Reply = serde_json::from_str(&self.line).map_err(|e| c.bad(e))?;
-            match reply.body {
+            let reply: Result<Reply, _> = serde_json::from_slice(&self.line);
+            self.line.clear();
+            match reply.map_err(|e| c.bad(e))?.body {
                 Body::Error(e) => return Err(ClientError::Refused(e)),
                 Body::Ok(_) => {}
                 body => return Ok(Some(body)),

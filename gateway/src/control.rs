@@ -121,7 +121,13 @@ struct Shared {
     /// The connected clients, to disconnect them at close.
     clients: Mutex<HashMap<u64, UnixStream>>,
     next_id: AtomicU64,
+    /// `record` streams under way (at most [`MAX_RECORD_STREAMS`]).
+    records: std::sync::atomic::AtomicUsize,
 }
+
+/// The most `record` streams at once: each holds buffers on the recorded ports and adds a
+/// copy to each of their writes.
+pub const MAX_RECORD_STREAMS: usize = 4;
 
 impl Shared {
     /// The counters, for `status`.
@@ -170,6 +176,7 @@ impl ControlServer {
             gate: RwLock::new(()),
             clients: Mutex::new(HashMap::new()),
             next_id: AtomicU64::new(1),
+            records: std::sync::atomic::AtomicUsize::new(0),
         });
         let listener = bound
             .listener
@@ -622,7 +629,16 @@ fn record(
     out: &UnixStream,
 ) -> Result<(), Fail> {
     use crate::recorder::stream;
-    let (taps, start) = stream::open(&shared.gw, ask).map_err(not_found)?;
+    let taken = shared.records.fetch_add(1, Ordering::AcqRel);
+    // Given back however this returns.
+    let _slot = ReleaseOnDrop(&shared.records);
+    if taken >= MAX_RECORD_STREAMS {
+        return Err(Fail(
+            ErrorKind::Busy,
+            format!("{MAX_RECORD_STREAMS} record streams are under way already; stop one first"),
+        ));
+    }
+    let (taps, start) = stream::open(&shared.gw, ask).map_err(|(kind, m)| Fail(kind, m))?;
     let ack = Reply {
         id: id.clone(),
         body: Body::Ok(serde_json::to_value(start).map_err(failed)?),
@@ -637,6 +653,15 @@ fn record(
     };
     stream::pump(taps, batch, || shared.closing.load(Ordering::Acquire));
     Ok(())
+}
+
+/// Takes one from a counter when dropped.
+struct ReleaseOnDrop<'a>(&'a std::sync::atomic::AtomicUsize);
+
+impl Drop for ReleaseOnDrop<'_> {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::AcqRel);
+    }
 }
 
 /// True when the client closed its end (a peek finds end of stream or an error).

@@ -143,8 +143,10 @@ pub struct RecordStart {
     pub ports: Vec<recording::PortSpec>,
     /// The activities (component names), in the order of the steps' `activity` numbers.
     pub activities: Vec<String>,
-    /// UNIX time minus the runtime clock's, ns, when the stream began.
+    /// UNIX time minus the monotonic clock's, ns, when the stream began.
     pub wall_minus_clock_ns: i128,
+    /// The monotonic clock when the stream began, ns: samples from here on are recorded.
+    pub now_ns: u64,
 }
 
 /// One batch of a `record` stream.
@@ -156,7 +158,9 @@ pub struct RecordBatch {
     pub ports_lost: Vec<u64>,
     /// Steps each activity's tap dropped so far.
     pub steps_lost: Vec<u64>,
-    /// The runtime clock when the batch was taken, ns.
+    /// The monotonic clock before the batch was drained, ns: samples stamped before it
+    /// are in this batch or an earlier one, but for those of a step under way then (a
+    /// sample takes its step's start). 0 on a batch split in several lines but the last.
     pub now_ns: u64,
 }
 

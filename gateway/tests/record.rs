@@ -97,7 +97,7 @@ fn a_recording_of_the_demo_reads_back_with_the_mcap_package() {
         ])
         .unwrap();
     assert!(
-        said.contains("0 lost") && said.contains("ended: duration"),
+        said.contains(", 0 lost,") && said.contains("ended: duration"),
         "{said}"
     );
     let d = testkit::mcapread::read(&file).unwrap();
@@ -235,17 +235,40 @@ fn a_triggered_capture_holds_exactly_the_window_asked_for() {
         i > 0 && ramp.messages[i - 1]["value"].as_f64().unwrap() <= 0.0,
         "not the edge"
     );
+    // The samples are those of sim0.ai's steps in the window (a sample takes its step's
+    // start): every step's, and at the edges none of a step that began within the window
+    // is missing.
+    let steps = topic(&d, "/activity/sim0.ai");
+    let due: std::collections::BTreeMap<u64, u64> = steps
+        .messages
+        .iter()
+        .zip(&steps.times)
+        .map(|(m, &t)| {
+            let n = |k: &str| m[k].as_u64().unwrap();
+            (t, n("scheduled_ns") + t - n("started_ns"))
+        })
+        .collect();
+    let late = steps
+        .messages
+        .iter()
+        .map(|m| m["started_ns"].as_u64().unwrap() - m["scheduled_ns"].as_u64().unwrap())
+        .max()
+        .unwrap();
     for t in [ramp, topic(&d, "/sim0/ai/ch0")] {
+        let grid: Vec<u64> = t.times.iter().map(|x| due[x]).collect();
         assert!(
-            t.times[0] - start <= 21 * MS,
-            "first sample {} ns after the start",
-            t.times[0] - start
+            grid.windows(2).all(|w| w[1] - w[0] == 20 * MS),
+            "a step missing: {grid:?}"
         );
         assert!(
-            end - t.times[t.times.len() - 1] <= 21 * MS,
-            "last sample before the end"
+            grid[0] - 20 * MS < start,
+            "the step before the first began after the start"
         );
-        assert!((49..=51).contains(&t.times.len()), "{}", t.times.len());
+        assert!(
+            grid[grid.len() - 1] + 20 * MS + late + MS > end,
+            "one missing at the end"
+        );
+        assert_eq!(t.times.len(), steps.times.len(), "a sample for each step");
     }
     assert!(
         d.topics.keys().any(|k| k.starts_with("/activity/")),

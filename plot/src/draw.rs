@@ -99,6 +99,19 @@ impl Frame<'_> {
         }
     }
 
+    /// Creates the file new and writes `bytes`.
+    pub(crate) fn write(&self, bytes: &[u8]) -> Result<(), PlotError> {
+        use std::io::Write;
+        let mut f = std::fs::File::create_new(self.path).map_err(|e| {
+            if e.kind() == std::io::ErrorKind::AlreadyExists {
+                PlotError::Exists(self.path.to_path_buf())
+            } else {
+                self.fail(e)
+            }
+        })?;
+        f.write_all(bytes).map_err(|e| self.fail(e))
+    }
+
     pub(crate) fn fail(&self, detail: impl std::fmt::Display) -> PlotError {
         PlotError::Draw {
             path: self.path.to_path_buf(),
@@ -107,24 +120,46 @@ impl Frame<'_> {
     }
 }
 
-/// Draws on a PNG or SVG root area per the frame's format: `$body` (an expression of
-/// type `Result<(), String>` using `$root`) is expanded once per backend.
+/// Draws in memory on a PNG or SVG root area per the frame's format — `$body` (an
+/// expression of type `Result<(), String>` using `$root`) is expanded once per backend —
+/// then writes the new file (never one that exists, even if made meanwhile).
 macro_rules! on_root {
     ($frame:expr, |$root:ident| $body:expr) => {{
         let frame = $frame;
         let dims = (frame.size.width, frame.size.height);
-        let result: Result<(), String> = match frame.check()? {
+        let bytes: Result<Vec<u8>, String> = match frame.check()? {
             $crate::draw::Format::Png => {
-                let $root = &BitMapBackend::new(frame.path, dims).into_drawing_area();
-                $body.and_then(|()| $root.present().map_err(|e| e.to_string()))
+                let mut rgb = vec![0u8; dims.0 as usize * dims.1 as usize * 3];
+                let drawn = {
+                    let $root = &BitMapBackend::with_buffer(&mut rgb, dims).into_drawing_area();
+                    $body.and_then(|()| $root.present().map_err(|e| e.to_string()))
+                };
+                drawn.and_then(|()| $crate::draw::png(&rgb, dims))
             }
             $crate::draw::Format::Svg => {
-                let $root = &SVGBackend::new(frame.path, dims).into_drawing_area();
-                $body.and_then(|()| $root.present().map_err(|e| e.to_string()))
+                let mut svg = String::new();
+                let drawn = {
+                    let $root = &SVGBackend::with_string(&mut svg, dims).into_drawing_area();
+                    $body.and_then(|()| $root.present().map_err(|e| e.to_string()))
+                };
+                drawn.map(|()| svg.into_bytes())
             }
         };
-        result.map_err(|e| frame.fail(e))
+        let bytes = bytes.map_err(|e| frame.fail(e))?;
+        frame.write(&bytes)
     }};
+}
+
+/// RGB pixels as a PNG file's bytes.
+pub(crate) fn png(rgb: &[u8], (w, h): (u32, u32)) -> Result<Vec<u8>, String> {
+    let mut out = Vec::new();
+    let mut enc = png::Encoder::new(&mut out, w, h);
+    enc.set_color(png::ColorType::Rgb);
+    enc.set_depth(png::BitDepth::Eight);
+    enc.write_header()
+        .and_then(|mut w| w.write_image_data(rgb))
+        .map_err(|e| e.to_string())?;
+    Ok(out)
 }
 pub(crate) use on_root;
 
@@ -233,8 +268,18 @@ pub fn values(
     if x0 > x1 {
         return Err(PlotError::Empty("no numeric samples in the span".into()));
     }
-    let pad = ((y1 - y0) * 0.05).max(1e-9);
+    // Halves first: the range of values near ±f64::MAX is itself finite then.
+    let pad = ((y1 / 2.0 - y0 / 2.0) * 0.1)
+        .max(y0.abs().max(y1.abs()) * 1e-9)
+        .max(1e-9);
     let (y0, y1) = (y0 - pad, y1 + pad);
+    if !(y0.is_finite() && y1.is_finite() && (y1 - y0).is_finite()) {
+        return Err(PlotError::Empty(format!(
+            "values up to {:e}: too large to draw (at most ±{:e})",
+            y0.abs().max(y1.abs()),
+            f64::MAX / 4.0
+        )));
+    }
     let x1 = if x1 > x0 { x1 } else { x0 + 1e-3 };
     on_root!(frame, |root| (|| -> Result<(), String> {
         root.fill(&WHITE).map_err(|e| e.to_string())?;

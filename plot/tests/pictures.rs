@@ -151,3 +151,59 @@ fn bad_requests_say_what_was_wrong() {
         Err(PlotError::Empty(_))
     ));
 }
+
+/// A recording of one port with `values`, 1 ms apart.
+fn one_port(values: &[f64]) -> Recording {
+    let ports = vec![PortSpec {
+        name: "a.x".into(),
+        type_name: "f64".into(),
+    }];
+    let mut out = Cursor::new(Vec::new());
+    let mut r = Recorder::new(&mut out, ports, vec![], Options::default()).expect("new");
+    for (k, v) in values.iter().enumerate() {
+        let t = k as u64 * 1_000_000;
+        let value = if v.is_finite() {
+            json!(v)
+        } else {
+            json!(v.to_string())
+        };
+        r.write(
+            &Item::Sample {
+                port: 0,
+                at_ns: t,
+                value,
+            },
+            t,
+        )
+        .expect("write");
+    }
+    r.finish(&Closing::default()).expect("finish");
+    Recording::parse(out.get_ref()).expect("readable")
+}
+
+#[test]
+fn odd_values_draw_or_are_refused_never_hang() {
+    let dir = TempDir::new("plot-odd");
+    let p = |n: &str| dir.path().join(n);
+    let draw = |vals: &[f64], name: &str| {
+        plot::values(&one_port(vals), &[], Span::default(), &frame(&p(name)))
+    };
+    draw(&[3.0], "single.png").expect("a single point");
+    draw(&[2.5, 2.5, 2.5], "flat.png").expect("equal values");
+    draw(&[0.0, 1e300, -1e300], "wide.png").expect("a wide range");
+    draw(&[1.0, f64::NAN, f64::INFINITY, 2.0], "gaps.png").expect("NaN and inf left out");
+    for (vals, name) in [
+        (&[0.0, f64::MAX][..], "max.png"),
+        (&[-f64::MAX, f64::MAX][..], "both.png"),
+    ] {
+        let e = draw(vals, name);
+        assert!(
+            matches!(e, Err(PlotError::Empty(ref m)) if m.contains("too large")),
+            "{e:?}"
+        );
+        assert!(!p(name).exists());
+    }
+    let e = draw(&[f64::NAN, f64::NAN], "nan.png");
+    assert!(matches!(e, Err(PlotError::Empty(_))), "{e:?}");
+    check_png(&p("single.png"));
+}

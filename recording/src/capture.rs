@@ -27,8 +27,11 @@ impl<W: Write + Seek> Capture<W> {
         }
     }
 
-    /// Takes items (in about time order); `now_ns` is when they were taken.
-    pub fn offer(&mut self, items: Vec<Item>, now_ns: u64) -> Result<(), RecordError> {
+    /// Takes one batch of items, later than the batches before (its items in any order:
+    /// they are put in time order, as a viewer reads them); `now_ns` is when they were
+    /// taken, on the items' clock.
+    pub fn offer(&mut self, mut items: Vec<Item>, now_ns: u64) -> Result<(), RecordError> {
+        items.sort_by_key(Item::time_ns);
         let Some(window) = &mut self.window else {
             for item in &items {
                 self.recorder.write(item, now_ns)?;
@@ -39,6 +42,7 @@ impl<W: Write + Seek> Capture<W> {
         for item in items {
             window.offer(item, &mut self.pass);
         }
+        window.advance(now_ns);
         for item in &self.pass {
             self.recorder.write(item, now_ns)?;
         }
@@ -78,6 +82,7 @@ impl<W: Write + Seek> Capture<W> {
                 }
             }
             notes.insert("trigger.ring_overflow".into(), w.ring_overflow.to_string());
+            notes.insert("trigger.late".into(), w.late.to_string());
             notes.insert("trigger.not_numbers".into(), w.not_numbers.to_string());
         }
         self.recorder.finish(&closing)

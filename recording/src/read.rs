@@ -77,6 +77,9 @@ pub struct Recording {
     pub not_numbers: u64,
     /// Messages of other channels, or that did not decode.
     pub skipped: u64,
+    /// Why reading stopped before the file's end (a recording cut short by a crash or a
+    /// full disk): what came before is kept.
+    pub truncated: Option<String>,
 }
 
 impl Recording {
@@ -86,7 +89,11 @@ impl Recording {
             path: path.to_path_buf(),
             source,
         };
-        let size = std::fs::metadata(path).map_err(io)?.len();
+        let meta = std::fs::metadata(path).map_err(io)?;
+        if !meta.is_file() {
+            return Err(io(std::io::Error::other("not a regular file")));
+        }
+        let size = meta.len();
         if size > MAX_FILE {
             return Err(ReadError::TooLarge {
                 path: path.to_path_buf(),
@@ -94,20 +101,37 @@ impl Recording {
                 max: MAX_FILE,
             });
         }
-        let bytes = std::fs::read(path).map_err(io)?;
+        // At most what the size said: a file that grows meanwhile is read up to it.
+        let mut bytes = Vec::with_capacity(size as usize);
+        std::io::Read::read_to_end(
+            &mut std::io::Read::take(std::fs::File::open(path).map_err(io)?, size),
+            &mut bytes,
+        )
+        .map_err(io)?;
         Recording::parse(&bytes).map_err(|source| ReadError::Mcap {
             path: path.to_path_buf(),
             source,
         })
     }
 
-    /// Reads a recording held in memory.
+    /// Reads a recording held in memory: an error only when it is not MCAP at all; a file
+    /// cut short gives what it holds, with [`truncated`](Self::truncated) saying why.
     pub fn parse(bytes: &[u8]) -> Result<Recording, mcap::McapError> {
         let mut rec = Recording::default();
         let mut ports: BTreeMap<u16, usize> = BTreeMap::new();
         let mut activities: BTreeMap<u16, usize> = BTreeMap::new();
-        for message in mcap::MessageStream::new(bytes)? {
-            let m = message?;
+        if !bytes.starts_with(mcap::MAGIC) {
+            return Err(mcap::McapError::BadMagic);
+        }
+        let options = mcap::read::Options::IgnoreEndMagic.into();
+        for message in mcap::MessageStream::new_with_options(bytes, options)? {
+            let m = match message {
+                Ok(m) => m,
+                Err(e) => {
+                    rec.truncated = Some(e.to_string());
+                    break;
+                }
+            };
             let ch = &m.channel;
             if let Some(port) = ch.metadata.get("port") {
                 let i = *ports.entry(ch.id).or_insert_with(|| {
@@ -153,11 +177,14 @@ impl Recording {
                 rec.skipped += 1;
             }
         }
-        for record in mcap::read::LinearReader::new(bytes)? {
-            if let mcap::records::Record::Metadata(m) = record?
-                && m.name == METADATA
-            {
-                rec.metadata = m.metadata;
+        for record in mcap::read::LinearReader::new_with_options(bytes, options)? {
+            match record {
+                Ok(mcap::records::Record::Metadata(m)) if m.name == METADATA => {
+                    rec.metadata = m.metadata;
+                }
+                Ok(_) => {}
+                // Said above: the messages stopped there too.
+                Err(_) => break,
             }
         }
         Ok(rec)

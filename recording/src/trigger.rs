@@ -2,11 +2,13 @@
 //! capture is every item from `pre` before to `post` after the time of the first sample at
 //! which the condition became true (a sample where it held after one where it did not).
 //!
-//! Items arrive about in time order but not exactly (each port's samples come in batches),
-//! so the window keeps a ring of what came before the trigger, longer than `pre` by
+//! Items arrive in batches, each in time order (see [`crate::Capture`]), batches later
+//! than each other but a batch's first items earlier than the last batch's last. So the
+//! window keeps a ring of what came before the trigger, longer than `pre` by
 //! [`SLACK_NS`], and decides each item by its own time: the capture holds exactly the items
 //! whose times fall within `[t - pre, t + post]`. The ring is bounded; what it had to let
-//! go of is counted.
+//! go of within `pre`, and items of the window that came after it was written, are
+//! counted.
 
 use crate::item::Item;
 use serde_json::Value;
@@ -142,8 +144,12 @@ pub struct Window {
     last_held: Option<bool>,
     at: Option<u64>,
     newest: u64,
-    /// Items the ring let go of before `pre` had passed (it was full).
+    /// The recorder's clock: how far time has surely gone, items or not.
+    clock: u64,
+    /// Items the ring let go of within `pre` of the newest (it was full).
     pub ring_overflow: u64,
+    /// Items of the window that came after its start had been written.
+    pub late: u64,
     /// Trigger-port samples that were not numbers.
     pub not_numbers: u64,
 }
@@ -163,7 +169,9 @@ impl Window {
             last_held: None,
             at: None,
             newest: 0,
+            clock: 0,
             ring_overflow: 0,
+            late: 0,
             not_numbers: 0,
         }
     }
@@ -183,10 +191,16 @@ impl Window {
         })
     }
 
+    /// Time has gone on to `now_ns` (the recorder's clock), whether items came or not: a
+    /// window ends though the ports fall silent.
+    pub fn advance(&mut self, now_ns: u64) {
+        self.clock = self.clock.max(now_ns);
+    }
+
     /// True once every item of the window has surely come.
     pub fn done(&self) -> bool {
         self.bounds()
-            .is_some_and(|(_, end)| self.newest > end.saturating_add(SLACK_NS))
+            .is_some_and(|(_, end)| self.newest.max(self.clock) > end.saturating_add(SLACK_NS))
     }
 
     /// Takes one item: what is to be written now goes to `out`.
@@ -196,6 +210,8 @@ impl Window {
         if let Some((start, end)) = self.bounds() {
             if (start..=end).contains(&t) {
                 out.push(item);
+            } else if t < start {
+                self.late += 1;
             }
             return;
         }
@@ -212,8 +228,10 @@ impl Window {
                 None => self.not_numbers += 1,
             }
         }
-        if self.ring.len() == self.ring_limit {
-            self.ring.pop_front();
+        if self.ring.len() == self.ring_limit
+            && let Some(old) = self.ring.pop_front()
+            && old.time_ns() >= self.newest.saturating_sub(self.pre_ns)
+        {
             self.ring_overflow += 1;
         }
         self.ring.push_back(item);

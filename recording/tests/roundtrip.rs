@@ -116,3 +116,32 @@ fn past_the_size_limit_items_are_counted_not_written() {
     assert_eq!(meta["over_limit"], (1_000 - written).to_string());
     assert!(out.get_ref().len() < 20_000, "{}", out.get_ref().len());
 }
+
+#[test]
+fn a_recording_cut_short_gives_what_it_holds() {
+    let mut out = Cursor::new(Vec::new());
+    let options = Options::default();
+    let mut r = Recorder::new(&mut out, ports(), vec![], options).expect("new");
+    for k in 0..200_000u64 {
+        r.write(
+            &Item::Sample {
+                port: 0,
+                at_ns: k,
+                value: json!(1.5),
+            },
+            k,
+        )
+        .expect("write");
+    }
+    r.finish(&Closing::default()).expect("finish");
+    let whole = out.into_inner();
+    let cut = &whole[..whole.len() / 2];
+    let rec = Recording::parse(cut).expect("the start is MCAP");
+    assert!(rec.truncated.is_some(), "{rec:?}");
+    let n = rec.ports[0].points.len();
+    assert!(n > 10_000 && n < 200_000, "{n}");
+    assert!(rec.metadata.is_empty());
+    assert!(Recording::parse(b"not mcap at all").is_err());
+    let e = Recording::read(std::path::Path::new("/tmp")).expect_err("a folder");
+    assert!(e.to_string().contains("not a regular file"), "{e}");
+}

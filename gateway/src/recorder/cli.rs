@@ -125,7 +125,13 @@ pub fn record(client: &Client, args: RecordArgs) -> Result<String, RecordCliErro
         .map_err(|e| usage(format!("signalfd: {e}")))?;
     let (mut stream, mut capture, start) = open(client, &args, ports, trigger)?;
     let mut losses = Closing::default();
-    let ended = match pump(&mut stream, &mut capture, &args, &sigfd, &mut losses) {
+    let ended = match pump(
+        &mut stream,
+        &mut capture,
+        &args,
+        (&sigfd, start.now_ns),
+        &mut losses,
+    ) {
         Ok(ended) => ended,
         Err(e) => {
             // What was recorded stays readable: the file is completed first.
@@ -216,12 +222,16 @@ fn pump(
     stream: &mut crate::client::Stream,
     capture: &mut Capture,
     args: &RecordArgs,
-    sigfd: &nix::sys::signalfd::SignalFd,
+    (sigfd, t0): (&nix::sys::signalfd::SignalFd, u64),
     losses: &mut Closing,
 ) -> Result<&'static str, RecordCliError> {
     let triggered = args.trigger.is_some();
     let began = Instant::now();
-    let mut first_ns: Option<u64> = None;
+    // Untriggered, the recording spans exactly [t0, t0 + duration] on the gateway's clock.
+    let end = args
+        .duration
+        .map(|d| t0.saturating_add(d.as_nanos() as u64));
+    let mut now = t0;
     loop {
         if matches!(sigfd.read_signal(), Ok(Some(_))) {
             return Ok("stopped by a signal");
@@ -239,28 +249,34 @@ fn pump(
             Ok(None) => return Ok("the gateway ended the stream"),
             Err(e) => return Err(e.into()),
         };
-        let t0 = *first_ns.get_or_insert(b.now_ns);
+        // A batch split in several lines gives the time with its last.
+        let whole = b.now_ns != 0;
+        now = now.max(b.now_ns);
         losses.ports_lost = b.ports_lost;
         losses.steps_lost = b.steps_lost;
-        // The duration on the runtime's clock, from the first batch.
-        let end = args
-            .duration
-            .map(|d| t0.saturating_add(d.as_nanos() as u64));
         let mut items = b.items;
         if !triggered && let Some(end) = end {
-            items.retain(|i| i.time_ns() <= end);
+            items.retain(|i| (t0..=end).contains(&i.time_ns()));
         }
-        capture.offer(items, b.now_ns)?;
+        capture.offer(items, now)?;
         if capture.done() {
             return Ok("the trigger window is complete");
         }
-        if end.is_some_and(|end| b.now_ns >= end) && !capture.triggered() {
+        // Past the end by a guard, every sample stamped before the end has come (a sample
+        // takes its step's start, and is written during the step).
+        if whole
+            && end.is_some_and(|end| now >= end.saturating_add(END_GUARD_NS))
+            && !capture.triggered()
+        {
             return Ok(if triggered { NEVER } else { "duration" });
         }
     }
 }
 
 const NEVER: &str = "the trigger never came";
+
+/// How long past the end of `--duration` the stream is read on.
+const END_GUARD_NS: u64 = 100_000_000;
 
 /// What `hwgw plot` draws.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -288,8 +304,12 @@ pub fn plot(
         PlotKind::Lateness => plot::lateness(&rec, frame),
     }
     .map_err(|e| e.to_string())?;
+    let cut = match &rec.truncated {
+        Some(why) => format!(" (the recording is cut short: {why}; drawn up to there)"),
+        None => String::new(),
+    };
     Ok(format!(
-        "{}: {kind:?} of {}",
+        "{}: {kind:?} of {}{cut}",
         frame.path.display(),
         recording.display()
     ))

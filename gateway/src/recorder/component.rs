@@ -84,9 +84,14 @@ impl McapRecorder {
             )));
         };
         let ns = |what: &str, ms: f64| {
-            crate::checks::period(ms)
-                .map(|d| d.as_nanos() as u64)
-                .map_err(|e| HookError::new(format!("{what}: {e}")))
+            if !(ms.is_finite() && (0.0..=crate::checks::MAX_MS).contains(&ms)) {
+                return Err(HookError::new(format!(
+                    "{what} {}: expected 0 to {} ms (a day)",
+                    crate::checks::number(ms),
+                    crate::checks::MAX_MS
+                )));
+            }
+            Ok((ms * 1e6) as u64)
         };
         let (pre, post) = (
             ns("pre_ms", self.pre_ms.get())?,

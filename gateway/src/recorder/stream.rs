@@ -4,7 +4,8 @@
 
 use super::taps::{Taps, now_ns, resolve, wall_offset};
 use crate::deploy::Gateway;
-use crate::protocol::{RecordBatch, RecordStart};
+use crate::protocol::{ErrorKind, RecordBatch, RecordStart};
+use recording::Item;
 use std::time::{Duration, Instant};
 
 /// How often the gateway sends a batch.
@@ -29,8 +30,12 @@ pub struct Ask<'a> {
 /// The default buffer of a recorded port, in samples.
 pub const DEFAULT_BUFFER: usize = 4096;
 
-/// Opens the taps a request asks for.
-pub fn open(gw: &Gateway, ask: &Ask<'_>) -> Result<(Taps, RecordStart), String> {
+/// The most items one batch line carries: a longer drain goes out in several.
+pub const MAX_BATCH_ITEMS: usize = 20_000;
+
+/// Opens the taps a request asks for; an error says what kind it is for the reply.
+pub fn open(gw: &Gateway, ask: &Ask<'_>) -> Result<(Taps, RecordStart), (ErrorKind, String)> {
+    let not_found = |e: String| (ErrorKind::NotFound, e);
     let rt = gw.runtime();
     let mut selectors = ask.ports.to_vec();
     if ask.devices {
@@ -50,10 +55,13 @@ pub fn open(gw: &Gateway, ask: &Ask<'_>) -> Result<(Taps, RecordStart), String> 
         );
     }
     if selectors.is_empty() && !ask.steps {
-        return Err("nothing to record: name ports, devices or steps".into());
+        return Err((
+            ErrorKind::BadRequest,
+            "nothing to record: name ports, devices or steps".into(),
+        ));
     }
     let peer = |n: &str| rt.component(n).map_err(|e| e.to_string());
-    let ports = resolve(&peer, &selectors)?;
+    let ports = resolve(&peer, &selectors).map_err(not_found)?;
     let activities: Vec<String> = if ask.steps {
         rt.components()
             .iter()
@@ -68,11 +76,13 @@ pub fn open(gw: &Gateway, ask: &Ask<'_>) -> Result<(Taps, RecordStart), String> 
         ports,
         &activities,
         ask.buffer.unwrap_or(DEFAULT_BUFFER),
-    )?;
+    )
+    .map_err(|e| (ErrorKind::Failed, e))?;
     let start = RecordStart {
         ports: taps.ports().to_vec(),
         activities: taps.activities().to_vec(),
         wall_minus_clock_ns: wall_offset(),
+        now_ns: now_ns(),
     };
     Ok((taps, start))
 }
@@ -83,20 +93,31 @@ pub fn pump(mut taps: Taps, mut send: impl FnMut(RecordBatch) -> bool, stop: imp
     let mut last_sent = Instant::now();
     while !stop() {
         std::thread::sleep(BATCH_EVERY);
+        let now = now_ns();
         let mut items = Vec::new();
         taps.drain(&mut items);
         if items.is_empty() && last_sent.elapsed() < IDLE_BATCH {
             continue;
         }
         let losses = taps.losses();
-        let batch = RecordBatch {
-            items,
-            ports_lost: losses.ports_lost,
-            steps_lost: losses.steps_lost,
-            now_ns: now_ns(),
-        };
-        if !send(batch) {
-            return;
+        // The last chunk carries the time: the client knows all up to it has come.
+        let mut chunks: Vec<Vec<Item>> = Vec::new();
+        while items.len() > MAX_BATCH_ITEMS {
+            let rest = items.split_off(MAX_BATCH_ITEMS);
+            chunks.push(std::mem::replace(&mut items, rest));
+        }
+        chunks.push(items);
+        let last = chunks.len() - 1;
+        for (i, items) in chunks.into_iter().enumerate() {
+            let batch = RecordBatch {
+                items,
+                ports_lost: losses.ports_lost.clone(),
+                steps_lost: losses.steps_lost.clone(),
+                now_ns: if i == last { now } else { 0 },
+            };
+            if !send(batch) {
+                return;
+            }
         }
         last_sent = Instant::now();
     }

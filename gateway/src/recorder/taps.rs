@@ -21,7 +21,7 @@ pub const MAX_BUFFER: usize = 1 << 16;
 /// The most samples all of one recording's buffers hold together: a recording of many
 /// ports gets smaller buffers (each at least 64), so one `record` stream allocates at most
 /// this many samples however many ports it names.
-pub const MAX_TOTAL_BUFFER: usize = 1 << 22;
+pub const MAX_TOTAL_BUFFER: usize = 1 << 20;
 
 /// The ports and activities being recorded.
 pub struct Taps {
@@ -31,6 +31,8 @@ pub struct Taps {
     steps: Vec<StepTap>,
     scratch: Vec<StepRecord>,
     buffer: usize,
+    /// Samples whose value could not be serialised (counted, not written).
+    unserialisable: u64,
 }
 
 /// Output ports chosen by `selectors`: `component.port` names one; a bare `component`
@@ -128,6 +130,7 @@ impl Taps {
             steps,
             scratch: Vec::new(),
             buffer,
+            unserialisable: 0,
         })
     }
 
@@ -152,6 +155,7 @@ impl Taps {
                         at_ns,
                         value,
                     }),
+                    (FlowStatus::NewData, None, _) => self.unserialisable += 1,
                     _ => break,
                 }
             }
@@ -175,7 +179,11 @@ impl Taps {
         Closing {
             ports_lost: self.readers.iter().map(|r| r.dropped()).collect(),
             steps_lost: self.steps.iter().map(StepTap::dropped).collect(),
-            ..Closing::default()
+            notes: [(
+                "unserialisable".to_string(),
+                self.unserialisable.to_string(),
+            )]
+            .into(),
         }
     }
 }

@@ -46,11 +46,13 @@ thread_local! {
 
 /// Runs `f` as the step that began at `started` (monotonic ns): what it writes to stamped
 /// connections takes that time.
+/// A step run inside another (a slave stepped from a hook) gives the outer step its time
+/// back after.
 #[inline]
 pub(crate) fn in_step<R>(started: u64, f: impl FnOnce() -> R) -> R {
-    STEP_START.set(started.max(1));
+    let outer = STEP_START.replace(started.max(1));
     let r = f();
-    STEP_START.set(0);
+    STEP_START.set(outer);
     r
 }
 
@@ -78,8 +80,10 @@ struct Log {
 pub(crate) struct StepTaps {
     any: AtomicBool,
     logs: ArcSwap<Vec<Arc<Log>>>,
-    /// Serialises taking and dropping taps (never touched by the activity's thread).
-    edit: Mutex<()>,
+    /// Serialises taking and dropping taps (never touched by the activity's thread), and
+    /// holds the lists replaced, each freed at a later edit once no reader holds it: the
+    /// activity's thread never frees a list or a tap's queue.
+    edit: Mutex<Vec<Arc<Vec<Arc<Log>>>>>,
 }
 
 impl StepTaps {
@@ -87,8 +91,14 @@ impl StepTaps {
         StepTaps {
             any: AtomicBool::new(false),
             logs: ArcSwap::from_pointee(Vec::new()),
-            edit: Mutex::new(()),
+            edit: Mutex::new(Vec::new()),
         }
+    }
+
+    /// The activity's thread, before its first step: what loading the list first costs
+    /// (arc-swap's per-thread slot) is paid here, not in a step.
+    pub(crate) fn warm(&self) {
+        drop(self.logs.load());
     }
 
     /// The activity's thread, after each step.
@@ -105,11 +115,12 @@ impl StepTaps {
     }
 
     fn edit(&self, f: impl FnOnce(&mut Vec<Arc<Log>>)) {
-        let _guard = lock(&self.edit);
+        let mut retired = lock(&self.edit);
         let mut logs = self.logs.load().as_ref().clone();
         f(&mut logs);
         self.any.store(!logs.is_empty(), Ordering::Relaxed);
-        self.logs.store(Arc::new(logs));
+        retired.push(self.logs.swap(Arc::new(logs)));
+        retired.retain(|old| Arc::strong_count(old) > 1);
     }
 }
 

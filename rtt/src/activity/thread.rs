@@ -80,6 +80,7 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
     }
     let clock = MonotonicClock;
     let stats = &shared.stats;
+    stats.taps.warm();
     match &shared.spec {
         ActivitySpec::Periodic {
             period,

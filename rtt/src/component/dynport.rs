@@ -50,8 +50,15 @@ pub trait DynPort: Send + Sync {
     /// A new connection from this output port to a reader of serialised values.
     fn reader(&self, policy: ConnPolicy) -> Result<Box<dyn DynReader>, IntrospectError>;
     /// A new stamped buffer connection (see [`crate::port::connect_stamped`]) from this
-    /// output port to a reader of serialised values with the time each was written.
-    fn stamped_reader(&self, policy: ConnPolicy) -> Result<Box<dyn DynReader>, IntrospectError>;
+    /// output port to a reader of serialised values with the time each was written. A port
+    /// that cannot stamp refuses.
+    fn stamped_reader(&self, _policy: ConnPolicy) -> Result<Box<dyn DynReader>, IntrospectError> {
+        let info = self.info();
+        Err(IntrospectError::Refused {
+            what: format!("port {:?}", info.name),
+            detail: "it gives no stamped connection".into(),
+        })
+    }
     /// A new connection from a writer of serialised values to this input port.
     fn writer(&self, policy: ConnPolicy) -> Result<Box<dyn DynWriter>, IntrospectError>;
     /// Connects this output port to `input`.

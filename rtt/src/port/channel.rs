@@ -376,7 +376,9 @@ impl<T: Clone + Send + 'static> Reader<T> {
         match q.full.pop() {
             Some(slot) => {
                 into.clone_from(&slot.value);
-                *at = slot.at;
+                if self.ch.stamped {
+                    *at = slot.at;
+                }
                 let _ = q.free.push(slot);
                 true
             }
