@@ -326,3 +326,40 @@ fn the_recorder_component_records_while_it_runs() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && err.contains("exists"), "{err}");
 }
+
+/// `hwgw record` with no duration records until Ctrl-C (SIGINT), then completes the file:
+/// it reads back with its metadata, ended by the signal.
+#[test]
+fn ctrl_c_ends_a_recording_with_a_complete_file() {
+    use nix::sys::signal::{Signal, kill};
+    use nix::unistd::Pid;
+    let svc = Service::start(HWGW, "record-sigint", &[] as &[&str], &[]).unwrap();
+    let file = svc.dir().join("open.mcap");
+    let mut child = Command::new(HWGW)
+        .args([
+            "record",
+            file.to_str().unwrap(),
+            "--port",
+            "sim0.ai",
+            "--socket",
+        ])
+        .arg(&svc.socket)
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The file is made once the gateway has the stream's connections in place; ten new
+    // values of ch2 seen after that went into the recording's buffers too.
+    wait_until("the recording file", || file.exists());
+    svc.out(&["watch", "sim0.ai", "ch2", "--count", "10"])
+        .unwrap();
+    kill(Pid::from_raw(child.id() as i32), Signal::SIGINT).unwrap();
+    let status = child.wait().unwrap();
+    let mut said = String::new();
+    std::io::Read::read_to_string(child.stdout.as_mut().unwrap(), &mut said).unwrap();
+    assert!(status.success(), "{status:?}: {said}");
+    assert!(said.contains("ended: stopped by a signal"), "{said}");
+    let d = testkit::mcapread::read(&file).unwrap();
+    check_shapes(&d);
+    assert_eq!(d.metadata["hwgw.recording"]["ended"], "stopped by a signal");
+    assert!(topic(&d, "/sim0/ai/ch2").times.len() >= 10);
+}
