@@ -241,7 +241,9 @@ fn part1(fifo: bool, secs: f64, file: &std::path::Path) {
 
 /// The highest sample rate recorded without loss, beside the MCAP writer alone.
 fn part2(fifo: bool, dir: &std::path::Path, file: &std::path::Path) {
-    println!("\n2. samples/s recorded without loss (the recorder at 20 ms; buffers of 2^20 samples in all)");
+    println!(
+        "\n2. samples/s recorded without loss (the recorder at 20 ms; buffers of 2^20 samples in all)"
+    );
     // The best of three: the first runs on a cold file and CPU.
     let reference = (0..3).map(|_| writer_rate(dir)).fold(0.0, f64::max);
     println!("reference: the MCAP writer alone takes {reference:.0} samples/s (best of 3)");

@@ -290,13 +290,7 @@ fn the_recorder_component_records_while_it_runs() {
         file.to_str().unwrap()
     );
     std::fs::write(&config, text).unwrap();
-    let check = || {
-        Command::new(HWGW)
-            .arg("check")
-            .arg(&config)
-            .output()
-            .unwrap()
-    };
+    let check = || testkit::service::check(HWGW, &config);
     let out = check();
     assert!(out.status.success(), "{out:?}");
     assert!(!file.exists(), "check created the recording");

@@ -6,7 +6,6 @@
     reason = "test code: a failed unwrap is a failed test"
 )]
 
-use std::process::Command;
 use testkit::{Service, TempDir, wait_until};
 
 const HWGW: &str = env!("CARGO_BIN_EXE_hwgw");
@@ -24,13 +23,7 @@ fn thread_scope_records_a_vcd_that_sigrok_reads() {
         format!("thread_scope_vcd = \"scope.vcd\"\n{}", hwgw::DEMO),
     )
     .unwrap();
-    let check = || {
-        Command::new(HWGW)
-            .arg("check")
-            .arg(&config)
-            .output()
-            .unwrap()
-    };
+    let check = || testkit::service::check(HWGW, &config);
     let out = check();
     assert!(out.status.success(), "{out:?}");
     assert!(!vcd.exists(), "check created the recording");

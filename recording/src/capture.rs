@@ -27,17 +27,19 @@ impl<W: Write + Seek> Capture<W> {
         }
     }
 
-    /// Takes one batch of items, later than the batches before (its items in any order:
-    /// they are put in time order, as a viewer reads them); `now_ns` is when they were
+    /// Takes one batch of items, later than the batches before, its items in any order
+    /// (MCAP's message indexes give readers the time order); `now_ns` is when they were
     /// taken, on the items' clock.
     pub fn offer(&mut self, mut items: Vec<Item>, now_ns: u64) -> Result<(), RecordError> {
-        items.sort_by_key(Item::time_ns);
         let Some(window) = &mut self.window else {
             for item in &items {
                 self.recorder.write(item, now_ns)?;
             }
             return Ok(());
         };
+        // The window decides by time: a batch is put in time order first (a batch given
+        // port after port would otherwise push the ring past items of the window).
+        items.sort_by_key(Item::time_ns);
         self.pass.clear();
         for item in items {
             window.offer(item, &mut self.pass);

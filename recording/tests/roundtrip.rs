@@ -91,6 +91,18 @@ fn what_is_written_reads_back() {
     assert_eq!(rec.metadata["messages"], "202");
 }
 
+/// `n` samples of 1.5 on port 0, 1 ns apart.
+fn fill(r: &mut Recorder<&mut Cursor<Vec<u8>>>, n: u64) {
+    for k in 0..n {
+        let item = Item::Sample {
+            port: 0,
+            at_ns: k,
+            value: json!(1.5),
+        };
+        r.write(&item, k).expect("write");
+    }
+}
+
 #[test]
 fn past_the_size_limit_items_are_counted_not_written() {
     let mut out = Cursor::new(Vec::new());
@@ -99,17 +111,7 @@ fn past_the_size_limit_items_are_counted_not_written() {
         ..Options::default()
     };
     let mut r = Recorder::new(&mut out, ports(), vec![], options).expect("new");
-    for k in 0..1_000u64 {
-        r.write(
-            &Item::Sample {
-                port: 0,
-                at_ns: k,
-                value: json!(1.5),
-            },
-            k,
-        )
-        .expect("write");
-    }
+    fill(&mut r, 1_000);
     let written = r.written();
     let meta = r.finish(&Closing::default()).expect("finish");
     assert!(written > 100 && written < 1_000, "{written}");
@@ -122,17 +124,7 @@ fn a_recording_cut_short_gives_what_it_holds() {
     let mut out = Cursor::new(Vec::new());
     let options = Options::default();
     let mut r = Recorder::new(&mut out, ports(), vec![], options).expect("new");
-    for k in 0..200_000u64 {
-        r.write(
-            &Item::Sample {
-                port: 0,
-                at_ns: k,
-                value: json!(1.5),
-            },
-            k,
-        )
-        .expect("write");
-    }
+    fill(&mut r, 200_000);
     r.finish(&Closing::default()).expect("finish");
     let whole = out.into_inner();
     let cut = &whole[..whole.len() / 2];

@@ -54,6 +54,15 @@ pub struct Service {
     dir: TempDir,
 }
 
+/// `BIN check CONFIG`: what it printed and how it ended.
+pub fn check(bin: &str, config: &Path) -> Output {
+    Command::new(bin)
+        .arg("check")
+        .arg(config)
+        .output()
+        .unwrap_or_else(|e| panic!("{bin}: {e}"))
+}
+
 /// How long a service may take to open its socket.
 const START: Duration = Duration::from_secs(30);
 
