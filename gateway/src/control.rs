@@ -129,6 +129,9 @@ struct Shared {
 /// copy to each of their writes.
 pub const MAX_RECORD_STREAMS: usize = 4;
 
+/// How long a `record` batch may wait for its client to read.
+const RECORD_WRITE_TIMEOUT: Duration = Duration::from_secs(10);
+
 impl Shared {
     /// The counters, for `status`.
     fn report(&self) -> crate::protocol::ControlReport {
@@ -639,6 +642,9 @@ fn record(
         ));
     }
     let (taps, start) = stream::open(&shared.gw, ask).map_err(|(kind, m)| Fail(kind, m))?;
+    // A client that stops reading ends its stream (its slot freed) within this long.
+    out.set_write_timeout(Some(RECORD_WRITE_TIMEOUT))
+        .map_err(failed)?;
     let ack = Reply {
         id: id.clone(),
         body: Body::Ok(serde_json::to_value(start).map_err(failed)?),

@@ -158,6 +158,9 @@ pub struct RecordBatch {
     pub ports_lost: Vec<u64>,
     /// Steps each activity's tap dropped so far.
     pub steps_lost: Vec<u64>,
+    /// Samples so far whose value could not be serialised.
+    #[serde(default)]
+    pub unserialisable: u64,
     /// The monotonic clock before the batch was drained, ns: samples stamped before it
     /// are in this batch or an earlier one, but for those of a step under way then (a
     /// sample takes its step's start). 0 on a batch split in several lines but the last.

@@ -103,12 +103,14 @@ fn a_recording_of_the_demo_reads_back_with_the_mcap_package() {
     let d = testkit::mcapread::read(&file).unwrap();
     check_shapes(&d);
     assert_eq!(d.metadata["hwgw.recording"]["lost"], "0");
-    // sim0 samples its inputs every 20 ms: 3 s is 150 samples (one more at the edges).
+    // sim0 samples its inputs every 20 ms: 3 s is 150 samples (one more at the edges; a
+    // step skipped under load, fewer), one for each step of sim0.ai recorded.
+    let ai_steps = topic(&d, "/activity/sim0.ai").times.len();
     for ch in ["/sim0/ai/ch0", "/sim0/ai/ch1", "/sim0/ai/ch3"] {
         let t = topic(&d, ch);
         assert!(
-            (148..=152).contains(&t.times.len()),
-            "{ch}: {}",
+            (140..=152).contains(&t.times.len()) && t.times.len().abs_diff(ai_steps) <= 1,
+            "{ch}: {} samples, {ai_steps} steps",
             t.times.len()
         );
         let gap = median_gap(&t.times);
@@ -152,7 +154,7 @@ fn a_recording_of_the_demo_reads_back_with_the_mcap_package() {
     // The card's bus thread steps every 10 ms on an absolute grid.
     let bus = topic(&d, "/activity/sim0");
     assert!(
-        (295..=305).contains(&bus.times.len()),
+        (280..=305).contains(&bus.times.len()),
         "{}",
         bus.times.len()
     );
@@ -218,6 +220,12 @@ fn a_triggered_capture_holds_exactly_the_window_asked_for() {
         n("trigger.window_end_ns"),
     );
     assert_eq!((at - start, end - at), (300 * MS, 700 * MS));
+    assert_eq!(
+        n("trigger.complete_from_ns"),
+        start,
+        "the ring let go of none of it"
+    );
+    assert_eq!(meta["trigger.ring_overflow"], "0");
     for (name, t) in &d.topics {
         assert!(
             t.times.iter().all(|x| (start..=end).contains(x)),
@@ -257,8 +265,9 @@ fn a_triggered_capture_holds_exactly_the_window_asked_for() {
     for t in [ramp, topic(&d, "/sim0/ai/ch0")] {
         let grid: Vec<u64> = t.times.iter().map(|x| due[x]).collect();
         assert!(
-            grid.windows(2).all(|w| w[1] - w[0] == 20 * MS),
-            "a step missing: {grid:?}"
+            // A step skipped under load leaves a gap of whole periods, never part of one.
+            grid.windows(2).all(|w| (w[1] - w[0]) % (20 * MS) == 0),
+            "off the grid: {grid:?}"
         );
         assert!(
             grid[0] - 20 * MS < start,
@@ -295,10 +304,10 @@ fn the_recorder_component_records_while_it_runs() {
     assert!(out.status.success(), "{out:?}");
     assert!(!file.exists(), "check created the recording");
     let svc = Service::start(HWGW, "record-component", &[&config], &[]).unwrap();
-    wait_until("the recorder wrote 100 messages", || {
+    wait_until("the recorder wrote 200 messages", || {
         svc.ok(serde_json::json!({"cmd": "get", "component": "rec", "port": "written"}))
             .as_u64()
-            .is_some_and(|n| n >= 100)
+            .is_some_and(|n| n >= 200)
     });
     let stopped = svc.terminate();
     assert!(stopped.status.success(), "{}", stopped.log);

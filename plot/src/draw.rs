@@ -109,7 +109,11 @@ impl Frame<'_> {
                 self.fail(e)
             }
         })?;
-        f.write_all(bytes).map_err(|e| self.fail(e))
+        f.write_all(bytes).map_err(|e| {
+            // Made new above: a half-written picture is ours to remove.
+            let _ = std::fs::remove_file(self.path);
+            self.fail(e)
+        })
     }
 
     pub(crate) fn fail(&self, detail: impl std::fmt::Display) -> PlotError {

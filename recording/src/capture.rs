@@ -78,13 +78,14 @@ impl<W: Write + Seek> Capture<W> {
                     notes.insert("trigger.at_ns".into(), wall(w.triggered_at().unwrap_or(0)));
                     notes.insert("trigger.window_start_ns".into(), wall(start));
                     notes.insert("trigger.window_end_ns".into(), wall(end));
+                    let from = w.complete_from().unwrap_or(start);
+                    notes.insert("trigger.complete_from_ns".into(), wall(from));
                 }
                 None => {
                     notes.insert("trigger.at_ns".into(), "never".into());
                 }
             }
             notes.insert("trigger.ring_overflow".into(), w.ring_overflow.to_string());
-            notes.insert("trigger.late".into(), w.late.to_string());
             notes.insert("trigger.not_numbers".into(), w.not_numbers.to_string());
         }
         self.recorder.finish(&closing)

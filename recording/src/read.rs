@@ -8,6 +8,11 @@ use crate::write::METADATA;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+/// `O_NONBLOCK` (Linux, every architecture but alpha, sparc, parisc and mips).
+const fn libc_nonblock() -> i32 {
+    0o4000
+}
+
 /// The largest recording read back: 4 GiB.
 pub const MAX_FILE: u64 = 4 << 30;
 
@@ -89,7 +94,14 @@ impl Recording {
             path: path.to_path_buf(),
             source,
         };
-        let meta = std::fs::metadata(path).map_err(io)?;
+        // Opened first, without blocking (a FIFO would wait for a writer), then looked at.
+        let file = std::os::unix::fs::OpenOptionsExt::custom_flags(
+            std::fs::OpenOptions::new().read(true),
+            libc_nonblock(),
+        )
+        .open(path)
+        .map_err(io)?;
+        let meta = file.metadata().map_err(io)?;
         if !meta.is_file() {
             return Err(io(std::io::Error::other("not a regular file")));
         }
@@ -103,11 +115,7 @@ impl Recording {
         }
         // At most what the size said: a file that grows meanwhile is read up to it.
         let mut bytes = Vec::with_capacity(size as usize);
-        std::io::Read::read_to_end(
-            &mut std::io::Read::take(std::fs::File::open(path).map_err(io)?, size),
-            &mut bytes,
-        )
-        .map_err(io)?;
+        std::io::Read::read_to_end(&mut std::io::Read::take(file, size), &mut bytes).map_err(io)?;
         Recording::parse(&bytes).map_err(|source| ReadError::Mcap {
             path: path.to_path_buf(),
             source,

@@ -1,14 +1,16 @@
 //! A triggered capture, as halscope makes one: `comp.port > 3.0` is the trigger; the
 //! capture is every item from `pre` before to `post` after the time of the first sample at
 //! which the condition became true (a sample where it held after one where it did not).
+//! As a scope's, the trigger is armed once `pre` of history has come: an edge sooner
+//! after the first item is not taken.
 //!
 //! Items arrive in batches, each in time order (see [`crate::Capture`]), batches later
 //! than each other but a batch's first items earlier than the last batch's last. So the
 //! window keeps a ring of what came before the trigger, longer than `pre` by
 //! [`SLACK_NS`], and decides each item by its own time: the capture holds exactly the items
 //! whose times fall within `[t - pre, t + post]`. The ring is bounded; what it had to let
-//! go of within `pre`, and items of the window that came after it was written, are
-//! counted.
+//! go of within `pre` is counted, and the time from which the capture is surely whole is
+//! kept ([`Window::complete_from`]).
 
 use crate::item::Item;
 use serde_json::Value;
@@ -148,8 +150,10 @@ pub struct Window {
     clock: u64,
     /// Items the ring let go of within `pre` of the newest (it was full).
     pub ring_overflow: u64,
-    /// Items of the window that came after its start had been written.
-    pub late: u64,
+    /// The first item's time: the trigger is armed `pre` after it.
+    first: Option<u64>,
+    /// The newest time of an item the ring let go of (0: none).
+    let_go: u64,
     /// Trigger-port samples that were not numbers.
     pub not_numbers: u64,
 }
@@ -171,7 +175,8 @@ impl Window {
             newest: 0,
             clock: 0,
             ring_overflow: 0,
-            late: 0,
+            first: None,
+            let_go: 0,
             not_numbers: 0,
         }
     }
@@ -197,6 +202,18 @@ impl Window {
         self.clock = self.clock.max(now_ns);
     }
 
+    /// From when the capture surely holds every item of the window: its start, or later
+    /// when the ring had to let go of items within it.
+    pub fn complete_from(&self) -> Option<u64> {
+        self.bounds().map(|(start, _)| {
+            if self.let_go >= start {
+                self.let_go + 1
+            } else {
+                start
+            }
+        })
+    }
+
     /// True once every item of the window has surely come.
     pub fn done(&self) -> bool {
         self.bounds()
@@ -210,17 +227,17 @@ impl Window {
         if let Some((start, end)) = self.bounds() {
             if (start..=end).contains(&t) {
                 out.push(item);
-            } else if t < start {
-                self.late += 1;
             }
             return;
         }
+        let first = *self.first.get_or_insert(t);
         if let Item::Sample { port, value, at_ns } = &item
             && *port == self.port
         {
             match self.trigger.holds(value) {
                 Some(held) => {
-                    if held && self.last_held == Some(false) {
+                    let armed = *at_ns >= first.saturating_add(self.pre_ns);
+                    if held && self.last_held == Some(false) && armed {
                         self.at = Some(*at_ns);
                     }
                     self.last_held = Some(held);
@@ -230,9 +247,11 @@ impl Window {
         }
         if self.ring.len() == self.ring_limit
             && let Some(old) = self.ring.pop_front()
-            && old.time_ns() >= self.newest.saturating_sub(self.pre_ns)
         {
-            self.ring_overflow += 1;
+            self.let_go = self.let_go.max(old.time_ns());
+            if old.time_ns() >= self.newest.saturating_sub(self.pre_ns) {
+                self.ring_overflow += 1;
+            }
         }
         self.ring.push_back(item);
         match self.bounds() {
@@ -249,7 +268,9 @@ impl Window {
                     .newest
                     .saturating_sub(self.pre_ns.saturating_add(SLACK_NS));
                 while self.ring.front().is_some_and(|i| i.time_ns() < keep) {
-                    self.ring.pop_front();
+                    if let Some(old) = self.ring.pop_front() {
+                        self.let_go = self.let_go.max(old.time_ns());
+                    }
                 }
             }
         }

@@ -248,8 +248,13 @@ impl<W: Write + Seek> Recorder<W> {
             lost += n;
             meta.insert(format!("lost_steps.{a}"), n.to_string());
         }
-        meta.insert("lost".into(), lost.to_string());
         meta.extend(closing.notes.clone());
+        // A sample that could not be serialised is lost too.
+        lost += meta
+            .get("unserialisable")
+            .and_then(|n| n.parse::<u64>().ok())
+            .unwrap_or(0);
+        meta.insert("lost".into(), lost.to_string());
         self.mcap.write_metadata(&mcap::records::Metadata {
             name: METADATA.into(),
             metadata: meta.clone(),

@@ -64,14 +64,23 @@ fn a_batch_far_longer_than_the_slack_in_port_order_loses_nothing_of_the_window()
     cap.offer(batch(4), 4_000 * MS).expect("offer");
     assert!(cap.done());
     let meta = cap.finish(Closing::default()).expect("finish");
-    assert_eq!(
-        (
-            meta["trigger.late"].as_str(),
-            meta["trigger.ring_overflow"].as_str()
-        ),
-        ("0", "0")
-    );
+    assert_eq!(meta["trigger.ring_overflow"], "0");
+    assert_eq!(meta["trigger.complete_from_ns"], (1_400 * MS).to_string());
     check(&out);
+}
+
+#[test]
+fn an_edge_before_pre_of_history_has_come_is_not_taken() {
+    let mut out = Cursor::new(Vec::new());
+    let rec = Recorder::new(&mut out, ports(), vec![], Options::default()).expect("new");
+    let trigger: Trigger = "b.level > 0.5".parse().expect("valid");
+    // pre 2 s: the edge at 1.5 s comes before 2 s of history, so it does not trigger.
+    let window = Window::new(trigger, 1, 2_000 * MS, 200 * MS, 1 << 20);
+    let mut cap = Capture::new(rec, Some(window), 0);
+    cap.offer(batch(3), 3_000 * MS).expect("offer");
+    assert!(!cap.triggered());
+    let meta = cap.finish(Closing::default()).expect("finish");
+    assert_eq!(meta["trigger.at_ns"], "never");
 }
 
 #[test]
@@ -88,7 +97,7 @@ fn ports_that_fall_silent_after_the_trigger_still_end_the_window() {
     assert!(cap.done());
     let meta = cap.finish(Closing::default()).expect("finish");
     assert_eq!(meta["trigger.at_ns"], (1_500 * MS).to_string());
-    assert_eq!(meta["trigger.late"], "0");
+    assert_eq!(meta["trigger.complete_from_ns"], (1_400 * MS).to_string());
     assert_eq!(meta["trigger.ring_overflow"], "0");
     check(&out);
 }

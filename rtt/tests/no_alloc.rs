@@ -26,6 +26,7 @@ struct Counting;
 
 thread_local! {
     static ALLOCATIONS: Cell<u64> = const { Cell::new(0) };
+    static FREES: Cell<u64> = const { Cell::new(0) };
 }
 
 // SAFETY: defers every call to the system allocator unchanged; only counts.
@@ -36,6 +37,7 @@ unsafe impl GlobalAlloc for Counting {
         unsafe { System.alloc(layout) }
     }
     unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        let _ = FREES.try_with(|c| c.set(c.get() + 1));
         // SAFETY: same contract as our caller's.
         unsafe { System.dealloc(ptr, layout) }
     }
@@ -58,6 +60,55 @@ fn count(f: impl FnOnce()) -> u64 {
     let before = allocations();
     f();
     allocations() - before
+}
+
+/// Frees made by `f` on this thread.
+fn frees(f: impl FnOnce()) -> u64 {
+    let before = FREES.with(Cell::get);
+    f();
+    FREES.with(Cell::get) - before
+}
+
+struct Writes {
+    out: OutputPort<f64>,
+}
+
+impl Component for Writes {
+    fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
+        self.out.write(&1.0);
+        Ok(())
+    }
+}
+
+/// A recording's (or a watch's) reader let go on another thread: the writer's next step
+/// forgets the connection without freeing its samples — a later reader frees them.
+#[test]
+fn a_writer_never_frees_a_connection_a_dynamic_reader_let_go_of() {
+    let rt = Runtime::new(Arc::new(Registry::new()), RuntimeOptions::default()).unwrap();
+    let task = rt
+        .add("w", ActivitySpec::Slave, rtt::InitialState::Stopped, |i| {
+            Ok(Writes {
+                out: i.output("out", "ones")?,
+            })
+        })
+        .unwrap();
+    task.start().unwrap();
+    let port = task.port("out").unwrap();
+    let reader = port.stamped_reader(ConnPolicy::buffer(4096)).unwrap();
+    task.step().unwrap();
+    std::thread::spawn(move || drop(reader)).join().unwrap();
+    assert_eq!(
+        frees(|| task.step().unwrap()),
+        0,
+        "the writer freed the connection"
+    );
+    assert!(port.connections().is_empty());
+    // The next reader let go of frees the first's samples, off the writer's thread.
+    let again = port.stamped_reader(ConnPolicy::buffer(4)).unwrap();
+    let freed = std::thread::spawn(move || frees(|| drop(again)))
+        .join()
+        .unwrap();
+    assert!(freed > 2, "{freed}");
 }
 
 #[derive(Clone, Default, serde::Serialize, serde::Deserialize)]

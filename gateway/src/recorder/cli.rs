@@ -136,7 +136,12 @@ pub fn record(client: &Client, args: RecordArgs) -> Result<String, RecordCliErro
         Err(e) => {
             // What was recorded stays readable: the file is completed first.
             losses.notes.insert("ended".into(), format!("error: {e}"));
-            capture.finish(losses)?;
+            if let Err(f) = capture.finish(losses) {
+                return Err(RecordCliError::Usage(format!(
+                    "{e}; completing {} failed too: {f}",
+                    args.file.display()
+                )));
+            }
             return Err(e);
         }
     };
@@ -232,16 +237,16 @@ fn pump(
         .duration
         .map(|d| t0.saturating_add(d.as_nanos() as u64));
     let mut now = t0;
+    let mut last_batch = Instant::now();
+    // A drain split in several lines is offered whole, once its last line came.
+    let mut items = Vec::new();
     loop {
         if matches!(sigfd.read_signal(), Ok(Some(_))) {
             return Ok("stopped by a signal");
         }
-        // A gateway that stops sending: the duration, measured here, still ends it.
-        if let Some(d) = args.duration
-            && began.elapsed() > d + Duration::from_secs(2)
-            && !capture.triggered()
-        {
-            return Ok(if triggered { NEVER } else { "duration" });
+        // A gateway that sends nothing at all any more (it sends at least once a second).
+        if last_batch.elapsed() > SILENCE && began.elapsed() > SILENCE {
+            return Ok("the gateway stopped sending");
         }
         let b = match stream.next(Some(Duration::from_millis(200))) {
             Ok(Some(Body::Records(b))) => b,
@@ -249,34 +254,41 @@ fn pump(
             Ok(None) => return Ok("the gateway ended the stream"),
             Err(e) => return Err(e.into()),
         };
-        // A batch split in several lines gives the time with its last.
-        let whole = b.now_ns != 0;
+        last_batch = Instant::now();
+        items.extend(b.items);
+        if b.now_ns == 0 {
+            continue;
+        }
         now = now.max(b.now_ns);
         losses.ports_lost = b.ports_lost;
         losses.steps_lost = b.steps_lost;
-        let mut items = b.items;
+        losses
+            .notes
+            .insert("unserialisable".into(), b.unserialisable.to_string());
+        let mut whole = std::mem::take(&mut items);
         if !triggered && let Some(end) = end {
-            items.retain(|i| (t0..=end).contains(&i.time_ns()));
+            whole.retain(|i| (t0..=end).contains(&i.time_ns()));
         }
-        capture.offer(items, now)?;
+        capture.offer(whole, now)?;
         if capture.done() {
             return Ok("the trigger window is complete");
         }
         // Past the end by a guard, every sample stamped before the end has come (a sample
         // takes its step's start, and is written during the step).
-        if whole
-            && end.is_some_and(|end| now >= end.saturating_add(END_GUARD_NS))
-            && !capture.triggered()
-        {
+        if end.is_some_and(|end| now >= end.saturating_add(END_GUARD_NS)) && !capture.triggered() {
             return Ok(if triggered { NEVER } else { "duration" });
         }
     }
 }
 
+/// How long without a batch before the stream is taken for dead.
+const SILENCE: Duration = Duration::from_secs(5);
+
 const NEVER: &str = "the trigger never came";
 
-/// How long past the end of `--duration` the stream is read on.
-const END_GUARD_NS: u64 = 100_000_000;
+/// How long past the end of `--duration` the stream is read on: samples of a step that
+/// began before the end and took longer than this to write them are left out.
+const END_GUARD_NS: u64 = 500_000_000;
 
 /// What `hwgw plot` draws.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]

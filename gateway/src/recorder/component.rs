@@ -199,9 +199,11 @@ impl McapRecorder {
         let (Some(taps), Some(capture)) = (&mut self.taps, &mut self.capture) else {
             return Ok(());
         };
+        // Taken before the drain, as the stream takes it: what was stamped before it came.
+        let now = now_ns();
         self.items.clear();
         taps.drain(&mut self.items);
-        capture.offer(std::mem::take(&mut self.items), now_ns())?;
+        capture.offer(std::mem::take(&mut self.items), now)?;
         self.written.write(&capture.written());
         Ok(())
     }

@@ -101,18 +101,22 @@ pub fn pump(mut taps: Taps, mut send: impl FnMut(RecordBatch) -> bool, stop: imp
         }
         let losses = taps.losses();
         // The last chunk carries the time: the client knows all up to it has come.
+        let mut all = items.into_iter();
         let mut chunks: Vec<Vec<Item>> = Vec::new();
-        while items.len() > MAX_BATCH_ITEMS {
-            let rest = items.split_off(MAX_BATCH_ITEMS);
-            chunks.push(std::mem::replace(&mut items, rest));
+        loop {
+            let chunk: Vec<Item> = all.by_ref().take(MAX_BATCH_ITEMS).collect();
+            if chunk.is_empty() && !chunks.is_empty() {
+                break;
+            }
+            chunks.push(chunk);
         }
-        chunks.push(items);
         let last = chunks.len() - 1;
         for (i, items) in chunks.into_iter().enumerate() {
             let batch = RecordBatch {
                 items,
                 ports_lost: losses.ports_lost.clone(),
                 steps_lost: losses.steps_lost.clone(),
+                unserialisable: taps.unserialisable(),
                 now_ns: if i == last { now } else { 0 },
             };
             if !send(batch) {

@@ -174,6 +174,11 @@ impl Taps {
         }
     }
 
+    /// Samples so far whose value could not be serialised.
+    pub fn unserialisable(&self) -> u64 {
+        self.unserialisable
+    }
+
     /// What was lost so far: each port's and each activity's dropped count.
     pub fn losses(&self) -> Closing {
         Closing {

@@ -149,9 +149,19 @@ fn direction_error(port: &str, actual: Direction, what: &'static str) -> Introsp
     }
 }
 
-struct ValueReader<T: Send> {
+struct ValueReader<T: Clone + Send + 'static> {
     port: InputPort<T>,
     sample: T,
+    /// Losses counted so far (a connection whose writer went away is no longer listed).
+    dropped: std::cell::Cell<u64>,
+}
+
+// A dynamic reader lives off the real-time threads (a watch, a recording, a reporter): its
+// connections are kept until their writers let go, so a real-time writer never frees one.
+impl<T: Clone + Send + 'static> Drop for ValueReader<T> {
+    fn drop(&mut self) {
+        self.port.bury_connections();
+    }
 }
 
 impl<T: PortData> DynReader for ValueReader<T> {
@@ -169,7 +179,10 @@ impl<T: PortData> DynReader for ValueReader<T> {
     }
 
     fn dropped(&self) -> u64 {
-        self.port.connections().iter().map(|c| c.dropped).sum()
+        let now: u64 = self.port.connections().iter().map(|c| c.dropped).sum();
+        let n = now.max(self.dropped.get());
+        self.dropped.set(n);
+        n
     }
 }
 
@@ -211,7 +224,11 @@ impl<T: PortData> OutEntry<T> {
         };
         let port = InputPort::with_sample(&format!("{}.reader", self.shared.name), sample.clone());
         connect_with(&self.shared, port.shared(), policy, stamped)?;
-        Ok(Box::new(ValueReader { port, sample }))
+        Ok(Box::new(ValueReader {
+            port,
+            sample,
+            dropped: std::cell::Cell::new(0),
+        }))
     }
 }
 

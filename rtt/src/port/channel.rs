@@ -387,6 +387,19 @@ impl<T: Clone + Send + 'static> Reader<T> {
     }
 }
 
+/// Connections whose reading end a non-real-time reader let go of: each is kept here until
+/// its writer, perhaps a real-time component, has let go too, and freed by a later
+/// [`bury`] — so the writer's thread never frees a connection's samples.
+static GRAVEYARD: Mutex<Vec<Arc<dyn Send + Sync>>> = Mutex::new(Vec::new());
+
+/// Keeps `ch` until its other end has let go (see [`GRAVEYARD`]), and frees those whose
+/// ends have both gone. Locks: not for real-time threads.
+pub(super) fn bury(ch: Arc<dyn Send + Sync>) {
+    let mut g = lock(&GRAVEYARD);
+    g.retain(|c| Arc::strong_count(c) > 1);
+    g.push(ch);
+}
+
 /// How many connections may wait for a port's owner to take them up.
 const PENDING: usize = 64;
 

@@ -123,6 +123,19 @@ impl<T: Clone + Send + 'static> InputPort<T> {
         }
     }
 
+    /// Closes every connection, keeping each until its writer has let go too, so a writer
+    /// on a real-time thread never frees the connection's samples (for readers off the
+    /// real-time threads: it locks).
+    pub(crate) fn bury_connections(&mut self) {
+        // Ends not taken up yet are taken now, so none is freed by its writer either.
+        self.shared
+            .links
+            .refresh_changed(&mut self.conns, |_| false, |_| false);
+        for c in self.conns.drain(..) {
+            super::channel::bury(c.ch.clone());
+        }
+    }
+
     /// The port's name.
     pub fn name(&self) -> &str {
         &self.shared.name
