@@ -15,6 +15,11 @@ pub struct LiveHistogram {
     pub buckets: Vec<u64>,
     /// The largest lateness seen, ns.
     pub max_ns: u64,
+    /// The bucket bound below which half the wake-ups fell, ns (as the runtime's
+    /// `ActivityStats::lateness_quantile(0.5)` gives it).
+    pub p50_ns: u64,
+    /// Likewise for 99 % of them.
+    pub p99_ns: u64,
 }
 
 /// One panel: bars `(from_us, to_us, count)` and marks `(label, at_us)`.
@@ -78,20 +83,6 @@ pub fn lateness(rec: &Recording, frame: &Frame<'_>) -> Result<(), PlotError> {
     draw_panels(panels, frame)
 }
 
-/// The upper bound of the bucket below which fraction `q` of the wake-ups fell.
-fn live_quantile(h: &LiveHistogram, q: f64) -> f64 {
-    let total: u64 = h.buckets.iter().sum();
-    let want = (total as f64 * q).ceil() as u64;
-    let mut seen = 0;
-    for (i, n) in h.buckets.iter().enumerate() {
-        seen += n;
-        if seen >= want.max(1) {
-            return ((1u64 << (i + 1).min(63)) as f64).min(h.max_ns.max(1) as f64) / 1e3;
-        }
-    }
-    h.max_ns as f64 / 1e3
-}
-
 /// The live histograms (log2 buckets; the marks are bucket bounds, as `hwgw status` says).
 pub fn live_lateness(live: &[LiveHistogram], frame: &Frame<'_>) -> Result<(), PlotError> {
     let panels = live
@@ -108,7 +99,7 @@ pub fn live_lateness(live: &[LiveHistogram], frame: &Frame<'_>) -> Result<(), Pl
                     (lo, lo * 2.0, *c)
                 })
                 .collect();
-            let (p50, p99) = (live_quantile(h, 0.5), live_quantile(h, 0.99));
+            let (p50, p99) = (h.p50_ns as f64 / 1e3, h.p99_ns as f64 / 1e3);
             let max = h.max_ns as f64 / 1e3;
             Panel {
                 title: format!("{}: {} wake-ups", h.name, h.buckets.iter().sum::<u64>()),

@@ -104,6 +104,8 @@ fn every_kind_draws_a_picture_that_is_not_blank() {
         name: "fast".into(),
         buckets: vec![0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 5, 90, 4, 1],
         max_ns: 9_000,
+        p50_ns: 4_096,
+        p99_ns: 8_192,
     };
     plot::live_lateness(&[live], &frame(&p("live.png"))).expect("live");
     check_png(&p("live.png"));

@@ -337,10 +337,14 @@ pub fn status_plot(client: &Client, frame: &plot::Frame<'_>) -> Result<String, S
                 component: c.name.clone(),
             })
             .map_err(|e| e.to_string())?;
+        let ns = |q: f64| d.activity.lateness_quantile(q).as_nanos() as u64;
+        let (p50_ns, p99_ns) = (ns(0.5), ns(0.99));
         live.push(plot::LiveHistogram {
             name: c.name.clone(),
             buckets: d.activity.lateness_histogram,
             max_ns: d.activity.lateness_max_ns,
+            p50_ns,
+            p99_ns,
         });
     }
     plot::live_lateness(&live, frame).map_err(|e| e.to_string())?;
