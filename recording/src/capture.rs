@@ -11,18 +11,15 @@ use std::io::{Seek, Write};
 pub struct Capture<W: Write + Seek = std::io::BufWriter<std::fs::File>> {
     recorder: Recorder<W>,
     window: Option<Window>,
-    wall_offset_ns: i128,
     pass: Vec<Item>,
 }
 
 impl<W: Write + Seek> Capture<W> {
     /// Writes everything offered to `recorder`, or only the window of `window`.
-    /// `wall_offset_ns` is the recorder's offset (for the window's times in the metadata).
-    pub fn new(recorder: Recorder<W>, window: Option<Window>, wall_offset_ns: i128) -> Self {
+    pub fn new(recorder: Recorder<W>, window: Option<Window>) -> Self {
         Capture {
             recorder,
             window,
-            wall_offset_ns,
             pass: Vec::new(),
         }
     }
@@ -71,7 +68,8 @@ impl<W: Write + Seek> Capture<W> {
     /// Finishes the file, with the window's facts in the metadata.
     pub fn finish(self, mut closing: Closing) -> Result<BTreeMap<String, String>, RecordError> {
         if let Some(w) = &self.window {
-            let wall = |t: u64| (i128::from(t) + self.wall_offset_ns).to_string();
+            let offset = self.recorder.wall_offset_ns();
+            let wall = |t: u64| (i128::from(t) + offset).to_string();
             let notes = &mut closing.notes;
             match w.bounds() {
                 Some((start, end)) => {

@@ -68,6 +68,8 @@ pub struct Closing {
     pub ports_lost: Vec<u64>,
     /// Steps each activity's tap dropped.
     pub steps_lost: Vec<u64>,
+    /// Samples whose value could not be serialised (lost too).
+    pub unserialisable: u64,
     /// More facts for the metadata.
     pub notes: BTreeMap<String, String>,
 }
@@ -217,6 +219,11 @@ impl<W: Write + Seek> Recorder<W> {
         Ok(())
     }
 
+    /// UNIX time minus the items' clock, ns, as given in the options.
+    pub fn wall_offset_ns(&self) -> i128 {
+        self.options.wall_offset_ns
+    }
+
     /// Messages written so far.
     pub fn written(&self) -> u64 {
         self.port_channels
@@ -248,12 +255,9 @@ impl<W: Write + Seek> Recorder<W> {
             lost += n;
             meta.insert(format!("lost_steps.{a}"), n.to_string());
         }
+        lost += closing.unserialisable;
+        meta.insert("unserialisable".into(), closing.unserialisable.to_string());
         meta.extend(closing.notes.clone());
-        // A sample that could not be serialised is lost too.
-        lost += meta
-            .get("unserialisable")
-            .and_then(|n| n.parse::<u64>().ok())
-            .unwrap_or(0);
         meta.insert("lost".into(), lost.to_string());
         self.mcap.write_metadata(&mcap::records::Metadata {
             name: METADATA.into(),

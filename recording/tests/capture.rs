@@ -59,7 +59,7 @@ fn a_batch_far_longer_than_the_slack_in_port_order_loses_nothing_of_the_window()
     let rec = Recorder::new(&mut out, ports(), vec![], Options::default()).expect("new");
     let trigger: Trigger = "b.level > 0.5".parse().expect("valid");
     let window = Window::new(trigger, 1, 100 * MS, 200 * MS, 1 << 20);
-    let mut cap = Capture::new(rec, Some(window), 0);
+    let mut cap = Capture::new(rec, Some(window));
     // A drain that came 4 s late: port 0's samples up to 4 s come before port 1's edge.
     cap.offer(batch(4), 4_000 * MS).expect("offer");
     assert!(cap.done());
@@ -76,7 +76,7 @@ fn an_edge_before_pre_of_history_has_come_is_not_taken() {
     let trigger: Trigger = "b.level > 0.5".parse().expect("valid");
     // pre 2 s: the edge at 1.5 s comes before 2 s of history, so it does not trigger.
     let window = Window::new(trigger, 1, 2_000 * MS, 200 * MS, 1 << 20);
-    let mut cap = Capture::new(rec, Some(window), 0);
+    let mut cap = Capture::new(rec, Some(window));
     cap.offer(batch(3), 3_000 * MS).expect("offer");
     assert!(!cap.triggered());
     let meta = cap.finish(Closing::default()).expect("finish");
@@ -89,7 +89,7 @@ fn ports_that_fall_silent_after_the_trigger_still_end_the_window() {
     let rec = Recorder::new(&mut out, ports(), vec![], Options::default()).expect("new");
     let trigger: Trigger = "b.level > 0.5".parse().expect("valid");
     let window = Window::new(trigger, 1, 100 * MS, 200 * MS, 1 << 20);
-    let mut cap = Capture::new(rec, Some(window), 0);
+    let mut cap = Capture::new(rec, Some(window));
     cap.offer(batch(2), 2_000 * MS).expect("offer");
     assert!(cap.triggered() && !cap.done());
     // The ports fall silent: time going on ends the window.

@@ -217,7 +217,7 @@ fn open(
         start.activities.clone(),
         options,
     )?;
-    let capture = Capture::new(recorder, window, start.wall_minus_clock_ns);
+    let capture = Capture::new(recorder, window);
     Ok((stream, capture, start))
 }
 
@@ -262,9 +262,7 @@ fn pump(
         now = now.max(b.now_ns);
         losses.ports_lost = b.ports_lost;
         losses.steps_lost = b.steps_lost;
-        losses
-            .notes
-            .insert("unserialisable".into(), b.unserialisable.to_string());
+        losses.unserialisable = b.unserialisable;
         let mut whole = std::mem::take(&mut items);
         if !triggered && let Some(end) = end {
             whole.retain(|i| (t0..=end).contains(&i.time_ns()));

@@ -152,12 +152,11 @@ impl Component for McapRecorder {
             self.buffer.get() as usize,
         )
         .map_err(HookError::new)?;
-        let wall_offset_ns = wall_offset();
         let mut notes = std::collections::BTreeMap::new();
         notes.insert("recorder".into(), ctx.name().to_string());
         notes.insert("trigger".into(), self.trigger.get());
         let options = Options {
-            wall_offset_ns,
+            wall_offset_ns: wall_offset(),
             max_bytes: self.max_mb.get().saturating_mul(1 << 20),
             notes,
         };
@@ -169,7 +168,7 @@ impl Component for McapRecorder {
             options,
         )
         .map_err(|e| HookError::new(e.to_string()))?;
-        self.capture = Some(Capture::new(recorder, window, wall_offset_ns));
+        self.capture = Some(Capture::new(recorder, window));
         self.taps = Some(taps);
         Ok(())
     }

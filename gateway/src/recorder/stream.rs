@@ -116,7 +116,7 @@ pub fn pump(mut taps: Taps, mut send: impl FnMut(RecordBatch) -> bool, stop: imp
                 items,
                 ports_lost: losses.ports_lost.clone(),
                 steps_lost: losses.steps_lost.clone(),
-                unserialisable: taps.unserialisable(),
+                unserialisable: losses.unserialisable,
                 now_ns: if i == last { now } else { 0 },
             };
             if !send(batch) {

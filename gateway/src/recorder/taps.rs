@@ -174,21 +174,13 @@ impl Taps {
         }
     }
 
-    /// Samples so far whose value could not be serialised.
-    pub fn unserialisable(&self) -> u64 {
-        self.unserialisable
-    }
-
     /// What was lost so far: each port's and each activity's dropped count.
     pub fn losses(&self) -> Closing {
         Closing {
             ports_lost: self.readers.iter().map(|r| r.dropped()).collect(),
             steps_lost: self.steps.iter().map(StepTap::dropped).collect(),
-            notes: [(
-                "unserialisable".to_string(),
-                self.unserialisable.to_string(),
-            )]
-            .into(),
+            unserialisable: self.unserialisable,
+            notes: Default::default(),
         }
     }
 }
