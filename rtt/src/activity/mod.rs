@@ -316,6 +316,22 @@ impl StepTiming {
     }
 }
 
+/// One step, as every kind of activity runs it: ThreadScope's pulse around it, its start as
+/// the time of what it writes to stamped connections, then its statistics and step taps.
+/// Returns when it ended (monotonic ns).
+#[inline]
+fn run_step(shared: &Shared, runner: &dyn Runner, events: &FdEvents, timing: StepTiming) -> u64 {
+    let started = timing.started.as_nanos();
+    shared
+        .scope
+        .pulse(|| in_step(started, || runner.step(events, timing)));
+    let ended = MonotonicClock.now().as_nanos();
+    shared
+        .stats
+        .step(timing.scheduled.as_nanos(), started, ended);
+    ended
+}
+
 /// What an activity steps.
 pub(crate) trait Runner: Send + Sync {
     fn step(&self, events: &FdEvents, timing: StepTiming);
@@ -617,19 +633,12 @@ impl Activity {
         if self.shared.spec.has_thread() {
             return Err(ActivityError::NotSlave);
         }
-        let clock = MonotonicClock;
-        let t0 = clock.now();
-        let timing = StepTiming {
-            scheduled: t0,
-            started: t0,
-        };
-        self.shared.scope.pulse(|| {
-            in_step(timing.started.as_nanos(), || {
-                runner.step(&FdEvents::default(), timing)
-            })
-        });
-        let t0 = t0.as_nanos();
-        self.shared.stats.step(t0, t0, clock.now().as_nanos());
+        run_step(
+            &self.shared,
+            runner,
+            &FdEvents::default(),
+            StepTiming::now(),
+        );
         Ok(())
     }
 }

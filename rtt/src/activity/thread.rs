@@ -3,9 +3,9 @@
 //! and the signal that wakes a non-periodic thread.
 
 use super::realtime::{apply_thread_options, prepare_periodic};
-use super::steps::in_step;
 use super::{
     ActivitySpec, DEADLINE_EVENT, FdEvents, Runner, Shared, StepTiming, Timing, WAKE_EVENT,
+    run_step,
 };
 use crate::scope::set_thread_number;
 use arc_swap::ArcSwapOption;
@@ -108,11 +108,7 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                     scheduled: Timestamp::from_nanos(next),
                     started: Timestamp::from_nanos(woke),
                 };
-                shared
-                    .scope
-                    .pulse(|| in_step(woke, || runner.step(&events, step_timing)));
-                let end = clock.now().as_nanos();
-                stats.step(next, woke, end);
+                let end = run_step(&shared, runner.as_ref(), &events, step_timing);
                 next = match timing {
                     Timing::Absolute => next.saturating_add(period_ns),
                     Timing::Relative => woke.saturating_add(period_ns),
@@ -171,11 +167,7 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                     scheduled: Timestamp::from_nanos(if woken_at == 0 { start } else { woken_at }),
                     started: Timestamp::from_nanos(start),
                 };
-                shared
-                    .scope
-                    .pulse(|| in_step(start, || runner.step(&events, timing)));
-                last_end = clock.now().as_nanos();
-                stats.step(timing.scheduled.as_nanos(), start, last_end);
+                last_end = run_step(&shared, runner.as_ref(), &events, timing);
             }
         }
         ActivitySpec::FileDescriptor { timeout, thread } => {
@@ -218,12 +210,7 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                     }
                 }
                 // One clock read for the step's start and its timing.
-                let timing = StepTiming::now();
-                let start = timing.started.as_nanos();
-                shared
-                    .scope
-                    .pulse(|| in_step(start, || runner.step(&events, timing)));
-                stats.step(start, start, clock.now().as_nanos());
+                run_step(&shared, runner.as_ref(), &events, StepTiming::now());
             }
         }
         ActivitySpec::Slave => {}
