@@ -213,7 +213,12 @@ impl RawRange {
 /// A linear map between a raw range and physical values.
 ///
 /// `Copy`: devices hand it out from real-time paths.
-#[derive(Debug, Clone, Copy, PartialEq)]
+///
+/// It crosses a wire as its parts (`raw`, `at_min`, `at_max`, `formula`, `unit`,
+/// `ties_to_even`); reading it back builds it again through the constructors, so a
+/// hostile peer's scale is refused as one from a configuration would be.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(try_from = "ScaleParts")]
 pub struct Scale {
     raw: RawRange,
     /// Physical value at `raw.min`.
@@ -248,7 +253,8 @@ pub fn linear(raw: i128, factor: f64, offset: f64) -> f64 {
 
 /// How a [`Scale`] computes a physical value, so that it is the value the device's own
 /// documentation (or library) gives, to the last bit.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
 enum Formula {
     /// Interpolated from the nearer end of the range, so both ends are exact.
     Ends,
@@ -257,6 +263,31 @@ enum Formula {
     /// `lowest + (raw - raw.min) / steps * (highest - lowest)`, in that order: comedilib's
     /// `comedi_to_phys`.
     Fraction,
+}
+
+/// A [`Scale`] as read from a wire, before it is built again.
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ScaleParts {
+    raw: RawRange,
+    at_min: f64,
+    at_max: f64,
+    formula: Formula,
+    unit: Unit,
+    ties_to_even: bool,
+}
+
+impl TryFrom<ScaleParts> for Scale {
+    type Error = ScaleError;
+
+    fn try_from(p: ScaleParts) -> Result<Scale, ScaleError> {
+        let s = match p.formula {
+            Formula::Ends => Scale::linear(p.raw, p.at_min, p.at_max, p.unit)?,
+            Formula::Fraction => Scale::fraction(p.raw, p.at_min, p.at_max, p.unit)?,
+            Formula::Factor(f, o) => Scale::from_factor(p.raw, f, o, p.unit)?,
+        };
+        Ok(if p.ties_to_even { s.ties_to_even() } else { s })
+    }
 }
 
 impl Scale {

@@ -177,8 +177,10 @@ impl Browser {
 
     fn ls(&self, named: Option<&str>) -> Result<String, String> {
         let Some(c) = named.or(self.cwd.as_deref()) else {
-            let list: Vec<ComponentEntry> =
-                self.client.typed(&Request::Ls).map_err(|e| e.to_string())?;
+            let list: Vec<ComponentEntry> = self
+                .client
+                .typed(&Request::Ls { all: false })
+                .map_err(|e| e.to_string())?;
             return Ok(table::components(&list));
         };
         let d = self.describe(c)?;
@@ -271,7 +273,7 @@ impl Browser {
 
     fn components(&self) -> Vec<String> {
         self.client
-            .typed::<Vec<ComponentEntry>>(&Request::Ls)
+            .typed::<Vec<ComponentEntry>>(&Request::Ls { all: false })
             .map(|l| l.into_iter().map(|c| c.name).collect())
             .unwrap_or_default()
     }
@@ -326,7 +328,7 @@ fn history_file() -> Option<PathBuf> {
 pub fn run(client: Client) -> Result<(), String> {
     let browser = Browser::with_client(client);
     // Fail early, with a clear message, when nobody is listening.
-    browser.ask(&Request::Ls)?;
+    browser.ask(&Request::Ls { all: false })?;
     let mut editor = rustyline::Editor::<Helper, rustyline::history::DefaultHistory>::new()
         .map_err(|e| e.to_string())?;
     editor.set_helper(Some(Helper(RefCell::new(browser))));

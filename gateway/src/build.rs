@@ -115,10 +115,14 @@ fn build(d: &Deployment, file: &str, text: &str, types: &Types) -> Result<Gatewa
     let registry = Arc::new(Registry::new());
     let mut cards = b.cards(&registry);
     b.aliases(&registry);
+    let zenoh = b.zenoh(&registry);
     let Some(runtime) = b.runtime(registry) else {
         return Err(b.problems.into_vec());
     };
     let mut order = b.bus_and_io(&runtime, &mut cards);
+    if let Some(node) = &zenoh {
+        order.extend(b.remote_io(&runtime, node));
+    }
     let mut start = vec![true; order.len()];
     b.components(&runtime, &mut order, &mut start);
     b.connections(&runtime, &mut cards);
@@ -126,13 +130,15 @@ fn build(d: &Deployment, file: &str, text: &str, types: &Types) -> Result<Gatewa
         order.push(w);
         start.push(true);
     }
-    let servers = b.servers(&runtime);
+    let mut servers = b.servers(&runtime);
+    servers.extend(zenoh.as_ref().map(crate::remote::server));
     let scope_vcd = b.scope_vcd();
     if !b.problems.is_empty() {
         return Err(b.problems.into_vec());
     }
     let mut gw = Gateway::new(runtime, cards, servers, order, start, b.hold);
     gw.scope_vcd = scope_vcd;
+    gw.zenoh = zenoh;
     Ok(gw)
 }
 
@@ -364,6 +370,42 @@ impl Build<'_, '_, '_> {
                 None
             }
         }
+    }
+
+    /// The Zenoh node of the `[zenoh]` section, if any: its imported devices registered.
+    fn zenoh(&mut self, registry: &Arc<Registry>) -> Option<Arc<crate::remote::Node>> {
+        let section = self.d.zenoh.as_ref()?;
+        match crate::remote::node(section, self.base, registry) {
+            Ok(n) => Some(n),
+            Err(problems) => {
+                let at = KeyPath::top("zenoh");
+                for (key, message) in problems {
+                    self.problems.at(&at.join(&key), message);
+                }
+                None
+            }
+        }
+    }
+
+    /// The IO components of the imported devices, as a card's: ports sampled (inputs) at
+    /// the publication period or written (outputs) on new data.
+    fn remote_io(&mut self, runtime: &Runtime, node: &crate::remote::Node) -> Vec<TaskContext> {
+        let period = millis(
+            self.d
+                .zenoh
+                .as_ref()
+                .and_then(crate::remote::publish_ms)
+                .unwrap_or(10.0),
+        );
+        let mut out = Vec::new();
+        for owner in crate::remote::import_owners(node) {
+            let (names, details) = (ChannelNames::default(), Default::default());
+            match io::build(runtime, &owner, period, &names, &details) {
+                Ok(ts) => out.extend(ts),
+                Err(e) => self.problems.at(&KeyPath::top("zenoh").key("import"), e),
+            }
+        }
+        out
     }
 
     /// Each card's bus side, then its IO components; returns them in start order.

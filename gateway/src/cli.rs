@@ -48,10 +48,13 @@ enum Command {
         /// The deployment file.
         config: PathBuf,
     },
-    /// List components, or describe one.
+    /// List components, or describe one (`B/follow`: one of gateway B, through Zenoh).
     Ls {
         /// A component to describe.
         component: Option<String>,
+        /// Every gateway's components (Zenoh), each named `gateway/component`.
+        #[arg(long, conflicts_with = "component")]
+        all: bool,
     },
     /// An interactive console on a running gateway (cd, ls, get, set, call, TAB completion).
     Browse,
@@ -262,15 +265,20 @@ fn finish(result: Result<String, String>) -> ExitCode {
 /// A one-shot command: the text to print.
 fn one_shot(client: &Client, command: Command, json: bool) -> Result<Option<String>, ClientError> {
     let text = match command {
-        Command::Ls { component: None } => {
-            let list: Vec<ComponentEntry> = client.typed(&Request::Ls)?;
+        Command::Ls {
+            component: None,
+            all,
+        } => {
+            let list: Vec<ComponentEntry> = client.typed(&Request::Ls { all })?;
             if json {
                 pretty(&serde_json::to_value(&list).unwrap_or_default())
             } else {
                 table::components(&list)
             }
         }
-        Command::Ls { component: Some(c) } => {
+        Command::Ls {
+            component: Some(c), ..
+        } => {
             let req = Request::Describe {
                 component: c.clone(),
             };

@@ -82,6 +82,10 @@ pub struct Deployment {
     /// Serve chosen devices as a Modbus TCP register table (off when absent).
     #[serde(default)]
     pub modbus_server: Option<driver_modbus::served::ServerConfig>,
+    /// This gateway in a Zenoh name space with others: what it publishes, imports and
+    /// serves (off when absent: nothing listens, nothing is sent).
+    #[serde(default)]
+    pub zenoh: Option<crate::remote::Section>,
 }
 
 /// One IO card: a driver and its section.

@@ -12,7 +12,7 @@
 //!
 //! | cmd | fields | ok |
 //! |---|---|---|
-//! | `ls` | — | `[{"name", "state"}]` of every component |
+//! | `ls` | optional `all` | `[{"name", "state"}]` of every component; with `all`, of every gateway's, named `gateway/component` |
 //! | `describe` | `component` | ports, operations, properties, attributes, state, counters, activity statistics |
 //! | `devices` | — | every registry name: interface, name, owner, alias_of |
 //! | `status` | — | health, every device's health, every card's bus counters, every component's state and timing |
@@ -26,6 +26,9 @@
 //! | `recover` | `component` | the new state |
 //! | `watch` | `component`, `port`, optional `count` | `"watching"`, then a stream: one `{"id", "event": {"status", "value"}}` line per new value (all of them, `count` at most), until the client closes |
 //! | `record` | `ports` (`component.port` or `component`), optional `devices`, `steps`, `buffer` | `{"ports", "activities", "wall_minus_clock_ns"}`, then a stream of `{"id", "records": {"items", "ports_lost", "steps_lost", "now_ns"}}` batches until the client closes |
+//!
+//! A request naming a component `<gateway>/<component>` that is not one of this gateway's
+//! is carried out by that gateway, through Zenoh (see [`crate::remote`]).
 //!
 //! Error kinds: `parse`, `too_long`, `bad_request`, `unknown_command`, `not_found`,
 //! `failed`, `busy` (too many clients), `stopping` (the gateway is stopping: no request is
@@ -188,6 +191,16 @@ impl ControlServer {
                 path: path.to_path_buf(),
                 source,
             })?;
+        if let Some(node) = shared.gw.zenoh() {
+            // Weak: the node lives in the gateway, which the shared state holds.
+            let weak = Arc::downgrade(&shared);
+            crate::remote::serve_control(node, move |request| match weak.upgrade() {
+                Some(shared) => remote_request(&shared, request),
+                None => {
+                    json!({"error": {"kind": "stopping", "message": "the control server is closed"}})
+                }
+            });
+        }
         let s = shared.clone();
         let accept = std::thread::Builder::new()
             .name("hwgw-control".into())
@@ -519,13 +532,48 @@ fn carry_out(
         return stopping();
     }
     let _counted = UnderWay::new(&shared.stats.under_way);
-    match handle(&shared.gw, shared.report(), req, writers) {
+    let gw = &shared.gw;
+    let local = |c: &str| gw.runtime().component(c).is_ok();
+    let ls_here = || {
+        handle(
+            gw,
+            shared.report(),
+            &Request::Ls { all: false },
+            &mut HashMap::new(),
+        )
+    };
+    let answer = crate::remote::forward(gw.zenoh(), &local, req, &ls_here)
+        .unwrap_or_else(|| handle(gw, shared.report(), req, writers));
+    match answer {
         Ok(v) => Reply {
             id,
             body: Body::Ok(v),
         },
         Err(Fail(kind, message)) => Reply::error(id, kind, message),
     }
+}
+
+/// A control request of another gateway (through Zenoh), carried out here as one from
+/// the socket; its reply body without `id`.
+fn remote_request(shared: &Shared, request: Value) -> Value {
+    shared.stats.requests.fetch_add(1, Ordering::Relaxed);
+    let reply = match parse(&request.to_string()) {
+        Err(reply) => reply,
+        Ok((id, Request::Watch { .. } | Request::Record { .. })) => Reply::error(
+            id,
+            ErrorKind::BadRequest,
+            "streams (watch, record) are not served to other gateways",
+        ),
+        Ok((id, req)) => carry_out(shared, id, &req, &mut HashMap::new()),
+    };
+    if matches!(reply.body, Body::Error(_)) {
+        shared.stats.errors.fetch_add(1, Ordering::Relaxed);
+    }
+    let mut v = serde_json::to_value(&reply).unwrap_or(Value::Null);
+    if let Some(o) = v.as_object_mut() {
+        o.remove("id");
+    }
+    v
 }
 
 fn send(mut out: &UnixStream, reply: &Reply) -> std::io::Result<()> {

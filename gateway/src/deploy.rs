@@ -72,6 +72,8 @@ pub struct Gateway {
     hold: Arc<Hold>,
     /// Where ThreadScope records each thread's bit once started ([`Self::record_thread_scope`]).
     pub(crate) scope_vcd: Option<std::path::PathBuf>,
+    /// The Zenoh node of the `[zenoh]` section (also among the servers).
+    pub(crate) zenoh: Option<Arc<crate::remote::Node>>,
 }
 
 impl Gateway {
@@ -91,6 +93,7 @@ impl Gateway {
             start,
             hold,
             scope_vcd: None,
+            zenoh: None,
         }
     }
 
@@ -121,6 +124,9 @@ impl Gateway {
         }
         if old.connections != new.connections {
             report.push(refuse("connections"));
+        }
+        if old.zenoh != new.zenoh {
+            report.push(refuse("[zenoh]"));
         }
         if (
             old.thread_scope,
@@ -229,6 +235,11 @@ impl Gateway {
         } else {
             Err(wrong.join("; "))
         }
+    }
+
+    /// The Zenoh node, when the deployment has a `[zenoh]` section.
+    pub fn zenoh(&self) -> Option<&crate::remote::Node> {
+        self.zenoh.as_deref()
     }
 
     /// Where the server configured under deployment key `name` (`modbus_server`) listens,

@@ -46,6 +46,7 @@ pub mod outputs;
 pub mod problems;
 pub mod protocol;
 pub mod recorder;
+pub mod remote;
 mod requests;
 pub mod serve;
 pub mod socket;

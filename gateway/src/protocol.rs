@@ -44,8 +44,13 @@ pub fn json_arg(s: &str) -> Value {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "cmd", rename_all = "snake_case")]
 pub enum Request {
-    /// Every component and its state.
-    Ls,
+    /// Every component and its state; with `all`, of every gateway of the Zenoh name
+    /// space too, each name under its gateway's (`B/follow`).
+    Ls {
+        /// Every gateway's, not only this one's.
+        #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+        all: bool,
+    },
     /// One component's interface, state and timing.
     Describe {
         /// The component.
@@ -182,8 +187,8 @@ pub struct Command {
 pub const COMMANDS: [Command; 14] = [
     Command {
         cmd: "ls",
-        fields: "—",
-        ok: "`[{\"name\", \"state\"}]` of every component",
+        fields: "optional `all`",
+        ok: "`[{\"name\", \"state\"}]` of every component; with `all`, of every gateway's, named `gateway/component`",
     },
     Command {
         cmd: "describe",
@@ -256,7 +261,7 @@ impl Request {
     /// The command's name on the wire.
     pub fn cmd(&self) -> &'static str {
         match self {
-            Request::Ls => "ls",
+            Request::Ls { .. } => "ls",
             Request::Describe { .. } => "describe",
             Request::Devices => "devices",
             Request::Status => "status",

@@ -83,7 +83,7 @@ pub(crate) fn handle(
     let rt = gw.runtime();
     let component = |name: &str| rt.component(name).map_err(not_found);
     match req {
-        Request::Ls => to_value(
+        Request::Ls { .. } => to_value(
             rt.components()
                 .iter()
                 .map(|t| ComponentEntry {

@@ -1,0 +1,53 @@
+//! hwgw across hosts on Zenoh: one name space of devices over many gateways.
+//!
+//! - Every device a card of this gateway registered is published under
+//!   `hwgw/<gateway>/dev/<interface>/<device>` with its health and the time it was read
+//!   ([`wire`]), off the real-time threads.
+//! - A device of another gateway is registered here as `<gateway>/<device>`, an
+//!   `Arc<dyn DigitalOut>` (…) that a component looks up as a local one ([`remote`]):
+//!   reads answer from the latest sample with its age, writes are sent and acknowledged,
+//!   health turns stale and offline when samples stop.
+//! - Other gateways' writes to this one's outputs, and their control requests, are
+//!   answered by queryables ([`node`]); the gateway's own output policy and watchdog apply
+//!   to what they drive.
+//!
+//! The [`Node`] is built with the deployment from its `[zenoh]` section ([`config`]) and
+//! is a [`driver_api::Server`] of the gateway: started with it, stopped first at stop.
+//! A deployment without `[zenoh]` has no node and opens no socket.
+
+pub mod config;
+pub mod local;
+pub mod node;
+pub mod remote;
+pub mod session;
+pub mod wire;
+
+pub use config::ZenohConfig;
+pub use node::{ControlHandler, Node, NodeError, NodeReport};
+
+use std::sync::Arc;
+
+/// A [`Node`] as one of the gateway's servers.
+pub struct NodeServer(pub Arc<Node>);
+
+impl driver_api::Server for NodeServer {
+    fn name(&self) -> &str {
+        "zenoh"
+    }
+
+    fn start(&self) -> Result<String, String> {
+        self.0.start().map_err(|e| e.to_string())
+    }
+
+    fn stop(&self) {
+        self.0.stop();
+    }
+
+    fn address(&self) -> Option<String> {
+        self.0.address()
+    }
+
+    fn status(&self) -> Option<driver_api::CardStatus> {
+        Some(driver_api::CardStatus::new("zenoh", &self.0.report()))
+    }
+}

@@ -1,0 +1,207 @@
+//! This gateway's own devices as the others see them: their samples and shapes, and the
+//! writes other gateways make to its outputs.
+//!
+//! Only devices a card of this gateway registered are published or written here: an
+//! imported device (owner `zenoh:<gateway>`) is never passed on, so two gateways that
+//! import from each other cannot loop.
+
+use crate::wire::{self, Catalogue, DeviceShape, EncoderShape, Sample, Write, WriteReply};
+use device_interface::time::{Clock, MonotonicClock};
+use device_interface::{DeviceError, Health, Interface, Registry};
+
+/// The registry owner of the devices imported from gateway `gw`.
+pub fn owner_of(gw: &str) -> String {
+    format!("zenoh:{gw}")
+}
+
+/// True when the device registered by `owner` is this gateway's own.
+pub fn is_local(owner: &str) -> bool {
+    !owner.starts_with("zenoh:")
+}
+
+/// Every local device (no alias, no import) whose name can be a key: `(interface, name)`.
+pub fn local_devices(registry: &Registry) -> Vec<(Interface, String)> {
+    registry
+        .entries()
+        .into_iter()
+        .filter(|e| e.info.alias_of.is_none() && is_local(&e.info.owner))
+        .filter(|e| crate::config::is_key_name(&e.info.name))
+        .map(|e| (e.interface, e.info.name))
+        .collect()
+}
+
+fn shape_of(registry: &Registry, i: Interface, name: &str) -> Option<DeviceShape> {
+    let scales = |n: u32, f: &dyn Fn(u32) -> Result<device_interface::Scale, DeviceError>| {
+        (0..n).map(f).collect::<Result<Vec<_>, _>>().ok()
+    };
+    let (channels, scales, encoder) = match i {
+        Interface::AnalogIn => {
+            let d = registry.analog_in().get(name)?;
+            let n = d.channel_count();
+            (n, scales(n, &|c| d.scale(c))?, None)
+        }
+        Interface::AnalogOut => {
+            let d = registry.analog_out().get(name)?;
+            let n = d.channel_count();
+            (n, scales(n, &|c| d.scale(c))?, None)
+        }
+        Interface::DigitalIn => (registry.digital_in().get(name)?.input_count(), vec![], None),
+        Interface::DigitalOut => (
+            registry.digital_out().get(name)?.output_count(),
+            vec![],
+            None,
+        ),
+        Interface::Encoder => {
+            let d = registry.encoder().get(name)?;
+            let e = EncoderShape {
+                resolution: d.resolution(),
+                upcounting: d.upcounting(),
+            };
+            (2, vec![], Some(e))
+        }
+    };
+    Some(DeviceShape {
+        interface: i,
+        name: name.to_string(),
+        channels,
+        scales,
+        encoder,
+    })
+}
+
+/// The catalogue of gateway `gw`: every local device and its shape.
+pub fn catalogue(gw: &str, registry: &Registry) -> Catalogue {
+    Catalogue {
+        protocol: wire::PROTOCOL,
+        gateway: gw.to_string(),
+        devices: local_devices(registry)
+            .iter()
+            .filter_map(|(i, n)| shape_of(registry, *i, n))
+            .collect(),
+    }
+}
+
+/// Reads device `name` of interface `i` into a sample (numbered `seq`), or `None` when it
+/// is no longer registered.
+pub fn sample(registry: &Registry, i: Interface, name: &str, seq: u64) -> Option<Sample> {
+    fn all<T>(
+        n: u32,
+        f: impl Fn(u32) -> Result<T, DeviceError>,
+        to: fn(T) -> i64,
+    ) -> Vec<Option<i64>> {
+        (0..n).map(|c| f(c).ok().map(to)).collect()
+    }
+    let (health, values): (Health, Vec<Option<i64>>) = match i {
+        Interface::AnalogIn => {
+            let d = registry.analog_in().get(name)?;
+            (d.health(), all(d.channel_count(), |c| d.read_raw(c), |v| v))
+        }
+        Interface::AnalogOut => {
+            let d = registry.analog_out().get(name)?;
+            (
+                d.health(),
+                all(d.channel_count(), |c| d.read_back_raw(c), |v| v),
+            )
+        }
+        Interface::DigitalIn => {
+            let d = registry.digital_in().get(name)?;
+            (
+                d.health(),
+                all(d.input_count(), |c| d.read_bit(c), i64::from),
+            )
+        }
+        Interface::DigitalOut => {
+            let d = registry.digital_out().get(name)?;
+            (
+                d.health(),
+                all(d.output_count(), |c| d.check_bit(c), i64::from),
+            )
+        }
+        Interface::Encoder => {
+            let d = registry.encoder().get(name)?;
+            (d.health(), vec![d.position().ok(), d.turn().ok()])
+        }
+    };
+    let unix_ns = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX));
+    Some(Sample {
+        seq,
+        read_ns: MonotonicClock.now().as_nanos(),
+        unix_ns,
+        age_ns: health
+            .age()
+            .map(|a| u64::try_from(a.as_nanos()).unwrap_or(u64::MAX)),
+        status: health.status,
+        error: health.last_error.map(|e| e.to_string()),
+        values,
+    })
+}
+
+/// Carries out a write from another gateway; the answer says which values were refused.
+pub fn write(gw: &str, registry: &Registry, w: &Write) -> Result<WriteReply, String> {
+    if w.protocol != wire::PROTOCOL {
+        return Err(format!(
+            "protocol {} from {}; {gw} speaks {}",
+            w.protocol,
+            w.writer,
+            wire::PROTOCOL
+        ));
+    }
+    let own = |owner: Option<String>| owner.is_some_and(|o| is_local(&o));
+    let owner = registry
+        .entries()
+        .into_iter()
+        .find(|e| {
+            e.interface == w.interface && e.info.name == w.device && e.info.alias_of.is_none()
+        })
+        .map(|e| e.info.owner);
+    if !own(owner) {
+        let names: Vec<String> = local_devices(registry)
+            .into_iter()
+            .filter(|(i, _)| *i == w.interface)
+            .map(|(_, n)| n)
+            .collect();
+        return Err(format!(
+            "{gw} has no {} device {:?}; it has: {}",
+            w.interface,
+            w.device,
+            if names.is_empty() {
+                "none".to_string()
+            } else {
+                names.join(", ")
+            }
+        ));
+    }
+    let mut refused = Vec::new();
+    for &(c, raw) in &w.values {
+        let r = match w.interface {
+            Interface::AnalogOut => registry
+                .analog_out()
+                .lookup(&w.device)
+                .map_err(|e| e.to_string())
+                .and_then(|d| d.write_raw(c, raw).map_err(|e| e.to_string())),
+            Interface::DigitalOut => registry
+                .digital_out()
+                .lookup(&w.device)
+                .map_err(|e| e.to_string())
+                .and_then(|d| d.set_bit(c, raw != 0).map_err(|e| e.to_string())),
+            Interface::Encoder => registry
+                .encoder()
+                .lookup(&w.device)
+                .map_err(|e| e.to_string())
+                .and_then(|d| match c {
+                    0 => d.set_position(raw).map_err(|e| e.to_string()),
+                    1 => d.set_turn(raw).map_err(|e| e.to_string()),
+                    _ => Err(format!(
+                        "an encoder has channels 0 (position) and 1 (turn), not {c}"
+                    )),
+                }),
+            i => Err(format!("{i} is an input: it cannot be written")),
+        };
+        if let Err(e) = r {
+            refused.push((c, e));
+        }
+    }
+    Ok(WriteReply { refused })
+}

@@ -1,0 +1,500 @@
+//! Devices of another gateway, used here exactly as local ones.
+//!
+//! An imported device is registered as `<gateway>/<device>` under each interface the
+//! deployment declares, as an `Arc<dyn AnalogIn>` (…) backed by an [`Image`]: the latest
+//! sample received, the outputs this gateway wrote, and the times that make it stale or
+//! offline.
+//!
+//! # The real-time contract
+//!
+//! Every trait method is a handful of atomic loads and stores: reads answer from the
+//! latest sample (never waiting for the wire), writes store the value and wake the
+//! node's sender with a `try_send` on a bounded channel. Nothing allocates or blocks.
+//! Each channel is one atomic, so a reader may see channels of two consecutive samples.
+//!
+//! Health: offline until the first sample of a device whose shape matched the remote
+//! gateway's catalogue; stale when the last sample is older than `stale_ms`, offline when
+//! older than `offline_ms` (its age is the remote age at publication plus the time since it
+//! arrived: no clock is shared between hosts). As for a local card, inputs of a stale
+//! device fail with [`DeviceError::Stale`], of an offline one with
+//! [`DeviceError::Offline`]; writes to an offline device fail and change nothing.
+
+use crate::config::Times;
+use crate::wire::{DeviceShape, Sample};
+use device_interface::time::{Clock, MonotonicClock, Timestamp};
+use device_interface::{
+    AnalogIn, AnalogOut, Device, DeviceError, DigitalIn, DigitalOut, Encoder, Health, Interface,
+    Scale, Status,
+};
+use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU8, AtomicU64, Ordering};
+use std::sync::{Mutex, OnceLock};
+
+/// Counters of one imported interface, for `hwgw status`.
+#[derive(Debug, Default)]
+pub struct ImageCounters {
+    /// Samples taken.
+    pub received: AtomicU64,
+    /// Samples missing from the sequence (published there, never arrived here).
+    pub lost: AtomicU64,
+    /// Samples refused (wrong shape, or arriving before the shape was known).
+    pub refused: AtomicU64,
+    /// Writes sent to the remote gateway.
+    pub writes_sent: AtomicU64,
+    /// Writes it answered with every value written.
+    pub writes_acked: AtomicU64,
+    /// Writes it answered refusing some value (see the image's problem).
+    pub writes_refused: AtomicU64,
+}
+
+/// Why an image is not usable beyond silence.
+const OK: u8 = 0;
+/// The remote device's shape is not the declared one.
+const MISMATCH: u8 = 1;
+
+/// One interface of an imported device.
+pub struct Image {
+    interface: Interface,
+    gateway: String,
+    device: String,
+    count: u32,
+    times: Times,
+    values: Box<[AtomicI64]>,
+    valid: Box<[AtomicBool]>,
+    out: Box<[AtomicI64]>,
+    out_set: Box<[AtomicBool]>,
+    any_set: AtomicBool,
+    dirty: AtomicBool,
+    /// Our monotonic time when the last sample arrived, ns; 0: none yet.
+    rx_ns: AtomicU64,
+    /// The remote age at publication of the last sample, ns; `u64::MAX`: none.
+    age_ns: AtomicU64,
+    status: AtomicU8,
+    seq: AtomicU64,
+    problem: AtomicU8,
+    /// The remote shape, once it matched.
+    shape: OnceLock<DeviceShape>,
+    /// The text of the last problem (shape, refused write), for status; never touched on
+    /// the real-time path.
+    problem_text: Mutex<Option<String>>,
+    wake: OnceLock<crossbeam_channel::Sender<()>>,
+    /// Counters.
+    pub counters: ImageCounters,
+}
+
+fn status_code(s: Status) -> u8 {
+    match s {
+        Status::Online => 0,
+        Status::Stale => 1,
+        Status::Offline => 2,
+    }
+}
+
+fn code_status(c: u8) -> Status {
+    match c {
+        0 => Status::Online,
+        1 => Status::Stale,
+        _ => Status::Offline,
+    }
+}
+
+fn atomics<T>(n: u32, f: impl Fn() -> T) -> Box<[T]> {
+    (0..n).map(|_| f()).collect()
+}
+
+impl Image {
+    /// The image of interface `interface` of device `device` of gateway `gateway`, with
+    /// `count` channels (2 for an encoder: position and turn).
+    pub fn new(
+        interface: Interface,
+        gateway: &str,
+        device: &str,
+        count: u32,
+        times: Times,
+    ) -> Self {
+        Image {
+            interface,
+            gateway: gateway.to_string(),
+            device: device.to_string(),
+            count,
+            times,
+            values: atomics(count, || AtomicI64::new(0)),
+            valid: atomics(count, || AtomicBool::new(false)),
+            out: atomics(count, || AtomicI64::new(0)),
+            out_set: atomics(count, || AtomicBool::new(false)),
+            any_set: AtomicBool::new(false),
+            dirty: AtomicBool::new(false),
+            rx_ns: AtomicU64::new(0),
+            age_ns: AtomicU64::new(u64::MAX),
+            status: AtomicU8::new(status_code(Status::Offline)),
+            seq: AtomicU64::new(0),
+            problem: AtomicU8::new(OK),
+            shape: OnceLock::new(),
+            problem_text: Mutex::new(None),
+            wake: OnceLock::new(),
+            counters: ImageCounters::default(),
+        }
+    }
+
+    /// Its interface.
+    pub fn interface(&self) -> Interface {
+        self.interface
+    }
+
+    /// The remote gateway.
+    pub fn gateway(&self) -> &str {
+        &self.gateway
+    }
+
+    /// The device's name there.
+    pub fn device(&self) -> &str {
+        &self.device
+    }
+
+    /// Channels declared.
+    pub fn count(&self) -> u32 {
+        self.count
+    }
+
+    /// The last problem's text (shape mismatch, refused write), if any.
+    pub fn problem(&self) -> Option<String> {
+        self.problem_text
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
+    }
+
+    /// Our monotonic time of the last sample, ns (0: none yet).
+    pub fn received_at_ns(&self) -> u64 {
+        self.rx_ns.load(Ordering::Acquire)
+    }
+
+    pub(crate) fn set_wake(&self, tx: crossbeam_channel::Sender<()>) {
+        let _ = self.wake.set(tx);
+    }
+
+    fn set_problem(&self, code: u8, text: String) {
+        tracing::warn!("zenoh: {}/{}: {text}", self.gateway, self.device);
+        *self.problem_text.lock().unwrap_or_else(|p| p.into_inner()) = Some(text);
+        self.problem.store(code, Ordering::Release);
+    }
+
+    /// Takes the remote gateway's shape of this device, if it is the declared one;
+    /// otherwise the device stays offline and says why.
+    pub fn adopt(&self, shape: &DeviceShape) {
+        let analog = matches!(self.interface, Interface::AnalogIn | Interface::AnalogOut);
+        let why = if shape.channels != self.count {
+            Some(format!(
+                "{} has {} channels there, this deployment declares {}",
+                self.interface, shape.channels, self.count
+            ))
+        } else if analog && shape.scales.len() != self.count as usize {
+            Some(format!(
+                "the catalogue gives {} scales for {} channels",
+                shape.scales.len(),
+                self.count
+            ))
+        } else if self.interface == Interface::Encoder && shape.encoder.is_none() {
+            Some("the catalogue gives no encoder resolution".to_string())
+        } else {
+            None
+        };
+        match (why, self.shape.get()) {
+            (Some(why), _) => self.set_problem(MISMATCH, why),
+            (None, Some(old)) if old != shape => self.set_problem(
+                MISMATCH,
+                format!(
+                    "its {} changed shape at {}: restart this gateway to take the new one",
+                    self.interface, self.gateway
+                ),
+            ),
+            (None, _) => {
+                let _ = self.shape.set(shape.clone());
+            }
+        }
+    }
+
+    /// Takes sample `s`, received at our monotonic time `now_ns`.
+    pub fn take(&self, s: &Sample, now_ns: u64) {
+        if self.shape.get().is_none() || self.problem.load(Ordering::Acquire) != OK {
+            self.counters.refused.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
+        if s.values.len() != self.count as usize {
+            self.counters.refused.fetch_add(1, Ordering::Relaxed);
+            self.set_problem(
+                MISMATCH,
+                format!(
+                    "a sample of {} values for {} channels",
+                    s.values.len(),
+                    self.count
+                ),
+            );
+            return;
+        }
+        let last = self.seq.swap(s.seq, Ordering::AcqRel);
+        if last != 0 && s.seq > last + 1 {
+            self.counters
+                .lost
+                .fetch_add(s.seq - last - 1, Ordering::Relaxed);
+        }
+        for ((v, slot), ok) in s.values.iter().zip(&self.values).zip(&self.valid) {
+            if let Some(v) = v {
+                slot.store(*v, Ordering::Relaxed);
+            }
+            ok.store(v.is_some(), Ordering::Relaxed);
+        }
+        self.age_ns
+            .store(s.age_ns.unwrap_or(u64::MAX), Ordering::Relaxed);
+        self.status.store(status_code(s.status), Ordering::Relaxed);
+        self.rx_ns.store(now_ns.max(1), Ordering::Release);
+        self.counters.received.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Status and age (when known) now.
+    fn state(&self, now: u64) -> (Status, Option<u64>) {
+        let rx = self.rx_ns.load(Ordering::Acquire);
+        if rx == 0 || self.problem.load(Ordering::Acquire) != OK {
+            return (Status::Offline, None);
+        }
+        let since = now.saturating_sub(rx);
+        let age = match self.age_ns.load(Ordering::Relaxed) {
+            u64::MAX => since,
+            a => a.saturating_add(since),
+        };
+        let status = if since >= self.times.offline.as_nanos() as u64 {
+            Status::Offline
+        } else if since >= self.times.stale.as_nanos() as u64 {
+            Status::Stale
+        } else {
+            code_status(self.status.load(Ordering::Relaxed))
+        };
+        (status, Some(age))
+    }
+
+    fn health(&self) -> Health {
+        let now = MonotonicClock.now();
+        let (status, age) = self.state(now.as_nanos());
+        let last_good = age.map(|a| Timestamp::from_nanos(now.as_nanos().saturating_sub(a)));
+        Health {
+            status,
+            last_good,
+            checked_at: now,
+            last_error: match status {
+                Status::Online => None,
+                Status::Stale => Some(DeviceError::Stale {
+                    age: age.map(std::time::Duration::from_nanos),
+                }),
+                Status::Offline => Some(DeviceError::Offline),
+            },
+        }
+    }
+
+    fn check(&self, ch: u32) -> Result<(), DeviceError> {
+        if ch >= self.count {
+            return Err(match self.interface {
+                Interface::DigitalIn | Interface::DigitalOut => DeviceError::BitOutOfRange {
+                    bit: ch,
+                    count: self.count,
+                },
+                _ => DeviceError::ChannelOutOfRange {
+                    channel: ch,
+                    count: self.count,
+                },
+            });
+        }
+        Ok(())
+    }
+
+    fn readable(&self) -> Result<(), DeviceError> {
+        match self.state(MonotonicClock.now().as_nanos()) {
+            (Status::Online, _) => Ok(()),
+            (Status::Stale, age) => Err(DeviceError::Stale {
+                age: age.map(std::time::Duration::from_nanos),
+            }),
+            (Status::Offline, _) => Err(DeviceError::Offline),
+        }
+    }
+
+    /// The latest remote value of channel `ch`.
+    fn read(&self, ch: u32) -> Result<i64, DeviceError> {
+        self.check(ch)?;
+        self.readable()?;
+        if !self.valid[ch as usize].load(Ordering::Relaxed) {
+            return Err(DeviceError::Offline);
+        }
+        Ok(self.values[ch as usize].load(Ordering::Relaxed))
+    }
+
+    /// What this gateway last wrote to channel `ch`, or else the remote read-back.
+    fn read_back(&self, ch: u32) -> Result<i64, DeviceError> {
+        self.check(ch)?;
+        if self.out_set[ch as usize].load(Ordering::Acquire) {
+            return Ok(self.out[ch as usize].load(Ordering::Relaxed));
+        }
+        self.read(ch)
+    }
+
+    /// Writes `raw` to channel `ch`: stored, and sent by the node.
+    fn write(&self, ch: u32, raw: i64) -> Result<(), DeviceError> {
+        self.check(ch)?;
+        if self.state(MonotonicClock.now().as_nanos()).0 == Status::Offline {
+            return Err(DeviceError::Offline);
+        }
+        self.out[ch as usize].store(raw, Ordering::Relaxed);
+        self.out_set[ch as usize].store(true, Ordering::Release);
+        self.any_set.store(true, Ordering::Release);
+        self.dirty.store(true, Ordering::Release);
+        if let Some(w) = self.wake.get() {
+            let _ = w.try_send(());
+        }
+        Ok(())
+    }
+
+    /// The outputs this gateway drives, `(channel, raw)`, if it drives any and `force` or
+    /// a write came since the last call.
+    pub(crate) fn to_send(&self, force: bool) -> Option<Vec<(u32, i64)>> {
+        if !self.any_set.load(Ordering::Acquire) {
+            return None;
+        }
+        // Outputs are sent again at every period (the remote watchdog counts on it); an
+        // encoder's position or turn is a command, sent once.
+        let refresh = matches!(self.interface, Interface::AnalogOut | Interface::DigitalOut);
+        let dirty = self.dirty.swap(false, Ordering::AcqRel);
+        if !(dirty || (force && refresh)) {
+            return None;
+        }
+        let set = |c: u32| {
+            let flag = &self.out_set[c as usize];
+            if refresh {
+                flag.load(Ordering::Acquire)
+            } else {
+                flag.swap(false, Ordering::AcqRel)
+            }
+        };
+        Some(
+            (0..self.count)
+                .filter(|&c| set(c))
+                .map(|c| (c, self.out[c as usize].load(Ordering::Relaxed)))
+                .collect(),
+        )
+    }
+
+    /// Records the remote gateway's answer to a write.
+    pub(crate) fn answered(&self, refused: &[(u32, String)]) {
+        if refused.is_empty() {
+            self.counters.writes_acked.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
+        self.counters.writes_refused.fetch_add(1, Ordering::Relaxed);
+        let text = refused
+            .iter()
+            .take(4)
+            .map(|(c, e)| format!("channel {c}: {e}"))
+            .collect::<Vec<_>>()
+            .join("; ");
+        *self.problem_text.lock().unwrap_or_else(|p| p.into_inner()) =
+            Some(format!("write refused by {}: {text}", self.gateway));
+    }
+
+    /// Records a write the remote gateway could not carry out at all.
+    pub(crate) fn failed(&self, why: &str) {
+        self.counters.writes_refused.fetch_add(1, Ordering::Relaxed);
+        *self.problem_text.lock().unwrap_or_else(|p| p.into_inner()) =
+            Some(format!("write refused by {}: {why}", self.gateway));
+    }
+
+    fn scale(&self, ch: u32) -> Result<Scale, DeviceError> {
+        self.check(ch)?;
+        self.shape
+            .get()
+            .and_then(|s| s.scales.get(ch as usize).copied())
+            .ok_or(DeviceError::Offline)
+    }
+}
+
+/// One imported interface as a device of that interface.
+pub struct Proxy(pub std::sync::Arc<Image>);
+
+impl Device for Proxy {
+    fn health(&self) -> Health {
+        self.0.health()
+    }
+}
+
+impl AnalogIn for Proxy {
+    fn channel_count(&self) -> u32 {
+        self.0.count
+    }
+    fn scale(&self, channel: u32) -> Result<Scale, DeviceError> {
+        self.0.scale(channel)
+    }
+    fn read_raw(&self, channel: u32) -> Result<i64, DeviceError> {
+        self.0.read(channel)
+    }
+}
+
+impl AnalogOut for Proxy {
+    fn channel_count(&self) -> u32 {
+        self.0.count
+    }
+    fn scale(&self, channel: u32) -> Result<Scale, DeviceError> {
+        self.0.scale(channel)
+    }
+    fn write_raw(&self, channel: u32, raw: i64) -> Result<(), DeviceError> {
+        self.0.scale(channel)?.check_raw(channel, raw)?;
+        self.0.write(channel, raw)
+    }
+    fn read_back_raw(&self, channel: u32) -> Result<i64, DeviceError> {
+        self.0.read_back(channel)
+    }
+}
+
+impl DigitalIn for Proxy {
+    fn input_count(&self) -> u32 {
+        self.0.count
+    }
+    fn read_bit(&self, bit: u32) -> Result<bool, DeviceError> {
+        self.0.read(bit).map(|v| v != 0)
+    }
+}
+
+impl DigitalOut for Proxy {
+    fn output_count(&self) -> u32 {
+        self.0.count
+    }
+    fn set_bit(&self, bit: u32, value: bool) -> Result<(), DeviceError> {
+        self.0.write(bit, i64::from(value))
+    }
+    fn check_bit(&self, bit: u32) -> Result<bool, DeviceError> {
+        self.0.read_back(bit).map(|v| v != 0)
+    }
+}
+
+impl Encoder for Proxy {
+    fn position(&self) -> Result<i64, DeviceError> {
+        self.0.read(0)
+    }
+    fn turn(&self) -> Result<i64, DeviceError> {
+        self.0.read(1)
+    }
+    fn set_position(&self, position: i64) -> Result<(), DeviceError> {
+        self.0.write(0, position)
+    }
+    fn set_turn(&self, turn: i64) -> Result<(), DeviceError> {
+        self.0.write(1, turn)
+    }
+    fn resolution(&self) -> i64 {
+        self.0
+            .shape
+            .get()
+            .and_then(|s| s.encoder)
+            .map_or(1, |e| e.resolution)
+    }
+    fn upcounting(&self) -> bool {
+        self.0
+            .shape
+            .get()
+            .and_then(|s| s.encoder)
+            .is_none_or(|e| e.upcounting)
+    }
+}
