@@ -353,7 +353,10 @@ impl ZenohConfig {
     /// Endpoint `e` parsed by Zenoh, and one this build can use.
     fn endpoint(&self, e: &str) -> Result<(), String> {
         let ep = zenoh::config::EndPoint::from_str(e).map_err(|err| {
-            format!("{e:?} is not a Zenoh endpoint ({err}); e.g. \"tcp/127.0.0.1:7447\"")
+            format!(
+                "{e:?} is not a Zenoh endpoint ({}); e.g. \"tcp/127.0.0.1:7447\"",
+                error_text(&err.to_string())
+            )
         })?;
         match ep.protocol().as_str() {
             "tcp" => Ok(()),
@@ -366,4 +369,11 @@ impl ZenohConfig {
             )),
         }
     }
+}
+
+/// A Zenoh error's text without the source location it ends with (` at /…/file.rs:N.`).
+pub fn error_text(e: &str) -> &str {
+    e.split_once(" at /")
+        .map_or(e, |(text, _)| text)
+        .trim_end_matches(':')
 }

@@ -48,6 +48,42 @@ impl driver_api::Server for NodeServer {
     }
 
     fn status(&self) -> Option<driver_api::CardStatus> {
-        Some(driver_api::CardStatus::new("zenoh", &self.0.report()))
+        let r = self.0.report();
+        let sum = |f: fn(&node::ImportReport) -> u64| r.imports.iter().map(f).sum::<u64>();
+        let summary = node::StatusSummary {
+            peers: r.peers.clone(),
+            published: r.published,
+            publish_failed: r.publish_failed,
+            writes_served: r.writes_served,
+            writes_refused: r.writes_refused,
+            controls_served: r.controls_served,
+            bad_messages: r.bad_messages,
+            imported_received: sum(|i| i.received),
+            imported_lost: sum(|i| i.lost),
+            imported_refused: sum(|i| i.refused),
+            writes_sent: sum(|i| i.writes_sent),
+            writes_acked: sum(|i| i.writes_acked),
+            problems: r
+                .imports
+                .iter()
+                .filter_map(|i| {
+                    Some(format!(
+                        "{} ({}): {}",
+                        i.name,
+                        wire::interface_key(i.interface),
+                        i.problem.as_ref()?
+                    ))
+                })
+                .collect(),
+        };
+        let at = self.0.address().unwrap_or_else(|| "not started".into());
+        Some(driver_api::CardStatus::new(at, &summary))
+    }
+
+    fn health(&self) -> Result<(), String> {
+        match self.0.address() {
+            Some(_) => Ok(()),
+            None => Err(format!("zenoh: {} is not started", self.0.name())),
+        }
     }
 }

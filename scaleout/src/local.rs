@@ -164,7 +164,7 @@ pub fn write(gw: &str, registry: &Registry, w: &Write) -> Result<WriteReply, Str
             .collect();
         return Err(format!(
             "{gw} has no {} device {:?}; it has: {}",
-            w.interface,
+            wire::interface_key(w.interface),
             w.device,
             if names.is_empty() {
                 "none".to_string()

@@ -117,6 +117,38 @@ pub struct ImportReport {
     pub problem: Option<String>,
 }
 
+/// The node's counters as `hwgw status` shows them: the imports summed, their problems
+/// listed (each import's own counters are in [`NodeReport`]).
+#[derive(Debug, Clone, Serialize)]
+pub struct StatusSummary {
+    /// Peers and routers connected now (their Zenoh ids).
+    pub peers: Vec<String>,
+    /// Samples published.
+    pub published: u64,
+    /// Publications that failed.
+    pub publish_failed: u64,
+    /// Writes of other gateways carried out.
+    pub writes_served: u64,
+    /// ... of which some value was refused.
+    pub writes_refused: u64,
+    /// Control requests of other gateways answered.
+    pub controls_served: u64,
+    /// Messages that did not parse.
+    pub bad_messages: u64,
+    /// Samples of imported devices taken.
+    pub imported_received: u64,
+    /// ... missing from their sequence.
+    pub imported_lost: u64,
+    /// ... refused (shape unknown or not matching).
+    pub imported_refused: u64,
+    /// Writes sent to other gateways.
+    pub writes_sent: u64,
+    /// ... that they acknowledged.
+    pub writes_acked: u64,
+    /// Each import's problem.
+    pub problems: Vec<String>,
+}
+
 /// What runs while the node is started.
 struct Running {
     session: Session,
@@ -253,7 +285,8 @@ impl Node {
     }
 
     fn spawn(&self, s: &Session) -> Result<Vec<JoinHandle<()>>, NodeError> {
-        let z = |e: zenoh::Error| NodeError::Zenoh(e.to_string());
+        let z =
+            |e: zenoh::Error| NodeError::Zenoh(crate::config::error_text(&e.to_string()).into());
         let mut threads = Vec::new();
         let spawn = |name: &str, f: Box<dyn FnOnce() + Send>| {
             std::thread::Builder::new()
@@ -679,7 +712,7 @@ fn import(
                             .collect();
                         tracing::error!(
                             "zenoh: gateway {gw} has no {} device {:?} (it has: {}); {gw}/{} stays offline",
-                            img.interface(),
+                            wire::interface_key(img.interface()),
                             img.device(),
                             if names.is_empty() { "none".into() } else { names.join(", ") },
                             img.device()

@@ -127,13 +127,19 @@ mod erased {
 pub fn open(cfg: &ZenohConfig) -> Result<Session, String> {
     let mut z = zenoh::Config::default();
     for (key, value) in settings(cfg) {
-        z.insert_json5(key, &value)
-            .map_err(|e| format!("zenoh setting {key} = {value}: {e}"))?;
+        z.insert_json5(key, &value).map_err(|e| {
+            format!(
+                "zenoh setting {key} = {value}: {}",
+                crate::config::error_text(&e.to_string())
+            )
+        })?;
     }
     let inner = zenoh::open(z).wait().map_err(|e| {
         format!(
-            "cannot open the session (listen {:?}, connect {:?}): {e}",
-            cfg.listen, cfg.connect
+            "cannot open the session (listen {:?}, connect {:?}): {}",
+            cfg.listen,
+            cfg.connect,
+            crate::config::error_text(&e.to_string())
         )
     })?;
     Ok(Session {

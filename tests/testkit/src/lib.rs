@@ -34,6 +34,7 @@ pub mod layout;
 pub mod logs;
 pub mod mbpoll;
 pub mod mcapread;
+pub mod netns;
 pub mod peers;
 pub mod picture;
 pub mod pypi;

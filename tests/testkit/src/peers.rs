@@ -124,6 +124,13 @@ pub const PIP: Peer = Peer {
     packages: &["python3-pip"],
 };
 
+/// iproute2's `ip`: network namespaces and veth pairs for the tests' own hosts.
+pub const IPROUTE2: Peer = Peer {
+    name: "iproute2",
+    probe: Probe::Command("ip"),
+    packages: &["iproute2"],
+};
+
 /// Why a peer is not there.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error(

@@ -76,12 +76,33 @@ impl Service {
         args: &[S],
         env: &[(&str, &str)],
     ) -> Result<Service, String> {
+        Service::start_in(&[], bin, tag, args, env)
+    }
+
+    /// [`Service::start`] under `wrapper`, a command that runs the rest of its line in
+    /// another context and execs it (`ip netns exec NS`): the process, its pid and its
+    /// signals are hwgw's own.
+    pub fn start_in<S: AsRef<OsStr>>(
+        wrapper: &[&str],
+        bin: &str,
+        tag: &str,
+        args: &[S],
+        env: &[(&str, &str)],
+    ) -> Result<Service, String> {
         let dir = TempDir::new(tag);
         let socket = dir.path().join("hwgw.sock");
         let log = dir.path().join("hwgw.log");
         let log_file =
             std::fs::File::create(&log).map_err(|e| format!("{}: {e}", log.display()))?;
-        let child = Command::new(bin)
+        let mut cmd = match wrapper.split_first() {
+            Some((first, rest)) => {
+                let mut c = Command::new(first);
+                c.args(rest).arg(bin);
+                c
+            }
+            None => Command::new(bin),
+        };
+        let child = cmd
             .arg("run")
             .args(args)
             .arg("--socket")
