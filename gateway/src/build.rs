@@ -125,7 +125,12 @@ fn build(d: &Deployment, file: &str, text: &str, types: &Types) -> Result<Gatewa
     }
     let mut start = vec![true; order.len()];
     b.components(&runtime, &mut order, &mut start);
-    b.connections(&runtime, &mut cards);
+    b.connections(&runtime, &mut cards, zenoh.as_deref());
+    if let (Some(node), Some(section)) = (&zenoh, &d.zenoh) {
+        for (key, message) in crate::remote::exports(node, section, &runtime) {
+            b.problems.at(&KeyPath::top("zenoh").join(&key), message);
+        }
+    }
     if let Some(w) = b.output_watchdog(&runtime, &cards) {
         order.push(w);
         start.push(true);
@@ -488,12 +493,33 @@ impl Build<'_, '_, '_> {
         }
     }
 
-    fn connections(&mut self, runtime: &Runtime, cards: &mut [CardRt]) {
+    fn connections(
+        &mut self,
+        runtime: &Runtime,
+        cards: &mut [CardRt],
+        node: Option<&crate::remote::Node>,
+    ) {
         for (i, msg) in checks::spin_loops(&self.d.connections, runtime) {
             self.problems.at(&KeyPath::top("connection").index(i), msg);
         }
+        let local = |c: &str| runtime.component(c).is_ok();
         for (i, c) in self.d.connections.iter().enumerate() {
             let at = KeyPath::top("connection").index(i);
+            if let Some(source) = crate::remote::remote_source(node, &local, &c.from)
+                && let Some(node) = node
+            {
+                // From another gateway's port: fed through Zenoh with this policy.
+                let to = self.port_end(runtime, &at.key("to"), &c.to);
+                match to.map(|p| p.writer(c.policy)) {
+                    Some(Ok(w)) => {
+                        let label = format!("{} -> {}", c.from, c.to);
+                        crate::remote::link(node, source, w, label);
+                    }
+                    Some(Err(e)) => self.problems.at(&at.key("to"), e),
+                    None => {}
+                }
+                continue;
+            }
             let from = self.port_end(runtime, &at.key("from"), &c.from);
             let to = self.port_end(runtime, &at.key("to"), &c.to);
             if let (Some(from), Some(to)) = (from, to) {

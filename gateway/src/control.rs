@@ -534,15 +534,8 @@ fn carry_out(
     let _counted = UnderWay::new(&shared.stats.under_way);
     let gw = &shared.gw;
     let local = |c: &str| gw.runtime().component(c).is_ok();
-    let ls_here = || {
-        handle(
-            gw,
-            shared.report(),
-            &Request::Ls { all: false },
-            &mut HashMap::new(),
-        )
-    };
-    let answer = crate::remote::forward(gw.zenoh(), &local, req, &ls_here)
+    let here = |r: &Request| handle(gw, shared.report(), r, &mut HashMap::new());
+    let answer = crate::remote::forward(gw.zenoh(), &local, req, &here)
         .unwrap_or_else(|| handle(gw, shared.report(), req, writers));
     match answer {
         Ok(v) => Reply {

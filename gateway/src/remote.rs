@@ -91,6 +91,115 @@ pub(crate) fn server(node: &std::sync::Arc<Node>) -> Box<dyn driver_api::Server>
     match **node {}
 }
 
+/// The remote end of a connection's `from` (`B/follow.out`): `(gateway, component,
+/// port)`, when its component is not one of this gateway's but names another gateway.
+pub(crate) fn remote_source<'a>(
+    node: Option<&Node>,
+    local: &dyn Fn(&str) -> bool,
+    from: &'a str,
+) -> Option<(&'a str, &'a str, &'a str)> {
+    let node = node?;
+    let (component, port) = crate::config::split_port(from)?;
+    if local(component) {
+        return None;
+    }
+    let (gw, rest) = component.split_once('/')?;
+    #[cfg(feature = "zenoh")]
+    let other = gw != node.name() && scaleout::config::is_gateway_name(gw);
+    #[cfg(not(feature = "zenoh"))]
+    let other = match *node {};
+    other.then_some((gw, rest, port))
+}
+
+/// Feeds local input port `to` (through `writer`, made with the connection's policy)
+/// from port `port` of component `component` of gateway `gw`.
+pub(crate) fn link(
+    node: &Node,
+    (gw, component, port): (&str, &str, &str),
+    writer: Box<dyn rtt::component::DynWriter>,
+    label: String,
+) {
+    #[cfg(feature = "zenoh")]
+    node.link(scaleout::ports::Link::new(
+        gw, component, port, writer, label,
+    ));
+    #[cfg(not(feature = "zenoh"))]
+    {
+        let _ = (gw, component, port, writer, label);
+        match *node {}
+    }
+}
+
+/// Exports the output ports the section names (`component.port` or `component`); the
+/// problems as `(key under zenoh, message)`.
+pub(crate) fn exports(
+    node: &Node,
+    section: &Section,
+    runtime: &rtt::Runtime,
+) -> Vec<(String, String)> {
+    #[cfg(feature = "zenoh")]
+    {
+        use rtt::component::Direction;
+        use rtt::port::ConnPolicy;
+        let mut problems = Vec::new();
+        for (i, name) in section.export.iter().enumerate() {
+            let (component, only) = match runtime.component(name) {
+                Ok(_) => (name.as_str(), None),
+                Err(_) => match crate::config::split_port(name) {
+                    Some((c, p)) => (c, Some(p)),
+                    None => (name.as_str(), None),
+                },
+            };
+            let ports = runtime.component(component).map(|t| {
+                let outs: Vec<String> = t
+                    .ports()
+                    .into_iter()
+                    .filter(|p| p.direction == Direction::Output)
+                    .map(|p| p.name)
+                    .filter(|p| only.is_none_or(|o| o == p))
+                    .collect();
+                (t, outs)
+            });
+            let (t, outs) = match ports {
+                Ok((_, outs)) if outs.is_empty() => {
+                    problems.push((
+                        format!("export[{i}]"),
+                        format!("{name:?}: no output port of that name to export"),
+                    ));
+                    continue;
+                }
+                Ok(x) => x,
+                Err(e) => {
+                    problems.push((format!("export[{i}]"), e.to_string()));
+                    continue;
+                }
+            };
+            for p in outs {
+                let reader = t.port(&p).map_err(|e| e.to_string()).and_then(|port| {
+                    port.stamped_reader(ConnPolicy::buffer(scaleout::config::EXPORT_BUFFER))
+                        .map_err(|e| e.to_string())
+                });
+                match reader {
+                    Ok(r) => node.export(scaleout::ports::Export::new(
+                        node.name(),
+                        component,
+                        &p,
+                        r,
+                        scaleout::config::EXPORT_BUFFER,
+                    )),
+                    Err(e) => problems.push((format!("export[{i}]"), e)),
+                }
+            }
+        }
+        problems
+    }
+    #[cfg(not(feature = "zenoh"))]
+    {
+        let _ = (section, runtime);
+        match *node {}
+    }
+}
+
 /// The component a request names, for forwarding.
 fn component_of(req: &Request) -> Option<&str> {
     match req {
@@ -110,23 +219,32 @@ fn component_of(req: &Request) -> Option<&str> {
 
 /// Carries out `req` at another gateway when it names one (`B/…`) or asks for every
 /// gateway (`ls` with `all`); `None` when it is for this gateway alone.
+///
+/// `here` carries out a request at this gateway: a component named under this gateway's
+/// own name (`A/follow` at A, as `ls --all` lists it) is this gateway's.
 pub(crate) fn forward(
     node: Option<&Node>,
     local: &dyn Fn(&str) -> bool,
     req: &Request,
-    ls_here: &dyn Fn() -> Result<Value, Fail>,
+    here: &dyn Fn(&Request) -> Result<Value, Fail>,
 ) -> Option<Result<Value, Fail>> {
     if let Request::Ls { all: true } = req {
         let Some(node) = node else {
-            return Some(ls_here());
+            return Some(here(&Request::Ls { all: false }));
         };
-        return Some(ls_all(node, ls_here));
+        return Some(ls_all(node, &|| here(&Request::Ls { all: false })));
     }
     let c = component_of(req)?;
     if local(c) {
         return None;
     }
     let (gw, rest) = c.split_once('/')?;
+    if node.is_some_and(|n| own_name(n) == gw) {
+        let mut v = serde_json::to_value(req).ok()?;
+        v["component"] = Value::String(rest.to_string());
+        let req: Request = serde_json::from_value(v).ok()?;
+        return Some(here(&req));
+    }
     let Some(node) = node else {
         return Some(Err(Fail(
             ErrorKind::NotFound,
@@ -151,17 +269,16 @@ pub(crate) fn forward(
     Some(ask(node, gw, &v))
 }
 
+/// This gateway's name in the name space.
+fn own_name(node: &Node) -> &str {
+    #[cfg(feature = "zenoh")]
+    return node.name();
+    #[cfg(not(feature = "zenoh"))]
+    match *node {}
+}
+
 #[cfg(feature = "zenoh")]
 fn ask(node: &Node, gw: &str, request: &Value) -> Result<Value, Fail> {
-    if gw == node.name() {
-        return Err(Fail(
-            ErrorKind::NotFound,
-            format!(
-                "no component {:?} on this gateway ({gw})",
-                request["component"]
-            ),
-        ));
-    }
     let reply = node
         .request(gw, request)
         .map_err(|e| Fail(ErrorKind::Failed, e.to_string()))?;

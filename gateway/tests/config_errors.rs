@@ -59,7 +59,7 @@ fn every_broken_config_gets_its_exact_error() {
         ("zenoh: stale after offline", "[zenoh]\nname = \"A\"\nlisten = [\"tcp/127.0.0.1:7447\"]\nstale_ms = 2000\noffline_ms = 1000\n".into(),
          "t.toml:4:12: zenoh.stale_ms: a device is stale (2000 ms) before it is offline (1000 ms), not after"),
         ("zenoh: an unknown key", "[zenoh]\nname = \"A\"\nlisten = [\"tcp/127.0.0.1:7447\"]\nmulticast = true\n".into(),
-         "t.toml:4:1: zenoh.multicast: unknown field `multicast`, expected one of `name`, `mode`, `listen`, `connect`, `tls`, `gossip`, `publish_ms`, `stale_ms`, `offline_ms`, `lease_ms`, `request_timeout_ms`, `import`"),
+         "t.toml:4:1: zenoh.multicast: unknown field `multicast`, expected one of `name`, `mode`, `listen`, `connect`, `tls`, `gossip`, `publish_ms`, `stale_ms`, `offline_ms`, `lease_ms`, `request_timeout_ms`, `import`, `export`"),
         ("wrong type", "thread_scope = \"yes\"\n".into(),
          "t.toml:1:16: thread_scope: invalid type: string \"yes\", expected a boolean"),
         ("missing card name", "[[card]]\ndriver = \"sim\"\n".into(),

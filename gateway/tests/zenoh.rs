@@ -16,20 +16,16 @@ use testkit::wait::{PATIENCE, wait_until};
 
 const BIN: &str = env!("CARGO_BIN_EXE_hwgw");
 
-/// B: the example's card, with analog input 3 reading back analog output 1 (so a value
-/// A sets is read back by A through B), a component of its own for A to ask about, and
+/// B: the example (a card, a component of its own exported), with analog input 3
+/// reading back analog output 1 (so a value A sets is read back by A through B), and
 /// listening on its veth address.
 fn config_b(listen: &str) -> String {
-    let text = include_str!("../../config/zenoh-b.toml")
+    include_str!("../../config/zenoh-b.toml")
         .replace("tcp/127.0.0.1:7448", listen)
         .replace(
             "waveform = { kind = \"loopback\", analog_out = 0 }",
             "waveform = { kind = \"loopback\", analog_out = 1 }",
-        );
-    format!(
-        "{text}\n[[component]]\nname = \"half\"\ntype = \"follow\"\nactivity = {{ type = \"non_periodic\" }}\n\
-         properties = {{ gain = 0.5, offset = 0.0 }}\n[[connection]]\nfrom = \"sim0.ai.ch2\"\nto = \"half.in\"\n"
-    )
+        )
 }
 
 /// A: the example, connecting to B's address, its follower fed from B's noise input (so
@@ -136,6 +132,20 @@ fn two_gateways_share_devices_by_name_and_survive_a_cut_link() {
         .unwrap_or_else(|e| panic!("{e}"));
     let half: f64 = half.parse().unwrap_or_else(|e| panic!("{half:?}: {e}"));
     assert!((half - 0.5).abs() < 0.05, "B/half.out through A: {half}");
+    // B's exported port feeds A's mirror through its connection, every sample counted.
+    wait_until("B/half.out mirrored on A", || {
+        get(&a, "mirror", "out")
+            .as_f64()
+            .is_some_and(|v| (v - 0.5).abs() < 0.05)
+    });
+    let s = a.ok(json!({"cmd": "status"}));
+    let links = s["servers"][0]["counters"]["links"].to_string();
+    assert!(
+        links.contains("B/half.out -> mirror.in: ") && links.contains("0 batches lost"),
+        "{links}"
+    );
+    // A's own components under its own name too, as ls --all lists them.
+    assert_eq!(a.out(&["get", "A/mirror", "out"]).map(|_| ()), Ok(()));
     let all = a.out(&["ls", "--all"]).unwrap_or_else(|e| panic!("{e}"));
     for name in ["A/follow", "A/B/sim0.ao", "B/half", "B/output_watchdog"] {
         assert!(all.contains(name), "{name} missing from ls --all:\n{all}");
@@ -278,4 +288,168 @@ fn a_deployment_without_zenoh_opens_no_network_socket() {
         open.iter().all(|l| l.starts_with("tcp")),
         "only TCP on loopback with [zenoh] listen = tcp/127.0.0.1:0 and no scouting: {open:#?}"
     );
+}
+
+/// Runs `openssl ARGS` in `dir`.
+fn openssl(dir: &Path, args: &[&str]) {
+    let o = std::process::Command::new("openssl")
+        .args(args)
+        .current_dir(dir)
+        .output()
+        .unwrap_or_else(|e| panic!("openssl: {e}"));
+    assert!(
+        o.status.success(),
+        "openssl {}: {}",
+        args.join(" "),
+        String::from_utf8_lossy(&o.stderr)
+    );
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .unwrap_or_else(|e| panic!("{e}"))
+}
+
+/// `[zenoh]` of example `text` with its endpoint line replaced by `endpoint` and `tls`
+/// added.
+fn over_tls(text: &str, line: &str, endpoint: &str, tls: &str) -> String {
+    let old = text
+        .lines()
+        .find(|l| l.starts_with(line))
+        .unwrap_or_else(|| panic!("no {line} line"));
+    text.replacen(old, &format!("{line} = [\"{endpoint}\"]\ntls = {tls}"), 1)
+}
+
+#[test]
+fn gateways_meet_over_tls_and_a_stranger_is_refused() {
+    testkit::peers::ensure(&testkit::peers::OPENSSL);
+    let dir = TempDir::new("zenoh-tls");
+    let d = dir.path();
+    // A CA, B's certificate signed by it (for 127.0.0.1), and a CA that signed nothing.
+    let rsa = ["-newkey", "rsa:2048", "-nodes", "-days", "2"];
+    openssl(
+        d,
+        &[
+            &["req", "-x509"][..],
+            &rsa,
+            &[
+                "-keyout",
+                "ca-key.pem",
+                "-out",
+                "ca.pem",
+                "-subj",
+                "/CN=hwgw test CA",
+            ],
+        ]
+        .concat(),
+    );
+    openssl(
+        d,
+        &[
+            &["req"][..],
+            &rsa[..3],
+            &[
+                "-keyout",
+                "b-key.pem",
+                "-out",
+                "b.csr",
+                "-subj",
+                "/CN=127.0.0.1",
+            ],
+        ]
+        .concat(),
+    );
+    std::fs::write(d.join("ext.cnf"), "subjectAltName=IP:127.0.0.1\n")
+        .unwrap_or_else(|e| panic!("{e}"));
+    openssl(
+        d,
+        &[
+            "x509",
+            "-req",
+            "-in",
+            "b.csr",
+            "-CA",
+            "ca.pem",
+            "-CAkey",
+            "ca-key.pem",
+            "-CAcreateserial",
+            "-out",
+            "b.pem",
+            "-days",
+            "2",
+            "-extfile",
+            "ext.cnf",
+        ],
+    );
+    openssl(
+        d,
+        &[
+            &["req", "-x509"][..],
+            &rsa,
+            &[
+                "-keyout",
+                "other-key.pem",
+                "-out",
+                "other.pem",
+                "-subj",
+                "/CN=a stranger's CA",
+            ],
+        ]
+        .concat(),
+    );
+
+    let endpoint = format!("tls/127.0.0.1:{}", free_port());
+    let b_text = over_tls(
+        include_str!("../../config/zenoh-b.toml"),
+        "listen",
+        &endpoint,
+        "{ root_ca = \"ca.pem\", cert = \"b.pem\", key = \"b-key.pem\" }",
+    );
+    let a_text = over_tls(
+        include_str!("../../config/zenoh-a.toml"),
+        "connect",
+        &endpoint,
+        "{ root_ca = \"ca.pem\" }",
+    );
+    let stranger = over_tls(
+        include_str!("../../config/zenoh-a.toml"),
+        "connect",
+        &endpoint,
+        "{ root_ca = \"other.pem\" }",
+    )
+    .replace("name = \"A\"", "name = \"S\"");
+    let b_file = write(d, "b.toml", &b_text);
+    let a_file = write(d, "a.toml", &a_text);
+    let s_file = write(d, "s.toml", &stranger);
+    let b = Service::start(BIN, "zenoh-tls-b", &[&b_file], &[]).unwrap_or_else(|e| panic!("{e}"));
+    let s = Service::start(BIN, "zenoh-tls-s", &[&s_file], &[]).unwrap_or_else(|e| panic!("{e}"));
+    let a = Service::start(BIN, "zenoh-tls-a", &[&a_file], &[]).unwrap_or_else(|e| panic!("{e}"));
+    wait_until("B/sim0 online in A over TLS", || {
+        device(&a, "B/sim0", "analog_in").0 == "online"
+    });
+    a.ok(json!({"cmd": "set", "component": "B/sim0.ao", "port": "ch1", "value": -2.5}));
+    wait_until("B's analog output 1 at A's value", || {
+        get(&b, "sim0.ao", "ch1")
+            .as_f64()
+            .is_some_and(|v| (v + 2.5).abs() < 0.001)
+    });
+    // The stranger, trusting another CA, has had as long as A and retries every second:
+    // B's certificate is refused, so it has no peer and B's devices stay offline there.
+    let tried = Instant::now();
+    while tried.elapsed() < Duration::from_secs(3) {
+        let st = s.ok(json!({"cmd": "status"}));
+        assert_eq!(
+            st["servers"][0]["counters"]["peers"],
+            json!([]),
+            "the stranger got through"
+        );
+        assert_eq!(device(&s, "B/sim0", "analog_in").0, "offline");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    wait_until("the stranger's log naming the refused certificate", || {
+        s.log_text()
+            .contains("invalid peer certificate: UnknownIssuer")
+    });
 }

@@ -16,6 +16,11 @@ pub const MAX_NAME: usize = 64;
 pub const MAX_ENDPOINTS: usize = 32;
 /// Most `[[zenoh.import]]` entries.
 pub const MAX_IMPORTS: usize = 256;
+/// Most `export` entries.
+pub const MAX_EXPORTS: usize = 1024;
+/// Samples an exported port holds between two publications; beyond, they are dropped and
+/// counted.
+pub const EXPORT_BUFFER: usize = 1024;
 /// Most channels (or bits) one imported interface may declare: a sample of a device this
 /// big is about 256 KiB of JSON, under the transport's message bound.
 pub const MAX_CHANNELS: u32 = 4096;
@@ -69,6 +74,10 @@ pub struct ZenohConfig {
     /// Devices of other gateways used here, by name.
     #[serde(default)]
     pub import: Vec<ImportConfig>,
+    /// Output ports published for other gateways to connect to: `component.port`, or
+    /// `component` for all its output ports.
+    #[serde(default)]
+    pub export: Vec<String>,
 }
 
 /// One remote device used here: it is registered as `<gateway>/<device>` under each
@@ -278,6 +287,19 @@ impl ZenohConfig {
             }
         }
         self.check_imports(&mut bad);
+        if self.export.len() > MAX_EXPORTS {
+            bad("export", format!("at most {MAX_EXPORTS} exported ports"));
+        }
+        for (i, e) in self.export.iter().enumerate() {
+            if !is_key_name(e) {
+                bad(
+                    &format!("export[{i}]"),
+                    format!(
+                        "{e:?} cannot be published (no '*', '$', '?', '#', white space or empty parts)"
+                    ),
+                );
+            }
+        }
         out
     }
 

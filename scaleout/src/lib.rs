@@ -18,6 +18,7 @@
 pub mod config;
 pub mod local;
 pub mod node;
+pub mod ports;
 pub mod remote;
 pub mod session;
 pub mod wire;
@@ -63,6 +64,16 @@ impl driver_api::Server for NodeServer {
             imported_refused: sum(|i| i.refused),
             writes_sent: sum(|i| i.writes_sent),
             writes_acked: sum(|i| i.writes_acked),
+            links: r
+                .links
+                .iter()
+                .map(|k| {
+                    format!(
+                        "{}: {} received, {} batches lost, {} dropped there, {} refused",
+                        k.connection, k.received, k.lost_batches, k.remote_dropped, k.refused
+                    )
+                })
+                .collect(),
             problems: r
                 .imports
                 .iter()

@@ -14,6 +14,7 @@
 
 use crate::config::{Times, ZenohConfig};
 use crate::local;
+use crate::ports::{Export, Link, PortBatch};
 use crate::remote::{Image, Proxy};
 use crate::session::{self, Session};
 use crate::wire::{self, Catalogue, Write, WriteReply};
@@ -92,6 +93,23 @@ pub struct NodeReport {
     pub bad_messages: u64,
     /// Every imported interface.
     pub imports: Vec<ImportReport>,
+    /// Every connection from another gateway's port.
+    pub links: Vec<LinkReport>,
+}
+
+/// A connection from another gateway's port, for `hwgw status`.
+#[derive(Debug, Clone, Serialize)]
+pub struct LinkReport {
+    /// `B/follow.out -> local.in`.
+    pub connection: String,
+    /// Samples written into the local port.
+    pub received: u64,
+    /// Batches lost on the way.
+    pub lost_batches: u64,
+    /// Samples the remote export dropped.
+    pub remote_dropped: u64,
+    /// Samples the local port refused.
+    pub refused: u64,
 }
 
 /// One imported interface, for `hwgw status`.
@@ -147,6 +165,8 @@ pub struct StatusSummary {
     pub writes_acked: u64,
     /// Each import's problem.
     pub problems: Vec<String>,
+    /// Each connection from another gateway's port and its counters.
+    pub links: Vec<String>,
 }
 
 /// What runs while the node is started.
@@ -166,6 +186,8 @@ pub struct Node {
     counters: Arc<Counters>,
     stop: Arc<AtomicBool>,
     running: Mutex<Option<Running>>,
+    exports: Mutex<Vec<Arc<Export>>>,
+    links: Mutex<Vec<Arc<Link>>>,
 }
 
 impl Node {
@@ -218,6 +240,8 @@ impl Node {
             counters: Arc::default(),
             stop: Arc::new(AtomicBool::new(false)),
             running: Mutex::new(None),
+            exports: Mutex::default(),
+            links: Mutex::default(),
         })
     }
 
@@ -237,6 +261,16 @@ impl Node {
         v.sort();
         v.dedup();
         v
+    }
+
+    /// Publishes an exported port from the next start on.
+    pub fn export(&self, e: Export) {
+        lock(&self.exports).push(Arc::new(e));
+    }
+
+    /// Feeds a local input port from another gateway's port from the next start on.
+    pub fn link(&self, l: Link) {
+        lock(&self.links).push(Arc::new(l));
     }
 
     /// Sets what answers other gateways' control requests (none: they are refused).
@@ -268,13 +302,9 @@ impl Node {
             }
         };
         let address = if self.cfg.listen.is_empty() {
-            format!(
-                "{} (connecting to {})",
-                self.cfg.name,
-                self.cfg.connect.join(", ")
-            )
+            format!("nowhere (connects to {})", self.cfg.connect.join(", "))
         } else {
-            format!("{} on {}", self.cfg.name, self.cfg.listen.join(", "))
+            self.cfg.listen.join(", ")
         };
         *running = Some(Running {
             session,
@@ -333,10 +363,25 @@ impl Node {
             self.times.publish,
         );
         let gw = self.cfg.name.clone();
+        let exports = lock(&self.exports).clone();
         threads.push(spawn(
             "hwgw-zn-pub",
-            Box::new(move || publish(&gw, &sess, &reg, period, &c, &stop)),
+            Box::new(move || publish(&gw, &sess, &reg, &exports, period, &c, &stop)),
         )?);
+        for link in lock(&self.links).iter() {
+            let (l, c) = (link.clone(), self.counters.clone());
+            s.subscribe(link.key(), move |key, bytes| {
+                match wire::parse::<PortBatch>(bytes) {
+                    Ok(b) => l.take(b),
+                    Err(e) => {
+                        if c.bad_messages.fetch_add(1, Ordering::Relaxed) == 0 {
+                            tracing::warn!("zenoh: a batch on {key} does not parse: {e}");
+                        }
+                    }
+                }
+            })
+            .map_err(z)?;
+        }
         // What we import.
         if !self.images.is_empty() {
             let by_key: HashMap<String, Vec<Arc<Image>>> =
@@ -501,8 +546,22 @@ impl Node {
                     problem: i.problem(),
                 })
                 .collect(),
+            links: lock(&self.links)
+                .iter()
+                .map(|k| LinkReport {
+                    connection: k.label.clone(),
+                    received: l(&k.received),
+                    lost_batches: l(&k.lost_batches),
+                    remote_dropped: l(&k.remote_dropped),
+                    refused: l(&k.refused),
+                })
+                .collect(),
         }
     }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
 }
 
 impl Drop for Node {
@@ -534,13 +593,23 @@ fn publish(
     gw: &str,
     s: &Session,
     registry: &Registry,
+    exports: &[Arc<Export>],
     period: Duration,
     c: &Counters,
     stop: &AtomicBool,
 ) {
     let mut seq: HashMap<(Interface, String), u64> = HashMap::new();
+    let mut publishers = s.publishers();
     let mut next = Instant::now();
     while !stop.load(Ordering::Acquire) {
+        for e in exports {
+            if let Some(batch) = e.drain() {
+                match publishers.put(e.key(), wire::to_bytes(&batch)) {
+                    Ok(()) => c.published.fetch_add(1, Ordering::Relaxed),
+                    Err(_) => c.publish_failed.fetch_add(1, Ordering::Relaxed),
+                };
+            }
+        }
         for (i, name) in local::local_devices(registry) {
             let n = seq.entry((i, name.clone())).or_insert(0);
             *n += 1;
@@ -548,7 +617,7 @@ fn publish(
                 continue;
             };
             let key = wire::sample_key(gw, i, &name);
-            match s.publish(&key, wire::to_bytes(&sample)) {
+            match publishers.put(&key, wire::to_bytes(&sample)) {
                 Ok(()) => c.published.fetch_add(1, Ordering::Relaxed),
                 Err(e) => {
                     if c.publish_failed.fetch_add(1, Ordering::Relaxed) == 0 {

@@ -66,6 +66,8 @@ pub struct Image {
     dirty: AtomicBool,
     /// Our monotonic time when the last sample arrived, ns; 0: none yet.
     rx_ns: AtomicU64,
+    /// The remote gateway's monotonic time when it read the last sample, ns.
+    read_ns: AtomicU64,
     /// The remote age at publication of the last sample, ns; `u64::MAX`: none.
     age_ns: AtomicU64,
     status: AtomicU8,
@@ -124,6 +126,7 @@ impl Image {
             any_set: AtomicBool::new(false),
             dirty: AtomicBool::new(false),
             rx_ns: AtomicU64::new(0),
+            read_ns: AtomicU64::new(0),
             age_ns: AtomicU64::new(u64::MAX),
             status: AtomicU8::new(status_code(Status::Offline)),
             seq: AtomicU64::new(0),
@@ -166,6 +169,15 @@ impl Image {
     /// Our monotonic time of the last sample, ns (0: none yet).
     pub fn received_at_ns(&self) -> u64 {
         self.rx_ns.load(Ordering::Acquire)
+    }
+
+    /// The last sample's times: `(read there, arrived here)`, both monotonic ns (on one
+    /// host, their difference is the sample's way from the remote device to here); `None`
+    /// before the first or while one is being taken.
+    pub fn sample_times(&self) -> Option<(u64, u64)> {
+        let rx = self.rx_ns.load(Ordering::Acquire);
+        let read = self.read_ns.load(Ordering::Relaxed);
+        (rx != 0 && self.rx_ns.load(Ordering::Acquire) == rx).then_some((read, rx))
     }
 
     pub(crate) fn set_wake(&self, tx: crossbeam_channel::Sender<()>) {
@@ -246,6 +258,7 @@ impl Image {
         self.age_ns
             .store(s.age_ns.unwrap_or(u64::MAX), Ordering::Relaxed);
         self.status.store(status_code(s.status), Ordering::Relaxed);
+        self.read_ns.store(s.read_ns, Ordering::Relaxed);
         self.rx_ns.store(now_ns.max(1), Ordering::Release);
         self.counters.received.fetch_add(1, Ordering::Relaxed);
     }

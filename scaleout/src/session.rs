@@ -208,9 +208,13 @@ impl Session {
             .clear();
     }
 
-    /// Publishes `payload` on `key`.
-    pub fn publish(&self, key: &str, payload: Vec<u8>) -> zenoh::Result<()> {
-        self.inner.put(key.to_string(), payload).wait()
+    /// Publishers of the keys published so far: a declared publisher's key is resolved
+    /// once, not at every sample.
+    pub fn publishers(&self) -> Publishers {
+        Publishers {
+            session: self.inner.clone(),
+            by_key: std::collections::HashMap::new(),
+        }
     }
 
     /// Asks `key` and waits (at most `timeout`) for every answer; errors are left out.
@@ -277,5 +281,25 @@ impl Session {
         let mut v: Vec<String> = info.peers_zid().wait().map(|z| z.to_string()).collect();
         v.extend(info.routers_zid().wait().map(|z| z.to_string()));
         v
+    }
+}
+
+/// Declared publishers by key (see [`Session::publishers`]).
+pub struct Publishers {
+    session: zenoh::Session,
+    by_key: std::collections::HashMap<String, zenoh::pubsub::Publisher<'static>>,
+}
+
+impl Publishers {
+    /// Publishes `payload` on `key`.
+    pub fn put(&mut self, key: &str, payload: Vec<u8>) -> zenoh::Result<()> {
+        if !self.by_key.contains_key(key) {
+            let p = self.session.declare_publisher(key.to_string()).wait()?;
+            self.by_key.insert(key.to_string(), p);
+        }
+        match self.by_key.get(key) {
+            Some(p) => p.put(payload).wait(),
+            None => Ok(()),
+        }
     }
 }

@@ -131,6 +131,13 @@ pub const IPROUTE2: Peer = Peer {
     packages: &["iproute2"],
 };
 
+/// The openssl command, which makes the certificates of the TLS tests.
+pub const OPENSSL: Peer = Peer {
+    name: "openssl",
+    probe: Probe::Command("openssl"),
+    packages: &["openssl"],
+};
+
 /// Why a peer is not there.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error(
