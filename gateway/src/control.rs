@@ -496,7 +496,7 @@ fn serve_client(shared: &Shared, conn: UnixStream) {
                             Err(Fail(kind, message)) => Reply::error(id, kind, message),
                         }
                     }
-                    Ok((id, req)) => carry_out(shared, id, &req, &mut writers),
+                    Ok((id, req)) => carry_out(shared, id, &req, &mut writers, true),
                 }
             }
         };
@@ -516,6 +516,7 @@ fn carry_out(
     id: Value,
     req: &Request,
     writers: &mut HashMap<(String, String), Box<dyn DynWriter>>,
+    forward: bool,
 ) -> Reply {
     let stopping = || {
         Reply::error(
@@ -535,7 +536,9 @@ fn carry_out(
     let gw = &shared.gw;
     let local = |c: &str| gw.runtime().component(c).is_ok();
     let here = |r: &Request| handle(gw, shared.report(), r, &mut HashMap::new());
-    let answer = crate::remote::forward(gw.zenoh(), &local, req, &here)
+    let answer = forward
+        .then(|| crate::remote::forward(gw.zenoh(), &local, req, &here))
+        .flatten()
         .unwrap_or_else(|| handle(gw, shared.report(), req, writers));
     match answer {
         Ok(v) => Reply {
@@ -557,7 +560,8 @@ fn remote_request(shared: &Shared, request: Value) -> Value {
             ErrorKind::BadRequest,
             "streams (watch, record) are not served to other gateways",
         ),
-        Ok((id, req)) => carry_out(shared, id, &req, &mut HashMap::new()),
+        // Carried out here, never forwarded again (no request goes round the gateways).
+        Ok((id, req)) => carry_out(shared, id, &req, &mut HashMap::new(), false),
     };
     if matches!(reply.body, Body::Error(_)) {
         shared.stats.errors.fetch_add(1, Ordering::Relaxed);

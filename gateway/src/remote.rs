@@ -239,6 +239,10 @@ pub(crate) fn forward(
         return None;
     }
     let (gw, rest) = c.split_once('/')?;
+    if !is_gateway(gw) {
+        // `*/x` or `a b/x` name no gateway: never a key expression matching many.
+        return None;
+    }
     if node.is_some_and(|n| own_name(n) == gw) {
         let mut v = serde_json::to_value(req).ok()?;
         v["component"] = Value::String(rest.to_string());
@@ -267,6 +271,14 @@ pub(crate) fn forward(
     };
     v["component"] = Value::String(rest.to_string());
     Some(ask(node, gw, &v))
+}
+
+/// True when `gw` can be a gateway's name.
+fn is_gateway(gw: &str) -> bool {
+    #[cfg(feature = "zenoh")]
+    return scaleout::config::is_gateway_name(gw);
+    #[cfg(not(feature = "zenoh"))]
+    !gw.is_empty()
 }
 
 /// This gateway's name in the name space.
@@ -306,8 +318,15 @@ fn ls_all(node: &Node, ls_here: &dyn Fn() -> Result<Value, Fail>) -> Result<Valu
     let mut all = Vec::new();
     let prefixed = |gw: &str, v: Value, all: &mut Vec<Value>| {
         for mut e in v.as_array().cloned().unwrap_or_default() {
-            let name = e["name"].as_str().unwrap_or("").to_string();
-            e["name"] = Value::String(format!("{gw}/{name}"));
+            // A peer's answer is not trusted to be what it should: what is not a
+            // component entry is left out.
+            let Some(o) = e.as_object_mut() else {
+                continue;
+            };
+            let Some(name) = o.get("name").and_then(Value::as_str).map(str::to_string) else {
+                continue;
+            };
+            o.insert("name".into(), Value::String(format!("{gw}/{name}")));
             all.push(e);
         }
     };
@@ -315,7 +334,10 @@ fn ls_all(node: &Node, ls_here: &dyn Fn() -> Result<Value, Fail>) -> Result<Valu
     let gateways = node
         .gateways()
         .map_err(|e| Fail(ErrorKind::Failed, e.to_string()))?;
-    for g in gateways.iter().filter(|g| g.gateway != node.name()) {
+    let others = gateways
+        .iter()
+        .filter(|g| g.gateway != node.name() && scaleout::config::is_gateway_name(&g.gateway));
+    for g in others {
         match node.request(&g.gateway, &serde_json::json!({"cmd": "ls"})) {
             Ok(reply) => match body(&g.gateway, reply) {
                 Ok(v) => prefixed(&g.gateway, v, &mut all),

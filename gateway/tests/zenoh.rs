@@ -29,16 +29,33 @@ fn config_b(listen: &str) -> String {
 }
 
 /// A: the example, connecting to B's address, its follower fed from B's noise input (so
-/// what it drives on B has a known value), and importing a device B does not have and
-/// one of a gateway that never comes (A starts anyway; they stay offline).
+/// what it drives on B has a known value), a component holding B's analog output 1 at
+/// 3.25 (written at every sample of B's input 0), and importing a device B does not have
+/// and one of a gateway that never comes (A starts anyway; they stay offline).
 fn config_a(connect: &str) -> String {
     let text = include_str!("../../config/zenoh-a.toml")
         .replace("tcp/127.0.0.1:7448", connect)
         .replace("from = \"B/sim0.ai.ch0\"", "from = \"B/sim0.ai.ch2\"");
     format!(
-        "{text}\n[[zenoh.import]]\ngateway = \"B\"\ndevice = \"nosuch\"\ndigital_in = 1\n\
+        "{text}\n[[component]]\nname = \"hold\"\ntype = \"follow\"\nactivity = {{ type = \"non_periodic\" }}\n\
+         properties = {{ gain = 0.0, offset = 3.25 }}\n\
+         [[connection]]\nfrom = \"B/sim0.ai.ch0\"\nto = \"hold.in\"\n\
+         [[connection]]\nfrom = \"hold.out\"\nto = \"B/sim0.ao.ch1\"\n\
+         [[zenoh.import]]\ngateway = \"B\"\ndevice = \"nosuch\"\ndigital_in = 1\n\
          [[zenoh.import]]\ngateway = \"C\"\ndevice = \"sim0\"\ndigital_in = 4\n"
     )
+}
+
+/// B's card's watchdog trips so far.
+fn trips(b: &Service) -> u64 {
+    let s = b.ok(json!({"cmd": "status"}));
+    s["cards"][0]["outputs"]["watchdog_trips"]
+        .as_u64()
+        .unwrap_or_else(|| panic!("no watchdog_trips in {}", s["cards"]))
+}
+
+fn near(v: Value, want: f64) -> bool {
+    v.as_f64().is_some_and(|v| (v - want).abs() < 0.001)
 }
 
 fn write(dir: &Path, name: &str, text: &str) -> String {
@@ -99,19 +116,19 @@ fn two_gateways_share_devices_by_name_and_survive_a_cut_link() {
     let age = age.unwrap_or_else(|| panic!("an online remote device has an age"));
     assert!(age > 0.0 && age < 0.5, "age {age} s");
 
-    // A value A sets on B's analog output 1 is read back, equal, by A through B's input 3
-    // and by B itself (the same raw value on both sides: the same scale).
-    a.ok(json!({"cmd": "set", "component": "B/sim0.ao", "port": "ch1", "value": 3.25}));
+    // A value a component of A holds on B's analog output 1 is read back, equal, by A
+    // through B's input 3 and B's read-back, and by B itself (the same raw value on both
+    // sides: the same scale).
     wait_until("B's analog output 1 at A's value", || {
-        get(&b, "sim0.ao", "ch1")
-            .as_f64()
-            .is_some_and(|v| (v - 3.25).abs() < 0.001)
+        near(get(&b, "sim0.ao", "ch1"), 3.25)
     });
     let on_b = get(&b, "sim0.ao", "ch1");
     wait_until("A reads B's input 3 equal to B's", || {
         get(&a, "B/sim0.ai", "ch3") == get(&b, "sim0.ai", "ch3")
     });
-    assert_eq!(get(&a, "B/sim0.ao", "ch1"), on_b, "read-back through A");
+    wait_until("A's read-back of B's output 1 equal to B's", || {
+        get(&a, "B/sim0.ao", "ch1") == on_b
+    });
 
     // A's follower drives B's analog output 0 from B's noise input (1 V ± 0.05, gain 0.5).
     wait_until("A's follower drives B's output 0", || {
@@ -119,6 +136,17 @@ fn two_gateways_share_devices_by_name_and_survive_a_cut_link() {
             .as_f64()
             .is_some_and(|v| (v - 0.5).abs() < 0.05)
     });
+    // A value set once from A is written once: B's watchdog takes it back to its safe
+    // value, as it would a value set once on B (never written again when nobody asks).
+    let before = trips(&b);
+    a.ok(json!({"cmd": "set", "component": "B/sim0.do", "port": "bit3", "value": true}));
+    wait_until("B's bit 3 set from A", || {
+        get(&b, "sim0.do", "bit3") == json!(true)
+    });
+    wait_until("B's bit 3 back to safe", || {
+        get(&b, "sim0.do", "bit3") == json!(false)
+    });
+    assert!(trips(&b) > before);
     // A's blinker toggles B's digital output 15: B sees both values.
     let mut seen = HashSet::new();
     wait_until("B's bit 15 toggled by A", || {
@@ -166,8 +194,9 @@ fn two_gateways_share_devices_by_name_and_survive_a_cut_link() {
     });
 
     // The link cut: A sees B stale, then offline; A's components keep running.
-    net.link(false).unwrap_or_else(|e| panic!("{e}"));
+    let trips_before = trips(&b);
     let cut = Instant::now();
+    net.link(false).unwrap_or_else(|e| panic!("{e}"));
     let mut saw = Vec::new();
     wait_until("B/sim0 offline in A", || {
         let s = device(&a, "B/sim0", "analog_in").0;
@@ -176,10 +205,11 @@ fn two_gateways_share_devices_by_name_and_survive_a_cut_link() {
         }
         s == "offline"
     });
-    assert_eq!(
-        saw,
-        ["online", "stale", "offline"],
-        "A's view of B after the cut"
+    // (A late sample may bring it back for a moment; stale always comes before offline.)
+    let first_stale = saw.iter().position(|s| s == "stale");
+    assert!(
+        saw[0] == "online" && first_stale.is_some_and(|i| i + 1 < saw.len()),
+        "A's view of B after the cut: {saw:?}"
     );
     let offline_after = cut.elapsed();
     assert!(
@@ -191,11 +221,11 @@ fn two_gateways_share_devices_by_name_and_survive_a_cut_link() {
 
     // B's outputs driven from A go to their safe values once B's watchdog expires.
     wait_until("B's outputs at their safe values", || {
-        let zero = |v: Value| v.as_f64().is_some_and(|v| v.abs() < 0.001);
-        zero(get(&b, "sim0.ao", "ch0"))
-            && zero(get(&b, "sim0.ao", "ch1"))
+        near(get(&b, "sim0.ao", "ch0"), 0.0)
+            && near(get(&b, "sim0.ao", "ch1"), 0.0)
             && get(&b, "sim0.do", "bit15") == json!(false)
     });
+    assert!(trips(&b) >= trips_before + 2, "B's watchdog tripped");
 
     // Zenoh itself gives the link up once its lease (2 s) runs out with no word.
     wait_until("A's session to B closed", || {
@@ -203,23 +233,31 @@ fn two_gateways_share_devices_by_name_and_survive_a_cut_link() {
         s["servers"][0]["counters"]["peers"] == json!([])
     });
 
-    // The link back: everything resumes without a restart.
+    // The link back: everything resumes without a restart, as A's components write again.
     net.link(true).unwrap_or_else(|e| panic!("{e}"));
     wait_until("B/sim0 online again in A", || {
         device(&a, "B/sim0", "analog_in").0 == "online"
     });
     wait_until("A's value back on B", || {
-        get(&b, "sim0.ao", "ch1")
-            .as_f64()
-            .is_some_and(|v| (v - 3.25).abs() < 0.001)
+        near(get(&b, "sim0.ao", "ch1"), 3.25)
     });
     wait_until("A's follower drives B again", || {
         get(&b, "sim0.ao", "ch0")
             .as_f64()
             .is_some_and(|v| (v - 0.5).abs() < 0.05)
     });
+
+    // A stopped: nothing writes B's outputs any more, and B's watchdog takes them safe.
+    assert_eq!(
+        get(&b, "sim0.do", "bit3"),
+        json!(false),
+        "never written again"
+    );
     let stopped = a.terminate();
     assert!(stopped.status.success(), "A: {}", stopped.log);
+    wait_until("B's outputs safe once A stopped", || {
+        near(get(&b, "sim0.ao", "ch0"), 0.0) && near(get(&b, "sim0.ao", "ch1"), 0.0)
+    });
     let stopped = b.terminate();
     assert!(stopped.status.success(), "B: {}", stopped.log);
 }
@@ -424,7 +462,10 @@ fn gateways_meet_over_tls_and_a_stranger_is_refused() {
     let a_file = write(d, "a.toml", &a_text);
     let s_file = write(d, "s.toml", &stranger);
     let b = Service::start(BIN, "zenoh-tls-b", &[&b_file], &[]).unwrap_or_else(|e| panic!("{e}"));
-    let s = Service::start(BIN, "zenoh-tls-s", &[&s_file], &[]).unwrap_or_else(|e| panic!("{e}"));
+    // Zenoh retries in the background and says why at debug level.
+    let debug = [("RUST_LOG", "info,zenoh::net::runtime::orchestrator=debug")];
+    let s =
+        Service::start(BIN, "zenoh-tls-s", &[&s_file], &debug).unwrap_or_else(|e| panic!("{e}"));
     let a = Service::start(BIN, "zenoh-tls-a", &[&a_file], &[]).unwrap_or_else(|e| panic!("{e}"));
     wait_until("B/sim0 online in A over TLS", || {
         device(&a, "B/sim0", "analog_in").0 == "online"
@@ -448,8 +489,12 @@ fn gateways_meet_over_tls_and_a_stranger_is_refused() {
         assert_eq!(device(&s, "B/sim0", "analog_in").0, "offline");
         std::thread::sleep(Duration::from_millis(100));
     }
-    wait_until("the stranger's log naming the refused certificate", || {
-        s.log_text()
-            .contains("invalid peer certificate: UnknownIssuer")
-    });
+    let refused = testkit::wait::wait_for(
+        "the stranger's log naming the refused certificate",
+        PATIENCE,
+        || s.log_text().contains("UnknownIssuer"),
+    );
+    if let Err(e) = refused {
+        panic!("{e}: {}", s.log_text());
+    }
 }

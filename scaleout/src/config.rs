@@ -24,9 +24,10 @@ pub const EXPORT_BUFFER: usize = 1024;
 /// Most channels (or bits) one imported interface may declare: a sample of a device this
 /// big is about 256 KiB of JSON, under the transport's message bound.
 pub const MAX_CHANNELS: u32 = 4096;
-/// The largest message a peer may send us, bytes (Zenoh's own default is 1 GiB; a hostile
-/// peer could make us allocate that).
-pub const MAX_MESSAGE: usize = 16 * 1024 * 1024;
+/// The largest message a peer may send us, bytes: room for the largest sample (4096
+/// channels, about 100 KiB of JSON) and a forwarded `status` of a big gateway (Zenoh's own
+/// default is 1 GiB; a hostile peer could make us allocate that).
+pub const MAX_MESSAGE: usize = 4 * 1024 * 1024;
 
 /// The `[zenoh]` section of a deployment.
 #[derive(Debug, Clone, PartialEq, Deserialize)]

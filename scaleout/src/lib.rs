@@ -64,6 +64,7 @@ impl driver_api::Server for NodeServer {
             imported_refused: sum(|i| i.refused),
             writes_sent: sum(|i| i.writes_sent),
             writes_acked: sum(|i| i.writes_acked),
+            writes_failed: sum(|i| i.writes_failed),
             links: r
                 .links
                 .iter()

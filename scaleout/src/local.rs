@@ -173,6 +173,27 @@ pub fn write(gw: &str, registry: &Registry, w: &Write) -> Result<WriteReply, Str
             }
         ));
     }
+    let count = match w.interface {
+        Interface::AnalogOut => registry
+            .analog_out()
+            .get(&w.device)
+            .map(|d| d.channel_count()),
+        Interface::DigitalOut => registry
+            .digital_out()
+            .get(&w.device)
+            .map(|d| d.output_count()),
+        Interface::Encoder => Some(2),
+        _ => None,
+    }
+    .unwrap_or(0);
+    let mut seen = std::collections::HashSet::new();
+    if w.values.len() > count as usize || !w.values.iter().all(|(c, _)| seen.insert(*c)) {
+        return Err(format!(
+            "a write of {} values to {} (of {count} channels) names a channel twice or too many",
+            w.values.len(),
+            w.device
+        ));
+    }
     let mut refused = Vec::new();
     for &(c, raw) in &w.values {
         let r = match w.interface {

@@ -106,7 +106,8 @@ pub struct Link {
     pub lost_batches: AtomicU64,
     /// Samples the remote export's buffer dropped, as it last said.
     pub remote_dropped: AtomicU64,
-    /// Samples the local port refused (not of its type).
+    /// Samples the local port refused (not of its type), or in a batch larger than an
+    /// export sends.
     pub refused: AtomicU64,
 }
 
@@ -139,10 +140,16 @@ impl Link {
 
     /// Writes batch `b` into the local port.
     pub fn take(&self, b: PortBatch) {
+        if b.samples.len() > crate::config::EXPORT_BUFFER {
+            // More than an export ever sends: refused whole, not written.
+            self.refused
+                .fetch_add(b.samples.len() as u64, Ordering::Relaxed);
+            return;
+        }
         let last = self.last_seq.swap(b.seq, Ordering::AcqRel);
-        if last != 0 && b.seq > last + 1 {
-            self.lost_batches
-                .fetch_add(b.seq - last - 1, Ordering::Relaxed);
+        if last != 0 && b.seq > last {
+            let gap = b.seq.saturating_sub(last).saturating_sub(1);
+            self.lost_batches.fetch_add(gap, Ordering::Relaxed);
         }
         self.remote_dropped.store(b.dropped, Ordering::Relaxed);
         let mut w = self.writer.lock().unwrap_or_else(|p| p.into_inner());

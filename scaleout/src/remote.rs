@@ -9,8 +9,15 @@
 //!
 //! Every trait method is a handful of atomic loads and stores: reads answer from the
 //! latest sample (never waiting for the wire), writes store the value and wake the
-//! node's sender with a `try_send` on a bounded channel. Nothing allocates or blocks.
-//! Each channel is one atomic, so a reader may see channels of two consecutive samples.
+//! node's sender with a `try_send` on a bounded channel (at most one futex call to wake
+//! it; never a wait). Nothing allocates or blocks. Each channel is one atomic, so a reader
+//! may see channels of two consecutive samples.
+//!
+//! A write is sent once, as soon as the sender wakes: only the channels written since the
+//! last send, never again on its own. So the remote gateway's output watchdog sees what
+//! its writer here does — a component that stops writing, stops, fails, or loses the link
+//! lets it expire, exactly as a local writer would. A write's answer is counted
+//! (acknowledged, refused, or failed: no answer in `request_timeout_ms`).
 //!
 //! Health: offline until the first sample of a device whose shape matched the remote
 //! gateway's catalogue; stale when the last sample is older than `stale_ms`, offline when
@@ -44,6 +51,8 @@ pub struct ImageCounters {
     pub writes_acked: AtomicU64,
     /// Writes it answered refusing some value (see the image's problem).
     pub writes_refused: AtomicU64,
+    /// Writes that got no answer in time, or could not be sent.
+    pub writes_failed: AtomicU64,
 }
 
 /// Why an image is not usable beyond silence.
@@ -62,7 +71,11 @@ pub struct Image {
     valid: Box<[AtomicBool]>,
     out: Box<[AtomicI64]>,
     out_set: Box<[AtomicBool]>,
-    any_set: AtomicBool,
+    /// Set when the gateway stops: writes are refused from then on.
+    held: AtomicBool,
+    /// Set when the remote gateway restarted (its sequence went back): its catalogue is
+    /// asked for again.
+    refetch: AtomicBool,
     dirty: AtomicBool,
     /// Our monotonic time when the last sample arrived, ns; 0: none yet.
     rx_ns: AtomicU64,
@@ -123,7 +136,8 @@ impl Image {
             valid: atomics(count, || AtomicBool::new(false)),
             out: atomics(count, || AtomicI64::new(0)),
             out_set: atomics(count, || AtomicBool::new(false)),
-            any_set: AtomicBool::new(false),
+            held: AtomicBool::new(false),
+            refetch: AtomicBool::new(false),
             dirty: AtomicBool::new(false),
             rx_ns: AtomicU64::new(0),
             read_ns: AtomicU64::new(0),
@@ -232,22 +246,25 @@ impl Image {
             return;
         }
         if s.values.len() != self.count as usize {
-            self.counters.refused.fetch_add(1, Ordering::Relaxed);
-            self.set_problem(
-                MISMATCH,
-                format!(
-                    "a sample of {} values for {} channels",
+            // Refused and counted; the device stays usable for the next good sample.
+            if self.counters.refused.fetch_add(1, Ordering::Relaxed) == 0 {
+                tracing::warn!(
+                    "zenoh: {}/{}: a sample of {} values for {} channels refused",
+                    self.gateway,
+                    self.device,
                     s.values.len(),
                     self.count
-                ),
-            );
+                );
+            }
             return;
         }
         let last = self.seq.swap(s.seq, Ordering::AcqRel);
-        if last != 0 && s.seq > last + 1 {
-            self.counters
-                .lost
-                .fetch_add(s.seq - last - 1, Ordering::Relaxed);
+        if last != 0 && s.seq <= last {
+            // The remote gateway started again: its shape may have changed.
+            self.refetch.store(true, Ordering::Release);
+        } else if last != 0 {
+            let gap = s.seq.saturating_sub(last).saturating_sub(1);
+            self.counters.lost.fetch_add(gap, Ordering::Relaxed);
         }
         for ((v, slot), ok) in s.values.iter().zip(&self.values).zip(&self.valid) {
             if let Some(v) = v {
@@ -338,24 +355,25 @@ impl Image {
         Ok(self.values[ch as usize].load(Ordering::Relaxed))
     }
 
-    /// What this gateway last wrote to channel `ch`, or else the remote read-back.
+    /// The remote gateway's read-back of output `ch`, from its latest sample: what the
+    /// device has, not what was asked of it here.
     fn read_back(&self, ch: u32) -> Result<i64, DeviceError> {
-        self.check(ch)?;
-        if self.out_set[ch as usize].load(Ordering::Acquire) {
-            return Ok(self.out[ch as usize].load(Ordering::Relaxed));
-        }
         self.read(ch)
     }
 
     /// Writes `raw` to channel `ch`: stored, and sent by the node.
     fn write(&self, ch: u32, raw: i64) -> Result<(), DeviceError> {
         self.check(ch)?;
+        if self.held.load(Ordering::Acquire) {
+            return Err(DeviceError::Held {
+                reason: "the gateway is stopping",
+            });
+        }
         if self.state(MonotonicClock.now().as_nanos()).0 == Status::Offline {
             return Err(DeviceError::Offline);
         }
         self.out[ch as usize].store(raw, Ordering::Relaxed);
         self.out_set[ch as usize].store(true, Ordering::Release);
-        self.any_set.store(true, Ordering::Release);
         self.dirty.store(true, Ordering::Release);
         if let Some(w) = self.wake.get() {
             let _ = w.try_send(());
@@ -363,39 +381,37 @@ impl Image {
         Ok(())
     }
 
-    /// The outputs this gateway drives, `(channel, raw)`, if it drives any and `force` or
-    /// a write came since the last call.
-    pub(crate) fn to_send(&self, force: bool) -> Option<Vec<(u32, i64)>> {
-        if !self.any_set.load(Ordering::Acquire) {
+    /// The channels written since the last call, `(channel, raw)`; `None` when none was.
+    pub fn to_send(&self) -> Option<Vec<(u32, i64)>> {
+        if !self.dirty.swap(false, Ordering::AcqRel) {
             return None;
         }
-        // Outputs are sent again at every period (the remote watchdog counts on it); an
-        // encoder's position or turn is a command, sent once.
-        let refresh = matches!(self.interface, Interface::AnalogOut | Interface::DigitalOut);
-        let dirty = self.dirty.swap(false, Ordering::AcqRel);
-        if !(dirty || (force && refresh)) {
-            return None;
-        }
-        let set = |c: u32| {
-            let flag = &self.out_set[c as usize];
-            if refresh {
-                flag.load(Ordering::Acquire)
-            } else {
-                flag.swap(false, Ordering::AcqRel)
-            }
-        };
-        Some(
-            (0..self.count)
-                .filter(|&c| set(c))
-                .map(|c| (c, self.out[c as usize].load(Ordering::Relaxed)))
-                .collect(),
-        )
+        let v: Vec<(u32, i64)> = (0..self.count)
+            .filter(|&c| self.out_set[c as usize].swap(false, Ordering::AcqRel))
+            .map(|c| (c, self.out[c as usize].load(Ordering::Relaxed)))
+            .collect();
+        (!v.is_empty()).then_some(v)
+    }
+
+    /// Refuses every write from now on (the gateway is stopping).
+    pub fn hold(&self) {
+        self.held.store(true, Ordering::Release);
+    }
+
+    /// True once after the remote gateway restarted: its catalogue should be asked again.
+    pub fn take_refetch(&self) -> bool {
+        self.refetch.swap(false, Ordering::AcqRel)
     }
 
     /// Records the remote gateway's answer to a write.
     pub(crate) fn answered(&self, refused: &[(u32, String)]) {
         if refused.is_empty() {
             self.counters.writes_acked.fetch_add(1, Ordering::Relaxed);
+            // A write problem is over once a write goes through.
+            let mut p = self.problem_text.lock().unwrap_or_else(|p| p.into_inner());
+            if p.as_deref().is_some_and(|t| t.starts_with("write ")) {
+                *p = None;
+            }
             return;
         }
         self.counters.writes_refused.fetch_add(1, Ordering::Relaxed);
@@ -409,11 +425,12 @@ impl Image {
             Some(format!("write refused by {}: {text}", self.gateway));
     }
 
-    /// Records a write the remote gateway could not carry out at all.
+    /// Records a write that got no answer from the remote gateway (a timeout, no
+    /// route), or that it refused as a whole.
     pub(crate) fn failed(&self, why: &str) {
-        self.counters.writes_refused.fetch_add(1, Ordering::Relaxed);
+        self.counters.writes_failed.fetch_add(1, Ordering::Relaxed);
         *self.problem_text.lock().unwrap_or_else(|p| p.into_inner()) =
-            Some(format!("write refused by {}: {why}", self.gateway));
+            Some(format!("write to {} failed: {why}", self.gateway));
     }
 
     fn scale(&self, ch: u32) -> Result<Scale, DeviceError> {

@@ -79,7 +79,9 @@ fn settings(cfg: &ZenohConfig) -> Vec<(&'static str, String)> {
         ("listen/timeout_ms", "0".into()),
         ("listen/exit_on_failure", "true".into()),
         ("connect/endpoints", json(&cfg.connect)),
-        ("connect/timeout_ms", "0".into()),
+        // -1 with exit_on_failure false: tried in the background until it comes (0
+        // would try once and never again; exit_on_failure true would block the open).
+        ("connect/timeout_ms", "-1".into()),
         ("connect/exit_on_failure", "false".into()),
         (
             "connect/retry",
@@ -217,12 +219,14 @@ impl Session {
         }
     }
 
-    /// Asks `key` and waits (at most `timeout`) for every answer; errors are left out.
+    /// Asks `key` and waits (at most `timeout`) for at most `max` answers, together at
+    /// most four messages' worth of bytes; an error answer comes as a control error body.
     pub fn ask(
         &self,
         key: &str,
         payload: Vec<u8>,
         timeout: Duration,
+        max: usize,
     ) -> zenoh::Result<Vec<Vec<u8>>> {
         let mut get = self
             .inner
@@ -233,8 +237,10 @@ impl Session {
             get = get.payload(payload);
         }
         let replies = get.wait()?;
-        let mut out = Vec::new();
-        while let Ok(r) = replies.recv() {
+        let mut out: Vec<Vec<u8>> = Vec::new();
+        let mut bytes = 0;
+        while out.len() < max && bytes < 4 * MAX_MESSAGE {
+            let Ok(r) = replies.recv() else { break };
             match r.result() {
                 Ok(s) => out.push(s.payload().to_bytes().into_owned()),
                 Err(e) => out.push(
@@ -244,6 +250,7 @@ impl Session {
                     .unwrap_or_default(),
                 ),
             }
+            bytes += out.last().map_or(0, Vec::len);
         }
         Ok(out)
     }

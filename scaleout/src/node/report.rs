@@ -1,0 +1,108 @@
+//! What the node tells `hwgw status`: its counters, each import's and each remote
+//! connection's.
+
+use device_interface::Interface;
+use serde::Serialize;
+
+/// The node's state and counters, for `hwgw status`.
+#[derive(Debug, Clone, Serialize)]
+pub struct NodeReport {
+    /// This gateway's name.
+    pub name: String,
+    /// Its Zenoh id, once started.
+    pub zid: Option<String>,
+    /// The peers (or routers) it is connected to now.
+    pub peers: Vec<String>,
+    /// Samples published.
+    pub published: u64,
+    /// Publications that failed.
+    pub publish_failed: u64,
+    /// Writes of other gateways carried out / refused.
+    pub writes_served: u64,
+    /// Writes of other gateways refused (some value).
+    pub writes_refused: u64,
+    /// Control requests of other gateways answered.
+    pub controls_served: u64,
+    /// Messages that did not parse.
+    pub bad_messages: u64,
+    /// Every imported interface.
+    pub imports: Vec<ImportReport>,
+    /// Every connection from another gateway's port.
+    pub links: Vec<LinkReport>,
+}
+
+/// A connection from another gateway's port, for `hwgw status`.
+#[derive(Debug, Clone, Serialize)]
+pub struct LinkReport {
+    /// `B/follow.out -> local.in`.
+    pub connection: String,
+    /// Samples written into the local port.
+    pub received: u64,
+    /// Batches lost on the way.
+    pub lost_batches: u64,
+    /// Samples the remote export dropped.
+    pub remote_dropped: u64,
+    /// Samples the local port refused.
+    pub refused: u64,
+}
+
+/// One imported interface, for `hwgw status`.
+#[derive(Debug, Clone, Serialize)]
+pub struct ImportReport {
+    /// Its name here (`B/sim0`).
+    pub name: String,
+    /// Its interface.
+    pub interface: Interface,
+    /// Samples received, lost on the way, refused.
+    pub received: u64,
+    /// Samples missing from the sequence.
+    pub lost: u64,
+    /// Samples refused.
+    pub refused: u64,
+    /// Writes sent, acknowledged, refused.
+    pub writes_sent: u64,
+    /// Writes acknowledged.
+    pub writes_acked: u64,
+    /// Writes refused.
+    pub writes_refused: u64,
+    /// Writes without an answer in time, or not sent.
+    pub writes_failed: u64,
+    /// Its last problem.
+    pub problem: Option<String>,
+}
+
+/// The node's counters as `hwgw status` shows them: the imports summed, their problems
+/// listed (each import's own counters are in [`NodeReport`]).
+#[derive(Debug, Clone, Serialize)]
+pub struct StatusSummary {
+    /// Peers and routers connected now (their Zenoh ids).
+    pub peers: Vec<String>,
+    /// Samples published.
+    pub published: u64,
+    /// Publications that failed.
+    pub publish_failed: u64,
+    /// Writes of other gateways carried out.
+    pub writes_served: u64,
+    /// ... of which some value was refused.
+    pub writes_refused: u64,
+    /// Control requests of other gateways answered.
+    pub controls_served: u64,
+    /// Messages that did not parse.
+    pub bad_messages: u64,
+    /// Samples of imported devices taken.
+    pub imported_received: u64,
+    /// ... missing from their sequence.
+    pub imported_lost: u64,
+    /// ... refused (shape unknown or not matching).
+    pub imported_refused: u64,
+    /// Writes sent to other gateways.
+    pub writes_sent: u64,
+    /// ... that they acknowledged.
+    pub writes_acked: u64,
+    /// ... that got no answer in time (or could not be sent).
+    pub writes_failed: u64,
+    /// Each import's problem.
+    pub problems: Vec<String>,
+    /// Each connection from another gateway's port and its counters.
+    pub links: Vec<String>,
+}
