@@ -85,8 +85,17 @@ pub struct Deployment {
     /// This gateway in a Zenoh name space with others: what it publishes, imports and
     /// serves (off when absent: nothing listens, nothing is sent).
     #[serde(default)]
-    pub zenoh: Option<crate::remote::Section>,
+    pub zenoh: Option<ZenohSection>,
 }
+
+/// What the deployment's `[zenoh]` section is in this build.
+#[cfg(feature = "zenoh")]
+pub type ZenohSection = scaleout::ZenohConfig;
+
+/// What the deployment's `[zenoh]` section is in this build (one without the `zenoh`
+/// feature: refused when given).
+#[cfg(not(feature = "zenoh"))]
+pub type ZenohSection = toml::Value;
 
 /// One IO card: a driver and its section.
 ///

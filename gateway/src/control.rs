@@ -28,7 +28,7 @@
 //! | `record` | `ports` (`component.port` or `component`), optional `devices`, `steps`, `buffer` | `{"ports", "activities", "wall_minus_clock_ns"}`, then a stream of `{"id", "records": {"items", "ports_lost", "steps_lost", "now_ns"}}` batches until the client closes |
 //!
 //! A request naming a component `<gateway>/<component>` that is not one of this gateway's
-//! is carried out by that gateway, through Zenoh (see [`crate::remote`]).
+//! is carried out by that gateway, through Zenoh (see [`crate::forward`]).
 //!
 //! Error kinds: `parse`, `too_long`, `bad_request`, `unknown_command`, `not_found`,
 //! `failed`, `busy` (too many clients), `stopping` (the gateway is stopping: no request is
@@ -194,7 +194,7 @@ impl ControlServer {
         if let Some(node) = shared.gw.zenoh() {
             // Weak: the node lives in the gateway, which the shared state holds.
             let weak = Arc::downgrade(&shared);
-            crate::remote::serve_control(node, move |request| match weak.upgrade() {
+            crate::forward::serve_control(node, move |request| match weak.upgrade() {
                 Some(shared) => remote_request(&shared, request),
                 None => {
                     json!({"error": {"kind": "stopping", "message": "the control server is closed"}})
@@ -537,7 +537,7 @@ fn carry_out(
     let local = |c: &str| gw.runtime().component(c).is_ok();
     let here = |r: &Request| handle(gw, shared.report(), r, &mut HashMap::new());
     let answer = forward
-        .then(|| crate::remote::forward(gw.zenoh(), &local, req, &here))
+        .then(|| crate::forward::forward(gw.zenoh(), &local, req, &here))
         .flatten()
         .unwrap_or_else(|| handle(gw, shared.report(), req, writers));
     match answer {

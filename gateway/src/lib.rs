@@ -41,6 +41,7 @@ pub mod config;
 pub mod control;
 pub mod deploy;
 pub mod drivers;
+pub mod forward;
 pub mod io;
 pub mod outputs;
 pub mod problems;

@@ -4,7 +4,7 @@
 //! Zenoh's defaults listen on every interface and scout by UDP multicast (even without the
 //! UDP transport); here nothing listens but `listen`, multicast scouting is off, gossip is
 //! as configured, a link is dropped after `lease_ms` of silence, a peer may send at most
-//! [`MAX_MESSAGE`](crate::config::MAX_MESSAGE) bytes, a bad or busy `listen` endpoint fails
+//! [`crate::config::MAX_MESSAGE`] bytes, a bad or busy `listen` endpoint fails
 //! the open at once, and `connect` endpoints are retried in the background (so an absent
 //! peer never blocks start-up).
 
