@@ -53,8 +53,8 @@ pub struct ZenohConfig {
     /// the endpoints written here are used.
     #[serde(default)]
     pub gossip: bool,
-    /// How often the devices are published and the outputs written remotely are sent
-    /// again, ms (default 10).
+    /// How often the devices and exported ports are published, ms (default 10); the
+    /// imported devices' IO components sample at this period too.
     #[serde(default)]
     pub publish_ms: Option<f64>,
     /// A remote device whose last sample is older than this is stale, ms (default 5

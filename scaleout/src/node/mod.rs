@@ -6,8 +6,8 @@
 //!
 //! - `hwgw-zn-pub`: every `publish_ms`, one [`Sample`](crate::wire::Sample) per local
 //!   device;
-//! - `hwgw-zn-tx`: the outputs this gateway drives on others, sent at once when written
-//!   and again every `publish_ms` (so the remote output watchdog sees them alive);
+//! - `hwgw-zn-tx`: the writes of this gateway's components to others' outputs, each sent
+//!   once, as soon as it is made (the remote output watchdog sees what the writer does);
 //! - `hwgw-zn-wr` and `hwgw-zn-ctl`: the writes and control requests of other gateways,
 //!   from bounded queues (a flood loses the oldest, never grows memory);
 //! - `hwgw-zn-imp`: asks each imported gateway for its catalogue until it answers.
