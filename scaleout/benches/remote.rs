@@ -78,9 +78,9 @@ fn config(name: &str, listen: Option<String>, connect: Option<String>) -> ZenohC
     }
 }
 
-/// CPU time (user + system) of this process, s, and its resident set, KiB.
-fn cpu_and_rss() -> (f64, u64) {
-    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+/// CPU time (user + system) in a `/proc/.../stat` file, s (0 when unreadable).
+fn stat_cpu(path: &std::path::Path) -> f64 {
+    let stat = std::fs::read_to_string(path).unwrap_or_default();
     let fields: Vec<&str> = stat
         .rsplit_once(')')
         .map_or("", |(_, r)| r)
@@ -93,7 +93,12 @@ fn cpu_and_rss() -> (f64, u64) {
             .unwrap_or(0.0)
     };
     // utime and stime are fields 14 and 15 of stat, 12 and 13 after the name.
-    let cpu = (ticks(11) + ticks(12)) / 100.0;
+    (ticks(11) + ticks(12)) / 100.0
+}
+
+/// CPU time (user + system) of this process, s, and its resident set, KiB.
+fn cpu_and_rss() -> (f64, u64) {
+    let cpu = stat_cpu(std::path::Path::new("/proc/self/stat"));
     let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
     let rss = status
         .lines()
@@ -108,26 +113,10 @@ fn named_thread_cpu(name: &str) -> f64 {
     let Ok(tasks) = std::fs::read_dir("/proc/self/task") else {
         return 0.0;
     };
-    for t in tasks.flatten() {
-        let comm = std::fs::read_to_string(t.path().join("comm")).unwrap_or_default();
-        if comm.trim() != name {
-            continue;
-        }
-        let stat = std::fs::read_to_string(t.path().join("stat")).unwrap_or_default();
-        let fields: Vec<&str> = stat
-            .rsplit_once(')')
-            .map_or("", |(_, r)| r)
-            .split_whitespace()
-            .collect();
-        let ticks = |i: usize| {
-            fields
-                .get(i)
-                .and_then(|f| f.parse::<f64>().ok())
-                .unwrap_or(0.0)
-        };
-        return (ticks(11) + ticks(12)) / 100.0;
-    }
-    0.0
+    tasks
+        .flatten()
+        .find(|t| std::fs::read_to_string(t.path().join("comm")).is_ok_and(|c| c.trim() == name))
+        .map_or(0.0, |t| stat_cpu(&t.path().join("stat")))
 }
 
 /// CPU time of the calling thread, s.
