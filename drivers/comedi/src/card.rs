@@ -273,13 +273,14 @@ impl ComediCard {
     /// and opens it again).
     pub(crate) fn failed(&self, e: &ComediError) {
         self.errors.fetch_add(1, Ordering::Relaxed);
-        if e.gone() && self.online.swap(false, Ordering::AcqRel) {
-            self.went_offline.fetch_add(1, Ordering::Relaxed);
-        }
+        // The error first: whoever sees the card offline finds why.
         *self
             .last_error
             .lock()
             .unwrap_or_else(PoisonError::into_inner) = Some(e.to_string());
+        if e.gone() && self.online.swap(false, Ordering::AcqRel) {
+            self.went_offline.fetch_add(1, Ordering::Relaxed);
+        }
     }
 
     /// Runs `f` on the open board; Offline when there is none, a failed call recorded.

@@ -146,6 +146,8 @@ fn a_board_that_goes_away_is_offline_and_back_when_configured() -> Result<(), Fa
     wait("the card offline", || !c.is_online())?;
     assert!(matches!(c.read_raw(0), Err(DeviceError::Offline)));
     assert!(matches!(c.write(0, 1.0), Err(DeviceError::Offline)));
+    // The bus thread counts the fall just after the card shows it.
+    wait("the fall counted", || c.counters().went_offline >= 1)?;
     let status = c.counters();
     assert_eq!(status.went_offline, 1);
     let why = status.last_error.unwrap_or_default();
