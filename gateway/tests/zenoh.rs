@@ -101,9 +101,9 @@ fn two_gateways_share_devices_by_name_and_survive_a_cut_link() {
     let endpoint = format!("tcp/{ADDR_B}:7448");
     let b_file = write(dir.path(), "b.toml", &config_b(&endpoint));
     let a_file = write(dir.path(), "a.toml", &config_a(&endpoint));
-    let b = Service::start_in(&Pair::exec(&net.b), BIN, "zenoh-b", &[&b_file], &[])
+    let b = Service::start_in(&net.exec_b(), BIN, "zenoh-b", &[&b_file], &[])
         .unwrap_or_else(|e| panic!("{e}"));
-    let a = Service::start_in(&Pair::exec(&net.a), BIN, "zenoh-a", &[&a_file], &[])
+    let a = Service::start_in(&net.exec_a(), BIN, "zenoh-a", &[&a_file], &[])
         .unwrap_or_else(|e| panic!("{e}"));
 
     // B's devices come online in A, each with its age.
