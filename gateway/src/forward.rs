@@ -146,19 +146,25 @@ fn ls_all(node: &Node, ls_here: &dyn Fn() -> Result<Value, Fail>) -> Result<Valu
         }
     };
     prefixed(node.name(), ls_here()?, &mut all);
-    let gateways = node
+    // Those that answer the catalogue query, and those imported from (an answer lost on a
+    // loaded link still leaves them asked).
+    let mut names: Vec<String> = node
         .gateways()
-        .map_err(|e| Fail(ErrorKind::Failed, e.to_string()))?;
-    let others = gateways
-        .iter()
-        .filter(|g| g.gateway != node.name() && scaleout::config::is_gateway_name(&g.gateway));
-    for g in others {
-        match node.request(&g.gateway, &serde_json::json!({"cmd": "ls"})) {
-            Ok(reply) => match body(&g.gateway, reply) {
-                Ok(v) => prefixed(&g.gateway, v, &mut all),
+        .map_err(|e| Fail(ErrorKind::Failed, e.to_string()))?
+        .into_iter()
+        .map(|g| g.gateway)
+        .chain(node.imported_gateways())
+        .filter(|g| g != node.name() && scaleout::config::is_gateway_name(g))
+        .collect();
+    names.sort();
+    names.dedup();
+    for g in &names {
+        match node.request(g, &serde_json::json!({"cmd": "ls"})) {
+            Ok(reply) => match body(g, reply) {
+                Ok(v) => prefixed(g, v, &mut all),
                 Err(Fail(_, m)) => tracing::warn!("ls --all: {m}"),
             },
-            Err(e) => tracing::warn!("ls --all: {}: {e}", g.gateway),
+            Err(e) => tracing::warn!("ls --all: {g}: {e}"),
         }
     }
     Ok(Value::Array(all))

@@ -166,17 +166,28 @@ fn two_gateways_share_devices_by_name_and_survive_a_cut_link() {
             .as_f64()
             .is_some_and(|v| (v - 0.5).abs() < 0.05)
     });
+    // (Samples are published with Zenoh's drop-on-congestion: a batch lost on a loaded
+    // host is counted, not hidden.)
     let s = a.ok(json!({"cmd": "status"}));
     let links = s["servers"][0]["counters"]["links"].to_string();
-    assert!(
-        links.contains("B/half.out -> mirror.in: ") && links.contains("0 batches lost"),
-        "{links}"
-    );
+    let received: u64 = links
+        .split("mirror.in: ")
+        .nth(1)
+        .and_then(|r| r.split(' ').next()?.parse().ok())
+        .unwrap_or(0);
+    assert!(received > 0 && links.contains(", 0 refused"), "{links}");
     // A's own components under its own name too, as ls --all lists them.
     assert_eq!(a.out(&["get", "A/mirror", "out"]).map(|_| ()), Ok(()));
-    let all = a.out(&["ls", "--all"]).unwrap_or_else(|e| panic!("{e}"));
-    for name in ["A/follow", "A/B/sim0.ao", "B/half", "B/output_watchdog"] {
-        assert!(all.contains(name), "{name} missing from ls --all:\n{all}");
+    let mut all = String::new();
+    let listed =
+        testkit::wait::wait_for("every gateway's components in ls --all", PATIENCE, || {
+            all = a.out(&["ls", "--all"]).unwrap_or_else(|e| e);
+            ["A/follow", "A/B/sim0.ao", "B/half", "B/output_watchdog"]
+                .iter()
+                .all(|name| all.contains(name))
+        });
+    if let Err(e) = listed {
+        panic!("{e}:\n{all}\nA's log:\n{}", a.log_text());
     }
     let missing = a.cli(&["get", "B/nosuch", "out"]);
     let err = String::from_utf8_lossy(&missing.stderr);

@@ -156,6 +156,14 @@ impl Node {
         &self.cfg.name
     }
 
+    /// The gateways this one imports devices from.
+    pub fn imported_gateways(&self) -> Vec<String> {
+        let mut v: Vec<String> = self.cfg.import.iter().map(|i| i.gateway.clone()).collect();
+        v.sort();
+        v.dedup();
+        v
+    }
+
     /// The registry owners of imported devices, one per gateway imported from.
     pub fn import_owners(&self) -> Vec<String> {
         let mut v: Vec<String> = self
