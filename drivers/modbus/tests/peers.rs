@@ -629,6 +629,11 @@ fn rtu_frames_keep_their_silence_and_a_broadcast_waits_for_no_reply() {
     .unwrap();
     wait_until("unit 1 online", || reader.health().status == Status::Online);
     assert_eq!(AnalogIn::read_raw(&*reader, 0).unwrap(), 7);
+    // The broadcast unit comes online on its own first turn on the line, maybe after
+    // unit 1's: a write before then is refused as Offline.
+    wait_until("the broadcast unit online", || {
+        everyone.health().status == Status::Online
+    });
     everyone.set_bit(0, true).unwrap();
     wait_until("a broadcast and reads after it", || {
         let e = events.lock().unwrap();
