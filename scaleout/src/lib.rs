@@ -53,12 +53,7 @@ impl driver_api::Server for NodeServer {
         let sum = |f: fn(&node::ImportReport) -> u64| r.imports.iter().map(f).sum::<u64>();
         let summary = node::StatusSummary {
             peers: r.peers.clone(),
-            published: r.published,
-            publish_failed: r.publish_failed,
-            writes_served: r.writes_served,
-            writes_refused: r.writes_refused,
-            controls_served: r.controls_served,
-            bad_messages: r.bad_messages,
+            counts: r.counts,
             imported_received: sum(|i| i.received),
             imported_lost: sum(|i| i.lost),
             imported_refused: sum(|i| i.refused),

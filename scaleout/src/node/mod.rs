@@ -28,7 +28,7 @@ use zenoh::Wait;
 mod report;
 mod threads;
 
-pub use report::{ImportReport, LinkReport, NodeReport, StatusSummary};
+pub use report::{ImportReport, LinkReport, NodeCounts, NodeReport, StatusSummary};
 
 /// Most gateways `ls --all` lists (each answers with its catalogue).
 pub const MAX_GATEWAYS: usize = 256;
@@ -166,15 +166,10 @@ impl Node {
 
     /// The registry owners of imported devices, one per gateway imported from.
     pub fn import_owners(&self) -> Vec<String> {
-        let mut v: Vec<String> = self
-            .cfg
-            .import
+        self.imported_gateways()
             .iter()
-            .map(|i| local::owner_of(&i.gateway))
-            .collect();
-        v.sort();
-        v.dedup();
-        v
+            .map(|g| local::owner_of(g))
+            .collect()
     }
 
     /// Publishes an exported port from the next start on.
@@ -303,13 +298,7 @@ impl Node {
                 m.entry(key).or_default().push(img.clone());
                 m
             });
-        let mut gateways: Vec<String> = self
-            .images
-            .iter()
-            .map(|i| i.gateway().to_string())
-            .collect();
-        gateways.sort();
-        gateways.dedup();
+        let gateways = self.imported_gateways();
         for gw in &gateways {
             let (by_key, c) = (by_key.clone(), self.counters.clone());
             s.subscribe(&format!("hwgw/{gw}/dev/**"), move |key, bytes| {
@@ -442,12 +431,14 @@ impl Node {
             name: self.cfg.name.clone(),
             zid,
             peers,
-            published: l(&c.published),
-            publish_failed: l(&c.publish_failed),
-            writes_served: l(&c.writes_served),
-            writes_refused: l(&c.writes_refused),
-            controls_served: l(&c.controls_served),
-            bad_messages: l(&c.bad_messages),
+            counts: NodeCounts {
+                published: l(&c.published),
+                publish_failed: l(&c.publish_failed),
+                writes_served: l(&c.writes_served),
+                writes_refused: l(&c.writes_refused),
+                controls_served: l(&c.controls_served),
+                bad_messages: l(&c.bad_messages),
+            },
             imports: self
                 .images
                 .iter()

@@ -13,22 +13,30 @@ pub struct NodeReport {
     pub zid: Option<String>,
     /// The peers (or routers) it is connected to now.
     pub peers: Vec<String>,
+    /// Its own counters.
+    #[serde(flatten)]
+    pub counts: NodeCounts,
+    /// Every imported interface.
+    pub imports: Vec<ImportReport>,
+    /// Every connection from another gateway's port.
+    pub links: Vec<LinkReport>,
+}
+
+/// The node's own counters (not an import's or a connection's).
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct NodeCounts {
     /// Samples published.
     pub published: u64,
     /// Publications that failed.
     pub publish_failed: u64,
-    /// Writes of other gateways carried out / refused.
+    /// Writes of other gateways carried out.
     pub writes_served: u64,
-    /// Writes of other gateways refused (some value).
+    /// Writes of other gateways refused (some value, or the whole write).
     pub writes_refused: u64,
     /// Control requests of other gateways answered.
     pub controls_served: u64,
     /// Messages that did not parse.
     pub bad_messages: u64,
-    /// Every imported interface.
-    pub imports: Vec<ImportReport>,
-    /// Every connection from another gateway's port.
-    pub links: Vec<LinkReport>,
 }
 
 /// A connection from another gateway's port, for `hwgw status`.
@@ -77,18 +85,9 @@ pub struct ImportReport {
 pub struct StatusSummary {
     /// Peers and routers connected now (their Zenoh ids).
     pub peers: Vec<String>,
-    /// Samples published.
-    pub published: u64,
-    /// Publications that failed.
-    pub publish_failed: u64,
-    /// Writes of other gateways carried out.
-    pub writes_served: u64,
-    /// ... of which some value was refused.
-    pub writes_refused: u64,
-    /// Control requests of other gateways answered.
-    pub controls_served: u64,
-    /// Messages that did not parse.
-    pub bad_messages: u64,
+    /// The node's own counters.
+    #[serde(flatten)]
+    pub counts: NodeCounts,
     /// Samples of imported devices taken.
     pub imported_received: u64,
     /// ... missing from their sequence.

@@ -114,31 +114,25 @@ pub(super) fn serve_writes(
     c: &Counters,
     stop: &AtomicBool,
 ) {
-    while !stop.load(Ordering::Acquire) {
-        let Some((query, bytes)) = queue.next(SLICE) else {
-            continue;
-        };
-        let reply = match wire::parse::<Write>(&bytes) {
-            Err(e) => {
-                c.bad_messages.fetch_add(1, Ordering::Relaxed);
-                Err(format!("not a write: {e}"))
-            }
-            Ok(w) => match local::write(gw, registry, &w) {
-                Ok(r) => {
-                    c.writes_served.fetch_add(1, Ordering::Relaxed);
-                    if !r.refused.is_empty() {
-                        c.writes_refused.fetch_add(1, Ordering::Relaxed);
-                    }
-                    Ok(wire::to_bytes(&r))
-                }
-                Err(e) => {
+    serve(queue, stop, |bytes| match wire::parse::<Write>(bytes) {
+        Err(e) => {
+            c.bad_messages.fetch_add(1, Ordering::Relaxed);
+            Err(format!("not a write: {e}"))
+        }
+        Ok(w) => match local::write(gw, registry, &w) {
+            Ok(r) => {
+                c.writes_served.fetch_add(1, Ordering::Relaxed);
+                if !r.refused.is_empty() {
                     c.writes_refused.fetch_add(1, Ordering::Relaxed);
-                    Err(e)
                 }
-            },
-        };
-        session::answer(&query, reply);
-    }
+                Ok(wire::to_bytes(&r))
+            }
+            Err(e) => {
+                c.writes_refused.fetch_add(1, Ordering::Relaxed);
+                Err(e)
+            }
+        },
+    });
 }
 
 /// Answers other gateways' control requests with the handler set at the time.
@@ -148,12 +142,9 @@ pub(super) fn serve_control(
     c: &Counters,
     stop: &AtomicBool,
 ) {
-    while !stop.load(Ordering::Acquire) {
-        let Some((query, bytes)) = queue.next(SLICE) else {
-            continue;
-        };
+    serve(queue, stop, |bytes| {
         let h = lock(handler).clone();
-        let reply = match (h, wire::parse::<serde_json::Value>(&bytes)) {
+        match (h, wire::parse::<serde_json::Value>(bytes)) {
             (None, _) => Err("this gateway takes no control requests over zenoh".to_string()),
             (_, Err(e)) => {
                 c.bad_messages.fetch_add(1, Ordering::Relaxed);
@@ -163,8 +154,20 @@ pub(super) fn serve_control(
                 c.controls_served.fetch_add(1, Ordering::Relaxed);
                 Ok(wire::to_bytes(&h(req)))
             }
-        };
-        session::answer(&query, reply);
+        }
+    });
+}
+
+/// Answers each request of `queue` with `answer(payload)` until stopped.
+fn serve(
+    queue: &session::Queue,
+    stop: &AtomicBool,
+    mut answer: impl FnMut(&[u8]) -> Result<Vec<u8>, String>,
+) {
+    while !stop.load(Ordering::Acquire) {
+        if let Some((query, bytes)) = queue.next(SLICE) {
+            session::answer(&query, answer(&bytes));
+        }
     }
 }
 
