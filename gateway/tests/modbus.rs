@@ -372,13 +372,19 @@ fn hostile_requests_get_the_specifications_exceptions_and_the_server_survives() 
             "a foreign protocol id closes the connection"
         );
     }
-    // At most 4 clients: the fifth is closed at once, the four are served.
+    // At most 4 clients: a fifth is served, and the one idle longest (the first, whose
+    // request is the oldest) is closed for it (or, on a slow run, by the 1 s idle timeout
+    // already: hwgw_status_counts_evictions_and_refusals checks the count).
     let mut four: Vec<_> = (0..4).map(|_| connect(addr)).collect();
     for (i, c) in four.iter_mut().enumerate() {
         assert!(exchange(c, i as u16, &[3, 0, 10, 0, 1]).is_some());
     }
     let mut fifth = connect(addr);
-    assert!(closed(&mut fifth), "the fifth client is closed");
+    assert_eq!(
+        exchange(&mut fifth, 5, &[3, 0, 10, 0, 1]).unwrap(),
+        [3, 2, 0, 0]
+    );
+    assert!(closed(&mut four[0]), "the idle-longest client is closed");
     drop(four);
     drop(fifth);
     wait_until("the server sees its clients gone", || {
@@ -411,7 +417,10 @@ fn hostile_requests_get_the_specifications_exceptions_and_the_server_survives() 
     assert_eq!(c["panics"], json!(0), "{status}");
     assert!(c["exceptions"].as_u64().unwrap() >= 9, "{status}");
     assert!(c["malformed"].as_u64().unwrap() >= 1, "{status}");
-    assert!(c["refused_clients"].as_u64().unwrap() >= 1, "{status}");
+    assert!(
+        c["evicted"].as_u64().unwrap() + c["idle_closed"].as_u64().unwrap() >= 2,
+        "{status}"
+    );
     assert!(c["idle_closed"].as_u64().unwrap() >= 1, "{status}");
     assert!(gw.health().is_ok(), "{:?}", gw.health());
     // And it serves a new client after all that.
@@ -469,4 +478,95 @@ fn the_requests_that_panic_tokio_modbus_leave_no_trace_in_hwgws_output() {
         "hwgw's output mentions a panic:\n{}",
         stopped.log
     );
+}
+
+/// A connection to `to` from the loopback address 127.0.0.`host` (mbpoll's is 127.0.0.1).
+fn connect_from(host: u8, to: std::net::SocketAddr) -> std::net::TcpStream {
+    use nix::sys::socket::{AddressFamily, SockFlag, SockType, SockaddrIn, bind, socket};
+    let std::net::SocketAddr::V4(to) = to else {
+        panic!("{to}: not IPv4")
+    };
+    let fd = socket(
+        AddressFamily::Inet,
+        SockType::Stream,
+        SockFlag::SOCK_CLOEXEC,
+        None,
+    )
+    .unwrap();
+    bind(
+        std::os::fd::AsRawFd::as_raw_fd(&fd),
+        &SockaddrIn::new(127, 0, 0, host, 0),
+    )
+    .unwrap();
+    nix::sys::socket::connect(std::os::fd::AsRawFd::as_raw_fd(&fd), &SockaddrIn::from(to)).unwrap();
+    let s = std::net::TcpStream::from(fd);
+    s.set_read_timeout(Some(std::time::Duration::from_secs(10)))
+        .unwrap();
+    s
+}
+
+/// The real `hwgw` binary with a full table of idle connections: mbpoll is served (the
+/// connection idle longest closed for it), an address past its share is refused, and
+/// `hwgw status` counts both.
+#[test]
+fn hwgw_status_counts_evictions_and_refusals() {
+    let text = SERVED.replace(
+        "listen = \"127.0.0.1:0\"\n",
+        "listen = \"127.0.0.1:0\"\nmax_clients = 3\nmax_clients_per_address = 2\n",
+    );
+    assert_ne!(text, SERVED);
+    let dir = testkit::TempDir::new("modbus-evict-config");
+    let config = dir.path().join("srv.toml");
+    std::fs::write(&config, &text).unwrap();
+    let gw = testkit::Service::start(env!("CARGO_BIN_EXE_hwgw"), "modbus-evict", &[&config], &[])
+        .unwrap();
+    let status = || -> serde_json::Value {
+        gw.out(&["status", "--json"])
+            .ok()
+            .and_then(|s| serde_json::from_str(&s).ok())
+            .unwrap_or_default()
+    };
+    let mut addr = None;
+    wait_until("the server listening", || {
+        addr = status()["servers"][0]["bus"]
+            .as_str()
+            .and_then(|a| a.parse().ok());
+        addr.is_some_and(|a: std::net::SocketAddr| a.port() != 0)
+    });
+    let addr = addr.unwrap();
+    let clients = |n: u64| {
+        wait_until("the server counts its clients", || {
+            status()["servers"][0]["counters"]["clients"] == json!(n)
+        })
+    };
+    // Every slot taken by idle connections: two from 127.0.0.2, one from 127.0.0.3.
+    let mut idle = Vec::new();
+    for (i, host) in [2, 2, 3].into_iter().enumerate() {
+        idle.push(connect_from(host, addr));
+        clients(i as u64 + 1);
+    }
+    // A third from 127.0.0.2: past its share, refused (no one is closed for it).
+    let mut third = connect_from(2, addr);
+    assert!(closed(&mut third), "the third from one address is refused");
+    // mbpoll writes and reads: served, the connection idle longest closed for it.
+    let port = addr.port();
+    let w = mbpoll(port, "4", 10, &["2500"]);
+    assert!(w.contains("Written 1 references"), "{w}");
+    assert!(
+        closed(&mut idle[0]),
+        "the idle-longest connection is closed"
+    );
+    let r = mbpoll(port, "4", 10, &[]);
+    assert!(r.contains("[10]: \t2500"), "{r}");
+    let c = &status()["servers"][0]["counters"];
+    assert!(c["evicted"].as_u64().unwrap() >= 1, "{c}");
+    assert_eq!(c["refused_per_address"], json!(1), "{c}");
+    let human = gw.out(&["status"]).unwrap();
+    assert!(
+        human.contains("evicted=") && human.contains("refused_per_address=1"),
+        "{human}"
+    );
+    drop(idle);
+    let stopped = gw.terminate();
+    assert!(stopped.status.success(), "{}", stopped.log);
 }

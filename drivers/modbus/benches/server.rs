@@ -121,8 +121,10 @@ fn main() {
     if std::env::args().any(|a| a == "--list" || a == "--test") {
         return;
     }
+    // 100 masters, all on 127.0.0.1.
     let limits = Limits {
         max_clients: 128,
+        max_clients_per_address: 128,
         ..Limits::default()
     };
     let hwgw = ModbusServer::start("127.0.0.1:0".parse().unwrap(), table(), limits).unwrap();
@@ -142,7 +144,7 @@ fn main() {
     }
     let c = hwgw.counters();
     println!(
-        "hwgw server: {} connections, {} requests, {} exceptions, {} refused, {} panics",
-        c.connections, c.requests, c.exceptions, c.refused_clients, c.panics
+        "hwgw server: {} connections, {} requests, {} exceptions, {} evicted, {} refused, {} panics",
+        c.connections, c.requests, c.exceptions, c.evicted, c.refused_per_address, c.panics
     );
 }

@@ -1,11 +1,20 @@
 //! hwgw's Modbus TCP server loop: MBAP framing, every request checked by [`pdu`] before
 //! the [`RegisterTable`] answers it, and the limits a server on a plant network needs.
 //!
-//! - At most `max_clients` connections at once; one more is accepted and closed at once
-//!   (counted), so a flood cannot take every descriptor.
-//! - A connection quiet for `idle_timeout` is closed (counted); so is one that stops in the
-//!   middle of a frame for as long, or that does not take its reply for as long (a client
-//!   that sends and never reads cannot hold a slot).
+//! - At most `max_clients` connections at once. When they are all open, a new one is
+//!   admitted by closing the connection idle longest — the one whose last complete request
+//!   (or, without one, whose accept) is oldest — as the Modbus Messaging on TCP/IP
+//!   Implementation Guide's connection management has it (counted as evicted): idle or
+//!   half-open sockets cannot lock a master out, and the descriptors stay bounded. Bytes of
+//!   a frame not yet complete do not count as activity.
+//! - At most `max_clients_per_address` connections from one IP address; one more from it
+//!   is closed at once (counted), so one device reopening sockets cannot take the table
+//!   from the others — nor evict them.
+//! - A connection quiet for `idle_timeout` is closed (counted); so is one that does not
+//!   take its reply for as long (a client that sends and never reads cannot hold a slot).
+//! - A frame begun must be whole within `frame_timeout` (shorter than `idle_timeout`) of
+//!   its first bytes, or the connection is closed (counted): a half-sent MBAP header or
+//!   body holds no slot for long.
 //! - A frame whose MBAP header is not Modbus (protocol id ≠ 0, length outside 2–254) cannot
 //!   be resynchronised on a stream: the connection is closed (counted as malformed).
 //! - `accept` failing (out of descriptors: EMFILE/ENFILE, or any other error) is counted and
@@ -20,7 +29,7 @@
 use crate::pdu::{self, Refusal, exception};
 use crate::server::RegisterTable;
 use serde::Serialize;
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::time::Duration;
@@ -29,17 +38,25 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 /// The server's limits.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Limits {
-    /// Connections served at once.
+    /// Connections served at once; at this many, the one idle longest is closed to admit a
+    /// new one.
     pub max_clients: usize,
+    /// Connections from one IP address at once; one more from it is refused.
+    pub max_clients_per_address: usize,
     /// A connection quiet this long is closed.
     pub idle_timeout: Duration,
+    /// A frame must be whole this long after its first bytes arrived (the shorter of this
+    /// and `idle_timeout` applies).
+    pub frame_timeout: Duration,
 }
 
 impl Default for Limits {
     fn default() -> Self {
         Limits {
             max_clients: 16,
+            max_clients_per_address: 8,
             idle_timeout: Duration::from_secs(60),
+            frame_timeout: Duration::from_secs(5),
         }
     }
 }
@@ -54,11 +71,13 @@ struct Stats {
     failing_since: AtomicU64,
     clients: AtomicUsize,
     connections: AtomicU64,
-    refused_clients: AtomicU64,
+    evicted: AtomicU64,
+    refused_per_address: AtomicU64,
     requests: AtomicU64,
     exceptions: AtomicU64,
     malformed: AtomicU64,
     idle_closed: AtomicU64,
+    frame_timeouts: AtomicU64,
     accept_errors: AtomicU64,
     panics: AtomicU64,
 }
@@ -72,8 +91,11 @@ pub struct ServerCounters {
     pub clients: usize,
     /// Connections accepted and served.
     pub connections: u64,
-    /// Connections closed at once: `max_clients` were open.
-    pub refused_clients: u64,
+    /// Connections closed to admit a new one while `max_clients` were open: each the one
+    /// idle longest.
+    pub evicted: u64,
+    /// Connections closed at once: `max_clients_per_address` from their address were open.
+    pub refused_per_address: u64,
     /// Requests read.
     pub requests: u64,
     /// Requests answered with an exception.
@@ -82,6 +104,8 @@ pub struct ServerCounters {
     pub malformed: u64,
     /// Connections closed after `idle_timeout` of silence, or of a reply not taken.
     pub idle_closed: u64,
+    /// Connections closed on a frame begun and not whole within `frame_timeout`.
+    pub frame_timeouts: u64,
     /// Failed `accept` calls (e.g. out of descriptors), each retried after a backoff.
     pub accept_errors: u64,
     /// Panics caught while answering.
@@ -150,11 +174,13 @@ impl ModbusServer {
             running: s.running.load(Ordering::Acquire),
             clients: s.clients.load(Ordering::Relaxed),
             connections: n(&s.connections),
-            refused_clients: n(&s.refused_clients),
+            evicted: n(&s.evicted),
+            refused_per_address: n(&s.refused_per_address),
             requests: n(&s.requests),
             exceptions: n(&s.exceptions),
             malformed: n(&s.malformed),
             idle_closed: n(&s.idle_closed),
+            frame_timeouts: n(&s.frame_timeouts),
             accept_errors: n(&s.accept_errors),
             panics: n(&s.panics),
         }
@@ -223,6 +249,54 @@ impl Drop for ModbusServer {
     }
 }
 
+/// A connection being served, as the accept loop keeps it.
+struct Slot {
+    /// Its peer's address (an IPv4-mapped IPv6 address as IPv4).
+    ip: IpAddr,
+    /// When it last completed a request (its accept, before it did): ns since `epoch`.
+    last: Arc<AtomicU64>,
+    task: tokio::task::JoinHandle<()>,
+}
+
+/// Counts a connection open from its spawn to its end, however it ends (an eviction's
+/// abort too).
+struct Open(Arc<Stats>);
+
+impl Drop for Open {
+    fn drop(&mut self) {
+        self.0.clients.fetch_sub(1, Ordering::AcqRel);
+    }
+}
+
+/// What the accept loop does with a new connection.
+enum Admit {
+    /// Serve it.
+    Take,
+    /// Close `slots[i]`, the one idle longest (every slot is taken), and serve it.
+    Evict(usize),
+    /// Close it at once: its address has its share.
+    Refuse,
+}
+
+/// What to do with a new connection from `ip`, given those open (`slots`, finished ones
+/// already dropped).
+fn admit(slots: &[Slot], ip: IpAddr, limits: &Limits) -> Admit {
+    if slots.iter().filter(|s| s.ip == ip).count() >= limits.max_clients_per_address {
+        return Admit::Refuse;
+    }
+    if slots.len() < limits.max_clients {
+        return Admit::Take;
+    }
+    // The oldest last complete request; on a tie the earliest accepted.
+    (0..slots.len())
+        .min_by_key(|&i| slots[i].last.load(Ordering::Relaxed))
+        .map_or(Admit::Take, Admit::Evict)
+}
+
+fn since(epoch: std::time::Instant) -> u64 {
+    epoch.elapsed().as_nanos() as u64
+}
+
 async fn accept_loop(
     listener: tokio::net::TcpListener,
     table: Arc<RegisterTable>,
@@ -233,6 +307,7 @@ async fn accept_loop(
 ) {
     const FIRST: Duration = Duration::from_millis(10);
     let mut backoff = FIRST;
+    let mut slots: Vec<Slot> = Vec::with_capacity(limits.max_clients);
     loop {
         let accepted = tokio::select! {
             _ = &mut stop => return,
@@ -242,24 +317,69 @@ async fn accept_loop(
             Ok((stream, peer)) => {
                 backoff = FIRST;
                 stats.failing_since.store(0, Ordering::Release);
-                if stats.clients.load(Ordering::Acquire) >= limits.max_clients {
-                    bump(&stats.refused_clients);
-                    drop(stream);
-                    continue;
+                slots.retain(|s| !s.task.is_finished());
+                let ip = peer.ip().to_canonical();
+                match admit(&slots, ip, &limits) {
+                    Admit::Refuse => {
+                        if stats
+                            .refused_per_address
+                            .fetch_add(1, Ordering::Relaxed)
+                            .is_multiple_of(100)
+                        {
+                            tracing::warn!(
+                                "modbus server: {peer} refused: {} connections from {ip} are open (max_clients_per_address)",
+                                limits.max_clients_per_address
+                            );
+                        }
+                        drop(stream);
+                        continue;
+                    }
+                    Admit::Evict(i) => {
+                        // Its task ends (and its socket closes) at its next turn; its
+                        // slot is free now.
+                        let victim = slots.remove(i);
+                        victim.task.abort();
+                        let idle = Duration::from_nanos(
+                            since(epoch).saturating_sub(victim.last.load(Ordering::Relaxed)),
+                        );
+                        if stats
+                            .evicted
+                            .fetch_add(1, Ordering::Relaxed)
+                            .is_multiple_of(100)
+                        {
+                            tracing::info!(
+                                "modbus server: {} connections open: closed one from {} idle for {:.1} s to admit {peer}",
+                                limits.max_clients,
+                                victim.ip,
+                                idle.as_secs_f64()
+                            );
+                        }
+                    }
+                    Admit::Take => {}
                 }
                 stats.clients.fetch_add(1, Ordering::AcqRel);
                 bump(&stats.connections);
-                let (table, stats) = (table.clone(), stats.clone());
-                tokio::spawn(async move {
+                let last = Arc::new(AtomicU64::new(since(epoch)));
+                let open = Open(stats.clone());
+                let (table, stats, at) = (table.clone(), stats.clone(), last.clone());
+                let task = tokio::spawn(async move {
+                    let _open = open;
                     let _ = stream.set_nodelay(true);
-                    if let Err(e) = connection(stream, &table, &stats, limits.idle_timeout).await {
+                    let conn = Conn {
+                        table: &table,
+                        stats: &stats,
+                        limits,
+                        last: &at,
+                        epoch,
+                    };
+                    if let Err(e) = conn.serve(stream).await {
                         tracing::debug!("modbus server: {peer}: {e}");
                     }
-                    stats.clients.fetch_sub(1, Ordering::AcqRel);
                 });
+                slots.push(Slot { ip, last, task });
             }
             Err(e) => {
-                let now = epoch.elapsed().as_nanos() as u64 + 1;
+                let now = since(epoch) + 1;
                 let _ = stats.failing_since.compare_exchange(
                     0,
                     now,
@@ -283,56 +403,80 @@ async fn accept_loop(
     }
 }
 
-/// Serves one connection until the client closes it, it idles out or sends no Modbus.
-async fn connection(
-    mut stream: tokio::net::TcpStream,
-    table: &RegisterTable,
-    stats: &Stats,
-    idle: Duration,
-) -> std::io::Result<()> {
-    let mut head = [0u8; 7];
-    let mut body = [0u8; 253];
-    let mut out = Vec::with_capacity(260);
-    loop {
-        match tokio::time::timeout(idle, stream.read_exact(&mut head)).await {
-            Err(_) => {
-                bump(&stats.idle_closed);
+/// One connection's context.
+struct Conn<'a> {
+    table: &'a RegisterTable,
+    stats: &'a Stats,
+    limits: Limits,
+    /// Set to `since(epoch)` at each complete request.
+    last: &'a AtomicU64,
+    epoch: std::time::Instant,
+}
+
+impl Conn<'_> {
+    /// Serves one connection until the client closes it, it idles out, stops mid-frame or
+    /// sends no Modbus.
+    async fn serve(&self, mut stream: tokio::net::TcpStream) -> std::io::Result<()> {
+        let (stats, idle) = (self.stats, self.limits.idle_timeout);
+        let frame = self.limits.frame_timeout.min(idle);
+        let mut head = [0u8; 7];
+        let mut body = [0u8; 253];
+        let mut out = Vec::with_capacity(260);
+        loop {
+            // A frame's first bytes, for up to `idle`; the rest of it within `frame` of them.
+            let got = match tokio::time::timeout(idle, stream.read(&mut head)).await {
+                Err(_) => {
+                    bump(&stats.idle_closed);
+                    return Ok(());
+                }
+                Ok(Ok(0)) => return Ok(()),
+                Ok(r) => r?,
+            };
+            let deadline = tokio::time::Instant::now() + frame;
+            if got < head.len() {
+                match tokio::time::timeout_at(deadline, stream.read_exact(&mut head[got..])).await {
+                    Err(_) => {
+                        bump(&stats.frame_timeouts);
+                        return Ok(());
+                    }
+                    Ok(Err(e)) if e.kind() == std::io::ErrorKind::UnexpectedEof => return Ok(()),
+                    Ok(r) => r?,
+                };
+            }
+            // The transaction id (head[0..2]) is echoed as it came.
+            let (pid, len, unit) = (
+                u16::from_be_bytes([head[2], head[3]]),
+                usize::from(u16::from_be_bytes([head[4], head[5]])),
+                head[6],
+            );
+            if pid != 0 || !(2..=254).contains(&len) {
+                bump(&stats.malformed);
                 return Ok(());
             }
-            Ok(Err(e)) if e.kind() == std::io::ErrorKind::UnexpectedEof => return Ok(()),
-            Ok(r) => r?,
-        };
-        // The transaction id (head[0..2]) is echoed as it came.
-        let (pid, len, unit) = (
-            u16::from_be_bytes([head[2], head[3]]),
-            usize::from(u16::from_be_bytes([head[4], head[5]])),
-            head[6],
-        );
-        if pid != 0 || !(2..=254).contains(&len) {
-            bump(&stats.malformed);
-            return Ok(());
-        }
-        let pdu = &mut body[..len - 1];
-        match tokio::time::timeout(idle, stream.read_exact(pdu)).await {
-            Err(_) => {
-                bump(&stats.idle_closed);
-                return Ok(());
+            let pdu = &mut body[..len - 1];
+            match tokio::time::timeout_at(deadline, stream.read_exact(pdu)).await {
+                Err(_) => {
+                    bump(&stats.frame_timeouts);
+                    return Ok(());
+                }
+                Ok(r) => r?,
+            };
+            // A complete request: this connection is not idle (eviction goes by this).
+            self.last.store(since(self.epoch), Ordering::Relaxed);
+            bump(&stats.requests);
+            out.clear();
+            out.extend_from_slice(&[head[0], head[1], 0, 0, 0, 0, unit]);
+            respond(self.table, stats, pdu, &mut out);
+            let n = (out.len() - 6) as u16;
+            out[4..6].copy_from_slice(&n.to_be_bytes());
+            match tokio::time::timeout(idle, stream.write_all(&out)).await {
+                Err(_) => {
+                    // The client does not take its replies.
+                    bump(&stats.idle_closed);
+                    return Ok(());
+                }
+                Ok(r) => r?,
             }
-            Ok(r) => r?,
-        };
-        bump(&stats.requests);
-        out.clear();
-        out.extend_from_slice(&[head[0], head[1], 0, 0, 0, 0, unit]);
-        respond(table, stats, pdu, &mut out);
-        let n = (out.len() - 6) as u16;
-        out[4..6].copy_from_slice(&n.to_be_bytes());
-        match tokio::time::timeout(idle, stream.write_all(&out)).await {
-            Err(_) => {
-                // The client does not take its replies.
-                bump(&stats.idle_closed);
-                return Ok(());
-            }
-            Ok(r) => r?,
         }
     }
 }

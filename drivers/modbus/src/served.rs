@@ -32,12 +32,22 @@ use std::sync::Mutex;
 pub struct ServerConfig {
     /// `address:port` to listen on (e.g. 127.0.0.1:5502; 0.0.0.0 only on purpose).
     pub listen: String,
-    /// Connections served at once (1–1024; default 16); one more is closed at once.
+    /// Connections served at once (1–1024; default 16). With all of them open, a new one
+    /// is admitted by closing the one idle longest (no complete request for longest).
     #[serde(default = "default_max_clients")]
     pub max_clients: usize,
+    /// Connections from one IP address at once (1–1024; default 8); one more from it is
+    /// closed at once, so one device cannot take every slot.
+    #[serde(default = "default_max_per_address")]
+    pub max_clients_per_address: usize,
     /// A connection quiet this long is closed, seconds (1–86400; default 60).
     #[serde(default = "default_idle_s")]
     pub idle_timeout_s: u64,
+    /// A frame (MBAP header and PDU) must be whole this long after its first bytes, ms
+    /// (10–86400000, at most `idle_timeout_s`; default 5000, or `idle_timeout_s` when
+    /// that is shorter); else the connection is closed.
+    #[serde(default)]
+    pub frame_timeout_ms: Option<u64>,
     /// The register table.
     #[serde(default, rename = "register")]
     pub registers: Vec<ServedRegister>,
@@ -46,9 +56,14 @@ pub struct ServerConfig {
 fn default_max_clients() -> usize {
     16
 }
+fn default_max_per_address() -> usize {
+    8
+}
 fn default_idle_s() -> u64 {
     60
 }
+/// `frame_timeout_ms` when not given (capped at `idle_timeout_s`).
+const DEFAULT_FRAME_MS: u64 = 5000;
 
 impl ServerConfig {
     /// Its limits, checked: (key, message) when out of bounds.
@@ -56,15 +71,40 @@ impl ServerConfig {
         if !(1..=1024).contains(&self.max_clients) {
             return Err(("max_clients", format!("{}: 1-1024", self.max_clients)));
         }
+        if !(1..=1024).contains(&self.max_clients_per_address) {
+            return Err((
+                "max_clients_per_address",
+                format!("{}: 1-1024", self.max_clients_per_address),
+            ));
+        }
         if !(1..=86_400).contains(&self.idle_timeout_s) {
             return Err((
                 "idle_timeout_s",
                 format!("{}: 1-86400 s", self.idle_timeout_s),
             ));
         }
+        let idle_ms = self.idle_timeout_s * 1000;
+        let frame_ms = match self.frame_timeout_ms {
+            None => DEFAULT_FRAME_MS.min(idle_ms),
+            Some(ms) if !(10..=86_400_000).contains(&ms) => {
+                return Err(("frame_timeout_ms", format!("{ms}: 10-86400000 ms")));
+            }
+            Some(ms) if ms > idle_ms => {
+                return Err((
+                    "frame_timeout_ms",
+                    format!(
+                        "{ms} ms: at most idle_timeout_s ({} s)",
+                        self.idle_timeout_s
+                    ),
+                ));
+            }
+            Some(ms) => ms,
+        };
         Ok(Limits {
             max_clients: self.max_clients,
+            max_clients_per_address: self.max_clients_per_address,
             idle_timeout: std::time::Duration::from_secs(self.idle_timeout_s),
+            frame_timeout: std::time::Duration::from_millis(frame_ms),
         })
     }
 }
@@ -266,5 +306,43 @@ impl ServedRegister {
             }
         };
         found.map_err(|e| ("device", e.to_string()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, reason = "test code")]
+
+    use super::*;
+    use std::time::Duration;
+
+    fn config(extra: &str) -> ServerConfig {
+        toml::from_str(&format!("listen = \"127.0.0.1:0\"\n{extra}")).unwrap()
+    }
+
+    #[test]
+    fn limits_default_and_bounds() {
+        assert_eq!(config("").limits().unwrap(), Limits::default());
+        // The default frame timeout never outlasts the idle timeout.
+        let short = config("idle_timeout_s = 1").limits().unwrap();
+        assert_eq!(short.frame_timeout, Duration::from_secs(1));
+        let given = config("max_clients_per_address = 2\nframe_timeout_ms = 250")
+            .limits()
+            .unwrap();
+        assert_eq!(
+            (given.max_clients_per_address, given.frame_timeout),
+            (2, Duration::from_millis(250))
+        );
+        for (extra, key) in [
+            ("max_clients_per_address = 0", "max_clients_per_address"),
+            ("max_clients_per_address = 1025", "max_clients_per_address"),
+            ("frame_timeout_ms = 5", "frame_timeout_ms"),
+            (
+                "idle_timeout_s = 2\nframe_timeout_ms = 2001",
+                "frame_timeout_ms",
+            ),
+        ] {
+            assert_eq!(config(extra).limits().unwrap_err().0, key, "{extra}");
+        }
     }
 }
