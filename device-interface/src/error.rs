@@ -111,6 +111,13 @@ pub enum DeviceError {
         /// Why.
         reason: &'static str,
     },
+    /// A write the device took did not reach the hardware: its bus refused it, gave no
+    /// answer in time, or went away first (see [`Delivery`](crate::Delivery)).
+    #[error("write not delivered: {reason}")]
+    Undelivered {
+        /// Why.
+        reason: &'static str,
+    },
     /// The device is reachable in principle but its inputs have not been refreshed in time.
     #[error("inputs are stale: last good sample {}", age_text(*.age))]
     Stale {

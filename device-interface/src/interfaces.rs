@@ -27,7 +27,7 @@
 
 use crate::bits::BitSpan;
 use crate::{AnalogRange, Scale};
-use crate::{DeviceError, Health, RawRange};
+use crate::{Delivery, DeviceError, Health, RawRange};
 
 /// What every device has: a health report.
 pub trait Device: Send + Sync {
@@ -148,6 +148,13 @@ pub trait AnalogOut: Device {
     /// The raw value last written to `channel` (its initial value before any write).
     fn read_back_raw(&self, channel: u32) -> Result<i64, DeviceError>;
 
+    /// Where the writes to `channel` stand, for a device whose bus carries them after
+    /// [`write_raw`](Self::write_raw) returned (see [`Delivery`]); `None` (the default)
+    /// when a write that returned `Ok` is on the device already. Not for real-time paths.
+    fn delivery(&self, _channel: u32) -> Option<Delivery> {
+        None
+    }
+
     /// The value last written to `channel`, in physical units as the hardware will output it
     /// (that is, after rounding to a raw step).
     fn read_back(&self, channel: u32) -> Result<f64, DeviceError> {
@@ -231,6 +238,13 @@ pub trait DigitalOut: Device {
 
     /// The state output `bit` was last set to.
     fn check_bit(&self, bit: u32) -> Result<bool, DeviceError>;
+
+    /// Where the writes to `bit` stand, for a device whose bus carries them after
+    /// [`set_bit`](Self::set_bit) returned (see [`Delivery`]); `None` (the default) when a
+    /// write that returned `Ok` is on the device already. Not for real-time paths.
+    fn delivery(&self, _bit: u32) -> Option<Delivery> {
+        None
+    }
 
     /// Sets outputs `start..=stop` from `value`: bit 0 of `value` goes to output `start`.
     ///

@@ -11,6 +11,7 @@
 //! - [`Registry`], name serving per interface ("no type-casting whatsoever");
 //! - [`channel`], single-channel handles with optional inversion;
 //! - [`time`], monotonic timestamps and a simulated clock;
+//! - [`Delivery`], where a write stands that a bus carries after the call returned;
 //! - `conformance` (feature `conformance`), the kit every driver's tests run.
 //!
 //! Every trait method may run on a real-time thread: non-blocking, bounded, allocation-free.
@@ -28,6 +29,7 @@ pub mod bits;
 pub mod channel;
 #[cfg(feature = "conformance")]
 pub mod conformance;
+mod delivery;
 pub mod encoder;
 mod error;
 mod health;
@@ -36,6 +38,7 @@ mod registry;
 mod scale;
 pub mod time;
 
+pub use delivery::{Delivery, DeliveryTracker};
 pub use error::DeviceError;
 pub use health::{Health, Status};
 pub use interfaces::{

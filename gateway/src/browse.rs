@@ -230,6 +230,7 @@ impl Browser {
             operation: op.to_string(),
             args: args.iter().map(|a| json_arg(a)).collect(),
         })
+        .and_then(|v| crate::cli::call_result(&format!("{c}.{op}"), v).map_err(|e| e.to_string()))
         .map(|v| pretty(&v))
     }
 
@@ -237,10 +238,16 @@ impl Browser {
         let c = self.component(None)?;
         let mut lines = Vec::new();
         self.client
-            .watch(c, port, Some(n), None, |v| {
-                lines.push(v.to_string());
-                true
-            })
+            .watch(
+                c,
+                port,
+                Some(n),
+                Some(self.client.timeout().max(crate::protocol::HEARTBEAT * 2)),
+                |v| {
+                    lines.push(v.to_string());
+                    true
+                },
+            )
             .map_err(|e| e.to_string())?;
         Ok(lines.join("\n"))
     }

@@ -198,9 +198,16 @@ pub fn main(types: Types) -> ExitCode {
             component,
             port,
             count,
-        } => client
-            .watch(&component, &port, count, None, |v| print(&v.to_string()))
-            .map(|_| None),
+        } => {
+            // Values come when they come; the gateway's heartbeat keeps a quiet watch
+            // alive, and a gateway silent for longer than --timeout is taken for stuck.
+            let silence = client.timeout().max(crate::protocol::HEARTBEAT * 2);
+            client
+                .watch(&component, &port, count, Some(silence), |v| {
+                    print(&v.to_string())
+                })
+                .map(|_| None)
+        }
         Command::Record(args) => {
             return finish(crate::recorder::cli::record(&client, args).map_err(|e| e.to_string()));
         }
@@ -259,6 +266,24 @@ fn finish(result: Result<String, String>) -> ExitCode {
             eprintln!("hwgw: {e}");
             ExitCode::FAILURE
         }
+    }
+}
+
+/// An operation's answer: the value of `{"Ok": value}`, an error for `{"Err": message}`
+/// (a device operation that failed), anything else as it is.
+pub(crate) fn call_result(operation: &str, answer: Value) -> Result<Value, ClientError> {
+    match answer {
+        Value::Object(mut m) if m.len() == 1 && m.contains_key("Err") => {
+            let e = m.remove("Err").unwrap_or_default();
+            Err(ClientError::Operation {
+                operation: operation.to_string(),
+                message: e.as_str().map_or_else(|| e.to_string(), str::to_string),
+            })
+        }
+        Value::Object(mut m) if m.len() == 1 && m.contains_key("Ok") => {
+            Ok(m.remove("Ok").unwrap_or_default())
+        }
+        other => Ok(other),
     }
 }
 
@@ -344,20 +369,33 @@ fn one_shot(client: &Client, command: Command, json: bool) -> Result<Option<Stri
             component,
             name,
             value,
-        } => pretty(&client.request(&Request::Set {
-            component,
-            target: Target::from_name(&name),
-            value: json_arg(&value),
-        })?),
+        } => {
+            // The answer is null: a set that returns wrote its value (an output's write
+            // reached its device); a refused one is an error, and the exit code says so.
+            let answer = client.request(&Request::Set {
+                component,
+                target: Target::from_name(&name),
+                value: json_arg(&value),
+            })?;
+            if !json {
+                return Ok(None);
+            }
+            pretty(&answer)
+        }
         Command::Call {
             component,
             operation,
             args,
-        } => pretty(&client.request(&Request::Call {
-            component,
-            operation,
-            args: args.iter().map(|a| json_arg(a)).collect(),
-        })?),
+        } => {
+            let what = format!("{component}.{operation}");
+            let answer = client.request(&Request::Call {
+                component,
+                operation,
+                args: args.iter().map(|a| json_arg(a)).collect(),
+            })?;
+            let answer = call_result(&what, answer)?;
+            pretty(&answer)
+        }
         Command::Run { .. }
         | Command::Check { .. }
         | Command::Browse

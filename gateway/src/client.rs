@@ -53,6 +53,14 @@ pub enum ClientError {
     /// The gateway answered with an error.
     #[error("{}", .0.message)]
     Refused(ErrorBody),
+    /// The operation ran and answered with an error of its own (`{"Err": …}`).
+    #[error("{operation}: {message}")]
+    Operation {
+        /// `component.operation`.
+        operation: String,
+        /// Its error.
+        message: String,
+    },
 }
 
 /// A client of one gateway's control socket.
@@ -75,6 +83,11 @@ impl Client {
     pub fn with_timeout(mut self, timeout: Duration) -> Client {
         self.timeout = timeout;
         self
+    }
+
+    /// How long it waits for a reply.
+    pub fn timeout(&self) -> Duration {
+        self.timeout
     }
 
     /// The socket.
@@ -143,7 +156,9 @@ impl Client {
         match self.reply(&mut r)?.body {
             Body::Ok(v) => Ok(v),
             Body::Error(e) => Err(ClientError::Refused(e)),
-            Body::Event(_) | Body::Records(_) => Err(self.bad("a stream where a reply was due")),
+            Body::Event(_) | Body::Records(_) | Body::Heartbeat(_) => {
+                Err(self.bad("a stream where a reply was due"))
+            }
         }
     }
 
@@ -160,7 +175,7 @@ impl Client {
         let ack = match self.reply(&mut r)?.body {
             Body::Ok(v) => v,
             Body::Error(e) => return Err(ClientError::Refused(e)),
-            Body::Event(_) | Body::Records(_) => {
+            Body::Event(_) | Body::Records(_) | Body::Heartbeat(_) => {
                 return Err(self.bad("a stream before the acknowledgement"));
             }
         };
@@ -176,8 +191,10 @@ impl Client {
 
     /// Watches an output port: `each` gets every new value until it returns false (then
     /// `Ok(false)`) or the gateway ends the stream (`Ok(true)`). The acknowledgement comes
-    /// within the timeout; the values come when they come (`event_timeout` bounds the wait
-    /// for each, if given).
+    /// within the timeout; the values come when they come, and the gateway says it is
+    /// alive every [`HEARTBEAT`](crate::protocol::HEARTBEAT) between them: with
+    /// `event_timeout`, a silence longer than it (a stuck gateway) is
+    /// [`ClientError::Timeout`].
     pub fn watch(
         &self,
         component: &str,
@@ -274,7 +291,8 @@ impl Stream {
             self.line.clear();
             match reply.map_err(|e| c.bad(e))?.body {
                 Body::Error(e) => return Err(ClientError::Refused(e)),
-                Body::Ok(_) => {}
+                // Alive: the wait for the next line starts again.
+                Body::Ok(_) | Body::Heartbeat(_) => {}
                 body => return Ok(Some(body)),
             }
         }

@@ -24,7 +24,7 @@
 //! | `stop` | `component` | the new state |
 //! | `cleanup` | `component` | the new state |
 //! | `recover` | `component` | the new state |
-//! | `watch` | `component`, `port`, optional `count` | `"watching"`, then a stream: one `{"id", "event": {"status", "value"}}` line per new value (all of them, `count` at most), until the client closes |
+//! | `watch` | `component`, `port`, optional `count` | `"watching"`, then a stream: one `{"id", "event": {"status", "value"}}` line per new value (all of them, `count` at most), and `{"id", "heartbeat": ns}` after each second without one, until the client closes |
 //! | `record` | `ports` (`component.port` or `component`), optional `devices`, `steps`, `buffer` | `{"ports", "activities", "wall_minus_clock_ns"}`, then a stream of `{"id", "records": {"items", "ports_lost", "steps_lost", "now_ns"}}` batches until the client closes |
 //!
 //! A request naming a component `<gateway>/<component>` that is not one of this gateway's
@@ -162,12 +162,15 @@ pub const CLOSE_WAIT: Duration = Duration::from_secs(2);
 pub struct ControlServer {
     bound: Bound,
     shared: Arc<Shared>,
+    /// The listener until [`open`](ControlServer::open) hands it to the accept thread.
+    listener: Option<std::os::unix::net::UnixListener>,
     accept: Option<std::thread::JoinHandle<()>>,
 }
 
 impl ControlServer {
-    /// Binds `path` safely (see [`crate::socket::bind`]) and serves `gateway` on it from a
-    /// thread of its own, within `limits`.
+    /// Binds `path` safely (see [`crate::socket::bind`]) to serve `gateway` on it within
+    /// `limits`, once [`open`](Self::open) is called: until then a client connects and its
+    /// request waits (so no request sees a gateway that has not started).
     pub fn start(
         gateway: Arc<Gateway>,
         path: &Path,
@@ -201,19 +204,29 @@ impl ControlServer {
                 }
             });
         }
-        let s = shared.clone();
+        Ok(ControlServer {
+            bound,
+            shared,
+            listener: Some(listener),
+            accept: None,
+        })
+    }
+
+    /// Starts answering, from a thread of its own (once; later calls do nothing).
+    pub fn open(&mut self) -> Result<(), SocketError> {
+        let Some(listener) = self.listener.take() else {
+            return Ok(());
+        };
+        let s = self.shared.clone();
         let accept = std::thread::Builder::new()
             .name("hwgw-control".into())
             .spawn(move || accept_loop(&s, &listener))
             .map_err(|source| SocketError::Io {
-                path: path.to_path_buf(),
+                path: self.bound.path.clone(),
                 source,
             })?;
-        Ok(ControlServer {
-            bound,
-            shared,
-            accept: Some(accept),
-        })
+        self.accept = Some(accept);
+        Ok(())
     }
 
     /// The socket path.
@@ -641,7 +654,18 @@ fn watch(
         body: Body::Ok(json!("watching")),
     };
     send(out, &ack).map_err(failed)?;
+    let mut last_line = std::time::Instant::now();
     while sent < count && !shared.closing.load(Ordering::Acquire) {
+        if last_line.elapsed() >= crate::protocol::HEARTBEAT {
+            let beat = Reply {
+                id: id.clone(),
+                body: Body::Heartbeat(rtt::time::Clock::now(&rtt::time::MonotonicClock).as_nanos()),
+            };
+            if send(out, &beat).is_err() {
+                return Ok(());
+            }
+            last_line = std::time::Instant::now();
+        }
         match reader.read() {
             (rtt::port::FlowStatus::NewData, Some(value)) => {
                 let event = Reply {
@@ -654,6 +678,7 @@ fn watch(
                 if send(out, &event).is_err() {
                     return Ok(());
                 }
+                last_line = std::time::Instant::now();
                 sent += 1;
             }
             _ => {

@@ -12,7 +12,8 @@
 
 use crate::config::ChannelNames;
 use device_interface::{
-    AnalogIn, AnalogOut, Device, DeviceError, DigitalIn, DigitalOut, Encoder, Health, Interface,
+    AnalogIn, AnalogOut, Delivery, Device, DeviceError, DigitalIn, DigitalOut, Encoder, Health,
+    Interface,
 };
 use driver_api::{ChannelDetail, ChannelDetails};
 use rtt::component::{IntrospectError, PortData};
@@ -52,6 +53,39 @@ trait Writable: Channels {
     fn put(&self, c: u32, v: Self::Value) -> Result<(), DeviceError>;
     /// `Ok` when channel `c` would take `v` (in range; the channel exists).
     fn accepts(&self, c: u32, v: Self::Value) -> Result<(), DeviceError>;
+    /// Where the writes to channel `c` stand (see [`device_interface::Delivery`]).
+    fn delivery(&self, c: u32) -> Option<Delivery>;
+}
+
+/// The longest a `set` waits to hear whether its write reached a device whose bus
+/// carries writes later (a Modbus line, another gateway): less than the CLI's default
+/// reply timeout, so the answer says what happened rather than the client giving up.
+const DELIVERY_WAIT: Duration = Duration::from_secs(8);
+
+/// Writes `v` to channel `c` of `device` for a `set` from outside, and waits until the
+/// device's bus has delivered it or failed it (at most [`DELIVERY_WAIT`]).
+fn apply<D: ?Sized + Writable>(device: &D, c: u32, v: D::Value) -> Result<(), DeviceError> {
+    device.put(c, v)?;
+    let Some(d) = device.delivery(c) else {
+        return Ok(());
+    };
+    let n = d.taken;
+    let start = std::time::Instant::now();
+    let mut pause = Duration::from_micros(100);
+    loop {
+        match device.delivery(c).and_then(|d| d.outcome(n)) {
+            Some(r) => return r,
+            None if start.elapsed() >= DELIVERY_WAIT => {
+                return Err(DeviceError::Undelivered {
+                    reason: "still on its way after 8 s (the device's bus has not answered)",
+                });
+            }
+            None => {
+                std::thread::sleep(pause);
+                pause = (pause * 2).min(Duration::from_millis(5));
+            }
+        }
+    }
 }
 
 /// Offers device method `f` as a ClientThread operation: arguments `A`, answer
@@ -277,6 +311,9 @@ impl Writable for dyn AnalogOut {
     fn accepts(&self, c: u32, v: f64) -> Result<(), DeviceError> {
         self.scale(c)?.to_raw_checked(c, v).map(|_| ())
     }
+    fn delivery(&self, c: u32) -> Option<Delivery> {
+        AnalogOut::delivery(self, c)
+    }
 }
 
 impl Writable for dyn DigitalOut {
@@ -285,6 +322,9 @@ impl Writable for dyn DigitalOut {
     }
     fn accepts(&self, b: u32, _: bool) -> Result<(), DeviceError> {
         self.check_bit(b).map(|_| ())
+    }
+    fn delivery(&self, b: u32) -> Option<Delivery> {
+        DigitalOut::delivery(self, b)
     }
 }
 
@@ -325,6 +365,12 @@ impl<D: ?Sized + Writable> Driven<D> {
     /// Notes a refused write; says so in the log now and then, not once per sample.
     fn refused(&mut self, c: usize, e: &DeviceError) {
         self.refused += 1;
+        if matches!(e, DeviceError::Held { .. }) {
+            // The gateway is stopping: its outputs are held at their safe values on
+            // purpose; counted, not reported.
+            self.logged = self.refused;
+            return;
+        }
         let now = std::time::Instant::now();
         if self
             .last_log
@@ -460,13 +506,14 @@ fn driven<D: ?Sized + Writable>(
             let ports = (0..device.count())
                 .map(|c| {
                     let port = ChannelNames::port(&names, D::PREFIX, c);
-                    let (d, k) = (device.clone(), device.clone());
+                    let (d, k, w) = (device.clone(), device.clone(), device.clone());
                     let detail = details.get(c as usize);
                     let p = iface.event_input_driving(
                         &port,
                         &port_doc(D::DOC, c, detail),
                         move || d.get(c).ok(),
                         move |v| k.accepts(c, *v).map_err(|e| e.to_string()),
+                        move |v| apply(&*w, c, *v).map_err(|e| e.to_string()),
                     )?;
                     name_values::<_, D::Value>(iface, &port, detail)?;
                     Ok(p)

@@ -359,7 +359,14 @@ pub enum Body {
     Event(Event),
     /// A batch of a `record` stream.
     Records(RecordBatch),
+    /// A stream's sign of life while it has nothing to send (every
+    /// [`HEARTBEAT`](crate::protocol::HEARTBEAT)): the gateway's monotonic time, ns. A
+    /// client that hears nothing for longer than its timeout takes the gateway for stuck.
+    Heartbeat(u64),
 }
+
+/// How often a stream with nothing to send says it is alive.
+pub const HEARTBEAT: std::time::Duration = std::time::Duration::from_secs(1);
 
 /// One reply line: the request's `id` echoed, and the body.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

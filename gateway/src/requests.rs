@@ -136,6 +136,22 @@ pub(crate) fn handle(
             value,
         } => {
             let t = component(c)?;
+            let p = t.port(port).map_err(not_found)?;
+            if p.drives() {
+                // A device output: written now, answered with what became of the write.
+                let state = t.state();
+                if state != rtt::TaskState::Running {
+                    return Err(failed(format!(
+                        "component {:?} is {state:?}: its outputs are not driven now, so the \
+                         value would never be written (start it first)",
+                        t.name()
+                    )));
+                }
+                return match p.drive(value.clone()) {
+                    Some(r) => r.map_err(failed).map(|()| Value::Null),
+                    None => Err(failed("port stopped driving")),
+                };
+            }
             let key = (t.name().to_string(), port.clone());
             if !writers.contains_key(&key) {
                 let p = t.port(port).map_err(not_found)?;

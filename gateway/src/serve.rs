@@ -218,6 +218,12 @@ pub fn run(config: Option<PathBuf>, socket: Option<PathBuf>, types: &Types) -> E
         stopper.stop();
         return ExitCode::FAILURE;
     }
+    // Requests are answered from here on: none sees the gateway before it started.
+    if let Err(e) = stopper.server.open() {
+        eprintln!("hwgw: control socket: {e}");
+        stopper.stop();
+        return ExitCode::FAILURE;
+    }
     tracing::info!(
         "running; control socket {}",
         stopper.server.path().display()

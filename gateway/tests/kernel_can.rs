@@ -252,18 +252,19 @@ fn health(statuses: &[&str; 4]) -> Vec<(String, String)> {
     v
 }
 
-/// `hwgw call can.ai read CHANNEL`: the answer's `Ok` value, or its error text.
+/// `hwgw call can.ai read CHANNEL`: its value, or its error text (the command exits 1
+/// with the operation's error on standard error).
 fn read_channel(gw: &Service, channel: u32) -> Result<Result<f64, String>, Failed> {
-    let text = out(
-        gw,
-        &["--json", "call", "can.ai", "read", &channel.to_string()],
-    )?;
-    let v: serde_json::Value = serde_json::from_str(&text)?;
-    Ok(match (v["Ok"].as_f64(), v["Err"].as_str()) {
-        (Some(x), _) => Ok(x),
-        (_, Some(e)) => Err(e.to_string()),
-        _ => Err(text),
-    })
+    let o = gw.cli(&["call", "can.ai", "read", &channel.to_string()]);
+    let text = String::from_utf8_lossy(&o.stdout).trim().to_string();
+    if !o.status.success() {
+        let err = String::from_utf8_lossy(&o.stderr).trim().to_string();
+        if !err.starts_with("hwgw: can.ai.read: ") {
+            return Err(format!("hwgw call can.ai read {channel}: {err}").into());
+        }
+        return Ok(Err(err));
+    }
+    Ok(text.parse::<f64>().map_err(|_| text))
 }
 
 fn a_vehicle_dbc_as_tools_write_it() -> Result<(), Failed> {

@@ -111,7 +111,7 @@ fn ten_thousand_clients_leave_no_connection_behind() {
 }
 
 /// A deployment whose outputs have exact safe values: analog 0 and 100 (1 unit per raw
-/// step), digital 3 on.
+/// step), digital 3 on; and a fast blinker on digital output 15.
 const RACE: &str = r#"
 [[card]]
 name = "s"
@@ -124,6 +124,14 @@ digital_outputs = 16
 [[card.sim.analog_out]]
 count = 2
 range = { lowest = 0.0, highest = 65535.0 }
+
+# A blinker with steps due all through a stop: its writes are held then, which is no
+# failure (a normal stop logs no error).
+[[component]]
+name = "blink"
+type = "blinker"
+activity = { type = "periodic", period_ms = 2 }
+properties = { device = "s", bit = 15 }
 "#;
 
 #[test]
@@ -184,6 +192,11 @@ fn no_sigterm_of_200_lets_a_racing_client_leave_an_output_unsafe() {
             refused += w.join().unwrap();
         }
         assert!(stopped.status.success(), "run {run}: {}", stopped.log);
+        assert!(
+            !stopped.log.contains("ERROR"),
+            "run {run}: a normal stop logged an error:\n{}",
+            stopped.log
+        );
         assert!(
             stopped.log.contains(want),
             "run {run}: no {want:?} in:\n{}",
@@ -557,7 +570,7 @@ fn a_reader_that_goes_away_ends_the_cli_quietly() {
 }
 
 #[test]
-fn a_set_out_of_range_is_an_error_and_a_stopped_component_does_not_replay() {
+fn a_set_out_of_range_or_to_a_stopped_component_is_an_error_and_never_replayed() {
     let dir = TempDir::new("range-cfg");
     let cfg = dir.path().join("range.toml");
     std::fs::write(&cfg, RACE).unwrap();
@@ -569,10 +582,23 @@ fn a_set_out_of_range_is_an_error_and_a_stopped_component_does_not_replay() {
         r["error"]["message"],
         "port \"ch0\": value 70000 is outside channel 0's range [0, 65535]"
     );
-    // A value set while the component is stopped is not applied when it starts again.
+    // A value set while the component is stopped is refused (it would never be written),
+    // and not applied when it starts again.
     let out = svc.cli(&["lifecycle", "stop", "s.ao"]);
     assert!(out.status.success());
-    svc.ok(json!({"cmd": "set", "component": "s.ao", "port": "ch0", "value": 42.0}));
+    let r = svc.request(json!({"cmd": "set", "component": "s.ao", "port": "ch0", "value": 42.0}));
+    assert!(
+        r["error"]["message"]
+            .as_str()
+            .is_some_and(|m| m.contains("is Stopped")),
+        "{r}"
+    );
+    let out = svc.cli(&["set", "s.ao", "ch0", "42"]);
+    assert!(!out.status.success(), "the CLI exits non-zero: {out:?}");
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("is Stopped"),
+        "{out:?}"
+    );
     let out = svc.cli(&["lifecycle", "start", "s.ao"]);
     assert!(out.status.success());
     svc.ok(json!({"cmd": "set", "component": "s.ao", "port": "ch1", "value": 9.0}));

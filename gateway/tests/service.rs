@@ -89,7 +89,7 @@ fn values_flow_and_sigterm_leaves_outputs_safe() {
     // One-shot CLI forms.
     let out = svc.cli(&["call", "sim0.do", "check_bit", "12"]);
     assert!(out.status.success(), "{out:?}");
-    assert!(String::from_utf8_lossy(&out.stdout).contains("\"Ok\": true"));
+    assert_eq!(String::from_utf8_lossy(&out.stdout).trim(), "true");
     let out = svc.cli(&["get", "follow", "property:gain"]);
     assert_eq!(String::from_utf8_lossy(&out.stdout).trim(), "0.5");
     let out = svc.cli(&["set", "follow", "property:gain", "0.25"]);
@@ -469,10 +469,17 @@ fn the_browser_navigates_reads_writes_calls_and_completes() {
     assert_eq!(b.execute("watch out 3").unwrap().lines().count(), 3);
     assert_eq!(b.execute("cd ..").unwrap(), "");
     b.execute("cd sim0.ao");
-    assert!(b.execute("call read_back 0").unwrap().contains("\"Ok\""));
+    let v = b.execute("call read_back 0").unwrap();
+    assert!(v.parse::<f64>().is_ok(), "{v}");
     assert!(
-        b.execute("read_back 0").unwrap().contains("\"Ok\""),
+        b.execute("read_back 0").unwrap().parse::<f64>().is_ok(),
         "a bare operation name calls it"
+    );
+    assert!(
+        b.execute("read_back 99")
+            .unwrap()
+            .starts_with("error: sim0.ao.read_back: channel 99"),
+        "an operation's error is an error"
     );
     assert_eq!(
         b.complete("call rea", 8),

@@ -85,6 +85,21 @@ fn get(svc: &Service, component: &str, port: &str) -> Value {
     svc.ok(json!({"cmd": "get", "component": component, "port": port}))
 }
 
+/// Sets `component`'s `port` to `value` from `svc` until the write is acknowledged: a set
+/// answers once the remote gateway has the value, or with the error that it failed (a busy
+/// machine may delay a write past the request timeout; then it is made again).
+fn set_acknowledged(svc: &Service, component: &str, port: &str, value: Value) {
+    let req = json!({"cmd": "set", "component": component, "port": port, "value": value});
+    let mut last = Value::Null;
+    let done = testkit::wait::wait_for(&format!("{req} acknowledged"), PATIENCE, || {
+        last = svc.request(req.clone());
+        last.get("ok").is_some()
+    });
+    if let Err(e) = done {
+        panic!("{e}: the last answer was {last}");
+    }
+}
+
 fn state(svc: &Service, component: &str) -> String {
     let list = svc.ok(json!({"cmd": "ls"}));
     list.as_array()
@@ -139,7 +154,7 @@ fn two_gateways_share_devices_by_name_and_survive_a_cut_link() {
     // A value set once from A is written once: B's watchdog takes it back to its safe
     // value, as it would a value set once on B (never written again when nobody asks).
     let before = trips(&b);
-    a.ok(json!({"cmd": "set", "component": "B/sim0.do", "port": "bit3", "value": true}));
+    set_acknowledged(&a, "B/sim0.do", "bit3", json!(true));
     wait_until("B's bit 3 set from A", || {
         get(&b, "sim0.do", "bit3") == json!(true)
     });
@@ -354,13 +369,6 @@ fn openssl(dir: &Path, args: &[&str]) {
     );
 }
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .map(|a| a.port())
-        .unwrap_or_else(|e| panic!("{e}"))
-}
-
 /// `[zenoh]` of example `text` with its endpoint line replaced by `endpoint` and `tls`
 /// added.
 fn over_tls(text: &str, line: &str, endpoint: &str, tls: &str) -> String {
@@ -449,7 +457,7 @@ fn gateways_meet_over_tls_and_a_stranger_is_refused() {
         .concat(),
     );
 
-    let endpoint = format!("tls/127.0.0.1:{}", free_port());
+    let endpoint = format!("tls/127.0.0.1:{}", testkit::free_port());
     let b_text = over_tls(
         include_str!("../../config/zenoh-b.toml"),
         "listen",
@@ -481,7 +489,9 @@ fn gateways_meet_over_tls_and_a_stranger_is_refused() {
     wait_until("B/sim0 online in A over TLS", || {
         device(&a, "B/sim0", "analog_in").0 == "online"
     });
-    a.ok(json!({"cmd": "set", "component": "B/sim0.ao", "port": "ch1", "value": -2.5}));
+    // A write is acknowledged once B has it, or A says it failed: then it is made again
+    // (a busy machine may delay the first past the request timeout).
+    set_acknowledged(&a, "B/sim0.ao", "ch1", json!(-2.5));
     wait_until("B's analog output 1 at A's value", || {
         get(&b, "sim0.ao", "ch1")
             .as_f64()

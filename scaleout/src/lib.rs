@@ -18,6 +18,7 @@
 pub mod config;
 pub mod local;
 pub mod node;
+pub mod outbox;
 pub mod ports;
 pub mod remote;
 pub mod session;
@@ -60,6 +61,8 @@ impl driver_api::Server for NodeServer {
             writes_sent: sum(|i| i.writes_sent),
             writes_acked: sum(|i| i.writes_acked),
             writes_failed: sum(|i| i.writes_failed),
+            writes_retried: sum(|i| i.writes_retried),
+            writes_pending: sum(|i| i.writes_pending),
             links: r
                 .links
                 .iter()
@@ -71,16 +74,17 @@ impl driver_api::Server for NodeServer {
                 })
                 .collect(),
             problems: r
-                .imports
+                .twin
                 .iter()
-                .filter_map(|i| {
+                .cloned()
+                .chain(r.imports.iter().filter_map(|i| {
                     Some(format!(
                         "{} ({}): {}",
                         i.name,
                         wire::interface_key(i.interface),
                         i.problem.as_ref()?
                     ))
-                })
+                }))
                 .collect(),
         };
         let at = self.0.address().unwrap_or_else(|| "not started".into());

@@ -8,6 +8,7 @@
 use crate::wire::{self, Catalogue, DeviceShape, EncoderShape, Sample, Write, WriteReply};
 use device_interface::time::{Clock, MonotonicClock};
 use device_interface::{DeviceError, Health, Interface, Registry};
+use std::collections::HashMap;
 
 /// The registry owner of the devices imported from gateway `gw`.
 pub fn owner_of(gw: &str) -> String {
@@ -69,11 +70,12 @@ fn shape_of(registry: &Registry, i: Interface, name: &str) -> Option<DeviceShape
     })
 }
 
-/// The catalogue of gateway `gw`: every local device and its shape.
-pub fn catalogue(gw: &str, registry: &Registry) -> Catalogue {
+/// The catalogue of gateway `gw` in its run `run`: every local device and its shape.
+pub fn catalogue(gw: &str, run: u64, registry: &Registry) -> Catalogue {
     Catalogue {
         protocol: wire::PROTOCOL,
         gateway: gw.to_string(),
+        run,
         devices: local_devices(registry)
             .iter()
             .filter_map(|(i, n)| shape_of(registry, *i, n))
@@ -225,4 +227,51 @@ pub fn write(gw: &str, registry: &Registry, w: &Write) -> Result<WriteReply, Str
         }
     }
     Ok(WriteReply { refused })
+}
+
+/// The last message a remote writer's run applied to one device here.
+type WriterKey = (String, u64, Interface, String);
+
+/// The writers remembered at most (beyond it they are forgotten together, and a repeat of
+/// a forgotten writer's last message would be written once more).
+const MAX_WRITERS: usize = 4096;
+
+/// Other gateways' writes, each message applied once: a message sent again (same writer,
+/// run and sequence number) is answered as the first time, not written again, so a
+/// writer's retries never feed this gateway's output watchdog; an older one is
+/// superseded (a newer value of those outputs went through).
+#[derive(Debug, Default)]
+pub struct Writes {
+    last: HashMap<WriterKey, (u64, WriteReply)>,
+}
+
+impl Writes {
+    /// Carries out `w` unless it is a repeat; the answer, and whether it was a repeat. A
+    /// write refused whole is answered with every value it carried refused, and why.
+    pub fn apply(&mut self, gw: &str, registry: &Registry, w: &Write) -> (WriteReply, bool) {
+        let key = (w.writer.clone(), w.session, w.interface, w.device.clone());
+        if w.seq != 0
+            && let Some((seq, reply)) = self.last.get(&key)
+            && w.seq <= *seq
+        {
+            let reply = if w.seq == *seq {
+                reply.clone()
+            } else {
+                WriteReply {
+                    refused: Vec::new(),
+                }
+            };
+            return (reply, true);
+        }
+        let r = write(gw, registry, w).unwrap_or_else(|e| WriteReply {
+            refused: w.values.iter().map(|(ch, _)| (*ch, e.clone())).collect(),
+        });
+        if w.seq != 0 {
+            if self.last.len() >= MAX_WRITERS && !self.last.contains_key(&key) {
+                self.last.clear();
+            }
+            self.last.insert(key, (w.seq, r.clone()));
+        }
+        (r, false)
+    }
 }

@@ -13,11 +13,15 @@
 //! it; never a wait). Nothing allocates or blocks. Each channel is one atomic, so a reader
 //! may see channels of two consecutive samples.
 //!
-//! A write is sent once, as soon as the sender wakes: only the channels written since the
-//! last send, never again on its own. So the remote gateway's output watchdog sees what
-//! its writer here does — a component that stops writing, stops, fails, or loses the link
-//! lets it expire, exactly as a local writer would. A write's answer is counted
-//! (acknowledged, refused, or failed: no answer in `request_timeout_ms`).
+//! A write is stored and its number taken (a [`DeliveryTracker`]); the node's sender
+//! ([`crate::outbox`]) carries the newest value of every output written since the last
+//! acknowledgement, under a sequence number, and sends that same message again until the
+//! remote gateway acknowledges it or `request_timeout_ms` passes — then the write failed,
+//! and its writer hears so through [`AnalogOut::delivery`] (the control socket's `set`
+//! waits for it). The remote gateway applies a sequence number once: a repeat is
+//! acknowledged, not written again, so its output watchdog sees what its writer here does
+//! — a component that stops writing, stops, fails, or loses the link lets it expire,
+//! exactly as a local writer would.
 //!
 //! Health: offline until the first sample of a device whose shape matched the remote
 //! gateway's catalogue; stale when the last sample is older than `stale_ms`, offline when
@@ -30,8 +34,8 @@ use crate::config::Times;
 use crate::wire::{DeviceShape, Sample};
 use device_interface::time::{Clock, MonotonicClock, Timestamp};
 use device_interface::{
-    AnalogIn, AnalogOut, Device, DeviceError, DigitalIn, DigitalOut, Encoder, Health, Interface,
-    Scale, Status,
+    AnalogIn, AnalogOut, DeliveryTracker, Device, DeviceError, DigitalIn, DigitalOut, Encoder,
+    Health, Interface, Scale, Status,
 };
 use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU8, AtomicU64, Ordering};
 use std::sync::{Mutex, OnceLock};
@@ -51,8 +55,10 @@ pub struct ImageCounters {
     pub writes_acked: AtomicU64,
     /// Writes it answered refusing some value (see the image's problem).
     pub writes_refused: AtomicU64,
-    /// Writes that got no answer in time, or could not be sent.
+    /// Writes that got no answer in time, or could not be sent (one a channel).
     pub writes_failed: AtomicU64,
+    /// Messages sent again because no answer had come yet.
+    pub writes_retried: AtomicU64,
 }
 
 /// Why an image is not usable beyond silence.
@@ -70,13 +76,13 @@ pub struct Image {
     values: Box<[AtomicI64]>,
     valid: Box<[AtomicBool]>,
     out: Box<[AtomicI64]>,
-    out_set: Box<[AtomicBool]>,
+    /// The number of each output's writes, and their fate.
+    delivery: DeliveryTracker,
     /// Set when the gateway stops: writes are refused from then on.
     held: AtomicBool,
     /// Set when the remote gateway restarted (its sequence went back): its catalogue is
     /// asked for again.
     refetch: AtomicBool,
-    dirty: AtomicBool,
     /// Our monotonic time when the last sample arrived, ns; 0: none yet.
     rx_ns: AtomicU64,
     /// The remote gateway's monotonic time when it read the last sample, ns.
@@ -135,10 +141,9 @@ impl Image {
             values: atomics(count, || AtomicI64::new(0)),
             valid: atomics(count, || AtomicBool::new(false)),
             out: atomics(count, || AtomicI64::new(0)),
-            out_set: atomics(count, || AtomicBool::new(false)),
+            delivery: DeliveryTracker::new(count),
             held: AtomicBool::new(false),
             refetch: AtomicBool::new(false),
-            dirty: AtomicBool::new(false),
             rx_ns: AtomicU64::new(0),
             read_ns: AtomicU64::new(0),
             age_ns: AtomicU64::new(u64::MAX),
@@ -361,7 +366,7 @@ impl Image {
         self.read(ch)
     }
 
-    /// Writes `raw` to channel `ch`: stored, and sent by the node.
+    /// Writes `raw` to channel `ch`: stored, numbered, and sent by the node.
     fn write(&self, ch: u32, raw: i64) -> Result<(), DeviceError> {
         self.check(ch)?;
         if self.held.load(Ordering::Acquire) {
@@ -372,30 +377,47 @@ impl Image {
         if self.state(MonotonicClock.now().as_nanos()).0 == Status::Offline {
             return Err(DeviceError::Offline);
         }
-        self.out[ch as usize].store(raw, Ordering::Relaxed);
-        self.out_set[ch as usize].store(true, Ordering::Release);
-        self.dirty.store(true, Ordering::Release);
+        self.out[ch as usize].store(raw, Ordering::Release);
+        self.delivery.take(ch);
         if let Some(w) = self.wake.get() {
             let _ = w.try_send(());
         }
         Ok(())
     }
 
-    /// The channels written since the last call, `(channel, raw)`; `None` when none was.
-    pub fn to_send(&self) -> Option<Vec<(u32, i64)>> {
-        if !self.dirty.swap(false, Ordering::AcqRel) {
-            return None;
-        }
-        let v: Vec<(u32, i64)> = (0..self.count)
-            .filter(|&c| self.out_set[c as usize].swap(false, Ordering::AcqRel))
-            .map(|c| (c, self.out[c as usize].load(Ordering::Relaxed)))
-            .collect();
-        (!v.is_empty()).then_some(v)
+    /// The outputs with writes not yet settled (delivered or failed): `(channel, number of
+    /// the newest write)`.
+    pub fn pending(&self) -> Vec<(u32, u64)> {
+        (0..self.count)
+            .filter_map(|c| {
+                let d = self.delivery.get(c);
+                (d.taken > d.settled).then_some((c, d.taken))
+            })
+            .collect()
     }
 
-    /// Refuses every write from now on (the gateway is stopping).
+    /// The raw value last written to output `ch` here (what a write message carries).
+    pub fn written(&self, ch: u32) -> i64 {
+        self.out
+            .get(ch as usize)
+            .map_or(0, |v| v.load(Ordering::Acquire))
+    }
+
+    /// Where the writes to output `ch` stand.
+    pub fn delivery(&self, ch: u32) -> device_interface::Delivery {
+        self.delivery.get(ch)
+    }
+
+    /// Refuses every write from now on (the gateway is stopping); the writes still on
+    /// their way are failed.
     pub fn hold(&self) {
         self.held.store(true, Ordering::Release);
+        let n = self.delivery.fail_pending(&DeviceError::Undelivered {
+            reason: "this gateway stopped before the remote gateway acknowledged it",
+        });
+        self.counters
+            .writes_failed
+            .fetch_add(n as u64, Ordering::Relaxed);
     }
 
     /// True once after the remote gateway restarted: its catalogue should be asked again.
@@ -403,8 +425,22 @@ impl Image {
         self.refetch.swap(false, Ordering::AcqRel)
     }
 
-    /// Records the remote gateway's answer to a write.
-    pub(crate) fn answered(&self, refused: &[(u32, String)]) {
+    /// Records the remote gateway's answer to a write that carried writes `numbers`
+    /// (`(channel, number)`): each delivered, or failed where it was refused.
+    pub fn answered(&self, numbers: &[(u32, u64)], refused: &[(u32, String)]) {
+        for &(c, n) in numbers {
+            if refused.iter().any(|(r, _)| *r == c) {
+                self.delivery.failed(
+                    c,
+                    n,
+                    DeviceError::Undelivered {
+                        reason: "refused by the remote gateway (its status says why)",
+                    },
+                );
+            } else {
+                self.delivery.delivered(c, n);
+            }
+        }
         if refused.is_empty() {
             self.counters.writes_acked.fetch_add(1, Ordering::Relaxed);
             // A write problem is over once a write goes through.
@@ -425,9 +461,16 @@ impl Image {
             Some(format!("write refused by {}: {text}", self.gateway));
     }
 
-    /// Records a write that got no answer from the remote gateway (a timeout, no
-    /// route), or that it refused as a whole.
-    pub(crate) fn failed(&self, why: &str) {
+    /// Records that write `n` of output `ch` got no acknowledgement in time (or could not
+    /// be sent): it failed, for `why`.
+    pub fn undelivered(&self, ch: u32, n: u64, why: &str) {
+        self.delivery.failed(
+            ch,
+            n,
+            DeviceError::Undelivered {
+                reason: "no acknowledgement from the remote gateway within request_timeout_ms",
+            },
+        );
         self.counters.writes_failed.fetch_add(1, Ordering::Relaxed);
         *self.problem_text.lock().unwrap_or_else(|p| p.into_inner()) =
             Some(format!("write to {} failed: {why}", self.gateway));
@@ -477,6 +520,9 @@ impl AnalogOut for Proxy {
     fn read_back_raw(&self, channel: u32) -> Result<i64, DeviceError> {
         self.0.read_back(channel)
     }
+    fn delivery(&self, channel: u32) -> Option<device_interface::Delivery> {
+        Some(self.0.delivery(channel))
+    }
 }
 
 impl DigitalIn for Proxy {
@@ -497,6 +543,9 @@ impl DigitalOut for Proxy {
     }
     fn check_bit(&self, bit: u32) -> Result<bool, DeviceError> {
         self.0.read_back(bit).map(|v| v != 0)
+    }
+    fn delivery(&self, bit: u32) -> Option<device_interface::Delivery> {
+        Some(self.0.delivery(bit))
     }
 }
 

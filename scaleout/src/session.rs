@@ -228,9 +228,13 @@ impl Session {
         timeout: Duration,
         max: usize,
     ) -> zenoh::Result<Vec<Vec<u8>>> {
+        // Every queryable's answer, none merged: two gateways answering on one key (the
+        // same name twice) are both heard.
         let mut get = self
             .inner
             .get(key.to_string())
+            .target(zenoh::query::QueryTarget::All)
+            .consolidation(zenoh::query::ConsolidationMode::None)
             .timeout(timeout)
             .with(FifoChannel::new(QUEUE));
         if !payload.is_empty() {

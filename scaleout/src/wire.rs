@@ -72,6 +72,10 @@ pub struct Catalogue {
     pub protocol: u32,
     /// Its name.
     pub gateway: String,
+    /// Its run: a number of its own for each time it started (two gateways answering
+    /// with one name and two runs are two gateways sharing a name).
+    #[serde(default)]
+    pub run: u64,
     /// Its devices.
     pub devices: Vec<DeviceShape>,
 }
@@ -116,6 +120,13 @@ pub struct Write {
     /// `(channel, raw value)` of every output the writer drives: raw for analog, 0/1 for
     /// digital, position (0) and turn (1) for an encoder.
     pub values: Vec<(u32, i64)>,
+    /// The writer's number of this message for this device, counting up from 1: a message
+    /// sent again keeps its number, and is applied once (0: apply every time).
+    #[serde(default)]
+    pub seq: u64,
+    /// The writer's run: a restarted writer counts its numbers from 1 again.
+    #[serde(default)]
+    pub session: u64,
 }
 
 /// The answer to a [`Write`]: the channels refused, each with why.

@@ -8,11 +8,12 @@ use device_interface::{
     Status, Unit,
 };
 use scaleout::config::{Times, ZenohConfig};
+use scaleout::outbox::Outbox;
 use scaleout::remote::{Image, Proxy};
 use scaleout::wire::{self, Catalogue, DeviceShape, EncoderShape, Sample, Write};
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 fn times() -> Times {
     Times {
@@ -153,38 +154,129 @@ fn a_remote_restart_is_not_counted_as_samples_lost() {
     assert_eq!(Proxy(img).read_raw(0).ok(), Some(5));
 }
 
+/// An outbox failing writes after the test times' request timeout (1 s), retrying every
+/// 100 ms.
+fn outbox() -> Outbox {
+    Outbox::new("A", 7, times().request, Duration::from_millis(100))
+}
+
+/// What a write message carries: `(channel, raw)` values, its sequence number, and
+/// whether it is a repeat.
+type Sent = (Vec<(u32, i64)>, u64, bool);
+
+/// What `o` sends for `img` at `at`.
+fn sent(o: &mut Outbox, img: &Image, at: Instant) -> Option<Sent> {
+    o.next(img, at)
+        .map(|out| (out.write.values, out.write.seq, out.retry))
+}
+
 #[test]
-fn outputs_are_refused_while_offline_and_sent_once_per_write() {
+fn outputs_are_refused_while_offline_and_sent_until_acknowledged() {
     let img = Arc::new(Image::new(Interface::AnalogOut, "B", "sim0", 2, times()));
     let ao = Proxy(img.clone());
+    let mut o = outbox();
+    let t0 = Instant::now();
     assert!(matches!(ao.write(0, 1.0), Err(DeviceError::Offline)));
     img.adopt(&shape(Interface::AnalogOut, 2));
     img.take(&sample(1, vec![Some(2048), Some(2048)]), now());
     // Nothing written yet: nothing to send.
-    assert_eq!(img.to_send(), None);
+    assert_eq!(sent(&mut o, &img, t0), None);
     ao.write(1, 10.0).unwrap_or_else(|e| panic!("{e}"));
     // The read-back is the remote gateway's, not what was asked here.
     assert_eq!(ao.read_back_raw(1).ok(), Some(2048));
-    assert_eq!(img.to_send(), Some(vec![(1, 4095)]));
+    let first = o.next(&img, t0).unwrap_or_else(|| panic!("nothing sent"));
     assert_eq!(
-        img.to_send(),
-        None,
-        "sent once per write, never again on its own"
+        (first.write.values.clone(), first.write.seq),
+        (vec![(1, 4095)], 1)
     );
+    assert_eq!((first.write.writer.as_str(), first.write.session), ("A", 7));
+    let n = first.numbers[0].1;
+    assert!(
+        AnalogOut::delivery(&ao, 1)
+            .and_then(|d| d.outcome(n))
+            .is_none(),
+        "pending"
+    );
+    // Not again before the retry interval; then the same message, same number.
+    assert_eq!(sent(&mut o, &img, t0 + Duration::from_millis(50)), None);
+    assert_eq!(
+        sent(&mut o, &img, t0 + Duration::from_millis(100)),
+        Some((vec![(1, 4095)], 1, true))
+    );
+    // A newer value of another output: a new message with every unacknowledged output.
     ao.write(0, -10.0).unwrap_or_else(|e| panic!("{e}"));
+    let second = o
+        .next(&img, t0 + Duration::from_millis(120))
+        .unwrap_or_else(|| panic!("nothing sent"));
     assert_eq!(
-        img.to_send(),
-        Some(vec![(0, 0)]),
-        "only what was written since"
+        (second.write.values.clone(), second.write.seq, second.retry),
+        (vec![(0, 0), (1, 4095)], 2, false)
     );
+    // The acknowledgement settles both; nothing more goes out.
+    img.answered(&second.numbers, &[]);
+    assert!(matches!(
+        AnalogOut::delivery(&ao, 1).and_then(|d| d.outcome(n)),
+        Some(Ok(()))
+    ));
+    assert_eq!(sent(&mut o, &img, t0 + Duration::from_millis(400)), None);
+    assert_eq!(img.counters.writes_acked.load(Ordering::Relaxed), 1);
     // Once the gateway stops, writes are refused.
     img.hold();
     assert!(matches!(ao.write(0, 1.0), Err(DeviceError::Held { .. })));
-    assert_eq!(img.to_send(), None);
+    assert_eq!(sent(&mut o, &img, t0 + Duration::from_millis(500)), None);
     assert!(matches!(
         ao.write(0, 11.0),
         Err(DeviceError::ValueOutOfRange { .. })
     ));
+}
+
+#[test]
+fn a_write_never_acknowledged_fails_after_the_request_timeout_and_is_counted() {
+    let img = Arc::new(Image::new(Interface::AnalogOut, "B", "sim0", 1, times()));
+    img.adopt(&shape(Interface::AnalogOut, 1));
+    img.take(&sample(1, vec![Some(0)]), now());
+    let ao = Proxy(img.clone());
+    let mut o = outbox();
+    let t0 = Instant::now();
+    ao.write(0, 1.0).unwrap_or_else(|e| panic!("{e}"));
+    let n = AnalogOut::delivery(&ao, 0).map_or(0, |d| d.taken);
+    assert!(o.next(&img, t0).is_some());
+    // Sent again, every retry interval, until the timeout (1 s) passes; then failed.
+    let repeats = (1..10)
+        .filter(|k| o.next(&img, t0 + Duration::from_millis(100 * k)).is_some())
+        .count();
+    assert_eq!(repeats, 9);
+    assert!(o.next(&img, t0 + Duration::from_millis(1000)).is_none());
+    let d = AnalogOut::delivery(&ao, 0).unwrap_or_default();
+    assert!(
+        matches!(d.outcome(n), Some(Err(DeviceError::Undelivered { .. }))),
+        "{d:?}"
+    );
+    assert_eq!(img.counters.writes_failed.load(Ordering::Relaxed), 1);
+    assert!(
+        img.problem()
+            .unwrap_or_default()
+            .contains("write to B failed")
+    );
+    // A late acknowledgement of the failed write changes nothing; the next write is
+    // pending again, and a refusal fails it at once.
+    let m = {
+        ao.write(0, 2.0).unwrap_or_else(|e| panic!("{e}"));
+        AnalogOut::delivery(&ao, 0).map_or(0, |d| d.taken)
+    };
+    let out = o
+        .next(&img, t0 + Duration::from_millis(1100))
+        .unwrap_or_else(|| panic!("nothing sent"));
+    img.answered(&out.numbers, &[(0, "held".to_string())]);
+    assert!(matches!(
+        AnalogOut::delivery(&ao, 0).and_then(|d| d.outcome(m)),
+        Some(Err(DeviceError::Undelivered { .. }))
+    ));
+    assert_eq!(img.counters.writes_refused.load(Ordering::Relaxed), 1);
+    // Stopping fails what is still on its way.
+    ao.write(0, 3.0).unwrap_or_else(|e| panic!("{e}"));
+    img.hold();
+    assert_eq!(img.counters.writes_failed.load(Ordering::Relaxed), 2);
 }
 
 #[test]
@@ -193,6 +285,8 @@ fn digital_outputs_and_encoder_commands() {
     img.adopt(&shape(Interface::DigitalOut, 4));
     img.take(&sample(1, vec![Some(0); 4]), now());
     let d = Proxy(img.clone());
+    let mut o = outbox();
+    let t0 = Instant::now();
     d.set_bit(3, true).unwrap_or_else(|e| panic!("{e}"));
     assert_eq!(
         d.check_bit(3).ok(),
@@ -203,7 +297,7 @@ fn digital_outputs_and_encoder_commands() {
         d.set_bit(4, true),
         Err(DeviceError::BitOutOfRange { .. })
     ));
-    assert_eq!(img.to_send(), Some(vec![(3, 1)]));
+    assert_eq!(sent(&mut o, &img, t0), Some((vec![(3, 1)], 1, false)));
     img.take(&sample(2, vec![Some(0), Some(0), Some(0), Some(1)]), now());
     assert_eq!(d.check_bit(3).ok(), Some(true));
 
@@ -211,12 +305,15 @@ fn digital_outputs_and_encoder_commands() {
     img.adopt(&shape(Interface::Encoder, 2));
     img.take(&sample(1, vec![Some(100), Some(2)]), now());
     let e = Proxy(img.clone());
+    let mut o = outbox();
     assert_eq!((e.position().ok(), e.turn().ok()), (Some(100), Some(2)));
     assert_eq!(Encoder::resolution(&e), 4096);
     e.set_position(7).unwrap_or_else(|err| panic!("{err}"));
-    // A position is a command: sent once.
-    assert_eq!(img.to_send(), Some(vec![(0, 7)]));
-    assert_eq!(img.to_send(), None);
+    // A position is a command: sent until acknowledged, then never again.
+    let out = o.next(&img, t0).unwrap_or_else(|| panic!("nothing sent"));
+    assert_eq!(out.write.values, vec![(0, 7)]);
+    img.answered(&out.numbers, &[]);
+    assert_eq!(sent(&mut o, &img, t0 + Duration::from_secs(5)), None);
 }
 
 #[test]
@@ -257,6 +354,8 @@ fn writes_from_another_gateway_reach_only_this_gateways_outputs() {
         interface,
         device: device.into(),
         values: vec![(0, 1)],
+        seq: 1,
+        session: 1,
     };
     let e = scaleout::local::write("B", &registry, &w("C/x", Interface::DigitalOut, 1))
         .err()
@@ -281,7 +380,94 @@ fn writes_from_another_gateway_reach_only_this_gateways_outputs() {
             .unwrap_or_default();
         assert!(e.contains("names a channel twice or too many"), "{e}");
     }
-    assert_eq!(img.to_send(), None, "nothing written");
+    assert!(img.pending().is_empty(), "nothing written");
+}
+
+#[test]
+fn a_message_sent_again_is_acknowledged_not_written_again() {
+    let registry = device_interface::Registry::new();
+    let sim = Arc::new(CountingOut::default());
+    registry
+        .digital_out()
+        .register("y", "card", sim.clone())
+        .unwrap_or_else(|e| panic!("{e}"));
+    let mut writes = scaleout::local::Writes::default();
+    let w = |seq: u64, session: u64, on: i64| Write {
+        protocol: 1,
+        writer: "A".into(),
+        interface: Interface::DigitalOut,
+        device: "y".into(),
+        values: vec![(0, on)],
+        seq,
+        session,
+    };
+    assert!(!writes.apply("B", &registry, &w(1, 5, 1)).1);
+    assert_eq!(sim.writes(), 1);
+    // The same message again: acknowledged, not written (B's watchdog sees no refresh).
+    let (r, repeated) = writes.apply("B", &registry, &w(1, 5, 1));
+    assert!(repeated && r.refused.is_empty());
+    assert_eq!(sim.writes(), 1);
+    // An older one arriving late is superseded.
+    assert!(!writes.apply("B", &registry, &w(2, 5, 0)).1);
+    assert!(writes.apply("B", &registry, &w(1, 5, 1)).1);
+    assert_eq!(sim.writes(), 2);
+    assert!(
+        !sim.on(),
+        "the late older value did not overwrite the newer"
+    );
+    // A restarted writer (another run) counts from 1 again and is written.
+    assert!(!writes.apply("B", &registry, &w(1, 6, 1)).1);
+    assert_eq!(sim.writes(), 3);
+    // A write refused whole answers every value refused, with why.
+    let mut bad = w(3, 5, 1);
+    bad.device = "nosuch".into();
+    let (r, _) = writes.apply("B", &registry, &bad);
+    assert_eq!(r.refused.len(), 1);
+    assert!(
+        r.refused[0].1.contains("has no digital_out device"),
+        "{:?}",
+        r.refused
+    );
+}
+
+/// A one-bit output that counts its writes.
+#[derive(Default)]
+struct CountingOut {
+    n: std::sync::atomic::AtomicU64,
+    on: std::sync::atomic::AtomicBool,
+}
+
+impl CountingOut {
+    fn writes(&self) -> u64 {
+        self.n.load(Ordering::Relaxed)
+    }
+    fn on(&self) -> bool {
+        self.on.load(Ordering::Relaxed)
+    }
+}
+
+impl Device for CountingOut {
+    fn health(&self) -> device_interface::Health {
+        let now = MonotonicClock.now();
+        device_interface::Health::online_if(true, now.as_nanos(), now)
+    }
+}
+
+impl DigitalOut for CountingOut {
+    fn output_count(&self) -> u32 {
+        1
+    }
+    fn set_bit(&self, bit: u32, value: bool) -> Result<(), DeviceError> {
+        if bit != 0 {
+            return Err(DeviceError::BitOutOfRange { bit, count: 1 });
+        }
+        self.n.fetch_add(1, Ordering::Relaxed);
+        self.on.store(value, Ordering::Relaxed);
+        Ok(())
+    }
+    fn check_bit(&self, _bit: u32) -> Result<bool, DeviceError> {
+        Ok(self.on())
+    }
 }
 
 #[test]

@@ -146,22 +146,26 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
     /// Adds an event input port that drives something whose current value can be read
     /// back (a device output): its value, as the control socket's `get` shows it, is
     /// `read_back()` rather than the last sample read; a value written through the dynamic
-    /// layer (`set`) must pass `check` first.
+    /// layer's [`writer`](super::DynPort::writer) must pass `check` first; a value set
+    /// through [`drive`](super::DynPort::drive) (the control socket's `set`) is handed to
+    /// `apply` at once, which writes it where it goes and answers whether it got there.
     pub fn event_input_driving<T: PortData + Default>(
         &mut self,
         name: &str,
         doc: &str,
         read_back: impl Fn() -> Option<T> + Send + Sync + 'static,
         check: impl Fn(&T) -> Result<(), String> + Send + Sync + 'static,
+        apply: impl Fn(&T) -> Result<(), String> + Send + Sync + 'static,
     ) -> Result<InputPort<T>, IntrospectError> {
         let check: Check<T> = Arc::new(check);
+        let apply: Check<T> = Arc::new(apply);
         self.add_input(
             name,
             doc,
             T::default(),
             true,
             Some(Box::new(read_back)),
-            Some(check),
+            Some((check, apply)),
         )
     }
 
@@ -183,7 +187,7 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
         sample: T,
         event: bool,
         read_back: Option<ReadBack<T>>,
-        check: Option<Check<T>>,
+        driving: Option<(Check<T>, Check<T>)>,
     ) -> Result<InputPort<T>, IntrospectError> {
         self.check_port_name(name)?;
         let port = InputPort::with_sample(name, sample.clone());
@@ -197,7 +201,8 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
             sample,
             event,
             read_back,
-            check,
+            check: driving.as_ref().map(|(c, _)| c.clone()),
+            apply: driving.map(|(_, a)| a),
         }));
         Ok(port)
     }

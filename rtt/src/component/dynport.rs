@@ -61,6 +61,17 @@ pub trait DynPort: Send + Sync {
     }
     /// A new connection from a writer of serialised values to this input port.
     fn writer(&self, policy: ConnPolicy) -> Result<Box<dyn DynWriter>, IntrospectError>;
+    /// For an input port that drives something (a device output): `value` written there
+    /// now, past the port, with the answer of what it drives — refused, not delivered, or
+    /// done. `None` for every other port (a value for it goes through a
+    /// [`writer`](Self::writer)).
+    fn drive(&self, _value: Value) -> Option<Result<(), IntrospectError>> {
+        None
+    }
+    /// True for an input port that drives something ([`drive`](Self::drive) answers).
+    fn drives(&self) -> bool {
+        false
+    }
     /// Connects this output port to `input`.
     fn connect_to(
         &self,
@@ -134,6 +145,9 @@ pub(crate) struct InEntry<T: Send> {
     pub(crate) event: bool,
     pub(crate) read_back: Option<ReadBack<T>>,
     pub(crate) check: Option<Check<T>>,
+    /// Writes a value set from outside straight to what the port drives (see
+    /// [`DynPort::drive`]).
+    pub(crate) apply: Option<Check<T>>,
 }
 
 fn direction_error(port: &str, actual: Direction, what: &'static str) -> IntrospectError {
@@ -354,6 +368,35 @@ impl<T: PortData> DynPort for InEntry<T> {
             check: self.check.clone(),
             values: self.values.get().cloned().unwrap_or_default(),
         }))
+    }
+
+    fn drives(&self) -> bool {
+        self.apply.is_some()
+    }
+
+    fn drive(&self, value: Value) -> Option<Result<(), IntrospectError>> {
+        let apply = self.apply.as_ref()?;
+        let what = format!("port {:?}", self.shared.name);
+        let values = self.values.get().map(Vec::as_slice).unwrap_or_default();
+        let v: T = match serde_json::from_value(unname(values, value)) {
+            Ok(v) => v,
+            Err(e) => {
+                return Some(Err(IntrospectError::BadValue {
+                    what,
+                    expected: expected::<T>(values),
+                    detail: e.to_string(),
+                }));
+            }
+        };
+        let checked = match &self.check {
+            Some(check) => check(&v),
+            None => Ok(()),
+        };
+        Some(
+            checked
+                .and_then(|()| apply(&v))
+                .map_err(|detail| IntrospectError::Refused { what, detail }),
+        )
     }
 
     fn connect_to(

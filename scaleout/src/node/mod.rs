@@ -71,6 +71,7 @@ struct Counters {
     publish_failed: AtomicU64,
     writes_served: AtomicU64,
     writes_refused: AtomicU64,
+    writes_repeated: AtomicU64,
     controls_served: AtomicU64,
     bad_messages: AtomicU64,
 }
@@ -94,6 +95,10 @@ pub struct Node {
     running: Mutex<Option<Running>>,
     exports: Mutex<Vec<Arc<Export>>>,
     links: Mutex<Vec<Arc<Link>>>,
+    /// This run's number (see [`Catalogue::run`]).
+    run: u64,
+    /// Set when another gateway answers to this one's name: what it is.
+    twin: Arc<Mutex<Option<String>>>,
 }
 
 impl Node {
@@ -148,6 +153,8 @@ impl Node {
             running: Mutex::new(None),
             exports: Mutex::default(),
             links: Mutex::default(),
+            run: threads::run_number(),
+            twin: Arc::default(),
         })
     }
 
@@ -234,9 +241,19 @@ impl Node {
 
     /// What others ask of this gateway, and what it publishes.
     fn serve(&self, s: &Session, threads: &mut Vec<JoinHandle<()>>) -> Result<(), NodeError> {
-        let (gw, reg) = (self.cfg.name.clone(), self.registry.clone());
-        s.declare_catalogue(&self.cfg.name, move || local::catalogue(&gw, &reg))
+        let (gw, reg, run) = (self.cfg.name.clone(), self.registry.clone(), self.run);
+        s.declare_catalogue(&self.cfg.name, move || local::catalogue(&gw, run, &reg))
             .map_err(zerr)?;
+        let (sess, gw, twin, stop, times) = (
+            s.clone(),
+            self.cfg.name.clone(),
+            self.twin.clone(),
+            self.stop.clone(),
+            self.times,
+        );
+        threads.push(spawn("hwgw-zn-name", move || {
+            threads::watch_name(&sess, &gw, run, &twin, times, &stop)
+        })?);
         let writes = s
             .queue(&wire::service_key(&self.cfg.name, "write"))
             .map_err(zerr)?;
@@ -317,8 +334,9 @@ impl Node {
             self.cfg.name.clone(),
             self.times,
         );
+        let run = self.run;
         threads.push(spawn("hwgw-zn-tx", move || {
-            threads::send_writes(&me, &sess, &images, &rx, times, &stop)
+            threads::send_writes(&me, run, &sess, &images, &rx, times, &stop)
         })?);
         let (sess, images, stop, times) = (
             s.clone(),
@@ -428,6 +446,7 @@ impl Node {
             Err(_) => (None, Vec::new()),
         };
         NodeReport {
+            twin: lock(&self.twin).clone(),
             name: self.cfg.name.clone(),
             zid,
             peers,
@@ -436,6 +455,7 @@ impl Node {
                 publish_failed: l(&c.publish_failed),
                 writes_served: l(&c.writes_served),
                 writes_refused: l(&c.writes_refused),
+                writes_repeated: l(&c.writes_repeated),
                 controls_served: l(&c.controls_served),
                 bad_messages: l(&c.bad_messages),
             },
@@ -452,6 +472,8 @@ impl Node {
                     writes_acked: l(&i.counters.writes_acked),
                     writes_refused: l(&i.counters.writes_refused),
                     writes_failed: l(&i.counters.writes_failed),
+                    writes_retried: l(&i.counters.writes_retried),
+                    writes_pending: i.pending().len() as u64,
                     problem: i.problem(),
                 })
                 .collect(),

@@ -20,6 +20,8 @@ pub struct NodeReport {
     pub imports: Vec<ImportReport>,
     /// Every connection from another gateway's port.
     pub links: Vec<LinkReport>,
+    /// Another gateway answering to this one's name, if one was seen.
+    pub twin: Option<String>,
 }
 
 /// The node's own counters (not an import's or a connection's).
@@ -33,6 +35,8 @@ pub struct NodeCounts {
     pub writes_served: u64,
     /// Writes of other gateways refused (some value, or the whole write).
     pub writes_refused: u64,
+    /// Writes of other gateways sent again (or superseded): acknowledged, not written again.
+    pub writes_repeated: u64,
     /// Control requests of other gateways answered.
     pub controls_served: u64,
     /// Messages that did not parse.
@@ -73,8 +77,12 @@ pub struct ImportReport {
     pub writes_acked: u64,
     /// Writes refused.
     pub writes_refused: u64,
-    /// Writes without an answer in time, or not sent.
+    /// Writes without an acknowledgement within `request_timeout_ms` (one a channel).
     pub writes_failed: u64,
+    /// Messages sent again while waiting for an acknowledgement.
+    pub writes_retried: u64,
+    /// Outputs with a write on its way now (neither acknowledged nor failed yet).
+    pub writes_pending: u64,
     /// Its last problem.
     pub problem: Option<String>,
 }
@@ -98,8 +106,12 @@ pub struct StatusSummary {
     pub writes_sent: u64,
     /// ... that they acknowledged.
     pub writes_acked: u64,
-    /// ... that got no answer in time (or could not be sent).
+    /// ... that got no acknowledgement within `request_timeout_ms` (one a channel).
     pub writes_failed: u64,
+    /// ... sent again while waiting for an acknowledgement.
+    pub writes_retried: u64,
+    /// Outputs with a write on its way now.
+    pub writes_pending: u64,
     /// Each import's problem.
     pub problems: Vec<String>,
     /// Each connection from another gateway's port and its counters.

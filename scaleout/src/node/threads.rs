@@ -6,6 +6,7 @@
 use super::{ControlHandler, Counters, lock};
 use crate::config::Times;
 use crate::local;
+use crate::outbox::Outbox;
 use crate::ports::Export;
 use crate::remote::Image;
 use crate::session::{self, Session};
@@ -106,35 +107,6 @@ pub(super) fn publish(
     }
 }
 
-/// Carries out other gateways' writes to this gateway's outputs.
-pub(super) fn serve_writes(
-    gw: &str,
-    registry: &Registry,
-    queue: &session::Queue,
-    c: &Counters,
-    stop: &AtomicBool,
-) {
-    serve(queue, stop, |bytes| match wire::parse::<Write>(bytes) {
-        Err(e) => {
-            c.bad_messages.fetch_add(1, Ordering::Relaxed);
-            Err(format!("not a write: {e}"))
-        }
-        Ok(w) => match local::write(gw, registry, &w) {
-            Ok(r) => {
-                c.writes_served.fetch_add(1, Ordering::Relaxed);
-                if !r.refused.is_empty() {
-                    c.writes_refused.fetch_add(1, Ordering::Relaxed);
-                }
-                Ok(wire::to_bytes(&r))
-            }
-            Err(e) => {
-                c.writes_refused.fetch_add(1, Ordering::Relaxed);
-                Err(e)
-            }
-        },
-    });
-}
-
 /// Answers other gateways' control requests with the handler set at the time.
 pub(super) fn serve_control(
     handler: &Mutex<Option<ControlHandler>>,
@@ -172,47 +144,145 @@ fn serve(
 }
 
 /// Sends the writes of this gateway's components to the gateways whose outputs they are,
-/// as soon as they are made; counts the answers.
+/// as soon as they are made, and again until each is acknowledged or times out (see
+/// [`crate::outbox`]); counts the answers.
 pub(super) fn send_writes(
     me: &str,
+    session: u64,
     s: &Session,
     images: &[Arc<Image>],
     wake: &crossbeam_channel::Receiver<()>,
     times: Times,
     stop: &AtomicBool,
 ) {
+    let retry = Outbox::retry_for(times.request);
+    let mut boxes: Vec<Outbox> = images
+        .iter()
+        .map(|_| Outbox::new(me, session, times.request, retry))
+        .collect();
     while !stop.load(Ordering::Acquire) {
-        let _ = wake.recv_timeout(SLICE);
-        for img in images {
-            let Some(values) = img.to_send() else {
+        let _ = wake.recv_timeout(retry.min(SLICE));
+        let now = Instant::now();
+        for (img, outbox) in images.iter().zip(&mut boxes) {
+            let Some(out) = outbox.next(img, now) else {
                 continue;
-            };
-            let w = Write {
-                protocol: wire::PROTOCOL,
-                writer: me.to_string(),
-                interface: img.interface(),
-                device: img.device().to_string(),
-                values,
             };
             let key = wire::service_key(img.gateway(), "write");
             let answered = img.clone();
-            let sent =
-                s.ask_then(
-                    &key,
-                    wire::to_bytes(&w),
-                    times.request,
-                    move |answer| match answer.and_then(wire::parse::<WriteReply>) {
-                        Ok(r) => answered.answered(&r.refused),
-                        Err(e) => answered.failed(&e),
-                    },
-                );
-            match sent {
-                Ok(()) => img.counters.writes_sent.fetch_add(1, Ordering::Relaxed),
-                Err(e) => {
-                    img.failed(&e.to_string());
-                    0
-                }
+            let numbers = out.numbers;
+            // No answer (a timeout, no route) is not a failure yet: the outbox sends the
+            // message again until request_timeout_ms has passed.
+            let sent = s.ask_then(
+                &key,
+                wire::to_bytes(&out.write),
+                retry.max(Duration::from_millis(100)),
+                move |answer| {
+                    if let Ok(r) = answer.and_then(wire::parse::<WriteReply>) {
+                        answered.answered(&numbers, &r.refused);
+                    }
+                },
+            );
+            let counter = match (&sent, out.retry) {
+                (Err(_), _) => None,
+                (Ok(()), false) => Some(&img.counters.writes_sent),
+                (Ok(()), true) => Some(&img.counters.writes_retried),
             };
+            if let Some(c) = counter {
+                c.fetch_add(1, Ordering::Relaxed);
+            } else if let Err(e) = sent {
+                tracing::debug!("zenoh: sending a write to {}: {e}", img.gateway());
+            }
+        }
+    }
+}
+
+/// A number for this run of the gateway, different from the last run's (the remote
+/// gateway applies each of a writer's sequence numbers once per run).
+pub(super) fn run_number() -> u64 {
+    let t = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64);
+    t ^ (u64::from(std::process::id()) << 48) | 1
+}
+
+/// Carries out other gateways' writes to this gateway's outputs, each message once (see
+/// [`local::Writes`]).
+pub(super) fn serve_writes(
+    gw: &str,
+    registry: &Registry,
+    queue: &session::Queue,
+    c: &Counters,
+    stop: &AtomicBool,
+) {
+    let mut writes = local::Writes::default();
+    serve(queue, stop, |bytes| {
+        let w = match wire::parse::<Write>(bytes) {
+            Err(e) => {
+                c.bad_messages.fetch_add(1, Ordering::Relaxed);
+                return Err(format!("not a write: {e}"));
+            }
+            Ok(w) => w,
+        };
+        let (r, repeated) = writes.apply(gw, registry, &w);
+        let counter = if repeated {
+            &c.writes_repeated
+        } else {
+            &c.writes_served
+        };
+        counter.fetch_add(1, Ordering::Relaxed);
+        if !repeated && !r.refused.is_empty() {
+            c.writes_refused.fetch_add(1, Ordering::Relaxed);
+        }
+        Ok(wire::to_bytes(&r))
+    });
+}
+
+/// How often a gateway asks whether another answers to its name.
+const NAME_CHECK: Duration = Duration::from_secs(5);
+
+/// Asks, now and every [`NAME_CHECK`], for the catalogue of gateway `me`: one answering
+/// with another run is a second gateway with this name (their devices, writes and
+/// control requests would mix). Says so once per such gateway, and keeps it in `twin` for
+/// the status.
+pub(super) fn watch_name(
+    s: &Session,
+    me: &str,
+    run: u64,
+    twin: &Mutex<Option<String>>,
+    times: Times,
+    stop: &AtomicBool,
+) {
+    let mut told: Vec<u64> = Vec::new();
+    loop {
+        let replies = s
+            .ask(
+                &wire::service_key(me, "catalogue"),
+                Vec::new(),
+                times.request.min(Duration::from_secs(2)),
+                16,
+            )
+            .unwrap_or_default();
+        for c in replies
+            .iter()
+            .filter_map(|b| wire::parse::<Catalogue>(b).ok())
+        {
+            if c.gateway != me || c.run == run || told.contains(&c.run) {
+                continue;
+            }
+            let text = format!(
+                "another gateway answers to the name {me:?} on this Zenoh network (with {} \
+                 devices): names must be unique, or devices, writes and requests of the two mix; \
+                 rename one ([zenoh] name)",
+                c.devices.len()
+            );
+            tracing::error!("zenoh: {text}");
+            *super::lock(twin) = Some(text);
+            if told.len() < 64 {
+                told.push(c.run);
+            }
+        }
+        if !sleep_until(Instant::now() + NAME_CHECK, stop) {
+            return;
         }
     }
 }

@@ -84,3 +84,12 @@ pub fn set_fd_limit(soft: Option<u64>) -> std::io::Result<u64> {
     .map_err(std::io::Error::from)?;
     Ok(old)
 }
+
+/// A TCP port on 127.0.0.1 that was free a moment ago (for a peer that must be told its
+/// port before it starts).
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .unwrap_or_else(|e| panic!("no free port on 127.0.0.1: {e}"))
+}
