@@ -118,16 +118,17 @@ enum Command {
         component: String,
         /// A port name, or `property:NAME`.
         name: String,
-        /// The value (JSON; anything else is taken as text). Negative numbers are values.
-        #[arg(allow_negative_numbers = true)]
+        /// The value (JSON; anything else is taken as text). Negative numbers (-1e-300
+        /// too) are values.
+        #[arg(allow_hyphen_values = true)]
         value: String,
     },
     /// Call an operation (each ARG is JSON; anything else is taken as text).
     Call {
         component: String,
         operation: String,
-        /// Negative numbers are arguments, not options.
-        #[arg(allow_negative_numbers = true)]
+        /// Negative numbers (-1e-300 too) are arguments, not options.
+        #[arg(allow_hyphen_values = true)]
         args: Vec<String>,
     },
 }
