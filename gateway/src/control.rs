@@ -82,6 +82,52 @@ impl Limits {
     }
 }
 
+/// Descriptors one client costs: its socket, and the second handle the server keeps to
+/// disconnect it at close.
+pub const FDS_PER_CLIENT: u64 = 2;
+
+/// Descriptors kept for the rest of the gateway: cards' buses, Zenoh's sockets, files,
+/// the listener itself.
+pub const FDS_RESERVED: u64 = 256;
+
+impl Limits {
+    /// These limits within the process's file descriptor limit (`RLIMIT_NOFILE`, systemd's
+    /// `LimitNOFILE`): when `clients` × [`FDS_PER_CLIENT`] + [`FDS_RESERVED`] is more
+    /// than the soft limit, the soft limit is raised towards the hard one; when even that
+    /// is too few, fewer clients are taken, and the log says so with both numbers — a
+    /// gateway never promises clients it has no descriptors for.
+    pub fn fit_descriptors(self) -> Limits {
+        use nix::sys::resource::{Resource, getrlimit, setrlimit};
+        let need = self.clients as u64 * FDS_PER_CLIENT + FDS_RESERVED;
+        let Ok((soft, hard)) = getrlimit(Resource::RLIMIT_NOFILE) else {
+            return self;
+        };
+        if need <= soft {
+            return self;
+        }
+        let raised = need.min(hard);
+        let have = match setrlimit(Resource::RLIMIT_NOFILE, raised, hard) {
+            Ok(()) => raised,
+            Err(_) => soft,
+        };
+        if need <= have {
+            tracing::info!(
+                "control_clients = {}: raised the file descriptor limit from {soft} to {have}",
+                self.clients
+            );
+            return self;
+        }
+        let clients = (have.saturating_sub(FDS_RESERVED) / FDS_PER_CLIENT).max(1) as usize;
+        tracing::warn!(
+            "control_clients = {} needs {need} file descriptors ({FDS_PER_CLIENT} a client and \
+             {FDS_RESERVED} for the rest); the limit is {have} (LimitNOFILE, hard {hard}): taking \
+             {clients} clients at once",
+            self.clients
+        );
+        Limits { clients, ..self }
+    }
+}
+
 impl Default for Limits {
     fn default() -> Self {
         Limits {

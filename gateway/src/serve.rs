@@ -195,7 +195,11 @@ pub fn run(config: Option<PathBuf>, socket: Option<PathBuf>, types: &Types) -> E
     let path = socket
         .or_else(|| d.control_socket.as_ref().map(PathBuf::from))
         .unwrap_or_else(crate::socket::default_server_socket);
-    let server = match ControlServer::start(gw.clone(), &path, crate::control::Limits::of(&d)) {
+    let server = match ControlServer::start(
+        gw.clone(),
+        &path,
+        crate::control::Limits::of(&d).fit_descriptors(),
+    ) {
         Ok(s) => s,
         Err(e) => {
             eprintln!("hwgw: control socket: {e}");
