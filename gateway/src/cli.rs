@@ -127,8 +127,9 @@ enum Command {
     Call {
         component: String,
         operation: String,
-        /// Negative numbers (-1e-300 too) are arguments, not options.
-        #[arg(allow_hyphen_values = true)]
+        /// Negative numbers are arguments, not options (one in exponent form after `--`:
+        /// `call x write 0 -- -1e-300`).
+        #[arg(allow_negative_numbers = true)]
         args: Vec<String>,
     },
 }

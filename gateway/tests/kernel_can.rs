@@ -405,7 +405,16 @@ fn a_vehicle_dbc_as_tools_write_it() -> Result<(), Failed> {
         !refused.status.success() && text.contains("one of P, R, N, D"),
         "{text}"
     );
-    terminate(gw)?;
+    // SIGTERM: Gear to its safe value P; Lamp, under the default policy "initial", back to
+    // the value the frame carried before hwgw first wrote it (off) — not left on.
+    let last = Candump::start(&["-n", "1000", "-T", "1000", "vcan1,200:7FF"])?;
+    let log = terminate(gw)?;
+    assert_eq!(
+        frames(last)?.last().map(String::as_str),
+        Some("200#0000"),
+        "{log}"
+    );
+    assert!(!log.contains("left as hwgw last wrote it"), "{log}");
     Ok(())
 }
 

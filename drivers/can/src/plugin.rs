@@ -16,7 +16,7 @@ use crate::signal::ValueKind;
 use device_interface::CardDevices;
 use driver_api::{
     Card, CardContext, CardError, CardStatus, ChannelDetail, ChannelDetails, ChannelNames,
-    is_port_name,
+    ReadBack, is_port_name,
 };
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -253,6 +253,13 @@ impl Card for CanPlugin {
 
     fn status(&self) -> CardStatus {
         CardStatus::new(self.card.map().interface(), &self.card.counters())
+    }
+
+    fn read_back(&self) -> ReadBack {
+        // The outputs are the signals of hwgw's own frames: before hwgw first writes one
+        // it holds its start value (the section's `initial`, the DBC's GenSigStartValue,
+        // else 0) — what a cyclic frame carried until then — so "initial" puts it back.
+        ReadBack::Device
     }
 
     fn settle(&self, deadline: Instant) -> Result<(), String> {
