@@ -354,6 +354,13 @@ pub trait DigitalOutputImage: crate::Device + Send + Sync {
     fn check_outputs_writable(&self) -> Result<(), DeviceError>;
     /// Called after each accepted write.
     fn outputs_written(&self, written: Written);
+    /// Where the writes to output `bit` stand, for a card whose bus carries them later
+    /// (see [`DigitalOut::delivery`](crate::DigitalOut::delivery)). Default `None`: a write
+    /// that returned `Ok` is on the device already.
+    fn output_delivery(&self, bit: u32) -> Option<crate::Delivery> {
+        let _ = bit;
+        None
+    }
 }
 
 impl<T: DigitalOutputImage> crate::DigitalOut for T {
@@ -386,5 +393,9 @@ impl<T: DigitalOutputImage> crate::DigitalOut for T {
         Ok(self
             .outputs()
             .read_span(BitSpan::new(start, stop, self.outputs().len())?))
+    }
+
+    fn delivery(&self, bit: u32) -> Option<crate::Delivery> {
+        self.output_delivery(bit)
     }
 }

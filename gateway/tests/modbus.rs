@@ -570,3 +570,103 @@ fn hwgw_status_counts_evictions_and_refusals() {
     let stopped = gw.terminate();
     assert!(stopped.status.success(), "{}", stopped.log);
 }
+
+/// A Modbus card's outputs set with the real `hwgw` binary: `hwgw set` answers once the
+/// unit has the value (exit 0, the server holds it), and fails with the reason when the
+/// write cannot reach the unit — never 0 for a value that is not there.
+#[test]
+fn hwgw_set_on_a_modbus_output_says_whether_the_unit_took_it() {
+    let server = TestServer::start();
+    let dir = testkit::TempDir::new("modbus-set-config");
+    let config = dir.path().join("plc.toml");
+    std::fs::write(
+        &config,
+        format!(
+            r#"
+[[card]]
+name = "plc"
+driver = "modbus"
+sample_period_ms = 10
+
+[card.modbus]
+transport = {{ type = "tcp", address = "{}" }}
+unit = 1
+poll_ms = 10
+timeout_ms = 200
+stale_after = 2
+offline_after = 3
+
+[[card.modbus.point]]
+table = "holding_registers"
+address = 10
+[[card.modbus.point]]
+table = "coils"
+address = 0
+"#,
+            server.addr()
+        ),
+    )
+    .unwrap();
+    let gw =
+        testkit::Service::start(env!("CARGO_BIN_EXE_hwgw"), "modbus-set", &[&config], &[]).unwrap();
+    let status = || -> serde_json::Value {
+        gw.out(&["--json", "status"])
+            .ok()
+            .and_then(|s| serde_json::from_str(&s).ok())
+            .unwrap_or_default()
+    };
+    let online = || {
+        status()["devices"].as_array().is_some_and(|d| {
+            d.iter().any(|d| {
+                d["name"] == "plc" && d["interface"] == "analog_out" && d["status"] == "online"
+            })
+        })
+    };
+    wait_until("the unit online", online);
+
+    // A unit that answers: exit 0, and the value is on the unit when `set` returns.
+    gw.out(&["set", "plc.ao", "ch0", "1234"]).unwrap();
+    gw.out(&["set", "plc.do", "bit0", "true"]).unwrap();
+    {
+        let m = server.memory().lock().unwrap();
+        assert_eq!(
+            (m.holding[10], m.coils[0]),
+            (1234, true),
+            "delivered means there"
+        );
+    }
+
+    // A unit that stops taking writes (it still answers reads: online when the write is
+    // taken): the write is retried until the unit is declared offline, then fails.
+    server.memory().lock().unwrap().silent_writes = true;
+    let set = gw.cli(&["set", "plc.ao", "ch0", "4321"]);
+    let stderr = String::from_utf8_lossy(&set.stderr);
+    assert!(!set.status.success(), "exit 0 for an undelivered write");
+    assert!(stderr.contains("offline"), "{stderr}");
+    eprintln!("unit down: {}", stderr.trim());
+    assert_eq!(server.memory().lock().unwrap().holding[10], 1234);
+    wait_until("the failed write counted", || {
+        status()["cards"][0]["counters"]["writes_failed"]
+            .as_u64()
+            .is_some_and(|n| n >= 1)
+    });
+
+    // The unit back (it gets the newest value: outputs are not dropped), then gone: every
+    // `set` fails, whether the write was taken before the unit was declared offline or
+    // refused after.
+    server.memory().lock().unwrap().silent_writes = false;
+    wait_until("the unit online again", online);
+    wait_until("the retried value reaches the unit", || {
+        server.memory().lock().unwrap().holding[10] == 4321
+    });
+    let mem = server.memory().clone();
+    drop(server);
+    for v in 0..5 {
+        let set = gw.cli(&["set", "plc.ao", "ch0", &v.to_string()]);
+        let stderr = String::from_utf8_lossy(&set.stderr);
+        assert!(!set.status.success(), "exit 0 for a unit that is gone");
+        assert!(stderr.contains("offline"), "{stderr}");
+    }
+    assert_eq!(mem.lock().unwrap().holding[10], 4321);
+    drop(gw.terminate());
+}

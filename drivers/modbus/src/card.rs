@@ -6,6 +6,19 @@
 //! [`poll_succeeded`](ModbusCard::poll_succeeded) or [`poll_failed`](ModbusCard::poll_failed),
 //! and sends what [`take_writes`](ModbusCard::take_writes) returns: changed outputs as
 //! function codes 5/6 (one coil or register) or 15/16 (runs of consecutive addresses).
+//!
+//! # Delivery
+//!
+//! A write that returned `Ok` has been *taken* (stored in the output image), not yet
+//! delivered: the poller carries it at the unit's next poll. Each output channel numbers
+//! the writes it takes ([`DeliveryTracker`]); `take_writes` notes, per output, the number
+//! its request carries, and the poller settles it: [`write_delivered`](ModbusCard::write_delivered)
+//! when the unit answered the request, [`write_refused`](ModbusCard::write_refused) when it
+//! answered with an exception (not sent again), and [`fail_pending`](ModbusCard::fail_pending)
+//! when the unit went offline (or its line stopped) with writes on their way. A write that
+//! fails in transit (timeout, broken connection) is sent again at the next poll and stays
+//! pending until then. Whoever asked hears the outcome through
+//! [`AnalogOut::delivery`] / [`DigitalOut::delivery`].
 
 use crate::codec::Number;
 use crate::map::{Map, Point, Role};
@@ -15,7 +28,8 @@ use arc_swap::ArcSwapOption;
 use device_interface::bits::{BitImage, BitSpan};
 use device_interface::time::{Clock, Timestamp};
 use device_interface::{
-    AnalogIn, AnalogOut, Device, DeviceError, DigitalIn, DigitalOut, Health, Scale, Status,
+    AnalogIn, AnalogOut, Delivery, DeliveryTracker, Device, DeviceError, DigitalIn, DigitalOut,
+    Health, Scale, Status,
 };
 use std::sync::Arc;
 use std::sync::atomic::{AtomicI64, AtomicU8, AtomicU64, Ordering};
@@ -99,6 +113,82 @@ pub enum ReplyError {
     },
 }
 
+/// Where the writes to one kind of output stand, per channel.
+struct Deliveries {
+    /// Writes taken and settled.
+    tracker: DeliveryTracker,
+    /// The number of the newest write taken when [`ModbusCard::take_writes`] last took
+    /// the output for sending: what its request carries.
+    in_flight: Box<[AtomicU64]>,
+    /// The newest write the unit answered (0: none).
+    delivered: Box<[AtomicU64]>,
+}
+
+impl Deliveries {
+    fn new(n: u32) -> Self {
+        let numbers = || (0..n).map(|_| AtomicU64::new(0)).collect();
+        Deliveries {
+            tracker: DeliveryTracker::new(n),
+            in_flight: numbers(),
+            delivered: numbers(),
+        }
+    }
+
+    fn count(&self) -> u32 {
+        self.in_flight.len() as u32
+    }
+
+    /// `take_writes` took output `ch` for sending.
+    fn sending(&self, ch: u32) {
+        if let Some(f) = self.in_flight.get(ch as usize) {
+            f.store(self.tracker.taken(ch), Ordering::Release);
+        }
+    }
+
+    /// The request carrying output `ch` was answered.
+    fn answered(&self, ch: u32) {
+        if let (Some(f), Some(d)) = (
+            self.in_flight.get(ch as usize),
+            self.delivered.get(ch as usize),
+        ) {
+            let n = f.load(Ordering::Acquire);
+            d.fetch_max(n, Ordering::AcqRel);
+            self.tracker.delivered(ch, n);
+        }
+    }
+
+    /// The request carrying output `ch` was refused, for `why`.
+    fn refused(&self, ch: u32, why: &DeviceError) {
+        if let Some(f) = self.in_flight.get(ch as usize) {
+            self.tracker
+                .failed(ch, f.load(Ordering::Acquire), why.clone());
+        }
+    }
+
+    /// Output `ch`'s newest write failed and did not reach the unit since (a write failed
+    /// as the unit went offline is still sent when it answers again): why.
+    fn newest_failed(&self, ch: u32) -> Option<DeviceError> {
+        let d = self.tracker.get(ch);
+        let delivered = self
+            .delivered
+            .get(ch as usize)
+            .map_or(0, |a| a.load(Ordering::Acquire));
+        (d.failed > 0 && d.failed == d.taken && delivered < d.taken).then(|| {
+            d.error.unwrap_or(DeviceError::Undelivered {
+                reason: "no reason kept",
+            })
+        })
+    }
+
+    /// True while some output has a write taken and not yet settled.
+    fn pending(&self) -> bool {
+        (0..self.count()).any(|ch| {
+            let d = self.tracker.get(ch);
+            d.settled < d.taken
+        })
+    }
+}
+
 const ONLINE: u8 = 0;
 const STALE: u8 = 1;
 const OFFLINE: u8 = 2;
@@ -113,6 +203,10 @@ pub struct ModbusCard {
     di: BitImage,
     dout: BitImage,
     do_dirty: BitImage,
+    /// Where the writes to the analog outputs stand.
+    ao_delivery: Deliveries,
+    /// Where the writes to the digital outputs stand.
+    do_delivery: Deliveries,
     encoders: Box<[device_interface::encoder::WrappingCounter]>,
     status: AtomicU8,
     /// Time of the last good poll in ns plus one; 0: never.
@@ -145,6 +239,8 @@ impl ModbusCard {
             ai: image(Role::AnalogIn, ai),
             ao: image(Role::AnalogOut, ao),
             ao_dirty: BitImage::new(ao),
+            ao_delivery: Deliveries::new(ao),
+            do_delivery: Deliveries::new(dout),
             encoders: map
                 .points()
                 .iter()
@@ -332,10 +428,14 @@ impl ModbusCard {
                 Role::DigitalOut => &self.do_dirty,
                 Role::AnalogIn | Role::DigitalIn | Role::Encoder => continue,
             };
-            // Clear first, then read the value: a write after the read marks it again.
+            // Clear first, then note the newest write's number, then read the value: a
+            // write stores its value, takes its number and marks the output, in that order,
+            // so the value sent is at least as new as the number noted, and a write after
+            // the clear marks the output again.
             if !dirty.set(p.channel, false).unwrap_or(false) {
                 continue;
             }
+            self.delivery_of(p.role).sending(p.channel);
             if p.role == Role::DigitalOut {
                 let on = self.dout.get(p.channel).unwrap_or(false);
                 coils.push((p.span.address, (on, true)));
@@ -381,9 +481,76 @@ impl ModbusCard {
     }
 
     /// Marks the outputs `write` carried as changed again, so the next
-    /// [`take_writes`](Self::take_writes) sends their current values (a failed write is
-    /// retried, never dropped).
+    /// [`take_writes`](Self::take_writes) sends their current values (a write that failed
+    /// in transit is retried, never dropped; its writers keep waiting).
     pub fn retry(&self, write: &Write) {
+        self.each_output(write, |role, ch| {
+            let _ = match role {
+                Role::DigitalOut => self.do_dirty.set(ch, true),
+                _ => self.ao_dirty.set(ch, true),
+            };
+        });
+    }
+
+    /// The unit answered `write` (a request [`take_writes`](Self::take_writes) returned):
+    /// the writes it carried are delivered.
+    pub fn write_delivered(&self, write: &Write) {
+        self.each_output(write, |role, ch| self.delivery_of(role).answered(ch));
+    }
+
+    /// The unit refused `write` (an exception reply: sending it again would not help): the
+    /// writes it carried failed, for `why`, and it is not sent again. Returns the number
+    /// of outputs it carried.
+    pub fn write_refused(&self, write: &Write, why: &DeviceError) -> usize {
+        let mut n = 0;
+        self.each_output(write, |role, ch| {
+            self.delivery_of(role).refused(ch, why);
+            n += 1;
+        });
+        n
+    }
+
+    /// Every write taken and not yet settled failed, for `why` (the unit went offline, or
+    /// its line stopped): no writer waits for ever. The outputs keep their values and
+    /// changed marks: a unit that answers again still gets them. Returns the number of
+    /// outputs that had writes pending.
+    pub fn fail_pending(&self, why: &DeviceError) -> usize {
+        self.ao_delivery.tracker.fail_pending(why) + self.do_delivery.tracker.fail_pending(why)
+    }
+
+    /// The outputs whose newest write failed and has not reached the unit since
+    /// (`(role, channel, why)`): the unit does not hold what was last written to them.
+    pub fn failed_outputs(&self) -> Vec<(Role, u32, DeviceError)> {
+        let mut out = Vec::new();
+        for (role, d) in [
+            (Role::AnalogOut, &self.ao_delivery),
+            (Role::DigitalOut, &self.do_delivery),
+        ] {
+            for ch in 0..d.count() {
+                if let Some(why) = d.newest_failed(ch) {
+                    out.push((role, ch, why));
+                }
+            }
+        }
+        out
+    }
+
+    /// True while some output has a write taken and not yet settled (delivered or failed).
+    pub fn deliveries_pending(&self) -> bool {
+        self.ao_delivery.pending() || self.do_delivery.pending()
+    }
+
+    /// The deliveries of an output role (the digital outputs' for [`Role::DigitalOut`],
+    /// the analog outputs' for any other).
+    fn delivery_of(&self, role: Role) -> &Deliveries {
+        match role {
+            Role::DigitalOut => &self.do_delivery,
+            _ => &self.ao_delivery,
+        }
+    }
+
+    /// Calls `f(role, channel)` for each output `write` carries (a part of it is enough).
+    fn each_output(&self, write: &Write, mut f: impl FnMut(Role, u32)) {
         let (coils, start, len) = match write {
             Write::Coil { address, .. } => (true, *address, 1),
             Write::Coils { address, values } => (true, *address, values.len()),
@@ -399,11 +566,10 @@ impl ModbusCard {
             if p_start >= end || p_end <= u32::from(start) {
                 continue;
             }
-            let _ = match (p.role, coils) {
-                (Role::DigitalOut, true) => self.do_dirty.set(p.channel, true),
-                (Role::AnalogOut, false) => self.ao_dirty.set(p.channel, true),
-                _ => continue,
-            };
+            match (p.role, coils) {
+                (Role::DigitalOut, true) | (Role::AnalogOut, false) => f(p.role, p.channel),
+                _ => {}
+            }
         }
     }
 
@@ -416,9 +582,12 @@ impl ModbusCard {
         }
     }
 
+    /// Stores an analog output's word, takes the write's number, marks the output: in
+    /// that order (see [`take_writes`](Self::take_writes)). Atomics only.
     fn store_output(&self, channel: u32, word: i64) -> Result<(), DeviceError> {
         self.check_output()?;
         self.ao[channel as usize].store(word, Ordering::Release);
+        self.ao_delivery.tracker.take(channel);
         self.ao_dirty.set(channel, true)?;
         Ok(())
     }
@@ -564,6 +733,11 @@ impl AnalogOut for ModbusCard {
             self.ao[channel as usize].load(Ordering::Acquire),
         )
     }
+
+    /// The poller carries writes at the unit's next poll (see the module doc).
+    fn delivery(&self, channel: u32) -> Option<Delivery> {
+        Some(self.ao_delivery.tracker.get(channel))
+    }
 }
 
 impl device_interface::bits::DigitalInputImage for ModbusCard {
@@ -587,11 +761,26 @@ impl device_interface::bits::DigitalOutputImage for ModbusCard {
 
     fn outputs_written(&self, written: device_interface::bits::Written) {
         use device_interface::bits::Written;
-        // The spans were checked against the same length: these cannot fail.
+        // The values are in the image already: take the writes' numbers, then mark them
+        // (see `take_writes`). The spans were checked against the same length: these
+        // cannot fail.
         let _ = match written {
-            Written::Bit { bit, .. } => self.do_dirty.set(bit, true).map(|_| ()),
-            Written::Span { span, .. } => self.do_dirty.write_span(span, span.mask()),
+            Written::Bit { bit, .. } => {
+                self.do_delivery.tracker.take(bit);
+                self.do_dirty.set(bit, true).map(|_| ())
+            }
+            Written::Span { span, .. } => {
+                for (bit, _) in span.bits() {
+                    self.do_delivery.tracker.take(bit);
+                }
+                self.do_dirty.write_span(span, span.mask())
+            }
         };
+    }
+
+    /// The poller carries writes at the unit's next poll (see the module doc).
+    fn output_delivery(&self, bit: u32) -> Option<Delivery> {
+        Some(self.do_delivery.tracker.get(bit))
     }
 }
 

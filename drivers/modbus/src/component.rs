@@ -17,6 +17,7 @@
 //! ```
 
 use crate::line::{LineUnit, Transport, UnitCounters, UnitState, poll_and_schedule};
+use device_interface::DeviceError;
 use device_interface::time::{Clock, MonotonicClock, Timestamp};
 use rtt::component::IntrospectError;
 use rtt::{Component, Context, HookError, HookResult, InterfaceBuilder};
@@ -62,7 +63,7 @@ impl LineIo {
         let u = units.clone();
         iface.client_operation(
             "counters",
-            "line diagnostics of every unit on the line: requests, replies, timeouts, exceptions, transport errors, bad replies, write retries, polls",
+            "line diagnostics of every unit on the line: requests, replies, timeouts, exceptions, transport errors, bad replies, write retries, writes failed, polls",
             &[],
             move |()| -> Vec<UnitCounters> { u.iter().map(UnitCounters::of).collect() },
         )?;
@@ -131,5 +132,14 @@ impl Component for LineIo {
     fn stop_hook(&mut self, _: &mut Context<'_>) {
         // A new start opens the connection anew.
         self.client = None;
+        // Nothing carries the writes still on their way now: their writers hear so.
+        for u in self.units.iter() {
+            crate::line::fail_pending(
+                u,
+                &DeviceError::Undelivered {
+                    reason: "the Modbus line stopped before the write was sent",
+                },
+            );
+        }
     }
 }

@@ -15,8 +15,12 @@
 //!   does a timeout on RTU (a late reply there cannot be told from the next request's) or
 //!   one that cut a TCP request short while it was being sent; a late TCP reply is dropped
 //!   by its transaction id ([`client`](crate::client));
-//! - an exception reply surfaces with its code; a write that fails is sent again at the
-//!   next poll, never dropped.
+//! - an exception reply surfaces with its code;
+//! - a write that fails in transit (timeout, broken connection, a busy unit) is sent again
+//!   at the next poll, never dropped; a write the unit refuses with an exception is not
+//!   sent again (it would be refused again) and its writers hear so through the card's
+//!   delivery ([`ModbusCard::write_refused`]); a unit that goes offline, or a line that
+//!   stops, fails the writes still on their way ([`ModbusCard::fail_pending`]).
 
 use crate::card::{ModbusCard, ReadData};
 use crate::client::{Client, ClientError, Data, Reply};
@@ -62,6 +66,10 @@ pub struct UnitStats {
     pub bad_replies: AtomicU64,
     /// Writes that failed and will be sent again.
     pub write_retries: AtomicU64,
+    /// Output writes reported failed to their writers, one per output: refused by the unit
+    /// (an exception reply, also counted in `exceptions`; not sent again), or still on
+    /// their way when the unit went offline or the line stopped.
+    pub writes_failed: AtomicU64,
     /// Complete good polls.
     pub polls: AtomicU64,
     /// Holes learned: gaps of the map where the unit refuses reads (found after an
@@ -93,6 +101,9 @@ pub struct UnitCounters {
     pub bad_replies: u64,
     /// Writes that failed and will be sent again.
     pub write_retries: u64,
+    /// Output writes reported failed to their writers (refused, or pending when the unit
+    /// went offline or the line stopped).
+    pub writes_failed: u64,
     /// Holes learned: gaps of the map where the unit refuses reads.
     pub splits: u64,
     /// TCP replies to another transaction, dropped.
@@ -113,6 +124,7 @@ impl UnitCounters {
             transport_errors: load(&s.transport_errors),
             bad_replies: load(&s.bad_replies),
             write_retries: load(&s.write_retries),
+            writes_failed: load(&s.writes_failed),
             splits: load(&s.splits),
             stale_replies: load(&s.stale_replies),
         }
@@ -296,6 +308,10 @@ pub(crate) struct UnitState {
     pub(crate) plan: Option<Vec<Read>>,
     /// The gaps where the unit has holes, found so far.
     pub(crate) holes: Vec<Barrier>,
+    /// When a refused write was last logged (refusals are logged at most once a second).
+    refusal_logged: Option<Timestamp>,
+    /// Refused writes not logged since.
+    refusals_unlogged: u64,
 }
 
 impl UnitState {
@@ -306,6 +322,8 @@ impl UnitState {
             backoff: first_backoff(t),
             plan: None,
             holes: Vec::new(),
+            refusal_logged: None,
+            refusals_unlogged: 0,
         }
     }
 }
@@ -327,7 +345,10 @@ pub(crate) async fn poll_and_schedule(
 ) {
     let t = unit.timing;
     match poll_unit(ctx, transport, unit, state).await {
-        Ok(()) => {
+        Ok(refused) => {
+            if let Some(e) = refused {
+                log_refusal(state, &e, now());
+            }
             unit.card.poll_succeeded();
             bump(&unit.stats.polls);
             if state.failures >= t.offline_after {
@@ -359,6 +380,9 @@ pub(crate) async fn poll_and_schedule(
             }
             unit.card.poll_failed(DeviceError::bus(e), status);
             if status == Status::Offline {
+                // Nothing carries a write to an offline unit: its writers hear so now
+                // (again at each failed probe, for a write taken as the unit went offline).
+                fail_pending(unit, &DeviceError::Offline);
                 state.next = now().saturating_add(state.backoff);
                 state.backoff = (state.backoff * 2).min(t.backoff_max);
             } else {
@@ -366,6 +390,41 @@ pub(crate) async fn poll_and_schedule(
             }
         }
     }
+}
+
+/// Fails the writes on their way to `unit` for `why` (see [`ModbusCard::fail_pending`]),
+/// counted.
+pub(crate) fn fail_pending(unit: &LineUnit, why: &DeviceError) {
+    let n = unit.card.fail_pending(why);
+    if n > 0 {
+        unit.stats
+            .writes_failed
+            .fetch_add(n as u64, Ordering::Relaxed);
+        tracing::warn!(
+            "modbus unit {}: {n} output write(s) not delivered: {why}",
+            unit.timing.unit
+        );
+    }
+}
+
+/// Logs a write the unit refused, at most once a second (a writer may repeat a value the
+/// unit refuses at every cycle); the refusals in between are counted in the next line.
+fn log_refusal(state: &mut UnitState, e: &PollError, now: Timestamp) {
+    let quiet = state
+        .refusal_logged
+        .is_some_and(|t| now.duration_since(t) < Duration::from_secs(1));
+    if quiet {
+        state.refusals_unlogged += 1;
+        return;
+    }
+    let more = std::mem::take(&mut state.refusals_unlogged);
+    let also = if more > 0 {
+        format!(" ({more} more refused since the last report)")
+    } else {
+        String::new()
+    };
+    tracing::warn!("modbus {e}: the write is not sent again{also}");
+    state.refusal_logged = Some(now);
 }
 
 /// The first wait before probing an offline unit again: four timeouts (a probe of a dead
@@ -378,12 +437,36 @@ fn describe_read(r: &Read) -> String {
     r.to_string()
 }
 
+/// Whether an exception answering a write means the unit refused it (sending it again
+/// would be refused again) rather than "not now": Acknowledge (5) and ServerDeviceBusy (6)
+/// ask for a later try, GatewayPathUnavailable (10) and GatewayTargetDevice (11) say a
+/// gateway could not reach the unit behind it — those are retried like a timeout.
+fn refuses(code: u8) -> bool {
+    !matches!(code, 5 | 6 | 10 | 11)
+}
+
+/// Why a write answered with exception `code` was not delivered.
+fn refusal(code: u8) -> DeviceError {
+    DeviceError::Undelivered {
+        reason: match code {
+            1 => "the Modbus unit refused it: exception IllegalFunction (0x01)",
+            2 => "the Modbus unit refused it: exception IllegalDataAddress (0x02)",
+            3 => "the Modbus unit refused it: exception IllegalDataValue (0x03)",
+            4 => "the Modbus unit refused it: exception ServerDeviceFailure (0x04)",
+            8 => "the Modbus unit refused it: exception MemoryParityError (0x08)",
+            _ => "the Modbus unit refused it with an exception (see the card's log)",
+        },
+    }
+}
+
+/// One poll: the reads, then the writes. `Ok(Some(e))`: a good poll in which the unit
+/// refused a write (`e`, the first refusal), which is not sent again.
 async fn poll_unit(
     ctx: &mut Option<Client>,
     transport: &Transport,
     unit: &LineUnit,
     state: &mut UnitState,
-) -> Result<(), PollError> {
+) -> Result<Option<PollError>, PollError> {
     let t = unit.timing;
     let stats = &unit.stats;
     if ctx.is_none() {
@@ -490,6 +573,7 @@ async fn poll_unit(
         ri += 1;
     }
     let writes = unit.card.take_writes();
+    let mut refused = None;
     for (k, w) in writes.iter().enumerate() {
         let sent = match crate::client::write_request(w, &mut pdu) {
             Ok(()) => exchange(c, t, stats, &pdu, &mut out, || format!("{w:?}")).await,
@@ -499,16 +583,25 @@ async fn poll_unit(
                 why: e.to_string(),
             }),
         };
-        if let Err(e) = sent {
-            // This write and the ones not yet sent go out again at the next poll.
-            for w in &writes[k..] {
-                unit.card.retry(w);
-                bump(&stats.write_retries);
+        match sent {
+            Ok(()) => unit.card.write_delivered(w),
+            Err(e @ PollError::Exception { code, .. }) if refuses(code) => {
+                // The unit answered: the connection is fine and the next writes go on.
+                let n = unit.card.write_refused(w, &refusal(code));
+                stats.writes_failed.fetch_add(n as u64, Ordering::Relaxed);
+                refused.get_or_insert(e);
             }
-            return Err(e);
+            Err(e) => {
+                // This write and the ones not yet sent go out again at the next poll.
+                for w in &writes[k..] {
+                    unit.card.retry(w);
+                    bump(&stats.write_retries);
+                }
+                return Err(e);
+            }
         }
     }
-    Ok(())
+    Ok(refused)
 }
 
 /// The name of an exception code, for messages.

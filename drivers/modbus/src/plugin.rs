@@ -176,14 +176,32 @@ impl Card for ModbusPlugin {
     fn settle(&self, deadline: Instant) -> Result<(), String> {
         // Confirmed once the unit took the writes and a whole poll after them succeeded.
         let polls = self.stats.polls.load(Ordering::Relaxed);
-        while (self.card.writes_pending() || self.stats.polls.load(Ordering::Relaxed) <= polls)
+        let pending = || self.card.writes_pending() || self.card.deliveries_pending();
+        while (pending() || self.stats.polls.load(Ordering::Relaxed) <= polls)
             && Instant::now() < deadline
             && self.line_running()
         {
             std::thread::sleep(Duration::from_millis(5));
         }
-        if self.card.writes_pending() {
+        if pending() {
             return Err("safe values not confirmed by the unit before stopping".into());
+        }
+        // A write the unit refused is not sent again: that output does not hold its value.
+        let failed = self.card.failed_outputs();
+        if !failed.is_empty() {
+            let list = failed
+                .iter()
+                .map(|(role, ch, why)| {
+                    let what = if *role == crate::map::Role::DigitalOut {
+                        "digital"
+                    } else {
+                        "analog"
+                    };
+                    format!("{what} output {ch}: {why}")
+                })
+                .collect::<Vec<_>>()
+                .join("; ");
+            return Err(format!("safe values not confirmed by the unit: {list}"));
         }
         Ok(())
     }

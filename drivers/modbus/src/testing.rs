@@ -39,6 +39,12 @@ pub struct Memory {
     pub silent: HashSet<u8>,
     /// Answer reads of holding registers with this exception.
     pub holding_exception: Option<ExceptionCode>,
+    /// Answer writes (function codes 5, 6, 15, 16) with this exception, writing nothing.
+    pub write_exception: Option<ExceptionCode>,
+    /// Never answer writes, writing nothing (reads are answered).
+    pub silent_writes: bool,
+    /// Write requests received, answered or not.
+    pub writes: u64,
     /// Requests seen, by unit.
     pub seen: Vec<u8>,
 }
@@ -59,6 +65,21 @@ impl tokio_modbus::server::Service for Svc {
             m.seen.push(req.slave);
             if m.silent.contains(&req.slave) {
                 return Ok(None);
+            }
+            if matches!(
+                req.request,
+                Request::WriteSingleCoil(..)
+                    | Request::WriteMultipleCoils(..)
+                    | Request::WriteSingleRegister(..)
+                    | Request::WriteMultipleRegisters(..)
+            ) {
+                m.writes += 1;
+                if m.silent_writes {
+                    return Ok(None);
+                }
+                if let Some(code) = m.write_exception {
+                    return Err(code);
+                }
             }
             let range = |a: u16, n: u16| usize::from(a)..usize::from(a) + usize::from(n);
             Ok(Some(match req.request {

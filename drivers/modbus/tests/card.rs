@@ -524,3 +524,99 @@ fn read_back_shows_the_device_but_a_pending_write_wins() {
     card.apply_read(regs, ReadData::Registers(&[9])).unwrap();
     assert_eq!(AnalogOut::read_back_raw(&*card, 0).unwrap(), 9);
 }
+
+/// The outcome of write `n` to analog output `ch` (None: on its way).
+fn analog_outcome(card: &ModbusCard, ch: u32, n: u64) -> Option<Result<(), DeviceError>> {
+    AnalogOut::delivery(card, ch).unwrap().outcome(n)
+}
+
+/// The outcome of write `n` to digital output `bit` (None: on its way).
+fn digital_outcome(card: &ModbusCard, bit: u32, n: u64) -> Option<Result<(), DeviceError>> {
+    DigitalOut::delivery(card, bit).unwrap().outcome(n)
+}
+
+/// Each write is numbered when taken, and settled by the request that carried it: a write
+/// made after `take_writes` stays on its way until a request carries it in turn.
+#[test]
+fn deliveries_are_settled_by_the_request_that_carried_them() {
+    let card = card();
+    Unit::new().poll(&card);
+    assert!(card.take_writes().is_empty());
+    card.write(0, 2.5).unwrap(); // holding 10
+    let a = AnalogOut::delivery(&*card, 0).unwrap().taken;
+    card.set_sequence(0, 1, 0b11).unwrap(); // coils 0 and 1
+    let (b0, b1) = (
+        DigitalOut::delivery(&*card, 0).unwrap().taken,
+        DigitalOut::delivery(&*card, 1).unwrap().taken,
+    );
+    assert_eq!((a, b0, b1), (1, 1, 1), "each output numbers its own writes");
+    assert!(
+        analog_outcome(&card, 0, a).is_none(),
+        "taken, not delivered"
+    );
+    let writes = card.take_writes();
+    assert!(card.deliveries_pending());
+    // A newer value after the requests were made: not carried by them.
+    card.write(0, 3.0).unwrap();
+    let a2 = AnalogOut::delivery(&*card, 0).unwrap().taken;
+    for w in &writes {
+        card.write_delivered(w);
+    }
+    assert!(matches!(analog_outcome(&card, 0, a), Some(Ok(()))));
+    assert!(matches!(digital_outcome(&card, 0, b0), Some(Ok(()))));
+    assert!(matches!(digital_outcome(&card, 1, b1), Some(Ok(()))));
+    assert!(
+        analog_outcome(&card, 0, a2).is_none(),
+        "the newer value is still on its way"
+    );
+    // The unit refuses the request carrying it: failed, with the reason, and not sent
+    // again.
+    let writes = card.take_writes();
+    assert_eq!(
+        writes,
+        vec![Write::Register {
+            address: 10,
+            value: 300
+        }]
+    );
+    let why = DeviceError::Undelivered { reason: "refused" };
+    assert_eq!(card.write_refused(&writes[0], &why), 1);
+    assert!(matches!(
+        analog_outcome(&card, 0, a2),
+        Some(Err(DeviceError::Undelivered { reason: "refused" }))
+    ));
+    assert!(
+        card.take_writes().is_empty(),
+        "a refused write is not resent"
+    );
+    assert_eq!(card.failed_outputs().len(), 1);
+    // A write lost in transit is retried and stays on its way; the unit going offline
+    // fails it (its value is still sent should the unit answer again).
+    card.set_bit(2, true).unwrap(); // coil 7
+    let c = DigitalOut::delivery(&*card, 2).unwrap().taken;
+    let writes = card.take_writes();
+    card.retry(&writes[0]);
+    assert!(digital_outcome(&card, 2, c).is_none());
+    assert_eq!(card.fail_pending(&DeviceError::Offline), 1);
+    assert!(matches!(
+        digital_outcome(&card, 2, c),
+        Some(Err(DeviceError::Offline))
+    ));
+    assert!(!card.deliveries_pending());
+    assert_eq!(card.failed_outputs().len(), 2);
+    assert_eq!(card.take_writes(), writes, "still marked for sending");
+    assert_eq!(card.fail_pending(&DeviceError::Offline), 0, "nothing left");
+    // The unit answers again and takes it: the writer heard "offline", but the output
+    // holds its value now; the refused one does not.
+    card.write_delivered(&writes[0]);
+    let failed: Vec<(Role, u32)> = card
+        .failed_outputs()
+        .into_iter()
+        .map(|(role, ch, _)| (role, ch))
+        .collect();
+    assert_eq!(failed, vec![(Role::AnalogOut, 0)]);
+    // A write refused before it is taken has no number.
+    card.poll_failed(DeviceError::Offline, Status::Offline);
+    assert!(card.write(0, 1.0).is_err());
+    assert_eq!(AnalogOut::delivery(&*card, 0).unwrap().taken, a2);
+}

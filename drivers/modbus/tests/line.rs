@@ -7,7 +7,7 @@
     reason = "test code: a failed unwrap is a failed test"
 )]
 
-use device_interface::{AnalogIn, AnalogOut, Device, DigitalIn, DigitalOut, Status};
+use device_interface::{AnalogIn, AnalogOut, Device, DeviceError, DigitalIn, DigitalOut, Status};
 use driver_modbus::card::ModbusCard;
 use driver_modbus::line::{LineUnit, Transport, UnitStats, UnitTiming};
 use driver_modbus::testing::TestLine;
@@ -361,4 +361,198 @@ fn a_slow_reply_within_the_timeout_is_fine_and_one_past_it_times_out() {
     });
     assert_ne!(card.health().status, Status::Online);
     assert_eq!(stats.polls.load(Ordering::Relaxed), 0);
+}
+
+/// A line polling `card` as unit 1 at `server`, with `timing`.
+fn line_with(
+    name: &str,
+    server: &TestServer,
+    card: &Arc<ModbusCard>,
+    timing: UnitTiming,
+) -> (Arc<UnitStats>, TestLine) {
+    let stats = Arc::new(UnitStats::default());
+    let line = TestLine::spawn(
+        name,
+        Transport::Tcp(server.addr()),
+        vec![LineUnit {
+            card: card.clone(),
+            timing,
+            stats: stats.clone(),
+        }],
+    )
+    .unwrap();
+    (stats, line)
+}
+
+/// Where write `n` of analog output `ch` stands: None while on its way.
+fn analog_outcome(card: &ModbusCard, ch: u32, n: u64) -> Option<Result<(), DeviceError>> {
+    AnalogOut::delivery(card, ch).unwrap().outcome(n)
+}
+
+/// The number of the newest write to analog output `ch`.
+fn analog_taken(card: &ModbusCard, ch: u32) -> u64 {
+    AnalogOut::delivery(card, ch).unwrap().taken
+}
+
+/// Waits until write `n` of analog output `ch` is settled; its outcome.
+fn settled(card: &ModbusCard, ch: u32, n: u64) -> Result<(), DeviceError> {
+    let mut outcome = None;
+    wait_until("the write settled", || {
+        outcome = analog_outcome(card, ch, n);
+        outcome.is_some()
+    });
+    outcome.unwrap()
+}
+
+#[test]
+fn a_write_to_a_reachable_unit_settles_delivered() {
+    let server = TestServer::start();
+    let card = card(MODBUS_MAP);
+    let (stats, _line) = line_with("mb-deliver", &server, &card, timing(1));
+    wait_until("online", || card.health().status == Status::Online);
+    card.write(0, 4321.0).unwrap();
+    let n = analog_taken(&card, 0);
+    card.set_bit(1, true).unwrap();
+    let b = DigitalOut::delivery(&*card, 1).unwrap().taken;
+    settled(&card, 0, n).unwrap();
+    wait_until("the coil's write settled", || {
+        DigitalOut::delivery(&*card, 1)
+            .unwrap()
+            .outcome(b)
+            .is_some()
+    });
+    assert!(matches!(
+        DigitalOut::delivery(&*card, 1).unwrap().outcome(b),
+        Some(Ok(()))
+    ));
+    let m = server.memory().lock().unwrap();
+    assert_eq!(
+        (m.holding[10], m.coils[6]),
+        (4321, true),
+        "delivered means there"
+    );
+    assert_eq!(stats.writes_failed.load(Ordering::Relaxed), 0);
+}
+
+/// The unit stops answering with a write on its way: once it is declared offline the
+/// write fails (Offline) — its writer is never left waiting.
+#[test]
+fn a_write_to_a_unit_that_stops_answering_fails_once_the_unit_is_offline() {
+    let server = TestServer::start();
+    let card = card(MODBUS_MAP);
+    let (stats, line) = line_with("mb-down", &server, &card, timing(1));
+    wait_until("online", || card.health().status == Status::Online);
+    // The line paused, the unit silenced, a write: taken while the unit is online
+    // (whatever the machine's load), then the line polls a unit that answers nothing.
+    line.task().stop().unwrap();
+    server.memory().lock().unwrap().silent.insert(1);
+    assert_eq!(card.health().status, Status::Online);
+    card.write(0, 777.0).unwrap();
+    let n = analog_taken(&card, 0);
+    assert!(analog_outcome(&card, 0, n).is_none(), "on its way");
+    line.task().start().unwrap();
+    let outcome = settled(&card, 0, n);
+    assert!(matches!(outcome, Err(DeviceError::Offline)), "{outcome:?}");
+    assert_eq!(card.health().status, Status::Offline);
+    assert_eq!(server.memory().lock().unwrap().holding[10], 0);
+    assert_eq!(stats.writes_failed.load(Ordering::Relaxed), 1);
+    assert!(!card.deliveries_pending());
+}
+
+/// A write still on its way when the line stops fails: nothing will carry it.
+#[test]
+fn a_write_pending_when_the_line_stops_fails() {
+    let server = TestServer::start();
+    let card = card(MODBUS_MAP);
+    // A unit that never goes offline here: only the stop ends the write's wait.
+    let t = UnitTiming {
+        offline_after: u32::MAX,
+        stale_after: u32::MAX,
+        ..timing(1)
+    };
+    let (stats, line) = line_with("mb-stop", &server, &card, t);
+    wait_until("online", || card.health().status == Status::Online);
+    server.memory().lock().unwrap().silent_writes = true;
+    card.write(0, 55.0).unwrap();
+    let n = analog_taken(&card, 0);
+    wait_until("the write sent and unanswered", || {
+        stats.write_retries.load(Ordering::Relaxed) >= 1
+    });
+    assert!(
+        analog_outcome(&card, 0, n).is_none(),
+        "retried, still on its way"
+    );
+    line.task().stop().unwrap();
+    let outcome = analog_outcome(&card, 0, n);
+    assert!(
+        matches!(outcome, Some(Err(DeviceError::Undelivered { reason })) if reason.contains("line stopped")),
+        "{outcome:?}"
+    );
+}
+
+/// A write the unit answers with an exception is refused: it fails (Undelivered, naming
+/// the exception), is not sent again, and the unit stays online; later writes go through.
+#[test]
+fn a_write_refused_with_an_exception_fails_and_is_not_resent() {
+    let server = TestServer::start();
+    server.memory().lock().unwrap().write_exception = Some(ExceptionCode::IllegalDataValue);
+    let card = card(MODBUS_MAP);
+    let (stats, _line) = line_with("mb-refused", &server, &card, timing(1));
+    wait_until("online", || card.health().status == Status::Online);
+    card.write(0, 99.0).unwrap();
+    let n = analog_taken(&card, 0);
+    let outcome = settled(&card, 0, n);
+    assert!(
+        matches!(&outcome, Err(DeviceError::Undelivered { reason }) if reason.contains("IllegalDataValue (0x03)")),
+        "{outcome:?}"
+    );
+    // Several good polls later: sent once, counted once, never retried.
+    let polls = stats.polls.load(Ordering::Relaxed);
+    wait_until("five more polls", || {
+        stats.polls.load(Ordering::Relaxed) >= polls + 5
+    });
+    assert_eq!(server.memory().lock().unwrap().writes, 1, "not resent");
+    let c = |a: &std::sync::atomic::AtomicU64| a.load(Ordering::Relaxed);
+    assert_eq!(
+        (
+            c(&stats.exceptions),
+            c(&stats.writes_failed),
+            c(&stats.write_retries)
+        ),
+        (1, 1, 0)
+    );
+    assert_eq!(card.health().status, Status::Online);
+    assert_eq!(server.memory().lock().unwrap().holding[10], 0);
+    // The unit takes writes again: the next one is delivered.
+    server.memory().lock().unwrap().write_exception = None;
+    card.write(0, 100.0).unwrap();
+    settled(&card, 0, analog_taken(&card, 0)).unwrap();
+    assert_eq!(server.memory().lock().unwrap().holding[10], 100);
+}
+
+/// ServerDeviceBusy asks for a later try: the write is sent again, and delivered once the
+/// unit takes it.
+#[test]
+fn a_write_answered_busy_is_sent_again() {
+    let server = TestServer::start();
+    server.memory().lock().unwrap().write_exception = Some(ExceptionCode::ServerDeviceBusy);
+    let card = card(MODBUS_MAP);
+    let t = UnitTiming {
+        offline_after: u32::MAX,
+        stale_after: u32::MAX,
+        ..timing(1)
+    };
+    let (stats, _line) = line_with("mb-busy", &server, &card, t);
+    wait_until("online", || card.health().status == Status::Online);
+    card.write(0, 5.0).unwrap();
+    let n = analog_taken(&card, 0);
+    wait_until("sent three times", || {
+        server.memory().lock().unwrap().writes >= 3
+    });
+    assert!(analog_outcome(&card, 0, n).is_none(), "still on its way");
+    server.memory().lock().unwrap().write_exception = None;
+    settled(&card, 0, n).unwrap();
+    assert_eq!(server.memory().lock().unwrap().holding[10], 5);
+    assert_eq!(stats.writes_failed.load(Ordering::Relaxed), 0);
+    assert!(stats.write_retries.load(Ordering::Relaxed) >= 3);
 }

@@ -7,7 +7,7 @@
 //! way), two atomic stores, and on an output's first write one read-back and, for a card
 //! with [`ReadBack::DeviceWhen`], its check. Nothing allocates.
 
-use device_interface::{AnalogOut, Device, DeviceError, DigitalOut, Health, Scale};
+use device_interface::{AnalogOut, Delivery, Device, DeviceError, DigitalOut, Health, Scale};
 use driver_api::ReadBack;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, OnceLock, PoisonError, RwLock, RwLockReadGuard};
@@ -175,6 +175,9 @@ impl AnalogOut for GuardedAnalogOut {
     fn read_back(&self, channel: u32) -> Result<f64, DeviceError> {
         self.inner.read_back(channel)
     }
+    fn delivery(&self, channel: u32) -> Option<Delivery> {
+        self.inner.delivery(channel)
+    }
 }
 
 /// A card's digital outputs as the registry hands them out (see [`GuardedAnalogOut`]).
@@ -239,5 +242,8 @@ impl DigitalOut for GuardedDigitalOut {
     }
     fn check_sequence(&self, start: u32, stop: u32) -> Result<u64, DeviceError> {
         self.inner.check_sequence(start, stop)
+    }
+    fn delivery(&self, bit: u32) -> Option<Delivery> {
+        self.inner.delivery(bit)
     }
 }
