@@ -345,18 +345,42 @@ impl Build<'_, '_, '_> {
         }
     }
 
-    /// The ThreadScope recording's file, resolved against the deployment's folder and
-    /// checked as `run` will create it (not created here: `check` makes no file).
-    fn scope_vcd(&mut self) -> Option<std::path::PathBuf> {
-        let file = self.d.thread_scope_vcd.as_ref()?;
-        let path = self.base.join(file);
-        match checks::new_file(&path) {
-            Ok(()) => Some(path),
-            Err(msg) => {
-                self.problems.at(&KeyPath::top("thread_scope_vcd"), msg);
-                None
-            }
+    /// The ThreadScope recording's name, resolved against the deployment's folder, and how
+    /// many of its numbered files to keep; checked as `run` will create the next one (not
+    /// created here: `check` makes no file).
+    fn scope_vcd(&mut self) -> Option<(std::path::PathBuf, u32)> {
+        use rtt::scope::vcd::files::{DEFAULT_KEEP, MAX_KEEP};
+        let keep = self.d.thread_scope_vcd_keep;
+        if let Some(n) = keep
+            && !(1..=MAX_KEEP).contains(&n)
+        {
+            let msg = format!("{n}: expected 1 to {MAX_KEEP} files");
+            self.problems
+                .at(&KeyPath::top("thread_scope_vcd_keep"), msg);
         }
+        let Some(file) = self.d.thread_scope_vcd.as_ref() else {
+            if keep.is_some() {
+                self.problems.at(
+                    &KeyPath::top("thread_scope_vcd_keep"),
+                    "there is no thread_scope_vcd to keep files of: name one",
+                );
+            }
+            return None;
+        };
+        let path = self.base.join(file);
+        let show = path.display().to_string();
+        if path.file_name().is_none() || path.as_os_str().as_encoded_bytes().ends_with(b"/") {
+            let msg = format!("{show:?}: expected a file name");
+            self.problems.at(&KeyPath::top("thread_scope_vcd"), msg);
+            return None;
+        }
+        // Each run makes a new numbered file beside the name (which may exist): its folder
+        // must take new files.
+        if let Err(msg) = checks::creatable(&path) {
+            self.problems.at(&KeyPath::top("thread_scope_vcd"), msg);
+            return None;
+        }
+        Some((path, keep.unwrap_or(DEFAULT_KEEP).clamp(1, MAX_KEEP)))
     }
 
     fn runtime(&mut self, registry: Arc<Registry>) -> Option<Runtime> {

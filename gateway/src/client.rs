@@ -248,6 +248,20 @@ pub struct Stream {
 }
 
 impl Stream {
+    /// How long its reader waits for the gateway: its client's reply timeout, and at
+    /// least two heartbeats.
+    pub fn patience(&self) -> Duration {
+        self.client.timeout.max(crate::protocol::HEARTBEAT * 2)
+    }
+
+    /// The error of a gateway silent for `after`.
+    pub fn silent_for(&self, after: Duration) -> ClientError {
+        ClientError::Timeout {
+            path: self.client.path.clone(),
+            after,
+        }
+    }
+
     /// The next event or batch: `Ok(None)` when the gateway ended the stream; an error
     /// reply is an error; with `timeout`, a wait longer than it is
     /// [`ClientError::Timeout`].

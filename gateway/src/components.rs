@@ -6,7 +6,8 @@
 //! - `follow`: `out = in * gain + offset`, from an input port to an output port (connect
 //!   an analog input's port to `in` and `out` to an analog output's port).
 //! - `reporter`: writes chosen ports to a CSV file at its period, every step or only when a
-//!   port has new data (OCL's ReportingComponent).
+//!   port has new data (OCL's ReportingComponent); the file is rewritten at each start,
+//!   never through a link and only when it is this process's own regular file.
 //! - `recorder`: records ports and activity steps into an MCAP file, whole or the window
 //!   around a trigger (see [`crate::recorder::component`]).
 //!
@@ -97,20 +98,17 @@ impl ComponentTypes {
 }
 
 /// Whether `path` can be written at start without touching it now (`hwgw check` never
-/// creates or truncates a report): a regular file that can be opened for writing, or a
-/// new file in an existing directory this process may write to.
+/// creates or truncates a report): a regular file of this process's own that it may write
+/// and that has no other name (see [`recording::file::replace_own`]: never a link, a FIFO,
+/// a device or another's file), or a new file in an existing folder this process may
+/// write to.
 fn writable(path: &std::path::Path) -> Result<(), HookError> {
-    let show = path.display();
-    match std::fs::metadata(path) {
-        Ok(m) if !m.is_file() => Err(HookError::new(format!(
-            "{show}: not a regular file; the report needs a file of its own"
+    match recording::file::check_replace_own(path) {
+        Ok(true) => Ok(()),
+        Ok(false) => crate::checks::creatable(path).map_err(HookError::new),
+        Err(e) => Err(HookError::new(format!(
+            "{e} (the report is rewritten at each start)"
         ))),
-        Ok(_) => std::fs::OpenOptions::new()
-            .append(true)
-            .open(path)
-            .map(drop)
-            .map_err(|e| HookError::new(format!("{show}: cannot write: {e}"))),
-        Err(_) => crate::checks::creatable(path).map_err(HookError::new),
     }
 }
 
@@ -250,7 +248,7 @@ impl Reporter {
             file: iface.properties().add(
                 "file",
                 String::new(),
-                "the CSV file (created or truncated at start)",
+                "the CSV file, created or rewritten at start (only a regular file of this process's own: never a link, a device or another's file)",
             )?,
             only_new: iface.properties().add(
                 "only_new",
@@ -296,10 +294,13 @@ impl Component for Reporter {
     }
 
     fn start_hook(&mut self, _: &mut Context<'_>) -> HookResult {
-        // Opened at start, not configure, so `hwgw check` never truncates a report.
+        // Opened at start, not configure, so `hwgw check` never truncates a report. The
+        // report is rewritten at each start (a restarted service writes it anew), so an
+        // existing file is taken — but only one of this process's own, checked on the open
+        // descriptor: a link, a FIFO or another's file planted since configure is refused.
         let path = self.file.get();
-        let file =
-            std::fs::File::create(&path).map_err(|e| HookError::new(format!("{path}: {e}")))?;
+        let file = recording::file::replace_own(std::path::Path::new(&path))
+            .map_err(|e| HookError::new(e.to_string()))?;
         let mut out = std::io::BufWriter::new(file);
         writeln!(out, "time_s,{}", self.ports.get().join(","))?;
         self.out = Some(out);

@@ -48,11 +48,17 @@ pub struct Deployment {
     /// Pulse each runtime thread's bit on the DigitalOut aliased "ThreadScope".
     #[serde(default)]
     pub thread_scope: bool,
-    /// Record each runtime thread's bit into this VCD file while running (relative to the
-    /// deployment file's folder; created new at `run`, never overwritten; `check` only
-    /// checks it could be).
+    /// Record each runtime thread's bit into a VCD file while running, named after this
+    /// one (relative to the deployment file's folder): each `run` creates a new numbered
+    /// file, `threads.vcd` giving `threads-1.vcd`, `threads-2.vcd`, … (the highest number
+    /// the newest), never over an existing name nor through a link; `check` only checks
+    /// that its folder takes new files.
     #[serde(default)]
     pub thread_scope_vcd: Option<String>,
+    /// How many of `thread_scope_vcd`'s numbered files are kept: the oldest beyond it are
+    /// removed at `run` (default 10, 1 to 1000).
+    #[serde(default)]
+    pub thread_scope_vcd_keep: Option<u32>,
     /// Hold CPU wake-up latency at this many µs while running (`/dev/cpu_dma_latency`).
     #[serde(default)]
     pub cpu_dma_latency_us: Option<u32>,

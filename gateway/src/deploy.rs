@@ -70,8 +70,9 @@ pub struct Gateway {
     start: Vec<bool>,
     /// Held when the stop begins: the guarded outputs refuse every write from then on.
     hold: Arc<Hold>,
-    /// Where ThreadScope records each thread's bit once started ([`Self::record_thread_scope`]).
-    pub(crate) scope_vcd: Option<std::path::PathBuf>,
+    /// Where ThreadScope records each thread's bit once started ([`Self::record_thread_scope`]):
+    /// the name its numbered files are made after, and how many of them are kept.
+    pub(crate) scope_vcd: Option<(std::path::PathBuf, u32)>,
     /// The Zenoh node of the `[zenoh]` section (also among the servers).
     pub(crate) zenoh: Option<Arc<crate::remote::Node>>,
 }
@@ -98,11 +99,14 @@ impl Gateway {
     }
 
     /// Starts the ThreadScope recording the deployment asks for (`thread_scope_vcd`), if
-    /// any: its file is created here, at `run`, never at `check`. Before [`start`](Self::start),
-    /// so that every step is recorded.
+    /// any: its next numbered file is created here, at `run`, never at `check`, and the
+    /// oldest beyond `thread_scope_vcd_keep` removed. Before [`start`](Self::start), so
+    /// that every step is recorded.
     pub fn record_thread_scope(&self) -> Result<(), rtt::scope::vcd::VcdError> {
-        if let Some(path) = &self.scope_vcd {
-            self.runtime.thread_scope().record_vcd(path)?;
+        if let Some((base, keep)) = &self.scope_vcd {
+            self.runtime
+                .thread_scope()
+                .record_vcd_numbered(base, *keep)?;
         }
         Ok(())
     }
@@ -131,11 +135,13 @@ impl Gateway {
         if (
             old.thread_scope,
             &old.thread_scope_vcd,
+            old.thread_scope_vcd_keep,
             old.cpu_dma_latency_us,
             &old.control_socket,
         ) != (
             new.thread_scope,
             &new.thread_scope_vcd,
+            new.thread_scope_vcd_keep,
             new.cpu_dma_latency_us,
             &new.control_socket,
         ) {

@@ -39,7 +39,7 @@ fn every_broken_config_gets_its_exact_error() {
     let cpus = std::thread::available_parallelism().map_or(1, usize::from);
     let cases: Vec<(&str, String, &str)> = vec![
         ("unknown top-level key", "thread_scop = true\n".into(),
-         "t.toml:1:1: thread_scop: unknown field `thread_scop`, expected one of `thread_scope`, `thread_scope_vcd`, `cpu_dma_latency_us`, `control_socket`, `control_clients`, `control_idle_s`, `card`, `alias`, `component`, `connection`, `modbus_server`, `zenoh`"),
+         "t.toml:1:1: thread_scop: unknown field `thread_scop`, expected one of `thread_scope`, `thread_scope_vcd`, `thread_scope_vcd_keep`, `cpu_dma_latency_us`, `control_socket`, `control_clients`, `control_idle_s`, `card`, `alias`, `component`, `connection`, `modbus_server`, `zenoh`"),
         ("zenoh: a bad endpoint", "[zenoh]\nname = \"A\"\nlisten = [\"tcp:127.0.0.1\"]\n".into(),
          "t.toml:3:11: zenoh.listen[0]: \"tcp:127.0.0.1\" is not a Zenoh endpoint (Endpoints must be of the form <protocol>/<address>[?<metadata>][#<config>]: tcp:127.0.0.1); e.g. \"tcp/127.0.0.1:7447\""),
         ("zenoh: a transport this build lacks", "[zenoh]\nname = \"A\"\nconnect = [\"udp/127.0.0.1:7447\"]\n".into(),
@@ -196,8 +196,10 @@ fn every_broken_config_gets_its_exact_error() {
          "t.toml:1:19: control_clients: 0: expected 1 to 1024 clients\nt.toml:2:18: control_idle_s: 0 s: expected 1 to 86400 seconds"),
         ("a report nobody can write", with_card("[[component]]\nname = \"rec\"\ntype = \"reporter\"\nactivity = { type = \"periodic\", period_ms = 10 }\nproperties = { file = \"/nonexistent/r.csv\", ports = [\"sim0.ai.ch0\"] }\n"),
          "t.toml:11:1: component[0]: component \"rec\": configure_hook failed: /nonexistent/r.csv: the directory /nonexistent does not exist"),
-        ("a ThreadScope recording over a file", format!("thread_scope_vcd = \"{}\"\n{CARD}", concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/broken.dbc")),
-         &*Box::leak(format!("t.toml:1:20: thread_scope_vcd: {}/tests/data/broken.dbc exists: it is never overwritten; remove it or name another file", env!("CARGO_MANIFEST_DIR")).into_boxed_str())),
+        ("ThreadScope recordings kept: none, or too many", format!("thread_scope_vcd = \"/tmp/s.vcd\"\nthread_scope_vcd_keep = 0\n{CARD}"),
+         "t.toml:2:25: thread_scope_vcd_keep: 0: expected 1 to 1000 files"),
+        ("ThreadScope recordings kept of no recording", format!("thread_scope_vcd_keep = 5000\n{CARD}"),
+         "t.toml:1:25: thread_scope_vcd_keep: 5000: expected 1 to 1000 files\nt.toml:1:25: thread_scope_vcd_keep: there is no thread_scope_vcd to keep files of: name one"),
         ("a ThreadScope recording in no folder", format!("thread_scope_vcd = \"/nonexistent/s.vcd\"\n{CARD}"),
          "t.toml:1:20: thread_scope_vcd: /nonexistent/s.vcd: the directory /nonexistent does not exist"),
         ("a ThreadScope recording named as a folder", format!("thread_scope_vcd = \"/tmp/\"\n{CARD}"),

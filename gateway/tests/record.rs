@@ -366,3 +366,130 @@ fn ctrl_c_ends_a_recording_with_a_complete_file() {
     assert_eq!(d.metadata["hwgw.recording"]["ended"], "stopped by a signal");
     assert!(topic(&d, "/sim0/ai/ch2").times.len() >= 10);
 }
+
+/// `hwgw record` onto a disk that fills up — a 512 KiB tmpfs mounted in a mount namespace
+/// of its own (`unshare -m`), where the demo's ~150 KB/s fill it in a few seconds: it
+/// fails naming the full disk (ENOSPC) and the file, and the file — cut back to its last
+/// complete chunk and completed there — reads back whole with the independent reader,
+/// its messages in time order from the start, the failure in its metadata. Cut short of
+/// its footer, `hwgw plot` says it is cut and after how many messages; a complete
+/// recording that holds nothing is told apart ("no messages").
+#[test]
+fn a_recording_on_a_full_disk_names_it_and_keeps_what_it_wrote() {
+    if !Command::new("unshare")
+        .args(["-m", "true"])
+        .status()
+        .is_ok_and(|s| s.success())
+    {
+        println!("skipped: no mount namespace here (unshare -m needs root)");
+        return;
+    }
+    let svc = Service::start(HWGW, "record-full", &[] as &[&str], &[]).unwrap();
+    let mnt = svc.dir().join("small");
+    std::fs::create_dir(&mnt).unwrap();
+    let copy = svc.dir().join("kept.mcap");
+    // The tmpfs lives as long as the namespace: the file is copied out before it ends.
+    let script = r#"mount -t tmpfs -o size=512k hwgw-full "$1" || exit 99
+"$2" record "$1/rec.mcap" --devices --port follow --port blink --socket "$3"
+rc=$?
+cp "$1/rec.mcap" "$4"
+exit $rc"#;
+    let out = Command::new("unshare")
+        .args(["-m", "sh", "-c", script, "sh"])
+        .arg(&mnt)
+        .arg(HWGW)
+        .arg(&svc.socket)
+        .arg(&copy)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_ne!(out.status.code(), Some(99), "mount: {err}");
+    assert!(!out.status.success(), "{err}");
+    let path = format!("{}/rec.mcap", mnt.display());
+    assert!(
+        err.contains(&format!(
+            "{path}: writing the recording failed: no space left on device (ENOSPC)"
+        )),
+        "{err}"
+    );
+    assert!(err.contains("is complete: "), "{err}");
+
+    let mut d = testkit::mcapread::read(&copy).unwrap();
+    // Completed where it was cut, without a summary (MCAP's is optional): no statistics
+    // to count from.
+    let kept: u64 = d.topics.values().map(|t| t.messages.len() as u64).sum();
+    d.message_count = kept;
+    check_shapes(&d);
+    let meta = &d.metadata["hwgw.recording"];
+    assert!(meta["error"].contains("ENOSPC"), "{meta:?}");
+    assert!(meta["ended"].starts_with("error: "), "{meta:?}");
+    assert!(kept > 1000, "{kept} messages kept");
+    assert!(
+        err.contains(&format!("{kept} messages")),
+        "{err}: {kept} messages"
+    );
+    let unwritten: u64 = meta["unwritten"].parse().unwrap();
+    assert!(unwritten > 0, "{meta:?}");
+    // The chunks kept are the first ones: each port's samples run on without a gap from
+    // the start (the demo's inputs every 20 ms).
+    let ch0 = topic(&d, "/sim0/ai/ch0");
+    assert!(
+        ch0.times.windows(2).all(|w| w[1] - w[0] < 100 * MS),
+        "a gap: the file lost a chunk in the middle"
+    );
+
+    // Cut short of its end: drawn, and said to be cut after so many messages.
+    let bytes = std::fs::read(&copy).unwrap();
+    let cut = svc.dir().join("cut.mcap");
+    std::fs::write(&cut, &bytes[..bytes.len() - 10]).unwrap();
+    let pic = svc.dir().join("cut.png");
+    let said = svc
+        .out(&["plot", cut.to_str().unwrap(), "-o", pic.to_str().unwrap()])
+        .unwrap();
+    assert!(
+        said.contains(&format!("(cut after {kept} messages: ")),
+        "{said}"
+    );
+
+    // A complete recording that holds no message: told apart from a cut one.
+    let empty = svc.dir().join("empty.mcap");
+    let said = svc
+        .out(&[
+            "record",
+            empty.to_str().unwrap(),
+            "--port",
+            "sim0.ai.ch0",
+            "--no-steps",
+            "--trigger",
+            "sim0.ai.ch0 > 1000",
+            "--duration",
+            "100ms",
+        ])
+        .unwrap();
+    assert!(said.contains("0 messages"), "{said}");
+    let o = svc.cli(&[
+        "plot",
+        empty.to_str().unwrap(),
+        "-o",
+        svc.dir().join("empty.png").to_str().unwrap(),
+    ]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success()
+            && e.contains("nothing to plot: no messages: the recording is complete and empty"),
+        "{e}"
+    );
+    // Cut within its first chunk (the schemas and channels): no message at all.
+    std::fs::write(&cut, &bytes[..100]).unwrap();
+    let o = svc.cli(&[
+        "plot",
+        cut.to_str().unwrap(),
+        "-o",
+        svc.dir().join("early.png").to_str().unwrap(),
+    ]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && e.contains("nothing to plot: cut after 0 messages: "),
+        "{e}"
+    );
+}

@@ -11,22 +11,35 @@ use testkit::{Service, TempDir, wait_until};
 const HWGW: &str = env!("CARGO_BIN_EXE_hwgw");
 
 /// `thread_scope_vcd` on the demo: `check` creates no file; `run` records every thread's
-/// pulses, read back by sigrok-cli after SIGTERM (each signal ends low); a second `check`
-/// refuses the file that now exists.
+/// pulses into `scope-1.vcd`, read back by sigrok-cli after SIGTERM (each signal ends low);
+/// each restart records into the next number (a restart never finds its file taken), and
+/// the last `thread_scope_vcd_keep` files are kept.
 #[test]
 fn thread_scope_records_a_vcd_that_sigrok_reads() {
     let dir = TempDir::new("scope-vcd-gw");
     let config = dir.path().join("demo.toml");
-    let vcd = dir.path().join("scope.vcd");
+    let vcd = dir.path().join("scope-1.vcd");
     std::fs::write(
         &config,
-        format!("thread_scope_vcd = \"scope.vcd\"\n{}", hwgw::DEMO),
+        format!(
+            "thread_scope_vcd = \"scope.vcd\"\nthread_scope_vcd_keep = 2\n{}",
+            hwgw::DEMO
+        ),
     )
     .unwrap();
     let check = || testkit::service::check(HWGW, &config);
     let out = check();
     assert!(out.status.success(), "{out:?}");
-    assert!(!vcd.exists(), "check created the recording");
+    let files = || {
+        let mut v: Vec<String> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.ends_with(".vcd"))
+            .collect();
+        v.sort();
+        v
+    };
+    assert!(files().is_empty(), "check created the recording");
 
     let svc = Service::start(HWGW, "scope-vcd", &[&config], &[]).unwrap();
     let blink_pulses = || {
@@ -74,10 +87,24 @@ fn thread_scope_records_a_vcd_that_sigrok_reads() {
             "{name}: {signals:?}"
         );
     }
-    let out = check();
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        !out.status.success() && err.contains("thread_scope_vcd") && err.contains("exists"),
-        "{err}"
-    );
+    // Restarted (as systemd does): each run its own new file, the last two kept.
+    assert!(check().status.success());
+    for n in [2, 3] {
+        let svc = Service::start(HWGW, "scope-vcd-again", &[&config], &[]).unwrap();
+        let stopped = svc.terminate();
+        assert!(stopped.status.success(), "{}", stopped.log);
+        assert!(
+            stopped.log.contains(&format!("scope-{n}.vcd")),
+            "{}",
+            stopped.log
+        );
+    }
+    assert_eq!(files(), ["scope-2.vcd", "scope-3.vcd"]);
+    for f in files() {
+        let text = std::fs::read_to_string(dir.path().join(&f)).unwrap();
+        assert!(
+            text.contains("dropped (queue full) 0"),
+            "{f} was not completed"
+        );
+    }
 }

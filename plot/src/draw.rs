@@ -88,8 +88,12 @@ impl Frame<'_> {
         if !(64..=8192).contains(&width) || !(64..=8192).contains(&height) {
             return Err(PlotError::Size(width, height));
         }
-        if std::fs::symlink_metadata(self.path).is_ok() {
-            return Err(PlotError::Exists(self.path.to_path_buf()));
+        match std::fs::symlink_metadata(self.path) {
+            Ok(m) if m.file_type().is_symlink() => {
+                return Err(self.fail(recording::file::Refusal::Link));
+            }
+            Ok(_) => return Err(PlotError::Exists(self.path.to_path_buf())),
+            Err(_) => {}
         }
         font();
         match self.path.extension().and_then(|e| e.to_str()) {
@@ -99,15 +103,14 @@ impl Frame<'_> {
         }
     }
 
-    /// Creates the file new and writes `bytes`.
+    /// Creates the file new (never through a link, never an existing name: see
+    /// [`recording::file::create_new`]) and writes `bytes`.
     pub(crate) fn write(&self, bytes: &[u8]) -> Result<(), PlotError> {
+        use recording::file::Refusal;
         use std::io::Write;
-        let mut f = std::fs::File::create_new(self.path).map_err(|e| {
-            if e.kind() == std::io::ErrorKind::AlreadyExists {
-                PlotError::Exists(self.path.to_path_buf())
-            } else {
-                self.fail(e)
-            }
+        let mut f = recording::file::create_new(self.path).map_err(|e| match e.why {
+            Refusal::Exists => PlotError::Exists(self.path.to_path_buf()),
+            why => self.fail(why),
         })?;
         f.write_all(bytes).map_err(|e| {
             // Made new above: a half-written picture is ours to remove.
@@ -198,6 +201,16 @@ pub(crate) fn thin<T: Copy>(points: &[T]) -> Vec<T> {
     points.iter().step_by(n).copied().collect()
 }
 
+/// Nothing to draw: a recording with no messages says whether it is cut (`cut after 0
+/// messages: …`) or complete and empty; one with messages, `otherwise`.
+pub(crate) fn nothing(rec: &Recording, otherwise: &str) -> PlotError {
+    if rec.messages == 0 {
+        PlotError::Empty(rec.condition())
+    } else {
+        PlotError::Empty(otherwise.to_string())
+    }
+}
+
 /// The recording's first time, UNIX ns.
 fn origin(rec: &Recording) -> Option<u64> {
     let ports = rec
@@ -234,7 +247,7 @@ pub fn values(
             });
         }
     }
-    let t0 = origin(rec).ok_or_else(|| PlotError::Empty("the recording is empty".into()))?;
+    let t0 = origin(rec).ok_or_else(|| nothing(rec, "no numeric samples"))?;
     let series: Vec<(&str, Vec<(f64, f64)>)> = rec
         .ports
         .iter()
@@ -319,7 +332,7 @@ pub const TIMING_SPAN_S: f64 = 0.1;
 /// [`TIMING_SPAN_S`] from `span.from_s` unless the span says otherwise, and at most
 /// [`MAX_POINTS`](crate::MAX_POINTS)` / 4` steps of each activity.
 pub fn timing(rec: &Recording, span: Span, frame: &Frame<'_>) -> Result<(), PlotError> {
-    let t0 = origin(rec).ok_or_else(|| PlotError::Empty("the recording is empty".into()))?;
+    let t0 = origin(rec).ok_or_else(|| nothing(rec, "no numeric samples or steps"))?;
     let span = Span {
         span_s: Some(span.span_s.unwrap_or(TIMING_SPAN_S)),
         ..span

@@ -80,8 +80,13 @@ pub fn lateness(rec: &Recording, frame: &Frame<'_>) -> Result<(), PlotError> {
             log_x: false,
         });
     }
+    if panels.is_empty() {
+        return Err(crate::draw::nothing(rec, NO_WAKE_UPS));
+    }
     draw_panels(panels, frame)
 }
+
+const NO_WAKE_UPS: &str = "no activity has wake-ups to show (record with steps)";
 
 /// The live histograms (log2 buckets; the marks are bucket bounds, as `hwgw status` says).
 pub fn live_lateness(live: &[LiveHistogram], frame: &Frame<'_>) -> Result<(), PlotError> {
@@ -118,9 +123,7 @@ pub fn live_lateness(live: &[LiveHistogram], frame: &Frame<'_>) -> Result<(), Pl
 
 fn draw_panels(panels: Vec<Panel>, frame: &Frame<'_>) -> Result<(), PlotError> {
     if panels.is_empty() {
-        return Err(PlotError::Empty(
-            "no activity has wake-ups to show (record with steps)".into(),
-        ));
+        return Err(PlotError::Empty(NO_WAKE_UPS.into()));
     }
     on_root!(frame, |root| (|| -> Result<(), String> {
         root.fill(&WHITE).map_err(|e| e.to_string())?;

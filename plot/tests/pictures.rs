@@ -147,6 +147,15 @@ fn bad_requests_say_what_was_wrong() {
     let e = plot::lateness(&rec, &frame(&p("exists.png")));
     assert!(matches!(e, Err(PlotError::Exists(_))), "{e:?}");
     assert_eq!(std::fs::read(p("exists.png")).expect("kept"), b"keep");
+    // A link is never written through, dangling or not.
+    std::os::unix::fs::symlink(p("exists.png"), p("link.png")).expect("link");
+    std::os::unix::fs::symlink(p("made.png"), p("dangling.png")).expect("link");
+    for link in ["link.png", "dangling.png"] {
+        let e = plot::lateness(&rec, &frame(&p(link))).expect_err("a link");
+        assert!(e.to_string().contains("is a symbolic link"), "{e}");
+    }
+    assert_eq!(std::fs::read(p("exists.png")).expect("kept"), b"keep");
+    assert!(!p("made.png").exists());
     let empty = Recording::default();
     assert!(matches!(
         plot::timing(&empty, Span::default(), &frame(&p("e.png"))),
@@ -208,4 +217,37 @@ fn odd_values_draw_or_are_refused_never_hang() {
     let e = draw(&[f64::NAN, f64::NAN], "nan.png");
     assert!(matches!(e, Err(PlotError::Empty(_))), "{e:?}");
     check_png(&p("single.png"));
+}
+
+/// A recording that is complete and empty, and one cut before its first message, say so
+/// for each kind of picture: "no messages" against "cut after 0 messages: …".
+#[test]
+fn an_empty_recording_is_told_from_a_cut_one() {
+    let dir = TempDir::new("plot-empty");
+    let p = |n: &str| dir.path().join(n);
+    let mut out = Cursor::new(Vec::new());
+    let ports = vec![PortSpec {
+        name: "a.x".into(),
+        type_name: "f64".into(),
+    }];
+    let r = Recorder::new(&mut out, ports, vec!["a".into()], Options::default()).expect("new");
+    r.finish(&Closing::default()).expect("finish");
+    let whole = out.into_inner();
+    let empty = Recording::parse(&whole).expect("readable");
+    // Cut within its first records: not a word of a message came.
+    let cut = Recording::parse(&whole[..whole.len() / 3]).expect("readable");
+    for (rec, said) in [
+        (
+            &empty,
+            "nothing to plot: no messages: the recording is complete and empty",
+        ),
+        (&cut, "nothing to plot: cut after 0 messages: "),
+    ] {
+        let v = plot::values(rec, &[], Span::default(), &frame(&p("v.png"))).expect_err("empty");
+        let t = plot::timing(rec, Span::default(), &frame(&p("t.png"))).expect_err("empty");
+        let l = plot::lateness(rec, &frame(&p("l.png"))).expect_err("empty");
+        for e in [v, t, l] {
+            assert!(e.to_string().starts_with(said), "{e}");
+        }
+    }
 }

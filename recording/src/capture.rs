@@ -3,18 +3,17 @@
 
 use crate::item::Item;
 use crate::trigger::Window;
-use crate::write::{Closing, RecordError, Recorder};
+use crate::write::{Closing, RecordError, Recorder, Sink};
 use std::collections::BTreeMap;
-use std::io::{Seek, Write};
 
 /// A recording, triggered or not.
-pub struct Capture<W: Write + Seek = std::io::BufWriter<std::fs::File>> {
+pub struct Capture<W: Sink = std::io::BufWriter<std::fs::File>> {
     recorder: Recorder<W>,
     window: Option<Window>,
     pass: Vec<Item>,
 }
 
-impl<W: Write + Seek> Capture<W> {
+impl<W: Sink> Capture<W> {
     /// Writes everything offered to `recorder`, or only the window of `window`.
     pub fn new(recorder: Recorder<W>, window: Option<Window>) -> Self {
         Capture {
@@ -26,13 +25,15 @@ impl<W: Write + Seek> Capture<W> {
 
     /// Takes one batch of items, later than the batches before, its items in any order
     /// (MCAP's message indexes give readers the time order); `now_ns` is when they were
-    /// taken, on the items' clock.
+    /// taken, on the items' clock. A chunk of the file is written at least every
+    /// [`CHECKPOINT_NS`](crate::write::CHECKPOINT_NS) of `now_ns` (see
+    /// [`Recorder::checkpoint`]).
     pub fn offer(&mut self, mut items: Vec<Item>, now_ns: u64) -> Result<(), RecordError> {
         let Some(window) = &mut self.window else {
             for item in &items {
                 self.recorder.write(item, now_ns)?;
             }
-            return Ok(());
+            return self.recorder.checkpoint(now_ns);
         };
         // The window decides by time: a batch is put in time order first (a batch given
         // port after port would otherwise push the ring past items of the window).
@@ -45,7 +46,7 @@ impl<W: Write + Seek> Capture<W> {
         for item in &self.pass {
             self.recorder.write(item, now_ns)?;
         }
-        Ok(())
+        self.recorder.checkpoint(now_ns)
     }
 
     /// True when a triggered capture has its whole window.
@@ -63,6 +64,11 @@ impl<W: Write + Seek> Capture<W> {
     /// Messages written so far.
     pub fn written(&self) -> u64 {
         self.recorder.written()
+    }
+
+    /// True once a write failed (see [`Recorder::failed`]).
+    pub fn failed(&self) -> bool {
+        self.recorder.failed()
     }
 
     /// Finishes the file, with the window's facts in the metadata.

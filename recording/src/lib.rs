@@ -8,6 +8,8 @@
 //!   schema) and per activity (`/activity/<name>`), what was lost counted in its metadata;
 //! - [`trigger`]: `comp.port > 3.0`, and the window of `pre` before and `post` after the
 //!   moment it became true;
+//! - [`file`](mod@file): files hwgw writes, opened without following links, regular files only,
+//!   never another's;
 //! - [`capture`]: a recording fed through a trigger window when there is one;
 //! - [`read`]: a recording back as numeric series and steps.
 //!
@@ -15,6 +17,7 @@
 //! two clocks taken when the recording began (kept in the metadata).
 
 pub mod capture;
+pub mod file;
 pub mod item;
 pub mod read;
 pub mod trigger;
@@ -23,4 +26,4 @@ pub mod write;
 pub use capture::Capture;
 pub use item::{Item, PortSpec, Step};
 pub use trigger::{Trigger, Window};
-pub use write::{Closing, METADATA, Options, RecordError, Recorder};
+pub use write::{Closing, METADATA, Options, RecordError, Recorder, Sink};

@@ -8,11 +8,6 @@ use crate::write::METADATA;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-/// `O_NONBLOCK` (Linux, every architecture but alpha, sparc, parisc and mips).
-const fn libc_nonblock() -> i32 {
-    0o4000
-}
-
 /// The largest recording read back: 4 GiB.
 pub const MAX_FILE: u64 = 4 << 30;
 
@@ -82,8 +77,11 @@ pub struct Recording {
     pub not_numbers: u64,
     /// Messages of other channels, or that did not decode.
     pub skipped: u64,
-    /// Why reading stopped before the file's end (a recording cut short by a crash or a
-    /// full disk): what came before is kept.
+    /// Messages read, of every kind (those above included).
+    pub messages: u64,
+    /// Why the file is not whole — reading stopped at a record cut short or corrupt, or
+    /// the file ends before its footer (a recording cut by a crash, a kill or a full
+    /// disk): what came before is kept. `None` for a complete file.
     pub truncated: Option<String>,
 }
 
@@ -97,7 +95,7 @@ impl Recording {
         // Opened first, without blocking (a FIFO would wait for a writer), then looked at.
         let file = std::os::unix::fs::OpenOptionsExt::custom_flags(
             std::fs::OpenOptions::new().read(true),
-            libc_nonblock(),
+            nix::libc::O_NONBLOCK,
         )
         .open(path)
         .map_err(io)?;
@@ -129,6 +127,14 @@ impl Recording {
         let mut ports: BTreeMap<u16, usize> = BTreeMap::new();
         let mut activities: BTreeMap<u16, usize> = BTreeMap::new();
         if !bytes.starts_with(mcap::MAGIC) {
+            if mcap::MAGIC.starts_with(bytes) {
+                // Cut before anything but (part of) the opening magic reached the disk.
+                rec.truncated = Some(format!(
+                    "the file ends at byte {} of its opening: nothing was written into it",
+                    bytes.len()
+                ));
+                return Ok(rec);
+            }
             return Err(mcap::McapError::BadMagic);
         }
         let options = mcap::read::Options::IgnoreEndMagic.into();
@@ -140,6 +146,7 @@ impl Recording {
                     break;
                 }
             };
+            rec.messages += 1;
             let ch = &m.channel;
             if let Some(port) = ch.metadata.get("port") {
                 let i = *ports.entry(ch.id).or_insert_with(|| {
@@ -185,16 +192,35 @@ impl Recording {
                 rec.skipped += 1;
             }
         }
+        let mut footer = false;
         for record in mcap::read::LinearReader::new_with_options(bytes, options)? {
             match record {
                 Ok(mcap::records::Record::Metadata(m)) if m.name == METADATA => {
                     rec.metadata = m.metadata;
                 }
+                Ok(mcap::records::Record::Footer(_)) => footer = true,
                 Ok(_) => {}
-                // Said above: the messages stopped there too.
-                Err(_) => break,
+                Err(e) => {
+                    // Said above when the messages stopped there too.
+                    rec.truncated.get_or_insert_with(|| e.to_string());
+                    break;
+                }
             }
         }
+        if !footer && rec.truncated.is_none() {
+            rec.truncated =
+                Some("the file ends before its footer: its writing stopped before the end".into());
+        }
         Ok(rec)
+    }
+
+    /// The recording's state for people: `cut after N messages: why` for a file that is
+    /// not whole, `no messages` for a whole one that holds none, `N messages` otherwise.
+    pub fn condition(&self) -> String {
+        match (&self.truncated, self.messages) {
+            (Some(why), n) => format!("cut after {n} messages: {why}"),
+            (None, 0) => "no messages: the recording is complete and empty".into(),
+            (None, n) => format!("{n} messages"),
+        }
     }
 }

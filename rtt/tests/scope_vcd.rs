@@ -139,3 +139,78 @@ fn one_recording_per_thread_scope() {
     assert_eq!(signals.len(), 64);
     assert!(signals.values().all(|s| s.rising == 0 && !s.high));
 }
+
+/// Each run writes a new numbered file beside the name given, the highest number the
+/// newest; the last `keep` are kept. What is not a file of this process's own under such a
+/// name — a link planted there — is neither counted, nor removed, nor followed.
+#[test]
+fn numbered_recordings_rotate_keeping_the_last_ones() {
+    let dir = testkit::TempDir::new("scope-vcd-rotate");
+    let base = dir.path().join("threads.vcd");
+    let precious = dir.path().join("precious");
+    std::fs::write(&precious, "keep me").unwrap();
+    let run = |expect: u64| {
+        let rt = Runtime::new(Arc::new(Registry::new()), RuntimeOptions::default()).unwrap();
+        let trace = rt.thread_scope().record_vcd_numbered(&base, 3).unwrap();
+        assert_eq!(
+            trace.path(),
+            rtt::scope::vcd::files::numbered(&base, expect)
+        );
+        trace.finish().unwrap();
+    };
+    let numbered = || {
+        let mut names: Vec<String> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.starts_with("threads"))
+            .collect();
+        names.sort();
+        names
+    };
+    for n in 1..=5 {
+        run(n);
+    }
+    assert_eq!(
+        numbered(),
+        ["threads-3.vcd", "threads-4.vcd", "threads-5.vcd"]
+    );
+    // Every one kept is a whole recording.
+    for name in numbered() {
+        let text = std::fs::read_to_string(dir.path().join(&name)).unwrap();
+        assert_eq!(testkit::vcd::read(&text).unwrap().len(), 64, "{name}");
+    }
+    let link = dir.path().join("threads-6.vcd");
+    std::os::unix::fs::symlink(&precious, &link).unwrap();
+    run(7);
+    assert_eq!(
+        numbered(),
+        [
+            "threads-4.vcd",
+            "threads-5.vcd",
+            "threads-6.vcd",
+            "threads-7.vcd"
+        ]
+    );
+    assert!(std::fs::symlink_metadata(&link).unwrap().is_symlink());
+    assert_eq!(std::fs::read_to_string(&precious).unwrap(), "keep me");
+}
+
+/// A link at the name — to a file or dangling — is refused, never followed: what it
+/// points to is left as it was, or not made.
+#[test]
+fn a_recording_never_goes_through_a_link() {
+    let dir = testkit::TempDir::new("scope-vcd-link");
+    let precious = dir.path().join("precious");
+    std::fs::write(&precious, "keep me").unwrap();
+    let link = dir.path().join("scope.vcd");
+    std::os::unix::fs::symlink(&precious, &link).unwrap();
+    let dangling = dir.path().join("dangling.vcd");
+    std::os::unix::fs::symlink(dir.path().join("made"), &dangling).unwrap();
+    for path in [&link, &dangling] {
+        let rt = Runtime::new(Arc::new(Registry::new()), RuntimeOptions::default()).unwrap();
+        let e = rt.thread_scope().record_vcd(path).err().expect("refused");
+        assert!(e.to_string().contains("is a symbolic link: refused"), "{e}");
+    }
+    assert_eq!(std::fs::read_to_string(&precious).unwrap(), "keep me");
+    assert!(!dir.path().join("made").exists());
+}

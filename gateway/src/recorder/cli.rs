@@ -90,6 +90,17 @@ pub enum RecordCliError {
     /// A bad argument.
     #[error("{0}")]
     Usage(String),
+    /// The recording ended at an error (a full disk, say); the file was completed with
+    /// what it held.
+    #[error("{error}; the file is complete: {messages} messages, {lost} lost")]
+    Ended {
+        /// Why it ended.
+        error: Box<RecordCliError>,
+        /// Messages it holds.
+        messages: String,
+        /// What was lost, what did not reach the file included.
+        lost: String,
+    },
 }
 
 /// Records from the gateway behind `client` into a new file: until `duration`, the
@@ -125,37 +136,49 @@ pub fn record(client: &Client, args: RecordArgs) -> Result<String, RecordCliErro
         .map_err(|e| usage(format!("signalfd: {e}")))?;
     let (mut stream, mut capture, start) = open(client, &args, ports, trigger)?;
     let mut losses = Closing::default();
-    let ended = match pump(
+    let ended = pump(
         &mut stream,
         &mut capture,
         &args,
         (&sigfd, start.now_ns),
         &mut losses,
-    ) {
+    );
+    let file = args.file.display().to_string();
+    let get = |meta: &BTreeMap<String, String>, k: &str| {
+        meta.get(k).map_or("?", String::as_str).to_string()
+    };
+    let ended = match ended {
         Ok(ended) => ended,
         Err(e) => {
             // What was recorded stays readable: the file is completed first.
             losses.notes.insert("ended".into(), format!("error: {e}"));
-            if let Err(f) = capture.finish(losses) {
-                return Err(RecordCliError::Usage(format!(
-                    "{e}; completing {} failed too: {f}",
-                    args.file.display()
-                )));
-            }
-            return Err(e);
+            return Err(match capture.finish(losses) {
+                Ok(meta) => RecordCliError::Ended {
+                    error: Box::new(e),
+                    messages: get(&meta, "messages"),
+                    lost: get(&meta, "lost"),
+                },
+                Err(f) => RecordCliError::Usage(format!("{e}; completing {file} failed too: {f}")),
+            });
         }
     };
     losses.notes.insert("ended".into(), ended.into());
     let meta = capture.finish(losses)?;
-    let get = |k: &str| meta.get(k).map_or("?", String::as_str).to_string();
+    if let Some(error) = meta.get("error") {
+        // Writing its last part failed: the file was completed before it.
+        return Err(RecordCliError::Ended {
+            error: Box::new(RecordCliError::Usage(error.clone())),
+            messages: get(&meta, "messages"),
+            lost: get(&meta, "lost"),
+        });
+    }
     Ok(format!(
-        "{}: {} messages ({} ports, {} activities), {} lost, {} over the size limit; ended: {ended}",
-        args.file.display(),
-        get("messages"),
+        "{file}: {} messages ({} ports, {} activities), {} lost, {} over the size limit; ended: {ended}",
+        get(&meta, "messages"),
         start.ports.len(),
         start.activities.len(),
-        get("lost"),
-        get("over_limit"),
+        get(&meta, "lost"),
+        get(&meta, "over_limit"),
     ))
 }
 
@@ -222,13 +245,54 @@ fn open(
 }
 
 /// Writes the stream's batches until the recording is over: why it ended, or the
-/// stream's error. `losses` follows the gateway's counts.
+/// stream's error. `losses` follows the gateway's counts; untriggered, the items of a
+/// drain whose last line never came (the recording ended between its lines: a signal, a
+/// silent gateway, an error) that fall within the recording's span are counted as lost
+/// too. (Triggered, whether they fell within the window is not known: not counted.)
 fn pump(
+    stream: &mut crate::client::Stream,
+    capture: &mut Capture,
+    args: &RecordArgs,
+    sigfd_t0: (&nix::sys::signalfd::SignalFd, u64),
+    losses: &mut Closing,
+) -> Result<&'static str, RecordCliError> {
+    // A drain split in several lines is offered whole, once its last line came.
+    let mut items = Vec::new();
+    let ended = take_batches(stream, capture, args, sigfd_t0, losses, &mut items);
+    if args.trigger.is_none() {
+        if let Some(d) = args.duration {
+            let t0 = sigfd_t0.1;
+            let end = t0.saturating_add(d.as_nanos() as u64);
+            items.retain(|i| (t0..=end).contains(&i.time_ns()));
+        }
+        count_lost(&items, losses);
+    }
+    ended
+}
+
+/// Items taken from the stream but never offered: each counted as lost to its port or
+/// activity.
+fn count_lost(items: &[recording::Item], losses: &mut Closing) {
+    for item in items {
+        let (counts, i) = match item {
+            recording::Item::Sample { port, .. } => (&mut losses.ports_lost, *port),
+            recording::Item::Step { activity, .. } => (&mut losses.steps_lost, *activity),
+        };
+        let i = i as usize;
+        if counts.len() <= i {
+            counts.resize(i + 1, 0);
+        }
+        counts[i] += 1;
+    }
+}
+
+fn take_batches(
     stream: &mut crate::client::Stream,
     capture: &mut Capture,
     args: &RecordArgs,
     (sigfd, t0): (&nix::sys::signalfd::SignalFd, u64),
     losses: &mut Closing,
+    items: &mut Vec<recording::Item>,
 ) -> Result<&'static str, RecordCliError> {
     let triggered = args.trigger.is_some();
     let began = Instant::now();
@@ -237,20 +301,26 @@ fn pump(
         .duration
         .map(|d| t0.saturating_add(d.as_nanos() as u64));
     let mut now = t0;
+    // When the gateway was last heard from, or this side last finished writing: silence
+    // is time spent waiting for the gateway, never time spent writing what it sent.
     let mut last_batch = Instant::now();
-    // A drain split in several lines is offered whole, once its last line came.
-    let mut items = Vec::new();
+    let silence = stream.patience();
     loop {
         if matches!(sigfd.read_signal(), Ok(Some(_))) {
             return Ok("stopped by a signal");
         }
-        // A gateway that sends nothing at all any more (it sends at least once a second).
-        if last_batch.elapsed() > SILENCE && began.elapsed() > SILENCE {
-            return Ok("the gateway stopped sending");
+        // A gateway that sends nothing at all any more (it sends at least once a second):
+        // stuck or frozen, after --timeout.
+        if last_batch.elapsed() > silence && began.elapsed() > silence {
+            return Err(stream.silent_for(silence).into());
         }
         let b = match stream.next(Some(Duration::from_millis(200))) {
             Ok(Some(Body::Records(b))) => b,
-            Ok(Some(_)) | Err(ClientError::Timeout { .. }) => continue,
+            Ok(Some(_)) => {
+                last_batch = Instant::now();
+                continue;
+            }
+            Err(ClientError::Timeout { .. }) => continue,
             Ok(None) => return Ok("the gateway ended the stream"),
             Err(e) => return Err(e.into()),
         };
@@ -263,11 +333,12 @@ fn pump(
         losses.ports_lost = b.ports_lost;
         losses.steps_lost = b.steps_lost;
         losses.unserialisable = b.unserialisable;
-        let mut whole = std::mem::take(&mut items);
+        let mut whole = std::mem::take(items);
         if !triggered && let Some(end) = end {
             whole.retain(|i| (t0..=end).contains(&i.time_ns()));
         }
         capture.offer(whole, now)?;
+        last_batch = Instant::now();
         if capture.done() {
             return Ok("the trigger window is complete");
         }
@@ -278,9 +349,6 @@ fn pump(
         }
     }
 }
-
-/// How long without a batch before the stream is taken for dead.
-const SILENCE: Duration = Duration::from_secs(5);
 
 const NEVER: &str = "the trigger never came";
 
@@ -315,7 +383,7 @@ pub fn plot(
     }
     .map_err(|e| e.to_string())?;
     let cut = match &rec.truncated {
-        Some(why) => format!(" (the recording is cut short: {why}; drawn up to there)"),
+        Some(_) => format!(" ({}; drawn up to there)", rec.condition()),
         None => String::new(),
     };
     Ok(format!(
@@ -351,4 +419,32 @@ pub fn status_plot(client: &Client, frame: &plot::Frame<'_>) -> Result<String, S
         frame.path.display(),
         live.len()
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    /// What came of a drain whose last line never came is lost to its ports and
+    /// activities, counted beside what the gateway counted.
+    #[test]
+    fn items_never_offered_are_counted_as_lost() {
+        let mut losses = Closing {
+            ports_lost: vec![4],
+            ..Closing::default()
+        };
+        let sample = |port| recording::Item::Sample {
+            port,
+            at_ns: 1,
+            value: json!(1.0),
+        };
+        let step = recording::Item::Step {
+            activity: 1,
+            step: recording::Step::default(),
+        };
+        count_lost(&[sample(0), sample(2), sample(2), step], &mut losses);
+        assert_eq!(losses.ports_lost, [5, 0, 2]);
+        assert_eq!(losses.steps_lost, [0, 1]);
+    }
 }

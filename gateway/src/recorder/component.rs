@@ -175,7 +175,10 @@ impl Component for McapRecorder {
 
     fn update_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
         if let Err(e) = self.take() {
-            return Err(HookError::new(format!("{}: {e}", self.file.get())));
+            // A full disk, an I/O error: the file (cut back to its last complete chunk) is
+            // completed now, with what it holds and what it lost.
+            self.finish(ctx.name());
+            return Err(HookError::new(e.to_string()));
         }
         if self.capture.as_ref().is_some_and(Capture::done) {
             // The trigger's window is whole: the file is complete now, not at stop.
@@ -215,11 +218,21 @@ impl McapRecorder {
         };
         let file = self.file.get();
         match capture.finish(losses) {
-            Ok(meta) => tracing::info!(
-                "recorder {name}: {file} finished: {} messages, {} lost",
-                meta.get("messages").map_or("?", String::as_str),
-                meta.get("lost").map_or("?", String::as_str),
-            ),
+            Ok(meta) => {
+                let get = |k: &str| meta.get(k).map_or("?", String::as_str).to_string();
+                match meta.get("error") {
+                    Some(error) => tracing::error!(
+                        "recorder {name}: {error}; {file} is complete: {} messages, {} lost",
+                        get("messages"),
+                        get("lost"),
+                    ),
+                    None => tracing::info!(
+                        "recorder {name}: {file} finished: {} messages, {} lost",
+                        get("messages"),
+                        get("lost"),
+                    ),
+                }
+            }
             Err(e) => tracing::error!("recorder {name}: {file}: {e}"),
         }
     }

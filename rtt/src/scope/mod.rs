@@ -70,9 +70,25 @@ impl ThreadScope {
     }
 
     /// Starts recording every thread's bit into a new VCD file at `path` (never
-    /// overwriting one), besides the output if there is one. Once per ThreadScope: a second
-    /// call is refused. Its pulses are recorded from now on; time 0 in the file is now.
+    /// overwriting one, never through a link), besides the output if there is one. Once
+    /// per ThreadScope: a second call is refused. Its pulses are recorded from now on; time
+    /// 0 in the file is now.
     pub fn record_vcd(&self, path: &Path) -> Result<&VcdTrace, VcdError> {
+        self.record(path, |names| VcdTrace::create(path, names))
+    }
+
+    /// [`record_vcd`](Self::record_vcd) into a new numbered file beside `base`
+    /// (`threads.vcd` gives `threads-<n>.vcd`, one past the highest number there), the
+    /// last `keep` of them kept (see [`vcd::files`]): a restart never finds its file taken.
+    pub fn record_vcd_numbered(&self, base: &Path, keep: u32) -> Result<&VcdTrace, VcdError> {
+        self.record(base, |names| VcdTrace::create_numbered(base, keep, names))
+    }
+
+    fn record(
+        &self,
+        path: &Path,
+        create: impl FnOnce(ThreadNames) -> Result<VcdTrace, VcdError>,
+    ) -> Result<&VcdTrace, VcdError> {
         let already = || VcdError::AlreadyRecording {
             path: path.to_path_buf(),
         };
@@ -80,12 +96,12 @@ impl ThreadScope {
         if self.vcd.get().is_some() {
             return Err(already());
         }
-        let trace = VcdTrace::create(path, self.names.clone())?;
+        let trace = create(self.names.clone())?;
         for n in self.names.named() {
             tracing::info!(
                 "ThreadScope: thread {n} is signal {} in {}",
                 self.names.signal(n),
-                path.display()
+                trace.path().display()
             );
         }
         self.vcd.set(trace).map_err(|_| already())?;

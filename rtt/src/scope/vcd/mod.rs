@@ -21,9 +21,13 @@
 //! resolution still shows. The counts are written into the file's closing comment, logged,
 //! and returned by [`VcdTrace::finish`]. Edges recorded after `finish` are not recorded.
 //!
-//! The file is created new: an existing file is never overwritten (a restarted service
-//! needs the old recording moved away first).
+//! The file is created new, never through a symbolic link and never over an existing
+//! name ([`files`]): [`VcdTrace::create`] makes exactly the file named, and
+//! [`VcdTrace::create_numbered`] a new numbered one per run (`threads.vcd` gives
+//! `threads-1.vcd`, `threads-2.vcd`, …), the last `keep` kept — so a restarted service
+//! never finds its file taken.
 
+pub mod files;
 mod writer;
 
 use crossbeam_queue::ArrayQueue;
@@ -95,8 +99,8 @@ pub enum VcdError {
         /// The path given.
         path: PathBuf,
     },
-    /// The file could not be created (it exists already, or its folder does not), or the
-    /// writer thread could not be started (the file is then removed again).
+    /// The file could not be created (it exists already, it is a link, its folder does not
+    /// exist), or the writer thread could not be started (the file is then removed again).
     #[error("ThreadScope VCD file {}: {source}", path.display())]
     Create {
         /// The file.
@@ -179,9 +183,9 @@ pub struct VcdTrace {
 }
 
 impl VcdTrace {
-    /// Creates `path` (never overwriting a file) and starts the writer thread. Time 0 in
-    /// the file is now; the signals are named from `names` as they are when the first
-    /// edges are written.
+    /// Creates `path` (never over an existing name, never through a link: see
+    /// [`files`]) and starts the writer thread. Time 0 in the file is now; the signals are
+    /// named from `names` as they are when the first edges are written.
     pub fn create(path: &Path, names: ThreadNames) -> Result<VcdTrace, VcdError> {
         let text = path.as_os_str().as_encoded_bytes();
         if path.file_name().is_none() || text.ends_with(b"/") {
@@ -189,15 +193,35 @@ impl VcdTrace {
                 path: path.to_path_buf(),
             });
         }
+        let file = files::create_new(path)?;
+        VcdTrace::start(file, path, names)
+    }
+
+    /// Creates the next numbered file of `base` (`threads.vcd` gives `threads-<n>.vcd`, one
+    /// past the highest number there), removes the oldest so that the last `keep` remain
+    /// (see [`files`]), and starts the writer thread on it, as [`create`](Self::create).
+    /// [`path`](Self::path) is the file made.
+    pub fn create_numbered(
+        base: &Path,
+        keep: u32,
+        names: ThreadNames,
+    ) -> Result<VcdTrace, VcdError> {
+        let text = base.as_os_str().as_encoded_bytes();
+        if base.file_name().is_none() || text.ends_with(b"/") {
+            return Err(VcdError::NotAFile {
+                path: base.to_path_buf(),
+            });
+        }
+        let (file, path) = files::create_numbered(base, keep)?;
+        VcdTrace::start(file, &path, names)
+    }
+
+    /// Starts the writer thread on `file`, just made at `path`.
+    fn start(file: File, path: &Path, names: ThreadNames) -> Result<VcdTrace, VcdError> {
         let create_error = |source| VcdError::Create {
             path: path.to_path_buf(),
             source,
         };
-        let file = File::options()
-            .write(true)
-            .create_new(true)
-            .open(path)
-            .map_err(create_error)?;
         let shared = Arc::new(Shared {
             edges: ArrayQueue::new(EDGE_QUEUE),
             names,
