@@ -11,6 +11,7 @@
 //! assert_eq!(e.to_string(), "channel 9 does not exist (the device has 8 channels: 0..=7)");
 //! ```
 
+use crate::text::Number;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -64,7 +65,12 @@ pub enum DeviceError {
         value: u64,
     },
     /// A physical value outside the channel's range, or not a finite number.
-    #[error("value {value} is outside channel {channel}'s range [{lowest}, {highest}]")]
+    #[error(
+        "value {} is outside channel {channel}'s range [{}, {}]",
+        Number(*.value),
+        Number(*.lowest),
+        Number(*.highest)
+    )]
     ValueOutOfRange {
         /// The channel written.
         channel: u32,

@@ -11,6 +11,7 @@
 //! - [`Registry`], name serving per interface ("no type-casting whatsoever");
 //! - [`channel`], single-channel handles with optional inversion;
 //! - [`time`], monotonic timestamps and a simulated clock;
+//! - [`text`], values as error messages show them (short numbers, cut strings);
 //! - [`Delivery`], where a write stands that a bus carries after the call returned;
 //! - `conformance` (feature `conformance`), the kit every driver's tests run.
 //!
@@ -36,6 +37,7 @@ mod health;
 mod interfaces;
 mod registry;
 mod scale;
+pub mod text;
 pub mod time;
 
 pub use delivery::{Delivery, DeliveryTracker};

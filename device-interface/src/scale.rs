@@ -25,6 +25,7 @@
 //! # Ok::<(), device_interface::ScaleError>(())
 //! ```
 
+use crate::text::{Number, Quoted};
 use std::fmt;
 
 /// Why a scale, raw range or unit could not be built.
@@ -46,16 +47,36 @@ pub enum ScaleError {
         bits: u32,
     },
     /// The physical range is empty, reversed or not finite.
-    #[error("physical range [{lowest}, {highest}] is invalid: needs finite lowest < highest")]
+    #[error(
+        "physical range [{}, {}] is invalid: needs finite lowest < highest",
+        Number(*.lowest),
+        Number(*.highest)
+    )]
     InvalidPhysicalRange {
         /// Given lowest value.
         lowest: f64,
         /// Given highest value.
         highest: f64,
     },
+    /// A physical range whose span, `highest - lowest`, is beyond the largest `f64`: no
+    /// value inside it could be computed (every one would come out NaN).
+    #[error(
+        "physical range [{}, {}] is too wide: its span (highest - lowest) is infinite, beyond \
+         the largest number (about 1.8e308); narrow it",
+        Number(*.lowest),
+        Number(*.highest)
+    )]
+    SpanNotFinite {
+        /// Lowest value.
+        lowest: f64,
+        /// Highest value.
+        highest: f64,
+    },
     /// A factor of zero, or a factor or offset that is not finite.
     #[error(
-        "factor {factor} and offset {offset} are invalid: needs a finite non-zero factor and a finite offset"
+        "factor {} and offset {} are invalid: needs a finite non-zero factor and a finite offset",
+        Number(*.factor),
+        Number(*.offset)
     )]
     InvalidFactor {
         /// Given factor.
@@ -64,7 +85,7 @@ pub enum ScaleError {
         offset: f64,
     },
     /// A unit name longer than [`Unit::MAX_LEN`] bytes.
-    #[error("unit {unit:?} is longer than {} bytes", Unit::MAX_LEN)]
+    #[error("unit {} is longer than {} bytes", Quoted(.unit), Unit::MAX_LEN)]
     UnitTooLong {
         /// The refused unit.
         unit: String,
@@ -151,6 +172,17 @@ pub struct AnalogRange {
     pub unit: Unit,
 }
 
+impl fmt::Display for AnalogRange {
+    /// `[0, 10] V` (the unit left out when there is none).
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "[{}, {}]", Number(self.lowest), Number(self.highest))?;
+        if !self.unit.as_str().is_empty() {
+            write!(f, " {}", self.unit)?;
+        }
+        Ok(())
+    }
+}
+
 /// The inclusive range of raw values of a channel.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
 pub struct RawRange {
@@ -207,6 +239,13 @@ impl RawRange {
     fn steps(&self) -> f64 {
         // i128 avoids overflow for ranges spanning most of i64.
         (i128::from(self.max) - i128::from(self.min)) as f64
+    }
+}
+
+impl fmt::Display for RawRange {
+    /// `[0, 65535]`.
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "[{}, {}]", self.min, self.max)
     }
 }
 
@@ -302,6 +341,9 @@ impl Scale {
         if !(lowest.is_finite() && highest.is_finite() && lowest < highest) {
             return Err(ScaleError::InvalidPhysicalRange { lowest, highest });
         }
+        if !(highest - lowest).is_finite() {
+            return Err(ScaleError::SpanNotFinite { lowest, highest });
+        }
         Ok(Scale {
             raw,
             at_min: lowest,
@@ -342,6 +384,12 @@ impl Scale {
         let at_max = linear(i128::from(raw.max), factor, offset);
         if !(at_min.is_finite() && at_max.is_finite()) || at_min == at_max {
             return Err(ScaleError::InvalidFactor { factor, offset });
+        }
+        if !(at_max - at_min).is_finite() {
+            return Err(ScaleError::SpanNotFinite {
+                lowest: at_min.min(at_max),
+                highest: at_min.max(at_max),
+            });
         }
         Ok(Scale {
             raw,
@@ -577,10 +625,55 @@ mod tests {
         assert!(Scale::linear(r, f64::NAN, 1.0, v()).is_err());
         assert!(Scale::from_factor(r, 0.0, 1.0, v()).is_err());
         assert!(Scale::from_factor(r, 1.0, f64::INFINITY, v()).is_err());
+        // Both ends finite, the span between them not: every value would read NaN.
+        let e = Scale::linear(r, -1.7e308, 1.7e308, v()).unwrap_err();
+        assert_eq!(
+            e,
+            ScaleError::SpanNotFinite {
+                lowest: -1.7e308,
+                highest: 1.7e308
+            }
+        );
+        assert_eq!(
+            e.to_string(),
+            "physical range [-1.7e308, 1.7e308] is too wide: its span (highest - lowest) is \
+             infinite, beyond the largest number (about 1.8e308); narrow it"
+        );
+        assert!(Scale::fraction(r, -1e308, 1e308, v()).is_err());
+        assert!(matches!(
+            Scale::from_factor(RawRange::new(-1, 1).unwrap(), 1e308, 0.0, v()),
+            Err(ScaleError::SpanNotFinite { .. })
+        ));
+        // The widest span that is finite still converts without NaN.
+        let wide = Scale::linear(RawRange::unsigned_bits(16).unwrap(), -8e307, 8e307, v()).unwrap();
+        assert!((0..=65535).all(|raw| wide.to_physical(raw).is_finite()));
+        assert_eq!(
+            Scale::linear(r, 5.0, 1.0, v()).unwrap_err().to_string(),
+            "physical range [5, 1] is invalid: needs finite lowest < highest"
+        );
         assert!(matches!(
             Unit::new("a-unit-name-that-is-much-too-long"),
             Err(ScaleError::UnitTooLong { .. })
         ));
+    }
+
+    #[test]
+    fn ranges_read_as_text() {
+        let s = Scale::linear(RawRange::unsigned_bits(16).unwrap(), 0.0, 10.0, v()).unwrap();
+        assert_eq!(s.range().to_string(), "[0, 10] V");
+        assert_eq!(s.raw_range().to_string(), "[0, 65535]");
+        let none = AnalogRange {
+            lowest: -1e308,
+            highest: 0.5,
+            unit: Unit::none(),
+        };
+        assert_eq!(none.to_string(), "[-1e308, 0.5]");
+        let e = Unit::new(&"u".repeat(100)).unwrap_err().to_string();
+        assert!(
+            e.starts_with("unit \"uuu")
+                && e.ends_with("…\" (100 characters) is longer than 23 bytes"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -138,6 +138,9 @@ fn build(d: &Deployment, file: &str, text: &str, types: &Types) -> Result<Gatewa
     let mut servers = b.servers(&runtime);
     servers.extend(zenoh.as_ref().map(crate::remote::server));
     let scope_vcd = b.scope_vcd();
+    for (key, message) in checks::shared_files(d, base) {
+        b.problems.at(&key, message);
+    }
     if !b.problems.is_empty() {
         return Err(b.problems.into_vec());
     }

@@ -3,21 +3,19 @@
 //! that would make components wake each other for ever.
 
 use crate::config::{ConnectionConfig, Deployment, split_port};
+use crate::problems::KeyPath;
 use rtt::{ActivitySpec, Runtime};
 use std::collections::HashMap;
-use std::path::Path;
+use std::path::{Component, Path, PathBuf};
 use std::time::Duration;
 
 /// The longest period or time a deployment may give, ms (a day).
 pub const MAX_MS: f64 = 86_400_000.0;
 
-/// A number as people read it: `1e308`, not 309 digits.
+/// A number as people read it: `1e308`, not 309 digits (see
+/// [`device_interface::text::Number`]).
 pub fn number(v: f64) -> String {
-    if v.is_finite() && v.abs() >= 1e15 {
-        format!("{v:e}")
-    } else {
-        format!("{v}")
-    }
+    device_interface::text::Number(v).to_string()
 }
 
 /// A period in ms as a duration, if it is one: finite, above 0, at most a day.
@@ -50,7 +48,7 @@ pub fn control(d: &Deployment) -> Vec<(String, String)> {
     {
         out.push((
             "control_idle_s".into(),
-            format!("{s} s: expected 1 to 86400 seconds"),
+            format!("{} s: expected 1 to 86400 seconds", number(s)),
         ));
     }
     if let Some(path) = &d.control_socket
@@ -165,4 +163,131 @@ pub fn creatable(path: &Path) -> Result<(), String> {
     }
     nix::unistd::access(dir, nix::unistd::AccessFlags::W_OK)
         .map_err(|e| format!("{show}: cannot create it in {}: {e}", dir.display()))
+}
+
+/// The built-in component types that write a file, and the property naming it.
+pub const FILE_WRITERS: [(&str, &str); 2] = [("recorder", "file"), ("reporter", "file")];
+
+/// Files the deployment has hwgw write that are one file: the control socket, the
+/// ThreadScope recording (relative to the deployment's folder, `base`: its name and the
+/// numbered files each run makes of it, `threads-N.vcd`) and each recorder's and
+/// reporter's file (relative to the working directory, as they open them). Two writers of
+/// one file would overwrite each other or refuse to start; each later one is reported, as
+/// (its key, message), naming the first.
+pub fn shared_files(d: &Deployment, base: &Path) -> Vec<(KeyPath, String)> {
+    // (key, what it is, path, whether the path names numbered files)
+    let mut files: Vec<(KeyPath, String, PathBuf, bool)> = Vec::new();
+    if let Some(s) = d.control_socket.as_deref().filter(|s| !s.is_empty()) {
+        files.push((
+            KeyPath::top("control_socket"),
+            "the control socket (control_socket)".into(),
+            Path::new(s).to_path_buf(),
+            false,
+        ));
+    }
+    if let Some(f) = d.thread_scope_vcd.as_deref().filter(|s| !s.is_empty()) {
+        files.push((
+            KeyPath::top("thread_scope_vcd"),
+            "the ThreadScope recording (thread_scope_vcd)".into(),
+            base.join(f),
+            true,
+        ));
+    }
+    for (i, c) in d.components.iter().enumerate() {
+        for (kind, key) in FILE_WRITERS {
+            let Some(file) = (c.kind == kind)
+                .then(|| c.properties.get(key))
+                .flatten()
+                .and_then(toml::Value::as_str)
+                .filter(|f| !f.is_empty())
+            else {
+                continue;
+            };
+            let at = KeyPath::top("component")
+                .index(i)
+                .key("properties")
+                .key(key);
+            let what = format!(
+                "the file of {kind} {} ({at})",
+                device_interface::text::Quoted(&c.name)
+            );
+            files.push((at, what, Path::new(file).to_path_buf(), false));
+        }
+    }
+    let same: Vec<PathBuf> = files.iter().map(|(_, _, p, _)| same_file(p)).collect();
+    let mut out = Vec::new();
+    for (j, (key, _, path, numbered)) in files.iter().enumerate() {
+        let shown = device_interface::text::Cut(&path.display().to_string()).to_string();
+        for (i, (_, what, first, first_numbered)) in files[..j].iter().enumerate() {
+            let message = if same[i] == same[j] {
+                format!("{shown} is {what} too: give each its own file")
+            } else if *first_numbered && is_numbered(&same[j], &same[i]) {
+                format!(
+                    "{shown} is one of the numbered files ({}, …) of {what}: give each its \
+                     own file",
+                    rtt::scope::vcd::files::numbered(first, 1).display()
+                )
+            } else if *numbered && is_numbered(&same[i], &same[j]) {
+                format!(
+                    "{what}, {}, is one of the numbered files this names ({}, …): give \
+                     each its own file",
+                    first.display(),
+                    rtt::scope::vcd::files::numbered(path, 1).display()
+                )
+            } else {
+                continue;
+            };
+            out.push((key.clone(), message));
+            break;
+        }
+    }
+    out
+}
+
+/// True when `file` is one of the numbered files of `base` (`threads-3.vcd` of
+/// `threads.vcd`), both as [`same_file`] gives them.
+fn is_numbered(file: &Path, base: &Path) -> bool {
+    let Some(name) = file.file_name().and_then(|n| n.to_str()) else {
+        return false;
+    };
+    if file.parent() != base.parent() {
+        return false;
+    }
+    name.match_indices('-').any(|(i, _)| {
+        let digits: String = name[i + 1..]
+            .chars()
+            .take_while(char::is_ascii_digit)
+            .collect();
+        digits
+            .parse::<u64>()
+            .is_ok_and(|n| rtt::scope::vcd::files::numbered(base, n) == file)
+    })
+}
+
+/// `path` as one name per file, without touching it: absolute, its folder's links
+/// followed where it exists, else `.` and `..` taken out as written.
+fn same_file(path: &Path) -> PathBuf {
+    let absolute = if path.is_absolute() {
+        path.to_path_buf()
+    } else {
+        std::env::current_dir()
+            .unwrap_or_else(|_| PathBuf::from("/"))
+            .join(path)
+    };
+    if let (Some(dir), Some(name)) = (absolute.parent(), absolute.file_name())
+        && let Ok(dir) = std::fs::canonicalize(dir)
+    {
+        return dir.join(name);
+    }
+    let mut clean = PathBuf::new();
+    for c in absolute.components() {
+        match c {
+            Component::CurDir => {}
+            Component::ParentDir => {
+                clean.pop();
+            }
+            other => clean.push(other),
+        }
+    }
+    clean
 }

@@ -385,12 +385,14 @@ impl Deployment {
         let locate =
             |span: Option<std::ops::Range<usize>>| span.map(|s| source.locate_offset(s.start));
         let de = toml::de::Deserializer::parse(text).map_err(|e| {
-            ConfigError::Invalid(vec![Problem {
-                location: locate(e.span()),
-                path: String::new(),
-                message: e.message().trim().to_string(),
-            }])
+            ConfigError::Invalid(vec![Problem::new(locate(e.span()), "", e.message().trim())])
         })?;
+        // NaN and the infinities, wherever they are, named as what they are (a setting
+        // would take them for anything from "no value" to "the longest time").
+        let not_numbers = source.non_finite();
+        if !not_numbers.is_empty() {
+            return Err(ConfigError::Invalid(not_numbers));
+        }
         serde_path_to_error::deserialize(de).map_err(|e| {
             // toml::Spanned shows up in serde's path as a private field name.
             let path = e
@@ -398,11 +400,11 @@ impl Deployment {
                 .to_string()
                 .replace(".$__serde_spanned_private_value", "");
             let inner = e.into_inner();
-            ConfigError::Invalid(vec![Problem {
-                location: locate(inner.span()),
-                path: if path == "." { String::new() } else { path },
-                message: inner.message().trim().to_string(),
-            }])
+            ConfigError::Invalid(vec![Problem::new(
+                locate(inner.span()),
+                if path == "." { "" } else { &path },
+                inner.message().trim(),
+            )])
         })
     }
 }

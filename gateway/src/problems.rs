@@ -114,6 +114,148 @@ pub struct Problem {
     pub message: String,
 }
 
+impl Problem {
+    /// A problem at `location`, under key `path`: its path and message [tidied](tidy), so
+    /// no value of the file comes back in full however long it is.
+    pub fn new(location: Option<Location>, path: &str, message: &str) -> Problem {
+        Problem {
+            location,
+            path: tidy(path),
+            message: tidy(message),
+        }
+    }
+}
+
+/// Characters of a quoted string kept in a message; the rest is cut and counted.
+const QUOTED_CHARS: usize = device_interface::text::SHOWN_CHARS;
+/// Characters of an unquoted word (a path, a key) kept in a message.
+const WORD_CHARS: usize = 300;
+/// Characters of a whole message kept.
+const MESSAGE_CHARS: usize = 4000;
+/// Digits from which a number in a message is a float printed in full (no integer type
+/// has this many): it is shown short instead (`1e308`).
+const LONG_NUMBER: usize = 22;
+
+/// `text` as a message shows it: a quoted string (`"…"`, `` `…` ``) longer than 80
+/// characters cut with an ellipsis and its full length; a float printed in full (serde's
+/// `floating point \`1000…0.0\``) shown short (`1e308`); any other word longer than 300
+/// characters cut; the whole at most 4000 characters.
+pub fn tidy(text: &str) -> String {
+    let chars: Vec<char> = text.chars().collect();
+    let mut out = String::with_capacity(text.len().min(MESSAGE_CHARS + 64));
+    let mut i = 0;
+    while i < chars.len() {
+        let c = chars[i];
+        if c == '"' || c == '`' {
+            // The quoted part: to the closing quote (escapes skipped), or the end.
+            let mut j = i + 1;
+            while j < chars.len() && chars[j] != c {
+                j += if chars[j] == '\\' { 2 } else { 1 };
+            }
+            let end = j.min(chars.len());
+            let closed = j < chars.len();
+            let inner: String = chars[i + 1..end].iter().collect();
+            out.push(c);
+            if let Some(n) = long_number(&inner).filter(|_| c == '`') {
+                out.push_str(&n);
+                if closed {
+                    out.push(c);
+                }
+            } else {
+                let n = inner.chars().count();
+                // Cut already (`"xxxx…" (N characters)` from `text::Quoted`): as it is.
+                let cut_before = inner.ends_with('…') && n <= QUOTED_CHARS + 1;
+                out.push_str(&cut(&inner, QUOTED_CHARS, true));
+                if closed {
+                    out.push(c);
+                }
+                if n > QUOTED_CHARS && !cut_before {
+                    // `"xxxx…" (N characters)`.
+                    out.push_str(&format!(" ({n} characters)"));
+                }
+            }
+            i = end + 1;
+        } else if c.is_whitespace() {
+            out.push(c);
+            i += 1;
+        } else {
+            // A word: to the next space or quote.
+            let mut j = i;
+            while j < chars.len() && !chars[j].is_whitespace() && chars[j] != '"' && chars[j] != '`'
+            {
+                j += 1;
+            }
+            let word: String = chars[i..j].iter().collect();
+            out.push_str(&shorten_word(&word));
+            i = j;
+        }
+    }
+    cut(&out, MESSAGE_CHARS, false)
+}
+
+/// A word of a message, its long numbers shown short and the whole cut when long.
+fn shorten_word(word: &str) -> String {
+    // Numbers inside a word (`1000…0.0:`, `[1000…0,`): each run of digits and dots.
+    let mut out = String::new();
+    let mut rest = word;
+    while let Some(start) = rest.find(|c: char| c.is_ascii_digit()) {
+        out.push_str(&rest[..start]);
+        let tail = &rest[start..];
+        let len = tail
+            .find(|c: char| !(c.is_ascii_digit() || c == '.'))
+            .unwrap_or(tail.len());
+        let run = &tail[..len];
+        match long_number(run.trim_end_matches('.')) {
+            Some(n) => {
+                out.push_str(&n);
+                out.push_str(&run[run.trim_end_matches('.').len()..]);
+            }
+            None => out.push_str(run),
+        }
+        rest = &tail[len..];
+    }
+    out.push_str(rest);
+    if out.chars().count() > WORD_CHARS {
+        let n = word.chars().count();
+        let head: String = out.chars().take(QUOTED_CHARS).collect();
+        format!("{head}… ({n} characters)")
+    } else {
+        out
+    }
+}
+
+/// A float printed in full (`1000…0.0`, `0.000…05`), shown short; `None` for anything
+/// else.
+fn long_number(s: &str) -> Option<String> {
+    let digits = s.bytes().filter(u8::is_ascii_digit).count();
+    let (sign, body) = s.strip_prefix('-').map_or(("", s), |b| ("-", b));
+    if digits < LONG_NUMBER || !body.bytes().all(|b| b.is_ascii_digit() || b == b'.') {
+        return None;
+    }
+    let v: f64 = body.parse().ok()?;
+    Some(format!("{sign}{}", device_interface::text::Number(v)))
+}
+
+/// `s` cut after `keep` characters with an ellipsis (not inside an escape when `escaped`).
+fn cut(s: &str, keep: usize, escaped: bool) -> String {
+    let Some((end, _)) = s.char_indices().nth(keep) else {
+        return s.to_string();
+    };
+    let mut head = &s[..end];
+    if escaped {
+        // Not half an escape: an odd run of backslashes at the end loses one.
+        let slashes = head.len() - head.trim_end_matches('\\').len();
+        if slashes % 2 == 1 {
+            head = &head[..head.len() - 1];
+        }
+    }
+    if escaped {
+        format!("{head}…")
+    } else {
+        format!("{head}… ({} characters)", s.chars().count())
+    }
+}
+
 impl fmt::Display for Problem {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         if let Some(l) = &self.location {
@@ -219,6 +361,49 @@ impl<'a> Source<'a> {
         })
     }
 
+    /// A problem for every number of the file that is NaN or infinite (`nan`, `inf`,
+    /// `-inf`), in the order written: no setting takes one, and each is named as what it
+    /// is rather than as whatever a setting makes of it later.
+    pub fn non_finite(&self) -> Vec<Problem> {
+        fn walk(
+            src: &Source<'_>,
+            path: &KeyPath,
+            value: &Spanned<DeValue<'_>>,
+            out: &mut Vec<Problem>,
+        ) {
+            match value.get_ref() {
+                DeValue::Float(f) => {
+                    let v: f64 = f.as_str().parse().unwrap_or(0.0);
+                    if let Some(why) = device_interface::text::non_finite(v) {
+                        let message = format!("{why} ({}): give a finite number", f.as_str());
+                        let at = src.locate_offset(value.span().start);
+                        out.push(Problem::new(Some(at), &path.to_string(), &message));
+                    }
+                }
+                DeValue::Array(a) => {
+                    for (i, v) in a.iter().enumerate() {
+                        walk(src, &path.index(i), v, out);
+                    }
+                }
+                DeValue::Table(t) => {
+                    for (k, v) in t.iter() {
+                        walk(src, &path.key(k.get_ref()), v, out);
+                    }
+                }
+                _ => {}
+            }
+        }
+        let mut out = Vec::new();
+        if let Some(root) = &self.tree {
+            for (k, v) in root.get_ref().iter() {
+                walk(self, &KeyPath::top(k.get_ref()), v, &mut out);
+            }
+        }
+        // A table's keys come hashed: the file's order is the spans' order.
+        out.sort_by_key(|p| p.location.as_ref().map(|l| (l.line, l.column)));
+        out
+    }
+
     /// The value at `path`, exactly.
     pub fn value(&self, path: &KeyPath) -> Option<&Spanned<DeValue<'a>>> {
         match self.walk(path) {
@@ -296,11 +481,8 @@ impl<'s, 'a> Problems<'s, 'a> {
     }
 
     fn push(&mut self, location: Option<Location>, path: String, message: impl fmt::Display) {
-        self.list.push(Problem {
-            location,
-            path,
-            message: message.to_string(),
-        });
+        self.list
+            .push(Problem::new(location, &path, &message.to_string()));
     }
 
     /// True while nothing was found.
@@ -337,6 +519,74 @@ mod tests {
         assert_eq!(
             KeyPath::top("card").join("rx[0].signal[2]").to_string(),
             "card.rx[0].signal[2]"
+        );
+    }
+
+    #[test]
+    fn messages_show_values_short() {
+        let long = "x".repeat(1000);
+        assert_eq!(
+            tidy(&format!(
+                "invalid type: string \"{long}\", expected a boolean"
+            )),
+            format!(
+                "invalid type: string \"{}…\" (1000 characters), expected a boolean",
+                "x".repeat(80)
+            )
+        );
+        // Cut already by `text::Quoted`: left as it is.
+        let quoted = device_interface::text::Quoted(&long).to_string();
+        assert_eq!(
+            tidy(&format!("unit {quoted} is long")),
+            format!("unit {quoted} is long")
+        );
+        // Floats printed in full, by serde and by `{}`.
+        let full = format!("{}", 1e308);
+        assert_eq!(
+            tidy(&format!(
+                "invalid type: floating point `{full}.0`, expected u32"
+            )),
+            "invalid type: floating point `1e308`, expected u32"
+        );
+        assert_eq!(
+            tidy(&format!("{full}: at most 10, not -{full}.")),
+            "1e308: at most 10, not -1e308."
+        );
+        assert_eq!(tidy(&format!("{}", 5e-324)), "5e-324");
+        // Integers, addresses, short numbers and numbers in a user's string stay.
+        for same in [
+            "18446744073709551615 and 0x7fff and 127.0.0.1 and 1.2.3.4.5.6.7.8.9.10.11.12",
+            "\"1111111111111111111111111\" is not a port name",
+        ] {
+            assert_eq!(tidy(same), same);
+        }
+        // A word too long (a key, a path) is cut; the whole message is bounded.
+        let word = "k".repeat(1000);
+        assert_eq!(
+            tidy(&word),
+            format!("{}… (1000 characters)", "k".repeat(80))
+        );
+        assert!(tidy(&"a ".repeat(100_000)).chars().count() < 4100);
+        // Escapes are not cut in two.
+        let escaped = format!("\"{}\"", "\\n".repeat(100));
+        assert_eq!(
+            tidy(&escaped),
+            format!("\"{}…\" (200 characters)", "\\n".repeat(40))
+        );
+    }
+
+    #[test]
+    fn numbers_that_are_not_numbers_are_found_where_they_are() {
+        let text = "a = nan\n[[card]]\nx = { y = [1.0, -inf] }\nz = 1e308\nw = +inf\n";
+        let src = Source::new("f.toml", text);
+        let found: Vec<String> = src.non_finite().iter().map(|p| p.to_string()).collect();
+        assert_eq!(
+            found,
+            [
+                "f.toml:1:5: a: is NaN (nan): give a finite number",
+                "f.toml:3:17: card[0].x.y[1]: is infinite (-inf): give a finite number",
+                "f.toml:5:5: card[0].w: is infinite (+inf): give a finite number",
+            ]
         );
     }
 }

@@ -143,7 +143,7 @@ fn every_broken_config_gets_its_exact_error() {
         ("modbus section missing", "[[card]]\nname = \"plc\"\ndriver = \"modbus\"\n".into(),
          "t.toml:1:1: card[0]: card \"plc\" uses driver \"modbus\" but has no [card.modbus] section"),
         ("modbus point refused by the map", "[[card]]\nname = \"plc\"\ndriver = \"modbus\"\n[card.modbus]\ntransport = { type = \"tcp\", address = \"127.0.0.1:502\" }\n[[card.modbus.point]]\ntable = \"coils\"\naddress = 0\ntype = \"f32\"\n".into(),
-         "t.toml:7:9: card[0].modbus.point[0].table: card \"plc\": Coils hold single bits: no type, bit, scale or offset"),
+         "t.toml:7:9: card[0].modbus.point[0].table: card \"plc\": coils hold single bits: no type, bit, scale or offset"),
         ("modbus timing refused", "[[card]]\nname = \"plc\"\ndriver = \"modbus\"\n[card.modbus]\ntransport = { type = \"tcp\", address = \"127.0.0.1:502\" }\npoll_ms = 0\n".into(),
          "t.toml:6:11: card[0].modbus.poll_ms: card \"plc\": 0 ms: expected a time above 0"),
         ("modbus unknown key", "[[card]]\nname = \"plc\"\ndriver = \"modbus\"\n[card.modbus]\ntransport = { type = \"tcp\", address = \"127.0.0.1:502\" }\nslave = 3\n".into(),
@@ -151,7 +151,7 @@ fn every_broken_config_gets_its_exact_error() {
         ("served device missing", with_card("[modbus_server]\nlisten = \"127.0.0.1:0\"\n[[modbus_server.register]]\ntable = \"coils\"\naddress = 0\ndevice = \"sim9\"\ninterface = \"digital_out\"\n"),
          "t.toml:16:10: modbus_server.register[0].device: no DigitalOut named \"sim9\"; registered: sim0"),
         ("served registers overlap", with_card("[modbus_server]\nlisten = \"127.0.0.1:0\"\n[[modbus_server.register]]\ntable = \"input_registers\"\naddress = 0\ndevice = \"sim0\"\ninterface = \"analog_in\"\ntype = \"f32\"\n[[modbus_server.register]]\ntable = \"input_registers\"\naddress = 1\ndevice = \"sim0\"\ninterface = \"analog_in\"\n"),
-         "t.toml:13:1: modbus_server.register: entry 1: InputRegisters 1 is already served by entry 0"),
+         "t.toml:13:1: modbus_server.register: entry 1: input_registers 1 is already served by entry 0"),
         ("served: no connection per address", with_card("[modbus_server]\nlisten = \"127.0.0.1:0\"\nmax_clients_per_address = 0\n"),
          "t.toml:13:27: modbus_server.max_clients_per_address: 0: 1-1024"),
         ("served: a frame timeout past the idle timeout", with_card("[modbus_server]\nlisten = \"127.0.0.1:0\"\nidle_timeout_s = 2\nframe_timeout_ms = 3000\n"),
@@ -175,11 +175,13 @@ fn every_broken_config_gets_its_exact_error() {
         ("a buffer of 4e9 samples", with_card("[[connection]]\nfrom = \"sim0.ai.ch0\"\nto = \"sim0.ao.ch0\"\npolicy = { kind = { type = \"buffer\", size = 4000000000 } }\n"),
          "t.toml:11:1: connection[0]: sim0.ai.ch0 -> sim0.ao.ch0: a buffer connection of 4000000000 samples is too large (at most 1048576)"),
         ("a u32 register at 65535", "[[card]]\nname = \"plc\"\ndriver = \"modbus\"\n[card.modbus]\ntransport = { type = \"tcp\", address = \"127.0.0.1:502\" }\n[[card.modbus.point]]\ntable = \"holding_registers\"\naddress = 65535\ntype = \"u32\"\n".into(),
-         "t.toml:8:11: card[0].modbus.point[0].address: card \"plc\": 65535: a U32 point of 2 registers runs past address 65535"),
+         "t.toml:8:11: card[0].modbus.point[0].address: card \"plc\": 65535: a u32 point of 2 registers runs past address 65535"),
         ("a safe value out of range", CARD.replace("[card.sim]\n", "safe_analog_out = [11.0]\n[card.sim]\n"),
          "t.toml:4:20: card[0].safe_analog_out[0]: 11: not a safe value for analog output \"ch0\": value 11 is outside channel 0's range [0, 10]"),
         ("a NaN safe value", CARD.replace("[card.sim]\n", "safe_analog_out = [nan]\n[card.sim]\n"),
-         "t.toml:4:20: card[0].safe_analog_out[0]: NaN: not a safe value for analog output \"ch0\": value NaN is outside channel 0's range [0, 10]"),
+         "t.toml:4:20: card[0].safe_analog_out[0]: is NaN (nan): give a finite number"),
+        ("a safe value of 1e308", CARD.replace("[card.sim]\n", "safe_analog_out = [1e308]\n[card.sim]\n"),
+         "t.toml:4:20: card[0].safe_analog_out[0]: 1e308: not a safe value for analog output \"ch0\": value 1e308 is outside channel 0's range [0, 10]"),
         ("a safe bit that does not exist", CARD.replace("[card.sim]\n", "safe_digital_out_on = [999]\n[card.sim]\n"),
          "t.toml:4:24: card[0].safe_digital_out_on[0]: bit 999 does not exist (the card has 8 digital outputs)"),
         ("a policy for no output", CARD.replace("[card.sim]\n", "[card.outputs]\nsafe = { valve = \"keep\" }\nwatchdog_ms = 0\n[card.sim]\n"),
@@ -216,6 +218,103 @@ fn every_broken_config_gets_its_exact_error() {
          &*Box::leak(format!("t.toml:11:1: component[0]: component \"rec\": configure_hook failed: {}/tests/data/broken.dbc exists: it is never overwritten; remove it or name another file", env!("CARGO_MANIFEST_DIR")).into_boxed_str())),
         ("a recording of nothing", with_card(&recorder("file = \"/tmp/never.mcap\"")),
          "t.toml:11:1: component[0]: component \"rec\": configure_hook failed: properties ports and activities are empty: name what to record"),
+        // NaN and the infinities, in every float key, named as what they are.
+        ("zenoh: publish_ms = nan", format!("{ZENOH}publish_ms = nan\n"),
+         "t.toml:4:14: zenoh.publish_ms: is NaN (nan): give a finite number"),
+        ("zenoh: stale_ms = inf", format!("{ZENOH}stale_ms = inf\n"),
+         "t.toml:4:12: zenoh.stale_ms: is infinite (inf): give a finite number"),
+        ("zenoh: offline_ms = -inf", format!("{ZENOH}offline_ms = -inf\n"),
+         "t.toml:4:14: zenoh.offline_ms: is infinite (-inf): give a finite number"),
+        ("zenoh: lease_ms = nan", format!("{ZENOH}lease_ms = nan\n"),
+         "t.toml:4:12: zenoh.lease_ms: is NaN (nan): give a finite number"),
+        ("zenoh: request_timeout_ms = +nan", format!("{ZENOH}request_timeout_ms = +nan\n"),
+         "t.toml:4:22: zenoh.request_timeout_ms: is NaN (+nan): give a finite number"),
+        ("zenoh: a time of 1e308 ms", format!("{ZENOH}lease_ms = 1e308\n"),
+         "t.toml:4:12: zenoh.lease_ms: 1e308 ms is outside 1 ..= 3600000 ms"),
+        ("a card period of NaN", "[[card]]\nname = \"x\"\ndriver = \"sim\"\nperiod_ms = nan\n[card.sim]\n".into(),
+         "t.toml:4:13: card[0].period_ms: is NaN (nan): give a finite number"),
+        ("a property of NaN (not \"invalid type: null\")", with_card("[[component]]\nname = \"f\"\ntype = \"follow\"\nactivity = { type = \"non_periodic\" }\nproperties = { gain = nan, offset = -inf }\n"),
+         "t.toml:15:23: component[0].properties.gain: is NaN (nan): give a finite number\nt.toml:15:37: component[0].properties.offset: is infinite (-inf): give a finite number"),
+        ("a range of -inf", CARD.replace("lowest = -10.0", "lowest = -inf"),
+         "t.toml:7:20: card[0].sim.analog_in[0].range.lowest: is infinite (-inf): give a finite number"),
+        ("a control idle time of inf", format!("control_idle_s = inf\n{CARD}"),
+         "t.toml:1:18: control_idle_s: is infinite (inf): give a finite number"),
+        ("a Modbus scale of NaN", format!("{CARD}[modbus_server]\nlisten = \"127.0.0.1:0\"\n[[modbus_server.register]]\ntable = \"input_registers\"\naddress = 0\ndevice = \"sim0\"\ninterface = \"analog_in\"\nscale = nan\n"),
+         "t.toml:18:9: modbus_server.register[0].scale: is NaN (nan): give a finite number"),
+        // Numbers whose arithmetic overflows.
+        ("a range of ±1.7e308", CARD.replace("lowest = -10.0, highest = 10.0", "lowest = -1.7e308, highest = 1.7e308"),
+         "t.toml:7:9: card[0].sim.analog_in[0].range: card \"sim0\": physical range [-1.7e308, 1.7e308] is too wide: its span (highest - lowest) is infinite, beyond the largest number (about 1.8e308); narrow it"),
+        ("an output range of ±1e308", CARD.replace("lowest = 0.0, highest = 10.0", "lowest = -1e308, highest = 1e308"),
+         "t.toml:10:9: card[0].sim.analog_out[0].range: card \"sim0\": physical range [-1e308, 1e308] is too wide: its span (highest - lowest) is infinite, beyond the largest number (about 1.8e308); narrow it"),
+        ("an encoder of 1e308 counts per unit", format!("{CARD}[[card.sim.encoder]]\nresolution = 4096\nvelocity_from = 0\ncounts_per_unit = 1e308\n"),
+         "t.toml:14:19: card[0].sim.encoder[0].counts_per_unit: card \"sim0\": 1e308 counts/s per unit: over the velocity output's range [0, 10] that is more counts/s than any number; an encoder counts at most 106751991167300 counts/s (a day of motion must fit its 64-bit counter)"),
+        ("an encoder of 1e14 counts per volt", format!("{CARD}[[card.sim.encoder]]\nresolution = 4096\nvelocity_from = 0\ncounts_per_unit = 1e14\n"),
+         "t.toml:14:19: card[0].sim.encoder[0].counts_per_unit: card \"sim0\": 100000000000000 counts/s per unit: over the velocity output's range [0, 10] that is up to 1e15 counts/s; an encoder counts at most 106751991167300 counts/s (a day of motion must fit its 64-bit counter)"),
+        ("a ramp over ±1e308", CARD.replace("waveform = { kind = \"constant\", value = 1.0 }", "waveform = { kind = \"ramp\", from = -1e308, to = 1e308, period = 1.0 }"),
+         "t.toml:8:49: card[0].sim.analog_in[0].waveform.to: card \"sim0\": to - from overflows (beyond the largest number, about 1.8e308)"),
+        // Paths that exist but can never work: refused from their device numbers.
+        ("an I2C bus that is /dev/null", "[[card]]\nname = \"i\"\ndriver = \"i2c\"\n[card.i2c]\nbus = \"/dev/null\"\n".into(),
+         "t.toml:5:7: card[0].i2c.bus: card \"i\": /dev/null is not an I2C bus: it is character device 1:3; an i2c-dev bus is a character device of major 89 (/dev/i2c-N)"),
+        ("an I2C bus that is /etc/passwd", "[[card]]\nname = \"i\"\ndriver = \"i2c\"\n[card.i2c]\nbus = \"/etc/passwd\"\n".into(),
+         "t.toml:5:7: card[0].i2c.bus: card \"i\": /etc/passwd is not an I2C bus: it is a regular file; an i2c-dev bus is a character device of major 89 (/dev/i2c-N)"),
+        ("a PCA9685 at its all-call address", "[[card]]\nname = \"i\"\ndriver = \"i2c\"\n[card.i2c]\nbus = \"/dev/i2c-9\"\n[[card.i2c.chip]]\nmodel = \"pca9685\"\naddress = 0x70\nfrequency_hz = 200.0\nchannels = [0]\n".into(),
+         "t.toml:8:11: card[0].i2c.chip[0].address: card \"i\": 0x70 is the PCA9685's LED All Call address (on by default): every PCA9685 on the bus answers it, so a chip there cannot be told from the others; give the chip's own address (0x40-0x7f by its A5..A0 pins, not 0x70)"),
+        ("a Firmata port that is /dev/null", firmata("/dev/null"),
+         "t.toml:5:8: card[0].firmata.port: card \"u\": /dev/null is not a serial port: it is a memory device (1:3, as /dev/null and /dev/mem are)"),
+        ("a Firmata port that is /dev/tty", firmata("/dev/tty"),
+         "t.toml:5:8: card[0].firmata.port: card \"u\": /dev/tty is not a serial port: it is /dev/tty, the controlling terminal (5:0)"),
+        ("a Firmata port that is a file", firmata("/etc/passwd"),
+         "t.toml:5:8: card[0].firmata.port: card \"u\": /etc/passwd is not a serial port: it is a regular file, not a character device"),
+        ("a Modbus RTU line on /dev/zero", "[[card]]\nname = \"plc\"\ndriver = \"modbus\"\n[card.modbus]\ntransport = { type = \"rtu\", device = \"/dev/zero\", baud = 19200 }\n".into(),
+         "t.toml:5:38: card[0].modbus.transport.device: card \"plc\": /dev/zero is not a serial port: it is a memory device (1:5, as /dev/null and /dev/mem are)"),
+        // An unplugged board is looked for at run: its port may be absent at check.
+        ("a Firmata port not plugged in", firmata("/nonexistent/ttyACM0"), "ok"),
+        ("a GPIO chip that is /dev/null", gpio("/dev/null"),
+         "t.toml:7:8: card[0].gpio.input[0].line: card \"g\": /dev/null: not a GPIO character device: it is character device 1:3, which no GPIO chip has (a GPIO chip is /dev/gpiochipN)"),
+        ("a GPIO chip that is a file", gpio("/etc/passwd"),
+         "t.toml:7:8: card[0].gpio.input[0].line: card \"g\": /etc/passwd: not a GPIO character device: it is a regular file"),
+        // Zenoh endpoints that cannot be reached.
+        ("zenoh: an IPv4 address that is none", "[zenoh]\nname = \"A\"\nconnect = [\"tcp/999.1.1.1:7447\"]\n".into(),
+         "t.toml:3:12: zenoh.connect[0]: \"tcp/999.1.1.1:7447\": 999.1.1.1 is not an IPv4 address (four numbers 0 to 255, e.g. 127.0.0.1)"),
+        ("zenoh: port 99999", "[zenoh]\nname = \"A\"\nlisten = [\"tcp/127.0.0.1:99999\"]\n".into(),
+         "t.toml:3:11: zenoh.listen[0]: \"tcp/127.0.0.1:99999\": port 99999: expected 0 to 65535"),
+        ("zenoh: connect to port 0", "[zenoh]\nname = \"A\"\nconnect = [\"tcp/127.0.0.1:0\"]\n".into(),
+         "t.toml:3:12: zenoh.connect[0]: \"tcp/127.0.0.1:0\": port 0: expected 1 to 65535"),
+        ("zenoh: a host that does not resolve", "[zenoh]\nname = \"A\"\nconnect = [\"tcp/nosuchhost.invalid:7447\"]\n".into(),
+         "t.toml:3:12: zenoh.connect[0]: \"tcp/nosuchhost.invalid:7447\": host nosuchhost.invalid does not resolve: Name or service not known"),
+        ("zenoh: an IPv6 address without brackets", "[zenoh]\nname = \"A\"\nconnect = [\"tcp/::1:7447\"]\n".into(),
+         "t.toml:3:12: zenoh.connect[0]: \"tcp/::1:7447\": an IPv6 address is written in brackets before the port: [::1]:port"),
+        ("zenoh: localhost and [::1] are fine", "[zenoh]\nname = \"A\"\nlisten = [\"tcp/[::1]:0\"]\nconnect = [\"tcp/localhost:7447\"]\n".into(), "ok"),
+        // What the build refuses across components.
+        ("a recorder of buffer 0", with_card(&recorder("ports = [\"sim0.ai\"], file = \"/tmp/never.mcap\", buffer = 0")),
+         "t.toml:11:1: component[0]: component \"rec\": configure_hook failed: buffer 0: expected 1 to 65536 samples a port may hold"),
+        ("two recorders writing one file", with_card(&format!("{}{}", recorder("ports = [\"sim0.ai\"], file = \"/tmp/never.mcap\""), recorder("ports = [\"sim0.ai\"], file = \"/tmp/./never.mcap\"").replace("\"rec\"", "\"rec2\""))),
+         "t.toml:20:44: component[1].properties.file: /tmp/./never.mcap is the file of recorder \"rec\" (component[0].properties.file) too: give each its own file"),
+        ("a report into a recording", with_card(&format!("{}[[component]]\nname = \"rep\"\ntype = \"reporter\"\nactivity = {{ type = \"periodic\", period_ms = 20 }}\nproperties = {{ ports = [\"sim0.ai.ch0\"], file = \"/tmp/never.mcap\" }}\n", recorder("ports = [\"sim0.ai\"], file = \"/tmp/never.mcap\""))),
+         "t.toml:20:48: component[1].properties.file: /tmp/never.mcap is the file of recorder \"rec\" (component[0].properties.file) too: give each its own file"),
+        ("a ThreadScope recording into a recorder's file", format!("thread_scope_vcd = \"/tmp/never.mcap\"\n{}", with_card(&recorder("ports = [\"sim0.ai\"], file = \"/tmp/never.mcap\""))),
+         "t.toml:16:44: component[0].properties.file: /tmp/never.mcap is the ThreadScope recording (thread_scope_vcd) too: give each its own file"),
+        ("a Modbus server of channel 99 of 2", CARD.replace("[[card.sim.analog_in]]\n", "[[card.sim.analog_in]]\ncount = 2\n") + "[modbus_server]\nlisten = \"127.0.0.1:0\"\n[[modbus_server.register]]\ntable = \"input_registers\"\naddress = 0\ndevice = \"sim0\"\ninterface = \"analog_in\"\nchannel = 99\n",
+         "t.toml:19:11: modbus_server.register[0].channel: channel 99 does not exist: \"sim0\" has 2 analog inputs: 0..=1"),
+        ("a Modbus server of digital output 8 of 8", format!("{CARD}[modbus_server]\nlisten = \"127.0.0.1:0\"\n[[modbus_server.register]]\ntable = \"coils\"\naddress = 0\ndevice = \"sim0\"\ninterface = \"digital_out\"\nchannel = 8\n"),
+         "t.toml:18:11: modbus_server.register[0].channel: channel 8 does not exist: \"sim0\" has 8 digital outputs: 0..=7"),
+        ("a served scale that overflows", format!("{CARD}[modbus_server]\nlisten = \"127.0.0.1:0\"\n[[modbus_server.register]]\ntable = \"holding_registers\"\naddress = 0\ndevice = \"sim0\"\ninterface = \"analog_out\"\nscale = 1e308\n"),
+         "t.toml:18:9: modbus_server.register[0].scale: scale 1e308 and offset 0 overflow: a u16 register's largest value, 65535, times the scale plus the offset is beyond the largest number (about 1.8e308)"),
+        // Error text: numbers short, long strings cut, no Rust Debug text.
+        ("a count of 1e308", "control_clients = 1e308\n".into(),
+         "t.toml:1:19: control_clients: invalid type: floating point `1e308`, expected u32"),
+        ("an idle time of 1e308", "control_idle_s = 1e308\n".into(),
+         "t.toml:1:18: control_idle_s: 1e308 s: expected 1 to 86400 seconds"),
+        ("a 10 MB string", format!("thread_scope = \"{}\"\n", "x".repeat(10_000_000)),
+         &*Box::leak(format!("t.toml:1:16: thread_scope: invalid type: string \"{}…\" (10000000 characters), expected a boolean", "x".repeat(80)).into_boxed_str())),
+        ("a 10 MB driver name", format!("[[card]]\nname = \"x\"\ndriver = \"{}\"\n", "d".repeat(10_000_000)),
+         &*Box::leak(format!("t.toml:3:10: card[0].driver: unknown driver \"{}…\" (10000000 characters); this build has: comedi, firmata, gpio, i2c, modbus, sim, socketcan", "d".repeat(80)).into_boxed_str())),
+        ("a 10 MB key", format!("[[alias]]\n{} = 1\n", "k".repeat(10_000_000)),
+         &*Box::leak(format!("t.toml:2:1: alias[0].{}… (10000009 characters): unknown field `{k}…` (10000000 characters), expected one of `interface`, `name`, `target`", "k".repeat(71), k = "k".repeat(80)).into_boxed_str())),
+        ("an initial value outside the range (no Debug text)", CARD.replace("range = { lowest = 0.0, highest = 10.0 }", "range = { lowest = 0.0, highest = 10.0, unit = \"V\" }\ninitial = 11.0"),
+         "t.toml:11:11: card[0].sim.analog_out[0].initial: card \"sim0\": 11 is outside the range [0, 10] V"),
+        ("a unit of 10 MB", CARD.replace("range = { lowest = 0.0, highest = 10.0 }", &format!("range = {{ lowest = 0.0, highest = 10.0, unit = \"{}\" }}", "u".repeat(10_000_000))),
+         &*Box::leak(format!("t.toml:10:9: card[0].sim.analog_out[0].range: card \"sim0\": unit \"{}…\" (10000000 characters) is longer than 23 bytes", "u".repeat(80)).into_boxed_str())),
         ("not TOML", "[[card]\nname = \"x\"\n".into(),
          "t.toml:1:8: unclosed array table, expected `]`"),
     ];
@@ -272,7 +371,7 @@ fn the_shipped_examples_are_valid() {
                     lines.next(),
                     Some(
                         format!(
-                            "{file}:37:7: card[0].i2c.bus: card \"i2c\": no I2C adapter is \
+                            "{file}:38:7: card[0].i2c.bus: card \"i2c\": no I2C adapter is \
                              named \"SMBus stub driver\"; there are none (is i2c-dev loaded?)"
                         )
                         .as_str()
@@ -320,6 +419,117 @@ fn the_shipped_examples_are_valid() {
         hwgw::DEMO,
         "config/demo.toml is the embedded default"
     );
+}
+
+/// What depends on the machine's files: the control socket in a folder of the test's own
+/// (a socket folder must be this user's), and comedi's list of the boards it has.
+#[test]
+fn files_one_writer_each_and_devices_of_the_wrong_kind() {
+    let dir = testkit::TempDir::new("config-errors-files");
+    let sock = dir.path().join("hwgw.sock");
+    let sock = sock.display();
+    let text = format!("control_socket = \"{sock}\"\nthread_scope_vcd = \"{sock}\"\n{CARD}");
+    assert_eq!(
+        errors(&text),
+        format!(
+            "t.toml:2:20: thread_scope_vcd: {sock} is the control socket (control_socket) too: \
+             give each its own file"
+        )
+    );
+    // Relative to the deployment's folder, the same file.
+    let file = dir.path().join("d.toml").display().to_string();
+    let text = format!("control_socket = \"{sock}\"\nthread_scope_vcd = \"hwgw.sock\"\n{CARD}");
+    assert_eq!(
+        errors_in(&text, &file),
+        format!(
+            "{file}:2:20: thread_scope_vcd: {sock} is the control socket (control_socket) too: \
+             give each its own file"
+        )
+    );
+    let text = format!(
+        "thread_scope_vcd = \"{sock}\"\n{}",
+        with_card(&recorder(&format!(
+            "ports = [\"sim0.ai\"], file = \"{sock}\""
+        )))
+    );
+    assert_eq!(
+        errors(&text),
+        format!(
+            "t.toml:16:44: component[0].properties.file: {sock} is the ThreadScope recording \
+             (thread_scope_vcd) too: give each its own file"
+        )
+    );
+    // Each run records into a new numbered file of thread_scope_vcd: those are its too.
+    let vcd = dir.path().join("threads.vcd").display().to_string();
+    let numbered = dir.path().join("threads-2.vcd").display().to_string();
+    let text = format!(
+        "thread_scope_vcd = \"{vcd}\"\n{}",
+        with_card(&recorder(&format!(
+            "ports = [\"sim0.ai\"], file = \"{numbered}\""
+        )))
+    );
+    assert_eq!(
+        errors(&text),
+        format!(
+            "t.toml:16:44: component[0].properties.file: {numbered} is one of the numbered files \
+             ({}, …) of the ThreadScope recording (thread_scope_vcd): give each its own file",
+            dir.path().join("threads-1.vcd").display()
+        )
+    );
+    let text = format!("control_socket = \"{numbered}\"\nthread_scope_vcd = \"{vcd}\"\n{CARD}");
+    assert_eq!(
+        errors(&text),
+        format!(
+            "t.toml:2:20: thread_scope_vcd: the control socket (control_socket), {numbered}, is \
+             one of the numbered files this names ({}, …): give each its own file",
+            dir.path().join("threads-1.vcd").display()
+        )
+    );
+    // Not one of them: threads-02.vcd, threads-2.vcd.bak, another folder's.
+    for other in [
+        "threads-02.vcd",
+        "threads-2.vcd.bak",
+        "threads.vcd.d/threads-2.vcd",
+    ] {
+        let text = format!(
+            "thread_scope_vcd = \"{vcd}\"\n{}",
+            with_card(&recorder(&format!(
+                "ports = [\"sim0.ai\"], file = \"{}\"",
+                dir.path().join(other).display()
+            )))
+        );
+        assert!(!errors(&text).contains("numbered"), "{other}");
+    }
+    // A comedi device that is /dev/null: named for what it is, whether comedi is loaded
+    // (its boards then listed) or not.
+    let got = errors(
+        "[[card]]\nname = \"c\"\ndriver = \"comedi\"\n[card.comedi]\ndevice = \"/dev/null\"\nanalog_in = [{}]\n",
+    );
+    assert!(
+        got.starts_with(
+            "t.toml:5:10: card[0].comedi.device: card \"c\": comedi_open on /dev/null: not a \
+             comedi device: it is character device 1:3 (comedi's are character devices of major \
+             98, /dev/comediN) (errno 19); comedi devices here: "
+        ) && !got.contains('\n'),
+        "{got}"
+    );
+}
+
+/// A `[zenoh]` section that checks, for one more key.
+const ZENOH: &str = "[zenoh]\nname = \"A\"\nlisten = [\"tcp/127.0.0.1:7447\"]\n";
+
+/// A Firmata card `u` on `port`.
+fn firmata(port: &str) -> String {
+    format!(
+        "[[card]]\nname = \"u\"\ndriver = \"firmata\"\n[card.firmata]\nport = \"{port}\"\ndigital_in = [{{ pin = 2 }}]\n"
+    )
+}
+
+/// A GPIO card `g` on chip `chip`.
+fn gpio(chip: &str) -> String {
+    format!(
+        "[[card]]\nname = \"g\"\ndriver = \"gpio\"\n[card.gpio]\nchip = \"{chip}\"\n[[card.gpio.input]]\nline = 0\n"
+    )
 }
 
 /// A `recorder` component with `properties`.

@@ -66,6 +66,59 @@ fn hostile(rng: &mut Rng) -> String {
         .map_or_else(String::new, |v| v.to_string())
 }
 
+/// Numbers no setting can take, or whose arithmetic overflows: each must get its error,
+/// never a panic, a NaN reading or a 309-digit number.
+const HOSTILE_NUMBERS: [&str; 13] = [
+    "nan",
+    "-nan",
+    "inf",
+    "-inf",
+    "1e308",
+    "-1e308",
+    "1.7e308",
+    "-1.7e308",
+    "5e-324",
+    "1e-308",
+    "9007199254740993",
+    "-0.0",
+    "0",
+];
+
+/// Where the numbers of `line` are (outside strings and comments, after its `=`).
+fn numbers(line: &str) -> Vec<std::ops::Range<usize>> {
+    let b = line.as_bytes();
+    let mut out = Vec::new();
+    let (mut i, mut quoted, mut value) = (0, false, false);
+    while i < b.len() {
+        let c = b[i];
+        if c == b'"' {
+            quoted = !quoted;
+        } else if quoted && c == b'\\' {
+            i += 1;
+        } else if !quoted && c == b'#' {
+            break;
+        } else if !quoted && c == b'=' {
+            value = true;
+        } else if !quoted
+            && value
+            && (c.is_ascii_digit()
+                || ((c == b'-' || c == b'+') && b.get(i + 1).is_some_and(u8::is_ascii_digit)))
+            && !b[i - 1].is_ascii_alphanumeric()
+            && b[i - 1] != b'_'
+            && b[i - 1] != b'.'
+        {
+            let start = i;
+            while i < b.len() && (b[i].is_ascii_alphanumeric() || b"_.+-:".contains(&b[i])) {
+                i += 1;
+            }
+            out.push(start..i);
+            continue;
+        }
+        i += 1;
+    }
+    out
+}
+
 /// `text` with 1 to 3 random mutations.
 fn mutate(text: &str, rng: &mut Rng) -> String {
     let mut lines: Vec<String> = text.lines().map(str::to_string).collect();
@@ -74,7 +127,17 @@ fn mutate(text: &str, rng: &mut Rng) -> String {
             break;
         }
         let at = rng.below(lines.len() as u64) as usize;
-        match rng.below(4) {
+        match rng.below(5) {
+            4 => {
+                // A number replaced by a hostile one (a type the key takes: its range and
+                // arithmetic are what is tried).
+                let found = numbers(&lines[at]);
+                if let Some(r) = rng.pick(&found).cloned()
+                    && let Some(v) = rng.pick(&HOSTILE_NUMBERS)
+                {
+                    lines[at].replace_range(r, v);
+                }
+            }
             0 => {
                 // A value replaced (the first `=` of the line: a key, or an inline table's).
                 if let Some(eq) = lines[at].find('=') {
@@ -95,6 +158,102 @@ fn mutate(text: &str, rng: &mut Rng) -> String {
         }
     }
     lines.join("\n")
+}
+
+/// What an answer's text must never hold, whatever the file said: Rust's `Debug` text, a
+/// float printed in full (309 digits for 1e308), a value echoed beyond a bound, NaN taken
+/// for "no value".
+fn text_problems(answer: &str) -> Vec<String> {
+    let mut out = Vec::new();
+    for line in answer.lines() {
+        if line.chars().count() > 4500 {
+            out.push(format!("a line of {} characters", line.chars().count()));
+        }
+        let digits = line
+            .split(|c: char| !(c.is_ascii_digit() || c == '.'))
+            .map(|run| run.bytes().filter(u8::is_ascii_digit).count())
+            .max()
+            .unwrap_or(0);
+        if digits >= 22 {
+            out.push(format!("a number of {digits} digits: {}", cut(line)));
+        }
+        for debug in [
+            "Unit(\"",
+            "Some(",
+            "AnalogRange {",
+            "RawRange {",
+            "Scale {",
+            "invalid type: null",
+        ] {
+            if line.contains(debug) {
+                out.push(format!("{debug:?} in: {}", cut(line)));
+            }
+        }
+    }
+    out
+}
+
+fn cut(s: &str) -> String {
+    s.chars().take(300).collect()
+}
+
+/// Every number of every shipped example replaced, one at a time, by each of
+/// [`HOSTILE_NUMBERS`]: an answer for each, no panic, and its text clean.
+#[test]
+fn every_number_of_the_examples_made_hostile() {
+    let mut examples = vec![("demo.toml".to_string(), hwgw::DEMO.to_string())];
+    let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/../config");
+    for entry in std::fs::read_dir(dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "toml") {
+            examples.push((
+                path.display().to_string(),
+                std::fs::read_to_string(&path).unwrap(),
+            ));
+        }
+    }
+    let (mut tried, mut refused, mut bad) = (0u64, 0u64, Vec::new());
+    for (file, text) in &examples {
+        let lines: Vec<&str> = text.lines().collect();
+        for (n, line) in lines.iter().enumerate() {
+            for r in numbers(line) {
+                for v in HOSTILE_NUMBERS {
+                    let mut changed = line.to_string();
+                    changed.replace_range(r.clone(), v);
+                    let mut all = lines.clone();
+                    all[n] = &changed;
+                    tried += 1;
+                    match check(&all.join("\n"), file) {
+                        Ok(answer) => {
+                            refused += u64::from(answer != "ok");
+                            for p in text_problems(&answer) {
+                                bad.push(format!("{file}:{}: {changed}: {p}", n + 1));
+                            }
+                            let non_finite = ["nan", "-nan", "inf", "-inf"].contains(&v);
+                            if non_finite
+                                && !(answer.contains("is NaN") || answer.contains("is infinite"))
+                            {
+                                bad.push(format!(
+                                    "{file}:{}: {changed}: not named: {}",
+                                    n + 1,
+                                    cut(&answer)
+                                ));
+                            }
+                        }
+                        Err(panic) => {
+                            bad.push(format!("{file}:{}: {changed}: panic: {panic}", n + 1))
+                        }
+                    }
+                }
+            }
+        }
+    }
+    eprintln!(
+        "hostile numbers: {tried} tried, {refused} refused, {} bad",
+        bad.len()
+    );
+    assert!(tried > 1000, "the examples' numbers were found: {tried}");
+    assert!(bad.is_empty(), "{}", bad.join("\n"));
 }
 
 #[test]
@@ -137,7 +296,12 @@ fn mutated_examples_get_an_answer_never_a_panic() {
             jobs.send((mutated.clone(), file.clone())).unwrap();
             match answered.recv_timeout(BOUND) {
                 Ok(Ok(answer)) if answer == "ok" => ok += 1,
-                Ok(Ok(_)) => refused += 1,
+                Ok(Ok(answer)) => {
+                    refused += 1;
+                    for p in text_problems(&answer) {
+                        panics.push(format!("{file} case {case}: {p}"));
+                    }
+                }
                 Ok(Err(panic)) => panics.push(format!("{file} case {case}: {panic}")),
                 Err(_) => panic!(
                     "{file} case {case}: no answer within {BOUND:?} for:\n{}",
@@ -153,7 +317,11 @@ fn mutated_examples_get_an_answer_never_a_panic() {
         examples.len(),
         panics.len()
     );
-    assert!(panics.is_empty(), "panics:\n{}", panics.join("\n"));
+    assert!(
+        panics.is_empty(),
+        "panics and unclean answers:\n{}",
+        panics.join("\n")
+    );
     assert!(left.is_empty(), "checking wrote files: {left:?}");
     assert!(refused > 0 && ok > 0, "the mutations reach both answers");
 }

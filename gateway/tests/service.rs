@@ -243,6 +243,52 @@ fn a_second_gateway_on_the_same_socket_is_refused() {
     );
 }
 
+/// A client pointed at something that is not a socket says so, not "connection refused
+/// (is hwgw running?)": the file is named as what it is.
+#[test]
+fn a_client_socket_that_is_no_socket_is_named() {
+    let dir = TempDir::new("not-a-socket");
+    let file = dir.path().join("hwgw.sock");
+    std::fs::write(&file, "not a socket").unwrap();
+    for (path, kind) in [
+        (file.as_path(), "a regular file"),
+        (dir.path(), "a directory"),
+    ] {
+        let out = Command::new(HWGW)
+            .arg("--socket")
+            .arg(path)
+            .arg("ls")
+            .output()
+            .unwrap();
+        assert_eq!(out.status.code(), Some(1), "{out:?}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            err.contains(&format!(
+                "{} is not a socket (it is {kind}): give the control socket of a running hwgw",
+                path.display()
+            )),
+            "{err}"
+        );
+        assert!(!err.contains("Connection refused"), "{err}");
+    }
+    // A stale socket is still "not running".
+    let stale = dir.path().join("stale.sock");
+    drop(std::os::unix::net::UnixListener::bind(&stale).unwrap());
+    let out = Command::new(HWGW)
+        .arg("--socket")
+        .arg(&stale)
+        .arg("ls")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("is hwgw running?"), "{err}");
+    assert_eq!(
+        std::fs::read_to_string(&file).unwrap(),
+        "not a socket",
+        "left as it was"
+    );
+}
+
 /// A datagram socket standing in for systemd's notify socket.
 struct Notify {
     sock: std::os::unix::net::UnixDatagram,

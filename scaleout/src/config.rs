@@ -1,10 +1,13 @@
 //! The `[zenoh]` section: the gateway's name in the shared name space, how it meets the
 //! others, what it imports, and the times that make a remote device stale or offline.
 //!
-//! Every number and list a user types here is bounded (see the constants), and every
-//! endpoint is parsed by Zenoh itself at check time, so a bad one is named before anything
-//! opens. Nothing here opens a socket: [`crate::Node::start`] does.
+//! Every number and list a user types here is bounded (see the constants; NaN and the
+//! infinities are named as such), and every endpoint is parsed by Zenoh itself at check
+//! time and its address checked — an IP address parsed strictly, the port in range, a host
+//! name resolved ([`check_address`]) — so a bad one is named before anything opens.
+//! Nothing here opens a socket: [`crate::Node::start`] does.
 
+use device_interface::text::{Cut, Number, Quoted, non_finite};
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
@@ -162,8 +165,11 @@ pub struct Times {
 /// Bounds of the times, ms.
 const TIME_MS: (f64, f64) = (1.0, 3_600_000.0);
 
+/// A time in ms as a duration, moved into [`TIME_MS`] (NaN, which [`ZenohConfig::check`]
+/// refuses, counts as `default`: nothing here panics).
 fn ms(v: Option<f64>, default: f64) -> Duration {
-    Duration::from_secs_f64(v.unwrap_or(default).clamp(TIME_MS.0, TIME_MS.1) / 1000.0)
+    let v = v.filter(|v| !v.is_nan()).unwrap_or(default);
+    Duration::from_secs_f64(v.clamp(TIME_MS.0, TIME_MS.1) / 1000.0)
 }
 
 /// True when `s` can be one chunk of a key expression and a gateway name: letters,
@@ -215,8 +221,8 @@ impl ZenohConfig {
             bad(
                 "name",
                 format!(
-                    "{:?} cannot name a gateway: use 1 to {MAX_NAME} letters, digits, '_' or '-'",
-                    self.name
+                    "{} cannot name a gateway: use 1 to {MAX_NAME} letters, digits, '_' or '-'",
+                    Quoted(&self.name)
                 ),
             );
         }
@@ -225,7 +231,7 @@ impl ZenohConfig {
                 bad(key, format!("at most {MAX_ENDPOINTS} endpoints"));
             }
             for (i, e) in list.iter().enumerate() {
-                if let Err(m) = self.endpoint(e) {
+                if let Err(m) = self.endpoint(e, key == "listen") {
                     bad(&format!("{key}[{i}]"), m);
                 }
             }
@@ -244,6 +250,7 @@ impl ZenohConfig {
                     .into(),
             );
         }
+        let mut times_ok = true;
         for (key, v) in [
             ("publish_ms", self.publish_ms),
             ("stale_ms", self.stale_ms),
@@ -251,17 +258,22 @@ impl ZenohConfig {
             ("lease_ms", self.lease_ms),
             ("request_timeout_ms", self.request_timeout_ms),
         ] {
-            if let Some(v) = v
-                && !(TIME_MS.0..=TIME_MS.1).contains(&v)
-            {
-                bad(
-                    key,
-                    format!("{v} ms is outside {} ..= {} ms", TIME_MS.0, TIME_MS.1),
-                );
-            }
+            let Some(v) = v else { continue };
+            let why = match non_finite(v) {
+                Some(why) => format!("{why}: give {} ..= {} ms", TIME_MS.0, TIME_MS.1),
+                None if !(TIME_MS.0..=TIME_MS.1).contains(&v) => format!(
+                    "{} ms is outside {} ..= {} ms",
+                    Number(v),
+                    TIME_MS.0,
+                    TIME_MS.1
+                ),
+                None => continue,
+            };
+            times_ok = false;
+            bad(key, why);
         }
         let t = self.times();
-        if t.stale > t.offline {
+        if times_ok && t.stale > t.offline {
             bad(
                 "stale_ms",
                 format!(
@@ -296,7 +308,8 @@ impl ZenohConfig {
                 bad(
                     &format!("export[{i}]"),
                     format!(
-                        "{e:?} cannot be published (no '*', '$', '?', '#', white space or empty parts)"
+                        "{} cannot be published (no '*', '$', '?', '#', white space or empty parts)",
+                        Quoted(e)
                     ),
                 );
             }
@@ -313,14 +326,14 @@ impl ZenohConfig {
             if !is_gateway_name(&im.gateway) {
                 bad(
                     &format!("{at}.gateway"),
-                    format!("{:?} cannot name a gateway", im.gateway),
+                    format!("{} cannot name a gateway", Quoted(&im.gateway)),
                 );
             } else if im.gateway == self.name {
                 bad(
                     &format!("{at}.gateway"),
                     format!(
-                        "{:?} is this gateway: use the device's own name",
-                        im.gateway
+                        "{} is this gateway: use the device's own name",
+                        Quoted(&im.gateway)
                     ),
                 );
             }
@@ -328,9 +341,9 @@ impl ZenohConfig {
                 bad(
                     &format!("{at}.device"),
                     format!(
-                        "{:?} cannot be a remote device's name (no '*', '$', '?', '#', \
+                        "{} cannot be a remote device's name (no '*', '$', '?', '#', \
                          white space or empty parts)",
-                        im.device
+                        Quoted(&im.device)
                     ),
                 );
             }
@@ -342,7 +355,7 @@ impl ZenohConfig {
                     &at,
                     format!(
                         "{} is imported twice (first as import[{j}])",
-                        im.local_name()
+                        Cut(&im.local_name())
                     ),
                 );
             }
@@ -373,24 +386,137 @@ impl ZenohConfig {
         }
     }
 
-    /// Endpoint `e` parsed by Zenoh, and one this build can use.
-    fn endpoint(&self, e: &str) -> Result<(), String> {
+    /// Endpoint `e` parsed by Zenoh, one this build can use, and its address one that
+    /// can be reached (`listen`: one to listen on, where port 0 picks a free port).
+    fn endpoint(&self, e: &str, listen: bool) -> Result<(), String> {
+        let shown = Quoted(e);
         let ep = zenoh::config::EndPoint::from_str(e).map_err(|err| {
             format!(
-                "{e:?} is not a Zenoh endpoint ({}); e.g. \"tcp/127.0.0.1:7447\"",
+                "{shown} is not a Zenoh endpoint ({}); e.g. \"tcp/127.0.0.1:7447\"",
                 error_text(&err.to_string())
             )
         })?;
         match ep.protocol().as_str() {
-            "tcp" => Ok(()),
-            "tls" if self.tls.is_some() => Ok(()),
-            "tls" => Err(format!(
-                "{e:?} is a TLS endpoint: give [zenoh.tls] root_ca (and cert, key to listen)"
-            )),
-            p => Err(format!(
-                "{e:?}: this build speaks tcp and tls, not {p:?}; a router can bridge to others"
-            )),
+            "tcp" => {}
+            "tls" if self.tls.is_some() => {}
+            "tls" => {
+                return Err(format!(
+                    "{shown} is a TLS endpoint: give [zenoh.tls] root_ca (and cert, key to listen)"
+                ));
+            }
+            p => {
+                return Err(format!(
+                    "{shown}: this build speaks tcp and tls, not {}; a router can bridge to others",
+                    Quoted(p)
+                ));
+            }
         }
+        check_address(ep.address().as_str(), listen).map_err(|err| format!("{shown}: {err}"))
+    }
+}
+
+/// Why the `host:port` of a `tcp/` or `tls/` endpoint cannot be reached.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
+pub enum AddressError {
+    /// No `:port` after the host.
+    #[error("expected host:port (e.g. 127.0.0.1:7447, [::1]:7447, gw-b.local:7447)")]
+    NoPort,
+    /// A port that is not a number in range.
+    #[error("port {port}: expected {lowest} to 65535")]
+    Port {
+        /// The port as written (cut when long).
+        port: String,
+        /// The lowest port accepted (0 to listen: a free port is picked).
+        lowest: u16,
+    },
+    /// Nothing before the port.
+    #[error("no host before the port")]
+    NoHost,
+    /// A host of numbers and dots that is not an IPv4 address.
+    #[error("{0} is not an IPv4 address (four numbers 0 to 255, e.g. 127.0.0.1)")]
+    Ipv4(String),
+    /// A host in brackets that is not an IPv6 address.
+    #[error("[{0}] is not an IPv6 address (e.g. [::1]:7447)")]
+    Ipv6(String),
+    /// An IPv6 address without brackets.
+    #[error("an IPv6 address is written in brackets before the port: [{0}]:port")]
+    Unbracketed(String),
+    /// A host name with characters no host name has.
+    #[error("{0} is not a host name (letters, digits, '-' and '.')")]
+    HostName(String),
+    /// A host name the system's resolver does not know.
+    #[error("host {host} does not resolve: {reason}")]
+    Unresolved {
+        /// The host (cut when long).
+        host: String,
+        /// The resolver's answer.
+        reason: String,
+    },
+}
+
+/// Checks the `host:port` address of a `tcp/` or `tls/` endpoint: the port 1 to 65535
+/// (0 too when `listen`: a free port is picked); an IP address parsed strictly (a host
+/// whose last part is a number must be an IPv4 address; an IPv6 one is in brackets); a
+/// host name resolved now with the system's resolver (`getaddrinfo`), so a name that does
+/// not resolve is found by `hwgw check`, not by a link that never comes up.
+pub fn check_address(address: &str, listen: bool) -> Result<(), AddressError> {
+    let (host, port) = address.rsplit_once(':').ok_or(AddressError::NoPort)?;
+    let lowest = u16::from(!listen);
+    let port = match port.parse::<u16>() {
+        Ok(p) if p >= lowest && port.bytes().all(|b| b.is_ascii_digit()) => p,
+        _ => {
+            return Err(AddressError::Port {
+                port: Cut(port).to_string(),
+                lowest,
+            });
+        }
+    };
+    if host.is_empty() {
+        return Err(AddressError::NoHost);
+    }
+    if let Some(inner) = host.strip_prefix('[').and_then(|h| h.strip_suffix(']')) {
+        // A link-local address may name its interface: [fe80::1%eth0].
+        let (ip, scope) = inner.split_once('%').unwrap_or((inner, "x"));
+        return match ip.parse::<std::net::Ipv6Addr>() {
+            Ok(_) if !scope.is_empty() => Ok(()),
+            _ => Err(AddressError::Ipv6(Cut(inner).to_string())),
+        };
+    }
+    if host.contains(':') {
+        return Err(AddressError::Unbracketed(Cut(host).to_string()));
+    }
+    let last = host.rsplit('.').next().unwrap_or(host);
+    if !last.is_empty() && last.bytes().all(|b| b.is_ascii_digit()) {
+        return host
+            .parse::<std::net::Ipv4Addr>()
+            .map(|_| ())
+            .map_err(|_| AddressError::Ipv4(Cut(host).to_string()));
+    }
+    let label_ok = |l: &str| {
+        (1..=63).contains(&l.len())
+            && !l.starts_with('-')
+            && !l.ends_with('-')
+            && l.bytes()
+                .all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_')
+    };
+    let name = host.strip_suffix('.').unwrap_or(host);
+    if name.len() > 253 || !name.split('.').all(label_ok) {
+        return Err(AddressError::HostName(Quoted(host).to_string()));
+    }
+    match std::net::ToSocketAddrs::to_socket_addrs(&(host, port)).map(|mut a| a.next()) {
+        Ok(Some(_)) => Ok(()),
+        Ok(None) => Err(AddressError::Unresolved {
+            host: host.to_string(),
+            reason: "no address".into(),
+        }),
+        Err(e) => Err(AddressError::Unresolved {
+            host: host.to_string(),
+            reason: e
+                .to_string()
+                .trim_start_matches("failed to lookup address information: ")
+                .to_string(),
+        }),
     }
 }
 
@@ -399,4 +525,109 @@ pub fn error_text(e: &str) -> &str {
     e.split_once(" at /")
         .map_or(e, |(text, _)| text)
         .trim_end_matches(':')
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, reason = "test code")]
+    use super::*;
+
+    fn section(extra: &str) -> ZenohConfig {
+        toml::from_str(&format!(
+            "name = \"A\"\nlisten = [\"tcp/127.0.0.1:7447\"]\n{extra}"
+        ))
+        .unwrap()
+    }
+
+    #[test]
+    fn times_that_are_not_numbers_are_named_and_never_panic() {
+        for key in [
+            "publish_ms",
+            "stale_ms",
+            "offline_ms",
+            "lease_ms",
+            "request_timeout_ms",
+        ] {
+            for (v, want) in [
+                ("nan", "is NaN: give 1 ..= 3600000 ms"),
+                ("inf", "is infinite: give 1 ..= 3600000 ms"),
+                ("-inf", "is infinite: give 1 ..= 3600000 ms"),
+                ("1e308", "1e308 ms is outside 1 ..= 3600000 ms"),
+            ] {
+                let c = section(&format!("{key} = {v}"));
+                assert_eq!(
+                    c.check(Path::new(".")),
+                    vec![(key.to_string(), want.to_string())],
+                    "{key} = {v}"
+                );
+                // What a caller that skipped the check gets: bounded times, no panic.
+                let t = c.times();
+                assert!(t.publish >= Duration::from_millis(1), "{key} = {v}");
+            }
+        }
+    }
+
+    #[test]
+    fn addresses_parse_strictly_and_resolve() {
+        for ok in [
+            "127.0.0.1:7447",
+            "[::1]:7447",
+            "[fe80::1%eth0]:7447",
+            "localhost:7447",
+        ] {
+            assert_eq!(check_address(ok, false), Ok(()), "{ok}");
+        }
+        assert_eq!(
+            check_address("127.0.0.1:0", true),
+            Ok(()),
+            "listen on a free port"
+        );
+        for (bad, want) in [
+            (
+                "999.1.1.1:7447",
+                "999.1.1.1 is not an IPv4 address (four numbers 0 to 255, e.g. 127.0.0.1)",
+            ),
+            ("1.2.3:7447", "1.2.3 is not an IPv4 address"),
+            ("0x7f.1:7447", "0x7f.1 is not an IPv4 address"),
+            ("127.0.0.1:99999", "port 99999: expected 1 to 65535"),
+            ("127.0.0.1:0", "port 0: expected 1 to 65535"),
+            ("127.0.0.1:+80", "port +80: expected 1 to 65535"),
+            ("127.0.0.1", "expected host:port"),
+            (":7447", "no host before the port"),
+            ("[::g]:7447", "[::g] is not an IPv6 address"),
+            ("::1:7447", "an IPv6 address is written in brackets"),
+            ("a b:7447", "\"a b\" is not a host name"),
+            (
+                "nosuchhost.invalid:7447",
+                "host nosuchhost.invalid does not resolve: ",
+            ),
+        ] {
+            let e = check_address(bad, false).unwrap_err().to_string();
+            assert!(e.starts_with(want), "{bad}: {e}");
+        }
+        let long = format!("127.0.0.1:{}", "9".repeat(200));
+        let e = check_address(&long, true).unwrap_err().to_string();
+        assert!(e.len() < 150 && e.contains("… (200 characters)"), "{e}");
+    }
+
+    #[test]
+    fn endpoints_that_cannot_be_reached_are_refused() {
+        let c = section("connect = [\"tcp/999.1.1.1:7447\", \"tcp/127.0.0.1:99999\"]");
+        let got = c.check(Path::new("."));
+        assert_eq!(
+            got,
+            vec![
+                (
+                    "connect[0]".to_string(),
+                    "\"tcp/999.1.1.1:7447\": 999.1.1.1 is not an IPv4 address (four numbers 0 \
+                     to 255, e.g. 127.0.0.1)"
+                        .to_string()
+                ),
+                (
+                    "connect[1]".to_string(),
+                    "\"tcp/127.0.0.1:99999\": port 99999: expected 1 to 65535".to_string()
+                ),
+            ]
+        );
+    }
 }

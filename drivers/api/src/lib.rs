@@ -55,6 +55,7 @@
 mod card;
 mod context;
 mod names;
+pub mod node;
 mod server;
 
 pub use card::{Card, CardStatus, ReadBack, fd_bus, periodic_bus};

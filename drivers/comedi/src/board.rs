@@ -421,16 +421,21 @@ impl Daq for Board {
     }
 }
 
-/// Checks that `path` is a comedi character device.
+/// comedi's character-device major number in the kernel (`COMEDI_MAJOR`), for when the
+/// module is not loaded to say so in `/proc/devices`.
+pub const COMEDI_MAJOR: u64 = 98;
+
+/// Checks that `path` is a comedi character device, from `stat` (nothing opened): the
+/// wrong kind of file is named as such whether or not comedi is loaded.
 fn check_device(path: &str) -> Result<(), ComediError> {
-    use std::os::unix::fs::{FileTypeExt, MetadataExt};
+    use driver_api::node::Node;
     let refuse = |code: i32, message: String| ComediError {
         call: "comedi_open",
         path: path.escape_debug().to_string(),
         code,
         message,
     };
-    let meta = std::fs::metadata(path).map_err(|e| {
+    let node = Node::of(std::path::Path::new(path)).map_err(|e| {
         let text = e.to_string();
         let text = text
             .split(" (os error")
@@ -439,18 +444,24 @@ fn check_device(path: &str) -> Result<(), ComediError> {
             .to_string();
         refuse(e.raw_os_error().unwrap_or(0), text)
     })?;
-    let Some(comedi) = comedi_major() else {
+    let loaded = comedi_major();
+    let comedi = loaded.unwrap_or(COMEDI_MAJOR);
+    match node {
+        Node::Char { major, .. } if major == comedi => {}
+        other => {
+            return Err(refuse(
+                libc_errno::ENODEV,
+                format!(
+                    "not a comedi device: it is {other} (comedi's are character devices of \
+                     major {comedi}, /dev/comediN)"
+                ),
+            ));
+        }
+    }
+    if loaded.is_none() {
         return Err(refuse(
             libc_errno::ENODEV,
             "the comedi driver is not loaded (no comedi in /proc/devices)".into(),
-        ));
-    };
-    let rdev = meta.rdev();
-    let major = ((rdev >> 8) & 0xfff) | ((rdev >> 32) & !0xfff);
-    if !meta.file_type().is_char_device() || major != comedi {
-        return Err(refuse(
-            libc_errno::ENODEV,
-            format!("not a comedi device (comedi's are character devices of major {comedi})"),
         ));
     }
     Ok(())

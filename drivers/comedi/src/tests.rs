@@ -521,3 +521,26 @@ fn channels_past_31_go_through_their_own_window() {
     rig.step();
     assert_eq!(rig.card.read_sequence(0, 2).unwrap(), 0b001);
 }
+
+/// A path that leads to something other than a comedi device is refused from `stat`
+/// before comedilib opens it, and named for what it is, comedi loaded or not.
+#[test]
+fn only_comedi_devices_are_opened() {
+    for (path, what) in [
+        ("/dev/null", "it is character device 1:3"),
+        ("/etc/passwd", "it is a regular file"),
+        ("/dev", "it is a directory"),
+    ] {
+        let Err(e) = crate::board::Board::open(path) else {
+            panic!("{path} opened as a comedi board");
+        };
+        let e = e.to_string();
+        assert!(
+            e.starts_with(&format!(
+                "comedi_open on {path}: not a comedi device: {what} (comedi's are character \
+                 devices of major "
+            )),
+            "{e}"
+        );
+    }
+}

@@ -385,7 +385,7 @@ fn a_missing_board_and_a_wrong_channel_are_named() -> Result<(), Failed> {
     }
     // Not a comedi device: refused before comedilib opens it.
     let e = err("device = \"/dev/null\"\nanalog_in = [{}]".into());
-    assert!(e.contains("comedi_open on /dev/null: not a comedi device (comedi's are character devices of major 98)"), "{e}");
+    assert!(e.contains("comedi_open on /dev/null: not a comedi device: it is character device 1:3 (comedi's are character devices of major 98, /dev/comediN)"), "{e}");
     let _board = ComediBoard::comedi_test(TEST_BOARD)?;
     let e = err(format!(
         "device = \"{TEST_BOARD}\"\nanalog_in = [{{ channels = [8] }}]"

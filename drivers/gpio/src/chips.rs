@@ -3,7 +3,6 @@
 
 use crate::config::LineRef;
 use gpiocdev::chip::Chip;
-use std::os::unix::fs::FileTypeExt;
 use std::path::{Path, PathBuf};
 
 /// The most chips or lines an error lists before it says "…".
@@ -52,11 +51,22 @@ impl std::fmt::Display for LineId {
 fn open(path: &Path) -> Result<(Chip, ChipId), String> {
     // gpiocdev's own check needs a file name and a character device: make sure first.
     let canonical = std::fs::canonicalize(path).map_err(|e| format!("{}: {e}", path.display()))?;
-    let meta = std::fs::metadata(&canonical).map_err(|e| format!("{}: {e}", path.display()))?;
-    if canonical.file_name().is_none() || !meta.file_type().is_char_device() {
-        return Err(format!("{}: not a GPIO character device", path.display()));
+    let node =
+        driver_api::node::Node::of(&canonical).map_err(|e| format!("{}: {e}", path.display()))?;
+    if canonical.file_name().is_none() || !matches!(node, driver_api::node::Node::Char { .. }) {
+        return Err(format!(
+            "{}: not a GPIO character device: it is {node}",
+            path.display()
+        ));
     }
-    let chip = Chip::from_path(&canonical).map_err(|e| format!("{}: {e}", path.display()))?;
+    let chip = Chip::from_path(&canonical).map_err(|e| match e {
+        gpiocdev::Error::GpioChip(..) => format!(
+            "{}: not a GPIO character device: it is {node}, which no GPIO chip has (a GPIO \
+             chip is /dev/gpiochipN)",
+            path.display()
+        ),
+        e => format!("{}: {e}", path.display()),
+    })?;
     let info = chip
         .info()
         .map_err(|e| format!("{}: {e}", path.display()))?;

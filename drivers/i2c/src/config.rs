@@ -18,6 +18,7 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
+use device_interface::text::{Number, Quoted};
 use serde::Deserialize;
 
 /// The most chips one card polls (a 7-bit bus has 112 usable addresses; a bus with more
@@ -304,6 +305,19 @@ impl I2cConfig {
                     ),
                 ));
             }
+            let pca9685 = |o: &ChipConfig| matches!(o, ChipConfig::Pca9685(_));
+            if c.address() == PCA9685_ALL_CALL
+                && !pca9685(c)
+                && let Some(j) = self.chip.iter().position(pca9685)
+            {
+                return Err(err(
+                    key("address"),
+                    format!(
+                        "{PCA9685_ALL_CALL:#04x} is the LED All Call address of the PCA9685 \
+                         chip[{j}] (on by default): it would answer this chip's transfers too"
+                    ),
+                ));
+            }
             if let Some(j) = self.chip[..i]
                 .iter()
                 .position(|o| o.address() == c.address())
@@ -343,7 +357,7 @@ impl Ina219Config {
             ("max_current_a", self.max_current_a),
         ] {
             if !(v.is_finite() && v > 0.0 && v <= 1000.0) {
-                return Err(err(key, format!("{v}; above 0 and at most 1000")));
+                return Err(err(key, format!("{}; above 0 and at most 1000", Number(v))));
             }
         }
         // The calibration register holds 2..=0xfffe (bit 0 is void).
@@ -352,8 +366,10 @@ impl Ina219Config {
             return Err(err(
                 "max_current_a",
                 format!(
-                    "{} A over {} Ω needs calibration {cal:.0}; the INA219 takes 2 to 65534",
-                    self.max_current_a, self.shunt_ohms
+                    "{} A over {} Ω needs calibration {}; the INA219 takes 2 to 65534",
+                    Number(self.max_current_a),
+                    Number(self.shunt_ohms),
+                    Number(cal.round())
                 ),
             ));
         }
@@ -361,12 +377,26 @@ impl Ina219Config {
     }
 }
 
+/// The PCA9685's LED All Call address at power-on: every PCA9685 on the bus answers it.
+pub const PCA9685_ALL_CALL: u16 = 0x70;
+
 impl Pca9685Config {
     fn check(&self) -> Result<(), ConfigError> {
+        if self.address == PCA9685_ALL_CALL {
+            return Err(err(
+                "address",
+                format!(
+                    "{PCA9685_ALL_CALL:#04x} is the PCA9685's LED All Call address (on by \
+                     default): every PCA9685 on the bus answers it, so a chip there cannot \
+                     be told from the others; give the chip's own address (0x40-0x7f by its \
+                     A5..A0 pins, not 0x70)"
+                ),
+            ));
+        }
         if !PCA9685_FREQUENCY.contains(&self.frequency_hz) {
             return Err(err(
                 "frequency_hz",
-                format!("{} Hz; between 24 and 1526", self.frequency_hz),
+                format!("{} Hz; between 24 and 1526", Number(self.frequency_hz)),
             ));
         }
         for (n, &ch) in self.channels.iter().enumerate() {
@@ -392,7 +422,10 @@ impl Mcp4725Config {
         if !MCP4725_SUPPLY.contains(&self.vref_v) {
             return Err(err(
                 "vref_v",
-                format!("{} V; the MCP4725 runs on 2.7 to 5.5 V", self.vref_v),
+                format!(
+                    "{} V; the MCP4725 runs on 2.7 to 5.5 V",
+                    Number(self.vref_v)
+                ),
             ));
         }
         if !(0.0..=self.vref_v).contains(&self.initial_v) {
@@ -400,7 +433,8 @@ impl Mcp4725Config {
                 "initial_v",
                 format!(
                     "{} V; between 0 and vref_v ({} V)",
-                    self.initial_v, self.vref_v
+                    Number(self.initial_v),
+                    Number(self.vref_v)
                 ),
             ));
         }
@@ -465,13 +499,13 @@ impl Ads1115Config {
             if !ADS1115_INPUTS.contains(&c.input.as_str()) {
                 return Err(err(
                     format!("channel[{i}].input"),
-                    format!("{:?}; one of {}", c.input, ADS1115_INPUTS.join(", ")),
+                    format!("{}; one of {}", Quoted(&c.input), ADS1115_INPUTS.join(", ")),
                 ));
             }
             if !ADS1115_RANGES.contains(&c.range_v) {
                 return Err(err(
                     format!("channel[{i}].range_v"),
-                    format!("{} V; one of {ADS1115_RANGES:?}", c.range_v),
+                    format!("{} V; one of {ADS1115_RANGES:?}", Number(c.range_v)),
                 ));
             }
         }
@@ -537,6 +571,23 @@ mod tests {
             assert_eq!(e.key, key, "{body}: {e}");
             assert!(e.message.contains(words), "{body}: {e}");
         }
+        let pwm = "bus = \"/dev/i2c-0\"\n[[chip]]\nmodel = \"pca9685\"\nfrequency_hz = 200.0\nchannels = [0]\n";
+        let e = parse(&format!("{pwm}address = 0x70")).check().unwrap_err();
+        assert_eq!(e.key, "chip[0].address");
+        assert!(
+            e.message
+                .starts_with("0x70 is the PCA9685's LED All Call address"),
+            "{e}"
+        );
+        assert_eq!(parse(&format!("{pwm}address = 0x40")).check(), Ok(()));
+        let other = format!("{pwm}address = 0x41\n[[chip]]\nmodel = \"ads1115\"\naddress = 0x70\n");
+        let e = parse(&other).check().unwrap_err();
+        assert_eq!(e.key, "chip[1].address");
+        assert!(
+            e.message
+                .contains("All Call address of the PCA9685 chip[0]"),
+            "{e}"
+        );
         let two = format!("{base}address = 0x20\n[[chip]]\nmodel = \"mcp23017\"\naddress = 0x20\n");
         assert_eq!(parse(&two).check().unwrap_err().key, "chip[1].address");
     }

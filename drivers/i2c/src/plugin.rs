@@ -178,18 +178,30 @@ mod tests {
         };
         let mut shared = HashMap::new();
         let thread = rtt::ThreadOptions::default();
-        let mut build_as = |name: &str, config: &I2cConfig| {
-            let mut ctx = CardContext::new(
-                name,
-                Duration::from_millis(10),
-                &thread,
-                Path::new("/"),
-                Arc::new(MonotonicClock),
-                &mut shared,
-            );
-            build(config, &mut ctx).map(|_| ())
+        let mut ctx = CardContext::new(
+            "n",
+            Duration::from_millis(10),
+            &thread,
+            Path::new("/"),
+            Arc::new(MonotonicClock),
+            &mut shared,
+        );
+        // /dev/null is no I2C bus: refused from its device number, never opened.
+        let Err(e) = build(&section("/dev/null", 0x60, 0x61), &mut ctx) else {
+            panic!("/dev/null taken for a bus");
         };
-        // /dev/null stands in for a bus: found by its path, never opened here.
+        assert_eq!(e.key.as_deref(), Some("bus"));
+        assert!(
+            e.message.starts_with("/dev/null is not an I2C bus"),
+            "{}",
+            e.message
+        );
+        // The claims, as `build` makes them once the bus is found: /dev/null stands in for
+        // one here.
+        let mut claimed = Claimed::default();
+        let mut build_as = |name: &str, config: &I2cConfig| {
+            claim(&mut claimed, name, Path::new(&config.bus), config)
+        };
         build_as("a", &section("/dev/null", 0x60, 0x61)).unwrap();
         // The same bus by another path.
         let Err(e) = build_as("b", &section("/dev/../dev/null", 0x62, 0x61)) else {

@@ -91,14 +91,28 @@ impl Smbus for LinuxChip {
 /// The adapters an error lists at most.
 const LISTED: usize = 16;
 
-/// The bus `spec` names: a path (anything with a `/`), else an adapter's name.
+/// The major number of i2c-dev's character devices (`/dev/i2c-N`).
+pub const I2C_DEV_MAJOR: u64 = 89;
+
+/// The bus `spec` names: a path (anything with a `/`), which must lead to an i2c-dev
+/// character device (major [`I2C_DEV_MAJOR`]; checked from `stat`, nothing opened), else
+/// an adapter's name.
 pub fn find_bus(spec: &str) -> Result<PathBuf, String> {
     if spec.contains('/') {
         let path = Path::new(spec);
-        return if path.exists() {
-            Ok(path.to_path_buf())
-        } else {
-            Err(format!("{spec}: no such I2C bus (is i2c-dev loaded?)"))
+        return match driver_api::node::Node::of(path) {
+            Ok(driver_api::node::Node::Char {
+                major: I2C_DEV_MAJOR,
+                ..
+            }) => Ok(path.to_path_buf()),
+            Ok(other) => Err(format!(
+                "{spec} is not an I2C bus: it is {other}; an i2c-dev bus is a character \
+                 device of major {I2C_DEV_MAJOR} (/dev/i2c-N)"
+            )),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                Err(format!("{spec}: no such I2C bus (is i2c-dev loaded?)"))
+            }
+            Err(e) => Err(format!("{spec}: {e}")),
         };
     }
     let mut adapters = Vec::new();

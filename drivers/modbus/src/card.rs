@@ -84,7 +84,7 @@ pub enum ReplyError {
     #[error("read {0} is not in the plan")]
     NoSuchRead(usize),
     /// Registers for a bit read or bits for a register read.
-    #[error("read {read}: the reply carries the wrong kind of data for {table:?}")]
+    #[error("read {read}: the reply carries the wrong kind of data for {table}")]
     WrongKind {
         /// The read.
         read: usize,

@@ -46,6 +46,22 @@ pub enum ValueType {
     F64,
 }
 
+impl std::fmt::Display for ValueType {
+    /// The type's name as a configuration writes it (`f32`).
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            ValueType::U16 => "u16",
+            ValueType::I16 => "i16",
+            ValueType::U32 => "u32",
+            ValueType::I32 => "i32",
+            ValueType::F32 => "f32",
+            ValueType::U64 => "u64",
+            ValueType::I64 => "i64",
+            ValueType::F64 => "f64",
+        })
+    }
+}
+
 impl ValueType {
     /// How many registers a value takes.
     pub fn registers(self) -> usize {
@@ -111,7 +127,7 @@ impl Number {
 #[non_exhaustive]
 pub enum CodecError {
     /// A reply with fewer registers than the type needs.
-    #[error("{ty:?} needs {need} registers, {got} given")]
+    #[error("{ty} needs {need} registers, {got} given")]
     Short {
         /// The type.
         ty: ValueType,
@@ -121,7 +137,7 @@ pub enum CodecError {
         got: usize,
     },
     /// A value outside what the type can hold (or NaN for an integer type).
-    #[error("{value} does not fit a {ty:?} register value")]
+    #[error("{} does not fit a {ty} register value", device_interface::text::Number(*.value))]
     OutOfRange {
         /// The type.
         ty: ValueType,
@@ -386,7 +402,7 @@ mod tests {
                 got: 2
             }
             .to_string(),
-            "F64 needs 4 registers, 2 given"
+            "f64 needs 4 registers, 2 given"
         );
     }
 }

@@ -177,6 +177,16 @@ impl ModbusConfig {
                         format!("{baud}: expected 50 to 4000000 bits per second"),
                     ));
                 }
+                // From `stat`, nothing opened; a line not plugged in yet is looked for at
+                // run.
+                if let Ok(node) = driver_api::node::Node::of(device)
+                    && let Some(why) = node.never_serial()
+                {
+                    return Err(CardError::at(
+                        "transport.device",
+                        format!("{} is not a serial port: {why}", device.display()),
+                    ));
+                }
                 Ok(Transport::Rtu(Serial {
                     device: device.clone(),
                     baud: *baud,

@@ -370,7 +370,7 @@ mod tests {
             ),
             (
                 "[[point]]\ntable = \"input_registers\"\naddress = 0\nresolution = 0.1\n",
-                "point[0].resolution: only float points have a resolution; U16 counts whole units",
+                "point[0].resolution: only float points have a resolution; u16 counts whole units",
             ),
             (
                 "[[point]]\ntable = \"input_registers\"\naddress = 0\ntype = \"f64\"\nresolution = -1.0\n",
@@ -378,7 +378,7 @@ mod tests {
             ),
             (
                 "[[point]]\ntable = \"coils\"\naddress = 0\ntype = \"u32\"\n",
-                "point[0].table: Coils hold single bits: no type, bit, scale or offset",
+                "point[0].table: coils hold single bits: no type, bit, scale or offset",
             ),
             (
                 "[[point]]\ntable = \"input_registers\"\naddress = 0\nbit = 16\n",
@@ -386,7 +386,7 @@ mod tests {
             ),
             (
                 "[[point]]\ntable = \"input_registers\"\naddress = 0\ntype = \"u32\"\nbit = 1\n",
-                "point[0].bit: a bit field needs a 16-bit type, not U32",
+                "point[0].bit: a bit field needs a 16-bit type, not u32",
             ),
             (
                 "[[point]]\ntable = \"input_registers\"\naddress = 0\nread_only = true\n",
@@ -414,7 +414,7 @@ mod tests {
             ),
             (
                 "[[point]]\ntable = \"input_registers\"\naddress = 3\n[[point]]\ntable = \"input_registers\"\naddress = 65535\ntype = \"f32\"\n",
-                "point[1].address: 65535: a F32 point of 2 registers runs past address 65535",
+                "point[1].address: 65535: a f32 point of 2 registers runs past address 65535",
             ),
         ];
         for (text, want) in cases {

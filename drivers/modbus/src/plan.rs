@@ -40,6 +40,18 @@ pub enum Table {
     HoldingRegisters,
 }
 
+impl fmt::Display for Table {
+    /// The table's name as a configuration writes it (`holding_registers`).
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Table::Coils => "coils",
+            Table::DiscreteInputs => "discrete_inputs",
+            Table::InputRegisters => "input_registers",
+            Table::HoldingRegisters => "holding_registers",
+        })
+    }
+}
+
 impl Table {
     /// The most one read may ask for: 2000 bits or 125 registers.
     pub fn max_read(self) -> u16 {

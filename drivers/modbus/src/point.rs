@@ -97,7 +97,7 @@ pub(crate) fn check(
         return Err(bad(
             "table",
             format!(
-                "{:?} hold single bits: no type, bit, scale or offset",
+                "{} hold single bits: no type, bit, scale or offset",
                 c.table
             ),
         ));
@@ -109,7 +109,7 @@ pub(crate) fn check(
         if c.ty.registers() != 1 {
             return Err(bad(
                 "bit",
-                format!("a bit field needs a 16-bit type, not {:?}", c.ty),
+                format!("a bit field needs a 16-bit type, not {}", c.ty),
             ));
         }
     }
@@ -123,7 +123,7 @@ pub(crate) fn check(
         return Err(bad(
             "address",
             format!(
-                "{}: a {:?} point of {width} {} runs past address 65535",
+                "{}: a {} point of {width} {} runs past address 65535",
                 c.address,
                 c.ty,
                 if bit_table { "bit" } else { "registers" }
@@ -177,7 +177,7 @@ pub(crate) fn check(
             return Err(bad(
                 "resolution",
                 format!(
-                    "only float points have a resolution; {:?} counts whole units",
+                    "only float points have a resolution; {} counts whole units",
                     c.ty
                 ),
             ));

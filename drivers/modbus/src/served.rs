@@ -21,6 +21,7 @@ use crate::codec::{ByteOrder, Layout, ValueType, WordOrder};
 use crate::listener::{Limits, ModbusServer};
 use crate::plan::Table;
 use crate::server::{Entry, RegisterTable, Source};
+use device_interface::text::{Number, Quoted};
 use device_interface::{Interface, Registry};
 use serde::Deserialize;
 use std::net::{SocketAddr, ToSocketAddrs};
@@ -171,11 +172,18 @@ impl ServerConfig {
         if listen.is_none() {
             problems.push(ServerConfigError {
                 key: "listen".into(),
-                message: format!("{:?}: expected address:port", self.listen),
+                message: format!("{}: expected address:port", Quoted(&self.listen)),
             });
         }
         let mut entries = Vec::new();
         for (i, r) in self.registers.iter().enumerate() {
+            if let Some(message) = r.scale_overflow() {
+                problems.push(ServerConfigError {
+                    key: format!("register[{i}].scale"),
+                    message,
+                });
+                continue;
+            }
             match r.source(registry) {
                 Ok(source) => entries.push(Entry {
                     table: r.table,
@@ -278,26 +286,70 @@ impl driver_api::Server for TableServer {
 }
 
 impl ServedRegister {
+    /// What is wrong with a scale and offset whose arithmetic overflows, if they do: a
+    /// written register value becomes `value × scale + offset`, which for the largest
+    /// value of an integer (or f32) register must still be a number.
+    fn scale_overflow(&self) -> Option<String> {
+        let largest = match self.ty {
+            ValueType::U16 => f64::from(u16::MAX),
+            ValueType::I16 => -f64::from(i16::MIN),
+            ValueType::U32 => f64::from(u32::MAX),
+            ValueType::I32 => -f64::from(i32::MIN),
+            ValueType::U64 => u64::MAX as f64,
+            ValueType::I64 => -(i64::MIN as f64),
+            ValueType::F32 => f64::from(f32::MAX),
+            // Any factor above 1 overflows at the f64's own extremes: a client writing
+            // one gets the device's range error.
+            ValueType::F64 => return None,
+        };
+        let reach = largest * self.scale.abs() + self.offset.abs();
+        if self.table.is_bits() || reach.is_finite() {
+            return None;
+        }
+        Some(format!(
+            "scale {} and offset {} overflow: a {} register's largest value, {}, times the \
+             scale plus the offset is beyond the largest number (about 1.8e308)",
+            Number(self.scale),
+            Number(self.offset),
+            self.ty,
+            Number(largest)
+        ))
+    }
+
     /// The device channel this entry serves; errors are (key, message).
     fn source(&self, registry: &Registry) -> Result<Source, (&'static str, String)> {
         let ch = self.channel;
-        let found = match self.interface {
-            Interface::AnalogIn => registry
-                .analog_in()
-                .lookup(&self.device)
-                .map(|d| Source::AnalogIn(d, ch)),
-            Interface::AnalogOut => registry
-                .analog_out()
-                .lookup(&self.device)
-                .map(|d| Source::AnalogOut(d, ch)),
-            Interface::DigitalIn => registry
-                .digital_in()
-                .lookup(&self.device)
-                .map(|d| Source::DigitalIn(d, ch)),
-            Interface::DigitalOut => registry
-                .digital_out()
-                .lookup(&self.device)
-                .map(|d| Source::DigitalOut(d, ch)),
+        let missing = |e: device_interface::RegistryError| ("device", e.to_string());
+        let (source, count, what) = match self.interface {
+            Interface::AnalogIn => {
+                let d = registry.analog_in().lookup(&self.device).map_err(missing)?;
+                let n = d.channel_count();
+                (Source::AnalogIn(d, ch), n, "analog inputs")
+            }
+            Interface::AnalogOut => {
+                let d = registry
+                    .analog_out()
+                    .lookup(&self.device)
+                    .map_err(missing)?;
+                let n = d.channel_count();
+                (Source::AnalogOut(d, ch), n, "analog outputs")
+            }
+            Interface::DigitalIn => {
+                let d = registry
+                    .digital_in()
+                    .lookup(&self.device)
+                    .map_err(missing)?;
+                let n = d.input_count();
+                (Source::DigitalIn(d, ch), n, "digital inputs")
+            }
+            Interface::DigitalOut => {
+                let d = registry
+                    .digital_out()
+                    .lookup(&self.device)
+                    .map_err(missing)?;
+                let n = d.output_count();
+                (Source::DigitalOut(d, ch), n, "digital outputs")
+            }
             Interface::Encoder => {
                 return Err((
                     "interface",
@@ -305,7 +357,20 @@ impl ServedRegister {
                 ));
             }
         };
-        found.map_err(|e| ("device", e.to_string()))
+        if ch >= count {
+            let have = match count {
+                0 => String::new(),
+                n => format!(": 0..={}", n - 1),
+            };
+            return Err((
+                "channel",
+                format!(
+                    "channel {ch} does not exist: {} has {count} {what}{have}",
+                    Quoted(&self.device)
+                ),
+            ));
+        }
+        Ok(source)
     }
 }
 

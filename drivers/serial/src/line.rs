@@ -74,6 +74,31 @@ pub fn check_serial(path: &str) -> io::Result<()> {
     }
 }
 
+/// What `hwgw check` can tell of a port from `stat`, without opening it (opening one
+/// raises DTR and resets an Arduino): nothing at the path yet is fine (a board unplugged
+/// now is looked for again at run); anything there must be a character device that can
+/// be a serial line ([`Node::never_serial`](driver_api::node::Node::never_serial): not a
+/// memory device, a virtual console, `/dev/tty` or `/dev/console`) and, where
+/// `/proc/tty/drivers` says, one that a serial tty driver owns ([`check_serial`], as
+/// opening it checks).
+pub fn check_port(path: &str) -> io::Result<()> {
+    use driver_api::node::Node;
+    let node = match Node::of(std::path::Path::new(path)) {
+        Err(e) if e.kind() == io::ErrorKind::NotFound => return Ok(()),
+        Err(e) => return Err(io::Error::new(e.kind(), format!("{path}: {e}"))),
+        Ok(n) => n,
+    };
+    if let Some(what) = node.never_serial() {
+        return Err(io::Error::other(format!(
+            "{path} is not a serial port: {what}"
+        )));
+    }
+    if std::path::Path::new("/proc/tty/drivers").exists() {
+        check_serial(path)?;
+    }
+    Ok(())
+}
+
 /// Opens a real serial port (8N1, no flow control, exclusive: a second program cannot open
 /// it while hwgw has it), once [`check_serial`] says it is one.
 pub fn open_port(path: &str, baud: u32) -> io::Result<Box<dyn Line>> {

@@ -33,6 +33,7 @@ pub fn build(
     ctx: &mut CardContext<'_>,
 ) -> Result<Box<dyn Card>, CardError> {
     config.check()?;
+    crate::line::check_port(&config.port).map_err(|e| CardError::at("port", e.to_string()))?;
     let card = Arc::new(FirmataCard::new(config, ctx.clock()).map_err(CardError::new)?);
     let port = std::fs::canonicalize(&config.port)
         .map(|p| p.to_string_lossy().into_owned())

@@ -501,4 +501,39 @@ fn only_serial_ports_are_opened() {
     let (_master, slave) = mio_serial::SerialStream::pair().unwrap();
     let path = mio_serial::SerialPort::name(&slave).unwrap();
     crate::line::check_serial(&path).unwrap();
+    crate::line::check_port(&path).unwrap();
+}
+
+/// What `hwgw check` refuses of a port from its device number alone (nothing is opened:
+/// that would reset an Uno); a port not there yet is a board not plugged in yet.
+#[test]
+fn ports_that_can_never_be_serial_lines_are_refused_before_opening() {
+    for (path, why) in [
+        (
+            "/dev/null",
+            "/dev/null is not a serial port: it is a memory device (1:3",
+        ),
+        (
+            "/dev/zero",
+            "/dev/zero is not a serial port: it is a memory device (1:5",
+        ),
+        (
+            "/dev/tty",
+            "/dev/tty is not a serial port: it is /dev/tty, the controlling terminal (5:0)",
+        ),
+        (
+            "/etc/passwd",
+            "/etc/passwd is not a serial port: it is a regular file, not a character device",
+        ),
+        (
+            "/dev",
+            "/dev is not a serial port: it is a directory, not a character device",
+        ),
+    ] {
+        let e = crate::line::check_port(path).unwrap_err().to_string();
+        assert!(e.starts_with(why), "{e}");
+    }
+    // Virtual consoles and the console by their numbers: see driver_api::node's tests
+    // (a machine may lack the nodes).
+    crate::line::check_port("/nonexistent/ttyACM0").unwrap();
 }

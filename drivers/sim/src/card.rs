@@ -5,6 +5,7 @@ use crate::record::{OutputEvent, OutputRecord, OutputWrite};
 use arc_swap::ArcSwapOption;
 use device_interface::bits::{BitImage, BitSpan};
 use device_interface::encoder::EncoderCounter;
+use device_interface::text::Number;
 use device_interface::time::{Clock, Timestamp};
 use device_interface::{
     AnalogIn, AnalogOut, CardDevices, Device, DeviceError, DigitalIn, DigitalOut, Encoder, Health,
@@ -191,7 +192,7 @@ impl SimCard {
                 None => scale.to_raw_saturating(0.0),
                 Some(v) => scale.to_raw(v).ok_or_else(|| SimConfigError::Invalid {
                     path: format!("{path}.initial"),
-                    problem: format!("{v} is outside the range {:?}", scale.range()),
+                    problem: format!("{} is outside the range {}", Number(v), scale.range()),
                 })?,
             };
             for _ in 0..group.count {
@@ -244,12 +245,7 @@ impl SimCard {
             if let Some(ch) = e.velocity_from {
                 check_ao(format!("{path}.velocity_from"), ch)?;
             }
-            if !e.counts_per_unit.is_finite() {
-                return Err(SimConfigError::Invalid {
-                    path: format!("{path}.counts_per_unit"),
-                    problem: format!("{} is not a finite number", e.counts_per_unit),
-                });
-            }
+            check_speed(&path, e, &ao)?;
             encoders.push(SimEncoderState {
                 counter,
                 velocity_from: e.velocity_from,
@@ -306,6 +302,50 @@ fn group_scale(
     })
 }
 
+/// The fastest an encoder may count, counts per second: a day of motion (the longest
+/// card period, so the most one step can move it) still fits the counter's 64 bits.
+pub const MAX_COUNTS_PER_S: f64 = i64::MAX as f64 / 86_400.0;
+
+/// Checks that encoder `e`'s motion is arithmetic that fits: `counts_per_unit` finite,
+/// and the fastest it moves — the largest value of its velocity output times
+/// `counts_per_unit` — within [`MAX_COUNTS_PER_S`] (beyond, a step's motion would
+/// saturate the count and the turns with it).
+fn check_speed(
+    path: &str,
+    e: &crate::config::EncoderConfig,
+    ao: &[AnalogOutChannel],
+) -> Result<(), SimConfigError> {
+    let invalid = |problem: String| SimConfigError::Invalid {
+        path: format!("{path}.counts_per_unit"),
+        problem,
+    };
+    let k = e.counts_per_unit;
+    if let Some(why) = device_interface::text::non_finite(k) {
+        return Err(invalid(format!("{why}: give a finite number")));
+    }
+    let Some(out) = e.velocity_from.and_then(|ch| ao.get(ch as usize)) else {
+        return Ok(());
+    };
+    let r = out.scale.range();
+    let fastest = r.lowest.abs().max(r.highest.abs()) * k.abs();
+    // Finite factors: no NaN here (an overflow is infinite, and too fast).
+    if fastest > MAX_COUNTS_PER_S {
+        let speed = if fastest.is_finite() {
+            format!("up to {} counts/s", Number(fastest))
+        } else {
+            "more counts/s than any number".to_string()
+        };
+        return Err(invalid(format!(
+            "{} counts/s per unit: over the velocity output's range {r} that is {speed}; \
+             an encoder counts at most {} counts/s (a day of motion must fit its 64-bit \
+             counter)",
+            Number(k),
+            Number(MAX_COUNTS_PER_S.floor())
+        )));
+    }
+    Ok(())
+}
+
 fn check_waveform(
     path: &str,
     w: &Waveform,
@@ -315,11 +355,20 @@ fn check_waveform(
         path: format!("{path}.{key}"),
         problem,
     };
-    let finite = |key: &str, v: f64| {
+    let finite = |key: &str, v: f64| match device_interface::text::non_finite(v) {
+        None => Ok(()),
+        Some(why) => Err(invalid(key, format!("{why}: give a finite number"))),
+    };
+    // Sums and spans of finite numbers can still be beyond f64: every sample would then
+    // be infinite or NaN.
+    let fits = |key: &str, what: &str, v: f64| {
         if v.is_finite() {
             Ok(())
         } else {
-            Err(invalid(key, format!("{v} is not a finite number")))
+            Err(invalid(
+                key,
+                format!("{what} overflows (beyond the largest number, about 1.8e308)"),
+            ))
         }
     };
     match *w {
@@ -336,10 +385,19 @@ fn check_waveform(
             if !(frequency.is_finite() && frequency >= 0.0) {
                 return Err(invalid(
                     "frequency",
-                    format!("{frequency} Hz: expected a frequency >= 0"),
+                    format!("{} Hz: expected a frequency >= 0", Number(frequency)),
                 ));
             }
-            Ok(())
+            fits(
+                "amplitude",
+                "|offset| + |amplitude|",
+                offset.abs() + amplitude.abs(),
+            )?;
+            fits(
+                "frequency",
+                "2π × frequency",
+                std::f64::consts::TAU * frequency,
+            )
         }
         Waveform::Ramp { from, to, period } => {
             finite("from", from)?;
@@ -347,14 +405,19 @@ fn check_waveform(
             if !(period.is_finite() && period > 0.0) {
                 return Err(invalid(
                     "period",
-                    format!("{period} s: expected a period > 0"),
+                    format!("{} s: expected a period > 0", Number(period)),
                 ));
             }
-            Ok(())
+            fits("to", "to - from", to - from)
         }
         Waveform::Noise { mean, amplitude } => {
             finite("mean", mean)?;
-            finite("amplitude", amplitude)
+            finite("amplitude", amplitude)?;
+            fits(
+                "amplitude",
+                "|mean| + |amplitude|",
+                mean.abs() + amplitude.abs(),
+            )
         }
         Waveform::Loopback { analog_out } => check_ao(format!("{path}.analog_out"), analog_out),
     }

@@ -415,10 +415,42 @@ fn bad_configs_name_the_key() {
             "[[encoder]]\nresolution = 10\nvelocity_from = 0",
             "encoder[0].velocity_from: analog output 0 does not exist (the card has 0 analog outputs)",
         ),
+        // Arithmetic that would overflow: refused, not saturated or NaN at run time.
+        (
+            "[[analog_out]]\nrange = { lowest = -10.0, highest = 10.0 }\n[[encoder]]\nresolution = 4096\nvelocity_from = 0\ncounts_per_unit = 1e308",
+            "encoder[0].counts_per_unit: 1e308 counts/s per unit: over the velocity output's range [-10, 10] that is more counts/s than any number",
+        ),
+        (
+            "[[analog_out]]\nrange = { lowest = -10.0, highest = 10.0 }\n[[encoder]]\nresolution = 4096\nvelocity_from = 0\ncounts_per_unit = 1e14",
+            "encoder[0].counts_per_unit: 100000000000000 counts/s per unit: over the velocity output's range [-10, 10] that is up to 1e15 counts/s; an encoder counts at most 106751991167300 counts/s",
+        ),
+        (
+            "[[encoder]]\nresolution = 4096\ncounts_per_unit = nan",
+            "encoder[0].counts_per_unit: is NaN: give a finite number",
+        ),
+        (
+            "[[analog_in]]\nrange = { lowest = -1.7e308, highest = 1.7e308 }\nwaveform = { kind = \"constant\", value = 1.0 }",
+            "analog_in[0].range: physical range [-1.7e308, 1.7e308] is too wide",
+        ),
+        (
+            "[[analog_in]]\nrange = { lowest = 0.0, highest = 1.0 }\nwaveform = { kind = \"sine\", amplitude = 1e308, offset = 1e308, frequency = 1.0 }",
+            "analog_in[0].waveform.amplitude: |offset| + |amplitude| overflows",
+        ),
+        (
+            "[[analog_in]]\nrange = { lowest = 0.0, highest = 1.0 }\nwaveform = { kind = \"noise\", mean = -1e308, amplitude = 1e308 }",
+            "analog_in[0].waveform.amplitude: |mean| + |amplitude| overflows",
+        ),
+        (
+            "[[analog_in]]\nrange = { lowest = 0.0, highest = 1.0 }\nwaveform = { kind = \"sine\", amplitude = 1.0, frequency = 1e308 }",
+            "analog_in[0].waveform.frequency: 2π × frequency overflows",
+        ),
     ];
     for (text, want) in cases {
         let config: SimConfig = toml::from_str(text).unwrap();
-        let err: SimConfigError = SimCard::new(&config, clock()).err().unwrap();
+        let err: SimConfigError = match SimCard::new(&config, clock()) {
+            Err(e) => e,
+            Ok(_) => panic!("{text}: accepted"),
+        };
         assert!(err.to_string().starts_with(want), "got {err}\nwant {want}");
     }
 }

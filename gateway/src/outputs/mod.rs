@@ -199,7 +199,10 @@ fn analog_outputs(
                 };
                 problems.push((
                     key,
-                    format!("{x}: not a safe value for analog output {port:?}: {e}"),
+                    format!(
+                        "{}: not a safe value for analog output {port:?}: {e}",
+                        crate::checks::number(x)
+                    ),
                 ));
             }
             Output::new(port, policy)
@@ -300,7 +303,7 @@ impl CardOutputs {
             Some(ms) => {
                 problems.push((
                     "outputs.watchdog_ms".into(),
-                    format!("{ms}: expected 1 to 86400000 ms"),
+                    format!("{}: expected 1 to 86400000 ms", crate::checks::number(ms)),
                 ));
                 None
             }

@@ -129,6 +129,13 @@ impl Component for McapRecorder {
             ));
         }
         crate::checks::new_file(Path::new(&file)).map_err(HookError::new)?;
+        let buffer = self.buffer.get();
+        if !(1..=super::taps::MAX_BUFFER).contains(&(buffer as usize)) {
+            return Err(HookError::new(format!(
+                "buffer {buffer}: expected 1 to {} samples a port may hold",
+                super::taps::MAX_BUFFER
+            )));
+        }
         if !(1..=MAX_MB).contains(&self.max_mb.get()) {
             return Err(HookError::new(format!(
                 "max_mb {}: expected 1 to {MAX_MB}",

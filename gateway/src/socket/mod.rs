@@ -76,6 +76,14 @@ pub enum SocketError {
         /// The directory.
         dir: PathBuf,
     },
+    /// A client was pointed at something that is not a socket (a file, a directory).
+    #[error("{path} is not a socket (it is {kind}): give the control socket of a running hwgw")]
+    NotASocketToTalkTo {
+        /// The path.
+        path: PathBuf,
+        /// What is there: "a regular file", "a directory", ….
+        kind: &'static str,
+    },
     /// The path has no file name to bind.
     #[error("{path}: not a file path (a socket needs a name in a directory)")]
     NoName {
@@ -246,14 +254,34 @@ impl Bound {
     }
 }
 
-/// A client's check before it talks: the socket must belong to this user, root or the
-/// service user (another user's socket could answer anything).
+/// A client's check before it talks: a socket is at the path (not a file: connecting to
+/// one says only "connection refused"), and it belongs to this user, root or the service
+/// user (another user's socket could answer anything).
 pub fn check_owner(path: &Path) -> Result<(), SocketError> {
+    use std::os::unix::fs::FileTypeExt;
     let m = match std::fs::metadata(path) {
         Ok(m) => m,
         // Connecting will say what is wrong.
         Err(_) => return Ok(()),
     };
+    let t = m.file_type();
+    if !t.is_socket() {
+        let kind = if t.is_file() {
+            "a regular file"
+        } else if t.is_dir() {
+            "a directory"
+        } else if t.is_fifo() {
+            "a FIFO"
+        } else if t.is_char_device() || t.is_block_device() {
+            "a device"
+        } else {
+            "something else"
+        };
+        return Err(SocketError::NotASocketToTalkTo {
+            path: path.to_path_buf(),
+            kind,
+        });
+    }
     let owner = m.uid();
     if trusted(owner) {
         Ok(())
