@@ -12,10 +12,10 @@ const CONFIG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../config/i2c.toml");
 
 fn hwgw_gets_sets_and_leaves_the_outputs_safe() -> Result<(), Failed> {
     let stub = I2cStub::load(&[0x20, 0x36, 0x40, 0x41, 0x48, 0x60])?;
-    // The INA219: shunt 1000 counts, bus 3000 counts (bits 15..3), current 2000 counts,
-    // big-endian.
+    // The INA219: shunt 1000 counts, bus 3000 counts (bits 15..3) with a conversion ready
+    // (CNVR, bit 1), current 2000 counts, big-endian.
     stub.set_word(0x40, 0x01, 1000u16.swap_bytes())?;
-    stub.set_word(0x40, 0x02, (3000u16 << 3).swap_bytes())?;
+    stub.set_word(0x40, 0x02, (3000u16 << 3 | 2).swap_bytes())?;
     stub.set_word(0x40, 0x04, 2000u16.swap_bytes())?;
     // The AS5600 sees a magnet, at 1000 counts (RAW ANGLE MSB first on the wire).
     stub.set_byte(0x36, 0x0b, 0x20)?;
@@ -85,6 +85,22 @@ fn hwgw_gets_sets_and_leaves_the_outputs_safe() -> Result<(), Failed> {
                 .out(&["get", "i2c.ai", "current"])?
                 .parse::<f64>()
                 .is_ok_and(|v| (v - 2000.0 * 0.04096 / (4194.0 * 0.1)).abs() < 1e-12))
+    })?;
+    // The INA219 browns out (its calibration back at 0): counted, set up again, and its
+    // current reads as before.
+    stub.set_word(0x40, 0x05, 0x0000)?;
+    wait_ok("the INA219's reset counted", || {
+        let counters = gw.out(&["call", "i2c", "counters"])?;
+        Ok(counters.contains("\"last_reset\": \"calibration reads 0x0000, not 0x1062\""))
+    })?;
+    wait_ok("its calibration written again", || {
+        Ok(stub.get_word(0x40, 0x05)? == 0x1062u16.swap_bytes())
+    })?;
+    wait_ok("its current as before", || {
+        Ok(gw
+            .out(&["get", "i2c.ai", "current"])?
+            .parse::<f64>()
+            .is_ok_and(|v| (v - 2000.0 * 0.04096 / (4194.0 * 0.1)).abs() < 1e-12))
     })?;
     // A component's writes: fan_control drives the fan at a quarter of the supply's
     // volts, 2.048 × 0.25 = 0.512 of the period: LED0_OFF = round(0.512 × 4096) = 2097.

@@ -9,6 +9,7 @@
 //! [`DeviceError::Offline`]. Real-time: no allocation, no lock; a write's one system call
 //! is the bus side's wake-up (an `eventfd` write, which never blocks).
 
+use crate::chips::Lost;
 use device_interface::bits::BitImage;
 use device_interface::channel::nth;
 use device_interface::encoder::{CardEncoder, EncoderCounter, EncoderHost};
@@ -80,9 +81,11 @@ pub struct ChipSlot {
     pub(crate) polls: AtomicU64,
     pub(crate) errors: AtomicU64,
     pub(crate) went_offline: AtomicU64,
-    /// Times its check found it set up otherwise than its start left it (a power loss, a
-    /// reset, another master) and it was set up again.
+    /// Times a poll or its check found it set up otherwise than its start left it (a power
+    /// loss, a reset, another master) and it was set up again.
     pub(crate) resets: AtomicU64,
+    /// What the last of those found.
+    pub(crate) last_reset: Mutex<Option<Lost>>,
     pub(crate) last_good: AtomicU64,
     pub(crate) last_error: Mutex<Option<String>>,
 }
@@ -116,6 +119,8 @@ pub struct ChipCounters {
     pub went_offline: u64,
     /// Times it was found reset (or set up by someone else) and set up again.
     pub resets: u64,
+    /// What the last of those found ("calibration reads 0x0000, not 0x1062").
+    pub last_reset: Option<String>,
     /// Why it last failed.
     pub last_error: Option<String>,
 }
@@ -199,9 +204,20 @@ impl ChipIo<'_> {
             .get((self.chip.encoders.start + index) as usize)
     }
 
-    /// Counts a reset the chip's check found (the bus side sets the chip up again).
-    pub fn count_reset(&self) {
+    /// Counts a reset the chip's model found, `lost` (the bus side sets the chip up
+    /// again).
+    pub fn count_reset(&self, lost: Lost) {
+        *self
+            .chip
+            .last_reset
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = Some(lost);
         self.chip.resets.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// The card's clock, now: for a model that times its chip (a conversion's deadline).
+    pub fn now(&self) -> Timestamp {
+        self.card.now()
     }
 
     /// Marks the chip's outputs as still to send (their write failed).
@@ -243,6 +259,7 @@ impl I2cCard {
                 errors: AtomicU64::new(0),
                 went_offline: AtomicU64::new(0),
                 resets: AtomicU64::new(0),
+                last_reset: Mutex::new(None),
                 last_good: AtomicU64::new(0),
                 last_error: Mutex::new(None),
             });
@@ -314,6 +331,11 @@ impl I2cCard {
                 errors: l(&c.errors),
                 went_offline: l(&c.went_offline),
                 resets: l(&c.resets),
+                last_reset: c
+                    .last_reset
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .map(|lost| lost.to_string()),
                 last_error: c
                     .last_error
                     .lock()

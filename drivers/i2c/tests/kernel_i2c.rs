@@ -241,10 +241,11 @@ fn ads1115_converts_with_each_range_and_sign() -> Result<(), Failed> {
     assert_eq!((c.read(0)?, c.read(1)?), (-4.096, -0.256));
     // The config word the chip was last given, as i2cget reads it (datasheet bits, MSB
     // first on the wire): OS | MUX | PGA | MODE single-shot | DR 860 | comparator off.
+    // COMP_LAT (bit 2) set too: no word hwgw writes is the power-on value 0x8583.
     let configs = [
-        wire(0xc3e3u16 as i16), // a0 (MUX 100), ±4.096 V (PGA 001)
-        wire(0x8be3u16 as i16), // a0-a1 (MUX 000), ±0.256 V (PGA 101)
-        wire(0xf1e3u16 as i16), // a3 (MUX 111), ±6.144 V (PGA 000)
+        wire(0xc3e7u16 as i16), // a0 (MUX 100), ±4.096 V (PGA 001)
+        wire(0x8be7u16 as i16), // a0-a1 (MUX 000), ±0.256 V (PGA 101)
+        wire(0xf1e7u16 as i16), // a3 (MUX 111), ±6.144 V (PGA 000)
     ];
     let config = stub.get_word(0x48, 0x01)?;
     assert!(configs.contains(&config), "config {config:#06x}");
@@ -336,9 +337,10 @@ fn as5600_counts_turns_across_the_wrap() -> Result<(), Failed> {
 fn ina219_reads_shunt_bus_and_current_with_its_lsbs() -> Result<(), Failed> {
     let stub = I2cStub::load(&[0x40])?;
     // Big-endian registers, written as SMBus words: shunt 1000 counts, bus 3000 counts
-    // (bits 15..3), current 2000 counts.
+    // (bits 15..3) with a conversion ready (CNVR, bit 1: the chip publishes nothing after
+    // its set-up until a conversion finished), current 2000 counts.
     stub.set_word(0x40, 0x01, 1000u16.swap_bytes())?;
-    stub.set_word(0x40, 0x02, (3000u16 << 3).swap_bytes())?;
+    stub.set_word(0x40, 0x02, (3000u16 << 3 | CNVR).swap_bytes())?;
     stub.set_word(0x40, 0x04, 2000u16.swap_bytes())?;
     let up = up(
         &stub,
@@ -378,6 +380,161 @@ fn ina219_reads_shunt_bus_and_current_with_its_lsbs() -> Result<(), Failed> {
         .unwrap();
     };
     conformance::check_analog_in(&*ai, Some(&mut set_ai)).assert_complete();
+    Ok(())
+}
+
+/// The INA219's bus voltage register: conversion ready.
+const CNVR: u16 = 1 << 1;
+
+fn ina219_found_reset_is_set_up_again_and_its_lost_current_never_published() -> Result<(), Failed> {
+    let stub = I2cStub::load(&[0x40])?;
+    // Big-endian registers, written as the chip shows them.
+    let ina = |reg: u8, word: u16| stub.set_word(0x40, reg, word.swap_bytes());
+    ina(0x01, 1000)?;
+    ina(0x04, 2000)?;
+    ina(0x02, 3000 << 3 | CNVR)?;
+    let up = up(
+        &stub,
+        "[[chip]]\nmodel = \"ina219\"\naddress = 0x40\npoll_ms = 2",
+    )?;
+    let c = up.card.clone();
+    let chip = || c.counters().chips[0].clone();
+    wait("the current read", || c.read_raw(2).ok() == Some(2000))?;
+    assert_eq!(stub.get_word(0x40, 0x05)?, 0x1062u16.swap_bytes());
+    // A brown-out: the registers at their power-on values. The bus voltage register first
+    // (no conversion ready), then calibration 0 — from here on a real chip's current and
+    // power read 0 — then the rest, so that no poll reads a 0 current beside hwgw's
+    // calibration (i2c-stub's registers change one i2cset at a time).
+    ina(0x02, 0)?;
+    ina(0x00, 0x399f)?;
+    ina(0x05, 0)?;
+    ina(0x04, 0)?;
+    ina(0x03, 0)?;
+    ina(0x01, 0)?;
+    wait("the reset noticed", || chip().resets == 1)?;
+    let found = chip().last_reset.unwrap_or_default();
+    assert_eq!(found, "calibration reads 0x0000, not 0x1062");
+    // Set up again, as i2c-tools reads it.
+    wait("the calibration written again", || {
+        stub.get_word(0x40, 0x05).ok() == Some(0x1062u16.swap_bytes())
+    })?;
+    assert_eq!(stub.get_word(0x40, 0x00)?, 0x399fu16.swap_bytes());
+    // Polled on since (or offline: i2c-stub does not convert, so no conversion finishes
+    // after the set-up and the polls fail past their deadline), and the 0 current the
+    // stub holds was never published: it was read with the lost calibration, or before a
+    // conversion with the new one.
+    let polls = chip().polls;
+    wait("polled since", || {
+        let now = chip();
+        now.polls >= polls + 3 || !now.online
+    })?;
+    match c.read_raw(2) {
+        Ok(raw) => assert_eq!(raw, 2000, "the last current read right"),
+        Err(e) => assert!(matches!(e, DeviceError::Offline), "{e}"),
+    }
+    // The chip converts with the calibration again: new values, bus voltage (with CNVR)
+    // last.
+    ina(0x01, 750)?;
+    ina(0x04, 1500)?;
+    ina(0x02, 2500 << 3 | CNVR)?;
+    wait("the values back", || {
+        (0..3).map(|ch| c.read_raw(ch).ok()).collect::<Vec<_>>()
+            == [Some(750), Some(2500), Some(1500)]
+    })?;
+    let now = chip();
+    assert!(now.online, "{now:?}");
+    assert_eq!(now.resets, 1, "{now:?}");
+    Ok(())
+}
+
+/// The ADS1115 sections of the reset and stuck tests: one channel, its config word
+/// `ADS_CONFIG` (a0, ±4.096 V, single-shot, 860/s, comparator off, COMP_LAT).
+const ADS_ONE: &str = r#"
+[[chip]]
+model = "ads1115"
+address = 0x48
+poll_ms = 2
+channel = [{ input = "a0", range_v = 4.096 }]
+"#;
+const ADS_CONFIG: u16 = 0xc3e7;
+/// OS: written 1 starts a conversion; read 0, one is under way.
+const OS: u16 = 0x8000;
+
+fn ads1115_found_reset_is_set_up_again() -> Result<(), Failed> {
+    let stub = I2cStub::load(&[0x48])?;
+    stub.set_word(0x48, 0x00, wire(16384))?;
+    let up = up(&stub, ADS_ONE)?;
+    let c = up.card.clone();
+    let chip = || c.counters().chips[0].clone();
+    wait("converted", || c.read_raw(0).ok() == Some(16384))?;
+    assert_eq!(stub.get_word(0x48, 0x01)?, ADS_CONFIG.swap_bytes());
+    // A brown-out: Config at its power-on value 0x8583. hwgw writes Config to start each
+    // conversion, so a value written just before that is overwritten unseen (as a reset
+    // just before it would be undone): written again until a poll finds it.
+    let power_on = 0x8583u16.swap_bytes();
+    wait("the reset noticed", || {
+        if chip().resets > 0 {
+            return true;
+        }
+        if stub.get_word(0x48, 0x01).ok() != Some(power_on) {
+            stub.set_word(0x48, 0x01, power_on).unwrap();
+        }
+        false
+    })?;
+    let found = chip().last_reset.unwrap_or_default();
+    assert_eq!(found, "config reads 0x8583, not 0xc3e7");
+    wait("its config written again", || {
+        stub.get_word(0x48, 0x01).ok() == Some(ADS_CONFIG.swap_bytes())
+    })?;
+    // Converting as before: a new result read.
+    stub.set_word(0x48, 0x00, wire(-1234))?;
+    wait("the next result", || c.read_raw(0).ok() == Some(-1234))?;
+    assert!(chip().online);
+    assert_eq!(c.read(0)?, -1234.0 * 4.096 / 32768.0);
+    Ok(())
+}
+
+fn a_stuck_ads1115_goes_offline_and_back_when_it_converts() -> Result<(), Failed> {
+    let stub = I2cStub::load(&[0x48])?;
+    stub.set_word(0x48, 0x00, wire(16384))?;
+    let up = up(&stub, ADS_ONE)?;
+    let c = up.card.clone();
+    let chip = || c.counters().chips[0].clone();
+    wait("converted", || c.read_raw(0).ok() == Some(16384))?;
+    // Stuck: OS stays 0 (a conversion under way) with hwgw's config. Until a poll sees it,
+    // hwgw's next conversion start may overwrite it: written again until it holds — from
+    // then on hwgw does not write Config (OS written during a conversion does nothing).
+    let stuck = (ADS_CONFIG & !OS).swap_bytes();
+    wait("offline, not converting", || {
+        let now = chip();
+        if !now.online && now.last_error.is_some_and(|e| e.contains("not converting")) {
+            return true;
+        }
+        if stub.get_word(0x48, 0x01).ok() != Some(stuck) {
+            stub.set_word(0x48, 0x01, stuck).unwrap();
+        }
+        false
+    })?;
+    let why = chip().last_error.unwrap_or_default();
+    assert!(
+        why.starts_with("channel 0's conversion not done within"),
+        "{why}"
+    );
+    assert!(matches!(c.read_raw(0), Err(DeviceError::Offline)));
+    // Probed with a backoff, it stays offline: each probe finds the conversion under way,
+    // waits on it and counts it overdue.
+    let errors = chip().errors;
+    wait("probed three times more", || chip().errors >= errors + 3)?;
+    let now = chip();
+    assert!(!now.online, "{now:?}");
+    assert_eq!(now.went_offline, 1, "{now:?}");
+    assert_eq!(stub.get_word(0x48, 0x01)?, stuck, "never started again");
+    // It converts again: the result, and online.
+    stub.set_word(0x48, 0x00, wire(8192))?;
+    stub.set_word(0x48, 0x01, ADS_CONFIG.swap_bytes())?;
+    wait("online with the new result", || {
+        chip().online && c.read_raw(0).ok() == Some(8192)
+    })?;
     Ok(())
 }
 
@@ -516,6 +673,18 @@ fn main() -> std::process::ExitCode {
             Trial::test(
                 "ina219_reads_shunt_bus_and_current_with_its_lsbs",
                 ina219_reads_shunt_bus_and_current_with_its_lsbs,
+            ),
+            Trial::test(
+                "ina219_found_reset_is_set_up_again_and_its_lost_current_never_published",
+                ina219_found_reset_is_set_up_again_and_its_lost_current_never_published,
+            ),
+            Trial::test(
+                "ads1115_found_reset_is_set_up_again",
+                ads1115_found_reset_is_set_up_again,
+            ),
+            Trial::test(
+                "a_stuck_ads1115_goes_offline_and_back_when_it_converts",
+                a_stuck_ads1115_goes_offline_and_back_when_it_converts,
             ),
             Trial::test(
                 "pca9685_sets_its_prescale_and_duty_registers",

@@ -3,44 +3,83 @@
 //!
 //! | register | pointer | use |
 //! |---|---|---|
-//! | Conversion | 0x00 | the last result, two's complement |
-//! | Config | 0x01 | OS (start / done), MUX (input), PGA (range), MODE = single-shot, DR (rate), comparator off |
+//! | Conversion | 0x00 | the last result, two's complement (0 after power-on) |
+//! | Config | 0x01 | OS (start / done), MUX (input), PGA (range), MODE = single-shot, DR (rate), comparator off (COMP_QUE = 11) and COMP_LAT set (below); 0x8583 after power-on |
 //!
 //! Both registers are big-endian on the wire while SMBus words are little-endian: every
 //! word is byte-swapped. Each poll reads the conversion started by the previous poll (if
 //! the chip says it is done; else it waits for the next poll) and starts the next
-//! channel's, so a poll never waits for a conversion. A conversion still not done after
-//! twice its time at the data rate (counted in polls) is a failed transfer, counted, and
-//! is started again. A channel is `raw × range / 32768`
+//! channel's, so a poll never waits for a conversion. A channel is `raw × range / 32768`
 //! volts (range: the PGA's full scale; a single-ended input reads 0 V and up).
+//!
+//! # A reset
+//!
+//! Every poll reads Config (for OS) before the result: Config not as hwgw wrote it for the
+//! channel (OS aside) is a reset (power-on value 0x8583) or another master, answered as
+//! [`Outcome::Reset`] before the Conversion register is read — its 0 after power-on is
+//! never published — and the conversion is started again. COMP_LAT is set in every word
+//! hwgw writes so none equals the power-on value (a0-a1 at ±2.048 V and 128/s would): the
+//! comparator is disabled (COMP_QUE = 11, ALERT/RDY high-impedance), so the latch bit
+//! changes nothing, and a chip back at its power-on Config always reads otherwise. A result
+//! of exactly 0 (what a reset leaves) has Config read once more after it, so a reset
+//! between the two reads is caught too.
+//!
+//! # A stuck converter
+//!
+//! OS reads 0 while a conversion is under way. One not done within
+//! [`conversion_deadline`] of the longest conversion at the data rate (`1.1 / rate` s: the
+//! internal oscillator is within ±10 %) fails the poll ([`ChipError::NotConverting`]),
+//! counted; each further deadline that passes with OS still 0 fails another, so the chip
+//! goes offline by the bus side's rule (three failed polls in a row) and stays offline
+//! while it is stuck. It is not started again meanwhile: writing OS during a conversion
+//! "has no effect" (datasheet), and `start` (at each probe) waits on a conversion of ours
+//! it finds under way instead of writing. What the chip reads is what counts: a result
+//! that stays the same is not taken for a stuck converter — a steady input, one beyond the
+//! range (0x7FFF / 0x8000) or a quiet one at a low gain gives the same code conversion
+//! after conversion on a healthy chip, and nothing in the datasheet tells those apart from
+//! a chip that stopped converting but still says it finished (i2c-stub, whose register
+//! file never converts, reads that way too).
 
-use super::{ChipModel, Shape, linear};
+use super::{ChipError, ChipModel, Lost, Outcome, Shape, conversion_deadline, linear};
 use crate::card::ChipIo;
 use crate::config::{ADS1115_INPUTS, ADS1115_RANGES, ADS1115_RATES, Ads1115Config};
 use crate::smbus::{Smbus, Transfer};
+use device_interface::time::Timestamp;
 use device_interface::{RawRange, Scale};
+use std::time::Duration;
 
 const CONVERSION: u8 = 0x00;
 const CONFIG: u8 = 0x01;
 /// OS: written 1, starts a conversion; read 1, none under way.
 const OS: u16 = 1 << 15;
-/// MODE = single-shot, comparator queue disabled (COMP_QUE = 11).
-const SINGLE_SHOT: u16 = 1 << 8 | 0b11;
+/// MODE = single-shot, comparator queue disabled (COMP_QUE = 11), and COMP_LAT, which
+/// does nothing while the comparator is disabled but makes every word hwgw writes differ
+/// from the power-on value.
+const SINGLE_SHOT: u16 = 1 << 8 | 1 << 2 | 0b11;
+/// Config after power-on (the datasheet's reset value).
+pub const POWER_ON: u16 = 0x8583;
 
 /// An ADS1115.
 pub struct Ads1115 {
     /// Each channel's config word (OS set), and its full scale in volts.
     channels: Vec<(u16, f64)>,
-    /// The channel whose conversion was started last.
-    current: Option<usize>,
-    /// Polls that found it still converting.
-    waited: u32,
-    /// Polls it may take: twice a conversion's time, and one.
-    patience: u32,
+    /// The channel whose conversion is under way, and since when it is waited for (its
+    /// start, or the last time it was found overdue).
+    converting: Option<(usize, Timestamp)>,
+    /// The channel to convert next.
+    next: usize,
+    /// The longest a conversion takes at the data rate.
+    takes: Duration,
 }
 
 fn index<T: PartialEq>(all: &[T], x: &T) -> u16 {
     all.iter().position(|a| a == x).unwrap_or(0) as u16
+}
+
+/// Whether two config words set the same conversion (OS aside: it starts one, or says
+/// whether one is under way).
+fn same(a: u16, b: u16) -> bool {
+    (a ^ b) & !OS == 0
 }
 
 impl Ads1115 {
@@ -59,24 +98,29 @@ impl Ads1115 {
                 )
             })
             .collect();
-        // A conversion takes 1/rate s (±10 %, the chip's oscillator).
-        let polls = (2000.0 / f64::from(c.data_rate) / f64::from(c.poll_ms.max(1))).ceil();
         Ads1115 {
             channels,
-            current: None,
-            waited: 0,
-            patience: polls as u32 + 1,
+            converting: None,
+            next: 0,
+            // A conversion takes 1/rate s, ±10 % (the chip's oscillator).
+            takes: Duration::from_nanos(1_100_000_000 / u64::from(c.data_rate.max(1))),
         }
     }
 
-    fn begin(&mut self, bus: &mut dyn Smbus, channel: usize) -> Result<(), Transfer> {
-        let Some((config, _)) = self.channels.get(channel) else {
+    /// Starts channel `k`'s conversion.
+    fn begin(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>, k: usize) -> Result<(), Transfer> {
+        self.converting = None;
+        let Some((config, _)) = self.channels.get(k) else {
             return Ok(());
         };
         bus.write_word(CONFIG, config.swap_bytes())?;
-        self.current = Some(channel);
-        self.waited = 0;
+        // After the write: the chip has had at least the time since then.
+        self.converting = Some((k, io.now()));
         Ok(())
+    }
+
+    fn config(bus: &mut dyn Smbus) -> Result<u16, Transfer> {
+        Ok(bus.read_word(CONFIG)?.swap_bytes())
     }
 }
 
@@ -96,30 +140,70 @@ impl ChipModel for Ads1115 {
             .collect()
     }
 
-    fn start(&mut self, bus: &mut dyn Smbus, _: &ChipIo<'_>) -> Result<(), Transfer> {
-        self.current = None;
-        self.begin(bus, 0)
+    fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<Outcome, ChipError> {
+        let found = Self::config(bus)?;
+        if found & OS == 0
+            && let Some(k) = self.channels.iter().position(|(w, _)| same(*w, found))
+        {
+            // A conversion of ours under way (started before a dropout, or still not done
+            // after a stuck spell): a write would not start another; wait for it.
+            self.converting = Some((k, io.now()));
+            return Ok(Outcome::Pending);
+        }
+        // The channel that was converting (a reset lost it), else the next one; its result
+        // is read at a later poll (one found done here may be from long ago).
+        let k = self.converting.map_or(self.next, |(k, _)| k);
+        self.begin(bus, io, k)?;
+        Ok(Outcome::Pending)
     }
 
-    fn poll(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {
-        let Some(k) = self.current else {
-            return self.begin(bus, 0);
+    fn poll(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<Outcome, ChipError> {
+        let Some((k, since)) = self.converting else {
+            self.begin(bus, io, self.next)?;
+            return Ok(Outcome::Pending);
         };
-        if bus.read_word(CONFIG)?.swap_bytes() & OS == 0 {
-            self.waited += 1;
-            if self.waited < self.patience {
-                // Still converting: read it next poll.
-                return Ok(());
+        let Some(&(wanted, _)) = self.channels.get(k) else {
+            return Ok(Outcome::Fresh);
+        };
+        let found = Self::config(bus)?;
+        if !same(found, wanted) {
+            return Ok(Outcome::Reset(Lost {
+                register: "config",
+                found,
+                wanted,
+            }));
+        }
+        if found & OS == 0 {
+            let now = io.now();
+            let within = conversion_deadline(self.takes);
+            if now.duration_since(since) < within {
+                // Still converting: read it at a later poll.
+                return Ok(Outcome::Pending);
             }
-            let waited = self.waited;
-            self.begin(bus, k)?;
-            return Err(Transfer::Failed(format!(
-                "channel {k}'s conversion not done after {waited} polls; started again"
-            )));
+            self.converting = Some((k, now));
+            return Err(ChipError::NotConverting {
+                channel: Some(k as u32),
+                flag: "OS stays 0",
+                takes: self.takes,
+                within,
+            });
         }
         let raw = bus.read_word(CONVERSION)?.swap_bytes() as i16;
+        if raw == 0 {
+            // What a reset leaves: was the chip still set up after the read?
+            let again = Self::config(bus)?;
+            if !same(again, wanted) {
+                return Ok(Outcome::Reset(Lost {
+                    register: "config",
+                    found: again,
+                    wanted,
+                }));
+            }
+        }
         io.set_analog_in(k as u32, i64::from(raw));
-        self.begin(bus, (k + 1) % self.channels.len().max(1))
+        self.next = (k + 1) % self.channels.len().max(1);
+        self.begin(bus, io, self.next)?;
+        Ok(Outcome::Fresh)
     }
 }
 
@@ -152,7 +236,7 @@ mod tests {
         assert_eq!(scales[1].to_physical(-32768), -0.256);
         assert_eq!(
             a.channels.iter().map(|c| c.0).collect::<Vec<_>>(),
-            [0xc3e3, 0xbbe3]
+            [0xc3e7, 0xbbe7]
         );
     }
 }

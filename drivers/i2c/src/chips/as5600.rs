@@ -14,7 +14,7 @@
 //! chip did not answer is counted short by whole turns (nothing can tell). The
 //! ZPOS/MPOS/MANG programming and the burn commands are never touched.
 
-use super::{ChipModel, Shape};
+use super::{ChipError, ChipModel, Outcome, Shape};
 use crate::card::ChipIo;
 use crate::config::As5600Config;
 use crate::smbus::{Smbus, Transfer};
@@ -55,19 +55,17 @@ impl ChipModel for As5600 {
         vec![(RESOLUTION, self.upcounting)]
     }
 
-    fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {
+    fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<Outcome, ChipError> {
         self.poll(bus, io)
     }
 
-    fn poll(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {
+    fn poll(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<Outcome, ChipError> {
         if bus.read_byte(STATUS)? & MD == 0 {
-            return Err(Transfer::Failed(
-                "no magnet detected (STATUS.MD is 0)".into(),
-            ));
+            return Err(Transfer::Failed("no magnet detected (STATUS.MD is 0)".into()).into());
         }
         let angle = i64::from(bus.read_word(RAW_ANGLE)?.swap_bytes() & 0x0fff);
         let Some(counter) = io.encoder(0) else {
-            return Ok(());
+            return Ok(Outcome::Fresh);
         };
         match self.last {
             // Cannot fail: 0..4096 is a position of a 4096-count encoder.
@@ -84,6 +82,6 @@ impl ChipModel for As5600 {
             }
         }
         self.last = Some(angle);
-        Ok(())
+        Ok(Outcome::Fresh)
     }
 }

@@ -14,7 +14,7 @@
 //! The check reads IODIR, IPOL and GPPU back: after a power loss or a reset the chip is
 //! all inputs, no pull-ups, and is set up again (its outputs written first).
 
-use super::{ChipModel, Shape};
+use super::{ChipError, ChipModel, Lost, Outcome, Shape};
 use crate::card::ChipIo;
 use crate::config::Mcp23017Config;
 use crate::smbus::{Smbus, Transfer};
@@ -83,7 +83,7 @@ impl ChipModel for Mcp23017 {
         self.initial_on.clone()
     }
 
-    fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {
+    fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<Outcome, ChipError> {
         io.take_dirty();
         // The register map every later transfer assumes.
         bus.write_byte(IOCON_BANK1, 0)?;
@@ -96,7 +96,7 @@ impl ChipModel for Mcp23017 {
         self.poll(bus, io)
     }
 
-    fn poll(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {
+    fn poll(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<Outcome, ChipError> {
         if !self.inputs.is_empty() {
             let gpio = bus.read_word(GPIO)?;
             for (bit, &p) in self.inputs.iter().enumerate() {
@@ -107,14 +107,21 @@ impl ChipModel for Mcp23017 {
             && let Err(e) = self.write_outputs(bus, io)
         {
             io.mark_dirty();
-            return Err(e);
+            return Err(e.into());
         }
-        Ok(())
+        Ok(Outcome::Fresh)
     }
 
-    fn check(&mut self, bus: &mut dyn Smbus, _: &ChipIo<'_>) -> Result<bool, Transfer> {
-        Ok(bus.read_word(IODIR)? == self.iodir
-            && bus.read_word(IPOL)? == self.ipol
-            && bus.read_word(GPPU)? == self.gppu)
+    fn check(&mut self, bus: &mut dyn Smbus, _: &ChipIo<'_>) -> Result<Option<Lost>, Transfer> {
+        for (register, reg, wanted) in [
+            ("IODIR", IODIR, self.iodir),
+            ("IPOL", IPOL, self.ipol),
+            ("GPPU", GPPU, self.gppu),
+        ] {
+            if let Some(lost) = Lost::compare(register, bus.read_word(reg)?, wanted) {
+                return Ok(Some(lost));
+            }
+        }
+        Ok(None)
     }
 }

@@ -12,7 +12,7 @@
 //! same code, so the output does not move), which puts such a chip back at the asked
 //! value within [`CHECK_PERIOD`](crate::bus::CHECK_PERIOD).
 
-use super::{ChipModel, Shape, linear};
+use super::{ChipError, ChipModel, Lost, Outcome, Shape, linear};
 use crate::card::ChipIo;
 use crate::config::Mcp4725Config;
 use crate::smbus::{Smbus, Transfer};
@@ -57,22 +57,23 @@ impl ChipModel for Mcp4725 {
             .collect()
     }
 
-    fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {
+    fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<Outcome, ChipError> {
         io.take_dirty();
-        Self::send(bus, io)
+        Self::send(bus, io)?;
+        Ok(Outcome::Fresh)
     }
 
-    fn poll(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {
+    fn poll(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<Outcome, ChipError> {
         if io.take_dirty()
             && let Err(e) = Self::send(bus, io)
         {
             io.mark_dirty();
-            return Err(e);
+            return Err(e.into());
         }
-        Ok(())
+        Ok(Outcome::Fresh)
     }
 
-    fn check(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<bool, Transfer> {
-        Self::send(bus, io).map(|()| true)
+    fn check(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<Option<Lost>, Transfer> {
+        Self::send(bus, io).map(|()| None)
     }
 }

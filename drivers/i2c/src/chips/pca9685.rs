@@ -15,7 +15,7 @@
 //! MODE1 and PRE_SCALE back: after a power loss the chip sleeps at its default prescale,
 //! and is set up again.
 
-use super::{ChipModel, Shape, linear};
+use super::{ChipError, ChipModel, Lost, Outcome, Shape, linear};
 use crate::card::ChipIo;
 use crate::config::Pca9685Config;
 use crate::smbus::{Smbus, Transfer};
@@ -89,7 +89,7 @@ impl ChipModel for Pca9685 {
         scale.map_or_else(Vec::new, |s| vec![(s, 0); self.channels.len()])
     }
 
-    fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {
+    fn start(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<Outcome, ChipError> {
         io.take_dirty();
         let mode = bus.read_byte(MODE1)?;
         let awake = (mode & !(SLEEP | RESTART)) | AI;
@@ -108,23 +108,30 @@ impl ChipModel for Pca9685 {
         if slept || mode != awake {
             bus.write_byte(MODE1, awake)?;
         }
-        Ok(())
+        Ok(Outcome::Fresh)
     }
 
-    fn poll(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<(), Transfer> {
+    fn poll(&mut self, bus: &mut dyn Smbus, io: &ChipIo<'_>) -> Result<Outcome, ChipError> {
         if io.take_dirty()
             && let Err(e) = self.send(bus, io)
         {
             io.mark_dirty();
-            return Err(e);
+            return Err(e.into());
         }
-        Ok(())
+        Ok(Outcome::Fresh)
     }
 
-    fn check(&mut self, bus: &mut dyn Smbus, _: &ChipIo<'_>) -> Result<bool, Transfer> {
-        Ok(
-            bus.read_byte(MODE1)? & (SLEEP | AI) == AI
-                && bus.read_byte(PRE_SCALE)? == self.prescale,
-        )
+    fn check(&mut self, bus: &mut dyn Smbus, _: &ChipIo<'_>) -> Result<Option<Lost>, Transfer> {
+        // Awake with auto-increment, the other bits as they are.
+        let mode = bus.read_byte(MODE1)?;
+        let awake = (mode & !(SLEEP | AI)) | AI;
+        if let Some(lost) = Lost::compare("MODE1", mode.into(), awake.into()) {
+            return Ok(Some(lost));
+        }
+        Ok(Lost::compare(
+            "PRE_SCALE",
+            bus.read_byte(PRE_SCALE)?.into(),
+            self.prescale.into(),
+        ))
     }
 }
