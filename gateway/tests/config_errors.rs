@@ -152,6 +152,8 @@ fn every_broken_config_gets_its_exact_error() {
          "t.toml:16:10: modbus_server.register[0].device: no DigitalOut named \"sim9\"; registered: sim0"),
         ("served registers overlap", with_card("[modbus_server]\nlisten = \"127.0.0.1:0\"\n[[modbus_server.register]]\ntable = \"input_registers\"\naddress = 0\ndevice = \"sim0\"\ninterface = \"analog_in\"\ntype = \"f32\"\n[[modbus_server.register]]\ntable = \"input_registers\"\naddress = 1\ndevice = \"sim0\"\ninterface = \"analog_in\"\n"),
          "t.toml:13:1: modbus_server.register: entry 1: input_registers 1 is already served by entry 0"),
+        ("served: a write confirmation too short", with_card("[modbus_server]\nlisten = \"127.0.0.1:0\"\nwrite_confirm_ms = 5\n"),
+         "t.toml:13:20: modbus_server.write_confirm_ms: 5: 10-60000 ms"),
         ("served: no connection per address", with_card("[modbus_server]\nlisten = \"127.0.0.1:0\"\nmax_clients_per_address = 0\n"),
          "t.toml:13:27: modbus_server.max_clients_per_address: 0: 1-1024"),
         ("served: a frame timeout past the idle timeout", with_card("[modbus_server]\nlisten = \"127.0.0.1:0\"\nidle_timeout_s = 2\nframe_timeout_ms = 3000\n"),

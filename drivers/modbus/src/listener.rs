@@ -21,13 +21,19 @@
 //!   retried after 10 ms, doubling up to 1 s: the loop never ends but at stop.
 //! - A panic while answering (a device's bug) is caught, answered 04, counted and logged
 //!   (not printed by the default panic hook).
+//! - A write to a device whose bus carries it later (see [`server`](crate::server#writes-a-bus-carries-later))
+//!   is answered once it is settled: delivered, the normal reply (counted as
+//!   `writes_confirmed`); failed, 04 or 0x0B (`writes_failed`); still on its way after
+//!   `write_confirm`, 0x0B (`writes_unconfirmed`). The connection's task waits (polling the
+//!   delivery state in steps of 1 to 5 ms on tokio's timer), so the other connections are
+//!   served meanwhile; that connection's next request is read after the reply.
 //!
 //! [`ServerCounters`] says all of it; [`ModbusServer::health`] is `Err` while the loop does
 //! not run (stopped, or its thread ended by a panic) and while `accept` has failed without
 //! a success for [`ACCEPT_FAILING_LIMIT`] — what the gateway's watchdog sees.
 
-use crate::pdu::{self, Refusal, exception};
-use crate::server::RegisterTable;
+use crate::pdu::{self, Refusal, Resp, exception};
+use crate::server::{Answer, ExceptionCode, RegisterTable, Unsettled};
 use serde::Serialize;
 use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
@@ -48,6 +54,9 @@ pub struct Limits {
     /// A frame must be whole this long after its first bytes arrived (the shorter of this
     /// and `idle_timeout` applies).
     pub frame_timeout: Duration,
+    /// The longest a write's reply waits for a device whose bus carries the write later to
+    /// deliver it; then the write is answered 0x0B (its target did not respond).
+    pub write_confirm: Duration,
 }
 
 impl Default for Limits {
@@ -57,9 +66,15 @@ impl Default for Limits {
             max_clients_per_address: 8,
             idle_timeout: Duration::from_secs(60),
             frame_timeout: Duration::from_secs(5),
+            write_confirm: DEFAULT_WRITE_CONFIRM,
         }
     }
 }
+
+/// [`Limits::write_confirm`] when not configured: a master's reply timeout is commonly
+/// 1 s or more (mbpoll's and libmodbus's default is 1 s), a Modbus unit's poll cycle well
+/// under that.
+pub const DEFAULT_WRITE_CONFIRM: Duration = Duration::from_millis(1000);
 
 /// How long `accept` may fail without a success before the server is unhealthy.
 pub const ACCEPT_FAILING_LIMIT: Duration = Duration::from_secs(5);
@@ -80,6 +95,9 @@ struct Stats {
     frame_timeouts: AtomicU64,
     accept_errors: AtomicU64,
     panics: AtomicU64,
+    writes_confirmed: AtomicU64,
+    writes_failed: AtomicU64,
+    writes_unconfirmed: AtomicU64,
 }
 
 /// The server's state and counters.
@@ -110,6 +128,14 @@ pub struct ServerCounters {
     pub accept_errors: u64,
     /// Panics caught while answering.
     pub panics: u64,
+    /// Write requests answered after their device's bus delivered the writes (those to
+    /// devices that apply a write within the call are not counted).
+    pub writes_confirmed: u64,
+    /// Write requests answered 04 or 0x0B because their device's bus failed a write.
+    pub writes_failed: u64,
+    /// Write requests answered 0x0B because a write was still on its way after
+    /// `write_confirm`.
+    pub writes_unconfirmed: u64,
 }
 
 fn bump(c: &AtomicU64) {
@@ -183,6 +209,9 @@ impl ModbusServer {
             frame_timeouts: n(&s.frame_timeouts),
             accept_errors: n(&s.accept_errors),
             panics: n(&s.panics),
+            writes_confirmed: n(&s.writes_confirmed),
+            writes_failed: n(&s.writes_failed),
+            writes_unconfirmed: n(&s.writes_unconfirmed),
         }
     }
 
@@ -464,9 +493,21 @@ impl Conn<'_> {
             // A complete request: this connection is not idle (eviction goes by this).
             self.last.store(since(self.epoch), Ordering::Relaxed);
             bump(&stats.requests);
+            let function = pdu[0];
+            let answer = match take(self.table, stats, pdu) {
+                Ok(Answer { reply, unsettled }) if !unsettled.is_empty() => {
+                    // Awaited here, in this connection's task: the others are served
+                    // meanwhile.
+                    self.settle(unsettled)
+                        .await
+                        .map(|()| reply)
+                        .map_err(|code| Refusal { function, code })
+                }
+                other => other.map(|a| a.reply),
+            };
             out.clear();
             out.extend_from_slice(&[head[0], head[1], 0, 0, 0, 0, unit]);
-            respond(self.table, stats, pdu, &mut out);
+            encode(stats, answer, &mut out);
             let n = (out.len() - 6) as u16;
             out[4..6].copy_from_slice(&n.to_be_bytes());
             match tokio::time::timeout(idle, stream.write_all(&out)).await {
@@ -481,9 +522,66 @@ impl Conn<'_> {
     }
 }
 
-/// Appends the reply PDU to `pdu` to `out`.
-fn respond(table: &RegisterTable, stats: &Stats, pdu: &[u8], out: &mut Vec<u8>) {
-    let answer = pdu::parse(pdu).and_then(|req| {
+impl Conn<'_> {
+    /// Waits until the writes of a request are settled, at most `write_confirm`: `Ok` once
+    /// every one is delivered, else the exception answering the request (see
+    /// [`server::undelivered`](crate::server::undelivered)). Counts the outcome.
+    async fn settle(&self, mut writes: Unsettled) -> Result<(), ExceptionCode> {
+        const FIRST: Duration = Duration::from_millis(1);
+        const MOST: Duration = Duration::from_millis(5);
+        let stats = self.stats;
+        let deadline = tokio::time::Instant::now() + self.limits.write_confirm;
+        let mut pause = FIRST;
+        loop {
+            let Ok(now) = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| writes.check()))
+            else {
+                // A device's bug, as a panic while answering.
+                bump(&stats.panics);
+                return Err(exception::SERVER_DEVICE_FAILURE);
+            };
+            match now {
+                Some(Ok(())) => {
+                    bump(&stats.writes_confirmed);
+                    return Ok(());
+                }
+                Some(Err(why)) => {
+                    if stats
+                        .writes_failed
+                        .fetch_add(1, Ordering::Relaxed)
+                        .is_multiple_of(100)
+                    {
+                        tracing::warn!("modbus server: a write was not delivered: {why}");
+                    }
+                    return Err(crate::server::undelivered(&why));
+                }
+                None if tokio::time::Instant::now() >= deadline => {
+                    if stats
+                        .writes_unconfirmed
+                        .fetch_add(1, Ordering::Relaxed)
+                        .is_multiple_of(100)
+                    {
+                        tracing::warn!(
+                            "modbus server: {} write(s) still on their way after {:?} (write_confirm_ms): answered 0x0B",
+                            writes.len(),
+                            self.limits.write_confirm
+                        );
+                    }
+                    return Err(exception::GATEWAY_TARGET_FAILED_TO_RESPOND);
+                }
+                None => {
+                    tokio::time::sleep_until(deadline.min(tokio::time::Instant::now() + pause))
+                        .await;
+                    pause = (pause * 2).min(MOST);
+                }
+            }
+        }
+    }
+}
+
+/// Checks `pdu` and has the table answer it (its writes made): the reply and the writes
+/// it waits for, or the refusal.
+fn take(table: &RegisterTable, stats: &Stats, pdu: &[u8]) -> Result<Answer, Refusal> {
+    pdu::parse(pdu).and_then(|req| {
         let function = pdu[0];
         std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| table.answer(req)))
             .unwrap_or_else(|_| {
@@ -491,7 +589,11 @@ fn respond(table: &RegisterTable, stats: &Stats, pdu: &[u8], out: &mut Vec<u8>) 
                 Err(exception::SERVER_DEVICE_FAILURE)
             })
             .map_err(|code| Refusal { function, code })
-    });
+    })
+}
+
+/// Appends the reply PDU (or the exception) to `out`.
+fn encode(stats: &Stats, answer: Result<Resp, Refusal>, out: &mut Vec<u8>) {
     match answer {
         Ok(resp) => pdu::encode(&resp, out),
         Err(r) => {
@@ -502,10 +604,11 @@ fn respond(table: &RegisterTable, stats: &Stats, pdu: &[u8], out: &mut Vec<u8>) 
 }
 
 /// Answers `pdu` as the server would, into `out` (for tests and the fuzz run: the whole
-/// request path but the socket).
+/// request path but the socket) — except that it does not wait for writes a device's bus
+/// carries later: it answers as if they were delivered.
 pub fn answer_pdu(table: &RegisterTable, pdu: &[u8], out: &mut Vec<u8>) {
     thread_local! {
         static STATS: Stats = Stats::default();
     }
-    STATS.with(|s| respond(table, s, pdu, out));
+    STATS.with(|s| encode(s, take(table, s, pdu).map(|a| a.reply), out));
 }

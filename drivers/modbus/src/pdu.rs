@@ -32,8 +32,13 @@ pub mod exception {
     /// A quantity, byte count or value the request may not have; a value the device
     /// refuses.
     pub const ILLEGAL_DATA_VALUE: u8 = 0x03;
-    /// The device behind the address is offline or stale, or failed.
+    /// The device behind the address is offline or stale, or failed; a write it took
+    /// was refused on its way.
     pub const SERVER_DEVICE_FAILURE: u8 = 0x04;
+    /// A write taken by a device that a bus carries later (a Modbus unit behind hwgw's
+    /// client, another gateway's output) got no answer from its target: the target is
+    /// offline, or the write was still on its way when the server stopped waiting.
+    pub const GATEWAY_TARGET_FAILED_TO_RESPOND: u8 = 0x0B;
 }
 
 /// A checked request.

@@ -49,6 +49,11 @@ pub struct ServerConfig {
     /// that is shorter); else the connection is closed.
     #[serde(default)]
     pub frame_timeout_ms: Option<u64>,
+    /// The longest a write's reply waits, ms, for a device whose bus carries the write
+    /// later (a Modbus unit behind hwgw's client, another gateway's output) to deliver it;
+    /// still on its way then, the write is answered 0x0B (10-60000; default 1000).
+    #[serde(default = "default_write_confirm_ms")]
+    pub write_confirm_ms: u64,
     /// The register table.
     #[serde(default, rename = "register")]
     pub registers: Vec<ServedRegister>,
@@ -62,6 +67,9 @@ fn default_max_per_address() -> usize {
 }
 fn default_idle_s() -> u64 {
     60
+}
+fn default_write_confirm_ms() -> u64 {
+    crate::listener::DEFAULT_WRITE_CONFIRM.as_millis() as u64
 }
 /// `frame_timeout_ms` when not given (capped at `idle_timeout_s`).
 const DEFAULT_FRAME_MS: u64 = 5000;
@@ -101,11 +109,18 @@ impl ServerConfig {
             }
             Some(ms) => ms,
         };
+        if !(10..=60_000).contains(&self.write_confirm_ms) {
+            return Err((
+                "write_confirm_ms",
+                format!("{}: 10-60000 ms", self.write_confirm_ms),
+            ));
+        }
         Ok(Limits {
             max_clients: self.max_clients,
             max_clients_per_address: self.max_clients_per_address,
             idle_timeout: std::time::Duration::from_secs(self.idle_timeout_s),
             frame_timeout: std::time::Duration::from_millis(frame_ms),
+            write_confirm: std::time::Duration::from_millis(self.write_confirm_ms),
         })
     }
 }
@@ -398,10 +413,14 @@ mod tests {
             (given.max_clients_per_address, given.frame_timeout),
             (2, Duration::from_millis(250))
         );
+        let confirm = config("write_confirm_ms = 40").limits().unwrap();
+        assert_eq!(confirm.write_confirm, Duration::from_millis(40));
         for (extra, key) in [
             ("max_clients_per_address = 0", "max_clients_per_address"),
             ("max_clients_per_address = 1025", "max_clients_per_address"),
             ("frame_timeout_ms = 5", "frame_timeout_ms"),
+            ("write_confirm_ms = 9", "write_confirm_ms"),
+            ("write_confirm_ms = 60001", "write_confirm_ms"),
             (
                 "idle_timeout_s = 2\nframe_timeout_ms = 2001",
                 "frame_timeout_ms",

@@ -13,11 +13,34 @@
 //! IllegalDataAddress; a value the device refuses answers IllegalDataValue; a device that
 //! is offline or stale answers ServerDeviceFailure. The server is off unless configured and
 //! listens only where it is told.
+//!
+//! # Writes a bus carries later
+//!
+//! A device whose bus carries a write after the call returned (a Modbus unit behind hwgw's
+//! own client, another gateway's output: [`Delivery`]) has only *taken* it.
+//! [`RegisterTable::answer`] checks and writes, and hands back the reply together with
+//! those writes ([`Unsettled`]); the server sends the reply only once they are settled
+//! (see [`listener`](crate::listener)):
+//!
+//! | the writes | answer |
+//! |---|---|
+//! | all delivered | the normal reply |
+//! | one failed, its target offline ([`DeviceError::Offline`]) | 0x0B GatewayTargetDeviceFailedToRespond |
+//! | one failed otherwise (refused by the unit, the bus stopped) | 0x04 ServerDeviceFailure |
+//! | one still on its way after `write_confirm_ms` | 0x0B GatewayTargetDeviceFailedToRespond |
+//!
+//! The Modbus Application Protocol (v1.1b3, §7) gives 0x0B to a gateway that "obtained no
+//! response from the target device", usually because it is not on the network: a unit
+//! offline, or silent for as long as the master is kept waiting. 0x0A (gateway path
+//! unavailable) means the gateway could not allocate a path to the target — misconfigured
+//! or overloaded — which a configured table never meets at run time. A write that reached
+//! its bus and was refused, or lost otherwise, is the server's device failing: 0x04.
+//! Devices that apply a write within the call answer as soon as it returned.
 
 use crate::codec::{Layout, Number, ValueType};
 use crate::pdu::{Req, Resp, exception};
 use crate::plan::Table;
-use device_interface::{AnalogIn, AnalogOut, DeviceError, DigitalIn, DigitalOut};
+use device_interface::{AnalogIn, AnalogOut, Delivery, DeviceError, DigitalIn, DigitalOut};
 use std::sync::Arc;
 
 /// An exception code ([`pdu::exception`](crate::pdu::exception)).
@@ -53,12 +76,101 @@ pub struct Entry {
     pub source: Source,
 }
 
+/// An output a request wrote to.
+#[derive(Clone)]
+enum Target {
+    Analog(Arc<dyn AnalogOut>, u32),
+    Digital(Arc<dyn DigitalOut>, u32),
+}
+
+impl Target {
+    fn delivery(&self) -> Option<Delivery> {
+        match self {
+            Target::Analog(d, c) => d.delivery(*c),
+            Target::Digital(d, b) => d.delivery(*b),
+        }
+    }
+}
+
+/// The writes a request made to devices whose bus carries them after the call returned
+/// (see [`Delivery`]): each output and its write's number there. Its reply waits until
+/// they are settled. Empty when every write was applied within its call.
+#[derive(Clone, Default)]
+pub struct Unsettled {
+    writes: Vec<(Target, u64)>,
+}
+
+impl Unsettled {
+    /// Notes the write just made to `target`, if its device tracks delivery.
+    fn note(&mut self, target: Target) {
+        if let Some(d) = target.delivery() {
+            // The newest number: this write's, or a newer one's whose fate covers it.
+            self.writes.push((target, d.taken));
+        }
+    }
+
+    /// True when nothing waits (no write, or every device applied its write at once).
+    pub fn is_empty(&self) -> bool {
+        self.writes.is_empty()
+    }
+
+    /// How many writes are still on their way (as of the last [`check`](Self::check)).
+    pub fn len(&self) -> usize {
+        self.writes.len()
+    }
+
+    /// Where the writes stand now: `None` while one is on its way; `Some(Ok)` once every
+    /// one is delivered; `Some(Err(why))` as soon as one failed. Writes found delivered
+    /// are dropped, so each check asks only about those still on their way. Reads the
+    /// devices' delivery state: not for real-time paths.
+    pub fn check(&mut self) -> Option<Result<(), DeviceError>> {
+        let mut failed = None;
+        self.writes.retain(|(target, n)| {
+            if failed.is_some() {
+                return true;
+            }
+            // A device that stopped reporting delivery has nothing on its way.
+            match target.delivery().map_or(Some(Ok(())), |d| d.outcome(*n)) {
+                None => true,
+                Some(Ok(())) => false,
+                Some(Err(e)) => {
+                    failed = Some(e);
+                    false
+                }
+            }
+        });
+        match failed {
+            Some(e) => Some(Err(e)),
+            None => self.writes.is_empty().then_some(Ok(())),
+        }
+    }
+}
+
+/// The exception answering a write its device took and could not deliver, for `why`:
+/// 0x0B GatewayTargetDeviceFailedToRespond when the target did not answer (offline), 0x04
+/// ServerDeviceFailure otherwise (see the module doc).
+pub fn undelivered(why: &DeviceError) -> ExceptionCode {
+    match why {
+        DeviceError::Offline => exception::GATEWAY_TARGET_FAILED_TO_RESPOND,
+        _ => exception::SERVER_DEVICE_FAILURE,
+    }
+}
+
+/// A checked request's reply, and the writes it must wait for before it is sent.
+#[derive(Clone)]
+pub struct Answer {
+    /// The reply, once `unsettled` is delivered.
+    pub reply: Resp,
+    /// The writes on their way (empty for reads and for writes applied within the call).
+    pub unsettled: Unsettled,
+}
+
 /// Why a table was refused.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[non_exhaustive]
 pub enum TableError {
     /// Two entries on one address.
-    #[error("entry {entry}: {table:?} {address} is already served by entry {other}")]
+    #[error("entry {entry}: {table} {address} is already served by entry {other}")]
     Overlap {
         /// The later entry.
         entry: usize,
@@ -113,7 +225,7 @@ impl RegisterTable {
                 return Err(TableError::Mismatch {
                     entry: i,
                     what: format!(
-                        "{:?} cannot serve this interface (see the table in the docs)",
+                        "{} cannot serve this interface (see the table in the docs)",
                         e.table
                     ),
                 });
@@ -124,7 +236,8 @@ impl RegisterTable {
                     entry: i,
                     what: format!(
                         "scale {} and offset {}: expected a finite non-zero scale",
-                        e.scale, e.offset
+                        device_interface::text::Number(e.scale),
+                        device_interface::text::Number(e.offset)
                     ),
                 });
             }
@@ -200,7 +313,7 @@ impl RegisterTable {
         Ok(out)
     }
 
-    fn write_registers(&self, start: u16, values: &[u16]) -> Result<(), ExceptionCode> {
+    fn write_registers(&self, start: u16, values: &[u16]) -> Result<Unsettled, ExceptionCode> {
         let end = u32::from(start) + values.len() as u32;
         let mut a = u32::from(start);
         // Check first, write after: a refused part leaves every output as it was.
@@ -224,15 +337,17 @@ impl RegisterTable {
             writes.push((d.clone(), *c, n.as_f64() * e.scale + e.offset));
             a += w;
         }
-        for (d, c, v) in &writes {
-            d.write(*c, *v).map_err(|err| match err {
+        let mut unsettled = Unsettled::default();
+        for (d, c, v) in writes {
+            d.write(c, v).map_err(|err| match err {
                 DeviceError::ValueOutOfRange { .. } | DeviceError::RawOutOfRange { .. } => {
                     exception::ILLEGAL_DATA_VALUE
                 }
                 other => device_failure(other),
             })?;
+            unsettled.note(Target::Analog(d, c));
         }
-        Ok(())
+        Ok(unsettled)
     }
 
     fn read_bits(&self, table: Table, start: u16, count: u16) -> Result<Vec<bool>, ExceptionCode> {
@@ -251,7 +366,7 @@ impl RegisterTable {
             .collect()
     }
 
-    fn write_coils(&self, start: u16, values: &[bool]) -> Result<(), ExceptionCode> {
+    fn write_coils(&self, start: u16, values: &[bool]) -> Result<Unsettled, ExceptionCode> {
         let mut targets = Vec::new();
         for (i, v) in values.iter().enumerate() {
             let a = u32::from(start) + i as u32;
@@ -263,16 +378,21 @@ impl RegisterTable {
             };
             targets.push((d.clone(), *b, *v));
         }
+        let mut unsettled = Unsettled::default();
         for (d, b, v) in targets {
             d.set_bit(b, v).map_err(device_failure)?;
+            unsettled.note(Target::Digital(d, b));
         }
-        Ok(())
+        Ok(unsettled)
     }
 
-    /// Answers one checked request ([`pdu::parse`](crate::pdu::parse)): the reply, or an
-    /// exception code.
-    pub fn answer(&self, req: Req) -> Result<Resp, ExceptionCode> {
-        Ok(match req {
+    /// Answers one checked request ([`pdu::parse`](crate::pdu::parse)): the reply and the
+    /// writes it waits for, or an exception code. A write is made here; its reply is due
+    /// only once [`Answer::unsettled`] is delivered (the server waits in its connection's
+    /// task, see [`listener`](crate::listener)).
+    pub fn answer(&self, req: Req) -> Result<Answer, ExceptionCode> {
+        let mut unsettled = Unsettled::default();
+        let reply = match req {
             Req::ReadRegisters {
                 function,
                 start,
@@ -298,22 +418,23 @@ impl RegisterTable {
                 Resp::Bits(function, self.read_bits(table, start, count)?)
             }
             Req::WriteRegister { address, value } => {
-                self.write_registers(address, &[value])?;
+                unsettled = self.write_registers(address, &[value])?;
                 Resp::Echo(6, address, value)
             }
             Req::WriteRegisters { start, values } => {
-                self.write_registers(start, &values)?;
+                unsettled = self.write_registers(start, &values)?;
                 Resp::Written(16, start, values.len() as u16)
             }
             Req::WriteCoil { address, on } => {
-                self.write_coils(address, &[on])?;
+                unsettled = self.write_coils(address, &[on])?;
                 Resp::Echo(5, address, if on { 0xFF00 } else { 0 })
             }
             Req::WriteCoils { start, values } => {
-                self.write_coils(start, &values)?;
+                unsettled = self.write_coils(start, &values)?;
                 Resp::Written(15, start, values.len() as u16)
             }
-        })
+        };
+        Ok(Answer { reply, unsettled })
     }
 }
 
