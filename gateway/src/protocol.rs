@@ -248,7 +248,7 @@ pub const COMMANDS: [Command; 14] = [
     Command {
         cmd: "watch",
         fields: "`component`, `port`, optional `count`",
-        ok: "`\"watching\"`, then a stream: one `{\"id\", \"event\": {\"status\", \"value\"}}` line per new value (all of them, `count` at most), until the client closes",
+        ok: "`\"watching\"`, then a stream: one `{\"id\", \"event\": {\"status\", \"value\"}}` line per new value (all of them, `count` at most), and `{\"id\", \"heartbeat\": ns}` after each second without one, until the client closes",
     },
     Command {
         cmd: "record",
@@ -360,7 +360,7 @@ pub enum Body {
     /// A batch of a `record` stream.
     Records(RecordBatch),
     /// A stream's sign of life while it has nothing to send (every
-    /// [`HEARTBEAT`](crate::protocol::HEARTBEAT)): the gateway's monotonic time, ns. A
+    /// [`HEARTBEAT`]): the gateway's monotonic time, ns. A
     /// client that hears nothing for longer than its timeout takes the gateway for stuck.
     Heartbeat(u64),
 }

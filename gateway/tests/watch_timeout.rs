@@ -1,6 +1,7 @@
 //! `hwgw watch` and a gateway that stops answering: a quiet port keeps the watch alive
-//! (the gateway's heartbeat comes every second), and a frozen gateway (SIGSTOP) ends it
-//! with an error after `--timeout` instead of hanging for as long as the freeze lasts.
+//! (the gateway's heartbeat comes every second), and a frozen gateway (SIGSTOP) ends it —
+//! and a `hwgw record` — with an error after `--timeout` instead of hanging for as long as
+//! the freeze lasts.
 
 use nix::sys::signal::{Signal, kill};
 use nix::unistd::Pid;
@@ -82,6 +83,29 @@ fn a_quiet_watch_lives_and_a_frozen_gateway_ends_it_after_the_timeout() {
         let _ = std::io::Read::read_to_string(&mut e, &mut err);
     }
     assert!(!status.success(), "{status:?}");
+    assert!(err.contains("no reply within 2s"), "{err}");
+
+    // A recording of a gateway that freezes ends with the same error after --timeout,
+    // its file completed.
+    let file = dir.path().join("frozen.mcap");
+    let mut record = Command::new(HWGW)
+        .args(["--timeout", "2", "record"])
+        .arg(&file)
+        .args(["--port", "sim0.ai", "--socket", &socket])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap_or_else(|e| panic!("{e}"));
+    testkit::wait_until("the recording under way", || {
+        std::fs::metadata(&file).is_ok_and(|m| m.len() > 0)
+    });
+    kill(pid, Signal::SIGSTOP).unwrap_or_else(|e| panic!("{e}"));
+    let ended = exit_within(&mut record, Duration::from_secs(60));
+    kill(pid, Signal::SIGCONT).unwrap_or_else(|e| panic!("{e}"));
+    let status = ended.unwrap_or_else(|| panic!("the recording hung on a frozen gateway"));
+    let out = record.wait_with_output().unwrap_or_else(|e| panic!("{e}"));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!status.success(), "{status:?}: {err}");
     assert!(err.contains("no reply within 2s"), "{err}");
     assert!(svc.terminate().status.success());
 }
