@@ -31,6 +31,8 @@ pub struct Delivery {
     pub taken: u64,
     /// The newest write whose fate is known, delivered or failed (`<= taken`).
     pub settled: u64,
+    /// The newest write that reached the device (0: none yet).
+    pub delivered: u64,
     /// The newest write that failed (0: none yet).
     pub failed: u64,
     /// Why write [`failed`](Self::failed) failed.
@@ -39,16 +41,18 @@ pub struct Delivery {
 
 impl Delivery {
     /// The fate of write number `n`: `None` while it is on its way; `Some(Ok)` when it, or
-    /// a newer value of the same output, reached the device; `Some(Err)` when it failed.
+    /// a newer value of the same output, reached the device; `Some(Err)` when it (and no
+    /// newer value) failed.
     pub fn outcome(&self, n: u64) -> Option<Result<(), DeviceError>> {
-        if self.failed >= n && n > 0 {
-            return Some(Err(self.error.clone().unwrap_or(
-                DeviceError::Undelivered {
-                    reason: "no reason kept",
-                },
-            )));
+        if self.delivered >= n {
+            // It, or a newer value of the output, got there.
+            return Some(Ok(()));
         }
-        (self.settled >= n).then_some(Ok(()))
+        (self.failed >= n).then(|| {
+            Err(self.error.clone().unwrap_or(DeviceError::Undelivered {
+                reason: "no reason kept",
+            }))
+        })
     }
 }
 
@@ -56,7 +60,7 @@ impl Delivery {
 #[derive(Debug, Default)]
 struct Counters {
     taken: AtomicU64,
-    settled: AtomicU64,
+    delivered: AtomicU64,
     failed: AtomicU64,
 }
 
@@ -94,7 +98,7 @@ impl DeliveryTracker {
     /// Writes up to number `n` of `channel` reached the device.
     pub fn delivered(&self, channel: u32, n: u64) {
         if let Some(c) = self.channels.get(channel as usize) {
-            c.settled.fetch_max(n, Ordering::AcqRel);
+            c.delivered.fetch_max(n, Ordering::AcqRel);
         }
     }
 
@@ -110,7 +114,6 @@ impl DeliveryTracker {
             }
         }
         c.failed.fetch_max(n, Ordering::AcqRel);
-        c.settled.fetch_max(n, Ordering::AcqRel);
     }
 
     /// Every write taken so far on every channel failed, for `why` (a device that went
@@ -132,10 +135,10 @@ impl DeliveryTracker {
         let Some(c) = self.channels.get(channel as usize) else {
             return Delivery::default();
         };
-        // Failed before settled before taken: each read sees at least what the one before
-        // it promised.
+        // Settled before taken: a number settled was taken, so the taken read after it is
+        // at least as new.
         let failed = c.failed.load(Ordering::Acquire);
-        let settled = c.settled.load(Ordering::Acquire);
+        let delivered = c.delivered.load(Ordering::Acquire);
         let taken = c.taken.load(Ordering::Acquire);
         let error = (failed > 0)
             .then(|| {
@@ -149,7 +152,8 @@ impl DeliveryTracker {
             .flatten();
         Delivery {
             taken,
-            settled,
+            settled: delivered.max(failed),
+            delivered,
             failed,
             error,
         }
@@ -195,5 +199,20 @@ mod tests {
         let d = t.take(0);
         assert_eq!(t.fail_pending(&DeviceError::Offline), 1);
         assert!(matches!(t.get(0).outcome(d), Some(Err(_))));
+    }
+
+    #[test]
+    fn a_write_delivered_stays_delivered_when_a_newer_one_fails() {
+        let t = DeliveryTracker::new(1);
+        let a = t.take(0);
+        t.delivered(0, a);
+        let b = t.take(0);
+        t.failed(0, b, DeviceError::Offline);
+        assert!(matches!(t.get(0).outcome(a), Some(Ok(()))));
+        assert!(matches!(
+            t.get(0).outcome(b),
+            Some(Err(DeviceError::Offline))
+        ));
+        assert_eq!(t.get(0).settled, b);
     }
 }

@@ -232,6 +232,9 @@ pub fn write(gw: &str, registry: &Registry, w: &Write) -> Result<WriteReply, Str
 /// The last message a remote writer's run applied to one device here.
 type WriterKey = (String, u64, Interface, String);
 
+/// The longest writer or device name remembered, bytes.
+const MAX_NAME: usize = 256;
+
 /// The writers remembered at most (beyond it they are forgotten together, and a repeat of
 /// a forgotten writer's last message would be written once more).
 const MAX_WRITERS: usize = 4096;
@@ -263,10 +266,25 @@ impl Writes {
             };
             return (reply, true);
         }
-        let r = write(gw, registry, w).unwrap_or_else(|e| WriteReply {
-            refused: w.values.iter().map(|(ch, _)| (*ch, e.clone())).collect(),
-        });
-        if w.seq != 0 {
+        let r = match write(gw, registry, w) {
+            Ok(r) => r,
+            Err(e) => {
+                // Refused whole: every value refused with why, bounded (a legitimate writer
+                // names each of a device's channels once, at most MAX_CHANNELS), the why cut
+                // short; nothing was written, so nothing is remembered either.
+                let e = device_interface::text::Cut(&e).to_string();
+                let refused = w
+                    .values
+                    .iter()
+                    .take(crate::config::MAX_CHANNELS as usize)
+                    .map(|(ch, _)| (*ch, e.clone()))
+                    .collect();
+                return (WriteReply { refused }, false);
+            }
+        };
+        // Remembered only under names a gateway and a device can have (a hostile peer's
+        // megabyte-long writer name is not kept).
+        if w.seq != 0 && key.0.len() <= MAX_NAME && key.3.len() <= MAX_NAME {
             if self.last.len() >= MAX_WRITERS && !self.last.contains_key(&key) {
                 self.last.clear();
             }

@@ -6,9 +6,10 @@
 //! same message — same sequence number, same values — goes again; the remote gateway
 //! applies a sequence number once and acknowledges repeats without writing them, so a
 //! repeat never feeds its output watchdog. A newer write to any of those outputs makes a
-//! new message. An output whose writes have had no acknowledgement for `request_timeout_ms`
-//! since the first of them is failed ([`Image::undelivered`]), counted, and its writer
-//! hears so.
+//! new message. An output that has waited `request_timeout_ms` for an acknowledgement —
+//! none of its writes delivered since the first of them went unacknowledged — is failed
+//! ([`Image::undelivered`]), counted, and its writer hears so; nothing more is sent once
+//! the gateway stops.
 
 use crate::remote::Image;
 use crate::wire::{self, Write};
@@ -43,8 +44,10 @@ pub struct Outbox {
     session: u64,
     next_seq: u64,
     inflight: Option<InFlight>,
-    /// Since when each output has had writes without an acknowledgement.
-    since: HashMap<u32, Instant>,
+    /// Since when each output has waited for an acknowledgement, and the newest of its
+    /// writes delivered then: a newer delivery (B acknowledged meanwhile) starts the wait
+    /// again, so a writer faster than the acknowledgements never times out while they come.
+    since: HashMap<u32, (Instant, u64)>,
     timeout: Duration,
     retry: Duration,
 }
@@ -73,12 +76,21 @@ impl Outbox {
 
     /// What to send for `img` at `now`, if anything; fails the writes that waited too long.
     pub fn next(&mut self, img: &Image, now: Instant) -> Option<Outgoing> {
+        if img.is_held() {
+            // The gateway is stopping: nothing more goes out (what was on its way failed).
+            self.inflight = None;
+            return None;
+        }
         let mut pending = img.pending();
         self.since
             .retain(|c, _| pending.iter().any(|(p, _)| p == c));
         pending.retain(|&(c, n)| {
-            let first = *self.since.entry(c).or_insert(now);
-            if now.saturating_duration_since(first) < self.timeout {
+            let delivered = img.delivery(c).delivered;
+            let wait = self.since.entry(c).or_insert((now, delivered));
+            if delivered > wait.1 {
+                *wait = (now, delivered);
+            }
+            if now.saturating_duration_since(wait.0) < self.timeout {
                 return true;
             }
             img.undelivered(

@@ -61,6 +61,9 @@ pub struct ImageCounters {
     pub writes_retried: AtomicU64,
 }
 
+/// Why a write is refused once the gateway stops.
+const STOPPING: &str = "the gateway is stopping";
+
 /// Why an image is not usable beyond silence.
 const OK: u8 = 0;
 /// The remote device's shape is not the declared one.
@@ -370,15 +373,19 @@ impl Image {
     fn write(&self, ch: u32, raw: i64) -> Result<(), DeviceError> {
         self.check(ch)?;
         if self.held.load(Ordering::Acquire) {
-            return Err(DeviceError::Held {
-                reason: "the gateway is stopping",
-            });
+            return Err(DeviceError::Held { reason: STOPPING });
         }
         if self.state(MonotonicClock.now().as_nanos()).0 == Status::Offline {
             return Err(DeviceError::Offline);
         }
         self.out[ch as usize].store(raw, Ordering::Release);
-        self.delivery.take(ch);
+        let n = self.delivery.take(ch);
+        if self.held.load(Ordering::Acquire) {
+            // The gateway began stopping meanwhile: this write is never sent.
+            self.delivery
+                .failed(ch, n, DeviceError::Held { reason: STOPPING });
+            return Err(DeviceError::Held { reason: STOPPING });
+        }
         if let Some(w) = self.wake.get() {
             let _ = w.try_send(());
         }
@@ -406,6 +413,11 @@ impl Image {
     /// Where the writes to output `ch` stand.
     pub fn delivery(&self, ch: u32) -> device_interface::Delivery {
         self.delivery.get(ch)
+    }
+
+    /// True once the gateway is stopping: no write is taken or sent.
+    pub fn is_held(&self) -> bool {
+        self.held.load(Ordering::Acquire)
     }
 
     /// Refuses every write from now on (the gateway is stopping); the writes still on

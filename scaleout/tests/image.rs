@@ -280,6 +280,55 @@ fn a_write_never_acknowledged_fails_after_the_request_timeout_and_is_counted() {
 }
 
 #[test]
+fn a_steady_writer_whose_writes_are_acknowledged_never_times_out() {
+    // A component writing every 10 ms for 3 s (three request timeouts), each message
+    // acknowledged as soon as it is sent: nothing fails, and the last value is delivered.
+    let img = Arc::new(Image::new(Interface::AnalogOut, "B", "sim0", 1, times()));
+    img.adopt(&shape(Interface::AnalogOut, 1));
+    img.take(&sample(1, vec![Some(0)]), now());
+    let ao = Proxy(img.clone());
+    let mut o = outbox();
+    let t0 = Instant::now();
+    for k in 0..300u32 {
+        ao.write(0, f64::from(k % 20) * 0.5 - 5.0)
+            .unwrap_or_else(|e| panic!("{e}"));
+        if let Some(out) = o.next(&img, t0 + Duration::from_millis(10 * u64::from(k))) {
+            img.answered(&out.numbers, &[]);
+        }
+    }
+    assert_eq!(img.counters.writes_failed.load(Ordering::Relaxed), 0);
+    let last = AnalogOut::delivery(&ao, 0).unwrap_or_default();
+    assert!(matches!(last.outcome(last.taken), Some(Ok(()))), "{last:?}");
+    // Once the gateway stops, nothing more goes out, and a write racing the stop fails.
+    img.hold();
+    assert!(o.next(&img, t0 + Duration::from_secs(4)).is_none());
+    assert!(matches!(ao.write(0, 1.0), Err(DeviceError::Held { .. })));
+}
+
+#[test]
+fn a_hostile_write_refused_whole_is_answered_small_and_not_remembered() {
+    let registry = device_interface::Registry::new();
+    let mut writes = scaleout::local::Writes::default();
+    // A 1 MB device name nobody has, and 500 000 values.
+    let w = Write {
+        protocol: 1,
+        writer: "x".repeat(1 << 20),
+        interface: Interface::AnalogOut,
+        device: "d".repeat(1 << 20),
+        values: vec![(0, 0); 500_000],
+        seq: 1,
+        session: 1,
+    };
+    let (r, repeated) = writes.apply("B", &registry, &w);
+    assert!(!repeated);
+    assert!(r.refused.len() <= 4096, "{} refusals", r.refused.len());
+    let bytes = wire::to_bytes(&r).len();
+    assert!(bytes < 1 << 20, "a reply of {bytes} bytes");
+    // Not remembered: the same message again is carried out (and refused) again.
+    assert!(!writes.apply("B", &registry, &w).1);
+}
+
+#[test]
 fn digital_outputs_and_encoder_commands() {
     let img = Arc::new(Image::new(Interface::DigitalOut, "B", "sim0", 4, times()));
     img.adopt(&shape(Interface::DigitalOut, 4));
