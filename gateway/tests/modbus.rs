@@ -651,14 +651,19 @@ address = 0
             .is_some_and(|n| n >= 1)
     });
 
-    // The unit back (it gets the newest value: outputs are not dropped), then gone: every
-    // `set` fails, whether the write was taken before the unit was declared offline or
-    // refused after.
+    // The unit back: the write its writer was told failed is never sent later (nobody
+    // asks for it any more); a new one goes through. Then gone: every `set` fails, whether
+    // the write was taken before the unit was declared offline or refused after.
     server.memory().lock().unwrap().silent_writes = false;
     wait_until("the unit online again", online);
-    wait_until("the retried value reaches the unit", || {
-        server.memory().lock().unwrap().holding[10] == 4321
-    });
+    gw.out(&["set", "plc.do", "bit0", "false"]).unwrap();
+    assert_eq!(
+        server.memory().lock().unwrap().holding[10],
+        1234,
+        "the failed write was sent later"
+    );
+    gw.out(&["set", "plc.ao", "ch0", "4321"]).unwrap();
+    assert_eq!(server.memory().lock().unwrap().holding[10], 4321);
     let mem = server.memory().clone();
     drop(server);
     for v in 0..5 {

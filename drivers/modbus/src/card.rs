@@ -511,11 +511,32 @@ impl ModbusCard {
     }
 
     /// Every write taken and not yet settled failed, for `why` (the unit went offline, or
-    /// its line stopped): no writer waits for ever. The outputs keep their values and
-    /// changed marks: a unit that answers again still gets them. Returns the number of
-    /// outputs that had writes pending.
+    /// its line stopped): no writer waits for ever, and a write its writer was told failed
+    /// is dropped — its changed mark cleared, so a unit that answers again never gets it
+    /// later, when nobody asks for it any more. Returns the number of outputs that had
+    /// writes pending.
     pub fn fail_pending(&self, why: &DeviceError) -> usize {
-        self.ao_delivery.tracker.fail_pending(why) + self.do_delivery.tracker.fail_pending(why)
+        let mut n = 0;
+        for (d, dirty) in [
+            (&self.ao_delivery, &self.ao_dirty),
+            (&self.do_delivery, &self.do_dirty),
+        ] {
+            for ch in 0..d.count() {
+                let state = d.tracker.get(ch);
+                if state.settled >= state.taken {
+                    continue;
+                }
+                // Number first, mark after: a write racing this takes a newer number and
+                // its mark is set again below.
+                let _ = dirty.set(ch, false);
+                d.tracker.failed(ch, state.taken, why.clone());
+                if d.tracker.taken(ch) > state.taken {
+                    let _ = dirty.set(ch, true);
+                }
+                n += 1;
+            }
+        }
+        n
     }
 
     /// The outputs whose newest write failed and has not reached the unit since

@@ -591,7 +591,8 @@ fn deliveries_are_settled_by_the_request_that_carried_them() {
     );
     assert_eq!(card.failed_outputs().len(), 1);
     // A write lost in transit is retried and stays on its way; the unit going offline
-    // fails it (its value is still sent should the unit answer again).
+    // fails it, and it is dropped: never sent should the unit answer again (its writer was
+    // told it failed).
     card.set_bit(2, true).unwrap(); // coil 7
     let c = DigitalOut::delivery(&*card, 2).unwrap().taken;
     let writes = card.take_writes();
@@ -604,11 +605,18 @@ fn deliveries_are_settled_by_the_request_that_carried_them() {
     ));
     assert!(!card.deliveries_pending());
     assert_eq!(card.failed_outputs().len(), 2);
-    assert_eq!(card.take_writes(), writes, "still marked for sending");
+    assert!(
+        card.take_writes().is_empty(),
+        "a failed write is not sent later"
+    );
     assert_eq!(card.fail_pending(&DeviceError::Offline), 0, "nothing left");
-    // The unit answers again and takes it: the writer heard "offline", but the output
-    // holds its value now; the refused one does not.
-    card.write_delivered(&writes[0]);
+    // A newer write after the failure goes out as usual.
+    card.set_bit(2, false).unwrap();
+    let d = DigitalOut::delivery(&*card, 2).unwrap().taken;
+    let again = card.take_writes();
+    assert_eq!(again.len(), 1);
+    card.write_delivered(&again[0]);
+    assert!(matches!(digital_outcome(&card, 2, d), Some(Ok(()))));
     let failed: Vec<(Role, u32)> = card
         .failed_outputs()
         .into_iter()
