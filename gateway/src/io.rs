@@ -66,6 +66,14 @@ const DELIVERY_WAIT: Duration = Duration::from_secs(8);
 /// device's bus has delivered it or failed it (at most [`DELIVERY_WAIT`]).
 fn apply<D: ?Sized + Writable>(device: &D, c: u32, v: D::Value) -> Result<(), DeviceError> {
     device.put(c, v)?;
+    delivered(device, c)
+}
+
+/// Waits until the newest write to channel `c` of `device` is delivered or failed, for a
+/// device whose bus carries writes later (at once for the others; at most
+/// [`DELIVERY_WAIT`]). Blocks: for the control socket's threads and the operations it
+/// calls, never a real-time path (components write devices directly).
+fn delivered<D: ?Sized + Writable>(device: &D, c: u32) -> Result<(), DeviceError> {
     let Some(d) = device.delivery(c) else {
         return Ok(());
     };
@@ -201,9 +209,13 @@ impl Channels for dyn AnalogOut {
             i,
             d,
             "write",
-            "writes a channel in physical units",
+            "writes a channel in physical units; answers once the device has it (a bus that \
+             carries writes later: delivered or failed, 8 s at most)",
             write_args,
-            |d, (c, v)| d.write(c, v),
+            |d, (c, v)| {
+                d.write(c, v)?;
+                delivered(d, c)
+            },
         )?;
         device_op(
             i,
@@ -272,9 +284,13 @@ impl Channels for dyn DigitalOut {
             i,
             d,
             "set_bit",
-            "sets one output",
+            "sets one output; answers once the device has it (a bus that carries writes \
+             later: delivered or failed, 8 s at most)",
             &[("bit", ""), ("value", "")],
-            |d, (b, v)| d.set_bit(b, v),
+            |d, (b, v)| {
+                d.set_bit(b, v)?;
+                delivered(d, b)
+            },
         )?;
         device_op(
             i,
@@ -289,9 +305,13 @@ impl Channels for dyn DigitalOut {
             i,
             d,
             "set_sequence",
-            "sets outputs start..=stop from a value, bit 0 at start",
+            "sets outputs start..=stop from a value, bit 0 at start; answers once the device \
+             has them (a bus that carries writes later: delivered or failed, 8 s at most)",
             seq,
-            |d, (a, b, v)| d.set_sequence(a, b, v),
+            |d, (a, b, v)| {
+                d.set_sequence(a, b, v)?;
+                (a..=b).try_for_each(|bit| delivered(d, bit))
+            },
         )?;
         device_op(
             i,

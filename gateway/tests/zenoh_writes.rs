@@ -123,6 +123,16 @@ fn every_write_reaches_the_other_gateway_or_its_writer_hears_it_failed() {
         }
     }
 
+    // An operation writing the output answers the same way: once B has the value.
+    let r = a.ok(
+        json!({"cmd": "call", "component": "B/sim0.ao", "operation": "write", "args": [1, 1.25]}),
+    );
+    match (r.get("Ok"), r["Err"].as_str()) {
+        (Some(_), _) => assert!(holds(&b, 1.25), "acknowledged, so B has 1.25: {}", on_b(&b)),
+        (_, Some(e)) => assert!(e.contains("not delivered"), "{e}"),
+        _ => panic!("neither Ok nor Err: {r}"),
+    }
+
     // B killed: the writes on their way and those made while A still sees B are failed
     // and said so (none answered ok), then refused as offline.
     let before = import(&a);
@@ -135,6 +145,13 @@ fn every_write_reaches_the_other_gateway_or_its_writer_hears_it_failed() {
     assert!(
         outcomes.iter().all(Result::is_err),
         "a write after B was killed answered ok: {outcomes:?}"
+    );
+    let r = a.ok(
+        json!({"cmd": "call", "component": "B/sim0.ao", "operation": "write", "args": [1, 4.75]}),
+    );
+    assert!(
+        r["Err"].as_str().is_some_and(|e| e.contains("offline")),
+        "a write operation after B was killed: {r}"
     );
     let undelivered = outcomes
         .iter()
