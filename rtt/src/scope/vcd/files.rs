@@ -116,7 +116,7 @@ fn existing(base: &Path) -> std::io::Result<Vec<(u64, PathBuf, bool)>> {
     Ok(out)
 }
 
-/// Creates the next numbered file of `base` (one past the highest number there), then
+/// Creates the next numbered file of `base` (one past the highest of its own there), then
 /// removes the oldest of this process's own numbered files beyond `keep` (the new one
 /// counted; `keep` is at least 1). The file and its path.
 pub(crate) fn create_numbered(base: &Path, keep: u32) -> Result<(File, PathBuf), VcdError> {
@@ -125,7 +125,10 @@ pub(crate) fn create_numbered(base: &Path, keep: u32) -> Result<(File, PathBuf),
         source,
     };
     let found = existing(base).map_err(error)?;
-    let mut n = found.iter().map(|f| f.0).max().unwrap_or(0);
+    // Counted from this process's own files: a name another user planted (the highest
+    // number there is) neither sets the next number nor is removed; one in the way is
+    // passed over by the retries below.
+    let mut n = found.iter().filter(|f| f.2).map(|f| f.0).max().unwrap_or(0);
     let mut made = None;
     for _ in 0..TRIES {
         n = n
