@@ -230,7 +230,9 @@ impl Browser {
             operation: op.to_string(),
             args: args.iter().map(|a| json_arg(a)).collect(),
         })
-        .and_then(|v| crate::cli::call_result(&format!("{c}.{op}"), v).map_err(|e| e.to_string()))
+        .and_then(|v| {
+            crate::client::call_result(&format!("{c}.{op}"), v).map_err(|e| e.to_string())
+        })
         .map(|v| pretty(&v))
     }
 

@@ -271,24 +271,6 @@ fn finish(result: Result<String, String>) -> ExitCode {
     }
 }
 
-/// An operation's answer: the value of `{"Ok": value}`, an error for `{"Err": message}`
-/// (a device operation that failed), anything else as it is.
-pub(crate) fn call_result(operation: &str, answer: Value) -> Result<Value, ClientError> {
-    match answer {
-        Value::Object(mut m) if m.len() == 1 && m.contains_key("Err") => {
-            let e = m.remove("Err").unwrap_or_default();
-            Err(ClientError::Operation {
-                operation: operation.to_string(),
-                message: e.as_str().map_or_else(|| e.to_string(), str::to_string),
-            })
-        }
-        Value::Object(mut m) if m.len() == 1 && m.contains_key("Ok") => {
-            Ok(m.remove("Ok").unwrap_or_default())
-        }
-        other => Ok(other),
-    }
-}
-
 /// A one-shot command: the text to print.
 fn one_shot(client: &Client, command: Command, json: bool) -> Result<Option<String>, ClientError> {
     let text = match command {
@@ -395,7 +377,7 @@ fn one_shot(client: &Client, command: Command, json: bool) -> Result<Option<Stri
                 operation,
                 args: args.iter().map(|a| json_arg(a)).collect(),
             })?;
-            let answer = call_result(&what, answer)?;
+            let answer = crate::client::call_result(&what, answer)?;
             pretty(&answer)
         }
         Command::Run { .. }

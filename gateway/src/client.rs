@@ -312,3 +312,21 @@ impl Stream {
         }
     }
 }
+
+/// An operation's answer: the value of `{"Ok": value}`, an error for `{"Err": message}`
+/// (a device operation that failed), anything else as it is.
+pub fn call_result(operation: &str, answer: Value) -> Result<Value, ClientError> {
+    match answer {
+        Value::Object(mut m) if m.len() == 1 && m.contains_key("Err") => {
+            let e = m.remove("Err").unwrap_or_default();
+            Err(ClientError::Operation {
+                operation: operation.to_string(),
+                message: e.as_str().map_or_else(|| e.to_string(), str::to_string),
+            })
+        }
+        Value::Object(mut m) if m.len() == 1 && m.contains_key("Ok") => {
+            Ok(m.remove("Ok").unwrap_or_default())
+        }
+        other => Ok(other),
+    }
+}

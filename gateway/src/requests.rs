@@ -134,37 +134,7 @@ pub(crate) fn handle(
             component: c,
             target: Target::Port(port),
             value,
-        } => {
-            let t = component(c)?;
-            let p = t.port(port).map_err(not_found)?;
-            if p.drives() {
-                // A device output: written now, answered with what became of the write.
-                let state = t.state();
-                if state != rtt::TaskState::Running {
-                    return Err(failed(format!(
-                        "component {:?} is {state:?}: its outputs are not driven now, so the \
-                         value would never be written (start it first)",
-                        t.name()
-                    )));
-                }
-                return match p.drive(value.clone()) {
-                    Some(r) => r.map_err(failed).map(|()| Value::Null),
-                    None => Err(failed("port stopped driving")),
-                };
-            }
-            let key = (t.name().to_string(), port.clone());
-            if !writers.contains_key(&key) {
-                let p = t.port(port).map_err(not_found)?;
-                writers.insert(
-                    key.clone(),
-                    p.writer(ConnPolicy::buffer(16)).map_err(failed)?,
-                );
-            }
-            match writers.get_mut(&key) {
-                Some(w) => w.write(value.clone()).map_err(failed).map(|()| Value::Null),
-                None => Err(failed("writer vanished")),
-            }
-        }
+        } => set_port(&component(c)?, port, value, writers),
         Request::Set {
             component: c,
             target: Target::Property(prop),
@@ -193,6 +163,43 @@ pub(crate) fn handle(
             ErrorKind::BadRequest,
             format!("{} streams: it is served on its own", req.cmd()),
         )),
+    }
+}
+
+/// `set` of input port `port` of `t`: a device output is written now and answered with
+/// what became of the write; any other input port gets the value through a writer of the
+/// client's own (kept in `writers`).
+fn set_port(
+    t: &rtt::TaskContext,
+    port: &str,
+    value: &Value,
+    writers: &mut HashMap<(String, String), Box<dyn DynWriter>>,
+) -> Result<Value, Fail> {
+    let p = t.port(port).map_err(not_found)?;
+    if p.drives() {
+        let state = t.state();
+        if state != rtt::TaskState::Running {
+            return Err(failed(format!(
+                "component {:?} is {state:?}: its outputs are not driven now, so the value \
+                 would never be written (start it first)",
+                t.name()
+            )));
+        }
+        return match p.drive(value.clone()) {
+            Some(r) => r.map_err(failed).map(|()| Value::Null),
+            None => Err(failed("port stopped driving")),
+        };
+    }
+    let key = (t.name().to_string(), port.to_string());
+    if !writers.contains_key(&key) {
+        writers.insert(
+            key.clone(),
+            p.writer(ConnPolicy::buffer(16)).map_err(failed)?,
+        );
+    }
+    match writers.get_mut(&key) {
+        Some(w) => w.write(value.clone()).map_err(failed).map(|()| Value::Null),
+        None => Err(failed("writer vanished")),
     }
 }
 

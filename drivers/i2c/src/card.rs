@@ -9,7 +9,6 @@
 //! [`DeviceError::Offline`]. Real-time: no allocation, no lock; a write's one system call
 //! is the bus side's wake-up (an `eventfd` write, which never blocks).
 
-use crate::chips::Lost;
 use device_interface::bits::BitImage;
 use device_interface::channel::nth;
 use device_interface::encoder::{CardEncoder, EncoderCounter, EncoderHost};
@@ -19,6 +18,7 @@ use device_interface::{
     Status,
 };
 use rtt::activity::Waker;
+use std::fmt;
 use std::ops::Range;
 use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
@@ -529,5 +529,37 @@ impl EncoderHost for I2cCard {
 
     fn check_writable(&self) -> Result<(), DeviceError> {
         Ok(())
+    }
+}
+
+/// A register a chip model found otherwise than it set it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Lost {
+    /// The register, as the datasheet names it.
+    pub register: &'static str,
+    /// What it reads (as the datasheet writes it: MSB first).
+    pub found: u16,
+    /// What the model set.
+    pub wanted: u16,
+}
+
+impl Lost {
+    /// The difference, if `found` is not `wanted`.
+    pub fn compare(register: &'static str, found: u16, wanted: u16) -> Option<Lost> {
+        (found != wanted).then_some(Lost {
+            register,
+            found,
+            wanted,
+        })
+    }
+}
+
+impl fmt::Display for Lost {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "{} reads {:#06x}, not {:#06x}",
+            self.register, self.found, self.wanted
+        )
     }
 }

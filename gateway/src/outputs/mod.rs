@@ -201,7 +201,7 @@ fn analog_outputs(
                     key,
                     format!(
                         "{}: not a safe value for analog output {port:?}: {e}",
-                        crate::checks::number(x)
+                        device_interface::text::Number(x)
                     ),
                 ));
             }
@@ -303,7 +303,10 @@ impl CardOutputs {
             Some(ms) => {
                 problems.push((
                     "outputs.watchdog_ms".into(),
-                    format!("{}: expected 1 to 86400000 ms", crate::checks::number(ms)),
+                    format!(
+                        "{}: expected 1 to 86400000 ms",
+                        device_interface::text::Number(ms)
+                    ),
                 ));
                 None
             }

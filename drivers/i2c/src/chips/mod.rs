@@ -32,8 +32,8 @@ pub mod pca9685;
 #[cfg(test)]
 pub(crate) mod tests;
 
-pub use crate::card::Shape;
 use crate::card::{ChipIo, ChipPlace};
+pub use crate::card::{Lost, Shape};
 use crate::config::ChipConfig;
 use crate::smbus::{Smbus, Transfer};
 use device_interface::{RawRange, Scale, ScaleError, Unit};
@@ -54,38 +54,6 @@ pub enum Outcome {
     /// master): nothing this poll read was published; the bus side counts a reset and
     /// calls `start` again. `start` itself never answers it.
     Reset(Lost),
-}
-
-/// A register a chip model found otherwise than it set it.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Lost {
-    /// The register, as the datasheet names it.
-    pub register: &'static str,
-    /// What it reads (as the datasheet writes it: MSB first).
-    pub found: u16,
-    /// What the model set.
-    pub wanted: u16,
-}
-
-impl Lost {
-    /// The difference, if `found` is not `wanted`.
-    pub fn compare(register: &'static str, found: u16, wanted: u16) -> Option<Lost> {
-        (found != wanted).then_some(Lost {
-            register,
-            found,
-            wanted,
-        })
-    }
-}
-
-impl fmt::Display for Lost {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(
-            f,
-            "{} reads {:#06x}, not {:#06x}",
-            self.register, self.found, self.wanted
-        )
-    }
 }
 
 /// Why a poll of a chip failed: each one is counted, and
