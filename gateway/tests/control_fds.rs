@@ -40,8 +40,9 @@ fn clients_beyond_the_descriptor_limit_are_turned_away_not_starved() {
         let mut c = UnixStream::connect(&svc.socket).unwrap_or_else(|e| panic!("{e}"));
         c.set_read_timeout(Some(Duration::from_secs(30)))
             .unwrap_or_else(|e| panic!("{e}"));
-        c.write_all(b"{\"cmd\":\"ls\"}\n")
-            .unwrap_or_else(|e| panic!("{e}"));
+        // A client turned away may be told so and closed before its request is written
+        // (a broken pipe): its answer is read all the same.
+        let _ = c.write_all(b"{\"cmd\":\"ls\"}\n");
         let mut line = String::new();
         BufReader::new(&c)
             .read_line(&mut line)
