@@ -17,6 +17,10 @@ use std::time::{Duration, Instant};
 /// How long the cards may take at stop to get their safe values to the hardware.
 const SETTLE: Duration = Duration::from_secs(3);
 
+/// How long a stop waits for the ThreadScope pulses under way to end (their steps to
+/// finish) before it holds the outputs.
+const SCOPE_CLOSE: Duration = Duration::from_secs(5);
+
 /// A card of the deployment, with what it needs at stop.
 pub(crate) struct CardRt {
     pub(crate) name: String,
@@ -338,13 +342,16 @@ impl Gateway {
     /// sides. Returns a line per card with the outputs as left.
     pub fn shutdown(&self) -> Vec<String> {
         // ThreadScope first, its pulses under way ended: the hold below would refuse their
-        // lows and leave their bits high.
+        // lows and leave their bits high. A step is given SCOPE_CLOSE to end: on a loaded
+        // host (a test rig's emulated CPU beside a build) one second was not always enough.
         if !self
             .runtime
             .thread_scope()
-            .close(Instant::now() + Duration::from_secs(1))
+            .close(Instant::now() + SCOPE_CLOSE)
         {
-            tracing::warn!("ThreadScope: a step still under way after 1 s; its bit may stay high");
+            tracing::warn!(
+                "ThreadScope: a step still under way after {SCOPE_CLOSE:?}; its bit may stay high"
+            );
         }
         // From here on only the safe values are written: every other write is refused.
         self.hold_outputs();
