@@ -350,11 +350,7 @@ async fn accept_loop(
                 let ip = peer.ip().to_canonical();
                 match admit(&slots, ip, &limits) {
                     Admit::Refuse => {
-                        if stats
-                            .refused_per_address
-                            .fetch_add(1, Ordering::Relaxed)
-                            .is_multiple_of(100)
-                        {
+                        if first_of_hundred(&stats.refused_per_address) {
                             tracing::warn!(
                                 "modbus server: {peer} refused: {} connections from {ip} are open (max_clients_per_address)",
                                 limits.max_clients_per_address
@@ -371,11 +367,7 @@ async fn accept_loop(
                         let idle = Duration::from_nanos(
                             since(epoch).saturating_sub(victim.last.load(Ordering::Relaxed)),
                         );
-                        if stats
-                            .evicted
-                            .fetch_add(1, Ordering::Relaxed)
-                            .is_multiple_of(100)
-                        {
+                        if first_of_hundred(&stats.evicted) {
                             tracing::info!(
                                 "modbus server: {} connections open: closed one from {} idle for {:.1} s to admit {peer}",
                                 limits.max_clients,
@@ -415,11 +407,7 @@ async fn accept_loop(
                     Ordering::AcqRel,
                     Ordering::Relaxed,
                 );
-                if stats
-                    .accept_errors
-                    .fetch_add(1, Ordering::Relaxed)
-                    .is_multiple_of(100)
-                {
+                if first_of_hundred(&stats.accept_errors) {
                     tracing::warn!("modbus server: accept: {e} (retrying in {backoff:?})");
                 }
                 tokio::select! {
@@ -545,21 +533,13 @@ impl Conn<'_> {
                     return Ok(());
                 }
                 Some(Err(why)) => {
-                    if stats
-                        .writes_failed
-                        .fetch_add(1, Ordering::Relaxed)
-                        .is_multiple_of(100)
-                    {
+                    if first_of_hundred(&stats.writes_failed) {
                         tracing::warn!("modbus server: a write was not delivered: {why}");
                     }
                     return Err(crate::server::undelivered(&why));
                 }
                 None if tokio::time::Instant::now() >= deadline => {
-                    if stats
-                        .writes_unconfirmed
-                        .fetch_add(1, Ordering::Relaxed)
-                        .is_multiple_of(100)
-                    {
+                    if first_of_hundred(&stats.writes_unconfirmed) {
                         tracing::warn!(
                             "modbus server: {} write(s) still on their way after {:?} (write_confirm_ms): answered 0x0B",
                             writes.len(),
@@ -611,4 +591,10 @@ pub fn answer_pdu(table: &RegisterTable, pdu: &[u8], out: &mut Vec<u8>) {
         static STATS: Stats = Stats::default();
     }
     STATS.with(|s| encode(s, take(table, s, pdu).map(|a| a.reply), out));
+}
+
+/// Counts one more on `counter`; true for the first of every hundred (what is logged, so a
+/// flood is counted in full but said only now and then).
+fn first_of_hundred(counter: &AtomicU64) -> bool {
+    counter.fetch_add(1, Ordering::Relaxed).is_multiple_of(100)
 }
