@@ -15,7 +15,7 @@ use driver_modbus::line::{LineUnit, Transport, UnitStats, UnitTiming};
 use driver_modbus::map::{Map, PointConfig};
 use driver_modbus::testing::TestLine;
 use std::io::{Read, Write};
-use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::net::SocketAddr;
 use std::process::{Child, Command, Stdio};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -24,11 +24,9 @@ use testkit::mbpoll::Mbpoll;
 use testkit::peers::{PYMODBUS, PYTHON, SOCAT, ensure};
 use testkit::wait_until;
 
-const SERVER: &str = concat!(
-    env!("CARGO_MANIFEST_DIR"),
-    "/tests/peers/pymodbus_server.py"
-);
+use testkit::pymodbus::{PyModbus, SERVER};
 
+/// The RTU server's process, killed when dropped.
 struct Peer(Child);
 impl Drop for Peer {
     fn drop(&mut self) {
@@ -37,57 +35,15 @@ impl Drop for Peer {
     }
 }
 
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-fn start_pymodbus_tcp() -> (Peer, SocketAddr) {
+fn start_pymodbus_tcp() -> (PyModbus, SocketAddr) {
     start_pymodbus("tcp")
 }
 
 /// A pymodbus server in `mode` (tcp, sparse) on a free port.
-fn start_pymodbus(mode: &str) -> (Peer, SocketAddr) {
-    // The free port is released before Python binds it, so another socket can take it in
-    // between: try a few ports.
-    let mut last = String::new();
-    for _ in 0..3 {
-        match try_pymodbus_tcp(mode, free_port()) {
-            Ok(p) => return p,
-            Err(e) => last = e,
-        }
-    }
-    panic!("{last}");
-}
-
-fn try_pymodbus_tcp(mode: &str, port: u16) -> Result<(Peer, SocketAddr), String> {
-    ensure(&PYMODBUS);
-    let child = Command::new(PYTHON)
-        .args([SERVER, mode, &port.to_string()])
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap_or_else(|e| panic!("cannot run {PYTHON}: {e}"));
-    let mut peer = Peer(child);
-    let addr: SocketAddr = format!("127.0.0.1:{port}").parse().unwrap();
-    let deadline = Instant::now() + Duration::from_secs(20);
-    while TcpStream::connect(addr).is_err() {
-        if let Ok(Some(status)) = peer.0.try_wait() {
-            let mut err = String::new();
-            std::io::Read::read_to_string(peer.0.stderr.as_mut().unwrap(), &mut err).unwrap();
-            return Err(format!(
-                "the pymodbus server exited ({status}); is python3-pymodbus installed?\n{err}"
-            ));
-        }
-        if Instant::now() > deadline {
-            return Err(format!("the pymodbus server did not listen on {addr}"));
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    Ok((peer, addr))
+fn start_pymodbus(mode: &str) -> (PyModbus, SocketAddr) {
+    let peer = PyModbus::start(mode);
+    let addr = peer.addr;
+    (peer, addr)
 }
 
 fn card() -> Arc<ModbusCard> {

@@ -19,6 +19,7 @@
 //!   the `mcap` package;
 //! - [`rng`]: the fuzz tests' seeded random source;
 //! - [`rig`]: kernel rig presets (vcan);
+//! - [`deb`]: hwgw's Debian packages built from a test's binary, and lintian's report;
 //! - [`service`]: an `hwgw` binary running a deployment on a socket of its own;
 //! - [`logs`]: what a gateway built in the test's own process logs, captured;
 //! - [`layout`]: checks of the source tree's shape (module cycles, function lengths).
@@ -27,6 +28,7 @@ pub mod bench;
 mod cache;
 pub mod candump;
 pub mod comedi;
+pub mod deb;
 pub mod fixtures;
 pub mod gpiosim;
 pub mod i2cstub;
@@ -37,6 +39,7 @@ pub mod mcapread;
 pub mod netns;
 pub mod peers;
 pub mod picture;
+pub mod pymodbus;
 pub mod pypi;
 pub mod rig;
 pub mod rng;

@@ -1,0 +1,73 @@
+//! A pymodbus server (Debian's python3-pymodbus, a Modbus implementation we did not write)
+//! as a peer: `drivers/modbus/tests/peers/pymodbus_server.py` on a free TCP port, killed
+//! when dropped. Installed by the test when missing ([`crate::peers::PYMODBUS`]).
+
+use crate::peers::{PYMODBUS, PYTHON, ensure};
+use std::net::{SocketAddr, TcpStream};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+/// The server script (its registers hold the values the modbus tests decode).
+pub const SERVER: &str = concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/../../drivers/modbus/tests/peers/pymodbus_server.py"
+);
+
+/// A running pymodbus server; killed when dropped.
+pub struct PyModbus {
+    child: Child,
+    /// Where it listens.
+    pub addr: SocketAddr,
+}
+
+impl Drop for PyModbus {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl PyModbus {
+    /// A server in `mode` (`tcp`, `sparse`: see the script) on a free port, once it
+    /// listens. The port is free when picked but may be taken before Python binds it:
+    /// three ports are tried. Panics, saying why, when none serves.
+    pub fn start(mode: &str) -> PyModbus {
+        ensure(&PYMODBUS);
+        let mut last = String::new();
+        for _ in 0..3 {
+            match PyModbus::try_start(mode, crate::free_port()) {
+                Ok(p) => return p,
+                Err(e) => last = e,
+            }
+        }
+        panic!("{last}");
+    }
+
+    fn try_start(mode: &str, port: u16) -> Result<PyModbus, String> {
+        let child = Command::new(PYTHON)
+            .args([SERVER, mode, &port.to_string()])
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .map_err(|e| format!("cannot run {PYTHON}: {e}"))?;
+        let addr = SocketAddr::from(([127, 0, 0, 1], port));
+        let mut peer = PyModbus { child, addr };
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while TcpStream::connect(addr).is_err() {
+            if let Ok(Some(status)) = peer.child.try_wait() {
+                let mut err = String::new();
+                if let Some(e) = peer.child.stderr.as_mut() {
+                    let _ = std::io::Read::read_to_string(e, &mut err);
+                }
+                return Err(format!(
+                    "the pymodbus server exited ({status}); is python3-pymodbus installed?\n{err}"
+                ));
+            }
+            if Instant::now() > deadline {
+                return Err(format!("the pymodbus server did not listen on {addr}"));
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        Ok(peer)
+    }
+}
