@@ -233,7 +233,14 @@ impl Browser {
         .and_then(|v| {
             crate::client::call_result(&format!("{c}.{op}"), v).map_err(|e| e.to_string())
         })
-        .map(|v| pretty(&v))
+        // An operation that answers nothing (a write done) shows nothing.
+        .map(|v| {
+            if v.is_null() {
+                String::new()
+            } else {
+                pretty(&v)
+            }
+        })
     }
 
     fn watch(&self, port: &str, n: u64) -> Result<String, String> {

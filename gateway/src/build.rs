@@ -3,7 +3,7 @@
 //! through one [`Problems`] collector, keyed by the path of what is wrong.
 
 use crate::config::{CARD_KEYS, CardConfig, ChannelNames, Deployment, millis, split_port};
-use crate::deploy::{CardRt, Gateway};
+use crate::deploy::{CardRt, Gateway, Link, Parts};
 use crate::drivers::SectionError;
 use crate::outputs::{CardOutputs, Hold, OutputDevices, OutputSpec};
 use crate::problems::{KeyPath, Problem, Problems, Source};
@@ -12,35 +12,17 @@ use crate::{checks, io};
 use device_interface::Registry;
 use driver_api::CardContext;
 use rtt::component::DynPort;
-use rtt::{ActivitySpec, InitialState, Runtime, RuntimeOptions, TaskContext, TaskState};
+use rtt::{ActivitySpec, Runtime, RuntimeOptions, TaskContext, TaskState};
 use std::any::{Any, TypeId};
-use std::collections::HashMap;
+use std::collections::{BTreeSet, HashMap};
 use std::path::Path;
 use std::sync::Arc;
 
-/// The output watchdog's component name.
-pub const OUTPUT_WATCHDOG: &str = "output_watchdog";
-
-/// Applies the output policy's watchdog to the cards that need it, every 10 ms.
-struct OutputWatchdog {
-    cards: Vec<Arc<CardOutputs>>,
-    components: HashMap<String, TaskContext>,
-}
-
-impl rtt::Component for OutputWatchdog {
-    fn update_hook(&mut self, ctx: &mut rtt::Context<'_>) -> rtt::HookResult {
-        let now = ctx.timing().started.as_nanos();
-        let state = |name: &str| self.components.get(name).map(TaskContext::state);
-        for c in &self.cards {
-            c.watch(now, &state);
-        }
-        Ok(())
-    }
-}
+use crate::watchdog::{WatchSet, Watched, output_watchdog};
 
 /// Notes the component of `from` (`component.port`) as a writer of the card output behind
 /// `to`, when `to` is a port of a card's output IO component (`card.ao.*`, `card.do.*`).
-fn note_writer(cards: &mut [CardRt], from: &str, to: &str) {
+pub(crate) fn note_writer(cards: &[CardRt], from: &str, to: &str) {
     let (Some((writer, _)), Some((component, port))) = (split_port(from), split_port(to)) else {
         return;
     };
@@ -50,11 +32,28 @@ fn note_writer(cards: &mut [CardRt], from: &str, to: &str) {
     else {
         return;
     };
-    if let Some(c) = cards.iter_mut().find(|c| c.name == card)
-        && let Some(outputs) = Arc::get_mut(&mut c.outputs)
-    {
-        outputs.add_writer(port, writer);
+    if let Some(c) = cards.iter().find(|c| c.name == card) {
+        c.outputs.add_writer(port, writer);
     }
+}
+
+/// What a reload builds into a running gateway: cards, components and connections by
+/// their index in the new deployment, and whether the servers are made anew.
+#[derive(Debug, Default)]
+pub(crate) struct Selection {
+    pub(crate) cards: BTreeSet<usize>,
+    pub(crate) components: BTreeSet<usize>,
+    pub(crate) connections: BTreeSet<usize>,
+    pub(crate) servers: bool,
+}
+
+/// What a reload built: not started.
+pub(crate) struct Rebuilt {
+    pub(crate) cards: Vec<CardRt>,
+    /// The cards' bus sides and IO components, then the components, in start order.
+    pub(crate) order: Vec<(TaskContext, bool)>,
+    pub(crate) links: Vec<Link>,
+    pub(crate) servers: Vec<Box<dyn driver_api::Server>>,
 }
 
 /// One build under way.
@@ -64,8 +63,24 @@ struct Build<'d, 's, 'a> {
     problems: Problems<'s, 'a>,
     /// Files a card names (DBC) are relative to the deployment file.
     base: &'d Path,
-    /// The gateway's stop gate: once held, the guarded outputs refuse writes.
-    hold: Arc<Hold>,
+    /// A reload's: only these; `None`: everything.
+    only: Option<&'d Selection>,
+    /// The bus sides of the cards built, by card name, until `bus_and_io` adds them.
+    buses: HashMap<String, driver_api::BusSide>,
+}
+
+impl Build<'_, '_, '_> {
+    fn card_wanted(&self, i: usize) -> bool {
+        self.only.is_none_or(|s| s.cards.contains(&i))
+    }
+
+    fn component_wanted(&self, i: usize) -> bool {
+        self.only.is_none_or(|s| s.components.contains(&i))
+    }
+
+    fn connection_wanted(&self, i: usize) -> bool {
+        self.only.is_none_or(|s| s.connections.contains(&i))
+    }
 }
 
 impl Gateway {
@@ -107,11 +122,13 @@ fn build(d: &Deployment, file: &str, text: &str, types: &Types) -> Result<Gatewa
         types,
         problems: Problems::new(&source),
         base,
-        hold: Arc::new(Hold::default()),
+        only: None,
+        buses: HashMap::new(),
     };
     for (key, message) in checks::control(d) {
         b.problems.at(&KeyPath::top(&key), message);
     }
+    crate::servers::unknown_keys(d, &types.servers, &mut b.problems);
     let registry = Arc::new(Registry::new());
     let mut cards = b.cards(&registry);
     b.aliases(&registry);
@@ -123,20 +140,23 @@ fn build(d: &Deployment, file: &str, text: &str, types: &Types) -> Result<Gatewa
     if let Some(node) = &zenoh {
         order.extend(b.remote_io(&runtime, node));
     }
-    let mut start = vec![true; order.len()];
-    b.components(&runtime, &mut order, &mut start);
-    b.connections(&runtime, &mut cards, zenoh.as_deref());
+    let mut order: Vec<(TaskContext, bool)> = order.into_iter().map(|t| (t, true)).collect();
+    b.components(&runtime, &mut order);
+    let links = b.connections(&runtime, &mut cards, zenoh.as_deref());
     if let (Some(node), Some(section)) = (&zenoh, &d.zenoh) {
         for (key, message) in crate::remote::exports(node, section, &runtime) {
             b.problems.at(&KeyPath::top("zenoh").join(&key), message);
         }
     }
-    if let Some(w) = b.output_watchdog(&runtime, &cards) {
-        order.push(w);
-        start.push(true);
+    let watch: WatchSet = Arc::new(arc_swap::ArcSwap::from_pointee(Watched::new(
+        &runtime,
+        cards.iter().map(|c| &c.outputs),
+    )));
+    if let Some(w) = b.output_watchdog(&runtime, &watch) {
+        order.push((w, true));
     }
-    let mut servers = b.servers(&runtime);
-    servers.extend(zenoh.as_ref().map(crate::remote::server));
+    let servers = b.servers(&runtime);
+    let zenoh_server = zenoh.as_ref().map(crate::remote::server);
     let scope_vcd = b.scope_vcd();
     for (key, message) in checks::shared_files(d, base) {
         b.problems.at(&key, message);
@@ -144,10 +164,68 @@ fn build(d: &Deployment, file: &str, text: &str, types: &Types) -> Result<Gatewa
     if !b.problems.is_empty() {
         return Err(b.problems.into_vec());
     }
-    let mut gw = Gateway::new(runtime, cards, servers, order, start, b.hold);
+    let parts = Parts {
+        cards,
+        servers,
+        order,
+        links,
+        watch,
+        zenoh_server,
+    };
+    let mut gw = Gateway::new(runtime, parts, d.clone(), types.clone());
     gw.scope_vcd = scope_vcd;
     gw.zenoh = zenoh;
     Ok(gw)
+}
+
+/// Builds what `only` selects of deployment `d` (from `file`, whose `text` locates errors)
+/// into the running `runtime`, nothing started: a reload's cards (their devices
+/// registered), then `between` (the aliases: it returns its problems), their bus sides
+/// and IO components, components, connections (ends found among everything the runtime
+/// has now) and servers. `d` was checked whole before; problems past that come with what
+/// was built all the same.
+pub(crate) fn rebuild(
+    d: &Deployment,
+    file: &str,
+    text: &str,
+    types: &Types,
+    runtime: &Runtime,
+    only: &Selection,
+    between: impl FnOnce(&Registry) -> Vec<String>,
+) -> Result<Rebuilt, (Rebuilt, Vec<String>)> {
+    let source = Source::new(file, text);
+    let base = Path::new(file).parent().unwrap_or(Path::new(""));
+    let mut b = Build {
+        d,
+        types,
+        problems: Problems::new(&source),
+        base,
+        only: Some(only),
+        buses: HashMap::new(),
+    };
+    let mut cards = b.cards(runtime.registry());
+    let mut problems = between(runtime.registry());
+    let order = b.bus_and_io(runtime, &mut cards);
+    let mut order: Vec<(TaskContext, bool)> = order.into_iter().map(|t| (t, true)).collect();
+    b.components(runtime, &mut order);
+    let links = b.connections(runtime, &mut cards, None);
+    let servers = if only.servers {
+        b.servers(runtime)
+    } else {
+        Vec::new()
+    };
+    let rebuilt = Rebuilt {
+        cards,
+        order,
+        links,
+        servers,
+    };
+    problems.extend(b.problems.into_vec().iter().map(ToString::to_string));
+    if problems.is_empty() {
+        Ok(rebuilt)
+    } else {
+        Err((rebuilt, problems))
+    }
 }
 
 impl Build<'_, '_, '_> {
@@ -156,6 +234,9 @@ impl Build<'_, '_, '_> {
         let mut shared: HashMap<TypeId, Box<dyn Any + Send>> = HashMap::new();
         let mut cards = Vec::new();
         for (i, c) in self.d.cards.iter().enumerate() {
+            if !self.card_wanted(i) {
+                continue;
+            }
             let at = KeyPath::top("card").index(i);
             if let Some(first) = self.d.cards[..i].iter().position(|o| o.name == c.name) {
                 let msg = format!(
@@ -177,10 +258,14 @@ impl Build<'_, '_, '_> {
                 self.problems.at(&at.key("thread"), msg);
                 continue;
             }
-            let Some(card) = self.card(&at, c, &mut shared) else {
+            let Some((built, shares)) = self.card(&at, c, &mut shared) else {
                 continue;
             };
-            if let Some(rt) = self.register(&at, c, card, registry) {
+            if let Some(mut rt) = self.register(&at, c, built.card, registry) {
+                rt.shares = shares;
+                if let Some(bus) = built.bus {
+                    self.buses.insert(c.name.clone(), bus);
+                }
                 cards.push(rt);
             }
         }
@@ -193,7 +278,7 @@ impl Build<'_, '_, '_> {
         at: &KeyPath,
         c: &CardConfig,
         shared: &mut HashMap<TypeId, Box<dyn Any + Send>>,
-    ) -> Option<Box<dyn driver_api::Card>> {
+    ) -> Option<(driver_api::BuiltCard, Option<String>)> {
         let drivers = &self.types.drivers;
         let Some(driver) = drivers.get(&c.driver) else {
             let msg = format!(
@@ -236,13 +321,12 @@ impl Build<'_, '_, '_> {
         let mut ctx = CardContext::new(
             &c.name,
             millis(c.period_ms),
-            &c.thread,
             self.base,
             Arc::new(rtt::time::MonotonicClock),
             shared,
         );
         match driver.build(section.clone(), &mut ctx) {
-            Ok(card) => Some(card),
+            Ok(card) => Some((card, ctx.bus_key().map(String::from))),
             Err(SectionError::Parse {
                 path,
                 span,
@@ -298,6 +382,7 @@ impl Build<'_, '_, '_> {
             digital_ports: ports(&names.digital_out, "bit", counts[3]),
         };
         let mut devices = devices;
+        let hold = Arc::new(Hold::default());
         let outputs = match CardOutputs::new(
             &c.name,
             OutputDevices {
@@ -306,7 +391,7 @@ impl Build<'_, '_, '_> {
                 read_back: card.read_back(),
             },
             &spec,
-            &self.hold,
+            &hold,
         ) {
             Ok(o) => o,
             Err(problems) => {
@@ -333,10 +418,13 @@ impl Build<'_, '_, '_> {
                 .unwrap_or(0),
             config: at.clone(),
             driver: c.driver.clone(),
+            hold,
+            shares: None,
             card,
             outputs: Arc::new(outputs),
             names,
             bus: Vec::new(),
+            io: Vec::new(),
         })
     }
 
@@ -447,17 +535,26 @@ impl Build<'_, '_, '_> {
             let Some(cfg) = self.d.cards.get(c.index) else {
                 continue;
             };
-            match c.card.add_bus(runtime, &c.name) {
-                Ok(tasks) => {
+            // Its bus side, handed over by the driver's build: added once, here.
+            let bus = self.buses.remove(&c.name).map(|bus| {
+                let ctx = driver_api::BusContext::new(runtime, &c.name, &cfg.thread);
+                bus.add_to(&ctx)
+            });
+            match bus {
+                Some(Ok(tasks)) => {
                     c.bus = tasks.clone();
                     order.extend(tasks);
                 }
-                Err(e) => self.problems.at(&c.config, e),
+                Some(Err(e)) => self.problems.at(&c.config, e),
+                None => {}
             }
             let sample = millis(cfg.sample_period_ms.unwrap_or(cfg.period_ms));
             let details = c.card.channel_details();
             match io::build(runtime, &c.name, sample, &c.names, &details) {
-                Ok(ts) => order.extend(ts),
+                Ok(ts) => {
+                    c.io = ts.clone();
+                    order.extend(ts);
+                }
                 Err(e) => self.problems.at(&c.config, e),
             }
         }
@@ -465,14 +562,12 @@ impl Build<'_, '_, '_> {
     }
 
     /// User components: built, properties set, configured.
-    fn components(
-        &mut self,
-        runtime: &Runtime,
-        order: &mut Vec<TaskContext>,
-        start: &mut Vec<bool>,
-    ) {
+    fn components(&mut self, runtime: &Runtime, order: &mut Vec<(TaskContext, bool)>) {
         let types = &self.types.components;
         for (i, c) in self.d.components.iter().enumerate() {
+            if !self.component_wanted(i) {
+                continue;
+            }
             let at = KeyPath::top("component").index(i);
             if let crate::config::ActivityConfig::Periodic { period_ms, .. } = c.activity
                 && let Err(msg) = checks::period(period_ms)
@@ -503,34 +598,51 @@ impl Build<'_, '_, '_> {
                     continue;
                 }
             };
-            if let Err(e) = task.properties().load_toml(&c.properties) {
-                for line in e.to_string().lines() {
-                    self.problems.at(&at.key("properties"), line);
+            let failed = match task.properties().load_toml(&c.properties) {
+                Err(e) => {
+                    for line in e.to_string().lines() {
+                        self.problems.at(&at.key("properties"), line);
+                    }
+                    true
+                }
+                Ok(()) if task.state() == TaskState::PreOperational => match task.configure() {
+                    Err(e) => {
+                        self.problems.at(&at, e);
+                        true
+                    }
+                    Ok(()) => false,
+                },
+                Ok(()) => false,
+            };
+            if failed {
+                // A reload's failure leaves no half-made component under the name.
+                if self.only.is_some() {
+                    let _ = runtime.remove(&c.name);
                 }
                 continue;
             }
-            if task.state() == TaskState::PreOperational
-                && let Err(e) = task.configure()
-            {
-                self.problems.at(&at, e);
-                continue;
-            }
-            order.push(task);
-            start.push(c.start);
+            order.push((task, c.start));
         }
     }
 
+    /// The connections: made, with what closes each again.
     fn connections(
         &mut self,
         runtime: &Runtime,
         cards: &mut [CardRt],
         node: Option<&crate::remote::Node>,
-    ) {
-        for (i, msg) in checks::spin_loops(&self.d.connections, runtime) {
-            self.problems.at(&KeyPath::top("connection").index(i), msg);
+    ) -> Vec<Link> {
+        if self.only.is_none() {
+            for (i, msg) in checks::spin_loops(&self.d.connections, runtime) {
+                self.problems.at(&KeyPath::top("connection").index(i), msg);
+            }
         }
         let local = |c: &str| runtime.component(c).is_ok();
+        let mut links = Vec::new();
         for (i, c) in self.d.connections.iter().enumerate() {
+            if !self.connection_wanted(i) {
+                continue;
+            }
             let at = KeyPath::top("connection").index(i);
             if let Some(source) = crate::remote::remote_source(node, &local, &c.from)
                 && let Some(node) = node
@@ -541,6 +653,10 @@ impl Build<'_, '_, '_> {
                     Some(Ok(w)) => {
                         let label = format!("{} -> {}", c.from, c.to);
                         crate::remote::link(node, source, w, label);
+                        links.push(Link {
+                            config: c.clone(),
+                            made: None,
+                        });
                     }
                     Some(Err(e)) => self.problems.at(&at.key("to"), e),
                     None => {}
@@ -554,42 +670,26 @@ impl Build<'_, '_, '_> {
                     Err(e) => self
                         .problems
                         .at(&at, format!("{} -> {}: {e}", c.from, c.to)),
-                    Ok(_) => note_writer(cards, &c.from, &c.to),
+                    Ok(info) => {
+                        note_writer(cards, &c.from, &c.to);
+                        links.push(Link {
+                            config: c.clone(),
+                            made: Some((from, info.id)),
+                        });
+                    }
                 }
             }
         }
+        links
     }
 
     /// The output watchdog, when some card's outputs need one: a periodic component that
     /// applies [`CardOutputs::watch`].
-    fn output_watchdog(&mut self, runtime: &Runtime, cards: &[CardRt]) -> Option<TaskContext> {
-        let watched: Vec<Arc<CardOutputs>> = cards
-            .iter()
-            .filter(|c| c.outputs.watched())
-            .map(|c| c.outputs.clone())
-            .collect();
-        if watched.is_empty() {
-            return None;
-        }
-        let components: HashMap<String, TaskContext> = runtime
-            .components()
-            .into_iter()
-            .map(|t| (t.name().to_string(), t))
-            .collect();
-        let spec = ActivitySpec::periodic(std::time::Duration::from_millis(10));
-        let task = runtime.add(OUTPUT_WATCHDOG, spec, InitialState::Stopped, move |_| {
-            Ok(OutputWatchdog {
-                cards: watched,
-                components,
-            })
-        });
-        match task {
-            Ok(t) => Some(t),
-            Err(e) => {
-                self.problems.at(&KeyPath::root(), e);
-                None
-            }
-        }
+    fn output_watchdog(&mut self, runtime: &Runtime, set: &WatchSet) -> Option<TaskContext> {
+        output_watchdog(runtime, set).unwrap_or_else(|e| {
+            self.problems.at(&KeyPath::root(), e);
+            None
+        })
     }
 
     /// The port `address` (`component.port`) names, or a problem at `at`.
@@ -617,22 +717,10 @@ impl Build<'_, '_, '_> {
         }
     }
 
-    /// The servers: the Modbus server's table, over the devices registered above.
+    /// The servers of the deployment's server sections, by their types, over the devices
+    /// registered above.
     fn servers(&mut self, runtime: &Runtime) -> Vec<Box<dyn driver_api::Server>> {
-        let Some(ms) = self.d.modbus_server.as_ref() else {
-            return Vec::new();
-        };
-        match ms.table(runtime.registry()) {
-            Ok((listen, table, limits)) => vec![Box::new(driver_modbus::served::TableServer::new(
-                listen, table, limits,
-            ))],
-            Err(problems) => {
-                let at = KeyPath::top("modbus_server");
-                for p in problems {
-                    self.problems.at(&at.join(&p.key), p.message);
-                }
-                Vec::new()
-            }
-        }
+        let types = &self.types.servers;
+        crate::servers::build(self.d, types, runtime, self.base, &mut self.problems)
     }
 }

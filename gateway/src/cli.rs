@@ -1,8 +1,9 @@
 //! The `hwgw` command line: `run`, `check`, and the one-shot commands that talk to a
 //! running gateway. Lists print as aligned tables for people, or as JSON with `--json`
-//! for scripts; no command waits for a reply longer than `--timeout` (default 10 s). A
-//! user's own binary with extra component types or drivers is
-//! `fn main() -> ExitCode { hwgw::cli::main(my_types) }`.
+//! for scripts; `set` and `lifecycle` print nothing when they succeed (one line with
+//! `--verbose`), `call` prints the operation's value or exits 1 with its error; no command
+//! waits for a reply longer than `--timeout` (default 10 s). A user's own binary with
+//! extra component types or drivers is `fn main() -> ExitCode { hwgw::cli::main(my_types) }`.
 
 use crate::client::{Client, ClientError};
 use crate::protocol::{ComponentEntry, Description, Request, StatusReport, Target, json_arg};
@@ -31,6 +32,9 @@ struct Cli {
     /// Print the gateway's answer as JSON (for scripts) instead of a table.
     #[arg(long, global = true)]
     json: bool,
+    /// Say what a command that succeeded did (`set`, `lifecycle`: one line).
+    #[arg(long, short, global = true)]
+    verbose: bool,
     /// Seconds to wait for a reply (default 10).
     #[arg(long, global = true, value_name = "SECONDS")]
     timeout: Option<f64>,
@@ -107,6 +111,10 @@ enum Command {
     Lifecycle { command: String, component: String },
     /// List the devices in the registry.
     Devices,
+    /// Read the deployment file again and rebuild only what changed (as `systemctl reload
+    /// hwgw` does): prints what was applied and what needs a restart; with an error in the
+    /// file nothing changes, the errors are printed and the exit code is 1.
+    Reload,
     /// Read a port's value (an output's last value, an input's read-back) or a property.
     Get {
         component: String,
@@ -132,6 +140,18 @@ enum Command {
         #[arg(allow_negative_numbers = true)]
         args: Vec<String>,
     },
+    /// Write the manual pages and shell completions into DIR (the Debian package's build).
+    #[command(hide = true)]
+    GenerateAssets {
+        /// Where: DIR/man/*.1 and DIR/completions/.
+        dir: PathBuf,
+    },
+}
+
+/// The command line's clap definition (the package's manual pages and completions are
+/// generated from it: `hwgw generate-assets`).
+pub(crate) fn command() -> clap::Command {
+    <Cli as clap::CommandFactory>::command()
 }
 
 /// Logs to the journal when systemd runs us (JOURNAL_STREAM is set), else to stderr.
@@ -187,6 +207,7 @@ pub fn main(types: Types) -> ExitCode {
     let result = match cli.command {
         Command::Run { config } => return crate::serve::run(config, cli.socket, &types),
         Command::Check { config } => return crate::serve::check(config, &types),
+        Command::GenerateAssets { dir } => return crate::assets::run(command(), &dir),
         Command::Browse => {
             return match crate::browse::run(client) {
                 Ok(()) => ExitCode::SUCCESS,
@@ -242,7 +263,14 @@ pub fn main(types: Types) -> ExitCode {
             };
             return finish(crate::recorder::cli::status_plot(&client, &frame));
         }
-        command => one_shot(&client, command, cli.json),
+        command => one_shot(
+            &client,
+            command,
+            Form {
+                json: cli.json,
+                verbose: cli.verbose,
+            },
+        ),
     };
     match result {
         Ok(Some(text)) => {
@@ -271,8 +299,18 @@ fn finish(result: Result<String, String>) -> ExitCode {
     }
 }
 
+/// How a one-shot command prints its answer.
+#[derive(Clone, Copy)]
+struct Form {
+    /// The gateway's answer as JSON.
+    json: bool,
+    /// A line for a command that otherwise prints nothing.
+    verbose: bool,
+}
+
 /// A one-shot command: the text to print.
-fn one_shot(client: &Client, command: Command, json: bool) -> Result<Option<String>, ClientError> {
+fn one_shot(client: &Client, command: Command, form: Form) -> Result<Option<String>, ClientError> {
+    let json = form.json;
     let text = match command {
         Command::Ls {
             component: None,
@@ -315,35 +353,28 @@ fn one_shot(client: &Client, command: Command, json: bool) -> Result<Option<Stri
                 table::devices(&list)
             }
         }
-        Command::Lifecycle { command, component } => {
-            let req: Request = serde_json::from_value(
-                serde_json::json!({"cmd": command, "component": component}),
-            )
-            .ok()
-            .filter(|r| {
-                matches!(
-                    r,
-                    Request::Configure { .. }
-                        | Request::Start { .. }
-                        | Request::Stop { .. }
-                        | Request::Cleanup { .. }
-                        | Request::Recover { .. }
-                )
-            })
-            .ok_or_else(|| {
-                ClientError::Refused(crate::protocol::ErrorBody {
-                    kind: crate::protocol::ErrorKind::BadRequest,
-                    message: format!(
-                        "{command:?} is not a lifecycle command: configure, start, stop, cleanup or recover"
-                    ),
-                })
-            })?;
-            let state = client.request(&req)?;
-            if json {
-                pretty(&state)
+        Command::Reload => {
+            let report: crate::protocol::ReloadReport = client.typed(&Request::Reload)?;
+            let text = if json {
+                pretty(&serde_json::to_value(&report).unwrap_or_default())
             } else {
-                state.as_str().unwrap_or_default().to_string()
+                table::reload(&report)
+            };
+            if report.errors.is_empty() {
+                text
+            } else {
+                // The report all the same (JSON on stdout for scripts), and exit 1.
+                if json {
+                    print(&text);
+                }
+                return Err(ClientError::Refused(crate::protocol::ErrorBody {
+                    kind: crate::protocol::ErrorKind::Failed,
+                    message: if json { "reload failed".into() } else { text },
+                }));
             }
+        }
+        Command::Lifecycle { command, component } => {
+            return lifecycle(client, &command, &component, form);
         }
         Command::Get { component, name } => pretty(&client.request(&Request::Get {
             component,
@@ -353,41 +384,115 @@ fn one_shot(client: &Client, command: Command, json: bool) -> Result<Option<Stri
             component,
             name,
             value,
-        } => {
-            // The answer is null: a set that returns wrote its value (an output's write
-            // reached its device); a refused one is an error, and the exit code says so.
-            let answer = client.request(&Request::Set {
-                component,
-                target: Target::from_name(&name),
-                value: json_arg(&value),
-            })?;
-            if !json {
-                return Ok(None);
-            }
-            pretty(&answer)
-        }
+        } => return set(client, component, &name, &value, form),
         Command::Call {
             component,
             operation,
             args,
-        } => {
-            let what = format!("{component}.{operation}");
-            let answer = client.request(&Request::Call {
-                component,
-                operation,
-                args: args.iter().map(|a| json_arg(a)).collect(),
-            })?;
-            let answer = crate::client::call_result(&what, answer)?;
-            pretty(&answer)
-        }
+        } => return call(client, component, operation, &args, form),
         Command::Run { .. }
         | Command::Check { .. }
         | Command::Browse
         | Command::Watch { .. }
         | Command::Record(_)
-        | Command::Plot { .. } => {
+        | Command::Plot { .. }
+        | Command::GenerateAssets { .. } => {
             return Ok(None);
         }
     };
     Ok(Some(text))
+}
+
+/// `lifecycle COMMAND COMPONENT`: nothing on success, the new state with `--verbose`.
+fn lifecycle(
+    client: &Client,
+    command: &str,
+    component: &str,
+    form: Form,
+) -> Result<Option<String>, ClientError> {
+    let req: Request = serde_json::from_value(
+        serde_json::json!({"cmd": command, "component": component}),
+    )
+    .ok()
+    .filter(|r| {
+        matches!(
+            r,
+            Request::Configure { .. }
+                | Request::Start { .. }
+                | Request::Stop { .. }
+                | Request::Cleanup { .. }
+                | Request::Recover { .. }
+        )
+    })
+    .ok_or_else(|| {
+        ClientError::Refused(crate::protocol::ErrorBody {
+            kind: crate::protocol::ErrorKind::BadRequest,
+            message: format!(
+                "{command:?} is not a lifecycle command: configure, start, stop, cleanup or recover"
+            ),
+        })
+    })?;
+    let state = client.request(&req)?;
+    Ok(if form.json {
+        Some(pretty(&state))
+    } else if form.verbose {
+        Some(format!(
+            "{component}: {}",
+            state.as_str().unwrap_or_default()
+        ))
+    } else {
+        None
+    })
+}
+
+/// `set COMPONENT NAME VALUE`: nothing on success, what was written with `--verbose`.
+fn set(
+    client: &Client,
+    component: String,
+    name: &str,
+    value: &str,
+    form: Form,
+) -> Result<Option<String>, ClientError> {
+    // The answer is null: a set that returns wrote its value (an output's write reached
+    // its device); a refused one is an error, and the exit code says so.
+    let value = json_arg(value);
+    let answer = client.request(&Request::Set {
+        component: component.clone(),
+        target: Target::from_name(name),
+        value: value.clone(),
+    })?;
+    Ok(if form.json {
+        Some(pretty(&answer))
+    } else if form.verbose {
+        Some(format!("{component}.{name} = {value}"))
+    } else {
+        None
+    })
+}
+
+/// `call COMPONENT OPERATION ARGS…`: the operation's value (nothing for none), or its
+/// error as the command's; `--json` prints the answer as the gateway gave it.
+fn call(
+    client: &Client,
+    component: String,
+    operation: String,
+    args: &[String],
+    form: Form,
+) -> Result<Option<String>, ClientError> {
+    let what = format!("{component}.{operation}");
+    let answer = client.request(&Request::Call {
+        component,
+        operation,
+        args: args.iter().map(|a| json_arg(a)).collect(),
+    })?;
+    if form.json {
+        // The machine form: `{"Ok": …}` or `{"Err": …}`, and the exit code as the call went.
+        print(&pretty(&answer));
+        return crate::client::call_result(&what, answer).map(|_| None);
+    }
+    Ok(match crate::client::call_result(&what, answer)? {
+        // An operation that answers nothing (a write done) prints nothing.
+        Value::Null => None,
+        value => Some(pretty(&value)),
+    })
 }

@@ -2,8 +2,10 @@
 //!
 //! Parsing is strict — unknown keys are errors — and every error names the file, line,
 //! column and key path and says what was expected. A card's driver section
-//! (`[card.<driver>]`) is kept as written here and parsed by its driver when the gateway is
-//! built, so drivers from other crates bring their own section types.
+//! (`[card.<driver>]`) and a server's section (`[modbus_server]`: any other top-level key)
+//! are kept as written here and parsed by their driver or server type when the gateway is
+//! built, so drivers and servers from other crates bring their own section types; a
+//! top-level key that is no server type of the build is refused then.
 //! [`Gateway::build`](crate::deploy::Gateway::build) then validates what the types cannot:
 //! unique names, known drivers and component types, driver sections, properties,
 //! connection ends that exist — with the same locations.
@@ -42,8 +44,10 @@ use std::path::Path;
 use std::time::Duration;
 
 /// A whole deployment.
+///
+/// Besides the keys below ([`DEPLOYMENT_KEYS`]) a deployment may have server sections,
+/// kept in [`servers`](Self::servers) as written.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
-#[serde(deny_unknown_fields)]
 pub struct Deployment {
     /// Pulse each runtime thread's bit on the DigitalOut aliased "ThreadScope".
     #[serde(default)]
@@ -85,14 +89,32 @@ pub struct Deployment {
     /// Port-to-port connections.
     #[serde(default, rename = "connection")]
     pub connections: Vec<ConnectionConfig>,
-    /// Serve chosen devices as a Modbus TCP register table (off when absent).
-    #[serde(default)]
-    pub modbus_server: Option<driver_modbus::served::ServerConfig>,
     /// This gateway in a Zenoh name space with others: what it publishes, imports and
     /// serves (off when absent: nothing listens, nothing is sent).
     #[serde(default)]
     pub zenoh: Option<ZenohSection>,
+    /// Every other top-level key, as written: a server's section by its server type's
+    /// name (`[modbus_server]`: serve chosen devices as a Modbus TCP register table), or
+    /// anything else, which the build refuses (see [`crate::servers`]).
+    #[serde(flatten)]
+    pub servers: BTreeMap<String, toml::Value>,
 }
+
+/// The top-level keys of a deployment besides its server sections.
+pub const DEPLOYMENT_KEYS: [&str; 12] = [
+    "thread_scope",
+    "thread_scope_vcd",
+    "thread_scope_vcd_keep",
+    "cpu_dma_latency_us",
+    "control_socket",
+    "control_clients",
+    "control_idle_s",
+    "card",
+    "alias",
+    "component",
+    "connection",
+    "zenoh",
+];
 
 /// What the deployment's `[zenoh]` section is in this build.
 #[cfg(feature = "zenoh")]

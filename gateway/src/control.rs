@@ -26,6 +26,7 @@
 //! | `recover` | `component` | the new state |
 //! | `watch` | `component`, `port`, optional `count` | `"watching"`, then a stream: one `{"id", "event": {"status", "value"}}` line per new value (all of them, `count` at most), and `{"id", "heartbeat": ns}` after each second without one, until the client closes |
 //! | `record` | `ports` (`component.port` or `component`), optional `devices`, `steps`, `buffer` | `{"ports", "activities", "wall_minus_clock_ns"}`, then a stream of `{"id", "records": {"items", "ports_lost", "steps_lost", "now_ns"}}` batches until the client closes |
+//! | `reload` | — | `{"applied", "restart", "errors"}`: the deployment file read again and what changed rebuilt; when the new deployment has errors they are listed and nothing changed |
 //!
 //! A request naming a component `<gateway>/<component>` that is not one of this gateway's
 //! is carried out by that gateway, through Zenoh (see [`crate::forward`]).
@@ -497,6 +498,7 @@ fn serve_client(shared: &Shared, conn: UnixStream) {
     let out = &conn;
     let mut reader = BufReader::new(&conn);
     let mut writers: HashMap<(String, String), Box<dyn DynWriter>> = HashMap::new();
+    let mut generation = shared.gw.generation.load(Ordering::Acquire);
     let mut buf = Vec::new();
     let stats = &shared.stats;
     loop {
@@ -555,7 +557,14 @@ fn serve_client(shared: &Shared, conn: UnixStream) {
                             Err(Fail(kind, message)) => Reply::error(id, kind, message),
                         }
                     }
-                    Ok((id, req)) => carry_out(shared, id, &req, &mut writers, true),
+                    Ok((id, req)) => {
+                        // Writers into ports a reload has made again since are let go.
+                        let now = shared.gw.generation.load(Ordering::Acquire);
+                        if std::mem::replace(&mut generation, now) != now {
+                            writers.clear();
+                        }
+                        carry_out(shared, id, &req, &mut writers, true)
+                    }
                 }
             }
         };
@@ -618,6 +627,12 @@ fn remote_request(shared: &Shared, request: Value) -> Value {
             id,
             ErrorKind::BadRequest,
             "streams (watch, record) are not served to other gateways",
+        ),
+        // Reloading is this host's operator's to ask (`hwgw reload`, SIGHUP).
+        Ok((id, Request::Reload)) => Reply::error(
+            id,
+            ErrorKind::BadRequest,
+            "reload is not served to other gateways: ask on the gateway's own host",
         ),
         // Carried out here, never forwarded again (no request goes round the gateways).
         Ok((id, req)) => carry_out(shared, id, &req, &mut HashMap::new(), false),

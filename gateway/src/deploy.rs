@@ -6,12 +6,12 @@
 //! would, each located in the file.
 
 use crate::config::{ChannelNames, Deployment};
-use crate::outputs::{CardOutputs, Hold, OutputReport};
+use crate::outputs::{CardOutputs, Hold};
 use crate::problems::KeyPath;
-use driver_api::{Card, CardStatus, Server};
+use driver_api::{Card, Server};
 use rtt::{Runtime, TaskContext, TaskState};
-use serde::{Deserialize, Serialize};
-use std::sync::Arc;
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, PoisonError, RwLock, RwLockReadGuard, RwLockWriteGuard};
 use std::time::{Duration, Instant};
 
 /// How long the cards may take at stop to get their safe values to the hardware.
@@ -29,6 +29,12 @@ pub(crate) struct CardRt {
     pub(crate) driver: String,
     /// Its index in the deployment's `[[card]]` list.
     pub(crate) index: usize,
+    /// Its gate: once held, its guarded outputs refuse every write (at the gateway's stop,
+    /// or when a reload rebuilds or removes the card).
+    pub(crate) hold: Arc<Hold>,
+    /// The bus it shares with other cards of its driver (one Modbus line), as the driver
+    /// named it: a reload that rebuilds or adds one such card rebuilds them all.
+    pub(crate) shares: Option<String>,
     pub(crate) card: Box<dyn Card>,
     /// Its outputs under the output policy.
     pub(crate) outputs: Arc<CardOutputs>,
@@ -36,44 +42,67 @@ pub(crate) struct CardRt {
     pub(crate) names: ChannelNames,
     /// Its bus-side components.
     pub(crate) bus: Vec<TaskContext>,
+    /// Its IO components (`card.ai`, `card.ao`, …).
+    pub(crate) io: Vec<TaskContext>,
 }
 
-/// One card in `hwgw status`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct CardReport {
-    /// The card.
-    pub name: String,
-    /// Its driver.
-    pub driver: String,
-    /// Its bus and counters.
-    #[serde(flatten)]
-    pub status: CardStatus,
-    /// Its outputs: how many hwgw wrote, watchdog trips.
-    pub outputs: OutputReport,
+/// The reports `status` carries, defined with the control protocol.
+pub use crate::protocol::{CardReport, ServerReport};
+
+/// A local connection as made: its deployment entry, and the output port with the id
+/// that closes it again (a reload that removes it, or rebuilds one of its ends).
+pub(crate) struct Link {
+    pub(crate) config: crate::config::ConnectionConfig,
+    /// `None` for a connection fed from another gateway through Zenoh (made once).
+    pub(crate) made: Option<(Arc<dyn rtt::component::DynPort>, u64)>,
 }
 
-/// A server's state, for `status`.
-#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
-pub struct ServerReport {
-    /// Its deployment key (`modbus_server`).
-    pub name: String,
-    /// Where it listens, and its counters.
-    #[serde(flatten)]
-    pub status: CardStatus,
+/// What a gateway is made of; changed by a reload, read by everything else.
+pub(crate) struct Parts {
+    pub(crate) cards: Vec<CardRt>,
+    /// What is served beside the cards (the Modbus server), if configured.
+    pub(crate) servers: Vec<Box<dyn Server>>,
+    /// Components in start order, each with whether the deployment asked to start it.
+    pub(crate) order: Vec<(TaskContext, bool)>,
+    /// The connections made.
+    pub(crate) links: Vec<Link>,
+    /// What the output watchdog watches (swapped by a reload).
+    pub(crate) watch: crate::watchdog::WatchSet,
+    /// The Zenoh node as a server (`[zenoh]`): started first and stopped first like the
+    /// others, never made again by a reload.
+    pub(crate) zenoh_server: Option<Box<dyn Server>>,
+}
+
+impl Parts {
+    /// Every server: the deployment's, then the Zenoh node's.
+    pub(crate) fn all_servers(&self) -> impl Iterator<Item = &Box<dyn Server>> {
+        self.servers.iter().chain(&self.zenoh_server)
+    }
+}
+
+/// The deployment the gateway runs, for a reload, and whether its stop began.
+pub(crate) struct Running {
+    /// The deployment as applied.
+    pub(crate) deployment: Deployment,
+    /// The file it was read from (`None`: the embedded demo, nothing to read again).
+    pub(crate) file: Option<std::path::PathBuf>,
+    /// Set by the stop: no reload from then on.
+    pub(crate) stopping: bool,
 }
 
 /// A built (and possibly running) gateway.
 pub struct Gateway {
     runtime: Runtime,
-    cards: Vec<CardRt>,
-    /// What is served beside the cards (the Modbus server), if configured.
-    servers: Vec<Box<dyn Server>>,
-    /// Components in start order.
-    order: Vec<TaskContext>,
-    /// Which components the deployment asked to start.
-    start: Vec<bool>,
-    /// Held when the stop begins: the guarded outputs refuse every write from then on.
-    hold: Arc<Hold>,
+    parts: RwLock<Parts>,
+    /// Held by a reload throughout and by the stop's first step: the two never overlap.
+    pub(crate) running: Mutex<Running>,
+    /// The component and driver types it was built with (a reload builds with them).
+    pub(crate) types: crate::types::Types,
+    /// Set by the stop's first step, without a lock.
+    stopping: std::sync::atomic::AtomicBool,
+    /// How many reloads changed something: a client's cached writers into ports made
+    /// before the last one are let go.
+    pub(crate) generation: std::sync::atomic::AtomicU64,
     /// Where ThreadScope records each thread's bit once started ([`Self::record_thread_scope`]):
     /// the name its numbered files are made after, and how many of them are kept.
     pub(crate) scope_vcd: Option<(std::path::PathBuf, u32)>,
@@ -84,22 +113,44 @@ pub struct Gateway {
 impl Gateway {
     pub(crate) fn new(
         runtime: Runtime,
-        cards: Vec<CardRt>,
-        servers: Vec<Box<dyn Server>>,
-        order: Vec<TaskContext>,
-        start: Vec<bool>,
-        hold: Arc<Hold>,
+        parts: Parts,
+        deployment: Deployment,
+        types: crate::types::Types,
     ) -> Gateway {
         Gateway {
             runtime,
-            cards,
-            servers,
-            order,
-            start,
-            hold,
+            types,
+            stopping: std::sync::atomic::AtomicBool::new(false),
+            generation: std::sync::atomic::AtomicU64::new(0),
+            parts: RwLock::new(parts),
+            running: Mutex::new(Running {
+                deployment,
+                file: None,
+                stopping: false,
+            }),
             scope_vcd: None,
             zenoh: None,
         }
+    }
+
+    /// What the gateway is made of, to read.
+    pub(crate) fn parts(&self) -> RwLockReadGuard<'_, Parts> {
+        self.parts.read().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// What the gateway is made of, to change (a reload).
+    pub(crate) fn parts_mut(&self) -> RwLockWriteGuard<'_, Parts> {
+        self.parts.write().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// The deployment as running and whether the stop began.
+    pub(crate) fn running(&self) -> std::sync::MutexGuard<'_, Running> {
+        self.running.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// Names the file the deployment was read from: a reload reads it again.
+    pub fn set_file(&self, file: std::path::PathBuf) {
+        self.running().file = Some(file);
     }
 
     /// Starts the ThreadScope recording the deployment asks for (`thread_scope_vcd`), if
@@ -115,96 +166,12 @@ impl Gateway {
         Ok(())
     }
 
-    /// Applies the properties of `new` (the deployment file read again) to the running
-    /// components: all-or-nothing per component. Anything else that changed — cards,
-    /// aliases, components, activities, connections — is refused: it needs a restart.
-    /// Returns one line per change, applied or refused, and the components whose new
-    /// properties were applied.
-    pub fn reload(&self, old: &Deployment, new: &Deployment) -> (Vec<String>, Vec<String>) {
-        let mut report = Vec::new();
-        let mut applied_to = Vec::new();
-        let refuse = |what: &str| format!("{what} changed: restart hwgw to apply");
-        if old.cards != new.cards {
-            report.push(refuse("cards"));
-        }
-        if old.aliases != new.aliases {
-            report.push(refuse("aliases"));
-        }
-        if old.connections != new.connections {
-            report.push(refuse("connections"));
-        }
-        if old.zenoh != new.zenoh {
-            report.push(refuse("[zenoh]"));
-        }
-        if (
-            old.thread_scope,
-            &old.thread_scope_vcd,
-            old.thread_scope_vcd_keep,
-            old.cpu_dma_latency_us,
-            &old.control_socket,
-        ) != (
-            new.thread_scope,
-            &new.thread_scope_vcd,
-            new.thread_scope_vcd_keep,
-            new.cpu_dma_latency_us,
-            &new.control_socket,
-        ) {
-            report.push(refuse("runtime settings"));
-        }
-        let shape = |c: &crate::config::ComponentConfig| {
-            (c.name.clone(), c.kind.clone(), c.activity.clone(), c.start)
-        };
-        if old.components.iter().map(shape).collect::<Vec<_>>()
-            != new.components.iter().map(shape).collect::<Vec<_>>()
-        {
-            report.push(refuse("components (names, types, activities or start)"));
-            return (report, applied_to);
-        }
-        for (o, n) in old.components.iter().zip(&new.components) {
-            if o.properties == n.properties {
-                continue;
-            }
-            let applied = self
-                .runtime
-                .component(&n.name)
-                .map_err(|e| e.to_string())
-                .and_then(|t| {
-                    t.properties()
-                        .load_toml(&n.properties)
-                        .map_err(|e| e.to_string())
-                });
-            if applied.is_ok() {
-                applied_to.push(n.name.clone());
-            }
-            report.push(match applied {
-                Ok(()) => format!(
-                    "component {:?}: properties reloaded (those read at configure take effect at the next configure)",
-                    n.name
-                ),
-                Err(e) => format!("component {:?}: properties not reloaded: {}", n.name, e.replace('\n', "; ")),
-            });
-        }
-        if report.is_empty() {
-            report.push("nothing changed".into());
-        }
-        (report, applied_to)
-    }
-
     /// Starts the servers (the Modbus server), if configured, then the components the
     /// deployment asks to start, in order (each card's bus side before its IO components).
     pub fn start(&self) -> Result<(), rtt::component::LifecycleError> {
-        for s in &self.servers {
-            match s.start() {
-                Ok(addr) => tracing::info!("{} listening on {addr}", s.name()),
-                Err(e) => tracing::error!("{}: cannot start: {e}", s.name()),
-            }
-        }
-        for (t, start) in self.order.iter().zip(&self.start) {
-            if *start && t.state() == TaskState::Stopped {
-                t.start()?;
-            }
-        }
-        Ok(())
+        let parts = self.parts();
+        let _ = start_servers(parts.all_servers());
+        start_tasks(&parts.order)
     }
 
     /// `Ok` while every component that should run is running and every periodic activity
@@ -213,19 +180,22 @@ impl Gateway {
     /// counts as running: restarting the service would not bring the device back; its
     /// state shows in `hwgw ls` and `status`.
     pub fn health(&self) -> Result<(), String> {
-        self.health_since(&mut Vec::new())
+        self.health_since(&mut HashMap::new())
     }
 
     /// [`health`](Self::health), and also wrong when a periodic activity overran its
     /// period since the last call with the same `seen` (a spell over by now still counts:
     /// the watchdog is fed only after an interval the gateway was healthy throughout);
-    /// `seen` keeps each activity's count of unhealthy spells between calls.
-    pub fn health_since(&self, seen: &mut Vec<u64>) -> Result<(), String> {
-        seen.resize(self.order.len(), 0);
+    /// `seen` keeps each activity's count of unhealthy spells between calls, by component.
+    pub fn health_since(&self, seen: &mut HashMap<String, u64>) -> Result<(), String> {
+        let parts = self.parts();
+        seen.retain(|name, _| parts.order.iter().any(|(t, _)| t.name() == name));
         let mut wrong = Vec::new();
-        for ((t, start), seen) in self.order.iter().zip(&self.start).zip(seen.iter_mut()) {
+        for (t, start) in &parts.order {
             let stats = t.stats();
-            let spells = std::mem::replace(seen, stats.unhealthy_spells);
+            let spells = seen
+                .insert(t.name().to_string(), stats.unhealthy_spells)
+                .unwrap_or(stats.unhealthy_spells);
             match t.state() {
                 TaskState::Running | TaskState::RunTimeError => {}
                 s if *start => wrong.push(format!("{} is {s}", t.name())),
@@ -235,9 +205,9 @@ impl Gateway {
                 wrong.push(format!("{} overruns its period", t.name()));
             }
         }
-        for s in &self.servers {
+        for s in parts.all_servers() {
             if let Err(e) = s.health() {
-                wrong.push(e);
+                wrong.push(e.to_string());
             }
         }
         if wrong.is_empty() {
@@ -255,15 +225,16 @@ impl Gateway {
     /// Where the server configured under deployment key `name` (`modbus_server`) listens,
     /// once started.
     pub fn server_address(&self, name: &str) -> Option<String> {
-        self.servers
-            .iter()
+        self.parts()
+            .all_servers()
             .find(|s| s.name() == name)
             .and_then(|s| s.address())
     }
 
     /// Every card's bus and counters, for `status`.
     pub fn card_status(&self) -> Vec<CardReport> {
-        self.cards
+        self.parts()
+            .cards
             .iter()
             .map(|c| CardReport {
                 name: c.name.clone(),
@@ -276,8 +247,8 @@ impl Gateway {
 
     /// Every server's state and counters, for `status`.
     pub fn server_status(&self) -> Vec<ServerReport> {
-        self.servers
-            .iter()
+        self.parts()
+            .all_servers()
             .filter_map(|s| {
                 s.status().map(|status| ServerReport {
                     name: s.name().to_string(),
@@ -295,7 +266,8 @@ impl Gateway {
     /// A summary of what was loaded, for the start-up log.
     pub fn summary(&self) -> String {
         let mut s = String::new();
-        for c in &self.cards {
+        let parts = self.parts();
+        for c in &parts.cards {
             let summary = c.card.summary();
             let sep = if summary.is_empty() { "" } else { " " };
             s.push_str(&format!("card {:?} ({}{sep}{summary})\n", c.name, c.driver));
@@ -312,7 +284,7 @@ impl Gateway {
                 e.interface, e.info.name
             ));
         }
-        for t in &self.order {
+        for (t, _) in &parts.order {
             s.push_str(&format!(
                 "component {:?}: {} ports, {} operations, {}\n",
                 t.name(),
@@ -324,17 +296,22 @@ impl Gateway {
         s
     }
 
-    fn is_bus(&self, t: &TaskContext) -> bool {
-        self.cards
-            .iter()
-            .any(|c| c.bus.iter().any(|b| b.name() == t.name()))
-    }
-
     /// Refuses every write to an output from now on ([`device_interface::DeviceError::Held`]);
     /// returns once the writes under way have reached their cards. The first step of a
     /// stop, before anything else can hang; [`shutdown`](Self::shutdown) does it too.
     pub fn hold_outputs(&self) {
-        self.hold.hold();
+        // Never waits for a reload under way: a card it adds after this sees the flag and
+        // holds itself (see `reload`); the cards it took out it holds itself.
+        self.stopping
+            .store(true, std::sync::atomic::Ordering::SeqCst);
+        for c in &self.parts().cards {
+            c.hold.hold();
+        }
+    }
+
+    /// True once the stop began ([`hold_outputs`](Self::hold_outputs)).
+    pub(crate) fn is_stopping(&self) -> bool {
+        self.stopping.load(std::sync::atomic::Ordering::SeqCst)
     }
 
     /// Stops every component but the cards' bus sides in reverse start order, drives every
@@ -355,49 +332,104 @@ impl Gateway {
         }
         // From here on only the safe values are written: every other write is refused.
         self.hold_outputs();
-        for s in &self.servers {
+        // A reload under way ends first (its cards held as they come); none begins after.
+        let mut running = self.running();
+        running.stopping = true;
+        let parts = self.parts();
+        for s in parts.all_servers() {
             s.stop();
         }
-        let stop = |t: &TaskContext| {
-            if matches!(t.state(), TaskState::Running | TaskState::RunTimeError)
-                && let Err(e) = t.stop()
-            {
-                tracing::warn!("{e}");
-            }
+        let is_bus = |t: &TaskContext| {
+            parts
+                .cards
+                .iter()
+                .any(|c| c.bus.iter().any(|b| b.name() == t.name()))
         };
-        for t in self.order.iter().rev().filter(|t| !self.is_bus(t)) {
-            stop(t);
+        for (t, _) in parts.order.iter().rev().filter(|(t, _)| !is_bus(t)) {
+            stop_task(t);
         }
-        // A card whose driver panics must not keep the next cards from their safe values.
-        let each_card = |what: &str, f: &dyn Fn(&CardRt)| {
-            for c in &self.cards {
-                if std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(c))).is_err() {
-                    tracing::error!("card {:?}: its driver panicked while {what}", c.name);
-                }
-            }
-        };
-        each_card("driving its safe values", &|c| c.outputs.drive_safe());
-        let deadline = Instant::now() + SETTLE;
-        each_card("settling its safe values", &|c| {
-            if let Err(e) = c.card.settle(deadline) {
-                tracing::error!("card {:?}: {e}", c.name);
-            }
-        });
-        for t in self.order.iter().rev().filter(|t| self.is_bus(t)) {
-            stop(t);
-        }
+        settle_cards(&parts.cards);
         // Last, the outputs safe: the ThreadScope recording, complete since its close
         // above (finish logs its counts; a disk that hangs holds the stop 5 s at most).
         if let Some(vcd) = self.runtime.thread_scope().vcd() {
             let _ = vcd.finish();
         }
-        self.cards.iter().map(CardRt::outputs_line).collect()
+        parts.cards.iter().map(CardRt::outputs_line).collect()
+    }
+}
+
+/// Stops `t` if it runs (a refusal is logged).
+pub(crate) fn stop_task(t: &TaskContext) {
+    if matches!(t.state(), TaskState::Running | TaskState::RunTimeError)
+        && let Err(e) = t.stop()
+    {
+        tracing::warn!("{e}");
+    }
+}
+
+/// Starts the servers; one that cannot start is logged (and returned), the others start.
+pub(crate) fn start_servers<'s>(
+    servers: impl IntoIterator<Item = &'s Box<dyn Server>>,
+) -> Vec<String> {
+    let mut failed = Vec::new();
+    for s in servers {
+        match s.start() {
+            Ok(addr) => tracing::info!("{} listening on {addr}", s.name()),
+            Err(e) => {
+                tracing::error!("{}: cannot start: {e}", s.name());
+                failed.push(format!("{}: cannot start: {e}", s.name()));
+            }
+        }
+    }
+    failed
+}
+
+/// Starts, in order, the stopped components the deployment asks to start.
+pub(crate) fn start_tasks(
+    order: &[(TaskContext, bool)],
+) -> Result<(), rtt::component::LifecycleError> {
+    for (t, start) in order {
+        if *start && t.state() == TaskState::Stopped {
+            t.start()?;
+        }
+    }
+    Ok(())
+}
+
+/// The end of every card's life, at stop or when a reload rebuilds or removes it, its
+/// outputs held and every writer but its bus side stopped: drives each output to its safe
+/// value, lets each card get them to the hardware, then stops the bus sides.
+pub(crate) fn settle_cards(cards: &[CardRt]) {
+    // A card whose driver panics must not keep the next cards from their safe values.
+    let each_card = |what: &str, f: &dyn Fn(&CardRt)| {
+        for c in cards {
+            if std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(c))).is_err() {
+                tracing::error!("card {:?}: its driver panicked while {what}", c.name);
+            }
+        }
+    };
+    each_card("driving its safe values", &|c| c.outputs.drive_safe());
+    let deadline = Instant::now() + SETTLE;
+    each_card("settling its safe values", &|c| {
+        // A bus side that is not running carries nothing: the card does not wait for it.
+        let bus_running = c
+            .bus
+            .iter()
+            .all(|t| matches!(t.state(), TaskState::Running | TaskState::RunTimeError));
+        if let Err(e) = c.card.settle(deadline, bus_running) {
+            tracing::error!("card {:?}: {e}", c.name);
+        }
+    });
+    for c in cards.iter().rev() {
+        for t in c.bus.iter().rev() {
+            stop_task(t);
+        }
     }
 }
 
 impl CardRt {
     /// `card "x" outputs at stop: analog [..], digital on [..]`.
-    fn outputs_line(&self) -> String {
+    pub(crate) fn outputs_line(&self) -> String {
         let analog: Vec<String> = self.outputs.analog_device().map_or_else(Vec::new, |ao| {
             (0..ao.channel_count())
                 .map(|ch| {

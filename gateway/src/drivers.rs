@@ -6,7 +6,7 @@
 //! `socketcan`, `gpio`, `i2c`, `comedi` and `firmata`; a user's binary adds its own with [`DriverTypes::register`] (see
 //! `examples/custom-driver`).
 
-use driver_api::{BuildFn, Card, CardContext, CardError};
+use driver_api::{BuildFn, BuiltCard, CardContext, CardError};
 use serde::de::DeserializeOwned;
 use std::collections::BTreeMap;
 use std::ops::Range;
@@ -29,12 +29,27 @@ pub(crate) enum SectionError {
 
 /// A driver with its section type erased.
 pub(crate) trait DriverEntry: Send + Sync {
-    /// Parses `section` and builds the card.
+    /// Parses `section` and builds the card and its bus side.
     fn build(
         &self,
         section: Spanned<DeValue<'_>>,
         ctx: &mut CardContext<'_>,
-    ) -> Result<Box<dyn Card>, SectionError>;
+    ) -> Result<BuiltCard, SectionError>;
+}
+
+/// Parses a section (a card's driver section, a server's) strictly into its type `C`;
+/// only [`SectionError::Parse`], located where the section stands in the file.
+pub(crate) fn parse<C: DeserializeOwned>(section: Spanned<DeValue<'_>>) -> Result<C, SectionError> {
+    let de = toml::de::ValueDeserializer::from(section);
+    serde_path_to_error::deserialize(de).map_err(|e| {
+        let path = e.path().to_string();
+        let inner = e.into_inner();
+        SectionError::Parse {
+            path: if path == "." { String::new() } else { path },
+            span: inner.span(),
+            message: inner.message().trim().to_string(),
+        }
+    })
 }
 
 struct Typed<C>(BuildFn<C>);
@@ -44,17 +59,8 @@ impl<C: DeserializeOwned + 'static> DriverEntry for Typed<C> {
         &self,
         section: Spanned<DeValue<'_>>,
         ctx: &mut CardContext<'_>,
-    ) -> Result<Box<dyn Card>, SectionError> {
-        let de = toml::de::ValueDeserializer::from(section);
-        let config: C = serde_path_to_error::deserialize(de).map_err(|e| {
-            let path = e.path().to_string();
-            let inner = e.into_inner();
-            SectionError::Parse {
-                path: if path == "." { String::new() } else { path },
-                span: inner.span(),
-                message: inner.message().trim().to_string(),
-            }
-        })?;
+    ) -> Result<BuiltCard, SectionError> {
+        let config: C = parse(section)?;
         (self.0)(&config, ctx).map_err(SectionError::Card)
     }
 }

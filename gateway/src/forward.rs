@@ -24,7 +24,11 @@ fn component_of(req: &Request) -> Option<&str> {
         | Request::Cleanup { component }
         | Request::Recover { component }
         | Request::Watch { component, .. } => Some(component),
-        Request::Ls { .. } | Request::Devices | Request::Status | Request::Record { .. } => None,
+        Request::Ls { .. }
+        | Request::Devices
+        | Request::Status
+        | Request::Record { .. }
+        | Request::Reload => None,
     }
 }
 

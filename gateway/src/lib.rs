@@ -3,10 +3,12 @@
 //!
 //! - [`config`]: the TOML deployment, parsed strictly; [`problems`]: every error located
 //!   by file, line, column and key path;
-//! - [`types`]: what a deployment may name — [`components`] (component types) and
-//!   [`drivers`] (bus drivers, plug-ins of [`driver_api`]);
+//! - [`types`]: what a deployment may name — [`components`] (component types),
+//!   [`drivers`] (bus drivers, plug-ins of [`driver_api`]) and [`servers`] (what is
+//!   served beside the cards, plug-ins too);
 //! - [`deploy`]: a built gateway: started, watched, stopped with every output at its safe
-//!   value (built in phases by the `build` module);
+//!   value (built in phases by the `build` module, changed while it runs by the `reload`
+//!   module: only what changed is rebuilt);
 //! - [`io`]: every device as a component (channels as ports, methods as operations);
 //! - [`outputs`]: the output policy — safe values, `keep`, the output watchdog — and the
 //!   guards that refuse writes once the gateway stops;
@@ -16,7 +18,8 @@
 //! - [`protocol`]: the control protocol's typed requests and replies; [`control`]: its
 //!   server on a Unix socket (requests carried out by the `requests` module), placed and
 //!   guarded by [`socket`]; [`client`]: its client, with a timeout on every reply;
-//! - [`cli`]: the `hwgw` command line, reusable by a binary with its own types; [`serve`]:
+//! - [`cli`]: the `hwgw` command line, reusable by a binary with its own types (its manual
+//!   pages and completions generated from it by the `assets` module); [`serve`]:
 //!   `hwgw run` and `hwgw check`; [`table`]: what the CLI prints for people;
 //! - [`browse`]: `hwgw browse`, the interactive console.
 //!
@@ -31,6 +34,7 @@
 //! # Ok::<(), hwgw::config::ConfigError>(())
 //! ```
 
+mod assets;
 pub mod browse;
 mod build;
 pub mod checks;
@@ -47,12 +51,15 @@ pub mod outputs;
 pub mod problems;
 pub mod protocol;
 pub mod recorder;
+mod reload;
 pub mod remote;
 mod requests;
 pub mod serve;
+pub mod servers;
 pub mod socket;
 pub mod table;
 pub mod types;
+mod watchdog;
 
 /// The embedded default deployment (`config/demo.toml`): simulated cards, so a new user
 /// sees values move with no hardware.

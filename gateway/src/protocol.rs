@@ -4,8 +4,10 @@
 //! the command table of the documentation and the "unknown command" error both come from
 //! [`COMMANDS`], so they cannot drift from the code.
 
-use crate::deploy::{CardReport, ServerReport};
+mod reports;
+
 use device_interface::{Interface, RegistryEntry, Status};
+pub use reports::{CardReport, ServerReport};
 use rtt::TaskState;
 use rtt::activity::ActivityStats;
 use rtt::component::{PortInfo, TaskCounters};
@@ -138,6 +140,32 @@ pub enum Request {
         #[serde(default)]
         buffer: Option<usize>,
     },
+    /// Reads the deployment file again and applies what changed (as SIGHUP does).
+    Reload,
+}
+
+/// What a reload did: applied line by line, what needs a restart, and the errors that
+/// kept the new deployment from being applied (then nothing changed) or that came past
+/// its check.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct ReloadReport {
+    /// One line per change applied (`nothing changed` when none).
+    pub applied: Vec<String>,
+    /// What changed but applies only at a restart, each named.
+    pub restart: Vec<String>,
+    /// Why the new deployment was refused (every problem, one a line), or what went wrong
+    /// applying it.
+    pub errors: Vec<String>,
+}
+
+impl ReloadReport {
+    /// Nothing applied, for these reasons.
+    pub fn refused(errors: Vec<String>) -> ReloadReport {
+        ReloadReport {
+            errors,
+            ..ReloadReport::default()
+        }
+    }
 }
 
 /// What a `record` stream carries first: what it records, and how to make its times UNIX
@@ -184,7 +212,7 @@ pub struct Command {
 }
 
 /// Every command, in the order the documentation lists them.
-pub const COMMANDS: [Command; 14] = [
+pub const COMMANDS: [Command; 15] = [
     Command {
         cmd: "ls",
         fields: "optional `all`",
@@ -255,6 +283,11 @@ pub const COMMANDS: [Command; 14] = [
         fields: "`ports` (`component.port` or `component`), optional `devices`, `steps`, `buffer`",
         ok: "`{\"ports\", \"activities\", \"wall_minus_clock_ns\"}`, then a stream of `{\"id\", \"records\": {\"items\", \"ports_lost\", \"steps_lost\", \"now_ns\"}}` batches until the client closes",
     },
+    Command {
+        cmd: "reload",
+        fields: "—",
+        ok: "`{\"applied\", \"restart\", \"errors\"}`: the deployment file read again and what changed rebuilt; when the new deployment has errors they are listed and nothing changed",
+    },
 ];
 
 impl Request {
@@ -275,6 +308,7 @@ impl Request {
             Request::Recover { .. } => "recover",
             Request::Watch { .. } => "watch",
             Request::Record { .. } => "record",
+            Request::Reload => "reload",
         }
     }
 

@@ -35,7 +35,7 @@ pub(crate) fn node(
     }
     Node::new(cfg, registry.clone())
         .map(std::sync::Arc::new)
-        .map_err(|e| vec![("import".to_string(), e)])
+        .map_err(|e| vec![("import".to_string(), e.to_string())])
 }
 
 /// A build without Zenoh refuses the section.
@@ -116,6 +116,27 @@ pub(crate) fn link(
         let _ = (gw, component, port, writer, label);
         match *node {}
     }
+}
+
+/// The components whose ports the `[zenoh]` section of `d` exports (through `node`, when
+/// the gateway has one): a reload leaves them as they run.
+pub(crate) fn exported_components(
+    node: Option<&Node>,
+    d: &crate::config::Deployment,
+) -> std::collections::HashSet<String> {
+    #[cfg(feature = "zenoh")]
+    if let (Some(_), Some(section)) = (node, &d.zenoh) {
+        return section
+            .export
+            .iter()
+            .flat_map(|e| {
+                let component = crate::config::split_port(e).map_or(e.as_str(), |(c, _)| c);
+                [e.clone(), component.to_string()]
+            })
+            .collect();
+    }
+    let _ = (node, d);
+    std::collections::HashSet::new()
 }
 
 /// Exports the output ports the section names (`component.port` or `component`); the

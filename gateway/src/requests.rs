@@ -159,6 +159,11 @@ pub(crate) fn handle(
         Request::Stop { component: c } => lifecycle(component(c)?, |t| t.stop()),
         Request::Cleanup { component: c } => lifecycle(component(c)?, |t| t.cleanup()),
         Request::Recover { component: c } => lifecycle(component(c)?, |t| t.recover()),
+        Request::Reload => {
+            let report = gw.reload();
+            crate::reload::log_reload("reload", &report);
+            to_value(report)
+        }
         Request::Watch { .. } | Request::Record { .. } => Err(Fail(
             ErrorKind::BadRequest,
             format!("{} streams: it is served on its own", req.cmd()),

@@ -24,7 +24,7 @@ fn watchdog(
     let mut last: Option<Result<(), String>> = None;
     // Each activity's unhealthy spells as last seen: one between two looks starves the
     // watchdog too.
-    let mut seen = Vec::new();
+    let mut seen = std::collections::HashMap::new();
     while !stop.load(std::sync::atomic::Ordering::Acquire) {
         let health = gw.health_since(&mut seen);
         if last.as_ref() != Some(&health) {
@@ -44,34 +44,6 @@ fn watchdog(
             let _ = sd_notify::notify(&[NotifyState::Watchdog]);
         }
         std::thread::sleep(interval / 2);
-    }
-}
-
-/// SIGHUP: reads the deployment again and applies what may change at run time.
-fn reload_with(gw: &Gateway, config: Option<&PathBuf>, current: &mut Deployment) {
-    let Some(path) = config else {
-        tracing::warn!("SIGHUP: running the embedded default; there is no file to reload");
-        return;
-    };
-    let new = match Deployment::load(path) {
-        Ok((d, _)) => d,
-        Err(e) => {
-            tracing::error!(
-                "SIGHUP: {} not reloaded, still running the previous version:\n{e}",
-                path.display()
-            );
-            return;
-        }
-    };
-    let (lines, applied) = gw.reload(current, &new);
-    for line in lines {
-        tracing::info!("SIGHUP: {line}");
-    }
-    // What was applied is now current; refused changes stay pending until a restart.
-    for (cur, n) in current.components.iter_mut().zip(&new.components) {
-        if applied.contains(&n.name) {
-            cur.properties = n.properties.clone();
-        }
     }
 }
 
@@ -102,12 +74,17 @@ fn build(config: Option<&PathBuf>, types: &Types) -> Result<(Gateway, Deployment
 pub fn check(config: PathBuf, types: &Types) -> ExitCode {
     match build(Some(&config), types) {
         Ok((gw, _)) => {
-            print!("{}", gw.summary());
-            println!("{}: ok", config.display());
+            // A reader gone (`hwgw check x | head`) is no reason to panic: the verdict is
+            // the exit code.
+            use std::io::Write;
+            let mut out = std::io::stdout().lock();
+            let _ = write!(out, "{}", gw.summary())
+                .and_then(|()| writeln!(out, "{}: ok", config.display()));
             ExitCode::SUCCESS
         }
         Err(e) => {
-            eprintln!("{e}");
+            use std::io::Write;
+            let _ = writeln!(std::io::stderr().lock(), "{e}");
             ExitCode::FAILURE
         }
     }
@@ -181,13 +158,16 @@ pub fn run(config: Option<PathBuf>, socket: Option<PathBuf>, types: &Types) -> E
             return ExitCode::FAILURE;
         }
     };
-    let (gw, mut d) = match build(config.as_ref(), types) {
+    let (gw, d) = match build(config.as_ref(), types) {
         Ok(x) => x,
         Err(e) => {
             eprintln!("{e}");
             return ExitCode::FAILURE;
         }
     };
+    if let Some(file) = &config {
+        gw.set_file(file.clone());
+    }
     let gw = Arc::new(gw);
     for line in gw.summary().lines() {
         tracing::info!("{line}");
@@ -254,7 +234,7 @@ pub fn run(config: Option<PathBuf>, socket: Option<PathBuf>, types: &Types) -> E
     }
     loop {
         match signals.wait() {
-            Ok(Signal::SIGHUP) => reload_with(&gw, config.as_ref(), &mut d),
+            Ok(Signal::SIGHUP) => crate::reload::log_reload("SIGHUP", &gw.reload()),
             Ok(sig) => {
                 tracing::info!("{sig}: stopping");
                 break;

@@ -8,32 +8,53 @@ use serde_json::Value;
 /// `rows` under `headers`, each column as wide as its widest cell, two spaces apart; the
 /// last column is not padded.
 pub fn table(headers: &[&str], rows: &[Vec<String>]) -> String {
-    let mut widths: Vec<usize> = headers.iter().map(|h| h.chars().count()).collect();
+    let mut all = vec![headers.iter().map(|h| h.to_string()).collect()];
+    all.extend(rows.iter().cloned());
+    align(&all).join("\n")
+}
+
+/// `rows` as lines, each column as wide as its widest cell, two spaces apart; the last
+/// column is not padded.
+fn align(rows: &[Vec<String>]) -> Vec<String> {
+    let mut widths: Vec<usize> = Vec::new();
     for row in rows {
-        for (w, cell) in widths.iter_mut().zip(row) {
-            *w = (*w).max(cell.chars().count());
-        }
-    }
-    let line = |cells: &mut dyn Iterator<Item = &str>| {
-        let cells: Vec<&str> = cells.collect();
-        let last = cells.len().saturating_sub(1);
-        let mut s = String::new();
-        for (i, c) in cells.iter().enumerate() {
-            if i == last {
-                s.push_str(c);
-            } else {
-                let pad = widths[i].saturating_sub(c.chars().count());
-                s.push_str(c);
-                s.push_str(&" ".repeat(pad + 2));
+        for (i, cell) in row.iter().enumerate() {
+            let n = cell.chars().count();
+            match widths.get_mut(i) {
+                Some(w) => *w = (*w).max(n),
+                None => widths.push(n),
             }
         }
-        s.trim_end().to_string()
-    };
-    let mut out = vec![line(&mut headers.iter().copied())];
-    for row in rows {
-        out.push(line(&mut row.iter().map(String::as_str)));
     }
-    out.join("\n")
+    rows.iter()
+        .map(|cells| {
+            let last = cells.len().saturating_sub(1);
+            let mut s = String::new();
+            for (i, c) in cells.iter().enumerate() {
+                s.push_str(c);
+                if i != last {
+                    let pad = widths[i].saturating_sub(c.chars().count());
+                    s.push_str(&" ".repeat(pad + 2));
+                }
+            }
+            s.trim_end().to_string()
+        })
+        .collect()
+}
+
+/// An operation's signature in the protocol's types: `read(channel: u32) -> f64`, or
+/// `write(channel: u32, value: f64)` for one that answers nothing.
+pub fn signature(o: &rtt::operation::OperationInfo) -> String {
+    let args: Vec<String> = o
+        .args
+        .iter()
+        .map(|a| format!("{}: {}", a.name, a.type_name))
+        .collect();
+    if o.result.is_empty() {
+        format!("{}({})", o.name, args.join(", "))
+    } else {
+        format!("{}({}) -> {}", o.name, args.join(", "), o.result)
+    }
 }
 
 /// `hwgw ls`: every component and its state.
@@ -236,6 +257,7 @@ pub fn status(s: &StatusReport) -> String {
 pub fn description(d: &Description, values: &[Option<Value>]) -> String {
     let mut out = vec![format!("{} [{}]", d.name, state(d.state))];
     out.push("ports:".into());
+    let mut rows = Vec::new();
     for (i, p) in d.ports.iter().enumerate() {
         let current = values.get(i).cloned().flatten();
         // A value with a name (a DBC value description) shows it.
@@ -254,10 +276,18 @@ pub fn description(d: &Description, values: &[Option<Value>]) -> String {
             1 => "1 connection".to_string(),
             n => format!("{n} connections"),
         };
-        out.push(format!(
-            "  {:<3} {:<16} {:<8} {:<12} {:<14} {}",
-            dir, p.name, p.type_name, value, links, p.doc
-        ));
+        rows.push(vec![
+            dir.into(),
+            p.name.clone(),
+            p.type_name.clone(),
+            value,
+            links,
+            p.doc.clone(),
+        ]);
+    }
+    for (line, p) in align(&rows).into_iter().zip(&d.ports) {
+        out.push(format!("  {line}"));
+        // Named values on a line of their own, under the port's.
         if !p.values.is_empty() {
             let names: Vec<String> = p
                 .values
@@ -268,28 +298,40 @@ pub fn description(d: &Description, values: &[Option<Value>]) -> String {
         }
     }
     out.push("operations:".into());
-    for o in &d.operations {
-        let args: Vec<String> = o
-            .args
-            .iter()
-            .map(|a| format!("{}: {}", a.name, a.type_name))
-            .collect();
-        out.push(format!(
-            "  {}({}) -> {}  {}",
-            o.name,
-            args.join(", "),
-            o.result,
-            o.doc
-        ));
-    }
+    let ops: Vec<Vec<String>> = d
+        .operations
+        .iter()
+        .map(|o| vec![signature(o), o.doc.clone()])
+        .collect();
+    out.extend(align(&ops).into_iter().map(|l| format!("  {l}")));
     out.push("properties:".into());
-    for p in &d.properties {
-        out.push(format!(
-            "  {:<16} = {:<12} {}",
-            p.path,
-            p.value.to_string(),
-            p.doc
-        ));
+    let props: Vec<Vec<String>> = d
+        .properties
+        .iter()
+        .map(|p| {
+            vec![
+                format!("{}: {}", p.path, p.type_name),
+                format!("= {}", p.value),
+                p.doc.clone(),
+            ]
+        })
+        .collect();
+    out.extend(align(&props).into_iter().map(|l| format!("  {l}")));
+    out.join("\n")
+}
+
+/// What a reload did, a line each: applied, then what needs a restart, then the errors.
+pub fn reload(r: &crate::protocol::ReloadReport) -> String {
+    let mut out = Vec::new();
+    out.extend(r.applied.iter().cloned());
+    out.extend(r.restart.iter().map(|l| format!("not applied: {l}")));
+    if !r.errors.is_empty() {
+        out.push(if r.applied.is_empty() {
+            "nothing changed; the deployment has errors:".to_string()
+        } else {
+            "errors:".to_string()
+        });
+        out.extend(r.errors.iter().map(|l| format!("  {l}")));
     }
     out.join("\n")
 }
@@ -308,5 +350,27 @@ mod tests {
             ],
         );
         assert_eq!(t, "A     LONGER  C\nxxxx  y       z\nx     yy");
+    }
+
+    #[test]
+    fn signatures_are_in_the_protocols_types() {
+        use rtt::operation::{ArgInfo, ExecutionThread, OperationInfo};
+        let arg = |name: &str, t: &str| ArgInfo {
+            name: name.into(),
+            doc: String::new(),
+            type_name: t.into(),
+        };
+        let mut op = OperationInfo {
+            name: "read".into(),
+            doc: String::new(),
+            args: vec![arg("channel", "u32")],
+            result: "f64".into(),
+            thread: ExecutionThread::ClientThread,
+        };
+        assert_eq!(signature(&op), "read(channel: u32) -> f64");
+        op.name = "write".into();
+        op.args.push(arg("value", "f64"));
+        op.result = String::new();
+        assert_eq!(signature(&op), "write(channel: u32, value: f64)");
     }
 }

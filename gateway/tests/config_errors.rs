@@ -39,7 +39,13 @@ fn every_broken_config_gets_its_exact_error() {
     let cpus = std::thread::available_parallelism().map_or(1, usize::from);
     let cases: Vec<(&str, String, &str)> = vec![
         ("unknown top-level key", "thread_scop = true\n".into(),
-         "t.toml:1:1: thread_scop: unknown field `thread_scop`, expected one of `thread_scope`, `thread_scope_vcd`, `thread_scope_vcd_keep`, `cpu_dma_latency_us`, `control_socket`, `control_clients`, `control_idle_s`, `card`, `alias`, `component`, `connection`, `modbus_server`, `zenoh`"),
+         "t.toml:1:1: thread_scop: unknown key \"thread_scop\"; a deployment has thread_scope, thread_scope_vcd, thread_scope_vcd_keep, cpu_dma_latency_us, control_socket, control_clients, control_idle_s, card, alias, component, connection, zenoh, and the servers of this build: modbus_server"),
+        ("an unknown top-level table", format!("{CARD}[modbus_servr]\nlisten = \"127.0.0.1:0\"\n"),
+         "t.toml:11:2: modbus_servr: unknown key \"modbus_servr\"; a deployment has thread_scope, thread_scope_vcd, thread_scope_vcd_keep, cpu_dma_latency_us, control_socket, control_clients, control_idle_s, card, alias, component, connection, zenoh, and the servers of this build: modbus_server"),
+        ("a server section of the wrong shape", format!("modbus_server = 5\n{CARD}"),
+         "t.toml:1:17: modbus_server: invalid type: integer `5`, expected struct ServerConfig"),
+        ("a server section's unknown key", format!("{CARD}[modbus_server]\nlisten = \"127.0.0.1:0\"\nport = 502\n"),
+         "t.toml:13:1: modbus_server.port: unknown field `port`, expected one of `listen`, `max_clients`, `max_clients_per_address`, `idle_timeout_s`, `frame_timeout_ms`, `write_confirm_ms`, `register`"),
         ("zenoh: a bad endpoint", "[zenoh]\nname = \"A\"\nlisten = [\"tcp:127.0.0.1\"]\n".into(),
          "t.toml:3:11: zenoh.listen[0]: \"tcp:127.0.0.1\" is not a Zenoh endpoint (Endpoints must be of the form <protocol>/<address>[?<metadata>][#<config>]: tcp:127.0.0.1); e.g. \"tcp/127.0.0.1:7447\""),
         ("zenoh: a transport this build lacks", "[zenoh]\nname = \"A\"\nconnect = [\"udp/127.0.0.1:7447\"]\n".into(),

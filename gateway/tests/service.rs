@@ -86,10 +86,42 @@ fn values_flow_and_sigterm_leaves_outputs_safe() {
     wait_until("DO 12 loops back to DI 12", || {
         svc.ok(json!({"cmd": "get", "component": "sim0.di", "port": "bit12"})) == json!(true)
     });
-    // One-shot CLI forms.
+    // One-shot CLI forms, printed for people: `call` prints the value, not `{"Ok": …}`
+    // (`--json` keeps the gateway's answer); an operation answering nothing prints nothing.
+    let stdout = |out: &std::process::Output| String::from_utf8_lossy(&out.stdout).to_string();
     let out = svc.cli(&["call", "sim0.do", "check_bit", "12"]);
     assert!(out.status.success(), "{out:?}");
-    assert_eq!(String::from_utf8_lossy(&out.stdout).trim(), "true");
+    assert_eq!(stdout(&out).trim(), "true");
+    let out = svc.cli(&["--json", "call", "sim0.do", "check_bit", "12"]);
+    assert_eq!(
+        serde_json::from_str::<Value>(&stdout(&out)).unwrap(),
+        json!({"Ok": true})
+    );
+    let out = svc.cli(&["call", "sim0.do", "set_bit", "11", "true"]);
+    assert!(out.status.success(), "{out:?}");
+    assert_eq!(stdout(&out), "", "a write prints nothing");
+    let out = svc.cli(&["call", "sim0.do", "check_bit", "99"]);
+    assert!(!out.status.success(), "{out:?}");
+    assert!(stdout(&out).is_empty(), "{out:?}");
+    assert!(
+        String::from_utf8_lossy(&out.stderr).starts_with("hwgw: sim0.do.check_bit: "),
+        "{out:?}"
+    );
+    // `set` prints nothing, or one line with -v.
+    let out = svc.cli(&["set", "sim0.do", "bit11", "false"]);
+    assert!(out.status.success() && out.stdout.is_empty(), "{out:?}");
+    let out = svc.cli(&["-v", "set", "sim0.do", "bit11", "true"]);
+    assert_eq!(stdout(&out), "sim0.do.bit11 = true\n", "{out:?}");
+    // Operation signatures in the protocol's types, never Rust paths.
+    let ls = stdout(&svc.cli(&["ls", "sim0.ao"]));
+    for want in [
+        "read_back(channel: u32) -> f64",
+        "write(channel: u32, value: f64)  ",
+        "health() -> (string, f64?, string?)",
+    ] {
+        assert!(ls.contains(want), "{want:?} not in:\n{ls}");
+    }
+    assert!(!ls.contains("::"), "a Rust path in:\n{ls}");
     let out = svc.cli(&["get", "follow", "property:gain"]);
     assert_eq!(String::from_utf8_lossy(&out.stdout).trim(), "0.5");
     let out = svc.cli(&["set", "follow", "property:gain", "0.25"]);
@@ -117,6 +149,9 @@ fn values_flow_and_sigterm_leaves_outputs_safe() {
         log.contains("SIGTERM: stopping") && log.contains("stopped"),
         "{log}"
     );
+    // A clean stop is no error: writes refused because the outputs are held are not
+    // failures (the blinker's, the follow loop's).
+    assert!(!log.contains(" ERROR "), "{log}");
 }
 
 #[test]
@@ -453,13 +488,15 @@ fn watch_streams_new_values_and_status_reports() {
         .find(|c| c["name"] == "sim0")
         .unwrap();
     assert!(sim0["steps"].as_u64().unwrap() > 0);
+    // A lifecycle command prints nothing when it succeeds, one line with -v.
     let out = svc.cli(&["lifecycle", "stop", "blink"]);
-    assert!(
-        String::from_utf8_lossy(&out.stdout).contains("stopped"),
-        "{out:?}"
-    );
+    assert!(out.status.success() && out.stdout.is_empty(), "{out:?}");
     let st = svc.ok(json!({"cmd": "status"}));
     assert_eq!(st["health"], "blink is Stopped");
+    let out = svc.cli(&["--verbose", "lifecycle", "start", "blink"]);
+    assert_eq!(String::from_utf8_lossy(&out.stdout), "blink: running\n");
+    let out = svc.cli(&["lifecycle", "stop", "blink"]);
+    assert!(out.status.success() && out.stdout.is_empty(), "{out:?}");
     assert!(svc.terminate().status.success());
 }
 
@@ -497,12 +534,18 @@ fn the_browser_navigates_reads_writes_calls_and_completes() {
     for want in [
         "follow [running]",
         "ports:",
-        "in  in ",
-        "out out",
+        "operations:",
         "properties:",
-        "gain",
+        "gain: f64",
     ] {
         assert!(ls.contains(want), "{want:?} not in:\n{ls}");
+    }
+    for port in [["in", "in", "f64"], ["out", "out", "f64"]] {
+        assert!(
+            ls.lines()
+                .any(|l| l.split_whitespace().take(3).eq(port.iter().copied())),
+            "{port:?} not in:\n{ls}"
+        );
     }
     assert_eq!(b.complete("get g", 5), (4, vec!["gain".to_string()]));
     assert_eq!(
@@ -542,7 +585,7 @@ fn the_browser_navigates_reads_writes_calls_and_completes() {
 }
 
 #[test]
-fn sighup_reloads_properties_and_refuses_structural_changes() {
+fn sighup_rebuilds_what_changed_and_keeps_what_needs_a_restart() {
     let dir = TempDir::new("reload-cfg");
     let cfg = dir.path().join("gw.toml");
     let demo = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../config/demo.toml"))
@@ -551,9 +594,11 @@ fn sighup_reloads_properties_and_refuses_structural_changes() {
     let svc = start("reload", Some(&cfg));
     let pid = nix::unistd::Pid::from_raw(svc.pid().unwrap() as i32);
     let hup = || nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGHUP).unwrap();
-    let gain = || svc.ok(json!({"cmd": "get", "component": "follow", "property": "gain"}));
+    let gain = || {
+        svc.request(json!({"cmd": "get", "component": "follow", "property": "gain"}))["ok"].clone()
+    };
 
-    // A property change applies at run time.
+    // A property change rebuilds the component.
     std::fs::write(
         &cfg,
         demo.replace(
@@ -576,7 +621,8 @@ fn sighup_reloads_properties_and_refuses_structural_changes() {
     .unwrap();
     hup();
     wait_until("the refusal logged", || {
-        svc.log_text().contains("properties not reloaded")
+        svc.log_text()
+            .contains("SIGHUP: not applied, still running the previous version")
     });
     assert_eq!(gain(), json!(0.9));
     assert_eq!(
@@ -584,28 +630,29 @@ fn sighup_reloads_properties_and_refuses_structural_changes() {
         json!(0.0)
     );
 
-    // A structural change is refused; an unparsable file is refused; the gateway runs on.
+    // The card ThreadScope pulses on changes: kept until a restart. An unparsable file is
+    // refused; the gateway runs on.
     std::fs::write(&cfg, demo.replace("period_ms = 10 ", "period_ms = 20 ")).unwrap();
     hup();
-    wait_until("the structural change refused", || {
-        svc.log_text()
-            .contains("cards changed: restart hwgw to apply")
+    wait_until("the card change named", || {
+        svc.log_text().contains("restart hwgw to apply")
     });
     std::fs::write(&cfg, "this is not toml [").unwrap();
     hup();
     wait_until("the unparsable file refused", || {
         svc.log_text()
-            .contains("not reloaded, still running the previous version")
+            .matches("not applied, still running the previous version")
+            .count()
+            == 2
     });
     assert!(svc.ok(json!({"cmd": "ls"})).is_array());
     let out = svc.terminate();
     assert!(out.status.success());
     let log = out.log.clone();
     for want in [
-        "SIGHUP: component \"follow\": properties reloaded",
-        "SIGHUP: component \"follow\": properties not reloaded: gain: expected f64: invalid type: string \"fast\", expected f64",
-        "SIGHUP: cards changed: restart hwgw to apply",
-        "not reloaded, still running the previous version",
+        "SIGHUP: component \"follow\" rebuilt",
+        "gain: expected f64: invalid type: string \"fast\", expected f64",
+        "SIGHUP: card \"sim0\" changed, but ThreadScope pulses its output: restart hwgw to apply",
     ] {
         assert!(log.contains(want), "{want:?} not in the log:\n{log}");
     }

@@ -93,7 +93,8 @@ impl From<&Step> for StepMessage {
     }
 }
 
-/// The JSON schema of a value of Rust type `type_name`. A float may also be the string
+/// The JSON schema of a value of type `type_name` (the control protocol's name,
+/// `rtt::typename`; Rust's spelling of a string is taken too). A float may also be the string
 /// `"NaN"`, `"inf"` or `"-inf"` (JSON has no such numbers); a type not known here is left
 /// unconstrained.
 pub(crate) fn value_schema(type_name: &str) -> Value {
@@ -103,7 +104,7 @@ pub(crate) fn value_schema(type_name: &str) -> Value {
         "i8" | "i16" | "i32" | "i64" | "isize" | "u8" | "u16" | "u32" | "u64" | "usize" => {
             json!({"type": "integer"})
         }
-        "char" | "alloc::string::String" | "String" => json!({"type": "string"}),
+        "char" | "string" | "alloc::string::String" | "String" => json!({"type": "string"}),
         _ => json!({}),
     }
 }

@@ -47,7 +47,7 @@ pub struct PortInfo {
     pub doc: String,
     /// Direction.
     pub direction: Direction,
-    /// Rust type of the data.
+    /// Type of the data, as the control protocol names it ([`crate::typename`]).
     pub type_name: String,
     /// True for an input port that wakes its component.
     pub event: bool,

@@ -17,6 +17,8 @@
 //! - [`scope`]: ThreadScope, each runtime thread as a bit on a digital output;
 //! - [`time`]: the monotonic clock and its simulated twin;
 //! - [`error`] and [`info`]: what goes wrong, and what is listed about ports;
+//! - [`typename`]: the control protocol's names of the types listed (`f64`, `string`,
+//!   `[u32]`, `f64?`), never Rust paths;
 //! - [`lock`](mod@lock): the one way this crate (and its users) lock plain data.
 //!
 //! ```
@@ -68,6 +70,7 @@ pub mod runtime;
 pub mod scope;
 mod spin;
 pub mod state;
+pub mod typename;
 
 /// Monotonic time for the runtime (shared with the device interfaces).
 pub mod time {

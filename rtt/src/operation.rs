@@ -95,7 +95,7 @@ pub struct ArgInfo {
     pub name: String,
     /// What it means.
     pub doc: String,
-    /// Rust type.
+    /// Type, as the control protocol names it ([`crate::typename`]).
     pub type_name: String,
 }
 
@@ -108,7 +108,8 @@ pub struct OperationInfo {
     pub doc: String,
     /// Arguments, in order.
     pub args: Vec<ArgInfo>,
-    /// Rust type of the result.
+    /// Type of the result, as the control protocol names it ([`crate::typename`]): a
+    /// `Result`'s value (its error is the call's), empty when the call answers nothing.
     pub result: String,
     /// Which thread runs it.
     pub thread: ExecutionThread,
@@ -390,6 +391,8 @@ impl<A, R> OperationCaller<A, R> {
 /// An operation as the dynamic interface sees it.
 pub(crate) trait DynOperation: Send + Sync {
     fn info(&self) -> &OperationInfo;
+    /// `fn(A, B) -> R` in Rust's names, for a Rust caller that asked for other types.
+    fn rust_signature(&self) -> String;
     fn call_value(&self, args: Vec<Value>) -> Result<Value, CallError>;
     fn as_any(&self) -> &dyn Any;
 }
@@ -404,11 +407,27 @@ impl<A: Args, R: Serialize + 'static> DynOperation for OperationEntry<A, R> {
         &self.info
     }
 
+    fn rust_signature(&self) -> String {
+        format!(
+            "fn({}) -> {}",
+            A::type_names().join(", "),
+            std::any::type_name::<R>()
+        )
+    }
+
     fn call_value(&self, args: Vec<Value>) -> Result<Value, CallError> {
-        let wrong = |detail: String| CallError::WrongArguments {
-            operation: self.info.name.clone(),
-            expected: format!("({})", A::type_names().join(", ")),
-            detail,
+        let wrong = |detail: String| {
+            let types: Vec<&str> = self
+                .info
+                .args
+                .iter()
+                .map(|a| a.type_name.as_str())
+                .collect();
+            CallError::WrongArguments {
+                operation: self.info.name.clone(),
+                expected: format!("({})", types.join(", ")),
+                detail,
+            }
         };
         if args.len() != A::ARITY {
             return Err(wrong(format!(

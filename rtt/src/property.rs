@@ -93,7 +93,7 @@ fn list(v: &[String]) -> String {
 pub struct PropertyInfo {
     /// Dotted path.
     pub path: String,
-    /// Rust type of the value.
+    /// Type of the value, as the control protocol names it ([`crate::typename`]).
     pub type_name: String,
     /// What it is for.
     pub doc: String,
@@ -150,7 +150,7 @@ impl<T: PropertyValue> Property<T> {
 
 trait DynProperty: Send + Sync {
     fn doc(&self) -> &str;
-    fn type_name(&self) -> &'static str;
+    fn type_name(&self) -> String;
     fn get_value(&self) -> Value;
     fn check(&self, v: &Value) -> Result<(), String>;
     fn set_value(&self, v: Value) -> Result<(), String>;
@@ -161,8 +161,8 @@ impl<T: PropertyValue> DynProperty for Cell<T> {
         &self.doc
     }
 
-    fn type_name(&self) -> &'static str {
-        std::any::type_name::<T>()
+    fn type_name(&self) -> String {
+        crate::typename::of::<T>()
     }
 
     fn get_value(&self) -> Value {
@@ -273,7 +273,7 @@ impl PropertyBag {
         p.set_value(value)
             .map_err(|detail| PropertyError::WrongType {
                 path: path.to_string(),
-                expected: p.type_name().to_string(),
+                expected: p.type_name(),
                 detail,
             })
     }
@@ -284,7 +284,7 @@ impl PropertyBag {
         self.walk("", &mut |path, p| {
             out.push(PropertyInfo {
                 path: path.to_string(),
-                type_name: p.type_name().to_string(),
+                type_name: p.type_name(),
                 doc: p.doc().to_string(),
                 value: p.get_value(),
             })
@@ -379,7 +379,7 @@ impl PropertyBag {
                         Ok(()) => plan.push((p, json)),
                         Err(detail) => errors.push(PropertyError::WrongType {
                             path,
-                            expected: p.type_name().to_string(),
+                            expected: p.type_name(),
                             detail,
                         }),
                     }

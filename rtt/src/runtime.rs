@@ -161,6 +161,29 @@ impl Runtime {
             })
     }
 
+    /// Takes component `name` out of the runtime (a deployment changed while it runs): it
+    /// is stopped first if running, and its activity ends once the last handle to it is
+    /// dropped. Its ports' connections are the caller's to close. Returns it, or
+    /// [`RuntimeError::NotFound`] listing the components.
+    pub fn remove(&self, name: &str) -> Result<TaskContext, RuntimeError> {
+        let task = {
+            let mut components = lock(&self.components);
+            let Some(i) = components.iter().position(|c| c.name() == name) else {
+                return Err(RuntimeError::NotFound {
+                    name: name.to_string(),
+                    known: components.iter().map(|c| c.name().to_string()).collect(),
+                });
+            };
+            components.remove(i)
+        };
+        if matches!(task.state(), TaskState::Running | TaskState::RunTimeError)
+            && let Err(e) = task.stop()
+        {
+            tracing::warn!("{e}");
+        }
+        Ok(task)
+    }
+
     /// Every component, in the order added.
     pub fn components(&self) -> Vec<TaskContext> {
         lock(&self.components).clone()

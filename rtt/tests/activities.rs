@@ -445,7 +445,8 @@ fn spin_is_bounded() {
         ..ThreadOptions::default()
     };
     let e = t.check().unwrap_err();
-    assert!(e.contains("at most 10000"), "{e}");
+    assert_eq!(e, rtt::activity::ThreadError::Spin(10_001));
+    assert!(e.to_string().contains("at most 10000"), "{e}");
     t.spin_us = 0;
     assert!(t.check().is_ok());
     assert_eq!(

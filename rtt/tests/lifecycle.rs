@@ -21,6 +21,7 @@ struct Script {
     fail_start: AtomicBool,
     panic_configure: AtomicBool,
     fail_update: AtomicBool,
+    held_update: AtomicBool,
     panic_update: AtomicBool,
     request_error: AtomicBool,
     recover_in_error_hook: AtomicBool,
@@ -67,6 +68,10 @@ impl Component for Scripted {
         }
         if self.0.flag(&self.0.fail_update) {
             return Err(HookError::new("sensor gone"));
+        }
+        if self.0.flag(&self.0.held_update) {
+            // What a device write answers while the gateway stops.
+            return Err(device_interface::DeviceError::Held { reason: "stopping" }.into());
         }
         if self.0.flag(&self.0.request_error) {
             ctx.error();
@@ -308,6 +313,22 @@ fn update_failure_and_panic_go_to_exception_with_stop_hook() {
         t.recover().unwrap();
         assert_eq!(t.state(), TaskState::Stopped);
     }
+}
+
+#[test]
+fn an_update_refused_by_held_outputs_is_no_failure() {
+    // The gateway holds its outputs while it stops, before it stops the components: a
+    // component's write refused then is skipped, not an Exception (nor an ERROR line).
+    let rt = runtime();
+    let (t, s) = in_state(&rt, "held", TaskState::Running);
+    s.held_update.store(true, Ordering::SeqCst);
+    t.step().unwrap();
+    assert_eq!(t.state(), TaskState::Running);
+    assert_eq!(s.take(), vec!["update"]);
+    assert_eq!(t.counters().exceptions, 0);
+    assert_eq!(t.counters().last_error, None);
+    t.stop().unwrap();
+    assert_eq!(t.state(), TaskState::Stopped);
 }
 
 #[test]

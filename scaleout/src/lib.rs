@@ -37,8 +37,8 @@ impl driver_api::Server for NodeServer {
         "zenoh"
     }
 
-    fn start(&self) -> Result<String, String> {
-        self.0.start().map_err(|e| e.to_string())
+    fn start(&self) -> Result<String, driver_api::ServerError> {
+        self.0.start().map_err(driver_api::ServerError::failed)
     }
 
     fn stop(&self) {
@@ -91,10 +91,13 @@ impl driver_api::Server for NodeServer {
         Some(driver_api::CardStatus::new(at, &summary))
     }
 
-    fn health(&self) -> Result<(), String> {
+    fn health(&self) -> Result<(), driver_api::ServerError> {
         match self.0.address() {
             Some(_) => Ok(()),
-            None => Err(format!("zenoh: {} is not started", self.0.name())),
+            None => Err(driver_api::ServerError::NotStarted(format!(
+                "zenoh: {}",
+                self.0.name()
+            ))),
         }
     }
 }

@@ -140,15 +140,53 @@ pub fn sample(registry: &Registry, i: Interface, name: &str, seq: u64) -> Option
     })
 }
 
+/// Why a write from another gateway was refused whole.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum WriteError {
+    /// The writer speaks another protocol version.
+    #[error("protocol {got} from {writer}; {gateway} speaks {}", wire::PROTOCOL)]
+    Protocol {
+        /// The version it speaks.
+        got: u32,
+        /// The writing gateway.
+        writer: String,
+        /// This gateway.
+        gateway: String,
+    },
+    /// No device of this gateway has that name on that interface: which there are.
+    #[error("{gateway} has no {interface} device {device:?}; it has: {has}")]
+    NoDevice {
+        /// This gateway.
+        gateway: String,
+        /// The interface's key (`analog_out`).
+        interface: &'static str,
+        /// The device named.
+        device: String,
+        /// The devices it has on that interface, or "none".
+        has: String,
+    },
+    /// The values name a channel twice, or more channels than the device has.
+    #[error(
+        "a write of {values} values to {device} (of {count} channels) names a channel twice or too many"
+    )]
+    Channels {
+        /// Values in the write.
+        values: usize,
+        /// The device.
+        device: String,
+        /// Its channels.
+        count: u32,
+    },
+}
+
 /// Carries out a write from another gateway; the answer says which values were refused.
-pub fn write(gw: &str, registry: &Registry, w: &Write) -> Result<WriteReply, String> {
+pub fn write(gw: &str, registry: &Registry, w: &Write) -> Result<WriteReply, WriteError> {
     if w.protocol != wire::PROTOCOL {
-        return Err(format!(
-            "protocol {} from {}; {gw} speaks {}",
-            w.protocol,
-            w.writer,
-            wire::PROTOCOL
-        ));
+        return Err(WriteError::Protocol {
+            got: w.protocol,
+            writer: w.writer.clone(),
+            gateway: gw.to_string(),
+        });
     }
     let own = |owner: Option<String>| owner.is_some_and(|o| is_local(&o));
     let owner = registry
@@ -164,16 +202,16 @@ pub fn write(gw: &str, registry: &Registry, w: &Write) -> Result<WriteReply, Str
             .filter(|(i, _)| *i == w.interface)
             .map(|(_, n)| n)
             .collect();
-        return Err(format!(
-            "{gw} has no {} device {:?}; it has: {}",
-            wire::interface_key(w.interface),
-            w.device,
-            if names.is_empty() {
+        return Err(WriteError::NoDevice {
+            gateway: gw.to_string(),
+            interface: wire::interface_key(w.interface),
+            device: w.device.clone(),
+            has: if names.is_empty() {
                 "none".to_string()
             } else {
                 names.join(", ")
-            }
-        ));
+            },
+        });
     }
     let count = match w.interface {
         Interface::AnalogOut => registry
@@ -190,11 +228,11 @@ pub fn write(gw: &str, registry: &Registry, w: &Write) -> Result<WriteReply, Str
     .unwrap_or(0);
     let mut seen = std::collections::HashSet::new();
     if w.values.len() > count as usize || !w.values.iter().all(|(c, _)| seen.insert(*c)) {
-        return Err(format!(
-            "a write of {} values to {} (of {count} channels) names a channel twice or too many",
-            w.values.len(),
-            w.device
-        ));
+        return Err(WriteError::Channels {
+            values: w.values.len(),
+            device: w.device.clone(),
+            count,
+        });
     }
     let mut refused = Vec::new();
     for &(c, raw) in &w.values {
@@ -272,7 +310,7 @@ impl Writes {
                 // Refused whole: every value refused with why, bounded (a legitimate writer
                 // names each of a device's channels once, at most MAX_CHANNELS), the why cut
                 // short; nothing was written, so nothing is remembered either.
-                let e = device_interface::text::Cut(&e).to_string();
+                let e = device_interface::text::Cut(&e.to_string()).to_string();
                 let refused = w
                     .values
                     .iter()

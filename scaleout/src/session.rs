@@ -125,24 +125,46 @@ mod erased {
     }
 }
 
+/// Why a session could not be opened.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum SessionError {
+    /// Zenoh refused a setting made from the section.
+    #[error("zenoh setting {key} = {value}: {why}")]
+    Setting {
+        /// Zenoh's key.
+        key: &'static str,
+        /// The value given.
+        value: String,
+        /// Zenoh's error.
+        why: String,
+    },
+    /// Zenoh could not open the session.
+    #[error("cannot open the session (listen {listen:?}, connect {connect:?}): {why}")]
+    Open {
+        /// The endpoints to listen on.
+        listen: Vec<String>,
+        /// The endpoints to connect to.
+        connect: Vec<String>,
+        /// Zenoh's error.
+        why: String,
+    },
+}
+
 /// Opens the session of `cfg`.
-pub fn open(cfg: &ZenohConfig) -> Result<Session, String> {
+pub fn open(cfg: &ZenohConfig) -> Result<Session, SessionError> {
     let mut z = zenoh::Config::default();
     for (key, value) in settings(cfg) {
-        z.insert_json5(key, &value).map_err(|e| {
-            format!(
-                "zenoh setting {key} = {value}: {}",
-                crate::config::error_text(&e.to_string())
-            )
-        })?;
+        z.insert_json5(key, &value)
+            .map_err(|e| SessionError::Setting {
+                key,
+                value: value.clone(),
+                why: crate::config::error_text(&e.to_string()).to_string(),
+            })?;
     }
-    let inner = zenoh::open(z).wait().map_err(|e| {
-        format!(
-            "cannot open the session (listen {:?}, connect {:?}): {}",
-            cfg.listen,
-            cfg.connect,
-            crate::config::error_text(&e.to_string())
-        )
+    let inner = zenoh::open(z).wait().map_err(|e| SessionError::Open {
+        listen: cfg.listen.clone(),
+        connect: cfg.connect.clone(),
+        why: crate::config::error_text(&e.to_string()).to_string(),
     })?;
     Ok(Session {
         inner,

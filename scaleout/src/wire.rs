@@ -141,15 +141,23 @@ pub struct WriteReply {
 /// would have sent it.
 pub type ControlReply = serde_json::Value;
 
+/// Why a peer's payload was refused.
+#[derive(Debug, thiserror::Error)]
+pub enum WireError {
+    /// Longer than [`MAX_PAYLOAD`] (its length).
+    #[error("{0} bytes is more than the {MAX_PAYLOAD} a message may have")]
+    TooLong(usize),
+    /// Not the message expected.
+    #[error(transparent)]
+    Json(#[from] serde_json::Error),
+}
+
 /// Parses a peer's payload as `T`, refusing one longer than [`MAX_PAYLOAD`].
-pub fn parse<T: serde::de::DeserializeOwned>(bytes: &[u8]) -> Result<T, String> {
+pub fn parse<T: serde::de::DeserializeOwned>(bytes: &[u8]) -> Result<T, WireError> {
     if bytes.len() > MAX_PAYLOAD {
-        return Err(format!(
-            "{} bytes is more than the {MAX_PAYLOAD} a message may have",
-            bytes.len()
-        ));
+        return Err(WireError::TooLong(bytes.len()));
     }
-    serde_json::from_slice(bytes).map_err(|e| e.to_string())
+    Ok(serde_json::from_slice(bytes)?)
 }
 
 /// `v` as JSON bytes (the message types here always serialise).

@@ -81,8 +81,9 @@ impl std::fmt::Debug for ReadBack {
 /// One built card of a deployment.
 ///
 /// Built by its driver's [`BuildFn`](crate::BuildFn) without starting anything (so `hwgw
-/// check` runs the same code as `hwgw run`); the gateway then registers its devices, asks
-/// for its bus side, and at stop drives its outputs to their safe values.
+/// check` runs the same code as `hwgw run`), with its [`BusSide`](crate::BusSide) beside
+/// it (see [`BuiltCard`](crate::BuiltCard)); the gateway then registers its devices, adds
+/// the bus side once, and at stop drives its outputs to their safe values.
 ///
 /// Real-time contract: these methods are called by the gateway at build, start, status and
 /// stop time, never from a real-time path; the devices they hand out keep the device
@@ -105,19 +106,6 @@ pub trait Card: Send + Sync {
         crate::ChannelDetails::default()
     }
 
-    /// Adds the card's bus side to `runtime`: the component(s) doing its bus I/O, on their
-    /// own activities, not started. `name` is the card's name (a bus component is usually
-    /// named after it). The gateway starts them before the IO components and stops them
-    /// last. Default: none (a card whose devices do their own I/O).
-    fn add_bus(
-        &self,
-        runtime: &rtt::Runtime,
-        name: &str,
-    ) -> Result<Vec<rtt::TaskContext>, rtt::RuntimeError> {
-        let _ = (runtime, name);
-        Ok(Vec::new())
-    }
-
     /// One line for the start-up log: what the card talks to and what it maps.
     fn summary(&self) -> String;
 
@@ -134,61 +122,35 @@ pub trait Card: Send + Sync {
 
     /// At stop, after the gateway wrote the safe values to the card's outputs and while its
     /// bus side still runs: waits, until `deadline` at the latest, for them to reach the
-    /// hardware (sent, acknowledged). `Err` says why they may not have. Default: nothing
-    /// to wait for.
-    fn settle(&self, deadline: Instant) -> Result<(), String> {
-        let _ = deadline;
+    /// hardware (sent, acknowledged). `bus_running` is false when the card's bus side (the
+    /// components its [`BusSide`](crate::BusSide) added) is not running — never started,
+    /// failed or stopped: nothing will carry the safe values, so do not wait for it. It is
+    /// true when that bus side runs, and for a card without a bus side of its own (a card
+    /// that shares another card's bus knows of that bus itself). `Err` says why the safe
+    /// values may not have arrived. Default: nothing to wait for.
+    fn settle(&self, deadline: Instant, bus_running: bool) -> Result<(), SettleError> {
+        let _ = (deadline, bus_running);
         Ok(())
     }
 }
 
-/// The bus side of a card stepped once per `period`: a component named `name` on a
-/// periodic activity (absolute timing, placed by `thread`) calling `step` each period.
-/// What a simulated card or a card polled on a fixed cycle needs; `step` runs on the
-/// activity's thread and keeps the real-time contract. Returns it as [`Card::add_bus`] does.
-pub fn periodic_bus(
-    runtime: &rtt::Runtime,
-    name: &str,
-    period: std::time::Duration,
-    thread: rtt::ThreadOptions,
-    step: impl FnMut() + Send + 'static,
-) -> Result<Vec<rtt::TaskContext>, rtt::RuntimeError> {
-    let spec = rtt::ActivitySpec::Periodic {
-        period,
-        thread,
-        timing: rtt::Timing::Absolute,
-        max_overruns: None,
-    };
-    let task = runtime.add(name, spec, rtt::InitialState::Stopped, move |_| {
-        Ok(Cycle(Box::new(step)))
-    })?;
-    Ok(vec![task])
-}
-
-/// A bus component named `name` on a file-descriptor activity of its own (no timeout,
-/// placed by `thread`), not started: what a card woken by its bus's descriptors (a CAN
-/// socket, a serial line, GPIO line events) adds in [`Card::add_bus`]. `build` makes the
-/// component over its interface, as [`rtt::Runtime::add`] takes it; the component
-/// watches its descriptors from its `start_hook`.
-pub fn fd_bus<C: rtt::Component>(
-    runtime: &rtt::Runtime,
-    name: &str,
-    thread: rtt::ThreadOptions,
-    build: impl FnOnce(&mut rtt::InterfaceBuilder<C>) -> Result<C, rtt::component::IntrospectError>,
-) -> Result<rtt::TaskContext, rtt::RuntimeError> {
-    let spec = rtt::ActivitySpec::FileDescriptor {
-        timeout: None,
-        thread,
-    };
-    runtime.add(name, spec, rtt::InitialState::Stopped, build)
-}
-
-/// Calls its step each period.
-struct Cycle(Box<dyn FnMut() + Send>);
-
-impl rtt::Component for Cycle {
-    fn update_hook(&mut self, _: &mut rtt::Context<'_>) -> rtt::HookResult {
-        (self.0)();
-        Ok(())
-    }
+/// Why a card's safe values may not have reached the hardware at stop
+/// ([`Card::settle`]).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum SettleError {
+    /// The card's bus side is not running: nothing carried the safe values.
+    #[error("its bus side is not running: safe values not sent")]
+    BusNotRunning,
+    /// The device, its link or its bus is offline (what is offline).
+    #[error("{0} is offline: its outputs may not be at their safe values")]
+    Offline(String),
+    /// The deadline came first (what was not done by then: "safe values sent").
+    #[error("{0} not in time")]
+    Late(String),
+    /// Some went unsent, each named with why ("MCP23017 at 0x20 (offline)").
+    #[error("outputs not sent to {}", .0.join(", "))]
+    Unsent(Vec<String>),
+    /// The device refused them or shows others, one entry per output or pin.
+    #[error("safe values not confirmed: {}", .0.join("; "))]
+    Refused(Vec<String>),
 }

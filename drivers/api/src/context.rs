@@ -1,6 +1,6 @@
 //! What a driver gets to build a card, and how it says no.
 
-use crate::card::Card;
+use crate::bus::BuiltCard;
 use device_interface::time::Clock;
 use std::any::{Any, TypeId};
 use std::collections::HashMap;
@@ -8,11 +8,13 @@ use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
 
-/// A driver's build function: its typed section and the context to a card.
-pub type BuildFn<C> = fn(&C, &mut CardContext<'_>) -> Result<Box<dyn Card>, CardError>;
+/// A driver's build function: its typed section and the context to a card and its bus
+/// side.
+pub type BuildFn<C> = fn(&C, &mut CardContext<'_>) -> Result<BuiltCard, CardError>;
 
-/// Why a driver refused its section: a message, and the key under the section it is
-/// about when there is one (`rx[0].message`), so the gateway can point at it.
+/// Why a driver (or a server type) refused its section: a message, and the key under the
+/// section it is about when there is one (`rx[0].message`), so the gateway can point at
+/// it.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("{message}")]
 pub struct CardError {
@@ -44,19 +46,19 @@ impl CardError {
 pub struct CardContext<'a> {
     name: &'a str,
     period: Duration,
-    thread: &'a rtt::ThreadOptions,
     base: &'a Path,
     clock: Arc<dyn Clock>,
     shared: &'a mut HashMap<TypeId, Box<dyn Any + Send>>,
+    bus_key: Option<String>,
 }
 
 impl<'a> CardContext<'a> {
-    /// A context for card `name`: its bus period and thread options, the folder files
-    /// are relative to, the clock, and the deployment's shared driver state.
+    /// A context for card `name`: its bus period, the folder files are relative to, the
+    /// clock, and the deployment's shared driver state. (The card's thread settings go to
+    /// its bus side, in its [`BusContext`](crate::BusContext).)
     pub fn new(
         name: &'a str,
         period: Duration,
-        thread: &'a rtt::ThreadOptions,
         base: &'a Path,
         clock: Arc<dyn Clock>,
         shared: &'a mut HashMap<TypeId, Box<dyn Any + Send>>,
@@ -64,11 +66,24 @@ impl<'a> CardContext<'a> {
         CardContext {
             name,
             period,
-            thread,
             base,
             clock,
             shared,
+            bus_key: None,
         }
+    }
+
+    /// Says the card shares one bus with the other cards of its driver that give the same
+    /// `key` (Modbus units on one line: the line's transport): a reload that rebuilds one
+    /// of them, or adds one, rebuilds them all. A card that only *checks* against the
+    /// others (two cards claiming one device) shares nothing.
+    pub fn shares_bus(&mut self, key: impl Into<String>) {
+        self.bus_key = Some(key.into());
+    }
+
+    /// What [`shares_bus`](Self::shares_bus) said, if anything.
+    pub fn bus_key(&self) -> Option<&str> {
+        self.bus_key.as_deref()
     }
 
     /// The card's name (its devices are registered under it).
@@ -79,11 +94,6 @@ impl<'a> CardContext<'a> {
     /// The card's bus period (`period_ms`).
     pub fn period(&self) -> Duration {
         self.period
-    }
-
-    /// Where the card's bus thread runs (`thread = { policy, priority, cpus }`).
-    pub fn thread(&self) -> &rtt::ThreadOptions {
-        self.thread
     }
 
     /// The folder of the deployment file: files a section names are relative to it.

@@ -15,27 +15,23 @@ use crate::map::{CanConfig, MappedFrame, SignalRole};
 use crate::signal::ValueKind;
 use device_interface::CardDevices;
 use driver_api::{
-    Card, CardContext, CardError, CardStatus, ChannelDetail, ChannelDetails, ChannelNames,
-    ReadBack, is_port_name,
+    BuiltCard, BusSide, Card, CardContext, CardError, CardStatus, ChannelDetail, ChannelDetails,
+    ChannelNames, ReadBack, SettleError, is_port_name,
 };
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 /// A CAN card of a deployment.
 struct CanPlugin {
     card: Arc<CanCard>,
-    /// The opened bus, until its component takes it.
-    bus: Mutex<Option<CanBus>>,
     /// The interface was not there at build: why (the bus component's start opens it).
     missing: Option<String>,
-    thread: rtt::ThreadOptions,
-    /// The bus component, once added.
-    task: Mutex<Option<rtt::TaskContext>>,
 }
 
 /// Builds a CAN card from its section: the map (DBC files relative to the deployment),
-/// the card, and its interface opened.
-pub fn build(config: &CanConfig, ctx: &mut CardContext<'_>) -> Result<Box<dyn Card>, CardError> {
+/// the card, and its interface opened; its bus side is the [`CanIo`] component, over the
+/// opened interface (or opening it at its start).
+pub fn build(config: &CanConfig, ctx: &mut CardContext<'_>) -> Result<BuiltCard, CardError> {
     let map = crate::map::CanMap::new(config, ctx.base()).map_err(keyed)?;
     let card = CanCard::new(map, ctx.clock());
     // An interface that is not here is for the start to find (`hwgw check` validates a
@@ -50,13 +46,15 @@ pub fn build(config: &CanConfig, ctx: &mut CardContext<'_>) -> Result<Box<dyn Ca
         }
         Err(e) => return Err(CardError::at("interface", e)),
     };
-    Ok(Box::new(CanPlugin {
-        card,
-        bus: Mutex::new(bus),
-        missing,
-        thread: ctx.thread().clone(),
-        task: Mutex::new(None),
-    }))
+    let unopened = card.clone();
+    let bus_side = BusSide::one(move |ctx| {
+        let thread = ctx.thread().clone();
+        match bus {
+            Some(bus) => CanIo::add(ctx.runtime(), ctx.name(), bus, thread),
+            None => CanIo::add_unopened(ctx.runtime(), ctx.name(), unopened, thread),
+        }
+    });
+    Ok(BuiltCard::new(CanPlugin { card, missing }, bus_side))
 }
 
 /// A map error as the key it is about and what is wrong: `rx[0].signal[2] (Speed)` is
@@ -171,14 +169,6 @@ fn frame_list(frames: &[MappedFrame]) -> String {
         .join(", ")
 }
 
-impl CanPlugin {
-    fn bus_running(&self) -> bool {
-        rtt::lock(&self.task)
-            .as_ref()
-            .is_some_and(|t| t.state() == rtt::TaskState::Running)
-    }
-}
-
 impl Card for CanPlugin {
     fn devices(&self) -> CardDevices {
         self.card.devices()
@@ -202,23 +192,6 @@ impl Card for CanPlugin {
             analog_out: signal_details(map.tx(), SignalRole::Analog),
             digital_out: signal_details(map.tx(), SignalRole::Digital),
         }
-    }
-
-    fn add_bus(
-        &self,
-        runtime: &rtt::Runtime,
-        name: &str,
-    ) -> Result<Vec<rtt::TaskContext>, rtt::RuntimeError> {
-        if rtt::lock(&self.task).is_some() {
-            // Already added once: the bus belongs to that component.
-            return Ok(Vec::new());
-        }
-        let task = match rtt::lock(&self.bus).take() {
-            Some(bus) => CanIo::add(runtime, name, bus, self.thread.clone())?,
-            None => CanIo::add_unopened(runtime, name, self.card.clone(), self.thread.clone())?,
-        };
-        *rtt::lock(&self.task) = Some(task.clone());
-        Ok(vec![task])
     }
 
     fn summary(&self) -> String {
@@ -262,21 +235,25 @@ impl Card for CanPlugin {
         ReadBack::Device
     }
 
-    fn settle(&self, deadline: Instant) -> Result<(), String> {
+    fn settle(&self, deadline: Instant, bus_running: bool) -> Result<(), SettleError> {
         // Every tx frame goes out once more, with the safe values in it.
         self.card.flush();
-        while self.card.link_up()
+        while bus_running
+            && self.card.link_up()
             && self.card.sends_pending()
             && Instant::now() < deadline
-            && self.bus_running()
         {
             std::thread::sleep(Duration::from_millis(2));
         }
         if !self.card.link_up() {
-            return Err("link down, safe values not sent".into());
+            let link = format!("{} (link down)", self.card.map().interface());
+            return Err(SettleError::Offline(link));
         }
         if self.card.sends_pending() {
-            return Err("safe values not sent before stopping".into());
+            return Err(match bus_running {
+                true => SettleError::Late("safe values sent".into()),
+                false => SettleError::BusNotRunning,
+            });
         }
         Ok(())
     }

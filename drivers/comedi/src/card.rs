@@ -253,15 +253,12 @@ impl ComediCard {
     /// board is not opened again from now on, so a board that comes back before the bus
     /// side stops is not given the outputs it had before. `Err` when it is offline: the
     /// safe values could not be written.
-    pub fn settle(&self) -> Result<(), String> {
+    pub fn settle(&self) -> Result<(), driver_api::SettleError> {
         self.closing.store(true, Ordering::Release);
         if self.is_online() {
             Ok(())
         } else {
-            Err(format!(
-                "{} is offline: its outputs are as it left them, not at their safe values",
-                self.path
-            ))
+            Err(driver_api::SettleError::Offline(self.path.clone()))
         }
     }
 

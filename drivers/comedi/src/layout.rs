@@ -4,7 +4,7 @@
 
 use crate::board::{BoardDesc, Kind, Range, RangeUnit, SubdeviceDesc};
 use crate::config::{AnalogGroup, Aref, ComediConfig, MAX_CHANNELS};
-use device_interface::{RawRange, Scale, Unit};
+use device_interface::{RawRange, Scale, ScaleError, Unit};
 use driver_api::CardError;
 
 /// An analog channel: where it is and its range table as scales.
@@ -91,15 +91,15 @@ pub fn listing(desc: &BoardDesc) -> String {
 }
 
 /// The scale of `range` over raw `0..=maxdata`, computing as comedilib's `comedi_to_phys`.
-pub fn scale(range: &Range, maxdata: u32) -> Result<Scale, String> {
+pub fn scale(range: &Range, maxdata: u32) -> Result<Scale, ScaleError> {
     let unit = match range.unit {
         RangeUnit::Volt => "V",
         RangeUnit::MilliAmpere => "mA",
         RangeUnit::None => "",
     };
-    let unit = Unit::new(unit).map_err(|e| e.to_string())?;
-    let raw = RawRange::new(0, i64::from(maxdata)).map_err(|e| e.to_string())?;
-    Scale::fraction(raw, range.min, range.max, unit).map_err(|e| e.to_string())
+    let unit = Unit::new(unit)?;
+    let raw = RawRange::new(0, i64::from(maxdata))?;
+    Scale::fraction(raw, range.min, range.max, unit)
 }
 
 /// Finds the subdevice a group names, or the first of `kinds`.

@@ -13,9 +13,11 @@ use crate::config::ComediConfig;
 use crate::layout::{Layout, resolve};
 use device_interface::CardDevices;
 use device_interface::time::Clock;
-use driver_api::{Card, CardContext, CardError, CardStatus, ReadBack};
+use driver_api::{
+    BuiltCard, BusSide, Card, CardContext, CardError, CardStatus, ReadBack, SettleError,
+};
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::Arc;
 use std::time::Duration;
 
 /// A section built: the card and its board's description.
@@ -82,14 +84,11 @@ struct Claimed(std::collections::HashMap<PathBuf, String>);
 
 struct ComediPlugin {
     card: Arc<ComediCard>,
-    /// Taken by `add_bus` (once).
-    bus: Mutex<Option<ComediBus>>,
     period: Duration,
-    thread: rtt::ThreadOptions,
 }
 
-/// Builds the card a section describes.
-pub fn build(config: &ComediConfig, ctx: &mut CardContext<'_>) -> Result<Box<dyn Card>, CardError> {
+/// Builds the card a section describes; its bus side polls the board every `poll_ms`.
+pub fn build(config: &ComediConfig, ctx: &mut CardContext<'_>) -> Result<BuiltCard, CardError> {
     let built = card(config, ctx.clock())?;
     let path = Path::new(&config.device);
     let path = std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf());
@@ -102,35 +101,16 @@ pub fn build(config: &ComediConfig, ctx: &mut CardContext<'_>) -> Result<Box<dyn
         ));
     }
     claimed.0.insert(path, name);
+    let period = Duration::from_millis(u64::from(config.poll_ms));
     let card = built.card.clone();
-    Ok(Box::new(ComediPlugin {
-        card,
-        bus: Mutex::new(Some(built.bus())),
-        period: Duration::from_millis(u64::from(config.poll_ms)),
-        thread: ctx.thread().clone(),
-    }))
+    let mut bus = built.bus();
+    let bus = BusSide::periodic(period, move || bus.step(std::time::Instant::now()));
+    Ok(BuiltCard::new(ComediPlugin { card, period }, bus))
 }
 
 impl Card for ComediPlugin {
     fn devices(&self) -> CardDevices {
         self.card.devices()
-    }
-
-    fn add_bus(
-        &self,
-        runtime: &rtt::Runtime,
-        name: &str,
-    ) -> Result<Vec<rtt::TaskContext>, rtt::RuntimeError> {
-        let Some(mut bus) = self
-            .bus
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .take()
-        else {
-            return Ok(Vec::new());
-        };
-        let step = move || bus.step(std::time::Instant::now());
-        driver_api::periodic_bus(runtime, name, self.period, self.thread.clone(), step)
     }
 
     /// Outputs read back what the board said at open, then what was written.
@@ -155,8 +135,8 @@ impl Card for ComediPlugin {
     }
 
     /// Outputs are written at once; this stops the board being opened again and says
-    /// whether it was online to take them.
-    fn settle(&self, _deadline: std::time::Instant) -> Result<(), String> {
+    /// whether it was online to take them (it is not without its bus side: that opens it).
+    fn settle(&self, _deadline: std::time::Instant, _bus_running: bool) -> Result<(), SettleError> {
         self.card.settle()
     }
 

@@ -488,7 +488,10 @@ fn after_settle_the_board_is_not_opened_again() {
     rig.fake.state().gone = false;
     rig.step_long();
     assert!(!rig.card.is_online());
-    assert!(rig.card.settle().unwrap_err().contains("offline"));
+    assert!(matches!(
+        rig.card.settle(),
+        Err(driver_api::SettleError::Offline(_))
+    ));
 }
 
 #[test]

@@ -20,8 +20,9 @@ use crate::card::{GpioCard, Opened, Slot};
 use crate::chips::ChipId;
 use crate::config::Edges;
 use crate::quad::{Quadrature, Step};
-use crate::request::request;
+use crate::request::{LinesError, request};
 use gpiocdev_uapi::v2::LineEdgeEvent;
+use rtt::activity::ActivityError;
 use std::os::fd::{AsFd, AsRawFd, BorrowedFd, RawFd};
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
@@ -158,7 +159,7 @@ impl GpioBus {
     /// level last written, from the request on), reads where inputs and encoders start and
     /// puts the card online. An error names the line and, when another consumer holds it,
     /// that consumer.
-    pub fn open(&mut self) -> Result<(), String> {
+    pub fn open(&mut self) -> Result<(), LinesError> {
         self.check_alive();
         self.close_lost(&mut |_| ());
         for i in 0..self.card.chips.len() {
@@ -168,7 +169,7 @@ impl GpioBus {
             let o = self.find(i)?;
             self.put(i, o);
         }
-        self.settle().map_err(|e| e.to_string())
+        Ok(self.settle()?)
     }
 
     /// Reads one line of every chip that is requested and not known lost (one ioctl
@@ -201,7 +202,7 @@ impl GpioBus {
     }
 
     /// Finds chip `i` where it is now and requests its lines.
-    fn find(&self, i: usize) -> Result<Opened, String> {
+    fn find(&self, i: usize) -> Result<Opened, LinesError> {
         let named: Vec<(u32, &str)> = self.card.chips[i]
             .lines
             .iter()
@@ -270,12 +271,17 @@ impl GpioBus {
     /// Looks for the chips that went away and requests their lines anew, calling `watch`
     /// with each new descriptor; the card is online again when all are back. True when
     /// none is missing any more.
-    pub fn reopen(&mut self, watch: &mut dyn FnMut(BorrowedFd<'_>) -> Result<(), String>) -> bool {
+    pub fn reopen(
+        &mut self,
+        watch: &mut dyn FnMut(BorrowedFd<'_>) -> Result<(), ActivityError>,
+    ) -> bool {
         for i in 0..self.lost.len() {
             if !self.lost[i] {
                 continue;
             }
-            let found = self.find(i).and_then(|o| watch(o.file.as_fd()).map(|()| o));
+            let found = self
+                .find(i)
+                .and_then(|o| watch(o.file.as_fd()).map(|()| o).map_err(LinesError::from));
             match found {
                 Ok(o) => {
                     tracing::info!(
@@ -291,6 +297,7 @@ impl GpioBus {
                         .fetch_add(1, Ordering::Relaxed);
                 }
                 Err(why) => {
+                    let why = why.to_string();
                     if self.why_not.as_ref() != Some(&why) {
                         tracing::warn!("GPIO chip {}: not back yet: {why}", self.was[i].label);
                         self.why_not = Some(why);

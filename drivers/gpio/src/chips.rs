@@ -8,6 +8,36 @@ use std::path::{Path, PathBuf};
 /// The most chips or lines an error lists before it says "…".
 const LISTED: usize = 16;
 
+/// Why a chip or a line was not found; each message says what there is instead.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ChipError {
+    /// The path is no GPIO chip, or the chip could not be opened or read.
+    #[error("{path}: {why}")]
+    Open {
+        /// The path given.
+        path: String,
+        /// What it is instead, or the OS error.
+        why: String,
+    },
+    /// No chip, or several, answer to a name or label: which chips there are.
+    #[error("{0}")]
+    Chip(String),
+    /// No line, or several, answer to an offset or a name on the chips: which there are.
+    #[error("{0}")]
+    Line(String),
+    /// A chip that went away is not back (yet), or came back with other lines.
+    #[error("{0}")]
+    NotBack(String),
+}
+
+/// A chip at `path` that could not be opened or read: `why`.
+fn cannot_open(path: &Path, why: impl std::fmt::Display) -> ChipError {
+    ChipError::Open {
+        path: path.display().to_string(),
+        why: why.to_string(),
+    }
+}
+
 /// A chip found.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct ChipId {
@@ -48,28 +78,25 @@ impl std::fmt::Display for LineId {
     }
 }
 
-fn open(path: &Path) -> Result<(Chip, ChipId), String> {
+fn open(path: &Path) -> Result<(Chip, ChipId), ChipError> {
     // gpiocdev's own check needs a file name and a character device: make sure first.
-    let canonical = std::fs::canonicalize(path).map_err(|e| format!("{}: {e}", path.display()))?;
-    let node =
-        driver_api::node::Node::of(&canonical).map_err(|e| format!("{}: {e}", path.display()))?;
+    let canonical = std::fs::canonicalize(path).map_err(|e| cannot_open(path, e))?;
+    let node = driver_api::node::Node::of(&canonical).map_err(|e| cannot_open(path, e))?;
     if canonical.file_name().is_none() || !matches!(node, driver_api::node::Node::Char { .. }) {
-        return Err(format!(
-            "{}: not a GPIO character device: it is {node}",
-            path.display()
-        ));
+        let why = format!("not a GPIO character device: it is {node}");
+        return Err(cannot_open(path, why));
     }
     let chip = Chip::from_path(&canonical).map_err(|e| match e {
-        gpiocdev::Error::GpioChip(..) => format!(
-            "{}: not a GPIO character device: it is {node}, which no GPIO chip has (a GPIO \
-             chip is /dev/gpiochipN)",
-            path.display()
+        gpiocdev::Error::GpioChip(..) => cannot_open(
+            path,
+            format!(
+                "not a GPIO character device: it is {node}, which no GPIO chip has (a GPIO \
+                 chip is /dev/gpiochipN)"
+            ),
         ),
-        e => format!("{}: {e}", path.display()),
+        e => cannot_open(path, e),
     })?;
-    let info = chip
-        .info()
-        .map_err(|e| format!("{}: {e}", path.display()))?;
+    let info = chip.info().map_err(|e| cannot_open(path, e))?;
     let id = ChipId {
         path: canonical,
         name: info.name,
@@ -104,7 +131,7 @@ fn listing(chips: &[(Chip, ChipId)]) -> String {
 }
 
 /// The chip `spec` names: a path (anything with a `/`), else a chip name or label.
-pub fn chip(spec: &str) -> Result<(Chip, ChipId), String> {
+pub fn chip(spec: &str) -> Result<(Chip, ChipId), ChipError> {
     if spec.contains('/') {
         return open(Path::new(spec));
     }
@@ -113,12 +140,12 @@ pub fn chip(spec: &str) -> Result<(Chip, ChipId), String> {
         .filter(|&i| chips[i].1.name == spec || chips[i].1.label == spec)
         .collect();
     match found.len() {
-        0 => Err(format!(
+        0 => Err(ChipError::Chip(format!(
             "no GPIO chip named or labelled {spec:?}; {}",
             listing(&chips)
-        )),
+        ))),
         1 => Ok(chips.swap_remove(found[0])),
-        _ => Err(format!(
+        _ => Err(ChipError::Chip(format!(
             "{} chips are labelled {spec:?} ({}); give the chip's name or path",
             found.len(),
             found
@@ -126,22 +153,22 @@ pub fn chip(spec: &str) -> Result<(Chip, ChipId), String> {
                 .map(|&i| chips[i].1.name.clone())
                 .collect::<Vec<_>>()
                 .join(", ")
-        )),
+        ))),
     }
 }
 
-fn line_on(chip: &Chip, id: &ChipId, offset: u32) -> Result<LineId, String> {
+fn line_on(chip: &Chip, id: &ChipId, offset: u32) -> Result<LineId, ChipError> {
     if offset >= id.lines {
-        return Err(format!(
+        return Err(ChipError::Line(format!(
             "{} ({}) has lines 0..={}; there is no line {offset}",
             id.name,
             id.label,
             id.lines.saturating_sub(1)
-        ));
+        )));
     }
     let info = chip
         .line_info(offset)
-        .map_err(|e| format!("line {offset} of {}: {e}", id.name))?;
+        .map_err(|e| ChipError::Line(format!("line {offset} of {}: {e}", id.name)))?;
     Ok(LineId {
         chip: id.clone(),
         offset,
@@ -157,30 +184,30 @@ fn line_on(chip: &Chip, id: &ChipId, offset: u32) -> Result<LineId, String> {
 }
 
 /// Finds `line` on `chip` (a spec as [`chip`] takes), or by name across every chip.
-pub fn line(chip_spec: Option<&str>, line: &LineRef) -> Result<LineId, String> {
+pub fn line(chip_spec: Option<&str>, line: &LineRef) -> Result<LineId, ChipError> {
     match (chip_spec, line) {
         (Some(spec), LineRef::Offset(o)) => {
             let (c, id) = chip(spec)?;
             line_on(&c, &id, *o)
         }
-        (None, LineRef::Offset(o)) => Err(format!("line {o}: on which chip?")),
+        (None, LineRef::Offset(o)) => Err(ChipError::Line(format!("line {o}: on which chip?"))),
         (Some(spec), LineRef::Name(n)) => {
             let (c, id) = chip(spec)?;
             let named = lines_named(&c, &id, n);
             match named.as_slice() {
                 [one] => line_on(&c, &id, *one),
-                [] => Err(format!(
+                [] => Err(ChipError::Line(format!(
                     "{} ({}) has no line named {n:?}; {}",
                     id.name,
                     id.label,
                     names_of(&c, &id)
-                )),
-                many => Err(format!(
+                ))),
+                many => Err(ChipError::Line(format!(
                     "{} ({}) has {} lines named {n:?} (offsets {many:?}); give the offset",
                     id.name,
                     id.label,
                     many.len()
-                )),
+                ))),
             }
         }
         (None, LineRef::Name(n)) => {
@@ -193,15 +220,18 @@ pub fn line(chip_spec: Option<&str>, line: &LineRef) -> Result<LineId, String> {
             }
             match hits.as_slice() {
                 [(c, id, o)] => line_on(c, id, *o),
-                [] => Err(format!("no GPIO line is named {n:?}; {}", listing(&chips))),
-                many => Err(format!(
+                [] => Err(ChipError::Line(format!(
+                    "no GPIO line is named {n:?}; {}",
+                    listing(&chips)
+                ))),
+                many => Err(ChipError::Line(format!(
                     "{} lines are named {n:?} ({}); give `chip`",
                     many.len(),
                     many.iter()
                         .map(|(_, id, o)| format!("{} line {o}", id.name))
                         .collect::<Vec<_>>()
                         .join(", ")
-                )),
+                ))),
             }
         }
     }
@@ -235,7 +265,7 @@ fn names_of(chip: &Chip, id: &ChipId) -> String {
 /// `offsets` nobody holds (a USB adapter plugged back may get another number; an identical
 /// one in use elsewhere is not it). Its lines at `named` offsets must still bear those
 /// names. An error says why it is not (yet) there.
-pub fn again(was: &ChipId, offsets: &[u32], named: &[(u32, &str)]) -> Result<ChipId, String> {
+pub fn again(was: &ChipId, offsets: &[u32], named: &[(u32, &str)]) -> Result<ChipId, ChipError> {
     let same = |id: &ChipId| id.label == was.label && id.lines == was.lines;
     let free = |chip: &Chip, id: &ChipId| {
         offsets
@@ -251,18 +281,18 @@ pub fn again(was: &ChipId, offsets: &[u32], named: &[(u32, &str)]) -> Result<Chi
                 .collect();
             match found.len() {
                 0 => {
-                    return Err(format!(
+                    return Err(ChipError::NotBack(format!(
                         "no GPIO chip labelled {:?} with {} lines has lines {offsets:?} free",
                         was.label, was.lines
-                    ));
+                    )));
                 }
                 1 => found.swap_remove(0),
                 n => {
-                    return Err(format!(
+                    return Err(ChipError::NotBack(format!(
                         "{n} chips are labelled {:?} with {} lines and have lines {offsets:?} \
                          free; which one is it? (give each adapter a label of its own)",
                         was.label, was.lines
-                    ));
+                    )));
                 }
             }
         }
@@ -270,10 +300,10 @@ pub fn again(was: &ChipId, offsets: &[u32], named: &[(u32, &str)]) -> Result<Chi
     for &(offset, name) in named {
         let now = line_on(&chip, &id, offset)?;
         if now.name != name {
-            return Err(format!(
+            return Err(ChipError::NotBack(format!(
                 "{} ({}) is back, but its line {offset} is named {:?}, not {name:?}",
                 id.name, id.label, now.name
-            ));
+            )));
         }
     }
     Ok(id)

@@ -57,7 +57,9 @@ impl GpioIo {
 
 impl Component for GpioIo {
     fn start_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
-        self.bus.open().map_err(rtt::HookError::new)?;
+        self.bus
+            .open()
+            .map_err(|e| rtt::HookError::new(e.to_string()))?;
         let activity = ctx.activity();
         self.bus.for_each_fd(|fd| activity.watch(fd))?;
         activity.wake_at(MonotonicClock.now().saturating_add(CHECK_PERIOD))?;
@@ -77,8 +79,7 @@ impl Component for GpioIo {
                 activity.unwatch(fd);
             });
         } else if deadline && self.bus.is_missing() {
-            self.bus
-                .reopen(&mut |fd| activity.watch(fd).map_err(|e| e.to_string()));
+            self.bus.reopen(&mut |fd| activity.watch(fd));
         }
         if deadline || lost {
             activity.wake_at(MonotonicClock.now().saturating_add(CHECK_PERIOD))?;

@@ -12,23 +12,26 @@ use crate::component::GpioIo;
 use crate::config::GpioConfig;
 use device_interface::CardDevices;
 use device_interface::encoder::EncoderCounter;
-use driver_api::{Card, CardContext, CardError, CardStatus, ChannelNames, ReadBack, is_port_name};
+use driver_api::{
+    BuiltCard, BusSide, Card, CardContext, CardError, CardStatus, ChannelNames, ReadBack,
+    is_port_name,
+};
 use std::sync::atomic::{AtomicBool, AtomicU64};
 use std::sync::{Arc, Mutex};
 
 /// A GPIO card of a deployment.
 struct GpioPlugin {
     card: Arc<GpioCard>,
-    thread: rtt::ThreadOptions,
 }
 
-/// Builds the card a section describes, without requesting its lines.
-pub fn build(config: &GpioConfig, ctx: &mut CardContext<'_>) -> Result<Box<dyn Card>, CardError> {
+/// Builds the card a section describes, without requesting its lines; its bus side is
+/// the [`GpioIo`] component, which requests them when it starts.
+pub fn build(config: &GpioConfig, ctx: &mut CardContext<'_>) -> Result<BuiltCard, CardError> {
     let card = card(config, ctx.clock())?;
-    Ok(Box::new(GpioPlugin {
-        card,
-        thread: ctx.thread().clone(),
-    }))
+    let bus = GpioBus::new(card.clone());
+    let bus =
+        BusSide::one(move |ctx| GpioIo::add(ctx.runtime(), ctx.name(), bus, ctx.thread().clone()));
+    Ok(BuiltCard::new(GpioPlugin { card }, bus))
 }
 
 /// The card of a section: lines found and checked, nothing requested.
@@ -203,15 +206,6 @@ impl Card for GpioPlugin {
             digital_out: line_names((0..c.outputs.len() as u32).map(|b| c.output_line(b))),
             ..ChannelNames::default()
         }
-    }
-
-    fn add_bus(
-        &self,
-        runtime: &rtt::Runtime,
-        name: &str,
-    ) -> Result<Vec<rtt::TaskContext>, rtt::RuntimeError> {
-        let bus = GpioBus::new(self.card.clone());
-        Ok(vec![GpioIo::add(runtime, name, bus, self.thread.clone())?])
     }
 
     fn summary(&self) -> String {

@@ -5,12 +5,44 @@
 //! holds it, that consumer.
 
 use crate::card::{GpioCard, Opened, Setup};
-use crate::chips::ChipId;
+use crate::chips::{ChipError, ChipId};
 use crate::config::{Bias, Drive, Edges};
 use gpiocdev::line::{self, EdgeDetection, Value};
 use std::fs::File;
 use std::os::fd::AsFd;
 use std::time::Duration;
+
+/// Why a card's lines on a chip could not be requested, or read once requested.
+#[derive(Debug, thiserror::Error)]
+pub enum LinesError {
+    /// The chip is not there (again).
+    #[error(transparent)]
+    Chip(#[from] ChipError),
+    /// A line is held by another consumer.
+    #[error("{line} is used by {consumer:?}: it cannot be requested ({why})")]
+    Busy {
+        /// The line.
+        line: String,
+        /// Who holds it.
+        consumer: String,
+        /// The kernel's error.
+        why: String,
+    },
+    /// The kernel refused the request or its descriptor (the chip, and why).
+    #[error("{chip}: {why}")]
+    Refused {
+        /// The chip.
+        chip: String,
+        /// What was refused, and the error.
+        why: String,
+    },
+    /// Requested, the lines could not be read.
+    #[error(transparent)]
+    Read(#[from] device_interface::DeviceError),
+    /// Requested, the descriptor could not be watched.
+    #[error(transparent)]
+    Watch(#[from] rtt::activity::ActivityError),
+}
 
 fn bias(b: Bias) -> Option<line::Bias> {
     match b {
@@ -33,9 +65,13 @@ fn edges(e: Edges) -> Option<EdgeDetection> {
 /// Requests the lines of the card's chip number `index`, found now as `chip`; outputs at
 /// the level the card has for them ([`GpioCard::output_level`]: the initial value until
 /// one is written).
-pub(crate) fn request(card: &GpioCard, index: usize, chip: ChipId) -> Result<Opened, String> {
+pub(crate) fn request(card: &GpioCard, index: usize, chip: ChipId) -> Result<Opened, LinesError> {
+    let refused = |why: String| LinesError::Refused {
+        chip: chip.name.clone(),
+        why,
+    };
     let Some(c) = card.chips.get(index) else {
-        return Err(format!("the card has no chip {index}"));
+        return Err(refused(format!("the card has no chip {index}")));
     };
     let chip = &chip;
     let mut b = gpiocdev::Request::builder();
@@ -100,34 +136,38 @@ pub(crate) fn request(card: &GpioCard, index: usize, chip: ChipId) -> Result<Ope
                 &crate::config::LineRef::Offset(l.id.offset),
             ) && let Some(who) = &now.used_by
             {
-                return format!("{now} is used by {who:?}: it cannot be requested ({e})");
+                return LinesError::Busy {
+                    line: now.to_string(),
+                    consumer: who.clone(),
+                    why: e.to_string(),
+                };
             }
         }
-        format!(
-            "{} ({}): requesting lines {:?}: {e}",
-            chip.name,
-            chip.label,
-            c.lines.iter().map(|l| l.id.offset).collect::<Vec<_>>()
-        )
+        LinesError::Refused {
+            chip: format!("{} ({})", chip.name, chip.label),
+            why: format!(
+                "requesting lines {:?}: {e}",
+                c.lines.iter().map(|l| l.id.offset).collect::<Vec<_>>()
+            ),
+        }
     })?;
     // Line values address the lines by their index in the request: it must be ours.
     let order: Vec<u32> = c.lines.iter().map(|l| l.id.offset).collect();
     if request.config().lines() != &order {
-        return Err(format!(
-            "{}: the request has lines {:?}, the card expected {order:?}",
-            chip.name,
+        return Err(refused(format!(
+            "the request has lines {:?}, the card expected {order:?}",
             request.config().lines()
-        ));
+        )));
     }
     let fd = request
         .as_fd()
         .try_clone_to_owned()
-        .map_err(|e| format!("{}: {e}", chip.name))?;
+        .map_err(|e| refused(e.to_string()))?;
     let flags = nix::fcntl::fcntl(&fd, nix::fcntl::FcntlArg::F_GETFL)
-        .map_err(|e| format!("{}: {e}", chip.name))?;
+        .map_err(|e| refused(e.to_string()))?;
     let flags = nix::fcntl::OFlag::from_bits_truncate(flags) | nix::fcntl::OFlag::O_NONBLOCK;
     nix::fcntl::fcntl(&fd, nix::fcntl::FcntlArg::F_SETFL(flags))
-        .map_err(|e| format!("{}: {e}", chip.name))?;
+        .map_err(|e| refused(e.to_string()))?;
     Ok(Opened {
         _request: request,
         file: File::from(fd),

@@ -24,7 +24,7 @@
 
 use crate::card::{ChipIo, ChipSlot, I2cCard};
 use crate::chips::{ChipError, ChipModel, Outcome};
-use crate::smbus::{LinuxChip, Smbus, Transfer, find_bus};
+use crate::smbus::{LinuxChip, OpenError, Smbus, Transfer, find_bus};
 use device_interface::time::Timestamp;
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, PoisonError};
@@ -42,7 +42,7 @@ pub const CHECK_PERIOD: Duration = Duration::from_millis(500);
 pub const RESET_LOG_PERIOD: Duration = Duration::from_secs(10);
 
 /// Opens the transfers to the chip at an address.
-pub type Opener = Box<dyn FnMut(u16) -> Result<Box<dyn Smbus>, String> + Send>;
+pub type Opener = Box<dyn FnMut(u16) -> Result<Box<dyn Smbus>, OpenError> + Send>;
 
 struct Polled {
     model: Box<dyn ChipModel>,
@@ -202,7 +202,8 @@ impl Polled {
         let bus = match bus {
             Some(bus) => bus,
             None => {
-                let bus = bus.insert(open(slot.address).map_err(Transfer::Failed)?);
+                let opened = open(slot.address).map_err(|e| Transfer::Failed(e.to_string()))?;
+                let bus = bus.insert(opened);
                 *next_check = now.saturating_add(CHECK_PERIOD);
                 return model.start(bus.as_mut(), io).map(from_start);
             }

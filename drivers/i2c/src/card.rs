@@ -356,7 +356,7 @@ impl I2cCard {
     /// Waits, until `deadline` at the latest, for every online chip's outputs written
     /// before the call to be sent (a poll that took them succeeded). Chips without outputs
     /// are not waited for. An error names each chip they may not have reached.
-    pub fn settle(&self, deadline: std::time::Instant) -> Result<(), String> {
+    pub fn settle(&self, deadline: std::time::Instant) -> Result<(), driver_api::SettleError> {
         let wanted: Vec<u64> = self
             .chips
             .iter()
@@ -387,7 +387,7 @@ impl I2cCard {
         if unsent.is_empty() {
             Ok(())
         } else {
-            Err(format!("outputs not sent to {}", unsent.join(", ")))
+            Err(driver_api::SettleError::Unsent(unsent))
         }
     }
 

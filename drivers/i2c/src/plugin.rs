@@ -12,9 +12,9 @@ use crate::config::I2cConfig;
 use crate::smbus::find_bus;
 use device_interface::CardDevices;
 use device_interface::time::Clock;
-use driver_api::{Card, CardContext, CardError, CardStatus};
+use driver_api::{BuiltCard, BusSide, Card, CardContext, CardError, CardStatus, SettleError};
 use std::path::PathBuf;
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::Arc;
 
 /// A section built: the card, its chips' models and the bus they are on.
 pub struct Built {
@@ -93,50 +93,28 @@ fn claim(
 
 struct I2cPlugin {
     card: Arc<I2cCard>,
-    /// Taken by `add_bus` (once).
-    models: Mutex<Option<Vec<Box<dyn ChipModel>>>>,
     path: PathBuf,
-    bus: String,
-    thread: rtt::ThreadOptions,
 }
 
-/// Builds the card a section describes.
-pub fn build(config: &I2cConfig, ctx: &mut CardContext<'_>) -> Result<Box<dyn Card>, CardError> {
-    let Built {
-        card,
-        models,
-        path,
-        bus,
-    } = card(config, ctx.clock())?;
+/// Builds the card a section describes; its bus side (the chips' models on the bus) is
+/// the [`I2cIo`] component named after the card.
+pub fn build(config: &I2cConfig, ctx: &mut CardContext<'_>) -> Result<BuiltCard, CardError> {
+    let built = card(config, ctx.clock())?;
     let name = ctx.name().to_string();
-    claim(ctx.shared(), &name, &path, config)?;
-    Ok(Box::new(I2cPlugin {
-        card,
-        models: Mutex::new(Some(models)),
-        path,
-        bus,
-        thread: ctx.thread().clone(),
-    }))
+    claim(ctx.shared(), &name, &built.path, config)?;
+    let plugin = I2cPlugin {
+        card: built.card.clone(),
+        path: built.path.clone(),
+    };
+    let bus = built.bus();
+    let bus =
+        BusSide::one(move |ctx| I2cIo::add(ctx.runtime(), ctx.name(), bus, ctx.thread().clone()));
+    Ok(BuiltCard::new(plugin, bus))
 }
 
 impl Card for I2cPlugin {
     fn devices(&self) -> CardDevices {
         self.card.devices()
-    }
-
-    fn add_bus(
-        &self,
-        runtime: &rtt::Runtime,
-        name: &str,
-    ) -> Result<Vec<rtt::TaskContext>, rtt::RuntimeError> {
-        let models = self
-            .models
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .take()
-            .unwrap_or_default();
-        let bus = I2cBus::new(self.card.clone(), models, self.bus.clone());
-        Ok(vec![I2cIo::add(runtime, name, bus, self.thread.clone())?])
     }
 
     fn summary(&self) -> String {
@@ -149,7 +127,15 @@ impl Card for I2cPlugin {
         format!("{}: {}", self.path.display(), chips.join(", "))
     }
 
-    fn settle(&self, deadline: std::time::Instant) -> Result<(), String> {
+    fn settle(&self, deadline: std::time::Instant, bus_running: bool) -> Result<(), SettleError> {
+        if !bus_running {
+            // Nothing will send them: no wait, and an error only for chips with outputs.
+            let now = std::time::Instant::now();
+            return self
+                .card
+                .settle(now)
+                .map_err(|_| SettleError::BusNotRunning);
+        }
         self.card.settle(deadline)
     }
 
@@ -177,11 +163,9 @@ mod tests {
             .unwrap()
         };
         let mut shared = HashMap::new();
-        let thread = rtt::ThreadOptions::default();
         let mut ctx = CardContext::new(
             "n",
             Duration::from_millis(10),
-            &thread,
             Path::new("/"),
             Arc::new(MonotonicClock),
             &mut shared,

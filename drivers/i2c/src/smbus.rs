@@ -19,6 +19,33 @@ pub enum Transfer {
     Failed(String),
 }
 
+/// Why a bus, or a chip on it, could not be opened.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum OpenError {
+    /// The bus named is not there, or is no I2C bus: what there is instead.
+    #[error("{0}")]
+    NoBus(String),
+    /// A kernel driver has claimed the chip's address (hwgw does not take a chip from
+    /// the kernel).
+    #[error("{path}: address {address:#04x} is claimed by a kernel driver (EBUSY)")]
+    Claimed {
+        /// The bus.
+        path: String,
+        /// The chip's address.
+        address: u16,
+    },
+    /// Opening the bus for the chip failed otherwise.
+    #[error("{path}: address {address:#04x}: {why}")]
+    Failed {
+        /// The bus.
+        path: String,
+        /// The chip's address.
+        address: u16,
+        /// The OS error.
+        why: String,
+    },
+}
+
 /// Register transfers to one chip.
 pub trait Smbus: Send {
     /// Reads byte register `reg`.
@@ -60,15 +87,20 @@ const fn libc_eremoteio() -> i32 {
 impl LinuxChip {
     /// Opens the bus at `path` for the chip at `address`. Fails when a kernel driver has
     /// claimed that address (`EBUSY`: hwgw does not take a chip from the kernel).
-    pub fn open(path: &Path, address: u16) -> Result<LinuxChip, String> {
+    pub fn open(path: &Path, address: u16) -> Result<LinuxChip, OpenError> {
+        let path_text = || path.display().to_string();
         LinuxI2CDevice::new(path, address)
             .map(LinuxChip)
             .map_err(|e| match e {
-                LinuxI2CError::Errno(16) => format!(
-                    "{}: address {address:#04x} is claimed by a kernel driver (EBUSY)",
-                    path.display()
-                ),
-                e => format!("{}: address {address:#04x}: {e}", path.display()),
+                LinuxI2CError::Errno(16) => OpenError::Claimed {
+                    path: path_text(),
+                    address,
+                },
+                e => OpenError::Failed {
+                    path: path_text(),
+                    address,
+                    why: e.to_string(),
+                },
             })
     }
 }
@@ -97,7 +129,7 @@ pub const I2C_DEV_MAJOR: u64 = 89;
 /// The bus `spec` names: a path (anything with a `/`), which must lead to an i2c-dev
 /// character device (major [`I2C_DEV_MAJOR`]; checked from `stat`, nothing opened), else
 /// an adapter's name.
-pub fn find_bus(spec: &str) -> Result<PathBuf, String> {
+pub fn find_bus(spec: &str) -> Result<PathBuf, OpenError> {
     if spec.contains('/') {
         let path = Path::new(spec);
         return match driver_api::node::Node::of(path) {
@@ -105,14 +137,14 @@ pub fn find_bus(spec: &str) -> Result<PathBuf, String> {
                 major: I2C_DEV_MAJOR,
                 ..
             }) => Ok(path.to_path_buf()),
-            Ok(other) => Err(format!(
+            Ok(other) => Err(OpenError::NoBus(format!(
                 "{spec} is not an I2C bus: it is {other}; an i2c-dev bus is a character \
                  device of major {I2C_DEV_MAJOR} (/dev/i2c-N)"
-            )),
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-                Err(format!("{spec}: no such I2C bus (is i2c-dev loaded?)"))
-            }
-            Err(e) => Err(format!("{spec}: {e}")),
+            ))),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(OpenError::NoBus(format!(
+                "{spec}: no such I2C bus (is i2c-dev loaded?)"
+            ))),
+            Err(e) => Err(OpenError::NoBus(format!("{spec}: {e}"))),
         };
     }
     let mut adapters = Vec::new();
@@ -127,10 +159,10 @@ pub fn find_bus(spec: &str) -> Result<PathBuf, String> {
     let found: Vec<&(String, String)> = adapters.iter().filter(|(_, n)| n == spec).collect();
     match found.as_slice() {
         [(dev, _)] => Ok(Path::new("/dev").join(dev)),
-        [] if adapters.is_empty() => Err(format!(
+        [] if adapters.is_empty() => Err(OpenError::NoBus(format!(
             "no I2C adapter is named {spec:?}; there are none (is i2c-dev loaded?)"
-        )),
-        [] => Err(format!(
+        ))),
+        [] => Err(OpenError::NoBus(format!(
             "no I2C adapter is named {spec:?}; the adapters are {}",
             adapters
                 .iter()
@@ -138,15 +170,15 @@ pub fn find_bus(spec: &str) -> Result<PathBuf, String> {
                 .map(|(d, n)| format!("{d} ({n})"))
                 .collect::<Vec<_>>()
                 .join(", ")
-        )),
-        many => Err(format!(
+        ))),
+        many => Err(OpenError::NoBus(format!(
             "{} adapters are named {spec:?} ({}); give the path",
             many.len(),
             many.iter()
                 .map(|(d, _)| d.as_str())
                 .collect::<Vec<_>>()
                 .join(", ")
-        )),
+        ))),
     }
 }
 

@@ -29,6 +29,7 @@ pub mod codec;
 pub mod component;
 pub mod config;
 pub mod holes;
+mod limits;
 pub mod line;
 pub mod listener;
 pub mod map;

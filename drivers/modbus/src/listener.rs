@@ -41,40 +41,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
-/// The server's limits.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Limits {
-    /// Connections served at once; at this many, the one idle longest is closed to admit a
-    /// new one.
-    pub max_clients: usize,
-    /// Connections from one IP address at once; one more from it is refused.
-    pub max_clients_per_address: usize,
-    /// A connection quiet this long is closed.
-    pub idle_timeout: Duration,
-    /// A frame must be whole this long after its first bytes arrived (the shorter of this
-    /// and `idle_timeout` applies).
-    pub frame_timeout: Duration,
-    /// The longest a write's reply waits for a device whose bus carries the write later to
-    /// deliver it; then the write is answered 0x0B (its target did not respond).
-    pub write_confirm: Duration,
-}
-
-impl Default for Limits {
-    fn default() -> Self {
-        Limits {
-            max_clients: 16,
-            max_clients_per_address: 8,
-            idle_timeout: Duration::from_secs(60),
-            frame_timeout: Duration::from_secs(5),
-            write_confirm: DEFAULT_WRITE_CONFIRM,
-        }
-    }
-}
-
-/// [`Limits::write_confirm`] when not configured: a master's reply timeout is commonly
-/// 1 s or more (mbpoll's and libmodbus's default is 1 s), a Modbus unit's poll cycle well
-/// under that.
-pub const DEFAULT_WRITE_CONFIRM: Duration = Duration::from_millis(1000);
+pub use crate::limits::{DEFAULT_WRITE_CONFIRM, Limits};
 
 /// How long `accept` may fail without a success before the server is unhealthy.
 pub const ACCEPT_FAILING_LIMIT: Duration = Duration::from_secs(5);
@@ -217,25 +184,50 @@ impl ModbusServer {
 
     /// `Ok` while the accept loop runs and accepts: `Err` once it stopped, or while
     /// `accept` has failed for [`ACCEPT_FAILING_LIMIT`] without a success.
-    pub fn health(&self) -> Result<(), String> {
+    pub fn health(&self) -> Result<(), ServerFault> {
+        let addr = self.addr;
         if !self.stats.running.load(Ordering::Acquire) {
-            return Err(format!("the modbus server on {} has stopped", self.addr));
+            return Err(ServerFault::Stopped { addr });
         }
         let since = self.stats.failing_since.load(Ordering::Acquire);
         if since != 0 {
             let now = self.epoch.elapsed().as_nanos() as u64;
             let failing = Duration::from_nanos(now.saturating_sub(since - 1));
             if failing >= ACCEPT_FAILING_LIMIT {
-                return Err(format!(
-                    "the modbus server on {} has accepted no connection for {:.1} s: accept fails ({} failures; out of file descriptors?)",
-                    self.addr,
-                    failing.as_secs_f64(),
-                    self.stats.accept_errors.load(Ordering::Relaxed)
-                ));
+                let failures = self.stats.accept_errors.load(Ordering::Relaxed);
+                return Err(ServerFault::AcceptFailing {
+                    addr,
+                    failing,
+                    failures,
+                });
             }
         }
         Ok(())
     }
+}
+
+/// Why a running [`ModbusServer`] does not serve as it should.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ServerFault {
+    /// Its loop does not run (stopped, or its thread ended by a panic).
+    #[error("the modbus server on {addr} has stopped")]
+    Stopped {
+        /// Where it listened.
+        addr: SocketAddr,
+    },
+    /// `accept` has failed without a success this long.
+    #[error(
+        "the modbus server on {addr} has accepted no connection for {:.1} s: accept fails ({failures} failures; out of file descriptors?)",
+        failing.as_secs_f64()
+    )]
+    AcceptFailing {
+        /// Where it listens.
+        addr: SocketAddr,
+        /// How long accept has failed.
+        failing: Duration,
+        /// Accept errors counted.
+        failures: u64,
+    },
 }
 
 /// The server thread's name (its panics are logged, not printed: see [`quiet_panics`]).

@@ -2,28 +2,66 @@
 //! [`ModbusConfig`]).
 //!
 //! Every card is one unit. Cards whose transports are equal share one line: one
-//! [`LineIo`] component, named after the first card on it, polls all their units with one
-//! request outstanding. At stop a card settles once its unit has taken the safe values and
-//! answered a full poll after them.
+//! [`LineIo`] component, the bus side of the first card on it and named after it, polls
+//! all their units with one request outstanding (the other cards have no bus side of their
+//! own). At stop a card settles once its unit has taken the safe values and answered a
+//! full poll after them, while its line runs.
 
 use crate::card::ModbusCard;
 use crate::component::LineIo;
 use crate::config::ModbusConfig;
 use crate::line::{LineUnit, Transport, UnitCounters, UnitStats, UnitTiming};
 use device_interface::CardDevices;
-use driver_api::{Card, CardContext, CardError, CardStatus};
+use driver_api::{BuiltCard, BusSide, Card, CardContext, CardError, CardStatus, SettleError};
 use std::sync::atomic::Ordering;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
 /// One line of a deployment: its transport, the units that share it, its component.
 struct SharedLine {
     transport: Transport,
-    thread: rtt::ThreadOptions,
-    /// The units, until the line's component takes them.
+    /// The units, in build order: each card built on the line adds its own.
     units: Mutex<Vec<LineUnit>>,
-    /// The line's component, once added.
-    task: Mutex<Option<rtt::TaskContext>>,
+    /// The line's component, reported by the bus side when it adds it: how every card on
+    /// the line, the first or not, knows whether its line runs.
+    task: OnceLock<rtt::TaskContext>,
+}
+
+impl SharedLine {
+    /// The line's bus side: its component over every unit built on it by the time the
+    /// gateway adds it (after the whole deployment is built).
+    fn bus(line: Arc<SharedLine>) -> BusSide {
+        BusSide::one(move |ctx| {
+            let units = rtt::lock(&line.units)
+                .iter()
+                .map(|u| LineUnit {
+                    card: u.card.clone(),
+                    timing: u.timing,
+                    stats: u.stats.clone(),
+                })
+                .collect();
+            let task = LineIo::add(
+                ctx.runtime(),
+                ctx.name(),
+                line.transport.clone(),
+                units,
+                ctx.thread().clone(),
+            )?;
+            // Set once: this bus side is consumed by adding it.
+            let _ = line.task.set(task.clone());
+            Ok(task)
+        })
+    }
+
+    /// True while the line's component runs (not once it stopped or failed).
+    fn running(&self) -> bool {
+        self.task.get().is_some_and(|t| {
+            matches!(
+                t.state(),
+                rtt::TaskState::Running | rtt::TaskState::RunTimeError
+            )
+        })
+    }
 }
 
 /// The lines of one deployment, kept in the build context's shared state.
@@ -36,13 +74,12 @@ struct ModbusPlugin {
     timing: UnitTiming,
     stats: Arc<UnitStats>,
     line: Arc<SharedLine>,
-    /// The first card on its line adds the line's component.
-    first: bool,
 }
 
 /// Builds a Modbus card from its section: the unit's map and timing, on the line of its
-/// transport (shared with the cards before it on the same transport).
-pub fn build(config: &ModbusConfig, ctx: &mut CardContext<'_>) -> Result<Box<dyn Card>, CardError> {
+/// transport (shared with the cards before it on the same transport). The first card on a
+/// line has the line's component as its bus side; the others none.
+pub fn build(config: &ModbusConfig, ctx: &mut CardContext<'_>) -> Result<BuiltCard, CardError> {
     let transport = config.transport()?;
     let timing = config.timing()?;
     let card = config.card(ctx.clock()).map_err(|e| match &e {
@@ -63,12 +100,12 @@ pub fn build(config: &ModbusConfig, ctx: &mut CardContext<'_>) -> Result<Box<dyn
         ));
     }
     let stats = Arc::new(UnitStats::default());
-    let thread = ctx.thread().clone();
     let unit = LineUnit {
         card: card.clone(),
         timing,
         stats: stats.clone(),
     };
+    ctx.shares_bus(transport.describe());
     let lines: &mut Lines = ctx.shared();
     if let Some(other) = lines
         .0
@@ -89,55 +126,27 @@ pub fn build(config: &ModbusConfig, ctx: &mut CardContext<'_>) -> Result<Box<dyn
         None => {
             let l = Arc::new(SharedLine {
                 transport,
-                thread,
                 units: Mutex::new(Vec::new()),
-                task: Mutex::new(None),
+                task: OnceLock::new(),
             });
             lines.0.push(l.clone());
             (l, true)
         }
     };
     rtt::lock(&line.units).push(unit);
-    Ok(Box::new(ModbusPlugin {
+    let bus = first.then(|| SharedLine::bus(line.clone()));
+    let card = Box::new(ModbusPlugin {
         card,
         timing,
         stats,
         line,
-        first,
-    }))
-}
-
-impl ModbusPlugin {
-    fn line_running(&self) -> bool {
-        rtt::lock(&self.line.task)
-            .as_ref()
-            .is_some_and(|t| t.state() == rtt::TaskState::Running)
-    }
+    });
+    Ok(BuiltCard { card, bus })
 }
 
 impl Card for ModbusPlugin {
     fn devices(&self) -> CardDevices {
         self.card.devices()
-    }
-
-    fn add_bus(
-        &self,
-        runtime: &rtt::Runtime,
-        name: &str,
-    ) -> Result<Vec<rtt::TaskContext>, rtt::RuntimeError> {
-        if !self.first {
-            return Ok(Vec::new());
-        }
-        let units = std::mem::take(&mut *rtt::lock(&self.line.units));
-        let task = LineIo::add(
-            runtime,
-            name,
-            self.line.transport.clone(),
-            units,
-            self.line.thread.clone(),
-        )?;
-        *rtt::lock(&self.line.task) = Some(task.clone());
-        Ok(vec![task])
     }
 
     fn read_back(&self) -> driver_api::ReadBack {
@@ -173,18 +182,23 @@ impl Card for ModbusPlugin {
         )
     }
 
-    fn settle(&self, deadline: Instant) -> Result<(), String> {
+    fn settle(&self, deadline: Instant, bus_running: bool) -> Result<(), SettleError> {
         // Confirmed once the unit took the writes and a whole poll after them succeeded.
+        // The line is this card's bus side or another card's: it must run.
+        let line_running = || bus_running && self.line.running();
         let polls = self.stats.polls.load(Ordering::Relaxed);
         let pending = || self.card.writes_pending() || self.card.deliveries_pending();
         while (pending() || self.stats.polls.load(Ordering::Relaxed) <= polls)
             && Instant::now() < deadline
-            && self.line_running()
+            && line_running()
         {
             std::thread::sleep(Duration::from_millis(5));
         }
         if pending() {
-            return Err("safe values not confirmed by the unit before stopping".into());
+            return Err(match line_running() {
+                true => SettleError::Late("safe values confirmed by the unit".into()),
+                false => SettleError::BusNotRunning,
+            });
         }
         // A write the unit refused is not sent again: that output does not hold its value.
         let failed = self.card.failed_outputs();
@@ -199,10 +213,64 @@ impl Card for ModbusPlugin {
                     };
                     format!("{what} output {ch}: {why}")
                 })
-                .collect::<Vec<_>>()
-                .join("; ");
-            return Err(format!("safe values not confirmed by the unit: {list}"));
+                .collect();
+            return Err(SettleError::Refused(list));
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, reason = "test code")]
+    use super::*;
+    use device_interface::time::MonotonicClock;
+    use std::collections::HashMap;
+
+    fn unit(n: u8) -> ModbusConfig {
+        toml::from_str(&format!(
+            "transport = {{ type = \"tcp\", address = \"127.0.0.1:1\" }}\nunit = {n}\n\
+             [[point]]\ntable = \"coils\"\naddress = 0\n"
+        ))
+        .unwrap()
+    }
+
+    #[test]
+    fn the_first_card_on_a_line_has_its_bus_side_and_no_card_waits_for_a_line_not_running() {
+        let mut shared = HashMap::new();
+        let mut built: Vec<BuiltCard> = Vec::new();
+        for (name, n) in [("a", 1), ("b", 2)] {
+            let mut ctx = CardContext::new(
+                name,
+                Duration::from_millis(10),
+                std::path::Path::new("."),
+                Arc::new(MonotonicClock),
+                &mut shared,
+            );
+            built.push(build(&unit(n), &mut ctx).unwrap());
+        }
+        // One line, one component: the first card's bus side; the second has none.
+        assert!(built[0].bus.is_some());
+        assert!(built[1].bus.is_none());
+        // Its line never started, no card waits for a poll that will not come.
+        let settles_at_once = |card: &dyn Card| {
+            let t0 = Instant::now();
+            assert_eq!(card.settle(t0 + Duration::from_secs(3), true), Ok(()));
+            assert!(t0.elapsed() < Duration::from_secs(1), "{:?}", t0.elapsed());
+        };
+        settles_at_once(built[0].card.as_ref());
+        settles_at_once(built[1].card.as_ref());
+        // Added (not started), the line's component is the first card's, named after it.
+        let registry = Arc::new(device_interface::Registry::new());
+        let rt = rtt::Runtime::new(registry, Default::default()).unwrap();
+        let thread = rtt::ThreadOptions::default();
+        let BuiltCard { bus, .. } = built.remove(0);
+        let tasks = bus
+            .unwrap()
+            .add_to(&driver_api::BusContext::new(&rt, "a", &thread))
+            .unwrap();
+        assert_eq!(tasks.len(), 1);
+        assert_eq!(tasks[0].name(), "a");
+        settles_at_once(built[0].card.as_ref());
     }
 }

@@ -1,5 +1,6 @@
 //! The `[modbus_server]` section of a deployment: which registry devices hwgw serves as a
-//! Modbus TCP register table, and where it listens.
+//! Modbus TCP register table, and where it listens; [`build`] makes the [`TableServer`]
+//! of a section over the device registry, as the gateway's `ServerTypes` registers it.
 //!
 //! ```
 //! use driver_modbus::served::ServerConfig;
@@ -23,6 +24,7 @@ use crate::plan::Table;
 use crate::server::{Entry, RegisterTable, Source};
 use device_interface::text::{Number, Quoted};
 use device_interface::{Interface, Registry};
+use driver_api::{CardError, Server, ServerContext, ServerError};
 use serde::Deserialize;
 use std::net::{SocketAddr, ToSocketAddrs};
 use std::sync::Mutex;
@@ -237,9 +239,28 @@ impl ServerConfig {
     }
 }
 
-/// The served table as a gateway [`Server`](driver_api::Server): started with the
-/// gateway, stopped first at its stop.
+/// Builds the server of a `[modbus_server]` section (under the key `ctx` names) over the
+/// devices in the context's registry: a [`ServerBuildFn`](driver_api::ServerBuildFn).
+/// Every problem is at its key under the section.
+pub fn build(
+    config: &ServerConfig,
+    ctx: &mut ServerContext<'_>,
+) -> Result<Box<dyn Server>, Vec<CardError>> {
+    match config.table(ctx.registry()) {
+        Ok((listen, table, limits)) => Ok(Box::new(
+            TableServer::new(listen, table, limits).named(ctx.name()),
+        )),
+        Err(problems) => Err(problems
+            .into_iter()
+            .map(|p| CardError::at(p.key, p.message))
+            .collect()),
+    }
+}
+
+/// The served table as a gateway [`Server`]: started with the gateway, stopped first at
+/// its stop.
 pub struct TableServer {
+    name: String,
     listen: SocketAddr,
     table: RegisterTable,
     limits: Limits,
@@ -247,25 +268,39 @@ pub struct TableServer {
 }
 
 impl TableServer {
-    /// A server of `table` on `listen` within `limits`, not started.
+    /// A server of `table` on `listen` within `limits`, not started, named
+    /// `modbus_server`.
     pub fn new(listen: SocketAddr, table: RegisterTable, limits: Limits) -> TableServer {
         TableServer {
+            name: "modbus_server".into(),
             listen,
             table,
             limits,
             running: Mutex::new(None),
         }
     }
+
+    /// The same, named `name` (its deployment key).
+    pub fn named(self, name: &str) -> TableServer {
+        TableServer {
+            name: name.to_string(),
+            ..self
+        }
+    }
 }
 
-impl driver_api::Server for TableServer {
+impl Server for TableServer {
     fn name(&self) -> &str {
-        "modbus_server"
+        &self.name
     }
 
-    fn start(&self) -> Result<String, String> {
-        let server = ModbusServer::start(self.listen, self.table.clone(), self.limits)
-            .map_err(|e| e.to_string())?;
+    fn start(&self) -> Result<String, ServerError> {
+        let server = ModbusServer::start(self.listen, self.table.clone(), self.limits).map_err(
+            |source| ServerError::Listen {
+                address: self.listen.to_string(),
+                source,
+            },
+        )?;
         let addr = server.addr().to_string();
         *rtt::lock(&self.running) = Some(server);
         Ok(addr)
@@ -293,10 +328,11 @@ impl driver_api::Server for TableServer {
         Some(driver_api::CardStatus::new(at.to_string(), &counters))
     }
 
-    fn health(&self) -> Result<(), String> {
+    fn health(&self) -> Result<(), ServerError> {
         rtt::lock(&self.running)
             .as_ref()
             .map_or(Ok(()), ModbusServer::health)
+            .map_err(ServerError::failed)
     }
 }
 

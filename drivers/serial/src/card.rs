@@ -19,6 +19,7 @@ use device_interface::time::{Clock, Timestamp};
 use device_interface::{
     AnalogIn, AnalogOut, CardDevices, Device, DeviceError, Health, RawRange, Scale, Unit,
 };
+use driver_api::SettleError;
 use rtt::activity::Waker;
 use serde::Serialize;
 use std::sync::atomic::{AtomicBool, AtomicU8, AtomicU32, AtomicU64, Ordering};
@@ -124,13 +125,27 @@ pub struct FirmataCard {
     waker: OnceLock<Arc<dyn Waker>>,
 }
 
-fn scale_error(e: impl std::fmt::Display) -> String {
-    format!("cannot make the card's scales: {e}")
+/// Why a checked section made no card.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum FirmataCardError {
+    /// A channel's scale could not be made.
+    #[error("cannot make the card's scales: {0}")]
+    Scale(String),
+    /// An encoder's counter could not be made.
+    #[error("encoder: {0}")]
+    Encoder(String),
+}
+
+fn scale_error(e: impl std::fmt::Display) -> FirmataCardError {
+    FirmataCardError::Scale(e.to_string())
 }
 
 impl FirmataCard {
     /// The card of a checked section; offline until its bus side has set the board up.
-    pub fn new(config: &FirmataConfig, clock: Arc<dyn Clock>) -> Result<FirmataCard, String> {
+    pub fn new(
+        config: &FirmataConfig,
+        clock: Arc<dyn Clock>,
+    ) -> Result<FirmataCard, FirmataCardError> {
         let unit = |u: &str| Unit::new(u).map_err(scale_error);
         let bits = |b: u8| RawRange::unsigned_bits(u32::from(b)).map_err(scale_error);
         let ai_scale = Scale::fraction(
@@ -175,7 +190,7 @@ impl FirmataCard {
             .iter()
             .map(|e| WrappingCounter::new(e.resolution, true, 29))
             .collect::<Result<Vec<_>, _>>()
-            .map_err(|e| format!("encoder: {e}"))?;
+            .map_err(|e| FirmataCardError::Encoder(e.to_string()))?;
         Ok(FirmataCard {
             config: config.clone(),
             clock,
@@ -334,23 +349,21 @@ impl FirmataCard {
     /// Settles at stop: waits until every accepted write was sent, then has the board say
     /// what each output pin is (PIN_STATE_QUERY: the level or value its firmware last set)
     /// and compares; until `deadline` at the latest. Then refuses further writes.
-    pub fn settle(&self, deadline: std::time::Instant) -> Result<(), String> {
+    pub fn settle(&self, deadline: std::time::Instant) -> Result<(), SettleError> {
         let result = self.sent_and_confirmed(deadline);
         self.closing.store(true, Ordering::Release);
         result
     }
 
-    fn sent_and_confirmed(&self, deadline: std::time::Instant) -> Result<(), String> {
+    fn sent_and_confirmed(&self, deadline: std::time::Instant) -> Result<(), SettleError> {
         let port = &self.config.port;
-        let wait = |done: &dyn Fn() -> bool, what: &str| -> Result<(), String> {
+        let wait = |done: &dyn Fn() -> bool, what: &str| -> Result<(), SettleError> {
             while !done() {
                 if !self.is_online() {
-                    return Err(format!(
-                        "{port} is offline: its outputs may not have reached the board"
-                    ));
+                    return Err(SettleError::Offline(port.clone()));
                 }
                 if std::time::Instant::now() > deadline {
-                    return Err(format!("{port}: {what} not in time"));
+                    return Err(SettleError::Late(format!("{port}: {what}")));
                 }
                 std::thread::sleep(std::time::Duration::from_millis(1));
             }
@@ -373,7 +386,9 @@ impl FirmataCard {
         )?;
         if self.check.load(Ordering::Acquire) == CHECK_FAILED {
             let s = self.shared.lock().unwrap_or_else(PoisonError::into_inner);
-            return Err(s.check_error.clone().unwrap_or_default());
+            return Err(SettleError::Refused(
+                s.check_error.iter().cloned().collect(),
+            ));
         }
         Ok(())
     }

@@ -129,18 +129,36 @@ pub fn identity(path: &str) -> Option<(u64, u64, u64, i64)> {
     ))
 }
 
+/// Why [`send`] did not write everything.
+#[derive(Debug, thiserror::Error)]
+pub enum SendError {
+    /// The port took no byte.
+    #[error("write: the port took nothing")]
+    TookNothing,
+    /// The write failed (a line whose buffer stays full for a second: would block).
+    #[error("write: {0}")]
+    Io(#[from] io::Error),
+}
+
+/// The bus side's steps carry their errors as text to their component's log.
+impl From<SendError> for String {
+    fn from(e: SendError) -> String {
+        e.to_string()
+    }
+}
+
 /// Writes all of `data`, counting what went out in `sent`; a line whose buffer stays full
 /// is stuck.
 pub fn send(
     line: &mut dyn Line,
     data: &[u8],
     sent: &std::sync::atomic::AtomicU64,
-) -> Result<(), String> {
+) -> Result<(), SendError> {
     let mut rest = data;
     let mut waits = 0;
     while !rest.is_empty() {
         match line.write(rest) {
-            Ok(0) => return Err("write: the port took nothing".into()),
+            Ok(0) => return Err(SendError::TookNothing),
             Ok(n) => {
                 sent.fetch_add(n as u64, std::sync::atomic::Ordering::Relaxed);
                 rest = &rest[n..];
@@ -153,7 +171,7 @@ pub fn send(
                 let mut p = [nix::poll::PollFd::new(fd, nix::poll::PollFlags::POLLOUT)];
                 let _ = nix::poll::poll(&mut p, nix::poll::PollTimeout::from(10u8));
             }
-            Err(e) => return Err(format!("write: {e}")),
+            Err(e) => return Err(SendError::Io(e)),
         }
     }
     Ok(())

@@ -12,9 +12,9 @@ use crate::card::FirmataCard;
 use crate::component::FirmataIo;
 use crate::config::FirmataConfig;
 use device_interface::CardDevices;
-use driver_api::{Card, CardContext, CardError, CardStatus};
+use driver_api::{BuiltCard, BusSide, Card, CardContext, CardError, CardStatus, SettleError};
 use std::collections::HashMap;
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::Arc;
 
 /// The ports the deployment's Firmata cards use: port (resolved where it exists) → card.
 #[derive(Default)]
@@ -22,16 +22,11 @@ struct Claimed(HashMap<String, String>);
 
 struct FirmataPlugin {
     card: Arc<FirmataCard>,
-    /// Taken by `add_bus` (once).
-    bus: Mutex<Option<FirmataBus>>,
-    thread: rtt::ThreadOptions,
 }
 
-/// Builds the card a section describes.
-pub fn build(
-    config: &FirmataConfig,
-    ctx: &mut CardContext<'_>,
-) -> Result<Box<dyn Card>, CardError> {
+/// Builds the card a section describes; its bus side is the [`FirmataIo`] component named
+/// after the card.
+pub fn build(config: &FirmataConfig, ctx: &mut CardContext<'_>) -> Result<BuiltCard, CardError> {
     config.check()?;
     crate::line::check_port(&config.port).map_err(|e| CardError::at("port", e.to_string()))?;
     let card = Arc::new(FirmataCard::new(config, ctx.clock()).map_err(CardError::new)?);
@@ -47,37 +42,16 @@ pub fn build(
         ));
     }
     claimed.0.insert(port, name);
-    Ok(Box::new(FirmataPlugin {
-        bus: Mutex::new(Some(FirmataBus::new(card.clone()))),
-        card,
-        thread: ctx.thread().clone(),
-    }))
+    let bus = FirmataBus::new(card.clone());
+    let bus = BusSide::one(move |ctx| {
+        FirmataIo::add(ctx.runtime(), ctx.name(), bus, ctx.thread().clone())
+    });
+    Ok(BuiltCard::new(FirmataPlugin { card }, bus))
 }
 
 impl Card for FirmataPlugin {
     fn devices(&self) -> CardDevices {
         self.card.devices()
-    }
-
-    fn add_bus(
-        &self,
-        runtime: &rtt::Runtime,
-        name: &str,
-    ) -> Result<Vec<rtt::TaskContext>, rtt::RuntimeError> {
-        let Some(bus) = self
-            .bus
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .take()
-        else {
-            return Ok(Vec::new());
-        };
-        Ok(vec![FirmataIo::add(
-            runtime,
-            name,
-            bus,
-            self.thread.clone(),
-        )?])
     }
 
     fn summary(&self) -> String {
@@ -96,8 +70,16 @@ impl Card for FirmataPlugin {
     }
 
     /// Waits until every output written was sent and the board confirmed each output pin's
-    /// state (PIN_STATE_QUERY), then refuses further writes.
-    fn settle(&self, deadline: std::time::Instant) -> Result<(), String> {
+    /// state (PIN_STATE_QUERY), then refuses further writes. With its bus side not
+    /// running, does not wait: nothing sends or asks.
+    fn settle(&self, deadline: std::time::Instant, bus_running: bool) -> Result<(), SettleError> {
+        if !bus_running {
+            let now = std::time::Instant::now();
+            return self
+                .card
+                .settle(now)
+                .map_err(|_| SettleError::BusNotRunning);
+        }
         self.card.settle(deadline)
     }
 

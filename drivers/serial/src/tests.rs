@@ -360,7 +360,7 @@ fn a_protocol_2_5_board_with_encoders_is_set_up_and_read() {
             .write_all(&[0xF0, sysex::PIN_STATE_RESPONSE, 9, mode::OUTPUT, 1, 0xF7])
             .unwrap();
         drive(&mut bus, &mut board, &mut sent, |_, _| settle.is_finished());
-        let e = settle.join().unwrap().unwrap_err();
+        let e = settle.join().unwrap().unwrap_err().to_string();
         assert!(
             e.ends_with("pin 9 is 1 on the board, not 0 as written"),
             "{e}"

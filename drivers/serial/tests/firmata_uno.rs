@@ -34,7 +34,8 @@ fn up(port: &str, section: &str) -> Result<Up, String> {
     let mut config: FirmataConfig = toml::from_str(&format!("port = \"\"\n{section}")).unwrap();
     config.port = port.into();
     config.check().map_err(|e| e.to_string())?;
-    let card = Arc::new(FirmataCard::new(&config, Arc::new(MonotonicClock))?);
+    let card = FirmataCard::new(&config, Arc::new(MonotonicClock)).map_err(|e| e.to_string())?;
+    let card = Arc::new(card);
     let rt = Runtime::new(
         Arc::new(device_interface::Registry::new()),
         RuntimeOptions::default(),

@@ -615,6 +615,12 @@ impl SimCard {
             .unwrap_or_default()
     }
 
+    /// Output writes recorded since the card was built (taken or not, dropped or not). Zero
+    /// when the card was built with `record_capacity = 0`.
+    pub fn output_writes(&self) -> u64 {
+        self.record.as_ref().map_or(0, OutputRecord::count)
+    }
+
     /// Output writes not recorded because the record was full.
     pub fn output_record_dropped(&self) -> u64 {
         self.record.as_ref().map_or(0, OutputRecord::dropped)

@@ -1,11 +1,11 @@
 //! The simulated card as an hwgw driver plug-in (`driver = "sim"`, section [`SimConfig`]):
-//! its bus side is a periodic cycle component ([`driver_api::periodic_bus`]), named after
-//! the card, that steps the simulation at the card's period.
+//! its bus side is a periodic cycle component ([`driver_api::BusSide::periodic`]), named
+//! after the card, that steps the simulation at the card's period.
 
 use crate::card::SimCard;
 use crate::config::SimConfig;
 use device_interface::{AnalogIn, AnalogOut, CardDevices, DigitalIn, DigitalOut};
-use driver_api::{Card, CardContext, CardError, ReadBack};
+use driver_api::{BuiltCard, BusSide, Card, CardContext, CardError, ReadBack};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -13,35 +13,28 @@ use std::time::Duration;
 struct SimPlugin {
     card: Arc<SimCard>,
     period: Duration,
-    thread: rtt::ThreadOptions,
 }
 
-/// Builds a sim card from its section.
-pub fn build(config: &SimConfig, ctx: &mut CardContext<'_>) -> Result<Box<dyn Card>, CardError> {
+/// Builds a sim card from its section; its bus side steps the simulation.
+pub fn build(config: &SimConfig, ctx: &mut CardContext<'_>) -> Result<BuiltCard, CardError> {
     let card = SimCard::new(config, ctx.clock()).map_err(|e| {
         let (key, message) = e.at();
         CardError::at(key, message)
     })?;
-    Ok(Box::new(SimPlugin {
-        card,
-        period: ctx.period(),
-        thread: ctx.thread().clone(),
-    }))
+    let stepped = card.clone();
+    let bus = BusSide::periodic(ctx.period(), move || stepped.step());
+    Ok(BuiltCard::new(
+        SimPlugin {
+            card,
+            period: ctx.period(),
+        },
+        bus,
+    ))
 }
 
 impl Card for SimPlugin {
     fn devices(&self) -> CardDevices {
         self.card.devices()
-    }
-
-    fn add_bus(
-        &self,
-        runtime: &rtt::Runtime,
-        name: &str,
-    ) -> Result<Vec<rtt::TaskContext>, rtt::RuntimeError> {
-        let card = self.card.clone();
-        let step = move || card.step();
-        driver_api::periodic_bus(runtime, name, self.period, self.thread.clone(), step)
     }
 
     fn read_back(&self) -> ReadBack {
@@ -63,10 +56,18 @@ impl Card for SimPlugin {
     }
 
     fn status(&self) -> driver_api::CardStatus {
-        driver_api::CardStatus {
-            bus: "simulated".into(),
-            counters: Default::default(),
+        /// The simulation's counters.
+        #[derive(serde::Serialize)]
+        struct Counters {
+            /// Output writes the card recorded (with `record_capacity` > 0).
+            output_writes: u64,
         }
+        driver_api::CardStatus::new(
+            "simulated",
+            &Counters {
+                output_writes: self.card.output_writes(),
+            },
+        )
     }
 }
 
@@ -84,19 +85,21 @@ mod tests {
         let mut ctx = CardContext::new(
             "s",
             Duration::from_millis(1),
-            &thread,
             std::path::Path::new("."),
             Arc::new(device_interface::time::MonotonicClock),
             &mut shared,
         );
-        let card = build(&config, &mut ctx).unwrap();
+        let BuiltCard { card, bus } = build(&config, &mut ctx).unwrap();
         let devices = card.devices();
         let rt = rtt::Runtime::new(
             Arc::new(device_interface::Registry::new()),
             Default::default(),
         )
         .unwrap();
-        let bus = card.add_bus(&rt, "s").unwrap();
+        let bus = bus
+            .unwrap()
+            .add_to(&driver_api::BusContext::new(&rt, "s", &thread))
+            .unwrap();
         assert_eq!(bus.len(), 1);
         devices
             .digital_out

@@ -90,6 +90,10 @@ impl OutputRecord {
         v
     }
 
+    pub(crate) fn count(&self) -> u64 {
+        self.seq.load(Ordering::Acquire)
+    }
+
     pub(crate) fn dropped(&self) -> u64 {
         self.dropped.load(Ordering::Relaxed)
     }

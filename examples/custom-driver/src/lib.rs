@@ -7,7 +7,8 @@
 //!
 //! The whole driver is this file: a section type (`[card.loopback]`), the devices (the
 //! five interfaces' contract: non-blocking, allocation-free, errors as values), a
-//! [`Card`] for the gateway, and one registration line in [`types`]. The binary in
+//! [`Card`] for the gateway and its bus side (a [`BusSide`] handed over by value from
+//! [`build`]), and one registration line in [`types`]. The binary in
 //! `src/main.rs` is the whole `hwgw` command line with the driver added:
 //!
 //! ```text
@@ -21,7 +22,7 @@ use device_interface::time::Clock;
 use device_interface::{
     AnalogIn, AnalogOut, CardDevices, Device, DeviceError, Health, RawRange, Scale, Status, Unit,
 };
-use driver_api::{Card, CardContext, CardError, CardStatus};
+use driver_api::{BuiltCard, BusSide, Card, CardContext, CardError, CardStatus};
 use hwgw::types::Types;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
@@ -227,22 +228,11 @@ impl DigitalOutputImage for Loopback {
 struct LoopbackCard {
     card: Arc<Loopback>,
     period: Duration,
-    thread: rtt::ThreadOptions,
 }
 
 impl Card for LoopbackCard {
     fn devices(&self) -> CardDevices {
         self.card.devices()
-    }
-
-    fn add_bus(
-        &self,
-        runtime: &rtt::Runtime,
-        name: &str,
-    ) -> Result<Vec<rtt::TaskContext>, rtt::RuntimeError> {
-        let card = self.card.clone();
-        let step = move || card.cycle();
-        driver_api::periodic_bus(runtime, name, self.period, self.thread.clone(), step)
     }
 
     fn read_back(&self) -> driver_api::ReadBack {
@@ -269,16 +259,15 @@ impl Card for LoopbackCard {
     }
 }
 
-/// The driver: builds a loopback card from its section.
-pub fn build(
-    config: &LoopbackConfig,
-    ctx: &mut CardContext<'_>,
-) -> Result<Box<dyn Card>, CardError> {
-    Ok(Box::new(LoopbackCard {
-        card: Loopback::new(config, ctx.clock())?,
-        period: ctx.period(),
-        thread: ctx.thread().clone(),
-    }))
+/// The driver: builds a loopback card from its section, and its bus side: a component
+/// named after the card that copies the outputs to the inputs every period, on the card's
+/// thread.
+pub fn build(config: &LoopbackConfig, ctx: &mut CardContext<'_>) -> Result<BuiltCard, CardError> {
+    let card = Loopback::new(config, ctx.clock())?;
+    let cycled = card.clone();
+    let bus = BusSide::periodic(ctx.period(), move || cycled.cycle());
+    let period = ctx.period();
+    Ok(BuiltCard::new(LoopbackCard { card, period }, bus))
 }
 
 /// hwgw's built-in component types and drivers, plus `loopback`.

@@ -74,8 +74,9 @@ struct Output {
     /// Its port name.
     port: String,
     policy: Policy,
-    /// Components writing it (through a connection to its port).
-    writers: Vec<String>,
+    /// Components writing it (through a connection to its port); more may come with a
+    /// reload while the watchdog reads them.
+    writers: arc_swap::ArcSwap<Vec<String>>,
     /// True while a watchdog trip holds it at its safe value (until the next write).
     tripped: AtomicBool,
 }
@@ -337,28 +338,40 @@ impl CardOutputs {
             .map(|(g, _)| g.clone() as Arc<dyn DigitalOut>)
     }
 
-    /// Notes that component `writer` writes the output behind port `port` (a connection
-    /// to it); its failing trips the output's watchdog.
-    pub fn add_writer(&mut self, port: &str, writer: &str) {
-        for outputs in [
-            self.analog.as_mut().map(|a| &mut a.1),
-            self.digital.as_mut().map(|d| &mut d.1),
-        ]
-        .into_iter()
-        .flatten()
-        {
-            for o in outputs.iter_mut().filter(|o| o.port == port) {
-                if !o.writers.iter().any(|w| w == writer) {
-                    o.writers.push(writer.to_string());
+    /// Sets every output's writers at once: `(port, writer component)` pairs, as the
+    /// connections to the card's outputs now are (a reload).
+    pub fn set_writers(&self, pairs: &[(&str, &str)]) {
+        for o in self.outputs() {
+            let mut writers: Vec<String> = Vec::new();
+            for (_, w) in pairs.iter().filter(|(p, _)| *p == o.port) {
+                if !writers.iter().any(|x| x == w) {
+                    writers.push(w.to_string());
                 }
             }
+            if **o.writers.load() != writers {
+                o.writers.store(Arc::new(writers));
+            }
+        }
+    }
+
+    /// Notes that component `writer` writes the output behind port `port` (a connection
+    /// to it); its failing trips the output's watchdog.
+    pub fn add_writer(&self, port: &str, writer: &str) {
+        for o in self.outputs().filter(|o| o.port == port) {
+            o.writers.rcu(|writers| {
+                let mut more = Vec::clone(writers);
+                if !more.iter().any(|w| w == writer) {
+                    more.push(writer.to_string());
+                }
+                more
+            });
         }
     }
 
     /// True when some output has a watchdog to keep.
     pub fn watched(&self) -> bool {
         let safe = |v: &Vec<Output>| v.iter().any(|o| matches!(o.policy, Policy::Safe(_)));
-        (self.watchdog.is_some() || self.outputs().any(|o| !o.writers.is_empty()))
+        (self.watchdog.is_some() || self.outputs().any(|o| !o.writers.load().is_empty()))
             && (self.analog.as_ref().is_some_and(|a| safe(&a.1))
                 || self.digital.as_ref().is_some_and(|d| safe(&d.1)))
     }
@@ -405,13 +418,12 @@ impl CardOutputs {
     /// the watchdog's time, or when one of its writers (`state` of a component by name)
     /// failed. Once per episode: a new write rearms it.
     pub fn watch(&self, now_ns: u64, state: &dyn Fn(&str) -> Option<TaskState>) {
-        fn failed<'o>(
-            o: &'o Output,
-            state: &dyn Fn(&str) -> Option<TaskState>,
-        ) -> Option<&'o String> {
+        fn failed(o: &Output, state: &dyn Fn(&str) -> Option<TaskState>) -> Option<String> {
             o.writers
+                .load()
                 .iter()
                 .find(|w| matches!(state(w), Some(TaskState::Exception | TaskState::FatalError)))
+                .cloned()
         }
         let check = |o: &Output, written: bool, last: u64| -> Option<(f64, String)> {
             let Policy::Safe(v) = o.policy else {
@@ -422,7 +434,7 @@ impl CardOutputs {
                     v,
                     format!(
                         "component {w:?} writing it is in {}",
-                        state(w).map_or(String::new(), |s| s.to_string())
+                        state(&w).map_or(String::new(), |s| s.to_string())
                     ),
                 ));
             }
@@ -521,7 +533,7 @@ impl Output {
         Output {
             port,
             policy,
-            writers: Vec::new(),
+            writers: arc_swap::ArcSwap::from_pointee(Vec::new()),
             tripped: AtomicBool::new(false),
         }
     }

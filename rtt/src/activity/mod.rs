@@ -20,6 +20,7 @@ mod stats;
 pub mod steps;
 mod thread;
 
+pub use realtime::ThreadError;
 pub use stats::{ActivityStats, HISTOGRAM_BUCKETS};
 use steps::in_step;
 pub use steps::{StepRecord, StepTap, stamp_now};
@@ -142,43 +143,6 @@ pub enum ActivitySpec {
 /// The longest period a periodic activity takes.
 pub const MAX_PERIOD: Duration = Duration::from_secs(86_400);
 
-impl ThreadOptions {
-    /// Checks the options against what the system can do: a SCHED_FIFO priority of 1 to
-    /// 99, CPUs this machine has.
-    pub fn check(&self) -> Result<(), String> {
-        if self.policy == SchedPolicy::Fifo && !(1..=99).contains(&self.priority) {
-            return Err(format!(
-                "priority {}: SCHED_FIFO takes 1 to 99",
-                self.priority
-            ));
-        }
-        if self.spin_us > MAX_SPIN_US {
-            return Err(format!(
-                "spin_us {}: at most {MAX_SPIN_US} µs",
-                self.spin_us
-            ));
-        }
-        let configured = cpus_configured();
-        for &c in &self.cpus {
-            if c >= configured {
-                return Err(format!(
-                    "cpu {c} does not exist (this machine has {configured}: 0..={})",
-                    configured.saturating_sub(1)
-                ));
-            }
-        }
-        Ok(())
-    }
-}
-
-/// CPUs this machine has configured (online or not).
-fn cpus_configured() -> usize {
-    match nix::unistd::sysconf(nix::unistd::SysconfVar::_NPROCESSORS_CONF) {
-        Ok(Some(n)) if n > 0 => usize::try_from(n).unwrap_or(1),
-        _ => std::thread::available_parallelism().map_or(1, usize::from),
-    }
-}
-
 impl ActivitySpec {
     /// A periodic activity at `period`, SCHED_OTHER, absolute timing.
     pub fn periodic(period: Duration) -> Self {
@@ -239,8 +203,8 @@ pub enum ActivityError {
     #[error("a period of {0:?} is too long (at most a day)")]
     PeriodTooLong(Duration),
     /// Thread options that cannot be had.
-    #[error("{0}")]
-    Thread(String),
+    #[error(transparent)]
+    Thread(#[from] ThreadError),
     /// `wake_at` on an activity that is not a file-descriptor activity.
     #[error("only a file-descriptor activity wakes at a deadline")]
     NoDeadline,

@@ -1,8 +1,53 @@
 //! Putting an activity's thread where its options ask: CPU affinity and SCHED_FIFO, said
 //! once, with the reason, when the process may not have it.
 
-use super::{SchedPolicy, ThreadOptions};
+use super::{MAX_SPIN_US, SchedPolicy, ThreadOptions};
 use std::sync::atomic::{AtomicBool, Ordering};
+
+/// Thread options that cannot be had ([`ThreadOptions::check`]).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ThreadError {
+    /// A SCHED_FIFO priority outside 1 to 99.
+    #[error("priority {0}: SCHED_FIFO takes 1 to 99")]
+    Priority(i32),
+    /// A spin longer than [`MAX_SPIN_US`].
+    #[error("spin_us {0}: at most {MAX_SPIN_US} µs")]
+    Spin(u32),
+    /// A CPU this machine does not have.
+    #[error("cpu {cpu} does not exist (this machine has {configured}: 0..={})", configured.saturating_sub(1))]
+    NoCpu {
+        /// The CPU asked for.
+        cpu: usize,
+        /// CPUs this machine has configured.
+        configured: usize,
+    },
+}
+
+impl ThreadOptions {
+    /// Checks the options against what the system can do: a SCHED_FIFO priority of 1 to
+    /// 99, CPUs this machine has.
+    pub fn check(&self) -> Result<(), ThreadError> {
+        if self.policy == SchedPolicy::Fifo && !(1..=99).contains(&self.priority) {
+            return Err(ThreadError::Priority(self.priority));
+        }
+        if self.spin_us > MAX_SPIN_US {
+            return Err(ThreadError::Spin(self.spin_us));
+        }
+        let configured = cpus_configured();
+        if let Some(&cpu) = self.cpus.iter().find(|&&c| c >= configured) {
+            return Err(ThreadError::NoCpu { cpu, configured });
+        }
+        Ok(())
+    }
+}
+
+/// CPUs this machine has configured (online or not).
+fn cpus_configured() -> usize {
+    match nix::unistd::sysconf(nix::unistd::SysconfVar::_NPROCESSORS_CONF) {
+        Ok(Some(n)) if n > 0 => usize::try_from(n).unwrap_or(1),
+        _ => std::thread::available_parallelism().map_or(1, usize::from),
+    }
+}
 
 static RT_WARNED: AtomicBool = AtomicBool::new(false);
 

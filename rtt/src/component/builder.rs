@@ -237,11 +237,11 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
                             n.to_string()
                         },
                         doc: d.to_string(),
-                        type_name: t.to_string(),
+                        type_name: crate::typename::wire(t),
                     }
                 })
                 .collect(),
-            result: std::any::type_name::<R>().to_string(),
+            result: crate::typename::of::<R>(),
             thread,
         };
         self.operations.push(Arc::new(OperationEntry {

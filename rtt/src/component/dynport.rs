@@ -100,9 +100,9 @@ fn unname(values: &[NamedValue], value: Value) -> Value {
 
 /// What a port of type `T` with named values `values` takes.
 fn expected<T>(values: &[NamedValue]) -> String {
-    let t = std::any::type_name::<T>();
+    let t = crate::typename::of::<T>();
     if values.is_empty() {
-        return t.to_string();
+        return t;
     }
     let names: Vec<&str> = values.iter().map(|v| v.name.as_str()).collect();
     format!("{t} or one of {}", names.join(", "))
@@ -252,7 +252,7 @@ impl<T: PortData> DynPort for OutEntry<T> {
             name: self.shared.name.to_string(),
             doc: self.doc.clone(),
             direction: Direction::Output,
-            type_name: std::any::type_name::<T>().to_string(),
+            type_name: crate::typename::of::<T>(),
             event: false,
             values: self.values.get().cloned().unwrap_or_default(),
         }
@@ -300,7 +300,7 @@ impl<T: PortData> DynPort for OutEntry<T> {
                 }
                 Err(ConnectError::TypeMismatch {
                     output: self.shared.name.to_string(),
-                    output_type: std::any::type_name::<T>().to_string(),
+                    output_type: crate::typename::of::<T>(),
                     input: info.name,
                     input_type: info.type_name,
                 }
@@ -328,7 +328,7 @@ impl<T: PortData> DynPort for InEntry<T> {
             name: self.shared.name.to_string(),
             doc: self.doc.clone(),
             direction: Direction::Input,
-            type_name: std::any::type_name::<T>().to_string(),
+            type_name: crate::typename::of::<T>(),
             event: self.event,
             values: self.values.get().cloned().unwrap_or_default(),
         }

@@ -66,19 +66,15 @@ impl TaskContext {
         let op = self.find_operation(name)?;
         match op.as_any().downcast_ref::<OperationEntry<A, R>>() {
             Some(e) => Ok(e.caller.clone()),
-            None => {
-                let info = op.info();
-                let arg_types: Vec<&str> = info.args.iter().map(|a| a.type_name.as_str()).collect();
-                Err(IntrospectError::WrongType {
-                    what: format!("operation {name:?}"),
-                    actual: format!("fn({}) -> {}", arg_types.join(", "), info.result),
-                    asked: format!(
-                        "fn({}) -> {}",
-                        A::type_names().join(", "),
-                        std::any::type_name::<R>()
-                    ),
-                })
-            }
+            None => Err(IntrospectError::WrongType {
+                what: format!("operation {name:?}"),
+                actual: op.rust_signature(),
+                asked: format!(
+                    "fn({}) -> {}",
+                    A::type_names().join(", "),
+                    std::any::type_name::<R>()
+                ),
+            }),
         }
     }
 

@@ -20,6 +20,7 @@
 
 mod builder;
 mod dynport;
+mod hook_error;
 mod lookup;
 
 pub use crate::error::{CallOrIntrospect, IntrospectError, LifecycleError, RuntimeError};
@@ -27,6 +28,7 @@ pub use crate::info::{Direction, NamedValue, PortData, PortInfo};
 pub use crate::state::{InitialState, TaskState};
 pub use builder::InterfaceBuilder;
 pub use dynport::{DynPort, DynReader, DynWriter};
+pub use hook_error::{HookError, HookResult};
 
 use crate::activity::{
     Activity, ActivityError, ActivitySpec, ActivityStats, FdEvents, Runner, StepTiming,
@@ -45,32 +47,6 @@ use std::fmt;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 use std::time::Duration;
-
-/// Why a hook failed: a message (any error converts into one).
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct HookError(pub String);
-
-impl fmt::Display for HookError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(&self.0)
-    }
-}
-
-impl<E: std::error::Error> From<E> for HookError {
-    fn from(e: E) -> Self {
-        HookError(e.to_string())
-    }
-}
-
-impl HookError {
-    /// A hook error with `message`.
-    pub fn new(message: impl Into<String>) -> Self {
-        HookError(message.into())
-    }
-}
-
-/// What a hook returns.
-pub type HookResult = Result<(), HookError>;
 
 /// The hooks a component implements; every one has a default that does nothing.
 ///
@@ -317,6 +293,11 @@ impl TaskCore {
                         self.set_state(TaskState::RunTimeError);
                     }
                     Ok(Ok(())) => {}
+                    // The gateway is stopping and holds its outputs: no failure of the
+                    // component's (the stop reaches it next).
+                    Ok(Err(e)) if e.is_held() => {
+                        tracing::debug!(component = %self.name, "update skipped: {e}");
+                    }
                     Ok(Err(e)) => {
                         self.enter_exception(comp, format!("update failed: {e}"));
                     }
@@ -533,7 +514,7 @@ impl TaskContext {
                 Err(LifecycleError::HookFailed {
                     component: self.core.name.clone(),
                     hook,
-                    message: e.0,
+                    message: e.message().to_string(),
                 })
             }
             Err(panic) => {

@@ -62,6 +62,15 @@ pub enum NodeError {
         /// What was wrong.
         message: String,
     },
+    /// An imported device could not be registered under its local name.
+    #[error("{name}: {source}")]
+    Import {
+        /// Its local name, `<gateway>/<device>`.
+        name: String,
+        /// Why the registry refused it.
+        #[source]
+        source: device_interface::RegistryError,
+    },
 }
 
 /// Counters of the node, for `hwgw status`.
@@ -105,7 +114,7 @@ impl Node {
     /// The node of `cfg` (checked with [`ZenohConfig::check`]): every imported device is
     /// registered in `registry` as `<gateway>/<device>` (owner `zenoh:<gateway>`), offline
     /// until its gateway is heard. Nothing is opened.
-    pub fn new(cfg: ZenohConfig, registry: Arc<Registry>) -> Result<Node, String> {
+    pub fn new(cfg: ZenohConfig, registry: Arc<Registry>) -> Result<Node, NodeError> {
         let times = cfg.times();
         let mut images = Vec::new();
         for im in &cfg.import {
@@ -139,7 +148,10 @@ impl Node {
                 }),
             ];
             for e in done.into_iter().flatten() {
-                e.map_err(|e| format!("{name}: {e}"))?;
+                e.map_err(|source| NodeError::Import {
+                    name: name.clone(),
+                    source,
+                })?;
             }
         }
         Ok(Node {
@@ -208,7 +220,7 @@ impl Node {
             return Ok(r.address.clone());
         }
         self.stop.store(false, Ordering::Release);
-        let session = session::open(&self.cfg).map_err(NodeError::Zenoh)?;
+        let session = session::open(&self.cfg).map_err(|e| NodeError::Zenoh(e.to_string()))?;
         let threads = match self.spawn(&session) {
             Ok(t) => t,
             Err(e) => {
@@ -410,9 +422,9 @@ impl Node {
                 ms: self.times.request.as_millis(),
             });
         };
-        wire::parse(&bytes).map_err(|message| NodeError::BadAnswer {
+        wire::parse(&bytes).map_err(|e| NodeError::BadAnswer {
             gateway: gateway.to_string(),
-            message,
+            message: e.to_string(),
         })
     }
 

@@ -177,7 +177,9 @@ pub(super) fn send_writes(
                 wire::to_bytes(&out.write),
                 retry.max(Duration::from_millis(100)),
                 move |answer| {
-                    if let Ok(r) = answer.and_then(wire::parse::<WriteReply>) {
+                    if let Ok(r) = answer.map(wire::parse::<WriteReply>)
+                        && let Ok(r) = r
+                    {
                         answered.answered(&numbers, &r.refused);
                     }
                 },

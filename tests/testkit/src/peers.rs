@@ -138,6 +138,28 @@ pub const OPENSSL: Peer = Peer {
     packages: &["openssl"],
 };
 
+/// man-db: `man` renders the manual pages the hwgw package installs.
+pub const MAN_DB: Peer = Peer {
+    name: "man-db",
+    probe: Probe::Command("man"),
+    packages: &["man-db"],
+};
+
+/// bash-completion: the loader that finds a command's completion in
+/// /usr/share/bash-completion/completions/ when it is first completed.
+pub const BASH_COMPLETION: Peer = Peer {
+    name: "bash-completion",
+    probe: Probe::Files(&["/usr/share/bash-completion/bash_completion"]),
+    packages: &["bash-completion"],
+};
+
+/// lintian, Debian's package checker (on the hwgw package).
+pub const LINTIAN: Peer = Peer {
+    name: "lintian",
+    probe: Probe::Command("lintian"),
+    packages: &["lintian"],
+};
+
 /// Why a peer is not there.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error(

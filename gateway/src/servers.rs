@@ -1,0 +1,161 @@
+//! Server types by name: which top-level sections of a deployment are servers.
+//!
+//! A server is what hwgw serves beside its cards ([`driver_api::Server`]). A deployment
+//! asks for one with a top-level table named after its type — `[modbus_server]` — and the
+//! type's build function makes it from that section, parsed strictly where it stands (so
+//! its errors point at the file, line and key, as a card's driver section's do), over the
+//! device registry. hwgw ships `modbus_server`; a user's binary adds its own with
+//! [`ServerTypes::register`]. The gateway names no server type itself: a top-level key
+//! that is neither one of the deployment's own ([`DEPLOYMENT_KEYS`]) nor a registered
+//! server is refused, with both lists.
+//!
+//! The Zenoh node (`[zenoh]`) is among the gateway's servers at run time too, but it is
+//! not a plug-in: it is built before the cards' IO components (it registers the devices
+//! it imports, and feeds connections from other gateways), so it keeps a section of its
+//! own in [`Deployment`].
+
+use crate::config::{DEPLOYMENT_KEYS, Deployment};
+use crate::drivers::{SectionError, parse};
+use crate::problems::{KeyPath, Problems};
+use driver_api::{CardError, Server, ServerBuildFn, ServerContext};
+use serde::de::DeserializeOwned;
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::sync::Arc;
+use toml::Spanned;
+use toml::de::DeValue;
+
+/// Why a section did not make a server.
+enum ServerProblem {
+    /// The section does not parse into the server's section type.
+    Section(SectionError),
+    /// The server type refused it: every problem, at its key under the section.
+    Refused(Vec<CardError>),
+}
+
+/// A server type with its section type erased.
+trait ServerEntry: Send + Sync {
+    /// Parses `section` and builds the server.
+    fn build(
+        &self,
+        section: Spanned<DeValue<'_>>,
+        ctx: &mut ServerContext<'_>,
+    ) -> Result<Box<dyn Server>, ServerProblem>;
+}
+
+struct Typed<C>(ServerBuildFn<C>);
+
+impl<C: DeserializeOwned + 'static> ServerEntry for Typed<C> {
+    fn build(
+        &self,
+        section: Spanned<DeValue<'_>>,
+        ctx: &mut ServerContext<'_>,
+    ) -> Result<Box<dyn Server>, ServerProblem> {
+        let config: C = parse(section).map_err(ServerProblem::Section)?;
+        (self.0)(&config, ctx).map_err(ServerProblem::Refused)
+    }
+}
+
+/// Server types by name: the top-level key of their section.
+#[derive(Clone)]
+pub struct ServerTypes {
+    types: BTreeMap<String, Arc<dyn ServerEntry>>,
+}
+
+impl ServerTypes {
+    /// No server types.
+    pub fn empty() -> Self {
+        ServerTypes {
+            types: BTreeMap::new(),
+        }
+    }
+
+    /// The server types built into hwgw: modbus_server.
+    pub fn builtin() -> Self {
+        let mut t = Self::empty();
+        t.register("modbus_server", driver_modbus::served::build);
+        t
+    }
+
+    /// Adds server type `name`, built by `build` from the top-level section `[name]` (type
+    /// `C`, parsed strictly); a name already taken, by another server type or by one of
+    /// the deployment's own keys ([`DEPLOYMENT_KEYS`]), is refused (returns false).
+    pub fn register<C: DeserializeOwned + 'static>(
+        &mut self,
+        name: &str,
+        build: ServerBuildFn<C>,
+    ) -> bool {
+        if self.types.contains_key(name) || DEPLOYMENT_KEYS.contains(&name) {
+            return false;
+        }
+        self.types.insert(name.to_string(), Arc::new(Typed(build)));
+        true
+    }
+
+    /// The server type names, sorted.
+    pub fn names(&self) -> Vec<&str> {
+        self.types.keys().map(String::as_str).collect()
+    }
+
+    /// True when `name` is a server type of this build.
+    pub fn contains(&self, name: &str) -> bool {
+        self.types.contains_key(name)
+    }
+}
+
+/// The top-level keys of `d` that are neither the deployment's own nor a server type of
+/// `types`, each with what a deployment may have at the top: refused.
+pub(crate) fn unknown_keys(d: &Deployment, types: &ServerTypes, problems: &mut Problems<'_, '_>) {
+    for key in d.servers.keys().filter(|k| !types.contains(k)) {
+        let servers = match types.names() {
+            names if names.is_empty() => "none".to_string(),
+            names => names.join(", "),
+        };
+        let msg = format!(
+            "unknown key {key:?}; a deployment has {}, and the servers of this build: {servers}",
+            DEPLOYMENT_KEYS.join(", ")
+        );
+        problems.at_key(&KeyPath::top(key), msg);
+    }
+}
+
+/// Builds the server of every server section of `d` (unknown keys are
+/// [`unknown_keys`]'s), over the devices `runtime`'s registry holds; files they name are
+/// relative to `base`. Problems go to `problems`, located under the section.
+pub(crate) fn build(
+    d: &Deployment,
+    types: &ServerTypes,
+    runtime: &rtt::Runtime,
+    base: &Path,
+    problems: &mut Problems<'_, '_>,
+) -> Vec<Box<dyn Server>> {
+    let mut servers = Vec::new();
+    for key in d.servers.keys() {
+        let Some(entry) = types.types.get(key) else {
+            continue;
+        };
+        let at = KeyPath::top(key);
+        let Some(section) = problems.source().value(&at) else {
+            problems.at(&at, format!("[{key}] is not in the file"));
+            continue;
+        };
+        let mut ctx = ServerContext::new(key, runtime, base);
+        match entry.build(section.clone(), &mut ctx) {
+            Ok(server) => servers.push(server),
+            Err(ServerProblem::Section(SectionError::Parse {
+                path,
+                span,
+                message,
+            })) => problems.at_span(&at.join(&path), span, message),
+            Err(ServerProblem::Section(SectionError::Card(e))) => {
+                problems.at(&at.join(e.key.as_deref().unwrap_or("")), e.message);
+            }
+            Err(ServerProblem::Refused(list)) => {
+                for e in list {
+                    problems.at(&at.join(e.key.as_deref().unwrap_or("")), e.message);
+                }
+            }
+        }
+    }
+    servers
+}
