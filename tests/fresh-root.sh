@@ -71,6 +71,12 @@ else
   echo "deb ${mirror%/debian}/debian-security $suite-security main" >>"$root/etc/apt/sources.list"
 fi
 cp /etc/resolv.conf "$root/etc/resolv.conf"
+# What the Debian installer writes on every installed machine and debootstrap does not:
+# without it `localhost` does not resolve (a deployment naming tcp/localhost:7447 would
+# fail at run time, so `hwgw check` refuses it).
+if [ ! -s "$root/etc/hosts" ]; then
+  printf '127.0.0.1\tlocalhost\n::1\t\tlocalhost ip6-localhost ip6-loopback\n' >"$root/etc/hosts"
+fi
 # How this machine reaches its registries — apt's proxy and date settings, the local CAs
 # of a TLS-inspecting egress (ca-certificates, which .ci/run installs, adds them to the
 # bundle) — not anything it has installed.

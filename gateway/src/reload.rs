@@ -247,7 +247,7 @@ impl Gateway {
             s.stop();
         }
         for c in &down.cards {
-            c.hold.hold();
+            c.hold.retire();
         }
         let is_bus = |t: &TaskContext| {
             down.cards

@@ -22,6 +22,10 @@ const STOPPING: &str = "the gateway is stopping: outputs go to their safe values
 #[derive(Debug, Default)]
 pub struct Hold {
     held: AtomicBool,
+    /// Held for good: its card was taken down by a reload (and a new one may stand under
+    /// its name). A writer still holding its devices is refused as by a device gone
+    /// (offline), not as by a stop, so the writer shows the fault.
+    retired: AtomicBool,
     gate: RwLock<()>,
 }
 
@@ -30,6 +34,14 @@ impl Hold {
     /// writes under way have finished. Idempotent.
     pub fn hold(&self) {
         let _closed = self.gate.write().unwrap_or_else(PoisonError::into_inner);
+        self.held.store(true, Ordering::Release);
+    }
+
+    /// [`hold`](Hold::hold), for a card a reload takes down: from now on a write is refused
+    /// as by a device that is gone ([`DeviceError::Offline`]).
+    pub fn retire(&self) {
+        let _closed = self.gate.write().unwrap_or_else(PoisonError::into_inner);
+        self.retired.store(true, Ordering::Release);
         self.held.store(true, Ordering::Release);
     }
 
@@ -42,6 +54,9 @@ impl Hold {
     fn enter(&self) -> Result<RwLockReadGuard<'_, ()>, DeviceError> {
         let open = self.gate.read().unwrap_or_else(PoisonError::into_inner);
         if self.is_held() {
+            if self.retired.load(Ordering::Acquire) {
+                return Err(DeviceError::Offline);
+            }
             return Err(DeviceError::Held { reason: STOPPING });
         }
         Ok(open)
