@@ -304,6 +304,20 @@ impl Gateway {
         // holds itself (see `reload`); the cards it took out it holds itself.
         self.stopping
             .store(true, std::sync::atomic::Ordering::SeqCst);
+        // ThreadScope first, its pulses under way ended: the hold below would refuse their
+        // lows and leave their bits high (the stop's first step is this call, so the close
+        // is here, not later in `shutdown`). A step is given SCOPE_CLOSE to end: on a
+        // loaded host (a test rig's emulated CPU beside a build) one second was not
+        // always enough. Idempotent: a second call finds no pulse under way.
+        if !self
+            .runtime
+            .thread_scope()
+            .close(Instant::now() + SCOPE_CLOSE)
+        {
+            tracing::warn!(
+                "ThreadScope: a step still under way after {SCOPE_CLOSE:?}; its bit may stay high"
+            );
+        }
         for c in &self.parts().cards {
             c.hold.hold();
         }
@@ -318,18 +332,6 @@ impl Gateway {
     /// output to its safe value, lets each card get them to the hardware, then stops the bus
     /// sides. Returns a line per card with the outputs as left.
     pub fn shutdown(&self) -> Vec<String> {
-        // ThreadScope first, its pulses under way ended: the hold below would refuse their
-        // lows and leave their bits high. A step is given SCOPE_CLOSE to end: on a loaded
-        // host (a test rig's emulated CPU beside a build) one second was not always enough.
-        if !self
-            .runtime
-            .thread_scope()
-            .close(Instant::now() + SCOPE_CLOSE)
-        {
-            tracing::warn!(
-                "ThreadScope: a step still under way after {SCOPE_CLOSE:?}; its bit may stay high"
-            );
-        }
         // From here on only the safe values are written: every other write is refused.
         self.hold_outputs();
         // A reload under way ends first (its cards held as they come); none begins after.
