@@ -521,7 +521,10 @@ fn purge_leaves_nothing_but_the_system_user() -> Result<(), Failed> {
 }
 
 fn main() -> std::process::ExitCode {
+    // Fourteen trials with two package installs under an emulated CPU: 325 s on a quiet
+    // machine, over the rig's default 600 s beside a cold workspace build.
     let rig = testkit::rig::vcan()
+        .timeout(Duration::from_secs(1200))
         .systemd()
         .module("i2c-dev")
         .setup("modprobe i2c-stub chip_addr=0x48")
