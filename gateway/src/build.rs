@@ -69,7 +69,26 @@ struct Build<'d, 's, 'a> {
     buses: HashMap<String, driver_api::BusSide>,
 }
 
-impl Build<'_, '_, '_> {
+impl<'d, 's, 'a> Build<'d, 's, 'a> {
+    /// A build of `d` (or of what `only` selects of it) from `file`, whose `source`
+    /// locates problems; files it names are relative to the file's folder.
+    fn new(
+        d: &'d Deployment,
+        types: &'d Types,
+        source: &'s Source<'a>,
+        file: &'d str,
+        only: Option<&'d Selection>,
+    ) -> Self {
+        Build {
+            d,
+            types,
+            problems: Problems::new(source),
+            base: Path::new(file).parent().unwrap_or(Path::new("")),
+            only,
+            buses: HashMap::new(),
+        }
+    }
+
     fn card_wanted(&self, i: usize) -> bool {
         self.only.is_none_or(|s| s.cards.contains(&i))
     }
@@ -116,15 +135,8 @@ impl Gateway {
 
 fn build(d: &Deployment, file: &str, text: &str, types: &Types) -> Result<Gateway, Vec<Problem>> {
     let source = Source::new(file, text);
-    let base = Path::new(file).parent().unwrap_or(Path::new(""));
-    let mut b = Build {
-        d,
-        types,
-        problems: Problems::new(&source),
-        base,
-        only: None,
-        buses: HashMap::new(),
-    };
+    let mut b = Build::new(d, types, &source, file, None);
+    let base = b.base;
     for (key, message) in checks::control(d) {
         b.problems.at(&KeyPath::top(&key), message);
     }
@@ -194,15 +206,7 @@ pub(crate) fn rebuild(
     between: impl FnOnce(&Registry) -> Vec<String>,
 ) -> Result<Rebuilt, (Rebuilt, Vec<String>)> {
     let source = Source::new(file, text);
-    let base = Path::new(file).parent().unwrap_or(Path::new(""));
-    let mut b = Build {
-        d,
-        types,
-        problems: Problems::new(&source),
-        base,
-        only: Some(only),
-        buses: HashMap::new(),
-    };
+    let mut b = Build::new(d, types, &source, file, Some(only));
     let mut cards = b.cards(runtime.registry());
     let mut problems = between(runtime.registry());
     let order = b.bus_and_io(runtime, &mut cards);
