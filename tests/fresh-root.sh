@@ -107,5 +107,6 @@ chroot "$root" /usr/bin/env -i \
 status=$?
 set -e
 end=$(date +%s)
+echo "fresh-root: the build's target folder took $(du -sh "$root/build/hwgw/target" 2>/dev/null | cut -f1) (the disk CI needs beside the toolchain and packages)"
 echo "fresh-root: .ci/run exited $status after $(( end - start )) s in all (a fresh Debian $suite minbase root, this machine's Rust toolchain)"
 exit $status
