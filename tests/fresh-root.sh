@@ -57,6 +57,7 @@ bind() { # bind SOURCE TARGET [ro]
 
 start=$(date +%s)
 rm -rf --one-file-system "$root"
+mkdir -p "$(dirname "$root")" # a new clone has no target/ yet
 echo "fresh-root: debootstrap --variant=minbase $suite from $mirror into $root"
 debootstrap --variant=minbase "$suite" "$root" "$mirror" >"$root.debootstrap.log" 2>&1 \
   || { tail -n 30 "$root.debootstrap.log" >&2; exit 1; }
