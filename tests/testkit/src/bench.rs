@@ -24,14 +24,20 @@ pub fn mean(v: impl Iterator<Item = f64>) -> f64 {
 /// Whether this process may run a thread SCHED_FIFO at `priority` (tried on a short-lived
 /// thread of its own).
 pub fn can_fifo(priority: i32) -> bool {
-    let ok = std::thread::spawn(move || {
-        let p = libc::sched_param {
-            sched_priority: priority,
-        };
-        #[allow(unsafe_code, reason = "pthread_setschedparam has no safe wrapper")]
-        // SAFETY: sets the calling (short-lived) thread's own policy with a valid param.
-        let rc = unsafe { libc::pthread_setschedparam(libc::pthread_self(), libc::SCHED_FIFO, &p) };
-        rc == 0
-    });
-    ok.join().unwrap_or(false)
+    std::thread::spawn(move || fifo_here(priority))
+        .join()
+        .unwrap_or(false)
+}
+
+/// Runs the calling thread SCHED_FIFO at `priority` from now on, if this process may
+/// (root, or CAP_SYS_NICE): a test's peer that timestamps what it receives is then not
+/// delayed by a loaded machine's other work. Whether it took.
+pub fn fifo_here(priority: i32) -> bool {
+    let p = libc::sched_param {
+        sched_priority: priority,
+    };
+    #[allow(unsafe_code, reason = "pthread_setschedparam has no safe wrapper")]
+    // SAFETY: sets the calling thread's own policy with a valid param.
+    let rc = unsafe { libc::pthread_setschedparam(libc::pthread_self(), libc::SCHED_FIFO, &p) };
+    rc == 0
 }
