@@ -47,6 +47,6 @@ pub use interfaces::{
     AnalogIn, AnalogOut, AnalogReference, Device, DigitalIn, DigitalOut, Encoder,
 };
 pub use registry::{
-    CardDevices, Interface, NameInfo, NameServer, Registry, RegistryEntry, RegistryError,
+    CardDevices, Interface, NameInfo, NameServer, Registry, RegistryEntry, RegistryError, Served,
 };
 pub use scale::{AnalogRange, RawRange, Scale, ScaleError, Unit, linear};

@@ -450,7 +450,31 @@ impl Registry {
     pub fn encoder(&self) -> &NameServer<dyn Encoder> {
         &self.encoder
     }
+}
 
+/// A device interface the registry serves, found by its type: code generic over the five
+/// interfaces (a component's required devices) gets the right name server with
+/// `<dyn AnalogIn as Served>::server(&registry)`.
+pub trait Served: crate::Device + 'static {
+    /// The interface.
+    const INTERFACE: Interface;
+    /// Its name server in `registry`.
+    fn server(registry: &Registry) -> &NameServer<Self>;
+}
+
+macro_rules! served {
+    ($($t:ident => $f:ident),+) => {$(
+        impl Served for dyn $t {
+            const INTERFACE: Interface = Interface::$t;
+            fn server(registry: &Registry) -> &NameServer<Self> {
+                registry.$f()
+            }
+        }
+    )+};
+}
+served!(AnalogIn => analog_in, AnalogOut => analog_out, DigitalIn => digital_in, DigitalOut => digital_out, Encoder => encoder);
+
+impl Registry {
     /// Registers every device of card `name` under `name` (encoders as `name.suffix`),
     /// owned by `name`. All or nothing: on error, what this call registered is removed again
     /// and a name held by someone else stays theirs.

@@ -565,68 +565,94 @@ impl Build<'_, '_, '_> {
         order
     }
 
-    /// User components: built, properties set, configured.
+    /// User components: built with their properties set, their requirements bound (to
+    /// any component, so all are built first), configured; started providers first.
     fn components(&mut self, runtime: &Runtime, order: &mut Vec<(TaskContext, bool)>) {
-        let types = &self.types.components;
+        let mut built = Vec::new();
         for (i, c) in self.d.components.iter().enumerate() {
-            if !self.component_wanted(i) {
-                continue;
-            }
-            let at = KeyPath::top("component").index(i);
-            if let crate::config::ActivityConfig::Periodic { period_ms, .. } = c.activity
-                && let Err(msg) = checks::period(period_ms)
+            if self.component_wanted(i)
+                && let Some(task) = self.component(runtime, i, c)
             {
-                self.problems.at(&at.key("activity").key("period_ms"), msg);
-                continue;
+                built.push((i, task));
             }
-            if let ActivitySpec::Periodic { thread, .. } | ActivitySpec::NonPeriodic { thread } =
-                &c.activity.spec()
-                && let Err(msg) = thread.check()
-            {
-                self.problems.at(&at.key("activity"), msg);
-                continue;
-            }
-            let task = match types.build(runtime, &c.name, &c.kind, c.activity.spec()) {
-                Ok(Some(t)) => t,
-                Ok(None) => {
-                    let msg = format!(
-                        "unknown component type {:?}; this build has: {}",
-                        c.kind,
-                        types.names().join(", ")
-                    );
-                    self.problems.at(&at.key("type"), msg);
-                    continue;
-                }
-                Err(e) => {
-                    self.problems.at(&at.key("name"), e);
-                    continue;
-                }
-            };
-            let failed = match task.properties().load_toml(&c.properties) {
-                Err(e) => {
-                    for line in e.to_string().lines() {
-                        self.problems.at(&at.key("properties"), line);
-                    }
-                    true
-                }
-                Ok(()) if task.state() == TaskState::PreOperational => match task.configure() {
-                    Err(e) => {
-                        self.problems.at(&at, e);
-                        true
-                    }
-                    Ok(()) => false,
-                },
-                Ok(()) => false,
-            };
-            if failed {
-                // A reload's failure leaves no half-made component under the name.
-                if self.only.is_some() {
-                    let _ = runtime.remove(&c.name);
-                }
-                continue;
-            }
-            order.push((task, c.start));
         }
+        if self.only.is_some() {
+            let names: Vec<String> = built.iter().map(|(_, t)| t.name().to_string()).collect();
+            for line in crate::bindings::rebind_dependents(runtime, &names) {
+                self.problems.at(&KeyPath::top("component"), line);
+            }
+        }
+        let mut bound = Vec::new();
+        for (i, task) in built {
+            let c = &self.d.components[i];
+            let at = KeyPath::top("component").index(i);
+            let mut ok = crate::bindings::bind(runtime, &task, c, &at, &mut self.problems);
+            if ok
+                && task.state() == TaskState::PreOperational
+                && let Err(e) = task.configure()
+            {
+                self.problems.at(&at, e);
+                ok = false;
+            }
+            if ok {
+                bound.push((task, c.start));
+            } else if self.only.is_some() {
+                // A reload's failure leaves no half-made component under the name.
+                let _ = runtime.remove(&c.name);
+            }
+        }
+        order.extend(crate::bindings::providers_first(bound));
+    }
+
+    /// Component `i`, `c`: built, its properties set; `None` after a problem.
+    fn component(
+        &mut self,
+        runtime: &Runtime,
+        i: usize,
+        c: &crate::config::ComponentConfig,
+    ) -> Option<TaskContext> {
+        let types = &self.types.components;
+        let at = KeyPath::top("component").index(i);
+        if let crate::config::ActivityConfig::Periodic { period_ms, .. } = c.activity
+            && let Err(msg) = checks::period(period_ms)
+        {
+            self.problems.at(&at.key("activity").key("period_ms"), msg);
+            return None;
+        }
+        if let ActivitySpec::Periodic { thread, .. } | ActivitySpec::NonPeriodic { thread } =
+            &c.activity.spec()
+            && let Err(msg) = thread.check()
+        {
+            self.problems.at(&at.key("activity"), msg);
+            return None;
+        }
+        let task = match types.build(runtime, &c.name, &c.kind, c.activity.spec()) {
+            Ok(Some(t)) => t,
+            Ok(None) => {
+                let msg = format!(
+                    "unknown component type {:?}; this build has: {}",
+                    c.kind,
+                    types.names().join(", ")
+                );
+                self.problems.at(&at.key("type"), msg);
+                return None;
+            }
+            Err(e) => {
+                self.problems.at(&at.key("name"), e);
+                return None;
+            }
+        };
+        if let Err(e) = task.properties().load_toml(&c.properties) {
+            for line in e.to_string().lines() {
+                self.problems.at(&at.key("properties"), line);
+            }
+            // A reload's failure leaves no half-made component under the name.
+            if self.only.is_some() {
+                let _ = runtime.remove(&c.name);
+            }
+            return None;
+        }
+        Some(task)
     }
 
     /// The connections: made, with what closes each again.
@@ -696,7 +722,9 @@ impl Build<'_, '_, '_> {
         })
     }
 
-    /// The port `address` (`component.port`) names, or a problem at `at`.
+    /// The port `address` (`component.port`) names, or a problem at `at`. Both names may
+    /// hold dots (`sim0.ai.ch0`, a service's port `cam0.camera.frames`): the first split
+    /// from the right whose component has the port is it.
     fn port_end(
         &mut self,
         runtime: &Runtime,
@@ -708,17 +736,23 @@ impl Build<'_, '_, '_> {
                 .at(at, format!("{address:?}: expected \"component.port\""));
             return None;
         };
-        let found = runtime
-            .component(comp)
-            .map_err(|e| e.to_string())
-            .and_then(|t| t.port(port).map_err(|e| e.to_string()));
-        match found {
-            Ok(p) => Some(p),
-            Err(e) => {
-                self.problems.at(at, e);
-                None
+        let find = |comp: &str, port: &str| {
+            runtime
+                .component(comp)
+                .map_err(|e| e.to_string())
+                .and_then(|t| t.port(port).map_err(|e| e.to_string()))
+        };
+        let first = match find(comp, port) {
+            Ok(p) => return Some(p),
+            Err(e) => e,
+        };
+        for (i, _) in address[..comp.len()].rmatch_indices('.') {
+            if let Ok(p) = find(&address[..i], &address[i + 1..]) {
+                return Some(p);
             }
         }
+        self.problems.at(at, first);
+        None
     }
 
     /// The servers of the deployment's server sections, by their types, over the devices

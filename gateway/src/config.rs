@@ -337,6 +337,25 @@ pub struct ComponentConfig {
     /// Start it after configuring (default true).
     #[serde(default = "yes")]
     pub start: bool,
+    /// What its requirements are bound to, by requirement: a service to
+    /// `"component.service"` (`camera = "cam0.camera"`), devices to their names
+    /// (`valves = ["press", "aux"]`). A required service not named here is bound to the one
+    /// component providing a service of its name.
+    #[serde(default)]
+    pub requires: BTreeMap<String, Binding>,
+}
+
+/// What one requirement is bound to.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(
+    untagged,
+    expecting = "a \"component.service\" or device name, or a list of device names"
+)]
+pub enum Binding {
+    /// A provider's service (`cam0.camera`), or one device.
+    One(String),
+    /// Devices, in order.
+    Many(Vec<String>),
 }
 
 fn yes() -> bool {

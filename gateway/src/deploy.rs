@@ -292,6 +292,17 @@ impl Gateway {
                 t.operations().len(),
                 t.state()
             ));
+            for p in t.provided() {
+                s.push_str(&format!("  provides {}\n", p.name));
+            }
+            for r in t.required() {
+                let to = if r.bound_to.is_empty() {
+                    "unbound".to_string()
+                } else {
+                    r.bound_to.join(", ")
+                };
+                s.push_str(&format!("  requires {} -> {to}\n", r.name));
+            }
         }
         s
     }

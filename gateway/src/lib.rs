@@ -35,6 +35,7 @@
 //! ```
 
 mod assets;
+mod bindings;
 pub mod browse;
 mod build;
 pub mod checks;

@@ -454,6 +454,12 @@ pub struct Description {
     pub counters: TaskCounters,
     /// Activity statistics.
     pub activity: ActivityStats,
+    /// The services it provides.
+    #[serde(default)]
+    pub provides: Vec<rtt::service::ProvidedInfo>,
+    /// The services and devices it requires, each with its binding.
+    #[serde(default)]
+    pub requires: Vec<rtt::service::RequiredInfo>,
 }
 
 /// A port in `describe`: what it is, and how many connections it has now.

@@ -112,6 +112,8 @@ pub(crate) fn handle(
                 attributes: t.attributes().list(),
                 counters: t.counters(),
                 activity: t.stats(),
+                provides: t.provided(),
+                requires: t.required(),
             })
         }
         Request::Get {

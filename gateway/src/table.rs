@@ -317,7 +317,64 @@ pub fn description(d: &Description, values: &[Option<Value>]) -> String {
         })
         .collect();
     out.extend(align(&props).into_iter().map(|l| format!("  {l}")));
+    out.extend(services(d));
     out.join("\n")
+}
+
+/// The provided and required services of a description, when it has any: each provided
+/// service with its members, each requirement with its binding and whether it is ready.
+fn services(d: &Description) -> Vec<String> {
+    let mut out = Vec::new();
+    if !d.provides.is_empty() {
+        out.push("provides:".into());
+        for p in &d.provides {
+            let members: Vec<&str> = p
+                .operations
+                .iter()
+                .chain(&p.ports)
+                .map(String::as_str)
+                .collect();
+            out.push(format!("  {}: {}", p.name, members.join(", ")));
+        }
+    }
+    if !d.requires.is_empty() {
+        out.push("requires:".into());
+        let rows: Vec<Vec<String>> = d
+            .requires
+            .iter()
+            .map(|r| {
+                let what = match &r.kind {
+                    rtt::service::RequiredKind::Service { operations } => operations.join(", "),
+                    rtt::service::RequiredKind::Devices {
+                        interface,
+                        multiplicity,
+                    } => format!("{multiplicity} {interface}"),
+                };
+                let binding = if r.bound_to.is_empty() {
+                    if r.optional {
+                        "unbound (optional)"
+                    } else {
+                        "unbound"
+                    }
+                    .to_string()
+                } else {
+                    format!(
+                        "-> {} ({})",
+                        r.bound_to.join(", "),
+                        if r.ready { "ready" } else { "not ready" }
+                    )
+                };
+                let counts = if r.lost + r.back > 0 {
+                    format!("lost {}, back {}", r.lost, r.back)
+                } else {
+                    String::new()
+                };
+                vec![r.name.clone(), binding, what, counts]
+            })
+            .collect();
+        out.extend(align(&rows).into_iter().map(|l| format!("  {l}")));
+    }
+    out
 }
 
 /// What a reload did, a line each: applied, then what needs a restart, then the errors.

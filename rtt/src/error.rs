@@ -54,6 +54,14 @@ pub enum RuntimeError {
 #[derive(Debug, Clone, thiserror::Error)]
 #[non_exhaustive]
 pub enum LifecycleError {
+    /// A requirement that is not optional is not bound.
+    #[error("component {component:?}: required {requirement:?} is not bound")]
+    Unbound {
+        /// The component.
+        component: String,
+        /// The requirement.
+        requirement: String,
+    },
     /// The command is not allowed in the current state.
     #[error("component {component:?}: cannot {command} in state {state}")]
     Illegal {

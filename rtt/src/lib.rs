@@ -14,6 +14,8 @@
 //! - [`property`]: typed, documented, nested properties loaded from and saved to TOML;
 //! - [`activity`]: periodic, non-periodic, file-descriptor and slave activities with
 //!   timing statistics;
+//! - [`service`]: services provided and required, bound at deployment, with loss and
+//!   return told to the requiring component;
 //! - [`scope`]: ThreadScope, each runtime thread as a bit on a digital output;
 //! - [`time`]: the monotonic clock and its simulated twin;
 //! - [`error`] and [`info`]: what goes wrong, and what is listed about ports;
@@ -68,6 +70,7 @@ pub mod port;
 pub mod property;
 pub mod runtime;
 pub mod scope;
+pub mod service;
 mod spin;
 pub mod state;
 pub mod typename;

@@ -83,6 +83,15 @@ pub enum CallError {
         /// What was wrong.
         detail: String,
     },
+    /// A required operation whose binding is not ready: unbound, or its provider not
+    /// Running.
+    #[error(
+        "required operation {operation:?} is not ready: not bound, or its provider is not running"
+    )]
+    NotReady {
+        /// The operation.
+        operation: String,
+    },
     /// `collect` after the result was already taken.
     #[error("the result was already collected")]
     AlreadyCollected,
@@ -214,6 +223,13 @@ enum HandleState<R> {
 }
 
 impl<R> SendHandle<R> {
+    /// A handle whose result is known already.
+    pub(crate) fn ready(result: Result<R, CallError>) -> Self {
+        SendHandle {
+            state: HandleState::Ready(result),
+        }
+    }
+
     /// Waits for the result and takes it.
     pub fn collect(mut self) -> Result<R, CallError> {
         match std::mem::replace(&mut self.state, HandleState::Taken) {

@@ -291,3 +291,70 @@ fn client_call_and_periodic_step_allocate_nothing() {
 
 struct Nothing;
 impl Component for Nothing {}
+
+struct Requirer {
+    scale: rtt::service::RequiredOperation<(f64,), f64>,
+}
+impl Component for Requirer {
+    fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
+        if self.scale.ready() {
+            self.scale.call((1.0,))?;
+        }
+        Ok(())
+    }
+}
+
+#[test]
+fn a_required_operations_ready_call_and_the_engines_look_allocate_nothing() {
+    let rt = Runtime::new(Arc::new(Registry::new()), RuntimeOptions::default()).unwrap();
+    let provider = rt
+        .add(
+            "provider",
+            ActivitySpec::Slave,
+            rtt::InitialState::Stopped,
+            |iface| {
+                iface.provides("math").client_operation(
+                    "scale",
+                    "doubles",
+                    &[("x", "")],
+                    |(x,): (f64,)| 2.0 * x,
+                )?;
+                Ok(Nothing)
+            },
+        )
+        .unwrap();
+    let mut scale = None;
+    let t = rt
+        .add(
+            "requirer",
+            ActivitySpec::Slave,
+            rtt::InitialState::Stopped,
+            |iface| {
+                let op = iface.requires("math").operation::<(f64,), f64>("scale")?;
+                scale = Some(op.clone());
+                Ok(Requirer { scale: op })
+            },
+        )
+        .unwrap();
+    let scale = scale.unwrap();
+    t.bind_service("math", &provider, "math", false).unwrap();
+    provider.start().unwrap();
+    t.start().unwrap();
+    t.step().unwrap();
+    assert_eq!(scale.call((2.0,)), Ok(4.0));
+    assert_eq!(
+        count(|| for i in 0..10_000 {
+            assert!(scale.ready());
+            scale.call((f64::from(i),)).unwrap();
+        }),
+        0,
+        "ready() and call() of a required ClientThread operation"
+    );
+    assert_eq!(
+        count(|| for _ in 0..1_000 {
+            t.step().unwrap();
+        }),
+        0,
+        "a slave step that looks at a bound requirement and calls it"
+    );
+}

@@ -55,7 +55,14 @@ fn the_builtin_types_are_still_there_and_names_are_unique() {
     let mut t = hwgw_example_custom::types().components;
     assert_eq!(
         t.names(),
-        vec!["blinker", "follow", "recorder", "reporter", "threshold"]
+        vec![
+            "blinker",
+            "follow",
+            "recorder",
+            "reporter",
+            "supervisor",
+            "threshold"
+        ]
     );
     assert!(!t.register("follow", |rt, name, spec| rt.add(
         name,

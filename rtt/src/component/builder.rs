@@ -21,6 +21,8 @@ pub(crate) struct BuiltInterface {
     pub(crate) operations: Vec<Arc<dyn DynOperation>>,
     pub(crate) properties: PropertyBag,
     pub(crate) attributes: PropertyBag,
+    pub(crate) provided: Vec<crate::service::ProvidedInfo>,
+    pub(crate) required: Vec<Arc<crate::service::Requirement>>,
 }
 
 /// Builds a component's interface: handed to the component's constructor.
@@ -32,6 +34,8 @@ pub struct InterfaceBuilder<C> {
     operations: Vec<Arc<dyn DynOperation>>,
     properties: PropertyBag,
     attributes: PropertyBag,
+    pub(super) provided: Vec<crate::service::ProvidedInfo>,
+    pub(super) required: Vec<Arc<crate::service::Requirement>>,
     registry: Arc<Registry>,
     _component: std::marker::PhantomData<fn(&mut C)>,
 }
@@ -51,6 +55,8 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
             operations: Vec::new(),
             properties: PropertyBag::new("properties"),
             attributes: PropertyBag::new("attributes"),
+            provided: Vec::new(),
+            required: Vec::new(),
             registry,
             _component: std::marker::PhantomData,
         }
@@ -63,6 +69,8 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
             operations: self.operations,
             properties: self.properties,
             attributes: self.attributes,
+            provided: self.provided,
+            required: self.required,
         }
     }
 

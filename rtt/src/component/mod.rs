@@ -22,6 +22,7 @@ mod builder;
 mod dynport;
 mod hook_error;
 mod lookup;
+mod services;
 
 pub use crate::error::{CallOrIntrospect, IntrospectError, LifecycleError, RuntimeError};
 pub use crate::info::{Direction, NamedValue, PortData, PortInfo};
@@ -29,6 +30,7 @@ pub use crate::state::{InitialState, TaskState};
 pub use builder::InterfaceBuilder;
 pub use dynport::{DynPort, DynReader, DynWriter};
 pub use hook_error::{HookError, HookResult};
+pub use services::{Provides, Requires};
 
 use crate::activity::{
     Activity, ActivityError, ActivitySpec, ActivityStats, FdEvents, Runner, StepTiming,
@@ -85,6 +87,16 @@ pub trait Component: Send + 'static {
     /// On entering Exception.
     fn exception_hook(&mut self, ctx: &mut Context<'_>) {
         let _ = ctx;
+    }
+    /// Before a step: required `service` (a service or devices, by the name it was
+    /// required under) stopped being ready — its provider left Running, a device went
+    /// offline. Its operations refuse calls until [`service_back`](Self::service_back).
+    fn service_lost(&mut self, ctx: &mut Context<'_>, service: &str) {
+        let _ = (ctx, service);
+    }
+    /// Before a step: required `service` is ready again.
+    fn service_back(&mut self, ctx: &mut Context<'_>, service: &str) {
+        let _ = (ctx, service);
     }
 }
 
@@ -182,11 +194,17 @@ pub struct TaskCounters {
     pub failed_hooks: u64,
     /// The last failure message.
     pub last_error: Option<String>,
+    /// Times a required service or device stopped being ready while it ran.
+    #[serde(default)]
+    pub services_lost: u64,
+    /// Times one was ready again.
+    #[serde(default)]
+    pub services_back: u64,
 }
 
 pub(crate) struct TaskCore {
     name: String,
-    state: StateCell,
+    state: Arc<StateCell>,
     component: Mutex<Box<dyn ErasedComponent>>,
     queue: SegQueue<Message>,
     activity: Activity,
@@ -194,6 +212,8 @@ pub(crate) struct TaskCore {
     operations: Vec<Arc<dyn DynOperation>>,
     properties: PropertyBag,
     attributes: PropertyBag,
+    provided: Vec<crate::service::ProvidedInfo>,
+    required: Vec<Arc<crate::service::Requirement>>,
     registry: Arc<Registry>,
     clock: Arc<dyn Clock>,
     runtime_errors: AtomicU64,
@@ -283,6 +303,9 @@ impl TaskCore {
         while let Some(msg) = self.queue.pop() {
             msg(comp.as_any_mut());
         }
+        if matches!(self.state(), TaskState::Running | TaskState::RunTimeError) {
+            self.look_at_requirements(comp, events, timing);
+        }
         match self.state() {
             TaskState::Running => {
                 let (r, error, _) =
@@ -318,6 +341,45 @@ impl TaskCore {
                 }
             }
             _ => {}
+        }
+    }
+}
+
+impl TaskCore {
+    /// Tells the component of each requirement that stopped or started being ready since
+    /// the last look: atomic loads when nothing changed.
+    fn look_at_requirements(
+        &self,
+        comp: &mut dyn ErasedComponent,
+        events: &FdEvents,
+        timing: StepTiming,
+    ) {
+        for req in &self.required {
+            let Some(back) = req.look() else { continue };
+            let name = req.name.as_str();
+            let (r, _, _) = self.run_hook(comp, events, timing, |c, ctx| {
+                if back {
+                    c.service_back(ctx, name)
+                } else {
+                    c.service_lost(ctx, name)
+                }
+            });
+            if let Err(panic) = r {
+                self.enter_exception(comp, format!("service hook panicked: {panic}"));
+                return;
+            }
+        }
+    }
+
+    /// The first requirement that is neither bound nor optional, as the refusal of
+    /// `command`.
+    fn unbound(&self) -> Result<(), LifecycleError> {
+        match self.required.iter().find(|r| !r.satisfied()) {
+            Some(r) => Err(LifecycleError::Unbound {
+                component: self.name.clone(),
+                requirement: r.name.clone(),
+            }),
+            None => Ok(()),
         }
     }
 }
@@ -440,7 +502,7 @@ impl TaskContext {
             let iface = iface.into_parts();
             TaskCore {
                 name: name.to_string(),
-                state: StateCell::new(TaskState::Init),
+                state: Arc::new(StateCell::new(TaskState::Init)),
                 component: Mutex::new(component),
                 queue: SegQueue::new(),
                 activity,
@@ -448,6 +510,8 @@ impl TaskContext {
                 operations: iface.operations,
                 properties: iface.properties,
                 attributes: iface.attributes,
+                provided: iface.provided,
+                required: iface.required,
                 registry: setup.registry,
                 clock: setup.clock,
                 runtime_errors: AtomicU64::new(0),
@@ -531,8 +595,10 @@ impl TaskContext {
         }
     }
 
-    /// PreOperational or Stopped → Stopped, via the configure hook.
+    /// PreOperational or Stopped → Stopped, via the configure hook; refused while a
+    /// requirement that is not optional is unbound.
     pub fn configure(&self) -> Result<(), LifecycleError> {
+        self.core.unbound()?;
         self.hook(
             "configure",
             &[TaskState::PreOperational, TaskState::Stopped],
@@ -542,8 +608,10 @@ impl TaskContext {
         )
     }
 
-    /// Stopped → Running: the start hook, then the activity starts.
+    /// Stopped → Running: the start hook, then the activity starts; refused while a
+    /// requirement that is not optional is unbound.
     pub fn start(&self) -> Result<(), LifecycleError> {
+        self.core.unbound()?;
         self.hook(
             "start",
             &[TaskState::Stopped],
@@ -649,6 +717,8 @@ impl TaskContext {
             exceptions: self.core.exceptions.load(Ordering::Relaxed),
             failed_hooks: self.core.failed_hooks.load(Ordering::Relaxed),
             last_error: lock(&self.core.last_error).clone(),
+            services_lost: self.core.required.iter().map(|r| r.counts().0).sum(),
+            services_back: self.core.required.iter().map(|r| r.counts().1).sum(),
         }
     }
 }

@@ -1,0 +1,797 @@
+//! Services, provided and required.
+//!
+//! RTT 2.0 road map: "A component always specifies if a service is provided or requested.
+//! This allows run-time dependency and system state checking, but also automatic
+//! connection/disconnection management" (L46); "Allow to specify requires interfaces …
+//! such that they can be automatically connected during application deployment. The
+//! required primitives are grouped in interfaces, such that they can be connected as a
+//! group from provider to requirer" (L458–464); the `requires("Camera")->addMethod(...)`
+//! example, where the deployment sets up the method (L614–628); and "Components are aware
+//! of the available services … They are notified in time such that they can take proper
+//! action and recover and resume when a service becomes available again" (L74–76).
+//!
+//! - **Provided**: [`InterfaceBuilder::provides`](crate::InterfaceBuilder::provides) opens a
+//!   named service; its operations and ports are named `service.member`, so they are found,
+//!   listed and called by name as any other (`hwgw call cam0 camera.set_resolution 640 480`).
+//! - **Required operations**: [`InterfaceBuilder::requires`](crate::InterfaceBuilder::requires)
+//!   declares a service the component needs and, typed, the operations it calls
+//!   ([`RequiredOperation`]). [`TaskContext::bind_service`](crate::TaskContext::bind_service)
+//!   binds them as a group to a provider's service, each operation checked for its type.
+//! - **Required devices**: [`InterfaceBuilder::requires_devices`](crate::InterfaceBuilder::requires_devices)
+//!   declares devices of one interface with a [`Multiplicity`] (`one`, `0..2`, `*`), bound
+//!   by name with [`TaskContext::bind_devices`](crate::TaskContext::bind_devices).
+//! - **Readiness**: a required service is ready while it is bound and its provider is
+//!   Running; required devices while every bound device is online. `ready()` is an atomic
+//!   load or two, no lock, for the real-time path.
+//! - **Loss and return**: before each step of a running component its engine looks at
+//!   every requirement; one that stopped being ready calls the component's
+//!   [`service_lost`](crate::Component::service_lost) hook, one that is ready again
+//!   [`service_back`](crate::Component::service_back); both are counted. Nothing has to
+//!   rebind: a provider that is Running again makes the binding ready by itself.
+//! - A requirement that is not optional and not bound refuses `configure` and `start`,
+//!   naming it.
+
+use crate::operation::{Args, CallError, OperationCaller, SendHandle};
+use crate::state::{StateCell, TaskState};
+use arc_swap::{ArcSwap, ArcSwapOption};
+use device_interface::{Registry, RegistryError, Served, Status};
+use serde::{Deserialize, Serialize};
+use std::fmt;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+
+/// How many devices a requirement takes: at least `min`, at most `max` (`None`: any).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct Multiplicity {
+    /// The fewest devices it works with.
+    pub min: u32,
+    /// The most it takes; `None` for no limit.
+    pub max: Option<u32>,
+}
+
+impl Multiplicity {
+    /// Exactly one.
+    pub const ONE: Multiplicity = Multiplicity {
+        min: 1,
+        max: Some(1),
+    };
+    /// Any number, none included (`*`).
+    pub const ANY: Multiplicity = Multiplicity { min: 0, max: None };
+
+    /// Whether `n` devices fit.
+    pub fn admits(&self, n: usize) -> bool {
+        n >= self.min as usize && self.max.is_none_or(|m| n <= m as usize)
+    }
+}
+
+/// Why a multiplicity was not understood.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error(
+    "multiplicity {given:?}: expected \"one\", a count (\"2\"), a range (\"0..2\", \"1..*\") or \"*\""
+)]
+pub struct MultiplicityError {
+    /// What was given.
+    pub given: String,
+}
+
+impl std::str::FromStr for Multiplicity {
+    type Err = MultiplicityError;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let err = || MultiplicityError {
+            given: s.to_string(),
+        };
+        let bound = |t: &str| t.trim().parse::<u32>().map_err(|_| err());
+        let t = s.trim();
+        match t {
+            "one" => return Ok(Multiplicity::ONE),
+            "*" => return Ok(Multiplicity::ANY),
+            _ => {}
+        }
+        let m = match t.split_once("..") {
+            None => {
+                let n = bound(t)?;
+                Multiplicity {
+                    min: n,
+                    max: Some(n),
+                }
+            }
+            Some((lo, "*")) => Multiplicity {
+                min: bound(lo)?,
+                max: None,
+            },
+            Some((lo, hi)) => Multiplicity {
+                min: bound(lo)?,
+                max: Some(bound(hi)?),
+            },
+        };
+        if m.max.is_some_and(|hi| hi < m.min) {
+            return Err(err());
+        }
+        Ok(m)
+    }
+}
+
+impl fmt::Display for Multiplicity {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match (self.min, self.max) {
+            (1, Some(1)) => f.write_str("one"),
+            (0, None) => f.write_str("*"),
+            (lo, None) => write!(f, "{lo}..*"),
+            (lo, Some(hi)) if lo == hi => write!(f, "{lo}"),
+            (lo, Some(hi)) => write!(f, "{lo}..{hi}"),
+        }
+    }
+}
+
+/// A service a component provides, as listed.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ProvidedInfo {
+    /// The service's name (`camera`).
+    pub name: String,
+    /// Its operations, without the service's prefix.
+    pub operations: Vec<String>,
+    /// Its ports, without the service's prefix.
+    pub ports: Vec<String>,
+}
+
+/// What a requirement asks for.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", tag = "kind")]
+pub enum RequiredKind {
+    /// A service: operations by name and type.
+    Service {
+        /// Each operation with its type in the control protocol's names
+        /// (`set_resolution(u32, u32) -> bool`).
+        operations: Vec<String>,
+    },
+    /// Devices of one interface.
+    Devices {
+        /// The interface (`DigitalOut`).
+        interface: String,
+        /// How many (`one`, `0..2`, `*`).
+        multiplicity: String,
+    },
+}
+
+/// A service or devices a component requires, as listed.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RequiredInfo {
+    /// The requirement's name (`camera`, `valves`).
+    pub name: String,
+    /// What it asks for.
+    #[serde(flatten)]
+    pub kind: RequiredKind,
+    /// The component configures and starts without it.
+    pub optional: bool,
+    /// What it is bound to: `component.service`, or device names; empty when unbound.
+    pub bound_to: Vec<String>,
+    /// Bound, and the provider Running (devices: every one online).
+    pub ready: bool,
+    /// Times it stopped being ready while the component ran.
+    pub lost: u64,
+    /// Times it was ready again.
+    pub back: u64,
+}
+
+/// Why a binding was refused.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
+pub enum BindError {
+    /// The component requires nothing by that name.
+    #[error("{component:?} requires no {name:?}; it requires: {}", if .known.is_empty() { "nothing".to_string() } else { .known.join(", ") })]
+    UnknownRequirement {
+        /// The requiring component.
+        component: String,
+        /// The name asked for.
+        name: String,
+        /// What it does require.
+        known: Vec<String>,
+    },
+    /// A service requirement given devices, or a device requirement given a service.
+    #[error("{component:?} requires {name:?} as {expected}, not as {given}")]
+    WrongKind {
+        /// The requiring component.
+        component: String,
+        /// The requirement.
+        name: String,
+        /// What it is (`a service`, `DigitalOut devices`).
+        expected: String,
+        /// What the binding gave.
+        given: &'static str,
+    },
+    /// The provider offers no service by that name.
+    #[error("{provider:?} provides no service {service:?}; it provides: {}", if .known.is_empty() { "none".to_string() } else { .known.join(", ") })]
+    NotProvided {
+        /// The provider.
+        provider: String,
+        /// The service asked for.
+        service: String,
+        /// What it does provide.
+        known: Vec<String>,
+    },
+    /// A required operation the provided service lacks.
+    #[error("{at} does not exist, and {:?} requires it as {required}", at.component)]
+    MissingOperation {
+        /// Where it was looked for.
+        at: Box<OperationAt>,
+        /// Its required type.
+        required: String,
+    },
+    /// A provided operation of another type than required.
+    #[error("{at} is {provided}, but {:?} requires {required}", at.component)]
+    WrongType {
+        /// Where it was found.
+        at: Box<OperationAt>,
+        /// Its type as provided.
+        provided: String,
+        /// Its type as required.
+        required: String,
+    },
+    /// A device that is not registered under the interface.
+    #[error("{component:?} requires {name:?}: {source}")]
+    Device {
+        /// The requiring component.
+        component: String,
+        /// The requirement.
+        name: String,
+        /// The registry's answer.
+        source: Box<RegistryError>,
+    },
+    /// Too few or too many devices.
+    #[error("{component:?} requires {multiplicity} {interface} devices as {name:?}; {given} given")]
+    Multiplicity {
+        /// The requiring component.
+        component: String,
+        /// The requirement.
+        name: String,
+        /// The interface.
+        interface: String,
+        /// How many it takes.
+        multiplicity: Multiplicity,
+        /// How many were given.
+        given: usize,
+    },
+}
+
+/// A required operation's place in a provider: `provider.service.operation`, for the
+/// requiring `component`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct OperationAt {
+    /// The requiring component.
+    pub component: String,
+    /// The provider.
+    pub provider: String,
+    /// The service.
+    pub service: String,
+    /// The operation.
+    pub operation: String,
+}
+
+impl fmt::Display for OperationAt {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}.{}.{}", self.provider, self.service, self.operation)
+    }
+}
+
+/// Whether a requirement can be used now: lock-free.
+pub(crate) trait Readiness: Send + Sync {
+    /// Bound (enough devices), whatever its provider's state.
+    fn bound(&self) -> bool;
+    /// Bound and usable now.
+    fn ready(&self) -> bool;
+}
+
+/// Binds one required operation to a provider's operation, once every member of the
+/// service has been found: the check and the change are apart so a binding applies whole
+/// or not at all.
+type Resolve = Box<
+    dyn Fn(&crate::TaskContext, &str) -> Result<Box<dyn FnOnce() + Send>, ResolveError>
+        + Send
+        + Sync,
+>;
+
+/// Why one member did not resolve.
+pub(crate) enum ResolveError {
+    Missing,
+    WrongType(String),
+}
+
+pub(crate) struct Member {
+    name: String,
+    signature: String,
+    resolve: Resolve,
+    unbind: Box<dyn Fn() + Send + Sync>,
+}
+
+impl Member {
+    pub(crate) fn name(&self) -> &str {
+        &self.name
+    }
+}
+
+/// The provider side of a service requirement: whose state tells readiness.
+#[derive(Default)]
+pub(crate) struct ServiceCell {
+    provider: ArcSwapOption<StateCell>,
+}
+
+impl Readiness for ServiceCell {
+    fn bound(&self) -> bool {
+        self.provider.load().is_some()
+    }
+
+    fn ready(&self) -> bool {
+        self.provider
+            .load()
+            .as_ref()
+            .is_some_and(|s| s.get() == TaskState::Running)
+    }
+}
+
+type DeviceBind = Box<
+    dyn Fn(&Registry, &[String]) -> Result<Box<dyn FnOnce() + Send>, RegistryError> + Send + Sync,
+>;
+
+pub(crate) enum Kind {
+    Service {
+        cell: Arc<ServiceCell>,
+        members: Mutex<Vec<Member>>,
+    },
+    Devices {
+        interface: device_interface::Interface,
+        multiplicity: Multiplicity,
+        ready: Arc<dyn Readiness>,
+        bind: DeviceBind,
+        clear: Box<dyn Fn() + Send + Sync>,
+    },
+}
+
+/// One requirement of a component.
+pub(crate) struct Requirement {
+    pub(crate) name: String,
+    pub(crate) optional: AtomicBool,
+    pub(crate) kind: Kind,
+    /// Readiness at the last look (the engine's, before a step).
+    pub(crate) last_ready: AtomicBool,
+    lost: AtomicU64,
+    back: AtomicU64,
+    bound_to: Mutex<Vec<String>>,
+}
+
+impl Requirement {
+    pub(crate) fn service(name: &str) -> Requirement {
+        Requirement::new(
+            name,
+            Kind::Service {
+                cell: Arc::new(ServiceCell::default()),
+                members: Mutex::new(Vec::new()),
+            },
+        )
+    }
+
+    fn new(name: &str, kind: Kind) -> Requirement {
+        Requirement {
+            name: name.to_string(),
+            optional: AtomicBool::new(false),
+            kind,
+            last_ready: AtomicBool::new(false),
+            lost: AtomicU64::new(0),
+            back: AtomicU64::new(0),
+            bound_to: Mutex::new(Vec::new()),
+        }
+    }
+
+    fn readiness(&self) -> &dyn Readiness {
+        match &self.kind {
+            Kind::Service { cell, .. } => &**cell,
+            Kind::Devices { ready, .. } => &**ready,
+        }
+    }
+
+    /// Whether it is bound and usable now (lock-free).
+    pub(crate) fn ready(&self) -> bool {
+        self.readiness().ready()
+    }
+
+    /// Whether a component needing it may configure and start.
+    pub(crate) fn satisfied(&self) -> bool {
+        self.optional.load(Ordering::Relaxed) || self.readiness().bound()
+    }
+
+    /// Notes a change of readiness seen by the engine: `Some(true)` back, `Some(false)`
+    /// lost, `None` no change.
+    pub(crate) fn look(&self) -> Option<bool> {
+        let now = self.ready();
+        if self.last_ready.swap(now, Ordering::Relaxed) == now {
+            return None;
+        }
+        let counter = if now { &self.back } else { &self.lost };
+        counter.fetch_add(1, Ordering::Relaxed);
+        Some(now)
+    }
+
+    /// (lost, back).
+    pub(crate) fn counts(&self) -> (u64, u64) {
+        (
+            self.lost.load(Ordering::Relaxed),
+            self.back.load(Ordering::Relaxed),
+        )
+    }
+
+    pub(crate) fn info(&self) -> RequiredInfo {
+        let kind = match &self.kind {
+            Kind::Service { members, .. } => RequiredKind::Service {
+                operations: crate::lock(members)
+                    .iter()
+                    .map(|m| format!("{}{}", m.name, m.signature))
+                    .collect(),
+            },
+            Kind::Devices {
+                interface,
+                multiplicity,
+                ..
+            } => RequiredKind::Devices {
+                interface: interface.to_string(),
+                multiplicity: multiplicity.to_string(),
+            },
+        };
+        RequiredInfo {
+            name: self.name.clone(),
+            kind,
+            optional: self.optional.load(Ordering::Relaxed),
+            bound_to: crate::lock(&self.bound_to).clone(),
+            ready: self.ready(),
+            lost: self.lost.load(Ordering::Relaxed),
+            back: self.back.load(Ordering::Relaxed),
+        }
+    }
+
+    /// What it is, for an error.
+    fn kind_text(&self) -> String {
+        match &self.kind {
+            Kind::Service { .. } => "a service".into(),
+            Kind::Devices { interface, .. } => format!("{interface} devices"),
+        }
+    }
+
+    /// Binds a service requirement to `provider`'s `service` (its state cell given), whole
+    /// or not at all.
+    pub(crate) fn bind_service(
+        &self,
+        component: &str,
+        provider: &crate::TaskContext,
+        provider_state: Arc<StateCell>,
+        service: &str,
+        check_only: bool,
+    ) -> Result<(), BindError> {
+        let Kind::Service { cell, members } = &self.kind else {
+            return Err(BindError::WrongKind {
+                component: component.to_string(),
+                name: self.name.clone(),
+                expected: self.kind_text(),
+                given: "a service",
+            });
+        };
+        let provided = provider.provided();
+        if !provided.iter().any(|p| p.name == service) {
+            return Err(BindError::NotProvided {
+                provider: provider.name().to_string(),
+                service: service.to_string(),
+                known: provided.into_iter().map(|p| p.name).collect(),
+            });
+        }
+        let members = crate::lock(members);
+        let mut applies = Vec::with_capacity(members.len());
+        for m in members.iter() {
+            let full = format!("{service}.{}", m.name);
+            match (m.resolve)(provider, &full) {
+                Ok(apply) => applies.push(apply),
+                Err(e) => {
+                    let at = Box::new(OperationAt {
+                        component: component.to_string(),
+                        provider: provider.name().to_string(),
+                        service: service.to_string(),
+                        operation: m.name.clone(),
+                    });
+                    let required = m.signature.clone();
+                    return Err(match e {
+                        ResolveError::Missing => BindError::MissingOperation { at, required },
+                        ResolveError::WrongType(provided) => BindError::WrongType {
+                            at,
+                            provided,
+                            required,
+                        },
+                    });
+                }
+            }
+        }
+        if check_only {
+            return Ok(());
+        }
+        for apply in applies {
+            apply();
+        }
+        cell.provider.store(Some(provider_state));
+        *crate::lock(&self.bound_to) = vec![format!("{}.{service}", provider.name())];
+        // Bound as ready: the engine's first look reports a provider that is not running.
+        self.last_ready.store(true, Ordering::Relaxed);
+        Ok(())
+    }
+
+    /// Binds a device requirement to the devices `names`, whole or not at all.
+    pub(crate) fn bind_devices(
+        &self,
+        component: &str,
+        registry: &Registry,
+        names: &[String],
+        check_only: bool,
+    ) -> Result<(), BindError> {
+        let Kind::Devices {
+            interface,
+            multiplicity,
+            bind,
+            ..
+        } = &self.kind
+        else {
+            return Err(BindError::WrongKind {
+                component: component.to_string(),
+                name: self.name.clone(),
+                expected: self.kind_text(),
+                given: "devices",
+            });
+        };
+        if !multiplicity.admits(names.len()) {
+            return Err(BindError::Multiplicity {
+                component: component.to_string(),
+                name: self.name.clone(),
+                interface: interface.to_string(),
+                multiplicity: *multiplicity,
+                given: names.len(),
+            });
+        }
+        let apply = bind(registry, names).map_err(|source| BindError::Device {
+            component: component.to_string(),
+            name: self.name.clone(),
+            source: Box::new(source),
+        })?;
+        if check_only {
+            return Ok(());
+        }
+        apply();
+        *crate::lock(&self.bound_to) = names.to_vec();
+        self.last_ready.store(true, Ordering::Relaxed);
+        Ok(())
+    }
+
+    /// Takes the binding away (a provider unloaded): not ready, no hook.
+    pub(crate) fn unbind(&self) {
+        match &self.kind {
+            Kind::Service { cell, members } => {
+                cell.provider.store(None);
+                for m in crate::lock(members).iter() {
+                    (m.unbind)();
+                }
+            }
+            Kind::Devices { clear, .. } => clear(),
+        }
+        crate::lock(&self.bound_to).clear();
+        self.last_ready.store(false, Ordering::Relaxed);
+    }
+}
+
+/// An operation a component requires, bound at deployment to a provider's operation of the
+/// same name and type (RTT 2.0's `Method<bool(int,int)> setreso("setResolution")` added to
+/// `requires("Camera")`).
+pub struct RequiredOperation<A, R> {
+    name: Arc<str>,
+    caller: Arc<ArcSwapOption<OperationCaller<A, R>>>,
+    cell: Arc<ServiceCell>,
+}
+
+impl<A, R> Clone for RequiredOperation<A, R> {
+    fn clone(&self) -> Self {
+        RequiredOperation {
+            name: self.name.clone(),
+            caller: self.caller.clone(),
+            cell: self.cell.clone(),
+        }
+    }
+}
+
+impl<A, R> RequiredOperation<A, R> {
+    /// Bound, and its provider Running: a lock-free look, for the real-time path.
+    pub fn ready(&self) -> bool {
+        self.cell.ready() && self.caller.load().is_some()
+    }
+
+    /// Calls the provider's operation and waits for its result; refused with
+    /// [`CallError::NotReady`] when the binding is not [`ready`](Self::ready).
+    pub fn call(&self, args: A) -> Result<R, CallError> {
+        match &*self.caller.load() {
+            Some(c) if self.cell.ready() => c.call(args),
+            _ => Err(self.not_ready()),
+        }
+    }
+
+    /// Starts the provider's operation; the handle collects the result.
+    pub fn send(&self, args: A) -> SendHandle<R> {
+        match &*self.caller.load() {
+            Some(c) if self.cell.ready() => c.send(args),
+            _ => SendHandle::ready(Err(self.not_ready())),
+        }
+    }
+
+    /// The operation's name, without the service.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn not_ready(&self) -> CallError {
+        CallError::NotReady {
+            operation: self.name.to_string(),
+        }
+    }
+}
+
+impl<A: Args, R: Serialize + Send + 'static> RequiredOperation<A, R> {
+    pub(crate) fn declare(name: &str, cell: Arc<ServiceCell>) -> (RequiredOperation<A, R>, Member) {
+        let op = RequiredOperation {
+            name: Arc::from(name),
+            caller: Arc::new(ArcSwapOption::empty()),
+            cell,
+        };
+        let slot = op.caller.clone();
+        let unbind_slot = op.caller.clone();
+        let member = Member {
+            name: name.to_string(),
+            signature: signature(
+                &A::type_names()
+                    .into_iter()
+                    .map(crate::typename::wire)
+                    .collect::<Vec<_>>(),
+                &crate::typename::of::<R>(),
+            ),
+            resolve: Box::new(move |provider, full| {
+                let Some(info) = provider.operations().into_iter().find(|o| o.name == full) else {
+                    return Err(ResolveError::Missing);
+                };
+                match provider.operation::<A, R>(full) {
+                    Ok(caller) => {
+                        let slot = slot.clone();
+                        Ok(Box::new(move || slot.store(Some(Arc::new(caller)))))
+                    }
+                    Err(_) => Err(ResolveError::WrongType(info_signature(&info))),
+                }
+            }),
+            unbind: Box::new(move || unbind_slot.store(None)),
+        };
+        (op, member)
+    }
+}
+
+fn signature(args: &[String], result: &str) -> String {
+    let r = if result.is_empty() {
+        String::new()
+    } else {
+        format!(" -> {result}")
+    };
+    format!("({}){r}", args.join(", "))
+}
+
+/// An operation's type as listed: `(u32, u32) -> bool`.
+pub fn info_signature(info: &crate::operation::OperationInfo) -> String {
+    let args: Vec<String> = info.args.iter().map(|a| a.type_name.clone()).collect();
+    signature(&args, &info.result)
+}
+
+/// Devices of one interface a component requires, bound by name at deployment.
+pub struct RequiredDevices<T: ?Sized> {
+    devices: Arc<ArcSwap<Vec<Arc<T>>>>,
+}
+
+impl<T: ?Sized> Clone for RequiredDevices<T> {
+    fn clone(&self) -> Self {
+        RequiredDevices {
+            devices: self.devices.clone(),
+        }
+    }
+}
+
+impl<T: Served + ?Sized> RequiredDevices<T> {
+    pub(crate) fn declare(name: &str, multiplicity: Multiplicity) -> (Self, Requirement) {
+        let devices: Arc<ArcSwap<Vec<Arc<T>>>> = Arc::new(ArcSwap::from_pointee(Vec::new()));
+        let cell = devices.clone();
+        let cleared = devices.clone();
+        let ready: Arc<dyn Readiness> = Arc::new(DevicesReady {
+            devices: devices.clone(),
+            min: multiplicity.min as usize,
+        });
+        let bind: DeviceBind = Box::new(move |registry, names| {
+            let found = names
+                .iter()
+                .map(|n| T::server(registry).lookup(n))
+                .collect::<Result<Vec<_>, _>>()?;
+            let cell = cell.clone();
+            Ok(Box::new(move || cell.store(Arc::new(found))))
+        });
+        let req = Requirement::new(
+            name,
+            Kind::Devices {
+                interface: T::INTERFACE,
+                multiplicity,
+                ready,
+                bind,
+                clear: Box::new(move || cleared.store(Arc::new(Vec::new()))),
+            },
+        );
+        (RequiredDevices { devices }, req)
+    }
+
+    /// The bound devices, in the order the deployment names them (a lock-free load).
+    pub fn get(&self) -> arc_swap::Guard<Arc<Vec<Arc<T>>>> {
+        self.devices.load()
+    }
+
+    /// How many are bound.
+    pub fn len(&self) -> usize {
+        self.devices.load().len()
+    }
+
+    /// Whether none is bound.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Every bound device online.
+    pub fn ready(&self) -> bool {
+        self.devices
+            .load()
+            .iter()
+            .all(|d| d.health().status == Status::Online)
+    }
+}
+
+struct DevicesReady<T: ?Sized> {
+    devices: Arc<ArcSwap<Vec<Arc<T>>>>,
+    min: usize,
+}
+
+impl<T: Served + ?Sized> Readiness for DevicesReady<T> {
+    fn bound(&self) -> bool {
+        self.devices.load().len() >= self.min
+    }
+
+    fn ready(&self) -> bool {
+        let d = self.devices.load();
+        d.len() >= self.min && d.iter().all(|x| x.health().status == Status::Online)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Multiplicity;
+
+    #[test]
+    fn multiplicities() {
+        let m = |s: &str| s.parse::<Multiplicity>();
+        assert_eq!(m("one"), Ok(Multiplicity::ONE));
+        assert_eq!(m("1"), Ok(Multiplicity::ONE));
+        assert_eq!(m("*"), Ok(Multiplicity::ANY));
+        assert_eq!(
+            m("0..2"),
+            Ok(Multiplicity {
+                min: 0,
+                max: Some(2)
+            })
+        );
+        assert_eq!(m("1..*"), Ok(Multiplicity { min: 1, max: None }));
+        for bad in ["", "two", "2..1", "..", "-1", "1..x"] {
+            assert!(m(bad).is_err(), "{bad:?}");
+        }
+        for s in ["one", "*", "0..2", "1..*", "3"] {
+            assert_eq!(m(s).map(|x| x.to_string()).as_deref(), Ok(s));
+        }
+        assert!(Multiplicity::ANY.admits(0) && !Multiplicity::ONE.admits(2));
+    }
+}
