@@ -258,6 +258,10 @@ impl Build<'_, '_, '_> {
                 self.problems.at(&at.key("sample_period_ms"), msg);
                 continue;
             }
+            if let Some(Err(e)) = c.faults.map(|f| f.check()) {
+                self.problems.at(&at.key("faults"), e);
+                continue;
+            }
             if let Err(msg) = c.thread.check() {
                 self.problems.at(&at.key("thread"), msg);
                 continue;
@@ -524,7 +528,9 @@ impl Build<'_, '_, '_> {
         let mut out = Vec::new();
         for owner in crate::remote::import_owners(node) {
             let (names, details) = (ChannelNames::default(), Default::default());
-            match io::build(runtime, &owner, period, &names, &details) {
+            // A stale import is the import's health to tell (and a required service's).
+            let faults = rtt::faults::FaultPolicy::NEVER;
+            match io::build(runtime, &owner, (period, faults), &names, &details) {
                 Ok(ts) => out.extend(ts),
                 Err(e) => self.problems.at(&KeyPath::top("zenoh").key("import"), e),
             }
@@ -554,7 +560,8 @@ impl Build<'_, '_, '_> {
             }
             let sample = millis(cfg.sample_period_ms.unwrap_or(cfg.period_ms));
             let details = c.card.channel_details();
-            match io::build(runtime, &c.name, sample, &c.names, &details) {
+            let faults = cfg.faults.unwrap_or(rtt::faults::FaultPolicy::NEVER);
+            match io::build(runtime, &c.name, (sample, faults), &c.names, &details) {
                 Ok(ts) => {
                     c.io = ts.clone();
                     order.extend(ts);

@@ -119,6 +119,9 @@ pub struct Blinker {
     device: Option<Arc<dyn DigitalOut>>,
     state: bool,
     toggles: OutputPort<bool>,
+    warn_after: Property<u32>,
+    error_after: Property<u32>,
+    faults: rtt::faults::FaultCounter,
 }
 
 impl Blinker {
@@ -133,6 +136,17 @@ impl Blinker {
             device: None,
             state: false,
             toggles: iface.output("state", "the state just written")?,
+            warn_after: iface.properties().add(
+                "warn_after",
+                rtt::faults::FaultPolicy::default().warn_after,
+                "failed writes in a row that raise the warning (0: never)",
+            )?,
+            error_after: iface.properties().add(
+                "error_after",
+                rtt::faults::FaultPolicy::default().error_after,
+                "failed writes in a row that go to RunTimeError (0: never)",
+            )?,
+            faults: rtt::faults::FaultCounter::default(),
         })
     }
 }
@@ -148,6 +162,12 @@ impl Component for Blinker {
                 device.output_count()
             )));
         }
+        let policy = rtt::faults::FaultPolicy {
+            warn_after: self.warn_after.get(),
+            error_after: self.error_after.get(),
+        };
+        policy.check()?;
+        self.faults = rtt::faults::FaultCounter::new(policy);
         self.device = Some(device);
         Ok(())
     }
@@ -158,13 +178,16 @@ impl Component for Blinker {
                 Ok(()) => {
                     self.state = !self.state;
                     self.toggles.write(&self.state);
+                    self.faults.good(ctx);
                 }
                 Err(e) if e.is_transient() => {
-                    tracing::warn!(
-                        "blinker {:?}: {e}: waiting for the device",
-                        self.device_name.get()
-                    );
-                    ctx.error();
+                    if self.faults.run() == 0 {
+                        tracing::warn!(
+                            "blinker {:?}: {e}: waiting for the device",
+                            self.device_name.get()
+                        );
+                    }
+                    self.faults.missed(ctx);
                 }
                 // The gateway is stopping and holds its outputs at their safe values: a
                 // step due meanwhile has nothing to do (and is no failure).
@@ -180,7 +203,7 @@ impl Component for Blinker {
             && d.set_bit(self.bit.get(), self.state).is_ok()
         {
             tracing::info!("blinker {:?}: the device is back", self.device_name.get());
-            ctx.recover();
+            self.faults.good(ctx);
         }
     }
 

@@ -156,13 +156,18 @@ pub struct CardConfig {
     /// Names for the card's channels: the IO components' ports are called by them
     /// (unnamed channels keep `ch0…`/`bit0…`, or the driver's names).
     pub names: ChannelNames,
+    /// What the card's sampling IO components make of missed readings (a device stale or
+    /// offline): `{ warn_after = 1, error_after = 5 }` warns at the first and goes to
+    /// RunTimeError at the fifth in a row ([`rtt::faults`]); not given, neither (the
+    /// devices' health tells).
+    pub faults: Option<rtt::faults::FaultPolicy>,
     /// Every other key of the card, as written: its driver's section (`sim = {…}`,
     /// `[card.modbus]`), and anything else, which the build refuses.
     pub sections: BTreeMap<String, toml::Value>,
 }
 
 /// The keys of a card besides its driver section.
-pub const CARD_KEYS: [&str; 9] = [
+pub const CARD_KEYS: [&str; 10] = [
     "name",
     "driver",
     "period_ms",
@@ -172,6 +177,7 @@ pub const CARD_KEYS: [&str; 9] = [
     "outputs",
     "thread",
     "names",
+    "faults",
 ];
 
 impl<'de> Deserialize<'de> for CardConfig {
@@ -201,7 +207,7 @@ impl<'de> Visitor<'de> for CardVisitor {
     fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<CardConfig, A::Error> {
         let (mut name, mut driver, mut period, mut sample) = (None, None, None, None);
         let (mut safe_ao, mut safe_do, mut thread, mut names) = (None, None, None, None);
-        let mut outputs = None;
+        let (mut outputs, mut faults) = (None, None);
         let mut sections = BTreeMap::new();
         while let Some(key) = map.next_key::<String>()? {
             match key.as_str() {
@@ -216,6 +222,7 @@ impl<'de> Visitor<'de> for CardVisitor {
                 "outputs" => once(&mut outputs, "outputs", map.next_value()?)?,
                 "thread" => once(&mut thread, "thread", map.next_value()?)?,
                 "names" => once(&mut names, "names", map.next_value()?)?,
+                "faults" => once(&mut faults, "faults", map.next_value()?)?,
                 _ => {
                     let value: toml::Value = map.next_value()?;
                     sections.insert(key, value);
@@ -232,6 +239,7 @@ impl<'de> Visitor<'de> for CardVisitor {
             outputs: outputs.unwrap_or_default(),
             thread: thread.unwrap_or_default(),
             names: names.unwrap_or_default(),
+            faults,
             sections,
         })
     }

@@ -352,22 +352,43 @@ impl Writable for dyn DigitalOut {
 /// the systemd watchdog stops being fed).
 pub const MAX_OVERRUNS: u32 = 10;
 
-/// Samples a device's inputs into one output port per channel, every period.
+/// Samples a device's inputs into one output port per channel, every period; missed
+/// readings count against the card's fault policy.
 struct Sampled<D: ?Sized + Channels> {
     device: Arc<D>,
     ports: Vec<OutputPort<D::Value>>,
+    faults: rtt::faults::FaultCounter,
 }
 
-impl<D: ?Sized + Channels> Component for Sampled<D> {
-    fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
+impl<D: ?Sized + Channels> Sampled<D> {
+    /// One sample of every channel; a step with a channel stale or offline is a missed
+    /// reading.
+    fn sample(&mut self, ctx: &mut Context<'_>) {
+        let mut missed = false;
         for (c, port) in self.ports.iter_mut().enumerate() {
             // A stale or offline input is not written: readers see old data, and the
             // device's health says why.
-            if let Ok(v) = self.device.get(c as u32) {
-                port.write(&v);
+            match self.device.get(c as u32) {
+                Ok(v) => port.write(&v),
+                Err(e) => missed |= e.is_transient(),
             }
         }
+        if missed {
+            self.faults.missed(ctx);
+        } else {
+            self.faults.good(ctx);
+        }
+    }
+}
+
+impl<D: ?Sized + Channels> Component for Sampled<D> {
+    fn update_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+        self.sample(ctx);
         Ok(())
+    }
+
+    fn error_hook(&mut self, ctx: &mut Context<'_>) {
+        self.sample(ctx);
     }
 }
 
@@ -480,7 +501,7 @@ fn sampled<D: ?Sized + Channels>(
     name: &str,
     device: Arc<D>,
     (names, details): (&[String], &[ChannelDetail]),
-    sample: Duration,
+    (sample, faults): (Duration, rtt::faults::FaultPolicy),
 ) -> Result<TaskContext, RuntimeError> {
     let names = names.to_vec();
     let details = details.to_vec();
@@ -503,7 +524,11 @@ fn sampled<D: ?Sized + Channels>(
             .collect::<Result<_, IntrospectError>>()?;
         D::operations(&device, iface)?;
         health_op(iface, &device)?;
-        Ok(Sampled { device, ports })
+        Ok(Sampled {
+            device,
+            ports,
+            faults: rtt::faults::FaultCounter::new(faults),
+        })
     })
 }
 
@@ -608,11 +633,12 @@ fn encoder(
 }
 
 /// Builds the IO components of every device `card` registered, sampling inputs every
-/// `sample`, naming channel ports from `names`. Returns them in a start order.
+/// `sample` under fault policy `faults`, naming channel ports from `names`. Returns them
+/// in a start order.
 pub fn build(
     runtime: &Runtime,
     card: &str,
-    sample: Duration,
+    (sample, faults): (Duration, rtt::faults::FaultPolicy),
     names: &ChannelNames,
     details: &ChannelDetails,
 ) -> Result<Vec<TaskContext>, RuntimeError> {
@@ -630,7 +656,7 @@ pub fn build(
                     n,
                     d,
                     (&names.analog_in, &details.analog_in),
-                    sample,
+                    (sample, faults),
                 )
             }),
             Interface::DigitalIn => registry.digital_in().get(n).map(|d| {
@@ -639,7 +665,7 @@ pub fn build(
                     n,
                     d,
                     (&names.digital_in, &details.digital_in),
-                    sample,
+                    (sample, faults),
                 )
             }),
             Interface::AnalogOut => registry

@@ -433,6 +433,9 @@ pub struct ComponentEntry {
     pub name: String,
     /// Its state.
     pub state: TaskState,
+    /// Its warning flag is up (it still runs).
+    #[serde(default)]
+    pub warning: bool,
 }
 
 /// A component in `describe`.

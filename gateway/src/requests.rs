@@ -89,6 +89,7 @@ pub(crate) fn handle(
                 .map(|t| ComponentEntry {
                     name: t.name().to_string(),
                     state: t.state(),
+                    warning: t.counters().warning,
                 })
                 .collect::<Vec<_>>(),
         ),

@@ -61,9 +61,18 @@ pub fn signature(o: &rtt::operation::OperationInfo) -> String {
 pub fn components(list: &[ComponentEntry]) -> String {
     let rows: Vec<Vec<String>> = list
         .iter()
-        .map(|c| vec![c.name.clone(), state(c.state)])
+        .map(|c| vec![c.name.clone(), flagged(c.state, c.warning)])
         .collect();
     table(&["COMPONENT", "STATE"], &rows)
+}
+
+/// A state, with the warning flag when it is up: `running (warning)`.
+fn flagged(s: rtt::TaskState, warning: bool) -> String {
+    if warning {
+        format!("{} (warning)", state(s))
+    } else {
+        state(s)
+    }
 }
 
 /// `hwgw devices`: every registry name.
@@ -211,7 +220,7 @@ pub fn status(s: &StatusReport) -> String {
         .map(|c| {
             vec![
                 c.name.clone(),
-                state(c.state),
+                flagged(c.state, c.counters.warning),
                 if c.healthy { "ok" } else { "overrunning" }.into(),
                 c.steps.to_string(),
                 c.overruns.to_string(),

@@ -54,6 +54,18 @@ pub enum RuntimeError {
 #[derive(Debug, Clone, thiserror::Error)]
 #[non_exhaustive]
 pub enum LifecycleError {
+    /// A hook asked for Exception ([`Context::exception`](crate::Context::exception)).
+    #[error("component {component:?}: {hook} raised an exception: {message}; now in {state}")]
+    Exception {
+        /// The component.
+        component: String,
+        /// The hook.
+        hook: &'static str,
+        /// Its reason.
+        message: String,
+        /// The state now (Exception, or FatalError).
+        state: crate::TaskState,
+    },
     /// A requirement that is not optional is not bound.
     #[error("component {component:?}: required {requirement:?} is not bound")]
     Unbound {

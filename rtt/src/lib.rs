@@ -18,6 +18,7 @@
 //!   return told to the requiring component;
 //! - [`scope`]: ThreadScope, each runtime thread as a bit on a digital output;
 //! - [`time`]: the monotonic clock and its simulated twin;
+//! - [`faults`]: one policy for missed device readings: a warning, then RunTimeError;
 //! - [`error`] and [`info`]: what goes wrong, and what is listed about ports;
 //! - [`typename`]: the control protocol's names of the types listed (`f64`, `string`,
 //!   `[u32]`, `f64?`), never Rust paths;
@@ -63,6 +64,7 @@
 pub mod activity;
 pub mod component;
 pub mod error;
+pub mod faults;
 pub mod info;
 pub mod lock;
 pub mod operation;

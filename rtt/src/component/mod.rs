@@ -88,6 +88,12 @@ pub trait Component: Send + 'static {
     fn exception_hook(&mut self, ctx: &mut Context<'_>) {
         let _ = ctx;
     }
+    /// `recover` from Exception: put things right. Ok → Stopped (start again); an error →
+    /// PreOperational (configure again).
+    fn reset_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+        let _ = ctx;
+        Ok(())
+    }
     /// Before a step: required `service` (a service or devices, by the name it was
     /// required under) stopped being ready — its provider left Running, a device went
     /// offline. Its operations refuse calls until [`service_back`](Self::service_back).
@@ -115,8 +121,15 @@ pub struct Context<'a> {
     core: &'a TaskCore,
     events: &'a FdEvents,
     timing: StepTiming,
-    error_requested: bool,
-    recover_requested: bool,
+    asked: Asked,
+}
+
+/// What a hook asked for through its [`Context`], done once it returns.
+#[derive(Default)]
+struct Asked {
+    error: bool,
+    recover: bool,
+    exception: Option<String>,
 }
 
 impl Context<'_> {
@@ -143,12 +156,34 @@ impl Context<'_> {
     /// From `update_hook`: go to RunTimeError after this step (the error hook then runs
     /// instead of update until [`recover`](Self::recover)).
     pub fn error(&mut self) {
-        self.error_requested = true;
+        self.asked.error = true;
     }
 
     /// From `error_hook`: return to Running after this step.
     pub fn recover(&mut self) {
-        self.recover_requested = true;
+        self.asked.recover = true;
+    }
+
+    /// Raises the component's warning flag (manual L832–884: the component keeps running,
+    /// something is not as it should be): shown in `ls` and `status`, counted once per
+    /// raise; [`recovered`](Self::recovered) clears it. Lock-free.
+    pub fn warning(&mut self) {
+        if !self.core.warning.swap(true, Ordering::Relaxed) {
+            self.core.warnings.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    /// Clears the warning flag and, from RunTimeError, returns to Running after this step.
+    pub fn recovered(&mut self) {
+        self.core.warning.store(false, Ordering::Relaxed);
+        self.asked.recover = true;
+    }
+
+    /// From any hook: enter Exception once the hook returns (the manual's unrecoverable
+    /// error: corrupt data, a broken invariant), with `reason` recorded. Its `reset_hook`
+    /// runs when it is recovered.
+    pub fn exception(&mut self, reason: impl Into<String>) {
+        self.asked.exception = Some(reason.into());
     }
 
     /// For a file-descriptor activity: which descriptors woke this step, or the timeout.
@@ -194,6 +229,12 @@ pub struct TaskCounters {
     pub failed_hooks: u64,
     /// The last failure message.
     pub last_error: Option<String>,
+    /// The warning flag is up ([`Context::warning`]); the component still runs.
+    #[serde(default)]
+    pub warning: bool,
+    /// Times the warning flag was raised.
+    #[serde(default)]
+    pub warnings: u64,
     /// Times a required service or device stopped being ready while it ran.
     #[serde(default)]
     pub services_lost: u64,
@@ -219,6 +260,8 @@ pub(crate) struct TaskCore {
     runtime_errors: AtomicU64,
     exceptions: AtomicU64,
     failed_hooks: AtomicU64,
+    warning: AtomicBool,
+    warnings: AtomicU64,
     last_error: Mutex<Option<String>>,
     engine_thread: Mutex<Option<std::thread::ThreadId>>,
     peers: Weak<Mutex<Vec<TaskContext>>>,
@@ -245,13 +288,12 @@ impl TaskCore {
         events: &FdEvents,
         timing: StepTiming,
         f: impl FnOnce(&mut dyn ErasedComponent, &mut Context<'_>) -> R,
-    ) -> (Result<R, String>, bool, bool) {
+    ) -> (Result<R, String>, Asked) {
         let mut ctx = Context {
             core: self,
             events,
             timing,
-            error_requested: false,
-            recover_requested: false,
+            asked: Asked::default(),
         };
         let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(comp, &mut ctx)))
             .map_err(|p| {
@@ -260,7 +302,7 @@ impl TaskCore {
                     .or_else(|| p.downcast_ref::<String>().cloned())
                     .unwrap_or_else(|| "(no message)".into())
             });
-        (r, ctx.error_requested, ctx.recover_requested)
+        (r, ctx.asked)
     }
 
     /// Enters Exception from any state: exception hook, then the stop hook if it was
@@ -274,7 +316,7 @@ impl TaskCore {
         self.activity.stop();
         let events = FdEvents::default();
         let timing = StepTiming::default();
-        let (r, _, _) = self.run_hook(comp, &events, timing, |c, ctx| c.exception_hook(ctx));
+        let (r, _) = self.run_hook(comp, &events, timing, |c, ctx| c.exception_hook(ctx));
         let r = r.and_then(|()| {
             if was_running {
                 self.run_hook(comp, &events, timing, |c, ctx| c.stop_hook(ctx))
@@ -308,10 +350,13 @@ impl TaskCore {
         }
         match self.state() {
             TaskState::Running => {
-                let (r, error, _) =
-                    self.run_hook(comp, events, timing, |c, ctx| c.update_hook(ctx));
+                let (r, asked) = self.run_hook(comp, events, timing, |c, ctx| c.update_hook(ctx));
                 match r {
-                    Ok(Ok(())) if error => {
+                    Ok(Ok(())) if asked.exception.is_some() => {
+                        let reason = asked.exception.unwrap_or_default();
+                        self.enter_exception(comp, format!("update raised an exception: {reason}"));
+                    }
+                    Ok(Ok(())) if asked.error => {
                         self.runtime_errors.fetch_add(1, Ordering::Relaxed);
                         self.set_state(TaskState::RunTimeError);
                     }
@@ -330,10 +375,16 @@ impl TaskCore {
                 }
             }
             TaskState::RunTimeError => {
-                let (r, _, recover) =
-                    self.run_hook(comp, events, timing, |c, ctx| c.error_hook(ctx));
+                let (r, asked) = self.run_hook(comp, events, timing, |c, ctx| c.error_hook(ctx));
                 match r {
-                    Ok(()) if recover => self.set_state(TaskState::Running),
+                    Ok(()) if asked.exception.is_some() => {
+                        let reason = asked.exception.unwrap_or_default();
+                        self.enter_exception(
+                            comp,
+                            format!("error hook raised an exception: {reason}"),
+                        );
+                    }
+                    Ok(()) if asked.recover => self.set_state(TaskState::Running),
                     Ok(()) => {}
                     Err(panic) => {
                         self.enter_exception(comp, format!("error hook panicked: {panic}"));
@@ -357,7 +408,7 @@ impl TaskCore {
         for req in &self.required {
             let Some(back) = req.look() else { continue };
             let name = req.name.as_str();
-            let (r, _, _) = self.run_hook(comp, events, timing, |c, ctx| {
+            let (r, _) = self.run_hook(comp, events, timing, |c, ctx| {
                 if back {
                     c.service_back(ctx, name)
                 } else {
@@ -517,6 +568,8 @@ impl TaskContext {
                 runtime_errors: AtomicU64::new(0),
                 exceptions: AtomicU64::new(0),
                 failed_hooks: AtomicU64::new(0),
+                warning: AtomicBool::new(false),
+                warnings: AtomicU64::new(0),
                 last_error: Mutex::new(None),
                 engine_thread: Mutex::new(None),
                 peers: setup.peers,
@@ -564,11 +617,22 @@ impl TaskContext {
             return Err(self.illegal(command));
         }
         let comp: &mut dyn ErasedComponent = &mut **guard;
-        match self
+        let (r, asked) = self
             .core
-            .run_hook(comp, &FdEvents::default(), StepTiming::default(), f)
-            .0
-        {
+            .run_hook(comp, &FdEvents::default(), StepTiming::default(), f);
+        match r {
+            Ok(Ok(())) if asked.exception.is_some() => {
+                let message = asked.exception.unwrap_or_default();
+                let state = self
+                    .core
+                    .enter_exception(comp, format!("{hook} raised an exception: {message}"));
+                Err(LifecycleError::Exception {
+                    component: self.core.name.clone(),
+                    hook,
+                    message,
+                    state,
+                })
+            }
             Ok(Ok(())) => {
                 self.core.set_state(success);
                 Ok(())
@@ -652,7 +716,8 @@ impl TaskContext {
         )
     }
 
-    /// Stopped → PreOperational, via the cleanup hook.
+    /// Stopped → PreOperational, via the cleanup hook; the warning flag and the warning
+    /// and error counters start again from zero (manual L832–884).
     pub fn cleanup(&self) -> Result<(), LifecycleError> {
         self.hook(
             "cleanup",
@@ -663,18 +728,48 @@ impl TaskContext {
                 Ok(())
             },
             TaskState::PreOperational,
-        )
+        )?;
+        let core = &self.core;
+        for counter in [
+            &core.runtime_errors,
+            &core.exceptions,
+            &core.failed_hooks,
+            &core.warnings,
+        ] {
+            counter.store(0, Ordering::Relaxed);
+        }
+        core.warning.store(false, Ordering::Relaxed);
+        *lock(&core.last_error) = None;
+        Ok(())
     }
 
-    /// RunTimeError → Running; Exception → Stopped.
+    /// RunTimeError → Running; Exception → the reset hook, then Stopped when it
+    /// succeeds, PreOperational (configure again) when it fails (manual L886–953).
     pub fn recover(&self) -> Result<(), LifecycleError> {
-        let _guard = lock(&self.core.component);
         match self.state() {
-            TaskState::RunTimeError => self.core.set_state(TaskState::Running),
-            TaskState::Exception => self.core.set_state(TaskState::Stopped),
-            _ => return Err(self.illegal("recover")),
+            TaskState::RunTimeError => {
+                let _guard = lock(&self.core.component);
+                if self.state() != TaskState::RunTimeError {
+                    return Err(self.illegal("recover"));
+                }
+                self.core.set_state(TaskState::Running);
+                Ok(())
+            }
+            TaskState::Exception => {
+                let result = self.hook(
+                    "recover",
+                    &[TaskState::Exception],
+                    "reset_hook",
+                    |c, ctx| c.reset_hook(ctx),
+                    TaskState::Stopped,
+                );
+                if let Err(LifecycleError::HookFailed { .. }) = &result {
+                    self.core.set_state(TaskState::PreOperational);
+                }
+                result
+            }
+            _ => Err(self.illegal("recover")),
         }
-        Ok(())
     }
 
     /// Running → RunTimeError, from outside the component.
@@ -717,6 +812,8 @@ impl TaskContext {
             exceptions: self.core.exceptions.load(Ordering::Relaxed),
             failed_hooks: self.core.failed_hooks.load(Ordering::Relaxed),
             last_error: lock(&self.core.last_error).clone(),
+            warning: self.core.warning.load(Ordering::Relaxed),
+            warnings: self.core.warnings.load(Ordering::Relaxed),
             services_lost: self.core.required.iter().map(|r| r.counts().0).sum(),
             services_back: self.core.required.iter().map(|r| r.counts().1).sum(),
         }
