@@ -25,7 +25,7 @@ use std::cell::RefCell;
 use std::path::PathBuf;
 
 /// Commands, for help and completion.
-const COMMANDS: [(&str, &str); 14] = [
+const COMMANDS: [(&str, &str); 20] = [
     (
         "ls",
         "list components, or the current component's interface",
@@ -53,6 +53,21 @@ const COMMANDS: [(&str, &str); 14] = [
     ("stop", "stop the current (or named) component"),
     ("configure", "configure the current (or named) component"),
     ("recover", "recover the current (or named) component"),
+    (
+        "load",
+        "load NAME TYPE [--period-ms MS] [--property K=V]…: a component into the running deployment",
+    ),
+    (
+        "unload",
+        "unload NAME: stopped, cleaned up, its connections closed",
+    ),
+    (
+        "connect",
+        "connect FROM TO [--policy JSON]: ports, prints the id",
+    ),
+    ("disconnect", "disconnect ID: close a connection"),
+    ("changes", "the run-time changes since the file was read"),
+    ("save", "save FILE: the running deployment into a new file"),
     ("help", "this list"),
     ("quit", "leave (also: exit, Ctrl-D)"),
 ];
@@ -165,6 +180,18 @@ impl Browser {
                     self.ask(&req).map(|v| v.as_str().unwrap_or("").to_string())
                 })
             }
+            "load" | "unload" | "connect" | "disconnect" | "save" => {
+                crate::cli_changes::parse(&words).and_then(|c| {
+                    crate::cli_changes::run(&self.client, c, true)
+                        .map(Option::unwrap_or_default)
+                        .map_err(|e| e.to_string())
+                })
+            }
+            "changes" => self
+                .client
+                .typed::<Vec<String>>(&Request::Changes)
+                .map(|l| l.join("\n"))
+                .map_err(|e| e.to_string()),
             // In a component, a bare operation name calls it.
             op if self.cwd.is_some() => self.call(op, args),
             other => Err(format!("unknown command {other:?}; type help")),

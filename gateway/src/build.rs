@@ -185,6 +185,10 @@ fn build(d: &Deployment, file: &str, text: &str, types: &Types) -> Result<Gatewa
         zenoh_server,
     };
     let mut gw = Gateway::new(runtime, parts, d.clone(), types.clone());
+    gw.running
+        .get_mut()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+        .text = text.to_string();
     gw.scope_vcd = scope_vcd;
     gw.zenoh = zenoh;
     Ok(gw)

@@ -59,7 +59,13 @@ enum Command {
         /// Every gateway's components (Zenoh), each named `gateway/component`.
         #[arg(long, conflicts_with = "component")]
         all: bool,
+        /// The run-time changes (load, unload, connect, disconnect) since the deployment
+        /// file was read.
+        #[arg(long, conflicts_with_all = ["component", "all"])]
+        changes: bool,
     },
+    #[command(flatten)]
+    Change(crate::cli_changes::ChangeCommand),
     /// An interactive console on a running gateway (cd, ls, get, set, call, TAB completion).
     Browse,
     /// Device health, card counters, component states and timing.
@@ -312,9 +318,19 @@ struct Form {
 fn one_shot(client: &Client, command: Command, form: Form) -> Result<Option<String>, ClientError> {
     let json = form.json;
     let text = match command {
+        Command::Ls { changes: true, .. } => {
+            let list: Vec<String> = client.typed(&Request::Changes)?;
+            if json {
+                pretty(&serde_json::to_value(&list).unwrap_or_default())
+            } else {
+                list.join("\n")
+            }
+        }
+        Command::Change(c) => return crate::cli_changes::run(client, c, form.verbose),
         Command::Ls {
             component: None,
             all,
+            ..
         } => {
             let list: Vec<ComponentEntry> = client.typed(&Request::Ls { all })?;
             if json {

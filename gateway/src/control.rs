@@ -27,6 +27,12 @@
 //! | `watch` | `component`, `port`, optional `count` | `"watching"`, then a stream: one `{"id", "event": {"status", "value"}}` line per new value (all of them, `count` at most), and `{"id", "heartbeat": ns}` after each second without one, until the client closes |
 //! | `record` | `ports` (`component.port` or `component`), optional `devices`, `steps`, `buffer` | `{"ports", "activities", "wall_minus_clock_ns"}`, then a stream of `{"id", "records": {"items", "ports_lost", "steps_lost", "now_ns"}}` batches until the client closes |
 //! | `reload` | — | `{"applied", "restart", "errors"}`: the deployment file read again and what changed rebuilt; when the new deployment has errors they are listed and nothing changed |
+//! | `load` | `component`: a `[[component]]` table as JSON (`name`, `type`, `activity`, optional `properties`, `start`, `requires`) | the reload's report: the component built, configured and started as the deployment file's are; with an error, nothing changed and the error lists why |
+//! | `unload` | `component` | the reload's report: the component stopped, cleaned up and removed, its connections closed |
+//! | `connect` | `from`, `to` (`component.port`), optional `policy` (as in a `[[connection]]`) | `{"id", "applied"}`: the new connection's id |
+//! | `disconnect` | `connection`: its id | the reload's report: the connection closed |
+//! | `changes` | — | the run-time changes (load, unload, connect, disconnect) since the deployment file was read, a line each |
+//! | `deployment` | — | the running deployment as TOML text: the file's with the run-time changes |
 //!
 //! A request naming a component `<gateway>/<component>` that is not one of this gateway's
 //! is carried out by that gateway, through Zenoh (see [`crate::forward`]).
@@ -628,11 +634,22 @@ fn remote_request(shared: &Shared, request: Value) -> Value {
             ErrorKind::BadRequest,
             "streams (watch, record) are not served to other gateways",
         ),
-        // Reloading is this host's operator's to ask (`hwgw reload`, SIGHUP).
-        Ok((id, Request::Reload)) => Reply::error(
+        // Reloading and changing the deployment are this host's operator's to ask
+        // (`hwgw reload`, SIGHUP, `hwgw load`, …).
+        Ok((
+            id,
+            r @ (Request::Reload
+            | Request::Load { .. }
+            | Request::Unload { .. }
+            | Request::Connect { .. }
+            | Request::Disconnect { .. }),
+        )) => Reply::error(
             id,
             ErrorKind::BadRequest,
-            "reload is not served to other gateways: ask on the gateway's own host",
+            format!(
+                "{} is not served to other gateways: ask on the gateway's own host",
+                r.cmd()
+            ),
         ),
         // Carried out here, never forwarded again (no request goes round the gateways).
         Ok((id, req)) => carry_out(shared, id, &req, &mut HashMap::new(), false),

@@ -88,6 +88,12 @@ pub(crate) struct Running {
     pub(crate) file: Option<std::path::PathBuf>,
     /// Set by the stop: no reload from then on.
     pub(crate) stopping: bool,
+    /// The deployment's text as applied: the file's, then as run-time changes edited it.
+    pub(crate) text: String,
+    /// The run-time changes since the file was last read (`hwgw ls --changes`): the
+    /// newest [`crate::changes::KEPT`], and how many older ones were let go.
+    pub(crate) changes: std::collections::VecDeque<String>,
+    pub(crate) changes_dropped: u64,
 }
 
 /// A built (and possibly running) gateway.
@@ -127,6 +133,9 @@ impl Gateway {
                 deployment,
                 file: None,
                 stopping: false,
+                text: String::new(),
+                changes: std::collections::VecDeque::new(),
+                changes_dropped: 0,
             }),
             scope_vcd: None,
             zenoh: None,

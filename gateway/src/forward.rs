@@ -28,7 +28,14 @@ fn component_of(req: &Request) -> Option<&str> {
         | Request::Devices
         | Request::Status
         | Request::Record { .. }
-        | Request::Reload => None,
+        | Request::Reload
+        // The deployment is changed on its own gateway's host only.
+        | Request::Load { .. }
+        | Request::Unload { .. }
+        | Request::Connect { .. }
+        | Request::Disconnect { .. }
+        | Request::Changes
+        | Request::Deployment => None,
     }
 }
 

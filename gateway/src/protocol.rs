@@ -142,6 +142,36 @@ pub enum Request {
     },
     /// Reads the deployment file again and applies what changed (as SIGHUP does).
     Reload,
+    /// Loads a component into the running deployment.
+    Load {
+        /// Its `[[component]]` table as JSON: `name`, `type`, `activity`, and optionally
+        /// `properties`, `start`, `requires`.
+        component: Value,
+    },
+    /// Unloads a component of the deployment: stopped, cleaned up, its connections closed.
+    Unload {
+        /// The component.
+        component: String,
+    },
+    /// Connects an output port to an input port of the running deployment.
+    Connect {
+        /// `component.port` of the output.
+        from: String,
+        /// `component.port` of the input.
+        to: String,
+        /// The policy, as in a `[[connection]]` (default: data).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        policy: Option<Value>,
+    },
+    /// Closes a connection of the deployment.
+    Disconnect {
+        /// Its id, as `connect` answered it (`id` is the request's own).
+        connection: u64,
+    },
+    /// The run-time changes since the deployment file was read.
+    Changes,
+    /// The running deployment as TOML (`hwgw save`).
+    Deployment,
 }
 
 /// What a reload did: applied line by line, what needs a restart, and the errors that
@@ -212,7 +242,7 @@ pub struct Command {
 }
 
 /// Every command, in the order the documentation lists them.
-pub const COMMANDS: [Command; 15] = [
+pub const COMMANDS: [Command; 21] = [
     Command {
         cmd: "ls",
         fields: "optional `all`",
@@ -288,6 +318,36 @@ pub const COMMANDS: [Command; 15] = [
         fields: "—",
         ok: "`{\"applied\", \"restart\", \"errors\"}`: the deployment file read again and what changed rebuilt; when the new deployment has errors they are listed and nothing changed",
     },
+    Command {
+        cmd: "load",
+        fields: "`component`: a `[[component]]` table as JSON (`name`, `type`, `activity`, optional `properties`, `start`, `requires`)",
+        ok: "the reload's report: the component built, configured and started as the deployment file's are; with an error, nothing changed and the error lists why",
+    },
+    Command {
+        cmd: "unload",
+        fields: "`component`",
+        ok: "the reload's report: the component stopped, cleaned up and removed, its connections closed",
+    },
+    Command {
+        cmd: "connect",
+        fields: "`from`, `to` (`component.port`), optional `policy` (as in a `[[connection]]`)",
+        ok: "`{\"id\", \"applied\"}`: the new connection's id",
+    },
+    Command {
+        cmd: "disconnect",
+        fields: "`connection`: its id",
+        ok: "the reload's report: the connection closed",
+    },
+    Command {
+        cmd: "changes",
+        fields: "—",
+        ok: "the run-time changes (load, unload, connect, disconnect) since the deployment file was read, a line each",
+    },
+    Command {
+        cmd: "deployment",
+        fields: "—",
+        ok: "the running deployment as TOML text: the file's with the run-time changes",
+    },
 ];
 
 impl Request {
@@ -309,6 +369,12 @@ impl Request {
             Request::Watch { .. } => "watch",
             Request::Record { .. } => "record",
             Request::Reload => "reload",
+            Request::Load { .. } => "load",
+            Request::Unload { .. } => "unload",
+            Request::Connect { .. } => "connect",
+            Request::Disconnect { .. } => "disconnect",
+            Request::Changes => "changes",
+            Request::Deployment => "deployment",
         }
     }
 
@@ -572,7 +638,12 @@ mod tests {
     /// A request of each documented command, as a client would send it.
     fn sample(cmd: &str) -> Value {
         match cmd {
-            "ls" | "devices" | "status" => json!({"cmd": cmd}),
+            "ls" | "devices" | "status" | "reload" | "changes" | "deployment" => {
+                json!({"cmd": cmd})
+            }
+            "load" => json!({"cmd": cmd, "component": {"name": "c", "type": "follow"}}),
+            "connect" => json!({"cmd": cmd, "from": "a.out", "to": "b.in"}),
+            "disconnect" => json!({"cmd": cmd, "connection": 3}),
             "get" | "watch" => json!({"cmd": cmd, "component": "c", "port": "p"}),
             "set" => json!({"cmd": cmd, "component": "c", "port": "p", "value": 1}),
             "call" => json!({"cmd": cmd, "component": "c", "operation": "o", "args": [1]}),

@@ -54,7 +54,16 @@ impl Gateway {
             ]);
         };
         match std::fs::read_to_string(&file) {
-            Ok(text) => self.reload_text(&text, &file.display().to_string()),
+            Ok(text) => {
+                let mut running = self.running();
+                let report = self.reload_locked(&mut running, &text, &file.display().to_string());
+                if report.errors.is_empty() {
+                    // The file is what runs now: the run-time changes are gone with it.
+                    running.changes.clear();
+                    running.changes_dropped = 0;
+                }
+                report
+            }
             Err(e) => ReloadReport::refused(vec![format!("{}: {e}", file.display())]),
         }
     }
@@ -63,6 +72,17 @@ impl Gateway {
     /// and only that, or nothing when it has an error.
     pub fn reload_text(&self, text: &str, file: &str) -> ReloadReport {
         let mut running = self.running();
+        self.reload_locked(&mut running, text, file)
+    }
+
+    /// [`reload_text`](Self::reload_text) with the running deployment held (a run-time
+    /// change edits it and applies the result under one lock).
+    pub(crate) fn reload_locked(
+        &self,
+        running: &mut crate::deploy::Running,
+        text: &str,
+        file: &str,
+    ) -> ReloadReport {
         if running.stopping || self.is_stopping() {
             return ReloadReport::refused(vec!["the gateway is stopping".into()]);
         }
@@ -92,6 +112,9 @@ impl Gateway {
             report.errors = errors;
         }
         running.deployment = applied_part(&running.deployment, new, &report);
+        if report.errors.is_empty() {
+            running.text = text.to_string();
+        }
         if report.applied.is_empty() && report.errors.is_empty() {
             report.applied.push("nothing changed".into());
         } else {

@@ -167,6 +167,12 @@ pub(crate) fn handle(
             crate::reload::log_reload("reload", &report);
             to_value(report)
         }
+        Request::Load { .. }
+        | Request::Unload { .. }
+        | Request::Connect { .. }
+        | Request::Disconnect { .. }
+        | Request::Changes
+        | Request::Deployment => change(gw, req),
         Request::Watch { .. } | Request::Record { .. } => Err(Fail(
             ErrorKind::BadRequest,
             format!("{} streams: it is served on its own", req.cmd()),
@@ -218,4 +224,42 @@ fn lifecycle(
 ) -> Result<Value, Fail> {
     f(&t).map_err(failed)?;
     to_value(t.state())
+}
+
+/// A run-time change of the deployment ([`crate::changes`]), or what it lists.
+fn change(gw: &Gateway, req: &Request) -> Result<Value, Fail> {
+    use crate::changes::{Change, ChangeError, table};
+    let fail = |e: ChangeError| match e {
+        ChangeError::NoComponent { .. } | ChangeError::NoConnection { .. } => not_found(e),
+        ChangeError::Invalid(_) => Fail(ErrorKind::BadRequest, e.to_string()),
+        _ => failed(e),
+    };
+    let report = match req {
+        Request::Load { component } => {
+            let t = table(component, "component").map_err(fail)?;
+            gw.change(Change::Load(t))
+        }
+        Request::Unload { component } => gw.change(Change::Unload(component.clone())),
+        Request::Connect { from, to, policy } => {
+            let policy = match policy {
+                Some(p) => Some(toml::Value::Table(table(p, "policy").map_err(fail)?)),
+                None => None,
+            };
+            let report = gw
+                .change(Change::Connect {
+                    from: from.clone(),
+                    to: to.clone(),
+                    policy,
+                })
+                .map_err(fail)?;
+            return Ok(serde_json::json!({
+                "id": gw.connection_id(from, to),
+                "applied": report.applied,
+            }));
+        }
+        Request::Disconnect { connection } => gw.change(Change::Disconnect(*connection)),
+        Request::Changes => return to_value(gw.changes()),
+        _ => return to_value(gw.deployment_text()),
+    };
+    report.map_err(fail).and_then(to_value)
 }

@@ -1,0 +1,177 @@
+//! The command line's run-time changes of a deployment ([`crate::changes`]): `load`,
+//! `unload`, `connect`, `disconnect`, and `save`, which writes the running deployment into
+//! a new file.
+
+use crate::client::{Client, ClientError};
+use crate::protocol::{ErrorBody, ErrorKind, ReloadReport, Request, json_arg};
+use clap::Subcommand;
+use serde_json::{Map, Value, json};
+use std::path::PathBuf;
+
+/// A change of the running deployment (undone by a reload of the file unless saved).
+#[derive(Subcommand)]
+pub enum ChangeCommand {
+    /// Load a component into the running deployment, as a `[[component]]` of the file
+    /// would be: built, configured, started.
+    Load {
+        /// Its name.
+        name: String,
+        /// Its type (`hwgw check` on a deployment lists those of this build).
+        #[arg(value_name = "TYPE")]
+        kind: String,
+        /// A periodic activity of this period; without it, non-periodic.
+        #[arg(long, value_name = "MS")]
+        period_ms: Option<f64>,
+        /// A property value (JSON, or text); repeat for more.
+        #[arg(long = "property", value_name = "KEY=VALUE")]
+        properties: Vec<String>,
+        /// A required service's or devices' binding (`camera=cam0.camera`); repeat for
+        /// more.
+        #[arg(long = "requires", value_name = "NAME=BINDING")]
+        requires: Vec<String>,
+        /// Configure it but do not start it.
+        #[arg(long)]
+        stopped: bool,
+    },
+    /// Unload a component of the deployment: stopped, cleaned up, its connections closed.
+    Unload {
+        /// The component.
+        component: String,
+    },
+    /// Connect an output port to an input port (`component.port`); prints the id.
+    Connect {
+        /// The output port.
+        from: String,
+        /// The input port.
+        to: String,
+        /// The policy as JSON, as in a `[[connection]]`:
+        /// `{"kind": {"type": "buffer", "size": 8}}` (default: data).
+        #[arg(long)]
+        policy: Option<String>,
+    },
+    /// Close the connection with this id (as `connect` printed it, or `ls COMPONENT` lists).
+    Disconnect {
+        /// The connection's id.
+        id: u64,
+    },
+    /// Write the running deployment (the file's, with the run-time changes) into FILE, a
+    /// new file: never over an existing one.
+    Save {
+        /// The new file.
+        file: PathBuf,
+    },
+}
+
+/// The change commands as words (`browse`'s `load f2 follow --period-ms 10`), parsed as
+/// the command line parses them.
+pub(crate) fn parse(words: &[&str]) -> Result<ChangeCommand, String> {
+    #[derive(clap::Parser)]
+    #[command(name = "browse", no_binary_name = true)]
+    struct Line {
+        #[command(subcommand)]
+        command: ChangeCommand,
+    }
+    <Line as clap::Parser>::try_parse_from(words)
+        .map(|l| l.command)
+        .map_err(|e| e.to_string().trim_end().to_string())
+}
+
+fn refused(kind: ErrorKind, message: String) -> ClientError {
+    ClientError::Refused(ErrorBody { kind, message })
+}
+
+/// `KEY=VALUE` pairs as a JSON object, values as `set` takes them.
+fn pairs(list: &[String], what: &str) -> Result<Map<String, Value>, ClientError> {
+    let mut out = Map::new();
+    for item in list {
+        let (k, v) = item.split_once('=').ok_or_else(|| {
+            refused(
+                ErrorKind::BadRequest,
+                format!("{what} {item:?}: expected KEY=VALUE"),
+            )
+        })?;
+        out.insert(k.to_string(), json_arg(v));
+    }
+    Ok(out)
+}
+
+/// Carries out `command`: what to print, if anything (`verbose`: the lines applied).
+pub(crate) fn run(
+    client: &Client,
+    command: ChangeCommand,
+    verbose: bool,
+) -> Result<Option<String>, ClientError> {
+    let req = match command {
+        ChangeCommand::Load {
+            name,
+            kind,
+            period_ms,
+            properties,
+            requires,
+            stopped,
+        } => {
+            let activity = match period_ms {
+                Some(ms) => json!({"type": "periodic", "period_ms": ms}),
+                None => json!({"type": "non_periodic"}),
+            };
+            let mut c = json!({"name": name, "type": kind, "activity": activity});
+            let props = pairs(&properties, "--property")?;
+            if !props.is_empty() {
+                c["properties"] = Value::Object(props);
+            }
+            let reqs = pairs(&requires, "--requires")?;
+            if !reqs.is_empty() {
+                c["requires"] = Value::Object(reqs);
+            }
+            if stopped {
+                c["start"] = Value::Bool(false);
+            }
+            Request::Load { component: c }
+        }
+        ChangeCommand::Unload { component } => Request::Unload { component },
+        ChangeCommand::Connect { from, to, policy } => {
+            let policy = match policy {
+                Some(p) => Some(serde_json::from_str(&p).map_err(|e| {
+                    refused(
+                        ErrorKind::BadRequest,
+                        format!("--policy {p:?}: not JSON: {e}"),
+                    )
+                })?),
+                None => None,
+            };
+            let answer = client.request(&Request::Connect { from, to, policy })?;
+            return Ok(Some(answer["id"].to_string()));
+        }
+        ChangeCommand::Disconnect { id } => Request::Disconnect { connection: id },
+        ChangeCommand::Save { file } => return save(client, &file, verbose),
+    };
+    let report: ReloadReport = client.typed(&req)?;
+    Ok(verbose.then(|| report.applied.join("\n")))
+}
+
+/// `save FILE`: the running deployment into a new file.
+fn save(client: &Client, file: &PathBuf, verbose: bool) -> Result<Option<String>, ClientError> {
+    use std::io::Write;
+    let text: String = client.typed(&Request::Deployment)?;
+    let written = std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(file)
+        .and_then(|mut f| f.write_all(text.as_bytes()).and_then(|()| f.sync_all()));
+    match written {
+        Ok(()) => {
+            Ok(verbose.then(|| format!("saved the running deployment in {}", file.display())))
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Err(refused(
+            ErrorKind::Failed,
+            format!(
+                "{}: exists; save writes a new file, never over one",
+                file.display()
+            ),
+        )),
+        Err(e) => Err(refused(
+            ErrorKind::Failed,
+            format!("{}: {e}", file.display()),
+        )),
+    }
+}
