@@ -52,10 +52,8 @@ fn rss_kib(svc: &Service) -> u64 {
 
 #[test]
 fn load_connect_disconnect_unload_and_save_on_a_running_gateway() {
-    let dir = TempDir::new("changes-cfg");
-    let file = dir.path().join("lab.toml");
-    std::fs::write(&file, DEPLOYMENT).unwrap();
-    let svc = Service::start(HWGW, "changes", &[&file], &[]).unwrap();
+    let svc = Service::run_text(HWGW, "changes", DEPLOYMENT).unwrap();
+    let dir = TempDir::new("changes-out");
     let out = |args: &[&str]| svc.out(args).unwrap_or_else(|e| panic!("{e}"));
 
     out(&[
@@ -171,10 +169,7 @@ fn load_connect_disconnect_unload_and_save_on_a_running_gateway() {
 
 #[test]
 fn browse_gets_the_same_commands() {
-    let dir = TempDir::new("changes-browse-cfg");
-    let file = dir.path().join("lab.toml");
-    std::fs::write(&file, DEPLOYMENT).unwrap();
-    let svc = Service::start(HWGW, "changes-browse", &[&file], &[]).unwrap();
+    let svc = Service::run_text(HWGW, "changes-browse", DEPLOYMENT).unwrap();
     let mut b = hwgw::browse::Browser::new(svc.socket.clone());
     let mut run = |line: &str| b.execute(line).unwrap();
     assert_eq!(

@@ -89,7 +89,30 @@ impl Service {
         args: &[S],
         env: &[(&str, &str)],
     ) -> Result<Service, String> {
+        Service::spawn(TempDir::new(tag), wrapper, bin, args, env)
+    }
+
+    /// [`Service::start`] of deployment `text`, written into the service's own folder as
+    /// `deployment.toml` (see [`Service::deployment`]).
+    pub fn run_text(bin: &str, tag: &str, text: &str) -> Result<Service, String> {
         let dir = TempDir::new(tag);
+        let file = dir.path().join("deployment.toml");
+        std::fs::write(&file, text).map_err(|e| format!("{}: {e}", file.display()))?;
+        Service::spawn(dir, &[], bin, &[file], &[])
+    }
+
+    /// The deployment file [`Service::run_text`] wrote.
+    pub fn deployment(&self) -> PathBuf {
+        self.dir.path().join("deployment.toml")
+    }
+
+    fn spawn<S: AsRef<OsStr>>(
+        dir: TempDir,
+        wrapper: &[&str],
+        bin: &str,
+        args: &[S],
+        env: &[(&str, &str)],
+    ) -> Result<Service, String> {
         let socket = dir.path().join("hwgw.sock");
         let log = dir.path().join("hwgw.log");
         let log_file =
