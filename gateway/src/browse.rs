@@ -25,7 +25,7 @@ use std::cell::RefCell;
 use std::path::PathBuf;
 
 /// Commands, for help and completion.
-const COMMANDS: [(&str, &str); 20] = [
+const COMMANDS: [(&str, &str); 22] = [
     (
         "ls",
         "list components, or the current component's interface",
@@ -66,6 +66,14 @@ const COMMANDS: [(&str, &str); 20] = [
         "connect FROM TO [--policy JSON]: ports, prints the id",
     ),
     ("disconnect", "disconnect ID: close a connection"),
+    (
+        "set-period",
+        "set-period NAME MS: a stopped component's period",
+    ),
+    (
+        "set-priority",
+        "set-priority NAME other|fifo [PRIO]: a stopped component's thread",
+    ),
     ("changes", "the run-time changes since the file was read"),
     ("save", "save FILE: the running deployment into a new file"),
     ("help", "this list"),
@@ -180,13 +188,12 @@ impl Browser {
                     self.ask(&req).map(|v| v.as_str().unwrap_or("").to_string())
                 })
             }
-            "load" | "unload" | "connect" | "disconnect" | "save" => {
-                crate::cli_changes::parse(&words).and_then(|c| {
-                    crate::cli_changes::run(&self.client, c, true)
-                        .map(Option::unwrap_or_default)
-                        .map_err(|e| e.to_string())
-                })
-            }
+            "load" | "unload" | "connect" | "disconnect" | "save" | "set-period"
+            | "set-priority" => crate::cli_changes::parse(&words).and_then(|c| {
+                crate::cli_changes::run(&self.client, c, true)
+                    .map(Option::unwrap_or_default)
+                    .map_err(|e| e.to_string())
+            }),
             "changes" => self
                 .client
                 .typed::<Vec<String>>(&Request::Changes)

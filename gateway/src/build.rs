@@ -612,7 +612,36 @@ impl Build<'_, '_, '_> {
                 let _ = runtime.remove(&c.name);
             }
         }
+        self.slaves(runtime, &bound);
         order.extend(crate::bindings::providers_first(bound));
+    }
+
+    /// Gives each slave component its master; after a reload, the slaves of a master
+    /// rebuilt (a new component under the name) too.
+    fn slaves(&mut self, runtime: &Runtime, built: &[(TaskContext, bool)]) {
+        let is_built = |name: &str| built.iter().any(|(t, _)| t.name() == name);
+        for (i, c) in self.d.components.iter().enumerate() {
+            let crate::config::ActivityConfig::Slave { master } = &c.activity else {
+                continue;
+            };
+            if !is_built(&c.name) && !is_built(master) {
+                continue;
+            }
+            let at = KeyPath::top("component")
+                .index(i)
+                .key("activity")
+                .key("master");
+            let result = runtime
+                .component(master)
+                .map_err(|e| e.to_string())
+                .and_then(|m| {
+                    let slave = runtime.component(&c.name).map_err(|e| e.to_string())?;
+                    m.add_slave(&slave).map_err(|e| e.to_string())
+                });
+            if let Err(e) = result {
+                self.problems.at(&at, e);
+            }
+        }
     }
 
     /// Component `i`, `c`: built, its properties set; `None` after a problem.
@@ -630,8 +659,18 @@ impl Build<'_, '_, '_> {
             self.problems.at(&at.key("activity").key("period_ms"), msg);
             return None;
         }
-        if let ActivitySpec::Periodic { thread, .. } | ActivitySpec::NonPeriodic { thread } =
-            &c.activity.spec()
+        if let crate::config::ActivityConfig::FileDescriptor {
+            timeout_ms: Some(ms),
+            ..
+        } = c.activity
+            && let Err(msg) = checks::period(ms)
+        {
+            self.problems.at(&at.key("activity").key("timeout_ms"), msg);
+            return None;
+        }
+        if let ActivitySpec::Periodic { thread, .. }
+        | ActivitySpec::NonPeriodic { thread }
+        | ActivitySpec::FileDescriptor { thread, .. } = &c.activity.spec()
             && let Err(msg) = thread.check()
         {
             self.problems.at(&at.key("activity"), msg);

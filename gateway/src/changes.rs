@@ -105,11 +105,7 @@ impl Gateway {
         if !report.errors.is_empty() {
             return Err(ChangeError::Refused(report.errors));
         }
-        if running.changes.len() >= KEPT {
-            running.changes.pop_front();
-            running.changes_dropped += 1;
-        }
-        running.changes.push_back(what);
+        note(&mut running, what);
         Ok(report)
     }
 
@@ -241,6 +237,102 @@ impl Gateway {
     pub fn deployment_text(&self) -> String {
         self.running().text.clone()
     }
+}
+
+/// A change of a stopped component's activity (RTT's `setPeriod`, `setPriority`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ActivityChange {
+    /// A new period, ms (a periodic activity).
+    Period(f64),
+    /// A new scheduling policy and priority (an activity with a thread).
+    Thread(rtt::SchedPolicy, i32),
+}
+
+impl Gateway {
+    /// Changes stopped component `name`'s activity, taken at its next start; a component
+    /// of the deployment has its `activity` edited too, so that `save` writes it.
+    pub fn set_activity(&self, name: &str, change: ActivityChange) -> Result<(), ChangeError> {
+        let mut running = self.running();
+        let task = self
+            .runtime()
+            .component(name)
+            .map_err(|_| ChangeError::NoComponent {
+                name: name.to_string(),
+                known: self
+                    .runtime()
+                    .components()
+                    .iter()
+                    .map(|t| t.name().to_string())
+                    .collect(),
+            })?;
+        let refused = |e: String| ChangeError::Refused(vec![format!("{name}: {e}")]);
+        let (key, line) = match change {
+            ActivityChange::Period(ms) => {
+                crate::checks::period(ms).map_err(refused)?;
+                task.set_period(crate::config::millis(ms))
+                    .map_err(|e| refused(e.to_string()))?;
+                (
+                    vec![("period_ms", toml::Value::Float(ms))],
+                    format!("set_period {name} {ms} ms"),
+                )
+            }
+            ActivityChange::Thread(policy, priority) => {
+                let mut thread = match task.activity().current() {
+                    rtt::ActivitySpec::Periodic { thread, .. }
+                    | rtt::ActivitySpec::NonPeriodic { thread }
+                    | rtt::ActivitySpec::FileDescriptor { thread, .. } => thread,
+                    rtt::ActivitySpec::Slave => {
+                        return Err(refused("a slave activity has no thread of its own".into()));
+                    }
+                };
+                thread.policy = policy;
+                thread.priority = priority;
+                task.set_thread(thread)
+                    .map_err(|e| refused(e.to_string()))?;
+                let policy_name = match policy {
+                    rtt::SchedPolicy::Other => "other",
+                    rtt::SchedPolicy::Fifo => "fifo",
+                };
+                (
+                    vec![
+                        ("policy", toml::Value::String(policy_name.into())),
+                        ("priority", toml::Value::Integer(i64::from(priority))),
+                    ],
+                    format!("set_priority {name} {policy_name} {priority}"),
+                )
+            }
+        };
+        // The deployment's own components keep the change in the running deployment.
+        if let Ok(mut doc) = toml::from_str::<toml::Table>(&running.text)
+            && let Ok(list) = tables(&mut doc, "component")
+            && let Some(activity) = list
+                .iter_mut()
+                .find(|c| name_of(c) == Some(name))
+                .and_then(|c| c.get_mut("activity"))
+                .and_then(toml::Value::as_table_mut)
+        {
+            for (k, v) in key {
+                activity.insert(k.to_string(), v);
+            }
+            if let Ok(text) = toml::to_string(&doc)
+                && let Ok(d) = crate::config::Deployment::parse(&text, "(run-time changes)")
+            {
+                running.text = text;
+                running.deployment = d;
+            }
+        }
+        note(&mut running, line);
+        Ok(())
+    }
+}
+
+/// Notes a change for `ls --changes`, keeping the newest [`KEPT`].
+fn note(running: &mut crate::deploy::Running, line: String) {
+    if running.changes.len() >= KEPT {
+        running.changes.pop_front();
+        running.changes_dropped += 1;
+    }
+    running.changes.push_back(line);
 }
 
 /// A JSON object as the TOML table it stands for (`load`'s component, `connect`'s policy).

@@ -54,6 +54,25 @@ pub enum ChangeCommand {
         /// The connection's id.
         id: u64,
     },
+    /// A new period for a stopped component's periodic activity, taken at its next start.
+    SetPeriod {
+        /// The component.
+        component: String,
+        /// The period, ms.
+        period_ms: f64,
+    },
+    /// A new scheduling policy (`other`, `fifo`) and priority for a stopped component's
+    /// thread, taken at its next start.
+    SetPriority {
+        /// The component.
+        component: String,
+        /// `other` or `fifo`.
+        #[arg(value_enum)]
+        policy: Policy,
+        /// 1..=99 for fifo, 0 for other.
+        #[arg(default_value_t = 0)]
+        priority: i32,
+    },
     /// Write the running deployment (the file's, with the run-time changes) into FILE, a
     /// new file: never over an existing one.
     Save {
@@ -74,6 +93,15 @@ pub(crate) fn parse(words: &[&str]) -> Result<ChangeCommand, String> {
     <Line as clap::Parser>::try_parse_from(words)
         .map(|l| l.command)
         .map_err(|e| e.to_string().trim_end().to_string())
+}
+
+/// A scheduling policy as the command line takes it.
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub enum Policy {
+    /// SCHED_OTHER.
+    Other,
+    /// SCHED_FIFO.
+    Fifo,
 }
 
 fn refused(kind: ErrorKind, message: String) -> ClientError {
@@ -144,6 +172,32 @@ pub(crate) fn run(
         }
         ChangeCommand::Disconnect { id } => Request::Disconnect { connection: id },
         ChangeCommand::Save { file } => return save(client, &file, verbose),
+        ChangeCommand::SetPeriod {
+            component,
+            period_ms,
+        } => {
+            client.request(&Request::SetPeriod {
+                component,
+                period_ms,
+            })?;
+            return Ok(None);
+        }
+        ChangeCommand::SetPriority {
+            component,
+            policy,
+            priority,
+        } => {
+            let policy = match policy {
+                Policy::Other => rtt::SchedPolicy::Other,
+                Policy::Fifo => rtt::SchedPolicy::Fifo,
+            };
+            client.request(&Request::SetPriority {
+                component,
+                policy,
+                priority,
+            })?;
+            return Ok(None);
+        }
     };
     let report: ReloadReport = client.typed(&req)?;
     Ok(verbose.then(|| report.applied.join("\n")))

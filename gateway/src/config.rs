@@ -288,6 +288,36 @@ pub enum ActivityConfig {
         /// 20; 0: park at once; at most 10000).
         #[serde(default)]
         spin_us: Option<u32>,
+        /// "other" or "fifo".
+        #[serde(default)]
+        policy: rtt::SchedPolicy,
+        /// Priority (1..=99 for fifo).
+        #[serde(default)]
+        priority: i32,
+        /// CPUs to run on.
+        #[serde(default)]
+        cpus: Vec<usize>,
+    },
+    /// When a file descriptor the component watches is ready, or after `timeout_ms`.
+    FileDescriptor {
+        /// Step anyway after this long without events, ms; not given: wait for ever.
+        #[serde(default)]
+        timeout_ms: Option<f64>,
+        /// "other" or "fifo".
+        #[serde(default)]
+        policy: rtt::SchedPolicy,
+        /// Priority (1..=99 for fifo).
+        #[serde(default)]
+        priority: i32,
+        /// CPUs to run on.
+        #[serde(default)]
+        cpus: Vec<usize>,
+    },
+    /// No thread of its own: stepped by component `master` right after each of its steps,
+    /// on its thread, in the order the slaves are written.
+    Slave {
+        /// The component that steps it.
+        master: String,
     },
 }
 
@@ -312,12 +342,34 @@ impl ActivityConfig {
                 timing: rtt::Timing::Absolute,
                 max_overruns: *max_overruns,
             },
-            ActivityConfig::NonPeriodic { spin_us } => rtt::ActivitySpec::NonPeriodic {
+            ActivityConfig::NonPeriodic {
+                spin_us,
+                policy,
+                priority,
+                cpus,
+            } => rtt::ActivitySpec::NonPeriodic {
                 thread: rtt::ThreadOptions {
                     spin_us: spin_us.unwrap_or(rtt::activity::DEFAULT_SPIN_US),
+                    policy: *policy,
+                    priority: *priority,
+                    cpus: cpus.clone(),
+                },
+            },
+            ActivityConfig::FileDescriptor {
+                timeout_ms,
+                policy,
+                priority,
+                cpus,
+            } => rtt::ActivitySpec::FileDescriptor {
+                timeout: timeout_ms.map(millis),
+                thread: rtt::ThreadOptions {
+                    policy: *policy,
+                    priority: *priority,
+                    cpus: cpus.clone(),
                     ..rtt::ThreadOptions::default()
                 },
             },
+            ActivityConfig::Slave { .. } => rtt::ActivitySpec::Slave,
         }
     }
 }

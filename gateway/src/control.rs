@@ -31,6 +31,8 @@
 //! | `unload` | `component` | the reload's report: the component stopped, cleaned up and removed, its connections closed |
 //! | `connect` | `from`, `to` (`component.port`), optional `policy` (as in a `[[connection]]`) | `{"id", "applied"}`: the new connection's id |
 //! | `disconnect` | `connection`: its id | the reload's report: the connection closed |
+//! | `set_period` | `component`, `period_ms` | `null`: the stopped component's periodic activity takes the period at its next start |
+//! | `set_priority` | `component`, `policy` (`"other"`, `"fifo"`), `priority` | `null`: the stopped component's thread takes them at its next start |
 //! | `changes` | — | the run-time changes (load, unload, connect, disconnect) since the deployment file was read, a line each |
 //! | `deployment` | — | the running deployment as TOML text: the file's with the run-time changes |
 //!
@@ -642,7 +644,9 @@ fn remote_request(shared: &Shared, request: Value) -> Value {
             | Request::Load { .. }
             | Request::Unload { .. }
             | Request::Connect { .. }
-            | Request::Disconnect { .. }),
+            | Request::Disconnect { .. }
+            | Request::SetPeriod { .. }
+            | Request::SetPriority { .. }),
         )) => Reply::error(
             id,
             ErrorKind::BadRequest,

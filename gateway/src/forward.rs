@@ -34,6 +34,8 @@ fn component_of(req: &Request) -> Option<&str> {
         | Request::Unload { .. }
         | Request::Connect { .. }
         | Request::Disconnect { .. }
+        | Request::SetPeriod { .. }
+        | Request::SetPriority { .. }
         | Request::Changes
         | Request::Deployment => None,
     }

@@ -168,6 +168,23 @@ pub enum Request {
         /// Its id, as `connect` answered it (`id` is the request's own).
         connection: u64,
     },
+    /// A new period for a stopped component's periodic activity.
+    SetPeriod {
+        /// The component.
+        component: String,
+        /// The period, ms.
+        period_ms: f64,
+    },
+    /// A new scheduling policy and priority for a stopped component's thread.
+    SetPriority {
+        /// The component.
+        component: String,
+        /// `"other"` or `"fifo"`.
+        policy: rtt::SchedPolicy,
+        /// 1..=99 for fifo, 0 for other.
+        #[serde(default)]
+        priority: i32,
+    },
     /// The run-time changes since the deployment file was read.
     Changes,
     /// The running deployment as TOML (`hwgw save`).
@@ -242,7 +259,7 @@ pub struct Command {
 }
 
 /// Every command, in the order the documentation lists them.
-pub const COMMANDS: [Command; 21] = [
+pub const COMMANDS: [Command; 23] = [
     Command {
         cmd: "ls",
         fields: "optional `all`",
@@ -339,6 +356,16 @@ pub const COMMANDS: [Command; 21] = [
         ok: "the reload's report: the connection closed",
     },
     Command {
+        cmd: "set_period",
+        fields: "`component`, `period_ms`",
+        ok: "`null`: the stopped component's periodic activity takes the period at its next start",
+    },
+    Command {
+        cmd: "set_priority",
+        fields: "`component`, `policy` (`\"other\"`, `\"fifo\"`), `priority`",
+        ok: "`null`: the stopped component's thread takes them at its next start",
+    },
+    Command {
         cmd: "changes",
         fields: "—",
         ok: "the run-time changes (load, unload, connect, disconnect) since the deployment file was read, a line each",
@@ -373,6 +400,8 @@ impl Request {
             Request::Unload { .. } => "unload",
             Request::Connect { .. } => "connect",
             Request::Disconnect { .. } => "disconnect",
+            Request::SetPeriod { .. } => "set_period",
+            Request::SetPriority { .. } => "set_priority",
             Request::Changes => "changes",
             Request::Deployment => "deployment",
         }
@@ -644,6 +673,10 @@ mod tests {
             "load" => json!({"cmd": cmd, "component": {"name": "c", "type": "follow"}}),
             "connect" => json!({"cmd": cmd, "from": "a.out", "to": "b.in"}),
             "disconnect" => json!({"cmd": cmd, "connection": 3}),
+            "set_period" => json!({"cmd": cmd, "component": "c", "period_ms": 5.0}),
+            "set_priority" => {
+                json!({"cmd": cmd, "component": "c", "policy": "fifo", "priority": 5})
+            }
             "get" | "watch" => json!({"cmd": cmd, "component": "c", "port": "p"}),
             "set" => json!({"cmd": cmd, "component": "c", "port": "p", "value": 1}),
             "call" => json!({"cmd": cmd, "component": "c", "operation": "o", "args": [1]}),

@@ -171,6 +171,8 @@ pub(crate) fn handle(
         | Request::Unload { .. }
         | Request::Connect { .. }
         | Request::Disconnect { .. }
+        | Request::SetPeriod { .. }
+        | Request::SetPriority { .. }
         | Request::Changes
         | Request::Deployment => change(gw, req),
         Request::Watch { .. } | Request::Record { .. } => Err(Fail(
@@ -258,6 +260,27 @@ fn change(gw: &Gateway, req: &Request) -> Result<Value, Fail> {
             }));
         }
         Request::Disconnect { connection } => gw.change(Change::Disconnect(*connection)),
+        Request::SetPeriod {
+            component,
+            period_ms,
+        } => {
+            let change = crate::changes::ActivityChange::Period(*period_ms);
+            return gw
+                .set_activity(component, change)
+                .map_err(fail)
+                .map(|()| Value::Null);
+        }
+        Request::SetPriority {
+            component,
+            policy,
+            priority,
+        } => {
+            let change = crate::changes::ActivityChange::Thread(*policy, *priority);
+            return gw
+                .set_activity(component, change)
+                .map_err(fail)
+                .map(|()| Value::Null);
+        }
         Request::Changes => return to_value(gw.changes()),
         _ => return to_value(gw.deployment_text()),
     };

@@ -193,3 +193,86 @@ fn browse_gets_the_same_commands() {
     );
     assert!(svc.terminate().status.success());
 }
+
+const STEPPED: &str = r#"
+[[card]]
+name = "sim0"
+driver = "sim"
+period_ms = 5
+
+[card.sim]
+digital_outputs = 1
+
+[[component]]
+name = "p"
+type = "follow"
+activity = { type = "periodic", period_ms = 5 }
+
+# Stepped by p after each of its steps, in this order.
+[[component]]
+name = "s1"
+type = "follow"
+activity = { type = "slave", master = "p" }
+
+[[component]]
+name = "s2"
+type = "follow"
+activity = { type = "slave", master = "p" }
+"#;
+
+fn steps(svc: &Service, component: &str) -> u64 {
+    svc.ok(json!({"cmd": "describe", "component": component}))["activity"]["steps"]
+        .as_u64()
+        .unwrap()
+}
+
+/// Steps per second of `component` over its next `n` steps.
+fn rate(svc: &Service, component: &str, n: u64) -> f64 {
+    let (s0, t0) = (steps(svc, component), std::time::Instant::now());
+    wait_until("steps", || steps(svc, component) >= s0 + n);
+    let (s1, t1) = (steps(svc, component), std::time::Instant::now());
+    (s1 - s0) as f64 / (t1 - t0).as_secs_f64()
+}
+
+#[test]
+fn set_period_changes_a_stopped_components_rate_and_slaves_follow_their_master() {
+    let svc = Service::run_text(HWGW, "changes-period", STEPPED).unwrap();
+    let before = rate(&svc, "p", 100);
+    let e = svc.out(&["set-period", "p", "100"]).unwrap_err();
+    assert!(e.contains("cannot set_period in state Running"), "{e}");
+    svc.out(&["lifecycle", "stop", "p"]).unwrap();
+    // Stopped, the master steps its slaves no more.
+    let (p, s1, s2) = (steps(&svc, "p"), steps(&svc, "s1"), steps(&svc, "s2"));
+    assert_eq!((s1, s2), (p, p), "each slave stepped once per master step");
+    svc.out(&["set-period", "p", "100"]).unwrap();
+    svc.out(&["set-priority", "p", "other"]).unwrap();
+    svc.out(&["lifecycle", "start", "p"]).unwrap();
+    let after = rate(&svc, "p", 5);
+    eprintln!("p: {before:.1} steps/s at 5 ms, {after:.1} steps/s at 100 ms");
+    // 200/s against 10/s; a loaded machine slows the first, never speeds up the second.
+    assert!(
+        after < before / 3.0,
+        "{before:.1} steps/s before, {after:.1} after"
+    );
+    assert!(after <= 12.0, "{after:.1} steps/s at a 100 ms period");
+    let listed = svc.out(&["ls", "--changes"]).unwrap();
+    assert_eq!(listed, "set_period p 100 ms\nset_priority p other 0");
+    // The saved deployment has the new period, and the slaves' master.
+    let dir = TempDir::new("changes-period-out");
+    let saved = dir.path().join("saved.toml");
+    svc.out(&["save", saved.to_str().unwrap()]).unwrap();
+    let d = hwgw::config::Deployment::parse(&std::fs::read_to_string(&saved).unwrap(), "saved")
+        .unwrap();
+    assert_eq!(
+        d.components[0].activity,
+        hwgw::config::ActivityConfig::Periodic {
+            period_ms: 100.0,
+            policy: rtt::SchedPolicy::Other,
+            priority: 0,
+            cpus: vec![],
+            max_overruns: None,
+        }
+    );
+    assert!(testkit::service::check(HWGW, &saved).status.success());
+    assert!(svc.terminate().status.success());
+}

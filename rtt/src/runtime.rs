@@ -174,7 +174,12 @@ impl Runtime {
                     known: components.iter().map(|c| c.name().to_string()).collect(),
                 });
             };
-            components.remove(i)
+            let task = components.remove(i);
+            // No master steps it any more.
+            for c in components.iter() {
+                c.remove_slave(name);
+            }
+            task
         };
         if matches!(task.state(), TaskState::Running | TaskState::RunTimeError)
             && let Err(e) = task.stop()

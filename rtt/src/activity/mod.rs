@@ -208,6 +208,15 @@ pub enum ActivityError {
     /// `wake_at` on an activity that is not a file-descriptor activity.
     #[error("only a file-descriptor activity wakes at a deadline")]
     NoDeadline,
+    /// `set_period` on an activity that is not periodic.
+    #[error("only a periodic activity has a period")]
+    NotPeriodic,
+    /// `set_thread` on a slave activity.
+    #[error("a slave activity has no thread of its own")]
+    NoThread,
+    /// A change of a running activity.
+    #[error("the activity is running: stop its component first")]
+    Running,
 }
 
 /// The descriptors that were ready for one step of a file-descriptor activity.
@@ -311,7 +320,11 @@ struct FdState {
 }
 
 struct Shared {
+    /// As built: its kind never changes.
     spec: ActivitySpec,
+    /// As changed since ([`Activity::set_period`], [`Activity::set_thread`]): taken by the
+    /// thread when it starts.
+    changed: Mutex<Option<ActivitySpec>>,
     name: String,
     thread_number: Option<u32>,
     running: AtomicBool,
@@ -428,6 +441,7 @@ impl Activity {
         Ok(Activity {
             shared: Arc::new(Shared {
                 spec,
+                changed: Mutex::new(None),
                 name: name.to_string(),
                 thread_number,
                 running: AtomicBool::new(false),
@@ -446,9 +460,66 @@ impl Activity {
         StepTap::new(&self.shared.stats.taps, capacity)
     }
 
-    /// The activity's kind and parameters.
+    /// The activity's kind and parameters as built (see [`current`](Self::current) for
+    /// what it runs with after a change).
     pub fn spec(&self) -> &ActivitySpec {
         &self.shared.spec
+    }
+
+    /// The activity's kind and parameters as it runs (or will, at its next start): as
+    /// built, with the changes of [`set_period`](Self::set_period) and
+    /// [`set_thread`](Self::set_thread).
+    pub fn current(&self) -> ActivitySpec {
+        crate::lock::lock(&self.shared.changed)
+            .clone()
+            .unwrap_or_else(|| self.shared.spec.clone())
+    }
+
+    /// A new period for a periodic activity that is not running (RTT's `setPeriod`): taken
+    /// at its next start.
+    pub fn set_period(&self, new: Duration) -> Result<(), ActivityError> {
+        if new.is_zero() {
+            return Err(ActivityError::ZeroPeriod);
+        }
+        if new > MAX_PERIOD {
+            return Err(ActivityError::PeriodTooLong(new));
+        }
+        self.change(|spec| match spec {
+            ActivitySpec::Periodic { period, .. } => {
+                *period = new;
+                Ok(())
+            }
+            _ => Err(ActivityError::NotPeriodic),
+        })
+    }
+
+    /// New thread options (policy, priority, CPUs) for an activity with a thread that is not
+    /// running (RTT's `setPriority`/`setScheduler`): taken at its next start.
+    pub fn set_thread(&self, options: ThreadOptions) -> Result<(), ActivityError> {
+        options.check()?;
+        self.change(|spec| match spec {
+            ActivitySpec::Periodic { thread, .. }
+            | ActivitySpec::NonPeriodic { thread }
+            | ActivitySpec::FileDescriptor { thread, .. } => {
+                *thread = options;
+                Ok(())
+            }
+            ActivitySpec::Slave => Err(ActivityError::NoThread),
+        })
+    }
+
+    fn change(
+        &self,
+        f: impl FnOnce(&mut ActivitySpec) -> Result<(), ActivityError>,
+    ) -> Result<(), ActivityError> {
+        let mut changed = crate::lock::lock(&self.shared.changed);
+        if self.shared.running.load(Ordering::Acquire) {
+            return Err(ActivityError::Running);
+        }
+        let mut spec = changed.clone().unwrap_or_else(|| self.shared.spec.clone());
+        f(&mut spec)?;
+        *changed = Some(spec);
+        Ok(())
     }
 
     /// The thread number (ThreadScope bit) of the activity's thread; `None` for a slave.

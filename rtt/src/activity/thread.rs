@@ -81,7 +81,8 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
     let clock = MonotonicClock;
     let stats = &shared.stats;
     stats.taps.warm();
-    match &shared.spec {
+    let changed = crate::lock::lock(&shared.changed).clone();
+    match changed.as_ref().unwrap_or(&shared.spec) {
         ActivitySpec::Periodic {
             period,
             thread,

@@ -23,6 +23,7 @@ mod dynport;
 mod hook_error;
 mod lookup;
 mod services;
+mod settings;
 
 pub use crate::error::{CallOrIntrospect, IntrospectError, LifecycleError, RuntimeError};
 pub use crate::info::{Direction, NamedValue, PortData, PortInfo};
@@ -265,6 +266,8 @@ pub(crate) struct TaskCore {
     last_error: Mutex<Option<String>>,
     engine_thread: Mutex<Option<std::thread::ThreadId>>,
     peers: Weak<Mutex<Vec<TaskContext>>>,
+    /// Slave components stepped after each of this one's steps, in order.
+    slaves: arc_swap::ArcSwap<Vec<TaskContext>>,
 }
 
 impl TaskCore {
@@ -492,6 +495,10 @@ impl Runner for EngineRunner {
             *lock(&core.engine_thread) = Some(std::thread::current().id());
         }
         core.step(events, timing);
+        // Its slaves, after its own step and on its thread (the component's lock let go).
+        for slave in core.slaves.load().iter() {
+            let _ = slave.step();
+        }
     }
 }
 
@@ -573,6 +580,7 @@ impl TaskContext {
                 last_error: Mutex::new(None),
                 engine_thread: Mutex::new(None),
                 peers: setup.peers,
+                slaves: arc_swap::ArcSwap::from_pointee(Vec::new()),
             }
         });
         if let Some(e) = build_result {
