@@ -692,9 +692,20 @@ impl Build<'_, '_, '_> {
                 return None;
             }
         };
-        if let Err(e) = task.properties().load_toml(&c.properties) {
-            for line in e.to_string().lines() {
-                self.problems.at(&at.key("properties"), line);
+        let files_ok = c.properties_file.iter().enumerate().all(|(j, f)| {
+            let at = at.key("properties_file").index(j);
+            crate::propfiles::load(&task, &self.base.join(f), &at, &mut self.problems)
+        });
+        let inline = if files_ok {
+            task.properties().load_toml(&c.properties)
+        } else {
+            Ok(())
+        };
+        if !files_ok || inline.is_err() {
+            if let Err(e) = inline {
+                for line in e.to_string().lines() {
+                    self.problems.at(&at.key("properties"), line);
+                }
             }
             // A reload's failure leaves no half-made component under the name.
             if self.only.is_some() {

@@ -6,7 +6,7 @@ use crate::client::{Client, ClientError};
 use crate::protocol::{ErrorBody, ErrorKind, ReloadReport, Request, json_arg};
 use clap::Subcommand;
 use serde_json::{Map, Value, json};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// A change of the running deployment (undone by a reload of the file unless saved).
 #[derive(Subcommand)]
@@ -72,6 +72,25 @@ pub enum ChangeCommand {
         /// 1..=99 for fifo, 0 for other.
         #[arg(default_value_t = 0)]
         priority: i32,
+    },
+    /// Write a component's properties into a TOML file (the manual's writeProperties):
+    /// whole and at once, a new file unless --replace.
+    SaveProperties {
+        /// The component.
+        component: String,
+        /// The file.
+        file: PathBuf,
+        /// Replace the file if it exists (never a link or another's file).
+        #[arg(long)]
+        replace: bool,
+    },
+    /// Set a component's properties from a TOML file (the manual's readProperties): all
+    /// of them, or none when one is refused.
+    LoadProperties {
+        /// The component.
+        component: String,
+        /// The file.
+        file: PathBuf,
     },
     /// Write the running deployment (the file's, with the run-time changes) into FILE, a
     /// new file: never over an existing one.
@@ -172,6 +191,31 @@ pub(crate) fn run(
         }
         ChangeCommand::Disconnect { id } => Request::Disconnect { connection: id },
         ChangeCommand::Save { file } => return save(client, &file, verbose),
+        ChangeCommand::SaveProperties {
+            component,
+            file,
+            replace,
+        } => {
+            let text: String = client.typed(&Request::Properties { component })?;
+            write_whole(&file, &text, replace)?;
+            return Ok(verbose.then(|| format!("saved in {}", file.display())));
+        }
+        ChangeCommand::LoadProperties { component, file } => {
+            let text = crate::propfiles::read(&file).map_err(|e| refused(ErrorKind::Failed, e))?;
+            let table: toml::Table = text.parse().map_err(|e: toml::de::Error| {
+                refused(
+                    ErrorKind::BadRequest,
+                    format!("{}: {}", file.display(), e.message()),
+                )
+            })?;
+            let properties = serde_json::to_value(&table)
+                .map_err(|e| refused(ErrorKind::BadRequest, e.to_string()))?;
+            client.request(&Request::LoadProperties {
+                component,
+                properties,
+            })?;
+            return Ok(None);
+        }
         ChangeCommand::SetPeriod {
             component,
             period_ms,
@@ -201,6 +245,42 @@ pub(crate) fn run(
     };
     let report: ReloadReport = client.typed(&req)?;
     Ok(verbose.then(|| report.applied.join("\n")))
+}
+
+/// Writes `text` into `file` whole: into a new file beside it first, then in its place —
+/// a reader sees the old file or the new one, never half of it. Without `replace` an
+/// existing file is refused; with it, only a regular file of this user's is replaced.
+fn write_whole(file: &Path, text: &str, replace: bool) -> Result<(), ClientError> {
+    use std::io::Write;
+    let fail = |e: String| refused(ErrorKind::Failed, format!("{}: {e}", file.display()));
+    if std::fs::symlink_metadata(file).is_ok() {
+        if !replace {
+            return Err(fail("exists; --replace to write over it".into()));
+        }
+        recording::file::check_replace_own(file).map_err(|e| fail(e.to_string()))?;
+    }
+    let name = file
+        .file_name()
+        .map(|n| n.to_string_lossy().to_string())
+        .unwrap_or_default();
+    let tmp = file.with_file_name(format!(".{name}.{}.tmp", std::process::id()));
+    let written = std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(&tmp)
+        .and_then(|mut f| f.write_all(text.as_bytes()).and_then(|()| f.sync_all()));
+    let placed = written.and_then(|()| {
+        if replace {
+            std::fs::rename(&tmp, file)
+        } else {
+            // A link fails when the name exists: never over a file made meanwhile.
+            std::fs::hard_link(&tmp, file).and_then(|()| std::fs::remove_file(&tmp))
+        }
+    });
+    placed.map_err(|e| {
+        let _ = std::fs::remove_file(&tmp);
+        fail(e.to_string())
+    })
 }
 
 /// `save FILE`: the running deployment into a new file.

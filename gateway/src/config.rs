@@ -391,6 +391,10 @@ pub struct ComponentConfig {
     pub kind: String,
     /// How it steps.
     pub activity: ActivityConfig,
+    /// Property files (TOML, relative to the deployment's folder), applied in order
+    /// before `properties` (the manual's readProperties): a site's values over a base's.
+    #[serde(default)]
+    pub properties_file: Vec<String>,
     /// Values for its properties (checked against the component's own property bag).
     #[serde(default)]
     pub properties: toml::Table,

@@ -33,6 +33,8 @@
 //! | `disconnect` | `connection`: its id | the reload's report: the connection closed |
 //! | `set_period` | `component`, `period_ms` | `null`: the stopped component's periodic activity takes the period at its next start |
 //! | `set_priority` | `component`, `policy` (`"other"`, `"fifo"`), `priority` | `null`: the stopped component's thread takes them at its next start |
+//! | `properties` | `component` | its properties as TOML text (what `save-properties` writes) |
+//! | `load_properties` | `component`, `properties` (an object of property names, nested for bags) | `null`: every value set, or none when one is refused |
 //! | `changes` | — | the run-time changes (load, unload, connect, disconnect) since the deployment file was read, a line each |
 //! | `deployment` | — | the running deployment as TOML text: the file's with the run-time changes |
 //!

@@ -23,6 +23,8 @@ fn component_of(req: &Request) -> Option<&str> {
         | Request::Stop { component }
         | Request::Cleanup { component }
         | Request::Recover { component }
+        | Request::Properties { component }
+        | Request::LoadProperties { component, .. }
         | Request::Watch { component, .. } => Some(component),
         Request::Ls { .. }
         | Request::Devices

@@ -52,6 +52,7 @@ pub mod forward;
 pub mod io;
 pub mod outputs;
 pub mod problems;
+pub mod propfiles;
 pub mod protocol;
 pub mod recorder;
 mod reload;

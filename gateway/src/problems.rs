@@ -485,6 +485,11 @@ impl<'s, 'a> Problems<'s, 'a> {
             .push(Problem::new(location, &path, &message.to_string()));
     }
 
+    /// A problem found in another file (a component's property file), located there.
+    pub fn add(&mut self, problem: Problem) {
+        self.list.push(problem);
+    }
+
     /// True while nothing was found.
     pub fn is_empty(&self) -> bool {
         self.list.is_empty()

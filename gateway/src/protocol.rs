@@ -25,14 +25,20 @@ pub enum Target {
     Port(String),
     /// A property, by its dotted path.
     Property(String),
+    /// An attribute (a run-time value, not saved) or a constant, by its dotted path.
+    Attribute(String),
 }
 
 impl Target {
-    /// A name as people write it: `NAME` is a port, `property:NAME` a property.
+    /// A name as people write it: `NAME` is a port, `property:NAME` a property,
+    /// `attribute:NAME` an attribute or a constant.
     pub fn from_name(name: &str) -> Target {
-        match name.strip_prefix("property:") {
-            Some(p) => Target::Property(p.to_string()),
-            None => Target::Port(name.to_string()),
+        if let Some(p) = name.strip_prefix("property:") {
+            Target::Property(p.to_string())
+        } else if let Some(a) = name.strip_prefix("attribute:") {
+            Target::Attribute(a.to_string())
+        } else {
+            Target::Port(name.to_string())
         }
     }
 }
@@ -185,6 +191,18 @@ pub enum Request {
         #[serde(default)]
         priority: i32,
     },
+    /// A component's properties as TOML text (`hwgw save-properties`).
+    Properties {
+        /// The component.
+        component: String,
+    },
+    /// Sets a component's properties from a table, all or none (`hwgw load-properties`).
+    LoadProperties {
+        /// The component.
+        component: String,
+        /// The values, as a (nested) JSON object of property names.
+        properties: Value,
+    },
     /// The run-time changes since the deployment file was read.
     Changes,
     /// The running deployment as TOML (`hwgw save`).
@@ -259,7 +277,7 @@ pub struct Command {
 }
 
 /// Every command, in the order the documentation lists them.
-pub const COMMANDS: [Command; 23] = [
+pub const COMMANDS: [Command; 25] = [
     Command {
         cmd: "ls",
         fields: "optional `all`",
@@ -366,6 +384,16 @@ pub const COMMANDS: [Command; 23] = [
         ok: "`null`: the stopped component's thread takes them at its next start",
     },
     Command {
+        cmd: "properties",
+        fields: "`component`",
+        ok: "its properties as TOML text (what `save-properties` writes)",
+    },
+    Command {
+        cmd: "load_properties",
+        fields: "`component`, `properties` (an object of property names, nested for bags)",
+        ok: "`null`: every value set, or none when one is refused",
+    },
+    Command {
         cmd: "changes",
         fields: "—",
         ok: "the run-time changes (load, unload, connect, disconnect) since the deployment file was read, a line each",
@@ -402,6 +430,8 @@ impl Request {
             Request::Disconnect { .. } => "disconnect",
             Request::SetPeriod { .. } => "set_period",
             Request::SetPriority { .. } => "set_priority",
+            Request::Properties { .. } => "properties",
+            Request::LoadProperties { .. } => "load_properties",
             Request::Changes => "changes",
             Request::Deployment => "deployment",
         }
@@ -673,6 +703,7 @@ mod tests {
             "load" => json!({"cmd": cmd, "component": {"name": "c", "type": "follow"}}),
             "connect" => json!({"cmd": cmd, "from": "a.out", "to": "b.in"}),
             "disconnect" => json!({"cmd": cmd, "connection": 3}),
+            "load_properties" => json!({"cmd": cmd, "component": "c", "properties": {"gain": 1.0}}),
             "set_period" => json!({"cmd": cmd, "component": "c", "period_ms": 5.0}),
             "set_priority" => {
                 json!({"cmd": cmd, "component": "c", "policy": "fifo", "priority": 5})

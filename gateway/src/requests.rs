@@ -133,11 +133,24 @@ pub(crate) fn handle(
             .properties()
             .get_value(prop)
             .map_err(not_found),
+        Request::Get {
+            component: c,
+            target: Target::Attribute(a),
+        } => component(c)?.attributes().get_value(a).map_err(not_found),
         Request::Set {
             component: c,
             target: Target::Port(port),
             value,
         } => set_port(&component(c)?, port, value, writers),
+        Request::Set {
+            component: c,
+            target: Target::Attribute(a),
+            value,
+        } => component(c)?
+            .attributes()
+            .set_value(a, value.clone())
+            .map_err(failed)
+            .map(|()| Value::Null),
         Request::Set {
             component: c,
             target: Target::Property(prop),
@@ -175,6 +188,24 @@ pub(crate) fn handle(
         | Request::SetPriority { .. }
         | Request::Changes
         | Request::Deployment => change(gw, req),
+        Request::Properties { component: c } => {
+            let t = component(c)?;
+            toml::to_string(&t.properties().to_toml())
+                .map_err(failed)
+                .and_then(to_value)
+        }
+        Request::LoadProperties {
+            component: c,
+            properties,
+        } => {
+            let t = component(c)?;
+            let table = crate::changes::table(properties, "properties")
+                .map_err(|e| Fail(ErrorKind::BadRequest, e.to_string()))?;
+            t.properties()
+                .load_toml(&table)
+                .map_err(failed)
+                .map(|()| Value::Null)
+        }
         Request::Watch { .. } | Request::Record { .. } => Err(Fail(
             ErrorKind::BadRequest,
             format!("{} streams: it is served on its own", req.cmd()),

@@ -326,6 +326,21 @@ pub fn description(d: &Description, values: &[Option<Value>]) -> String {
         })
         .collect();
     out.extend(align(&props).into_iter().map(|l| format!("  {l}")));
+    if !d.attributes.is_empty() {
+        out.push("attributes:".into());
+        let attrs: Vec<Vec<String>> = d
+            .attributes
+            .iter()
+            .map(|p| {
+                vec![
+                    format!("{}: {}", p.path, p.type_name),
+                    format!("= {}", p.value),
+                    p.doc.clone(),
+                ]
+            })
+            .collect();
+        out.extend(align(&attrs).into_iter().map(|l| format!("  {l}")));
+    }
     out.extend(services(d));
     out.join("\n")
 }

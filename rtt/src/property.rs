@@ -180,6 +180,35 @@ impl<T: PropertyValue> DynProperty for Cell<T> {
     }
 }
 
+/// A value fixed when it was added: read like a property, never written.
+struct Constant {
+    doc: String,
+    type_name: String,
+    value: Value,
+}
+
+impl DynProperty for Constant {
+    fn doc(&self) -> &str {
+        &self.doc
+    }
+
+    fn type_name(&self) -> String {
+        self.type_name.clone()
+    }
+
+    fn get_value(&self) -> Value {
+        self.value.clone()
+    }
+
+    fn check(&self, _: &Value) -> Result<(), String> {
+        Err("a constant: it cannot be set".into())
+    }
+
+    fn set_value(&self, v: Value) -> Result<(), String> {
+        self.check(&v)
+    }
+}
+
 enum Entry {
     Value(Arc<dyn DynProperty>),
     Bag(Arc<PropertyBag>),
@@ -219,6 +248,22 @@ impl PropertyBag {
         });
         self.insert(name, Entry::Value(cell.clone()))?;
         Ok(Property { cell })
+    }
+
+    /// Adds constant `name` (RTT's `addConstant`): listed and read by name like the rest,
+    /// refused when written.
+    pub fn constant<T: PropertyValue>(
+        &self,
+        name: &str,
+        value: T,
+        doc: &str,
+    ) -> Result<(), PropertyError> {
+        let constant = Arc::new(Constant {
+            doc: doc.to_string(),
+            type_name: crate::typename::of::<T>(),
+            value: serde_json::to_value(&value).unwrap_or(Value::Null),
+        });
+        self.insert(name, Entry::Value(constant))
     }
 
     /// Adds a nested bag `name`.

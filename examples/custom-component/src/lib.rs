@@ -28,6 +28,8 @@ pub struct Threshold {
     above: Property<f64>,
     hysteresis: Property<f64>,
     on: bool,
+    /// Times the output switched (an attribute: a run-time value, not saved).
+    switches: Property<u64>,
 }
 
 impl Threshold {
@@ -67,6 +69,16 @@ impl Threshold {
                 "switch off this far below `above`",
             )?,
             on: false,
+            switches: {
+                iface.attributes().constant(
+                    "kind",
+                    "comparator with hysteresis".to_string(),
+                    "what this component is",
+                )?;
+                iface
+                    .attributes()
+                    .add("switches", 0u64, "times the output switched")?
+            },
         })
     }
 }
@@ -88,6 +100,8 @@ impl Component for Threshold {
             if on != self.on {
                 self.on = on;
                 self.output.write(&on);
+                // An example's counter, not a real-time path: a property's store allocates.
+                self.switches.set(self.switches.get() + 1);
             }
         }
         Ok(())
