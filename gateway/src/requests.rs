@@ -126,40 +126,11 @@ pub(crate) fn handle(
                 .map_err(failed)
                 .map(|v| v.unwrap_or(Value::Null))
         }
-        Request::Get {
-            component: c,
-            target: Target::Property(prop),
-        } => component(c)?
-            .properties()
-            .get_value(prop)
-            .map_err(not_found),
-        Request::Get {
-            component: c,
-            target: Target::Attribute(a),
-        } => component(c)?.attributes().get_value(a).map_err(not_found),
         Request::Set {
             component: c,
             target: Target::Port(port),
             value,
         } => set_port(&component(c)?, port, value, writers),
-        Request::Set {
-            component: c,
-            target: Target::Attribute(a),
-            value,
-        } => component(c)?
-            .attributes()
-            .set_value(a, value.clone())
-            .map_err(failed)
-            .map(|()| Value::Null),
-        Request::Set {
-            component: c,
-            target: Target::Property(prop),
-            value,
-        } => component(c)?
-            .properties()
-            .set_value(prop, value.clone())
-            .map_err(failed)
-            .map(|()| Value::Null),
         Request::Call {
             component: c,
             operation,
@@ -188,24 +159,17 @@ pub(crate) fn handle(
         | Request::SetPriority { .. }
         | Request::Changes
         | Request::Deployment => change(gw, req),
-        Request::Properties { component: c } => {
-            let t = component(c)?;
-            toml::to_string(&t.properties().to_toml())
-                .map_err(failed)
-                .and_then(to_value)
-        }
-        Request::LoadProperties {
+        Request::Get {
             component: c,
-            properties,
-        } => {
-            let t = component(c)?;
-            let table = crate::changes::table(properties, "properties")
-                .map_err(|e| Fail(ErrorKind::BadRequest, e.to_string()))?;
-            t.properties()
-                .load_toml(&table)
-                .map_err(failed)
-                .map(|()| Value::Null)
+            target: Target::Property(_) | Target::Attribute(_),
         }
+        | Request::Set {
+            component: c,
+            target: Target::Property(_) | Target::Attribute(_),
+            ..
+        }
+        | Request::Properties { component: c }
+        | Request::LoadProperties { component: c, .. } => values(&component(c)?, req),
         Request::Watch { .. } | Request::Record { .. } => Err(Fail(
             ErrorKind::BadRequest,
             format!("{} streams: it is served on its own", req.cmd()),
@@ -316,4 +280,44 @@ fn change(gw: &Gateway, req: &Request) -> Result<Value, Fail> {
         _ => return to_value(gw.deployment_text()),
     };
     report.map_err(fail).and_then(to_value)
+}
+
+/// A component's properties, attributes and constants, read and set.
+fn values(t: &rtt::TaskContext, req: &Request) -> Result<Value, Fail> {
+    let set = |bag: &rtt::property::PropertyBag, path: &str, value: &Value| {
+        bag.set_value(path, value.clone())
+            .map_err(failed)
+            .map(|()| Value::Null)
+    };
+    match req {
+        Request::Get {
+            target: Target::Property(p),
+            ..
+        } => t.properties().get_value(p).map_err(not_found),
+        Request::Get {
+            target: Target::Attribute(a),
+            ..
+        } => t.attributes().get_value(a).map_err(not_found),
+        Request::Set {
+            target: Target::Property(p),
+            value,
+            ..
+        } => set(t.properties(), p, value),
+        Request::Set {
+            target: Target::Attribute(a),
+            value,
+            ..
+        } => set(t.attributes(), a, value),
+        Request::LoadProperties { properties, .. } => {
+            let table = crate::changes::table(properties, "properties")
+                .map_err(|e| Fail(ErrorKind::BadRequest, e.to_string()))?;
+            t.properties()
+                .load_toml(&table)
+                .map_err(failed)
+                .map(|()| Value::Null)
+        }
+        _ => toml::to_string(&t.properties().to_toml())
+            .map_err(failed)
+            .and_then(to_value),
+    }
 }
