@@ -159,75 +159,98 @@ fn bind_unnamed(runtime: &Runtime, task: &TaskContext, req: &RequiredInfo) -> Re
     }
 }
 
-/// After a reload rebuilt the components `rebuilt`: the others' bindings to them are made
-/// again, to the new components (the old ones are gone). Problems are returned as lines.
-pub(crate) fn rebind_dependents(runtime: &Runtime, rebuilt: &[String]) -> Vec<String> {
-    let mut problems = Vec::new();
-    for task in runtime.components() {
-        if rebuilt.iter().any(|r| r == task.name()) {
-            continue;
-        }
-        for req in task.required() {
-            let Some(target) = req.bound_to.first() else {
-                continue;
-            };
-            if !matches!(req.kind, RequiredKind::Service { .. }) {
-                continue;
-            }
-            let Some((provider, service)) = rebuilt.iter().find_map(|r| {
-                target
-                    .strip_prefix(r.as_str())
-                    .and_then(|s| s.strip_prefix('.'))
-                    .map(|s| (r, s))
-            }) else {
-                continue;
-            };
-            let result = runtime
-                .component(provider)
-                .map_err(|e| e.to_string())
-                .and_then(|p| {
-                    task.bind_service(&req.name, &p, service, false)
-                        .map_err(|e| e.to_string())
-                });
-            if let Err(e) = result {
-                problems.push(format!("{}: {e}", task.name()));
-            }
-        }
+/// `bound` reordered so each component starts after the components whose services it is
+/// bound to: a topological order, stable (the written order among the rest); a cycle is
+/// started in its written order.
+pub(crate) fn providers_first(bound: Vec<(TaskContext, bool)>) -> Vec<(TaskContext, bool)> {
+    let names: Vec<String> = bound.iter().map(|(t, _)| t.name().to_string()).collect();
+    // The provider among `bound` of binding `label` (`provider.service`): the longest name
+    // it starts with (names may hold dots).
+    let provider = |label: &str| {
+        names
+            .iter()
+            .enumerate()
+            .filter(|(_, n)| {
+                label
+                    .strip_prefix(n.as_str())
+                    .is_some_and(|rest| rest.starts_with('.'))
+            })
+            .max_by_key(|(_, n)| n.len())
+            .map(|(j, _)| j)
+    };
+    let needs: Vec<Vec<usize>> = bound
+        .iter()
+        .enumerate()
+        .map(|(i, (t, _))| {
+            t.required()
+                .iter()
+                .filter(|r| matches!(r.kind, RequiredKind::Service { .. }))
+                .filter_map(|r| r.bound_to.first().and_then(|l| provider(l)))
+                .filter(|&j| j != i)
+                .collect()
+        })
+        .collect();
+    let mut placed = vec![false; bound.len()];
+    let mut order = Vec::with_capacity(bound.len());
+    while order.len() < bound.len() {
+        let next = (0..bound.len())
+            .find(|&i| !placed[i] && needs[i].iter().all(|&j| placed[j]))
+            // A cycle: the first left, in the written order.
+            .or_else(|| (0..bound.len()).find(|&i| !placed[i]));
+        let Some(i) = next else { break };
+        placed[i] = true;
+        order.push(i);
     }
-    problems
+    let mut slots: Vec<Option<(TaskContext, bool)>> = bound.into_iter().map(Some).collect();
+    order.into_iter().filter_map(|i| slots[i].take()).collect()
 }
 
-/// `bound` reordered so each component starts after the components whose services it is
-/// bound to (the order kept otherwise; a cycle keeps its order).
-pub(crate) fn providers_first(mut bound: Vec<(TaskContext, bool)>) -> Vec<(TaskContext, bool)> {
-    let n = bound.len();
-    for _ in 0..n {
-        let mut moved = false;
-        for i in 0..bound.len() {
-            let needs: Vec<String> = bound[i]
-                .0
-                .required()
-                .iter()
-                .filter_map(|r| r.bound_to.first().cloned())
-                .collect();
-            let last_provider = bound.iter().rposition(|(t, _)| {
-                needs.iter().any(|b| {
-                    b.strip_prefix(t.name())
-                        .is_some_and(|rest| rest.starts_with('.'))
-                })
-            });
-            if let Some(j) = last_provider
-                && j > i
-            {
-                let item = bound.remove(i);
-                bound.insert(j, item);
-                moved = true;
-                break;
-            }
+#[cfg(test)]
+mod tests {
+    use super::providers_first;
+    use rtt::{ActivitySpec, Component, InitialState, Runtime, RuntimeOptions};
+    use std::sync::Arc;
+
+    struct Nothing;
+    impl Component for Nothing {}
+
+    /// A chain D needs C needs B needs A, written backwards, starts A, B, C, D.
+    #[test]
+    fn a_chain_starts_providers_first() {
+        let rt = Runtime::new(Arc::default(), RuntimeOptions::default())
+            .unwrap_or_else(|e| panic!("{e}"));
+        let add = |name: &str, needs: Option<&str>| {
+            let needs = needs.map(str::to_string);
+            rt.add(
+                name,
+                ActivitySpec::Slave,
+                InitialState::Stopped,
+                move |iface| {
+                    iface
+                        .provides("s")
+                        .client_operation("f", "", &[], |(): ()| 1u8)?;
+                    if needs.is_some() {
+                        let _ = iface.requires("up").operation::<(), u8>("f")?;
+                    }
+                    Ok(Nothing)
+                },
+            )
+            .unwrap_or_else(|e| panic!("{e}"))
+        };
+        let (d, c, b, a) = (
+            add("d", Some("c")),
+            add("c", Some("b")),
+            add("b", Some("a")),
+            add("a", None),
+        );
+        for (t, p) in [(&d, &c), (&c, &b), (&b, &a)] {
+            t.bind_service("up", p, "s", false)
+                .unwrap_or_else(|e| panic!("{e}"));
         }
-        if !moved {
-            break;
-        }
+        let order: Vec<String> = providers_first(vec![(d, true), (c, true), (b, true), (a, true)])
+            .into_iter()
+            .map(|(t, _)| t.name().to_string())
+            .collect();
+        assert_eq!(order, ["a", "b", "c", "d"]);
     }
-    bound
 }

@@ -20,10 +20,19 @@ use std::sync::Arc;
 
 use crate::watchdog::{WatchSet, Watched, output_watchdog};
 
-/// Notes the component of `from` (`component.port`) as a writer of the card output behind
-/// `to`, when `to` is a port of a card's output IO component (`card.ao.*`, `card.do.*`).
-pub(crate) fn note_writer(cards: &[CardRt], from: &str, to: &str) {
-    let (Some((writer, _)), Some((component, port))) = (split_port(from), split_port(to)) else {
+/// Notes the component of `from` (`component.port`; `is_component` tells where its name
+/// ends) as a writer of the card output behind `to`, when `to` is a port of a card's
+/// output IO component (`card.ao.*`, `card.do.*`).
+pub(crate) fn note_writer(
+    cards: &[CardRt],
+    from: &str,
+    to: &str,
+    is_component: &dyn Fn(&str) -> bool,
+) {
+    let (Some((writer, _)), Some((component, port))) = (
+        crate::config::split_port_among(from, is_component),
+        split_port(to),
+    ) else {
         return;
     };
     let Some(card) = component
@@ -587,12 +596,7 @@ impl Build<'_, '_, '_> {
                 built.push((i, task));
             }
         }
-        if self.only.is_some() {
-            let names: Vec<String> = built.iter().map(|(_, t)| t.name().to_string()).collect();
-            for line in crate::bindings::rebind_dependents(runtime, &names) {
-                self.problems.at(&KeyPath::top("component"), line);
-            }
-        }
+        let names: Vec<String> = built.iter().map(|(_, t)| t.name().to_string()).collect();
         let mut bound = Vec::new();
         for (i, task) in built {
             let c = &self.d.components[i];
@@ -610,6 +614,21 @@ impl Build<'_, '_, '_> {
             } else if self.only.is_some() {
                 // A reload's failure leaves no half-made component under the name.
                 let _ = runtime.remove(&c.name);
+            }
+        }
+        if self.only.is_some() {
+            // A reload: the components it kept are bound again as the new deployment
+            // says — to a provider rebuilt or added, away from one removed.
+            for (i, c) in self.d.components.iter().enumerate() {
+                if names.contains(&c.name) {
+                    continue;
+                }
+                if let Ok(task) = runtime.component(&c.name)
+                    && !task.required().is_empty()
+                {
+                    let at = KeyPath::top("component").index(i);
+                    crate::bindings::bind(runtime, &task, c, &at, &mut self.problems);
+                }
             }
         }
         self.slaves(runtime, &bound);
@@ -762,7 +781,7 @@ impl Build<'_, '_, '_> {
                         .problems
                         .at(&at, format!("{} -> {}: {e}", c.from, c.to)),
                     Ok(info) => {
-                        note_writer(cards, &c.from, &c.to);
+                        note_writer(cards, &c.from, &c.to, &local);
                         links.push(Link {
                             config: c.clone(),
                             made: Some((from, info.id)),

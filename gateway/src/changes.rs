@@ -47,6 +47,14 @@ pub enum ChangeError {
     /// The deployment with the change has errors; nothing changed.
     #[error("nothing changed; the deployment would have errors:\n{}", .0.join("\n"))]
     Refused(Vec<String>),
+    /// The change passed the check but did not all apply: what did and what failed.
+    #[error("applied in part:\n{}\nfailed:\n{}", .applied.join("\n"), .errors.join("\n"))]
+    Partly {
+        /// What was applied.
+        applied: Vec<String>,
+        /// What failed.
+        errors: Vec<String>,
+    },
     /// No component of the deployment by that name.
     #[error("no component {name:?} in the deployment (an IO component goes with its card); there are: {}", if .known.is_empty() { "none".to_string() } else { .known.join(", ") })]
     NoComponent {
@@ -66,6 +74,11 @@ pub enum ChangeError {
         /// `id: from -> to` of each.
         known: Vec<String>,
     },
+    /// A name a component cannot have.
+    #[error(
+        "{0:?} cannot name a component: it must not be empty, hold '/', white space or control characters, or begin or end with '.'"
+    )]
+    BadName(String),
     /// What was given is not a component table or a policy.
     #[error("{0}")]
     Invalid(String),
@@ -87,10 +100,29 @@ fn name_of(t: &toml::Value) -> Option<&str> {
     t.get("name").and_then(toml::Value::as_str)
 }
 
+/// What a change applied.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Changed {
+    /// The reload's report: what was built and removed.
+    pub report: ReloadReport,
+    /// The connection made by a `connect` (none for one fed from another gateway).
+    pub id: Option<u64>,
+}
+
+/// Whether `name` may name a component loaded at run time (`B/x` is another gateway's).
+fn valid_name(name: &str) -> bool {
+    !name.is_empty()
+        && !name.starts_with('.')
+        && !name.ends_with('.')
+        && !name
+            .chars()
+            .any(|c| c == '/' || c.is_whitespace() || c.is_control())
+}
+
 impl Gateway {
-    /// Applies `change` to the running deployment (see the module doc): the reload's
-    /// report, or why nothing changed.
-    pub fn change(&self, change: Change) -> Result<ReloadReport, ChangeError> {
+    /// Applies `change` to the running deployment (see the module doc): what it applied,
+    /// or why nothing changed.
+    pub fn change(&self, change: Change) -> Result<Changed, ChangeError> {
         let mut running = self.running();
         let mut doc: toml::Table = toml::from_str(&running.text)
             .map_err(|e| ChangeError::Invalid(format!("the running deployment: {e}")))?;
@@ -101,12 +133,29 @@ impl Gateway {
             Some(f) => format!("{} (with run-time changes)", f.display()),
             None => "<embedded demo> (with run-time changes)".to_string(),
         };
-        let report = self.reload_locked(&mut running, &text, &file);
+        let report = self.reload_locked(&mut running, &text, &file, true);
         if !report.errors.is_empty() {
-            return Err(ChangeError::Refused(report.errors));
+            let applied: Vec<String> = report
+                .applied
+                .iter()
+                .filter(|l| *l != "nothing changed")
+                .cloned()
+                .collect();
+            if applied.is_empty() {
+                return Err(ChangeError::Refused(report.errors));
+            }
+            note(&mut running, format!("{what} (in part)"));
+            return Err(ChangeError::Partly {
+                applied,
+                errors: report.errors,
+            });
         }
+        let id = match &change {
+            Change::Connect { from, to, .. } => self.connection_id(from, to),
+            _ => None,
+        };
         note(&mut running, what);
-        Ok(report)
+        Ok(Changed { report, id })
     }
 
     /// Edits `doc` as `change` says; the line `ls --changes` shows for it.
@@ -118,6 +167,9 @@ impl Gateway {
                     .and_then(toml::Value::as_str)
                     .ok_or_else(|| ChangeError::Invalid("a component needs a \"name\"".into()))?
                     .to_string();
+                if !valid_name(&name) {
+                    return Err(ChangeError::BadName(name));
+                }
                 let kind = table
                     .get("type")
                     .and_then(toml::Value::as_str)
@@ -175,24 +227,32 @@ impl Gateway {
                 Ok(format!("connect {from} -> {to}"))
             }
             Change::Disconnect(id) => {
-                let (from, to) = self.connection(*id)?;
+                let config = self.connection(*id)?;
                 let list = tables(doc, "connection")?;
-                let at = |k: &str, c: &toml::Value, v: &str| {
-                    c.get(k).and_then(toml::Value::as_str) == Some(v)
+                // The entry that made this very connection: same ends, same policy.
+                let Some(i) = list.iter().position(|c| {
+                    c.clone()
+                        .try_into::<crate::config::ConnectionConfig>()
+                        .ok()
+                        .as_ref()
+                        == Some(&config)
+                }) else {
+                    return Err(ChangeError::Invalid(format!(
+                        "connection {id} ({} -> {}) is in no [[connection]] of the deployment",
+                        config.from, config.to
+                    )));
                 };
-                if let Some(i) = list
-                    .iter()
-                    .position(|c| at("from", c, &from) && at("to", c, &to))
-                {
-                    list.remove(i);
-                }
-                Ok(format!("disconnect {from} -> {to} (id {id})"))
+                list.remove(i);
+                Ok(format!(
+                    "disconnect {} -> {} (id {id})",
+                    config.from, config.to
+                ))
             }
         }
     }
 
-    /// `(from, to)` of the deployment's connection `id`.
-    fn connection(&self, id: u64) -> Result<(String, String), ChangeError> {
+    /// The configuration of the deployment's connection `id`.
+    fn connection(&self, id: u64) -> Result<crate::config::ConnectionConfig, ChangeError> {
         let parts = self.parts();
         let made = || {
             parts
@@ -202,7 +262,7 @@ impl Gateway {
         };
         made()
             .find(|(_, i)| *i == id)
-            .map(|(l, _)| (l.config.from.clone(), l.config.to.clone()))
+            .map(|(l, _)| l.config.clone())
             .ok_or_else(|| ChangeError::NoConnection {
                 id,
                 known: made()

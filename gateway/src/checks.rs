@@ -2,7 +2,7 @@
 //! gives (so nothing it says can panic, hang or allocate without bound), and connections
 //! that would make components wake each other for ever.
 
-use crate::config::{ConnectionConfig, Deployment, split_port};
+use crate::config::{ConnectionConfig, Deployment};
 use crate::problems::KeyPath;
 use rtt::{ActivitySpec, Runtime};
 use std::collections::HashMap;
@@ -67,7 +67,11 @@ pub fn spin_loops(connections: &[ConnectionConfig], runtime: &Runtime) -> Vec<(u
     // The wake edges: component -> component, by connection.
     let mut edges: HashMap<&str, Vec<(&str, usize)>> = HashMap::new();
     for (i, c) in connections.iter().enumerate() {
-        let (Some((from, out)), Some((to, port))) = (split_port(&c.from), split_port(&c.to)) else {
+        let is_component = |name: &str| runtime.component(name).is_ok();
+        let (Some((from, out)), Some((to, port))) = (
+            crate::config::split_port_among(&c.from, &is_component),
+            crate::config::split_port_among(&c.to, &is_component),
+        ) else {
             continue;
         };
         // Only a connection that can be made: from an output port.

@@ -187,7 +187,8 @@ pub(crate) fn run(
                 None => None,
             };
             let answer = client.request(&Request::Connect { from, to, policy })?;
-            return Ok(Some(answer["id"].to_string()));
+            // A connection fed from another gateway has no id here.
+            return Ok(answer["id"].as_u64().map(|id| id.to_string()));
         }
         ChangeCommand::Disconnect { id } => Request::Disconnect { connection: id },
         ChangeCommand::Save { file } => return save(client, &file, verbose),
@@ -284,28 +285,18 @@ fn write_whole(file: &Path, text: &str, replace: bool) -> Result<(), ClientError
 }
 
 /// `save FILE`: the running deployment into a new file.
-fn save(client: &Client, file: &PathBuf, verbose: bool) -> Result<Option<String>, ClientError> {
-    use std::io::Write;
+fn save(client: &Client, file: &Path, verbose: bool) -> Result<Option<String>, ClientError> {
     let text: String = client.typed(&Request::Deployment)?;
-    let written = std::fs::OpenOptions::new()
-        .write(true)
-        .create_new(true)
-        .open(file)
-        .and_then(|mut f| f.write_all(text.as_bytes()).and_then(|()| f.sync_all()));
-    match written {
-        Ok(()) => {
-            Ok(verbose.then(|| format!("saved the running deployment in {}", file.display())))
-        }
-        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Err(refused(
+    if std::fs::symlink_metadata(file).is_ok() {
+        return Err(refused(
             ErrorKind::Failed,
             format!(
                 "{}: exists; save writes a new file, never over one",
                 file.display()
             ),
-        )),
-        Err(e) => Err(refused(
-            ErrorKind::Failed,
-            format!("{}: {e}", file.display()),
-        )),
+        ));
     }
+    // Whole or not at all: a failed write leaves no half file under the name.
+    write_whole(file, &text, false)?;
+    Ok(verbose.then(|| format!("saved the running deployment in {}", file.display())))
 }

@@ -439,6 +439,22 @@ pub struct ConnectionConfig {
     pub policy: ConnPolicy,
 }
 
+/// Splits `component.port` where `is_component` says the component ends: component and
+/// port names may both hold dots (`sim0.ai.ch0`, a service's port `cam0.camera.frames`),
+/// so the first split from the right whose left side is a component is it; with none,
+/// the last dot.
+pub fn split_port_among<'a>(
+    address: &'a str,
+    is_component: &dyn Fn(&str) -> bool,
+) -> Option<(&'a str, &'a str)> {
+    address
+        .rmatch_indices('.')
+        .map(|(i, _)| (&address[..i], &address[i + 1..]))
+        .filter(|(c, p)| !c.is_empty() && !p.is_empty())
+        .find(|(c, _)| is_component(c))
+        .or_else(|| split_port(address))
+}
+
 /// Splits `component.port` at the last dot.
 pub fn split_port(address: &str) -> Option<(&str, &str)> {
     address

@@ -648,7 +648,10 @@ fn remote_request(shared: &Shared, request: Value) -> Value {
             | Request::Connect { .. }
             | Request::Disconnect { .. }
             | Request::SetPeriod { .. }
-            | Request::SetPriority { .. }),
+            | Request::SetPriority { .. }
+            // The deployment's text is this host's too.
+            | Request::Changes
+            | Request::Deployment),
         )) => Reply::error(
             id,
             ErrorKind::BadRequest,

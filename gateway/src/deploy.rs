@@ -57,6 +57,17 @@ pub(crate) struct Link {
     pub(crate) made: Option<(Arc<dyn rtt::component::DynPort>, u64)>,
 }
 
+impl Parts {
+    /// Whether `name` is one of its components (a card's too).
+    pub(crate) fn has_component(&self, name: &str) -> bool {
+        self.order.iter().any(|(t, _)| t.name() == name)
+            || self
+                .cards
+                .iter()
+                .any(|c| c.io.iter().chain(&c.bus).any(|t| t.name() == name))
+    }
+}
+
 /// What a gateway is made of; changed by a reload, read by everything else.
 pub(crate) struct Parts {
     pub(crate) cards: Vec<CardRt>,

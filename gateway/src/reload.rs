@@ -56,7 +56,8 @@ impl Gateway {
         match std::fs::read_to_string(&file) {
             Ok(text) => {
                 let mut running = self.running();
-                let report = self.reload_locked(&mut running, &text, &file.display().to_string());
+                let report =
+                    self.reload_locked(&mut running, &text, &file.display().to_string(), false);
                 if report.errors.is_empty() {
                     // The file is what runs now: the run-time changes are gone with it.
                     running.changes.clear();
@@ -72,16 +73,18 @@ impl Gateway {
     /// and only that, or nothing when it has an error.
     pub fn reload_text(&self, text: &str, file: &str) -> ReloadReport {
         let mut running = self.running();
-        self.reload_locked(&mut running, text, file)
+        self.reload_locked(&mut running, text, file, false)
     }
 
     /// [`reload_text`](Self::reload_text) with the running deployment held (a run-time
-    /// change edits it and applies the result under one lock).
+    /// change edits it and applies the result under one lock). With `whole_or_nothing` (a
+    /// run-time change) a change that needs a restart is refused, not half applied.
     pub(crate) fn reload_locked(
         &self,
         running: &mut crate::deploy::Running,
         text: &str,
         file: &str,
+        whole_or_nothing: bool,
     ) -> ReloadReport {
         if running.stopping || self.is_stopping() {
             return ReloadReport::refused(vec!["the gateway is stopping".into()]);
@@ -103,6 +106,14 @@ impl Gateway {
             }
         };
         let plan = self.plan(&running.deployment, &new, new_keys);
+        if whole_or_nothing && !plan.restart.is_empty() {
+            return ReloadReport::refused(
+                plan.restart
+                    .iter()
+                    .map(|l| format!("{l} (it cannot change while hwgw runs)"))
+                    .collect(),
+            );
+        }
         let mut report = ReloadReport {
             applied: plan.applied.clone(),
             restart: plan.restart.clone(),
@@ -235,8 +246,9 @@ impl Gateway {
             .into_iter()
             .partition(|(t, _)| going(t));
         parts.order = kept;
+        let is_component = |name: &str| self.runtime().component(name).is_ok();
         let touches = |a: &str| {
-            split_port(a)
+            crate::config::split_port_among(a, &is_component)
                 .is_some_and(|(c, _)| plan.components_down.contains(c) || card_tasks.contains(c))
         };
         let (links, kept): (Vec<Link>, Vec<Link>) =
@@ -410,10 +422,12 @@ pub(crate) fn log_reload(what: &str, report: &crate::protocol::ReloadReport) {
 fn set_writers(parts: &Parts) {
     for c in &parts.cards {
         let mut writers: Vec<(&str, &str)> = Vec::new();
+        let is_component = |name: &str| parts.has_component(name);
         for l in &parts.links {
-            let (Some((writer, _)), Some((component, port))) =
-                (split_port(&l.config.from), split_port(&l.config.to))
-            else {
+            let (Some((writer, _)), Some((component, port))) = (
+                crate::config::split_port_among(&l.config.from, &is_component),
+                split_port(&l.config.to),
+            ) else {
                 continue;
             };
             let ours = component
@@ -720,8 +734,9 @@ impl Diff<'_> {
     /// again.
     fn connections(&self, plan: &mut Plan) {
         let (new, parts) = (self.new, self.parts);
+        let is_component = |name: &str| parts.has_component(name);
         let down_component = |address: &str| {
-            split_port(address).is_some_and(|(component, _)| {
+            crate::config::split_port_among(address, &is_component).is_some_and(|(component, _)| {
                 plan.components_down.contains(component)
                     || parts
                         .cards
@@ -927,5 +942,10 @@ fn names_any(c: &ComponentConfig, hit: impl Fn(&str) -> bool) -> bool {
             _ => false,
         }
     }
+    // Its properties may name devices, and so may its required devices' bindings.
     c.properties.values().any(|v| walk(v, &hit))
+        || c.requires.values().any(|b| match b {
+            crate::config::Binding::One(name) => hit(name),
+            crate::config::Binding::Many(names) => names.iter().any(|n| hit(n)),
+        })
 }

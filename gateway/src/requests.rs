@@ -228,7 +228,9 @@ fn change(gw: &Gateway, req: &Request) -> Result<Value, Fail> {
     use crate::changes::{Change, ChangeError, table};
     let fail = |e: ChangeError| match e {
         ChangeError::NoComponent { .. } | ChangeError::NoConnection { .. } => not_found(e),
-        ChangeError::Invalid(_) => Fail(ErrorKind::BadRequest, e.to_string()),
+        ChangeError::Invalid(_) | ChangeError::BadName(_) => {
+            Fail(ErrorKind::BadRequest, e.to_string())
+        }
         _ => failed(e),
     };
     let report = match req {
@@ -242,7 +244,7 @@ fn change(gw: &Gateway, req: &Request) -> Result<Value, Fail> {
                 Some(p) => Some(toml::Value::Table(table(p, "policy").map_err(fail)?)),
                 None => None,
             };
-            let report = gw
+            let changed = gw
                 .change(Change::Connect {
                     from: from.clone(),
                     to: to.clone(),
@@ -250,8 +252,8 @@ fn change(gw: &Gateway, req: &Request) -> Result<Value, Fail> {
                 })
                 .map_err(fail)?;
             return Ok(serde_json::json!({
-                "id": gw.connection_id(from, to),
-                "applied": report.applied,
+                "id": changed.id,
+                "applied": changed.report.applied,
             }));
         }
         Request::Disconnect { connection } => gw.change(Change::Disconnect(*connection)),
@@ -279,7 +281,7 @@ fn change(gw: &Gateway, req: &Request) -> Result<Value, Fail> {
         Request::Changes => return to_value(gw.changes()),
         _ => return to_value(gw.deployment_text()),
     };
-    report.map_err(fail).and_then(to_value)
+    report.map_err(fail).and_then(|c| to_value(c.report))
 }
 
 /// A component's properties, attributes and constants, read and set.

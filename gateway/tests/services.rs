@@ -182,13 +182,16 @@ fn a_services_port_connects_by_its_dotted_name() {
 
 #[test]
 fn a_reload_that_rebuilds_the_provider_binds_what_requires_it_to_the_new_one() {
-    let text = component("cam0", "camera", "") + &component("vision", "vision", "");
+    // cam0's service port feeds f; a reload rebuilds cam0 alone.
+    let rest = component("vision", "vision", "")
+        + &component("f", "follow", "")
+        + "[[connection]]\nfrom = \"cam0.camera.exposure\"\nto = \"f.in\"\n";
+    let text = component("cam0", "camera", "") + &rest;
     let gw = build(&text).unwrap();
     gw.start().unwrap();
     let vision = gw.runtime().component("vision").unwrap();
     testkit::wait_until("the binding ready", || vision.required()[0].ready);
-    let changed = component("cam0", "camera", "properties = { model = \"b\" }")
-        + &component("vision", "vision", "");
+    let changed = component("cam0", "camera", "properties = { model = \"b\" }") + &rest;
     let report = gw.reload_text(&changed, "services.toml");
     assert!(report.errors.is_empty(), "{report:?}");
     // The requirer was not rebuilt; its binding follows the new provider.
@@ -200,6 +203,13 @@ fn a_reload_that_rebuilds_the_provider_binds_what_requires_it_to_the_new_one() {
         cam0.properties().get_value("model").unwrap(),
         serde_json::json!("b")
     );
+    // The service port's connection was made again, from the new cam0.
+    let f = gw.runtime().component("f").unwrap();
+    assert_eq!(f.port("in").unwrap().connections().len(), 1);
+    assert_eq!(cam0.port("camera.exposure").unwrap().connections().len(), 1);
+    // A loss seen during the reload is told once, and its return once.
+    let info = &same.required()[0];
+    assert!(info.lost == info.back && info.lost <= 1, "{info:?}");
     cam0.stop().unwrap();
     assert!(
         !same.required()[0].ready,

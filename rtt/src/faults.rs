@@ -96,9 +96,9 @@ impl FaultCounter {
     }
 
     /// A good reading: the count starts again; the warning is cleared and a component in
-    /// RunTimeError returns to Running.
+    /// RunTimeError returns to Running (whoever put it there: the operator's `error` too).
     pub fn good(&mut self, ctx: &mut Context<'_>) {
-        if self.run > 0 {
+        if self.run > 0 || ctx.state() == crate::TaskState::RunTimeError {
             self.run = 0;
             ctx.recovered();
         }

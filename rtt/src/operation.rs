@@ -90,7 +90,7 @@ pub enum CallError {
     )]
     NotReady {
         /// The operation.
-        operation: String,
+        operation: Arc<str>,
     },
     /// `collect` after the result was already taken.
     #[error("the result was already collected")]

@@ -238,6 +238,16 @@ pub enum BindError {
         /// The registry's answer.
         source: Box<RegistryError>,
     },
+    /// One device named twice.
+    #[error("{component:?} requires {name:?}: device {device:?} is named twice")]
+    DuplicateDevice {
+        /// The requiring component.
+        component: String,
+        /// The requirement.
+        name: String,
+        /// The device.
+        device: String,
+    },
     /// Too few or too many devices.
     #[error("{component:?} requires {multiplicity} {interface} devices as {name:?}; {given} given")]
     Multiplicity {
@@ -411,6 +421,12 @@ impl Requirement {
         Some(now)
     }
 
+    /// Lost and back start again from zero (at `cleanup`).
+    pub(crate) fn reset_counts(&self) {
+        self.lost.store(0, Ordering::Relaxed);
+        self.back.store(0, Ordering::Relaxed);
+    }
+
     /// (lost, back).
     pub(crate) fn counts(&self) -> (u64, u64) {
         (
@@ -473,6 +489,16 @@ impl Requirement {
                 given: "a service",
             });
         };
+        let label = format!("{}.{service}", provider.name());
+        let same = cell
+            .provider
+            .load()
+            .as_ref()
+            .is_some_and(|s| Arc::ptr_eq(s, &provider_state));
+        if same && crate::lock(&self.bound_to).first() == Some(&label) {
+            // Bound to that very provider already: nothing to change, nothing to tell.
+            return Ok(());
+        }
         let provided = provider.provided();
         if !provided.iter().any(|p| p.name == service) {
             return Err(BindError::NotProvided {
@@ -509,13 +535,19 @@ impl Requirement {
         if check_only {
             return Ok(());
         }
+        // Not ready while the members change, so no call reaches a mix of two providers.
+        let was_bound = cell.provider.swap(None).is_some();
         for apply in applies {
             apply();
         }
         cell.provider.store(Some(provider_state));
-        *crate::lock(&self.bound_to) = vec![format!("{}.{service}", provider.name())];
-        // Bound as ready: the engine's first look reports a provider that is not running.
-        self.last_ready.store(true, Ordering::Relaxed);
+        *crate::lock(&self.bound_to) = vec![label];
+        if !was_bound {
+            // Bound as ready: the engine's first look reports a provider that is not
+            // running. A binding moved keeps what the engine last saw, so a loss is told
+            // once, and the return once.
+            self.last_ready.store(true, Ordering::Relaxed);
+        }
         Ok(())
     }
 
@@ -541,6 +573,17 @@ impl Requirement {
                 given: "devices",
             });
         };
+        if let Some((_, d)) = names
+            .iter()
+            .enumerate()
+            .find(|(i, d)| names[..*i].contains(d))
+        {
+            return Err(BindError::DuplicateDevice {
+                component: component.to_string(),
+                name: self.name.clone(),
+                device: d.clone(),
+            });
+        }
         if !multiplicity.admits(names.len()) {
             return Err(BindError::Multiplicity {
                 component: component.to_string(),
@@ -558,9 +601,12 @@ impl Requirement {
         if check_only {
             return Ok(());
         }
+        let was_bound = !crate::lock(&self.bound_to).is_empty();
         apply();
         *crate::lock(&self.bound_to) = names.to_vec();
-        self.last_ready.store(true, Ordering::Relaxed);
+        if !was_bound {
+            self.last_ready.store(true, Ordering::Relaxed);
+        }
         Ok(())
     }
 
@@ -606,11 +652,23 @@ impl<A, R> RequiredOperation<A, R> {
     }
 
     /// Calls the provider's operation and waits for its result; refused with
-    /// [`CallError::NotReady`] when the binding is not [`ready`](Self::ready).
+    /// [`CallError::NotReady`] when the binding is not [`ready`](Self::ready) — also when
+    /// the provider stopped between the look and the call (its queue drained, the call
+    /// cancelled), so a caller treats one error as a lost service.
     pub fn call(&self, args: A) -> Result<R, CallError> {
         match &*self.caller.load() {
-            Some(c) if self.cell.ready() => c.call(args),
+            Some(c) if self.cell.ready() => c.call(args).map_err(|e| self.lost(e)),
             _ => Err(self.not_ready()),
+        }
+    }
+
+    /// A provider that went away during a call is a binding not ready.
+    fn lost(&self, e: CallError) -> CallError {
+        match e {
+            CallError::NotRunning { .. }
+            | CallError::Cancelled { .. }
+            | CallError::Vanished { .. } => self.not_ready(),
+            e => e,
         }
     }
 
@@ -627,9 +685,10 @@ impl<A, R> RequiredOperation<A, R> {
         &self.name
     }
 
+    /// No allocation: the name is shared.
     fn not_ready(&self) -> CallError {
         CallError::NotReady {
-            operation: self.name.to_string(),
+            operation: self.name.clone(),
         }
     }
 }
@@ -688,12 +747,15 @@ pub fn info_signature(info: &crate::operation::OperationInfo) -> String {
 /// Devices of one interface a component requires, bound by name at deployment.
 pub struct RequiredDevices<T: ?Sized> {
     devices: Arc<ArcSwap<Vec<Arc<T>>>>,
+    /// The fewest it works with.
+    min: usize,
 }
 
 impl<T: ?Sized> Clone for RequiredDevices<T> {
     fn clone(&self) -> Self {
         RequiredDevices {
             devices: self.devices.clone(),
+            min: self.min,
         }
     }
 }
@@ -725,7 +787,13 @@ impl<T: Served + ?Sized> RequiredDevices<T> {
                 clear: Box::new(move || cleared.store(Arc::new(Vec::new()))),
             },
         );
-        (RequiredDevices { devices }, req)
+        (
+            RequiredDevices {
+                devices,
+                min: multiplicity.min as usize,
+            },
+            req,
+        )
     }
 
     /// The bound devices, in the order the deployment names them (a lock-free load).
@@ -743,12 +811,10 @@ impl<T: Served + ?Sized> RequiredDevices<T> {
         self.len() == 0
     }
 
-    /// Every bound device online.
+    /// Bound (at least the multiplicity's minimum) and every bound device online.
     pub fn ready(&self) -> bool {
-        self.devices
-            .load()
-            .iter()
-            .all(|d| d.health().status == Status::Online)
+        let d = self.devices.load();
+        d.len() >= self.min && d.iter().all(|x| x.health().status == Status::Online)
     }
 }
 

@@ -333,15 +333,21 @@ fn required_devices_bind_by_name_with_their_multiplicity_and_follow_health() {
     assert!(task.configure().is_err(), "one at least");
     let names = |n: &[&str]| n.iter().map(|s| s.to_string()).collect::<Vec<_>>();
     let e = task
-        .bind_devices("valves", &names(&["sim", "press", "sim"]), false)
+        .bind_devices("valves", &names(&["sim", "press", "other"]), false)
         .unwrap_err();
     assert!(e.to_string().contains("1..2 DigitalOut devices"), "{e}");
+    let e = task
+        .bind_devices("valves", &names(&["sim", "sim"]), false)
+        .unwrap_err();
+    assert!(e.to_string().contains("named twice"), "{e}");
     let e = task
         .bind_devices("valves", &names(&["nothing"]), false)
         .unwrap_err();
     assert!(matches!(e, BindError::Device { .. }), "{e}");
     task.bind_devices("valves", &names(&["sim", "press"]), false)
         .unwrap();
+    let handle = task.required();
+    assert_eq!(handle[0].bound_to, ["sim", "press"]);
     task.configure().unwrap();
     task.start().unwrap();
     task.step().unwrap();

@@ -143,11 +143,14 @@ impl Component for Supervisor {
         if !self.set.ready() {
             return Ok(());
         }
-        if self.apply {
-            self.set.call((self.above.get(),))?;
+        // A call refused is the service going (NotReady): `service_lost` tells, and the
+        // limit is applied again when it is back — no reason to fail this component.
+        if self.apply && self.set.call((self.above.get(),)).is_ok() {
             self.apply = false;
         }
-        self.alarm.write(&self.is_on.call(())?);
+        if let Ok(on) = self.is_on.call(()) {
+            self.alarm.write(&on);
+        }
         Ok(())
     }
 

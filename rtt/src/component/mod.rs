@@ -311,7 +311,19 @@ impl TaskCore {
     /// Enters Exception from any state: exception hook, then the stop hook if it was
     /// running. A panic in either goes to FatalError.
     fn enter_exception(&self, comp: &mut dyn ErasedComponent, reason: String) -> TaskState {
-        let was_running = matches!(self.state(), TaskState::Running | TaskState::RunTimeError);
+        self.enter_exception_from(comp, reason, None)
+    }
+
+    /// [`enter_exception`](Self::enter_exception) from lifecycle hook `hook`: the stop
+    /// hook is not run again when it was the hook that failed.
+    fn enter_exception_from(
+        &self,
+        comp: &mut dyn ErasedComponent,
+        reason: String,
+        hook: Option<&str>,
+    ) -> TaskState {
+        let was_running = matches!(self.state(), TaskState::Running | TaskState::RunTimeError)
+            && hook != Some("stop_hook");
         tracing::error!(component = %self.name, "entering Exception: {reason}");
         self.record_failure(reason);
         self.exceptions.fetch_add(1, Ordering::Relaxed);
@@ -411,16 +423,34 @@ impl TaskCore {
         for req in &self.required {
             let Some(back) = req.look() else { continue };
             let name = req.name.as_str();
-            let (r, _) = self.run_hook(comp, events, timing, |c, ctx| {
+            let (r, asked) = self.run_hook(comp, events, timing, |c, ctx| {
                 if back {
                     c.service_back(ctx, name)
                 } else {
                     c.service_lost(ctx, name)
                 }
             });
-            if let Err(panic) = r {
-                self.enter_exception(comp, format!("service hook panicked: {panic}"));
-                return;
+            match r {
+                Err(panic) => {
+                    self.enter_exception(comp, format!("service hook panicked: {panic}"));
+                    return;
+                }
+                Ok(()) if asked.exception.is_some() => {
+                    let reason = asked.exception.unwrap_or_default();
+                    self.enter_exception(
+                        comp,
+                        format!("service hook raised an exception: {reason}"),
+                    );
+                    return;
+                }
+                Ok(()) if asked.error && self.state() == TaskState::Running => {
+                    self.runtime_errors.fetch_add(1, Ordering::Relaxed);
+                    self.set_state(TaskState::RunTimeError);
+                }
+                Ok(()) if asked.recover && self.state() == TaskState::RunTimeError => {
+                    self.set_state(TaskState::Running);
+                }
+                Ok(()) => {}
             }
         }
     }
@@ -631,9 +661,11 @@ impl TaskContext {
         match r {
             Ok(Ok(())) if asked.exception.is_some() => {
                 let message = asked.exception.unwrap_or_default();
-                let state = self
-                    .core
-                    .enter_exception(comp, format!("{hook} raised an exception: {message}"));
+                let state = self.core.enter_exception_from(
+                    comp,
+                    format!("{hook} raised an exception: {message}"),
+                    Some(hook),
+                );
                 Err(LifecycleError::Exception {
                     component: self.core.name.clone(),
                     hook,
@@ -647,6 +679,11 @@ impl TaskContext {
             }
             Ok(Err(e)) => {
                 self.core.record_failure(format!("{hook} failed: {e}"));
+                if hook == "reset_hook" {
+                    // What a reset could not put right is configured again (set under
+                    // the component's lock: no second recover runs the reset meanwhile).
+                    self.core.set_state(TaskState::PreOperational);
+                }
                 Err(LifecycleError::HookFailed {
                     component: self.core.name.clone(),
                     hook,
@@ -654,9 +691,11 @@ impl TaskContext {
                 })
             }
             Err(panic) => {
-                let state = self
-                    .core
-                    .enter_exception(comp, format!("{hook} panicked: {panic}"));
+                let state = self.core.enter_exception_from(
+                    comp,
+                    format!("{hook} panicked: {panic}"),
+                    Some(hook),
+                );
                 Err(LifecycleError::HookPanicked {
                     component: self.core.name.clone(),
                     hook,
@@ -748,6 +787,9 @@ impl TaskContext {
         }
         core.warning.store(false, Ordering::Relaxed);
         *lock(&core.last_error) = None;
+        for r in &core.required {
+            r.reset_counts();
+        }
         Ok(())
     }
 
@@ -763,19 +805,13 @@ impl TaskContext {
                 self.core.set_state(TaskState::Running);
                 Ok(())
             }
-            TaskState::Exception => {
-                let result = self.hook(
-                    "recover",
-                    &[TaskState::Exception],
-                    "reset_hook",
-                    |c, ctx| c.reset_hook(ctx),
-                    TaskState::Stopped,
-                );
-                if let Err(LifecycleError::HookFailed { .. }) = &result {
-                    self.core.set_state(TaskState::PreOperational);
-                }
-                result
-            }
+            TaskState::Exception => self.hook(
+                "recover",
+                &[TaskState::Exception],
+                "reset_hook",
+                |c, ctx| c.reset_hook(ctx),
+                TaskState::Stopped,
+            ),
             _ => Err(self.illegal("recover")),
         }
     }
