@@ -229,6 +229,17 @@ impl Browser {
                 Ok(String::new())
             }
             Some(c) => {
+                // Inside a component, its peers' aliases lead to them.
+                let aliased = match &self.cwd {
+                    Some(here) => self
+                        .describe(here)?
+                        .peers
+                        .into_iter()
+                        .find(|(a, _)| a == c)
+                        .map(|(_, t)| t),
+                    None => None,
+                };
+                let c = aliased.as_deref().unwrap_or(c);
                 self.describe(c)?;
                 self.cwd = Some(c.to_string());
                 Ok(String::new())

@@ -632,7 +632,27 @@ impl Build<'_, '_, '_> {
             }
         }
         self.slaves(runtime, &bound);
+        self.peers(runtime, &bound);
         order.extend(crate::bindings::providers_first(bound));
+    }
+
+    /// Gives each component built the aliases its `peers` name, each to a component that
+    /// exists.
+    fn peers(&mut self, runtime: &Runtime, built: &[(TaskContext, bool)]) {
+        for (i, c) in self.d.components.iter().enumerate() {
+            let Some((task, _)) = built.iter().find(|(t, _)| t.name() == c.name) else {
+                continue;
+            };
+            for (alias, target) in &c.peers {
+                match runtime.component(target) {
+                    Ok(_) => task.set_peer_alias(alias, target),
+                    Err(e) => self.problems.at(
+                        &KeyPath::top("component").index(i).key("peers").key(alias),
+                        e,
+                    ),
+                }
+            }
+        }
     }
 
     /// Gives each slave component its master; after a reload, the slaves of a master

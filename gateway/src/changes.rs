@@ -4,7 +4,7 @@
 //!
 //! Each change edits the running deployment — the text the gateway was built from, with
 //! the changes made so far — and applies the result as a reload does
-//! ([`crate::reload`]): checked whole by the same code as `hwgw check`, then only what
+//! ([`Gateway::reload_text`](crate::deploy::Gateway::reload_text)): checked whole by the same code as `hwgw check`, then only what
 //! changed is built (a component loaded touches no card; an unloaded one is stopped,
 //! cleaned up and its connections closed). One error and nothing changes; the reply lists
 //! the errors. `hwgw ls --changes` lists what was changed since the file was read;

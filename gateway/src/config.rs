@@ -407,6 +407,10 @@ pub struct ComponentConfig {
     /// component providing a service of its name.
     #[serde(default)]
     pub requires: BTreeMap<String, Binding>,
+    /// Names it knows other components by: `{ device = "press_io" }` (RTT's peers, its
+    /// `Context::peer("device")` finds `press_io`; `cd device` in `browse` goes there).
+    #[serde(default)]
+    pub peers: BTreeMap<String, String>,
 }
 
 /// What one requirement is bound to.

@@ -588,6 +588,9 @@ pub struct Description {
     /// The services and devices it requires, each with its binding.
     #[serde(default)]
     pub requires: Vec<rtt::service::RequiredInfo>,
+    /// Names it knows other components by: (alias, component).
+    #[serde(default)]
+    pub peers: Vec<(String, String)>,
 }
 
 /// A port in `describe`: what it is, and how many connections it has now.

@@ -115,6 +115,7 @@ pub(crate) fn handle(
                 activity: t.stats(),
                 provides: t.provided(),
                 requires: t.required(),
+                peers: t.peer_aliases(),
             })
         }
         Request::Get {

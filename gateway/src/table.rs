@@ -342,6 +342,10 @@ pub fn description(d: &Description, values: &[Option<Value>]) -> String {
         out.extend(align(&attrs).into_iter().map(|l| format!("  {l}")));
     }
     out.extend(services(d));
+    if !d.peers.is_empty() {
+        out.push("peers:".into());
+        out.extend(d.peers.iter().map(|(a, t)| format!("  {a} -> {t}")));
+    }
     out.join("\n")
 }
 

@@ -276,3 +276,32 @@ fn set_period_changes_a_stopped_components_rate_and_slaves_follow_their_master()
     assert!(testkit::service::check(HWGW, &saved).status.success());
     assert!(svc.terminate().status.success());
 }
+
+#[test]
+fn peers_are_listed_and_browse_goes_through_their_alias() {
+    let text = format!(
+        "{DEPLOYMENT}\n[[component]]\nname = \"f\"\ntype = \"follow\"\nactivity = {{ type = \"non_periodic\" }}\npeers = {{ source = \"sim0.ai\" }}\n"
+    );
+    let svc = Service::run_text(HWGW, "changes-peers", &text).unwrap();
+    let ls = svc.out(&["ls", "f"]).unwrap();
+    assert!(ls.contains("peers:\n  source -> sim0.ai"), "{ls}");
+    let mut b = hwgw::browse::Browser::new(svc.socket.clone());
+    assert_eq!(b.execute("cd f").unwrap(), "");
+    assert_eq!(b.execute("cd source").unwrap(), "");
+    assert!(
+        b.execute("ls").unwrap().starts_with("sim0.ai ["),
+        "in sim0.ai now"
+    );
+    assert!(svc.terminate().status.success());
+    // A peer that is no component: refused where it is written.
+    let bad = text.replace("source = \"sim0.ai\"", "source = \"nobody\"");
+    let file = TempDir::new("changes-peers-bad");
+    let cfg = file.path().join("bad.toml");
+    std::fs::write(&cfg, bad).unwrap();
+    let out = testkit::service::check(HWGW, &cfg);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("component[0].peers.source: no component named \"nobody\""),
+        "{err}"
+    );
+}

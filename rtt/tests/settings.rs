@@ -120,3 +120,86 @@ fn a_stopped_components_period_and_thread_change_at_its_next_start() {
 
 struct Nothing;
 impl Component for Nothing {}
+
+/// Blocks in its own code (a read with no timeout) until its break hook lets it go.
+struct Blocked {
+    rx: std::sync::mpsc::Receiver<()>,
+    entered: std::sync::mpsc::Sender<()>,
+}
+
+impl Component for Blocked {
+    fn update_hook(&mut self, _: &mut Context<'_>) -> HookResult {
+        let _ = self.entered.send(());
+        let _ = self.rx.recv();
+        Ok(())
+    }
+}
+
+#[test]
+fn the_break_hook_lets_a_stop_interrupt_a_blocked_step() {
+    let rt = Runtime::new(Arc::new(Registry::new()), RuntimeOptions::default()).unwrap();
+    let (entered_tx, entered) = std::sync::mpsc::channel();
+    let t = rt
+        .add(
+            "blocked",
+            ActivitySpec::non_periodic(),
+            InitialState::Stopped,
+            move |iface| {
+                let (tx, rx) = std::sync::mpsc::channel();
+                let tx = Mutex::new(tx);
+                iface.on_break(move || {
+                    let _ = tx.lock().unwrap().send(());
+                });
+                Ok(Blocked {
+                    rx,
+                    entered: entered_tx,
+                })
+            },
+        )
+        .unwrap();
+    t.start().unwrap();
+    t.trigger();
+    entered.recv_timeout(Duration::from_secs(20)).unwrap();
+    // The step is blocked now; the stop breaks it and returns.
+    let (done_tx, done) = std::sync::mpsc::channel();
+    std::thread::spawn(move || done_tx.send(t.stop().map(|()| t.state())).unwrap());
+    assert_eq!(
+        done.recv_timeout(Duration::from_secs(20)).unwrap().unwrap(),
+        rtt::TaskState::Stopped
+    );
+}
+
+/// Finds its peer by the alias its deployment gave.
+struct Looks(Arc<Mutex<Option<String>>>);
+impl Component for Looks {
+    fn configure_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+        *self.0.lock().unwrap() = Some(ctx.peer("device")?.name().to_string());
+        Ok(())
+    }
+}
+
+#[test]
+fn a_peer_is_found_by_its_alias() {
+    let rt = Runtime::new(Arc::new(Registry::new()), RuntimeOptions::default()).unwrap();
+    rt.add(
+        "press_io",
+        ActivitySpec::Slave,
+        InitialState::Stopped,
+        |_| Ok(Nothing),
+    )
+    .unwrap();
+    let seen = Arc::new(Mutex::new(None));
+    let s = seen.clone();
+    let t = rt
+        .add(
+            "looks",
+            ActivitySpec::Slave,
+            InitialState::PreOperational,
+            move |_| Ok(Looks(s)),
+        )
+        .unwrap();
+    assert!(t.configure().is_err(), "no peer \"device\" yet");
+    t.set_peer_alias("device", "press_io");
+    t.configure().unwrap();
+    assert_eq!(seen.lock().unwrap().as_deref(), Some("press_io"));
+}

@@ -23,6 +23,7 @@ pub(crate) struct BuiltInterface {
     pub(crate) attributes: PropertyBag,
     pub(crate) provided: Vec<crate::service::ProvidedInfo>,
     pub(crate) required: Vec<Arc<crate::service::Requirement>>,
+    pub(crate) breaker: Option<Box<dyn Fn() + Send + Sync>>,
 }
 
 /// Builds a component's interface: handed to the component's constructor.
@@ -36,6 +37,7 @@ pub struct InterfaceBuilder<C> {
     attributes: PropertyBag,
     pub(super) provided: Vec<crate::service::ProvidedInfo>,
     pub(super) required: Vec<Arc<crate::service::Requirement>>,
+    breaker: Option<Box<dyn Fn() + Send + Sync>>,
     registry: Arc<Registry>,
     _component: std::marker::PhantomData<fn(&mut C)>,
 }
@@ -57,6 +59,7 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
             attributes: PropertyBag::new("attributes"),
             provided: Vec::new(),
             required: Vec::new(),
+            breaker: None,
             registry,
             _component: std::marker::PhantomData,
         }
@@ -71,6 +74,7 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
             attributes: self.attributes,
             provided: self.provided,
             required: self.required,
+            breaker: self.breaker,
         }
     }
 
@@ -293,6 +297,13 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
             _component: std::marker::PhantomData,
         });
         self.add_operation(name, doc, args, ExecutionThread::OwnThread, inner)
+    }
+
+    /// The component's break hook (RTT's `breakUpdateHook`): called from the stopping
+    /// thread before the component's own thread is joined, to interrupt a step blocked in
+    /// the component's own code (a read with no timeout: close or signal what it waits on).
+    pub fn on_break(&mut self, f: impl Fn() + Send + Sync + 'static) {
+        self.breaker = Some(Box::new(f));
     }
 
     /// The component's properties (configuration).

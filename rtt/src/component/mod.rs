@@ -19,6 +19,7 @@
 //! reported; the process and the other components keep running.
 
 mod builder;
+mod context;
 mod dynport;
 mod hook_error;
 mod lookup;
@@ -29,6 +30,8 @@ pub use crate::error::{CallOrIntrospect, IntrospectError, LifecycleError, Runtim
 pub use crate::info::{Direction, NamedValue, PortData, PortInfo};
 pub use crate::state::{InitialState, TaskState};
 pub use builder::InterfaceBuilder;
+use context::Asked;
+pub use context::Context;
 pub use dynport::{DynPort, DynReader, DynWriter};
 pub use hook_error::{HookError, HookResult};
 pub use services::{Provides, Requires};
@@ -43,7 +46,7 @@ use crate::scope::ThreadScope;
 use crate::state::StateCell;
 use crossbeam_queue::SegQueue;
 use device_interface::Registry;
-use device_interface::time::{Clock, Timestamp};
+use device_interface::time::Clock;
 use serde::Serialize;
 use std::any::Any;
 use std::fmt;
@@ -117,108 +120,6 @@ impl<C: Component> ErasedComponent for C {
     }
 }
 
-/// What a hook can see and ask for.
-pub struct Context<'a> {
-    core: &'a TaskCore,
-    events: &'a FdEvents,
-    timing: StepTiming,
-    asked: Asked,
-}
-
-/// What a hook asked for through its [`Context`], done once it returns.
-#[derive(Default)]
-struct Asked {
-    error: bool,
-    recover: bool,
-    exception: Option<String>,
-}
-
-impl Context<'_> {
-    /// The component's name.
-    pub fn name(&self) -> &str {
-        &self.core.name
-    }
-
-    /// The component's state.
-    pub fn state(&self) -> TaskState {
-        self.core.state()
-    }
-
-    /// The device registry: look devices up by name here.
-    pub fn registry(&self) -> &Arc<Registry> {
-        &self.core.registry
-    }
-
-    /// The runtime's clock.
-    pub fn now(&self) -> Timestamp {
-        self.core.clock.now()
-    }
-
-    /// From `update_hook`: go to RunTimeError after this step (the error hook then runs
-    /// instead of update until [`recover`](Self::recover)).
-    pub fn error(&mut self) {
-        self.asked.error = true;
-    }
-
-    /// From `error_hook`: return to Running after this step.
-    pub fn recover(&mut self) {
-        self.asked.recover = true;
-    }
-
-    /// Raises the component's warning flag (manual L832–884: the component keeps running,
-    /// something is not as it should be): shown in `ls` and `status`, counted once per
-    /// raise; [`recovered`](Self::recovered) clears it. Lock-free.
-    pub fn warning(&mut self) {
-        if !self.core.warning.swap(true, Ordering::Relaxed) {
-            self.core.warnings.fetch_add(1, Ordering::Relaxed);
-        }
-    }
-
-    /// Clears the warning flag and, from RunTimeError, returns to Running after this step.
-    pub fn recovered(&mut self) {
-        self.core.warning.store(false, Ordering::Relaxed);
-        self.asked.recover = true;
-    }
-
-    /// From any hook: enter Exception once the hook returns (the manual's unrecoverable
-    /// error: corrupt data, a broken invariant), with `reason` recorded. Its `reset_hook`
-    /// runs when it is recovered.
-    pub fn exception(&mut self, reason: impl Into<String>) {
-        self.asked.exception = Some(reason.into());
-    }
-
-    /// For a file-descriptor activity: which descriptors woke this step, or the timeout.
-    pub fn fd_events(&self) -> &FdEvents {
-        self.events
-    }
-
-    /// When this step was due and when it began (for a lifecycle hook: when it was called).
-    pub fn timing(&self) -> StepTiming {
-        self.timing
-    }
-
-    /// The component's activity (to watch file descriptors, read statistics).
-    pub fn activity(&self) -> &Activity {
-        &self.core.activity
-    }
-
-    /// Another component of the same runtime, by name (for configure-time wiring, as RTT
-    /// peers: a reporter connecting to the ports it records). Not for real-time paths.
-    pub fn peer(&self, name: &str) -> Result<TaskContext, IntrospectError> {
-        let peers = self.core.peers.upgrade();
-        let list = peers.as_ref().map(|p| lock(p).clone()).unwrap_or_default();
-        list.iter()
-            .find(|t| t.name() == name)
-            .cloned()
-            .ok_or_else(|| IntrospectError::NotFound {
-                component: self.core.name.clone(),
-                kind: "peer",
-                name: name.to_string(),
-                known: list.iter().map(|t| t.name().to_string()).collect(),
-            })
-    }
-}
-
 /// Error and step counters of a component.
 #[derive(Debug, Clone, Default, Serialize, serde::Deserialize)]
 pub struct TaskCounters {
@@ -268,6 +169,10 @@ pub(crate) struct TaskCore {
     peers: Weak<Mutex<Vec<TaskContext>>>,
     /// Slave components stepped after each of this one's steps, in order.
     slaves: arc_swap::ArcSwap<Vec<TaskContext>>,
+    /// Names this component knows its peers by (`device` → `press_io`).
+    peer_aliases: Mutex<Vec<(String, String)>>,
+    /// Interrupts the component's own blocking code at a stop (its break hook).
+    breaker: Option<Box<dyn Fn() + Send + Sync>>,
 }
 
 impl TaskCore {
@@ -407,63 +312,6 @@ impl TaskCore {
                 }
             }
             _ => {}
-        }
-    }
-}
-
-impl TaskCore {
-    /// Tells the component of each requirement that stopped or started being ready since
-    /// the last look: atomic loads when nothing changed.
-    fn look_at_requirements(
-        &self,
-        comp: &mut dyn ErasedComponent,
-        events: &FdEvents,
-        timing: StepTiming,
-    ) {
-        for req in &self.required {
-            let Some(back) = req.look() else { continue };
-            let name = req.name.as_str();
-            let (r, asked) = self.run_hook(comp, events, timing, |c, ctx| {
-                if back {
-                    c.service_back(ctx, name)
-                } else {
-                    c.service_lost(ctx, name)
-                }
-            });
-            match r {
-                Err(panic) => {
-                    self.enter_exception(comp, format!("service hook panicked: {panic}"));
-                    return;
-                }
-                Ok(()) if asked.exception.is_some() => {
-                    let reason = asked.exception.unwrap_or_default();
-                    self.enter_exception(
-                        comp,
-                        format!("service hook raised an exception: {reason}"),
-                    );
-                    return;
-                }
-                Ok(()) if asked.error && self.state() == TaskState::Running => {
-                    self.runtime_errors.fetch_add(1, Ordering::Relaxed);
-                    self.set_state(TaskState::RunTimeError);
-                }
-                Ok(()) if asked.recover && self.state() == TaskState::RunTimeError => {
-                    self.set_state(TaskState::Running);
-                }
-                Ok(()) => {}
-            }
-        }
-    }
-
-    /// The first requirement that is neither bound nor optional, as the refusal of
-    /// `command`.
-    fn unbound(&self) -> Result<(), LifecycleError> {
-        match self.required.iter().find(|r| !r.satisfied()) {
-            Some(r) => Err(LifecycleError::Unbound {
-                component: self.name.clone(),
-                requirement: r.name.clone(),
-            }),
-            None => Ok(()),
         }
     }
 }
@@ -611,6 +459,8 @@ impl TaskContext {
                 engine_thread: Mutex::new(None),
                 peers: setup.peers,
                 slaves: arc_swap::ArcSwap::from_pointee(Vec::new()),
+                peer_aliases: Mutex::new(Vec::new()),
+                breaker: iface.breaker,
             }
         });
         if let Some(e) = build_result {
@@ -746,6 +596,11 @@ impl TaskContext {
     pub fn stop(&self) -> Result<(), LifecycleError> {
         if !matches!(self.state(), TaskState::Running | TaskState::RunTimeError) {
             return Err(self.illegal("stop"));
+        }
+        // Its break hook first: a step blocked in the component's own code returns, and
+        // the thread can be joined.
+        if let Some(b) = &self.core.breaker {
+            b();
         }
         // Stop the thread first, without holding the component: its step needs it.
         self.core.activity.stop();

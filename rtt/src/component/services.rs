@@ -2,8 +2,11 @@
 //! [`Requires`], required devices), listed and bound on the [`TaskContext`]. The model and
 //! the seed lines it follows are in [`crate::service`].
 
+use super::ErasedComponent;
 use super::{InterfaceBuilder, TaskContext};
+use crate::activity::{FdEvents, StepTiming};
 use crate::error::IntrospectError;
+use crate::error::LifecycleError;
 use crate::info::PortData;
 use crate::operation::Args;
 use crate::port::{InputPort, OutputPort};
@@ -11,9 +14,11 @@ use crate::service::{
     BindError, Multiplicity, ProvidedInfo, RequiredDevices, RequiredInfo, RequiredOperation,
     Requirement,
 };
+use crate::state::TaskState;
 use device_interface::Served;
 use serde::Serialize;
 use std::sync::Arc;
+use std::sync::atomic::Ordering;
 
 impl<C: Send + 'static> InterfaceBuilder<C> {
     /// Opens provided service `service` (RTT 2.0's `provides("camera")`): what is added
@@ -249,5 +254,62 @@ impl TaskContext {
     pub fn unbind(&self, requirement: &str) -> Result<(), BindError> {
         self.requirement(requirement)?.unbind();
         Ok(())
+    }
+}
+
+impl super::TaskCore {
+    /// Tells the component of each requirement that stopped or started being ready since
+    /// the last look: atomic loads when nothing changed.
+    pub(super) fn look_at_requirements(
+        &self,
+        comp: &mut dyn ErasedComponent,
+        events: &FdEvents,
+        timing: StepTiming,
+    ) {
+        for req in &self.required {
+            let Some(back) = req.look() else { continue };
+            let name = req.name.as_str();
+            let (r, asked) = self.run_hook(comp, events, timing, |c, ctx| {
+                if back {
+                    c.service_back(ctx, name)
+                } else {
+                    c.service_lost(ctx, name)
+                }
+            });
+            match r {
+                Err(panic) => {
+                    self.enter_exception(comp, format!("service hook panicked: {panic}"));
+                    return;
+                }
+                Ok(()) if asked.exception.is_some() => {
+                    let reason = asked.exception.unwrap_or_default();
+                    self.enter_exception(
+                        comp,
+                        format!("service hook raised an exception: {reason}"),
+                    );
+                    return;
+                }
+                Ok(()) if asked.error && self.state() == TaskState::Running => {
+                    self.runtime_errors.fetch_add(1, Ordering::Relaxed);
+                    self.set_state(TaskState::RunTimeError);
+                }
+                Ok(()) if asked.recover && self.state() == TaskState::RunTimeError => {
+                    self.set_state(TaskState::Running);
+                }
+                Ok(()) => {}
+            }
+        }
+    }
+
+    /// The first requirement that is neither bound nor optional, as the refusal of
+    /// `command`.
+    pub(super) fn unbound(&self) -> Result<(), LifecycleError> {
+        match self.required.iter().find(|r| !r.satisfied()) {
+            Some(r) => Err(LifecycleError::Unbound {
+                component: self.name.clone(),
+                requirement: r.name.clone(),
+            }),
+            None => Ok(()),
+        }
     }
 }

@@ -98,6 +98,18 @@ impl TaskContext {
         found
     }
 
+    /// Lets this component find component `target` as `alias` ([`Context::peer`](super::Context::peer)).
+    pub fn set_peer_alias(&self, alias: &str, target: &str) {
+        let mut aliases = crate::lock::lock(&self.core.peer_aliases);
+        aliases.retain(|(a, _)| a != alias);
+        aliases.push((alias.to_string(), target.to_string()));
+    }
+
+    /// The aliases this component knows its peers by: (alias, component).
+    pub fn peer_aliases(&self) -> Vec<(String, String)> {
+        crate::lock::lock(&self.core.peer_aliases).clone()
+    }
+
     /// The slaves stepped after this component, in order.
     pub fn slaves(&self) -> Vec<String> {
         self.core

@@ -1,0 +1,122 @@
+//! What a hook can see and ask for: the [`Context`] each hook gets — the component's
+//! name, state, registry, clock, peers, its activity's events and timing — and the error
+//! model's requests (manual L832–884): `error`, `recover`, `warning`, `recovered`,
+//! `exception`, carried out once the hook returns.
+
+use super::{IntrospectError, TaskContext, TaskCore};
+use crate::activity::{Activity, FdEvents, StepTiming};
+use crate::lock::lock;
+use crate::state::TaskState;
+use device_interface::Registry;
+use device_interface::time::Timestamp;
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+
+/// What a hook can see and ask for.
+pub struct Context<'a> {
+    pub(super) core: &'a TaskCore,
+    pub(super) events: &'a FdEvents,
+    pub(super) timing: StepTiming,
+    pub(super) asked: Asked,
+}
+
+/// What a hook asked for through its [`Context`], done once it returns.
+#[derive(Default)]
+pub(super) struct Asked {
+    pub(super) error: bool,
+    pub(super) recover: bool,
+    pub(super) exception: Option<String>,
+}
+
+impl Context<'_> {
+    /// The component's name.
+    pub fn name(&self) -> &str {
+        &self.core.name
+    }
+
+    /// The component's state.
+    pub fn state(&self) -> TaskState {
+        self.core.state()
+    }
+
+    /// The device registry: look devices up by name here.
+    pub fn registry(&self) -> &Arc<Registry> {
+        &self.core.registry
+    }
+
+    /// The runtime's clock.
+    pub fn now(&self) -> Timestamp {
+        self.core.clock.now()
+    }
+
+    /// From `update_hook`: go to RunTimeError after this step (the error hook then runs
+    /// instead of update until [`recover`](Self::recover)).
+    pub fn error(&mut self) {
+        self.asked.error = true;
+    }
+
+    /// From `error_hook`: return to Running after this step.
+    pub fn recover(&mut self) {
+        self.asked.recover = true;
+    }
+
+    /// Raises the component's warning flag (manual L832–884: the component keeps running,
+    /// something is not as it should be): shown in `ls` and `status`, counted once per
+    /// raise; [`recovered`](Self::recovered) clears it. Lock-free.
+    pub fn warning(&mut self) {
+        if !self.core.warning.swap(true, Ordering::Relaxed) {
+            self.core.warnings.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    /// Clears the warning flag and, from RunTimeError, returns to Running after this step.
+    pub fn recovered(&mut self) {
+        self.core.warning.store(false, Ordering::Relaxed);
+        self.asked.recover = true;
+    }
+
+    /// From any hook: enter Exception once the hook returns (the manual's unrecoverable
+    /// error: corrupt data, a broken invariant), with `reason` recorded. Its `reset_hook`
+    /// runs when it is recovered.
+    pub fn exception(&mut self, reason: impl Into<String>) {
+        self.asked.exception = Some(reason.into());
+    }
+
+    /// For a file-descriptor activity: which descriptors woke this step, or the timeout.
+    pub fn fd_events(&self) -> &FdEvents {
+        self.events
+    }
+
+    /// When this step was due and when it began (for a lifecycle hook: when it was called).
+    pub fn timing(&self) -> StepTiming {
+        self.timing
+    }
+
+    /// The component's activity (to watch file descriptors, read statistics).
+    pub fn activity(&self) -> &Activity {
+        &self.core.activity
+    }
+
+    /// Another component of the same runtime, by name or by the alias the deployment gave
+    /// it for this component (`peers = { device = "press_io" }`), for configure-time wiring
+    /// as RTT peers (a reporter connecting to the ports it records). Not for real-time
+    /// paths.
+    pub fn peer(&self, name: &str) -> Result<TaskContext, IntrospectError> {
+        let aliased = lock(&self.core.peer_aliases)
+            .iter()
+            .find(|(a, _)| a == name)
+            .map(|(_, t)| t.clone());
+        let name = aliased.as_deref().unwrap_or(name);
+        let peers = self.core.peers.upgrade();
+        let list = peers.as_ref().map(|p| lock(p).clone()).unwrap_or_default();
+        list.iter()
+            .find(|t| t.name() == name)
+            .cloned()
+            .ok_or_else(|| IntrospectError::NotFound {
+                component: self.core.name.clone(),
+                kind: "peer",
+                name: name.to_string(),
+                known: list.iter().map(|t| t.name().to_string()).collect(),
+            })
+    }
+}
