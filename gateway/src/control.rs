@@ -640,19 +640,7 @@ fn remote_request(shared: &Shared, request: Value) -> Value {
         ),
         // Reloading and changing the deployment are this host's operator's to ask
         // (`hwgw reload`, SIGHUP, `hwgw load`, …).
-        Ok((
-            id,
-            r @ (Request::Reload
-            | Request::Load { .. }
-            | Request::Unload { .. }
-            | Request::Connect { .. }
-            | Request::Disconnect { .. }
-            | Request::SetPeriod { .. }
-            | Request::SetPriority { .. }
-            // The deployment's text is this host's too.
-            | Request::Changes
-            | Request::Deployment),
-        )) => Reply::error(
+        Ok((id, r)) if r.is_local_only() => Reply::error(
             id,
             ErrorKind::BadRequest,
             format!(

@@ -437,6 +437,23 @@ impl Request {
         }
     }
 
+    /// Whether only this host's operator may ask it: a reload, a change of the running
+    /// deployment, or its text. Never served to (nor forwarded to) another gateway.
+    pub fn is_local_only(&self) -> bool {
+        matches!(
+            self,
+            Request::Reload
+                | Request::Load { .. }
+                | Request::Unload { .. }
+                | Request::Connect { .. }
+                | Request::Disconnect { .. }
+                | Request::SetPeriod { .. }
+                | Request::SetPriority { .. }
+                | Request::Changes
+                | Request::Deployment
+        )
+    }
+
     /// The command names, comma-separated (for errors and help).
     pub fn names() -> String {
         COMMANDS

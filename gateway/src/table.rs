@@ -314,8 +314,22 @@ pub fn description(d: &Description, values: &[Option<Value>]) -> String {
         .collect();
     out.extend(align(&ops).into_iter().map(|l| format!("  {l}")));
     out.push("properties:".into());
-    let props: Vec<Vec<String>> = d
-        .properties
+    out.extend(value_rows(&d.properties));
+    if !d.attributes.is_empty() {
+        out.push("attributes:".into());
+        out.extend(value_rows(&d.attributes));
+    }
+    out.extend(services(d));
+    if !d.peers.is_empty() {
+        out.push("peers:".into());
+        out.extend(d.peers.iter().map(|(a, t)| format!("  {a} -> {t}")));
+    }
+    out.join("\n")
+}
+
+/// Properties or attributes, a line each: `path: type  = value  doc`, aligned.
+fn value_rows(list: &[rtt::property::PropertyInfo]) -> Vec<String> {
+    let rows: Vec<Vec<String>> = list
         .iter()
         .map(|p| {
             vec![
@@ -325,28 +339,7 @@ pub fn description(d: &Description, values: &[Option<Value>]) -> String {
             ]
         })
         .collect();
-    out.extend(align(&props).into_iter().map(|l| format!("  {l}")));
-    if !d.attributes.is_empty() {
-        out.push("attributes:".into());
-        let attrs: Vec<Vec<String>> = d
-            .attributes
-            .iter()
-            .map(|p| {
-                vec![
-                    format!("{}: {}", p.path, p.type_name),
-                    format!("= {}", p.value),
-                    p.doc.clone(),
-                ]
-            })
-            .collect();
-        out.extend(align(&attrs).into_iter().map(|l| format!("  {l}")));
-    }
-    out.extend(services(d));
-    if !d.peers.is_empty() {
-        out.push("peers:".into());
-        out.extend(d.peers.iter().map(|(a, t)| format!("  {a} -> {t}")));
-    }
-    out.join("\n")
+    align(&rows).into_iter().map(|l| format!("  {l}")).collect()
 }
 
 /// The provided and required services of a description, when it has any: each provided
