@@ -180,6 +180,11 @@ impl DigitalInput {
     pub fn inverted(&self) -> bool {
         self.invert
     }
+
+    /// The device.
+    pub fn device(&self) -> &Arc<dyn DigitalIn> {
+        &self.device
+    }
 }
 
 /// One digital output bit, optionally inverted.
@@ -229,5 +234,10 @@ impl DigitalOutput {
     /// True when the bit is driven inverted.
     pub fn inverted(&self) -> bool {
         self.invert
+    }
+
+    /// The device.
+    pub fn device(&self) -> &Arc<dyn DigitalOut> {
+        &self.device
     }
 }

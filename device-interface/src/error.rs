@@ -152,6 +152,13 @@ pub enum DeviceError {
         /// What was asked.
         what: &'static str,
     },
+    /// A logical device refuses the command in its present state (a disabled drive given a
+    /// velocity, an axis in error asked to move); nothing was written.
+    #[error("refused: {reason}")]
+    Refused {
+        /// Why, and what would make it possible.
+        reason: &'static str,
+    },
 }
 
 impl DeviceError {

@@ -8,6 +8,8 @@
 //! - [`Scale`], the shared raw-to-physical conversion (drivers deal in raw values);
 //! - [`bits`], inclusive bit spans and lock-free bit images for digital devices;
 //! - [`encoder`], the shared position/turn arithmetic;
+//! - [`logical`], the logical devices over them — [`Sensor`](logical::Sensor),
+//!   [`Drive`](logical::Drive), [`Axis`](logical::Axis) with homing (manual L5824–5876);
 //! - [`Registry`], name serving per interface ("no type-casting whatsoever");
 //! - [`channel`], single-channel handles with optional inversion;
 //! - [`time`], monotonic timestamps and a simulated clock;
@@ -35,6 +37,7 @@ pub mod encoder;
 mod error;
 mod health;
 mod interfaces;
+pub mod logical;
 mod registry;
 mod scale;
 pub mod text;

@@ -30,6 +30,7 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
+use crate::logical::{Axis, Drive, Sensor};
 use crate::{AnalogIn, AnalogOut, DigitalIn, DigitalOut, Encoder};
 use arc_swap::ArcSwap;
 use std::collections::HashMap;
@@ -52,10 +53,17 @@ pub enum Interface {
     DigitalOut,
     /// [`Encoder`]
     Encoder,
+    /// A [`Sensor<f64>`](crate::logical::Sensor), logical.
+    Sensor,
+    /// A [`Drive`](crate::logical::Drive), logical.
+    Drive,
+    /// An [`Axis`](crate::logical::Axis), logical.
+    Axis,
 }
 
 impl Interface {
-    /// All interfaces, in a fixed order.
+    /// The five physical interfaces, in a fixed order (cards offer these; the logical ones
+    /// are [`LOGICAL`](Self::LOGICAL)).
     pub const ALL: [Interface; 5] = [
         Interface::AnalogIn,
         Interface::AnalogOut,
@@ -63,6 +71,14 @@ impl Interface {
         Interface::DigitalOut,
         Interface::Encoder,
     ];
+
+    /// The logical interfaces, built over physical devices ([`crate::logical`]).
+    pub const LOGICAL: [Interface; 3] = [Interface::Sensor, Interface::Drive, Interface::Axis];
+
+    /// True for a logical interface.
+    pub fn is_logical(self) -> bool {
+        Self::LOGICAL.contains(&self)
+    }
 }
 
 impl fmt::Display for Interface {
@@ -73,6 +89,9 @@ impl fmt::Display for Interface {
             Interface::DigitalIn => "DigitalIn",
             Interface::DigitalOut => "DigitalOut",
             Interface::Encoder => "Encoder",
+            Interface::Sensor => "Sensor",
+            Interface::Drive => "Drive",
+            Interface::Axis => "Axis",
         })
     }
 }
@@ -406,6 +425,9 @@ pub struct Registry {
     digital_in: NameServer<dyn DigitalIn>,
     digital_out: NameServer<dyn DigitalOut>,
     encoder: NameServer<dyn Encoder>,
+    sensor: NameServer<dyn Sensor<f64>>,
+    drive: NameServer<dyn Drive>,
+    axis: NameServer<dyn Axis>,
 }
 
 impl Default for Registry {
@@ -423,6 +445,9 @@ impl Registry {
             digital_in: NameServer::new(Interface::DigitalIn),
             digital_out: NameServer::new(Interface::DigitalOut),
             encoder: NameServer::new(Interface::Encoder),
+            sensor: NameServer::new(Interface::Sensor),
+            drive: NameServer::new(Interface::Drive),
+            axis: NameServer::new(Interface::Axis),
         }
     }
 
@@ -450,6 +475,21 @@ impl Registry {
     pub fn encoder(&self) -> &NameServer<dyn Encoder> {
         &self.encoder
     }
+
+    /// Logical sensors by name.
+    pub fn sensor(&self) -> &NameServer<dyn Sensor<f64>> {
+        &self.sensor
+    }
+
+    /// Logical drives by name.
+    pub fn drive(&self) -> &NameServer<dyn Drive> {
+        &self.drive
+    }
+
+    /// Logical axes by name.
+    pub fn axis(&self) -> &NameServer<dyn Axis> {
+        &self.axis
+    }
 }
 
 /// A device interface the registry serves, found by its type: code generic over the five
@@ -472,7 +512,14 @@ macro_rules! served {
         }
     )+};
 }
-served!(AnalogIn => analog_in, AnalogOut => analog_out, DigitalIn => digital_in, DigitalOut => digital_out, Encoder => encoder);
+served!(AnalogIn => analog_in, AnalogOut => analog_out, DigitalIn => digital_in, DigitalOut => digital_out, Encoder => encoder, Drive => drive, Axis => axis);
+
+impl Served for dyn Sensor<f64> {
+    const INTERFACE: Interface = Interface::Sensor;
+    fn server(registry: &Registry) -> &NameServer<Self> {
+        registry.sensor()
+    }
+}
 
 impl Registry {
     /// Registers every device of card `name` under `name` (encoders as `name.suffix`),
@@ -506,16 +553,29 @@ impl Registry {
         })();
         if result.is_err() {
             for (interface, n) in done {
-                let _ = match interface {
-                    Interface::AnalogIn => self.analog_in.unregister(&n),
-                    Interface::AnalogOut => self.analog_out.unregister(&n),
-                    Interface::DigitalIn => self.digital_in.unregister(&n),
-                    Interface::DigitalOut => self.digital_out.unregister(&n),
-                    Interface::Encoder => self.encoder.unregister(&n),
-                };
+                let _ = self.unregister(interface, &n);
             }
         }
         result
+    }
+
+    /// Removes `name` (and the aliases of it) from `interface`'s name server (see
+    /// [`NameServer::unregister`]).
+    pub fn unregister(
+        &self,
+        interface: Interface,
+        name: &str,
+    ) -> Result<Vec<String>, RegistryError> {
+        match interface {
+            Interface::AnalogIn => self.analog_in.unregister(name),
+            Interface::AnalogOut => self.analog_out.unregister(name),
+            Interface::DigitalIn => self.digital_in.unregister(name),
+            Interface::DigitalOut => self.digital_out.unregister(name),
+            Interface::Encoder => self.encoder.unregister(name),
+            Interface::Sensor => self.sensor.unregister(name),
+            Interface::Drive => self.drive.unregister(name),
+            Interface::Axis => self.axis.unregister(name),
+        }
     }
 
     /// Removes everything `owner` registered under every interface (a card going away).
@@ -539,6 +599,9 @@ impl Registry {
             self.digital_out.unregister_owner(owner),
         );
         take(Interface::Encoder, self.encoder.unregister_owner(owner));
+        take(Interface::Sensor, self.sensor.unregister_owner(owner));
+        take(Interface::Drive, self.drive.unregister_owner(owner));
+        take(Interface::Axis, self.axis.unregister_owner(owner));
         out
     }
 
@@ -556,6 +619,9 @@ impl Registry {
             Interface::DigitalIn => self.digital_in.alias(alias, target),
             Interface::DigitalOut => self.digital_out.alias(alias, target),
             Interface::Encoder => self.encoder.alias(alias, target),
+            Interface::Sensor => self.sensor.alias(alias, target),
+            Interface::Drive => self.drive.alias(alias, target),
+            Interface::Axis => self.axis.alias(alias, target),
         }
     }
 
@@ -567,6 +633,9 @@ impl Registry {
             Interface::DigitalIn => self.digital_in.get(name).map(|d| d.health()),
             Interface::DigitalOut => self.digital_out.get(name).map(|d| d.health()),
             Interface::Encoder => self.encoder.get(name).map(|d| d.health()),
+            Interface::Sensor => self.sensor.get(name).map(|d| d.health()),
+            Interface::Drive => self.drive.get(name).map(|d| d.health()),
+            Interface::Axis => self.axis.get(name).map(|d| d.health()),
         }
     }
 
@@ -578,6 +647,9 @@ impl Registry {
             (Interface::DigitalIn, self.digital_in.names()),
             (Interface::DigitalOut, self.digital_out.names()),
             (Interface::Encoder, self.encoder.names()),
+            (Interface::Sensor, self.sensor.names()),
+            (Interface::Drive, self.drive.names()),
+            (Interface::Axis, self.axis.names()),
         ];
         per.into_iter()
             .flat_map(|(interface, names)| {

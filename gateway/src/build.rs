@@ -158,6 +158,8 @@ fn build(d: &Deployment, file: &str, text: &str, types: &Types) -> Result<Gatewa
         return Err(b.problems.into_vec());
     };
     let mut order = b.bus_and_io(&runtime, &mut cards);
+    let logical = crate::logical::build(&d.logical, &runtime, &cards, &mut b.problems);
+    order.extend(logical.tasks);
     if let Some(node) = &zenoh {
         order.extend(b.remote_io(&runtime, node));
     }
@@ -186,6 +188,7 @@ fn build(d: &Deployment, file: &str, text: &str, types: &Types) -> Result<Gatewa
         return Err(b.problems.into_vec());
     }
     let parts = Parts {
+        logical_writers: logical.writers,
         cards,
         servers,
         order,

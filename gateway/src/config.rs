@@ -83,6 +83,9 @@ pub struct Deployment {
     /// Extra names for devices.
     #[serde(default, rename = "alias")]
     pub aliases: Vec<AliasConfig>,
+    /// Logical devices (sensors, drives, axes) over the cards' devices.
+    #[serde(default, rename = "logical")]
+    pub logical: Vec<crate::logical::LogicalConfig>,
     /// Components, started in this order (stopped in reverse).
     #[serde(default, rename = "component")]
     pub components: Vec<ComponentConfig>,
@@ -101,7 +104,7 @@ pub struct Deployment {
 }
 
 /// The top-level keys of a deployment besides its server sections.
-pub const DEPLOYMENT_KEYS: [&str; 12] = [
+pub const DEPLOYMENT_KEYS: [&str; 13] = [
     "thread_scope",
     "thread_scope_vcd",
     "thread_scope_vcd_keep",
@@ -111,6 +114,7 @@ pub const DEPLOYMENT_KEYS: [&str; 12] = [
     "control_idle_s",
     "card",
     "alias",
+    "logical",
     "component",
     "connection",
     "zenoh",

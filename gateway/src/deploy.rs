@@ -82,6 +82,9 @@ pub(crate) struct Parts {
     /// The Zenoh node as a server (`[zenoh]`): started first and stopped first like the
     /// others, never made again by a reload.
     pub(crate) zenoh_server: Option<Box<dyn Server>>,
+    /// (card, port, writer): card outputs the logical devices write, for the output
+    /// watchdog (never rebuilt by a reload: neither are they nor their cards).
+    pub(crate) logical_writers: Vec<(String, String, String)>,
 }
 
 impl Parts {

@@ -98,7 +98,7 @@ fn delivered<D: ?Sized + Writable>(device: &D, c: u32) -> Result<(), DeviceError
 
 /// Offers device method `f` as a ClientThread operation: arguments `A`, answer
 /// `{"Ok": r}` or `{"Err": message}`.
-fn device_op<C, D, A, R>(
+pub(crate) fn device_op<C, D, A, R>(
     iface: &mut InterfaceBuilder<C>,
     device: &Arc<D>,
     name: &str,
@@ -127,7 +127,10 @@ fn health(h: Health) -> (String, Option<f64>, Option<String>) {
 }
 
 /// Offers the device's health as an operation (every IO component has it).
-fn health_op<C, D>(iface: &mut InterfaceBuilder<C>, device: &Arc<D>) -> Result<(), IntrospectError>
+pub(crate) fn health_op<C, D>(
+    iface: &mut InterfaceBuilder<C>,
+    device: &Arc<D>,
+) -> Result<(), IntrospectError>
 where
     C: Send + 'static,
     D: ?Sized + Device + 'static,
@@ -680,6 +683,8 @@ pub fn build(
                 .encoder()
                 .get(n)
                 .map(|d| encoder(runtime, n, d, sample)),
+            // A card registers no logical device; `[[logical]]` ones have their own.
+            Interface::Sensor | Interface::Drive | Interface::Axis => None,
         };
         if let Some(t) = task {
             out.push(t?);

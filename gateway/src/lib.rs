@@ -50,6 +50,7 @@ pub mod deploy;
 pub mod drivers;
 pub mod forward;
 pub mod io;
+pub mod logical;
 pub mod outputs;
 pub mod problems;
 pub mod propfiles;

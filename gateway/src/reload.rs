@@ -14,7 +14,7 @@
 //!   alias changed; the output watchdog whenever anything did.
 //! - One error in the new deployment and nothing changes. What cannot change while hwgw
 //!   runs (runtime settings, the control socket, `[zenoh]`, what Zenoh exports or feeds
-//!   from another gateway) is named in the report and left as it runs; the rest is
+//!   from another gateway, `[[logical]]` and the cards a logical device is built on) is named in the report and left as it runs; the rest is
 //!   applied.
 
 use crate::build::{Selection, rebuild};
@@ -438,6 +438,11 @@ fn set_writers(parts: &Parts) {
                 writers.push((port, writer));
             }
         }
+        for (card, port, writer) in &parts.logical_writers {
+            if *card == c.name {
+                writers.push((port, writer));
+            }
+        }
         c.outputs.set_writers(&writers);
     }
 }
@@ -530,6 +535,12 @@ impl Diff<'_> {
                 format!("Zenoh exports or feeds {e}")
             } else if self.scope_card() == Some(c.name.as_str()) {
                 "ThreadScope pulses its output".to_string()
+            } else if let Some(l) = self.old.logical.iter().find(|l| {
+                crate::logical::devices_named(l)
+                    .iter()
+                    .any(|d| on_card(d, &BTreeSet::from([c.name.clone()])))
+            }) {
+                format!("the logical device {:?} is built on it", l.name())
             } else {
                 continue;
             };
@@ -814,6 +825,7 @@ fn restart_settings(old: &Deployment, new: &Deployment, restart: &mut Vec<String
     );
     changed("control_idle_s", old.control_idle_s == new.control_idle_s);
     changed("[zenoh]", old.zenoh == new.zenoh);
+    changed("[[logical]]", old.logical == new.logical);
 }
 
 /// The deployment's server sections: everything but the cards, aliases, components,
@@ -821,6 +833,7 @@ fn restart_settings(old: &Deployment, new: &Deployment, restart: &mut Vec<String
 fn server_sections(d: &Deployment) -> Deployment {
     Deployment {
         cards: Vec::new(),
+        logical: Vec::new(),
         aliases: Vec::new(),
         components: Vec::new(),
         connections: Vec::new(),
@@ -849,6 +862,7 @@ fn applied_part(old: &Deployment, mut new: Deployment, report: &ReloadReport) ->
     new.control_clients = old.control_clients;
     new.control_idle_s = old.control_idle_s;
     new.zenoh.clone_from(&old.zenoh);
+    new.logical.clone_from(&old.logical);
     let kept = |name: &str| {
         report
             .restart
@@ -917,18 +931,11 @@ fn on_card(name: &str, cards: &BTreeSet<String>) -> bool {
 
 /// Removes alias `name` (whichever interface has it; gone with its card already is fine).
 fn unregister_alias(registry: &device_interface::Registry, name: &str) {
-    use device_interface::Interface;
     for e in registry.entries() {
         if e.info.name != name || e.info.alias_of.is_none() {
             continue;
         }
-        let _ = match e.interface {
-            Interface::AnalogIn => registry.analog_in().unregister(name),
-            Interface::AnalogOut => registry.analog_out().unregister(name),
-            Interface::DigitalIn => registry.digital_in().unregister(name),
-            Interface::DigitalOut => registry.digital_out().unregister(name),
-            Interface::Encoder => registry.encoder().unregister(name),
-        };
+        let _ = registry.unregister(e.interface, name);
     }
 }
 

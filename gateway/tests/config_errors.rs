@@ -39,9 +39,9 @@ fn every_broken_config_gets_its_exact_error() {
     let cpus = std::thread::available_parallelism().map_or(1, usize::from);
     let cases: Vec<(&str, String, &str)> = vec![
         ("unknown top-level key", "thread_scop = true\n".into(),
-         "t.toml:1:1: thread_scop: unknown key \"thread_scop\"; a deployment has thread_scope, thread_scope_vcd, thread_scope_vcd_keep, cpu_dma_latency_us, control_socket, control_clients, control_idle_s, card, alias, component, connection, zenoh, and the servers of this build: modbus_server"),
+         "t.toml:1:1: thread_scop: unknown key \"thread_scop\"; a deployment has thread_scope, thread_scope_vcd, thread_scope_vcd_keep, cpu_dma_latency_us, control_socket, control_clients, control_idle_s, card, alias, logical, component, connection, zenoh, and the servers of this build: modbus_server"),
         ("an unknown top-level table", format!("{CARD}[modbus_servr]\nlisten = \"127.0.0.1:0\"\n"),
-         "t.toml:11:2: modbus_servr: unknown key \"modbus_servr\"; a deployment has thread_scope, thread_scope_vcd, thread_scope_vcd_keep, cpu_dma_latency_us, control_socket, control_clients, control_idle_s, card, alias, component, connection, zenoh, and the servers of this build: modbus_server"),
+         "t.toml:11:2: modbus_servr: unknown key \"modbus_servr\"; a deployment has thread_scope, thread_scope_vcd, thread_scope_vcd_keep, cpu_dma_latency_us, control_socket, control_clients, control_idle_s, card, alias, logical, component, connection, zenoh, and the servers of this build: modbus_server"),
         ("a server section of the wrong shape", format!("modbus_server = 5\n{CARD}"),
          "t.toml:1:17: modbus_server: invalid type: integer `5`, expected struct ServerConfig"),
         ("a server section's unknown key", format!("{CARD}[modbus_server]\nlisten = \"127.0.0.1:0\"\nport = 502\n"),
@@ -103,7 +103,7 @@ fn every_broken_config_gets_its_exact_error() {
         ("driver refuses its section", "[[card]]\nname = \"x\"\ndriver = \"sim\"\n[card.sim]\n[[card.sim.analog_in]]\nrange = { lowest = 5.0, highest = 1.0 }\nwaveform = { kind = \"constant\", value = 1.0 }\n".into(),
          "t.toml:6:9: card[0].sim.analog_in[0].range: card \"x\": physical range [5, 1] is invalid: needs finite lowest < highest"),
         ("unknown key in a driver section", "[[card]]\nname = \"x\"\ndriver = \"sim\"\n[card.sim]\ndigital_input = 8\n".into(),
-         "t.toml:5:1: card[0].sim.digital_input: unknown field `digital_input`, expected one of `seed`, `analog_in`, `analog_out`, `digital_inputs`, `digital_outputs`, `digital_loopback`, `encoder`, `record_capacity`"),
+         "t.toml:5:1: card[0].sim.digital_input: unknown field `digital_input`, expected one of `seed`, `analog_in`, `analog_out`, `digital_inputs`, `digital_outputs`, `digital_loopback`, `encoder`, `switch`, `record_capacity`"),
         ("duplicate card", format!("{CARD}{CARD}"),
          "t.toml:12:8: card[1].name: card \"sim0\" is defined twice (first as card[0])"),
         ("zero period", "[[card]]\nname = \"x\"\ndriver = \"sim\"\nperiod_ms = 0\n[card.sim]\n".into(),
@@ -323,6 +323,18 @@ fn every_broken_config_gets_its_exact_error() {
          "t.toml:11:11: card[0].sim.analog_out[0].initial: card \"sim0\": 11 is outside the range [0, 10] V"),
         ("a unit of 10 MB", CARD.replace("range = { lowest = 0.0, highest = 10.0 }", &format!("range = {{ lowest = 0.0, highest = 10.0, unit = \"{}\" }}", "u".repeat(10_000_000))),
          &*Box::leak(format!("t.toml:10:9: card[0].sim.analog_out[0].range: card \"sim0\": unit \"{}…\" (10000000 characters) is longer than 23 bytes", "u".repeat(80)).into_boxed_str())),
+        // Logical devices: located in their entry, the drive checked against its card's
+        // output policy.
+        ("a drive its card would leave on", with_card("[card.outputs]\nsafe = { bit0 = \"keep\" }\n[[logical]]\nname = \"d\"\ntype = \"drive\"\nsetpoint = { device = \"sim0\", channel = 0 }\nvolts_per_unit = 1.0\nenable = { device = \"sim0\", bit = 0 }\n"),
+         "t.toml:18:10: logical[0].enable: the enable output sim0.bit0: at stop the card keeps it as it is; a drive's enable needs the off value or \"initial\" as its [card.outputs] safe value"),
+        ("an axis over a drive that does not exist", with_card("[[logical]]\nname = \"a\"\ntype = \"axis\"\ndrive = \"d\"\nencoder = \"sim0.encoder0\"\ncounts_per_unit = 1.0\n"),
+         "t.toml:14:9: logical[0].drive: no Drive named \"d\"; registered: none"),
+        ("a sensor over an encoder without counts", with_card("[[logical]]\nname = \"s\"\ntype = \"sensor\"\nencoder = \"sim0.encoder0\"\n"),
+         "t.toml:11:1: logical[0]: a sensor over an encoder needs counts_per_unit"),
+        ("a logical device of no known type", with_card("[[logical]]\nname = \"s\"\ntype = \"motor\"\n"),
+         "t.toml:13:8: logical[0].type: unknown variant `motor`, expected one of `sensor`, `drive`, `axis`"),
+        ("a drive's setpoint on a channel the card lacks", with_card("[[logical]]\nname = \"d\"\ntype = \"drive\"\nsetpoint = { device = \"sim0\", channel = 3 }\nvolts_per_unit = 1.0\n"),
+         "t.toml:14:41: logical[0].setpoint.channel: channel 3 does not exist (the device has 1 channels: 0..=0)"),
         ("not TOML", "[[card]\nname = \"x\"\n".into(),
          "t.toml:1:8: unclosed array table, expected `]`"),
     ];

@@ -20,12 +20,14 @@ pub fn is_local(owner: &str) -> bool {
     !owner.starts_with("zenoh:")
 }
 
-/// Every local device (no alias, no import) whose name can be a key: `(interface, name)`.
+/// Every local physical device (no alias, no import, no logical device) whose name can be
+/// a key: `(interface, name)`.
 pub fn local_devices(registry: &Registry) -> Vec<(Interface, String)> {
     registry
         .entries()
         .into_iter()
         .filter(|e| e.info.alias_of.is_none() && is_local(&e.info.owner))
+        .filter(|e| !e.interface.is_logical())
         .filter(|e| crate::config::is_key_name(&e.info.name))
         .map(|e| (e.interface, e.info.name))
         .collect()
@@ -60,6 +62,8 @@ fn shape_of(registry: &Registry, i: Interface, name: &str) -> Option<DeviceShape
             };
             (2, vec![], Some(e))
         }
+        // Logical devices are not forwarded: their IO components' operations are.
+        Interface::Sensor | Interface::Drive | Interface::Axis => return None,
     };
     Some(DeviceShape {
         interface: i,
@@ -123,6 +127,7 @@ pub fn sample(registry: &Registry, i: Interface, name: &str, seq: u64) -> Option
             let d = registry.encoder().get(name)?;
             (d.health(), vec![d.position().ok(), d.turn().ok()])
         }
+        Interface::Sensor | Interface::Drive | Interface::Axis => return None,
     };
     let unix_ns = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)

@@ -29,6 +29,9 @@ pub fn interface_key(i: Interface) -> &'static str {
         Interface::DigitalIn => "digital_in",
         Interface::DigitalOut => "digital_out",
         Interface::Encoder => "encoder",
+        Interface::Sensor => "sensor",
+        Interface::Drive => "drive",
+        Interface::Axis => "axis",
     }
 }
 

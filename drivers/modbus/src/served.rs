@@ -407,6 +407,16 @@ impl ServedRegister {
                     "encoders are not served yet; serve their IO component's ports instead".into(),
                 ));
             }
+            Interface::Sensor | Interface::Drive | Interface::Axis => {
+                return Err((
+                    "interface",
+                    format!(
+                        "{} is a logical device: serve the channels under it, or its IO \
+                         component's ports",
+                        self.interface
+                    ),
+                ));
+            }
         };
         if ch >= count {
             let have = match count {

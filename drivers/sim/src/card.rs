@@ -104,6 +104,8 @@ struct AnalogOutChannel {
 
 struct SimEncoderState {
     counter: EncoderCounter,
+    /// Every count moved since the card was built (what position switches see).
+    travel: AtomicI64,
     velocity_from: Option<u32>,
     counts_per_unit: f64,
 }
@@ -132,6 +134,7 @@ pub struct SimCard {
     /// Digital inputs driven from outputs at each step.
     di_looped: BitImage,
     encoders: Box<[SimEncoderState]>,
+    switches: crate::switch::Switches,
     fault: AtomicU8,
     bus_error: ArcSwapOption<DeviceError>,
     /// Time of the last good sample in ns plus one; 0 means never.
@@ -248,6 +251,7 @@ impl SimCard {
             check_speed(&path, e, &ao)?;
             encoders.push(SimEncoderState {
                 counter,
+                travel: AtomicI64::new(0),
                 velocity_from: e.velocity_from,
                 counts_per_unit: e.counts_per_unit,
             });
@@ -265,8 +269,16 @@ impl SimCard {
             }
         }
 
+        let switches = crate::switch::Switches::new(
+            &config.switch,
+            config.digital_inputs,
+            &di_looped,
+            encoders.len(),
+        )
+        .map_err(|(path, problem)| SimConfigError::Invalid { path, problem })?;
         let now = clock.now();
         let card = Arc::new(SimCard {
+            switches,
             epoch: now,
             seed: config.seed,
             ai: ai.into(),
@@ -453,6 +465,7 @@ impl SimCard {
             let whole = moved.trunc();
             state.encoder_fraction[i] = moved - whole;
             enc.counter.advance(whole as i64);
+            enc.travel.fetch_add(whole as i64, Ordering::AcqRel);
         }
 
         if self.fault.load(Ordering::Acquire) != FAULT_NONE {
@@ -483,6 +496,11 @@ impl SimCard {
             ch.raw
                 .store(ch.scale.to_raw_saturating(value), Ordering::Release);
         }
+        self.switches.apply(
+            |e| self.encoders[e].travel.load(Ordering::Acquire),
+            &self.di,
+            &self.di_held,
+        );
         // Looped bits follow the outputs unless a test holds them.
         self.di
             .copy_from(&self.dout, &self.di_looped, Some(&self.di_held));
@@ -587,6 +605,7 @@ impl SimCard {
                 count: self.encoders.len() as u32,
             })?;
         enc.counter.advance(counts);
+        enc.travel.fetch_add(counts, Ordering::AcqRel);
         Ok(())
     }
 

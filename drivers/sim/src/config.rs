@@ -54,6 +54,9 @@ pub struct SimConfig {
     /// Simulated encoders.
     #[serde(default)]
     pub encoder: Vec<EncoderConfig>,
+    /// Digital inputs switched by an encoder's travel (home and limit switches).
+    #[serde(default)]
+    pub switch: Vec<crate::switch::SwitchConfig>,
     /// Keep a record of up to this many output writes for tests to read back (0: off).
     #[serde(default)]
     pub record_capacity: usize,
@@ -243,6 +246,7 @@ impl SimConfig {
                 velocity_from: Some(1),
                 counts_per_unit: 1000.0,
             }],
+            switch: Vec::new(),
             record_capacity: 0,
         }
     }

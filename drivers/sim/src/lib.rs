@@ -3,7 +3,7 @@
 //! A [`SimCard`] offers every device interface: analog inputs that follow waveforms
 //! (constant, sine, ramp, seeded noise) or loop back an analog output, analog outputs,
 //! digital inputs looped back from digital outputs, and encoders driven by an analog output
-//! as velocity, with turn roll-over. Channel counts, ranges and units come from a
+//! as velocity, with turn roll-over, and position switches their travel turns on. Channel counts, ranges and units come from a
 //! [`SimConfig`] (the card's section of a hwgw config file).
 //!
 //! For tests it has hooks a real card lacks: hold an input at a value, move an encoder,
@@ -41,7 +41,9 @@ mod card;
 pub mod config;
 pub mod plugin;
 mod record;
+mod switch;
 
 pub use card::{SimCard, SimConfigError, SimEncoder, SimFault};
 pub use config::SimConfig;
 pub use record::{OutputEvent, OutputWrite};
+pub use switch::SwitchConfig;

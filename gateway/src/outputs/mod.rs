@@ -324,6 +324,19 @@ impl CardOutputs {
         })
     }
 
+    /// The policy and port name of analog output `channel` (`analog`) or digital output
+    /// `channel`; `None` past the end.
+    pub fn policy(&self, analog: bool, channel: u32) -> Option<(Policy, &str)> {
+        let outputs = if analog {
+            &self.analog.as_ref()?.1
+        } else {
+            &self.digital.as_ref()?.1
+        };
+        outputs
+            .get(channel as usize)
+            .map(|o| (o.policy, o.port.as_str()))
+    }
+
     /// The guarded analog outputs, to register in place of the card's own.
     pub fn analog_device(&self) -> Option<Arc<dyn AnalogOut>> {
         self.analog

@@ -29,6 +29,10 @@
 //! assert!(report.ran(Rule::DoSequence));
 //! ```
 
+mod axis;
+
+pub use axis::{AxisRig, check_axis};
+
 use crate::bits::BitSpan;
 use crate::registry::Interface;
 use crate::{AnalogIn, AnalogOut, DeviceError, DigitalIn, DigitalOut, Encoder, Scale};
@@ -99,6 +103,21 @@ pub enum Rule {
     EncPositionRejected,
     /// Encoder roll-over adds and removes turns as `upcounting` says (needs a stimulus).
     EncMotion,
+    /// An axis starts disabled, standing still, its drive disabled.
+    AxStartsDisabled,
+    /// A disabled axis refuses to move or home, with `Refused`.
+    AxRefusedDisabled,
+    /// `enable` makes it ready at standstill, its drive enabled; `disable` undoes it.
+    AxEnableDisable,
+    /// `jog` moves it in the velocity's direction; `stop` stands it still, enabled.
+    AxJog,
+    /// `home` finds the home switch, latches it as the configured position and backs off,
+    /// ending ready and homed within the tolerance (needs homing).
+    AxHoming,
+    /// A limit switch turning on while moving towards it disables the drive and puts the
+    /// axis in error with that limit as the fault; moves are refused until `reset`; after
+    /// it the axis moves away from the limit but not into it (needs a limit stimulus).
+    AxLimit,
 }
 
 impl Rule {
@@ -138,6 +157,15 @@ impl Rule {
                 EncPositionRejected,
                 EncMotion,
             ],
+            Interface::Axis => &[
+                AxStartsDisabled,
+                AxRefusedDisabled,
+                AxEnableDisable,
+                AxJog,
+                AxHoming,
+                AxLimit,
+            ],
+            Interface::Sensor | Interface::Drive => &[],
         }
     }
 }
