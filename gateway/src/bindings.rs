@@ -13,12 +13,6 @@ use rtt::{Runtime, TaskContext};
 /// `component.service` of `address` among the runtime's components: the split whose
 /// component exists and provides the service (component names may hold dots: `sim0.ai`).
 fn provider(runtime: &Runtime, address: &str) -> Result<(TaskContext, String), String> {
-    if address.contains('/') {
-        return Err(format!(
-            "{address:?}: a service of another gateway cannot be bound yet; bind a service of \
-             this gateway"
-        ));
-    }
     for (i, _) in address.match_indices('.') {
         let (component, service) = (&address[..i], &address[i + 1..]);
         if let Ok(t) = runtime.component(component)
@@ -57,12 +51,14 @@ fn providers_of(runtime: &Runtime, task: &TaskContext, service: &str) -> Vec<Tas
 }
 
 /// Binds `task`'s requirements as `c` says, and the services it does not name
-/// automatically; each problem at `at` (the component's path). True when all went well.
+/// automatically; each problem at `at` (the component's path). A service of another
+/// gateway (`B/cam0.camera`) is bound through `zenoh` ([`crate::remote_services`]). True
+/// when all went well.
 pub(crate) fn bind(
     runtime: &Runtime,
     task: &TaskContext,
-    c: &ComponentConfig,
-    at: &KeyPath,
+    (c, at): (&ComponentConfig, &KeyPath),
+    zenoh: Option<&std::sync::Arc<crate::remote::Node>>,
     problems: &mut Problems,
 ) -> bool {
     let mut ok = true;
@@ -91,6 +87,9 @@ pub(crate) fn bind(
             continue;
         };
         let result = match (&req.kind, binding) {
+            (RequiredKind::Service { .. }, Binding::One(address)) if address.contains('/') => {
+                crate::remote_services::bind(zenoh, task, name, address, false)
+            }
             (RequiredKind::Service { .. }, Binding::One(address)) => provider(runtime, address)
                 .and_then(|(p, service)| {
                     task.bind_service(name, &p, &service, false)

@@ -76,6 +76,8 @@ struct Build<'d, 's, 'a> {
     only: Option<&'d Selection>,
     /// The bus sides of the cards built, by card name, until `bus_and_io` adds them.
     buses: HashMap<String, driver_api::BusSide>,
+    /// The Zenoh node, for services of other gateways.
+    zenoh: Option<Arc<crate::remote::Node>>,
 }
 
 impl<'d, 's, 'a> Build<'d, 's, 'a> {
@@ -95,6 +97,7 @@ impl<'d, 's, 'a> Build<'d, 's, 'a> {
             base: Path::new(file).parent().unwrap_or(Path::new("")),
             only,
             buses: HashMap::new(),
+            zenoh: None,
         }
     }
 
@@ -154,6 +157,7 @@ fn build(d: &Deployment, file: &str, text: &str, types: &Types) -> Result<Gatewa
     let mut cards = b.cards(&registry);
     b.aliases(&registry);
     let zenoh = b.zenoh(&registry);
+    b.zenoh.clone_from(&zenoh);
     let Some(runtime) = b.runtime(registry) else {
         return Err(b.problems.into_vec());
     };
@@ -217,12 +221,13 @@ pub(crate) fn rebuild(
     file: &str,
     text: &str,
     types: &Types,
-    runtime: &Runtime,
+    (runtime, zenoh): (&Runtime, Option<Arc<crate::remote::Node>>),
     only: &Selection,
     between: impl FnOnce(&Registry) -> Vec<String>,
 ) -> Result<Rebuilt, (Rebuilt, Vec<String>)> {
     let source = Source::new(file, text);
     let mut b = Build::new(d, types, &source, file, Some(only));
+    b.zenoh = zenoh;
     let mut cards = b.cards(runtime.registry());
     let mut problems = between(runtime.registry());
     let order = b.bus_and_io(runtime, &mut cards);
@@ -604,7 +609,13 @@ impl Build<'_, '_, '_> {
         for (i, task) in built {
             let c = &self.d.components[i];
             let at = KeyPath::top("component").index(i);
-            let mut ok = crate::bindings::bind(runtime, &task, c, &at, &mut self.problems);
+            let mut ok = crate::bindings::bind(
+                runtime,
+                &task,
+                (c, &at),
+                self.zenoh.as_ref(),
+                &mut self.problems,
+            );
             if ok
                 && task.state() == TaskState::PreOperational
                 && let Err(e) = task.configure()
@@ -630,7 +641,13 @@ impl Build<'_, '_, '_> {
                     && !task.required().is_empty()
                 {
                     let at = KeyPath::top("component").index(i);
-                    crate::bindings::bind(runtime, &task, c, &at, &mut self.problems);
+                    crate::bindings::bind(
+                        runtime,
+                        &task,
+                        (c, &at),
+                        self.zenoh.as_ref(),
+                        &mut self.problems,
+                    );
                 }
             }
         }

@@ -133,14 +133,9 @@ fn ask(node: &Node, _: &str, _: &Value) -> Result<Value, Fail> {
     not(feature = "zenoh"),
     allow(dead_code, reason = "only forwarded replies have a body")
 )]
-fn body(gw: &str, mut reply: Value) -> Result<Value, Fail> {
-    if let Some(ok) = reply.get_mut("ok") {
-        return Ok(ok.take());
-    }
-    let kind = reply["error"]["kind"].clone();
-    let message = reply["error"]["message"].as_str().unwrap_or("").to_string();
-    let kind = serde_json::from_value(kind).unwrap_or(ErrorKind::Failed);
-    Err(Fail(kind, format!("{gw}: {message}")))
+pub(crate) fn body(gw: &str, reply: Value) -> Result<Value, Fail> {
+    crate::protocol::reply_body(reply)
+        .map_err(|(kind, message)| Fail(kind, format!("{gw}: {message}")))
 }
 
 #[cfg(feature = "zenoh")]

@@ -58,6 +58,7 @@ pub mod protocol;
 pub mod recorder;
 mod reload;
 pub mod remote;
+pub mod remote_services;
 mod requests;
 pub mod serve;
 pub mod servers;

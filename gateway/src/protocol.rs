@@ -709,6 +709,17 @@ pub struct StatusReport {
 /// The answer to `devices`.
 pub type DeviceList = Vec<RegistryEntry>;
 
+/// A reply's body: its `ok` value, or its error's kind and message (a reply of another
+/// gateway is not trusted to be well formed: what is missing is `Failed` and empty).
+pub fn reply_body(mut reply: Value) -> Result<Value, (ErrorKind, String)> {
+    if let Some(ok) = reply.get_mut("ok") {
+        return Ok(ok.take());
+    }
+    let kind = serde_json::from_value(reply["error"]["kind"].clone()).unwrap_or(ErrorKind::Failed);
+    let message = reply["error"]["message"].as_str().unwrap_or("").to_string();
+    Err((kind, message))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

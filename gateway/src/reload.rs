@@ -338,7 +338,15 @@ impl Gateway {
             }
             problems
         };
-        let built = match rebuild(new, file, text, &self.types, runtime, &plan.build, aliases) {
+        let built = match rebuild(
+            new,
+            file,
+            text,
+            &self.types,
+            (runtime, self.zenoh.clone()),
+            &plan.build,
+            aliases,
+        ) {
             Ok(b) => b,
             Err((b, problems)) => {
                 errors.extend(problems);

@@ -95,6 +95,15 @@ pub enum CallError {
     /// `collect` after the result was already taken.
     #[error("the result was already collected")]
     AlreadyCollected,
+    /// A call to an operation in another process (a service of another gateway) that
+    /// brought no result of the type required.
+    #[error("operation {operation:?} of the remote provider: {message}")]
+    Remote {
+        /// The operation (`service.member`).
+        operation: String,
+        /// Why: no answer, the other side's error, or an answer of another type.
+        message: String,
+    },
 }
 
 /// One argument, as documented.

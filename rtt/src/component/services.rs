@@ -165,10 +165,17 @@ impl<C: Send + 'static> Requires<'_, C> {
 
     /// Requires operation `name` of type `fn(A) -> R`; bound to the provider's
     /// `service.name`, which must be of the same type.
-    pub fn operation<A: Args, R: Serialize + Send + 'static>(
+    ///
+    /// Its arguments are serializable and its result deserializable, so it can be bound
+    /// to a provider in another process too ([`crate::service::RemoteProvider`]).
+    pub fn operation<A, R>(
         &mut self,
         name: &str,
-    ) -> Result<RequiredOperation<A, R>, IntrospectError> {
+    ) -> Result<RequiredOperation<A, R>, IntrospectError>
+    where
+        A: Args + Serialize,
+        R: Serialize + serde::de::DeserializeOwned + Send + 'static,
+    {
         let req = &self.iface.required[self.index];
         let crate::service::Kind::Service { cell, members } = &req.kind else {
             return Err(IntrospectError::Duplicate {
@@ -232,6 +239,18 @@ impl TaskContext {
             service,
             check_only,
         )
+    }
+
+    /// Binds service requirement `requirement` to a provider in another process (a
+    /// component of another gateway); its types are the provider's owner's to check.
+    pub fn bind_remote_service(
+        &self,
+        requirement: &str,
+        provider: &crate::service::RemoteProvider,
+        check_only: bool,
+    ) -> Result<(), BindError> {
+        self.requirement(requirement)?
+            .bind_remote(self.name(), provider, check_only)
     }
 
     /// Binds required devices `requirement` to the devices named `names` in the

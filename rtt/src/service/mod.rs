@@ -30,6 +30,9 @@
 //!   rebind: a provider that is Running again makes the binding ready by itself.
 //! - A requirement that is not optional and not bound refuses `configure` and `start`,
 //!   naming it.
+//! - **Remote providers**: [`TaskContext::bind_remote_service`](crate::TaskContext::bind_remote_service)
+//!   binds a requirement to a [`RemoteProvider`] — a service of another process, its calls
+//!   carried as JSON, its state kept current by its owner — lost and back like a local one.
 
 use crate::operation::{Args, CallError, OperationCaller, SendHandle};
 use crate::state::{StateCell, TaskState};
@@ -39,7 +42,9 @@ use serde::Serialize;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
+mod remote;
 mod types;
+pub use remote::{RemoteCall, RemoteProvider, RemoteState};
 pub use types::{
     BindError, Multiplicity, MultiplicityError, OperationAt, ProvidedInfo, RequiredInfo,
     RequiredKind,
@@ -68,10 +73,15 @@ pub(crate) enum ResolveError {
     WrongType(String),
 }
 
+/// Binds one required operation to a remote provider's operation (`service.member`).
+type ResolveRemote =
+    Box<dyn Fn(&Arc<dyn RemoteCall>, &str) -> Box<dyn FnOnce() + Send> + Send + Sync>;
+
 pub(crate) struct Member {
     name: String,
     signature: String,
     resolve: Resolve,
+    resolve_remote: ResolveRemote,
     unbind: Box<dyn Fn() + Send + Sync>,
 }
 
@@ -85,6 +95,8 @@ impl Member {
 #[derive(Default)]
 pub(crate) struct ServiceCell {
     provider: ArcSwapOption<StateCell>,
+    /// A remote provider's caller, held while it is bound (not read on any hot path).
+    remote: Mutex<Option<Arc<dyn RemoteCall>>>,
 }
 
 impl Readiness for ServiceCell {
@@ -232,6 +244,22 @@ impl Requirement {
         }
     }
 
+    /// A service requirement's cell and members; [`BindError::WrongKind`] for devices.
+    fn service_parts(
+        &self,
+        component: &str,
+    ) -> Result<(&Arc<ServiceCell>, &Mutex<Vec<Member>>), BindError> {
+        match &self.kind {
+            Kind::Service { cell, members } => Ok((cell, members)),
+            Kind::Devices { .. } => Err(BindError::WrongKind {
+                component: component.to_string(),
+                name: self.name.clone(),
+                expected: self.kind_text(),
+                given: "a service",
+            }),
+        }
+    }
+
     /// Binds a service requirement to `provider`'s `service` (its state cell given), whole
     /// or not at all.
     pub(crate) fn bind_service(
@@ -242,14 +270,7 @@ impl Requirement {
         service: &str,
         check_only: bool,
     ) -> Result<(), BindError> {
-        let Kind::Service { cell, members } = &self.kind else {
-            return Err(BindError::WrongKind {
-                component: component.to_string(),
-                name: self.name.clone(),
-                expected: self.kind_text(),
-                given: "a service",
-            });
-        };
+        let (cell, members) = self.service_parts(component)?;
         let label = format!("{}.{service}", provider.name());
         let same = cell
             .provider
@@ -302,11 +323,47 @@ impl Requirement {
             apply();
         }
         cell.provider.store(Some(provider_state));
+        *crate::lock(&cell.remote) = None;
         *crate::lock(&self.bound_to) = vec![label];
         if !was_bound {
             // Bound as ready: the engine's first look reports a provider that is not
             // running. A binding moved keeps what the engine last saw, so a loss is told
             // once, and the return once.
+            self.last_ready.store(true, Ordering::Relaxed);
+        }
+        Ok(())
+    }
+
+    /// Binds a service requirement to a remote provider. Its types are the owner's to
+    /// check (it keeps the provider's state not Running while they differ): nothing here
+    /// can see the other process. Bound to that label already: nothing changes.
+    pub(crate) fn bind_remote(
+        &self,
+        component: &str,
+        provider: &RemoteProvider,
+        check_only: bool,
+    ) -> Result<(), BindError> {
+        let (cell, members) = self.service_parts(component)?;
+        let same = crate::lock(&cell.remote).is_some()
+            && crate::lock(&self.bound_to).first() == Some(&provider.label);
+        if same || check_only {
+            return Ok(());
+        }
+        let members = crate::lock(members);
+        let applies: Vec<_> = members
+            .iter()
+            .map(|m| {
+                (m.resolve_remote)(&provider.call, &format!("{}.{}", provider.service, m.name))
+            })
+            .collect();
+        let was_bound = cell.provider.swap(None).is_some();
+        for apply in applies {
+            apply();
+        }
+        *crate::lock(&cell.remote) = Some(provider.call.clone());
+        cell.provider.store(Some(provider.state.0.clone()));
+        *crate::lock(&self.bound_to) = vec![provider.label.clone()];
+        if !was_bound {
             self.last_ready.store(true, Ordering::Relaxed);
         }
         Ok(())
@@ -379,6 +436,7 @@ impl Requirement {
                 for m in crate::lock(members).iter() {
                     (m.unbind)();
                 }
+                *crate::lock(&cell.remote) = None;
             }
             Kind::Devices { clear, .. } => clear(),
         }
@@ -454,7 +512,11 @@ impl<A, R> RequiredOperation<A, R> {
     }
 }
 
-impl<A: Args, R: Serialize + Send + 'static> RequiredOperation<A, R> {
+impl<A, R> RequiredOperation<A, R>
+where
+    A: Args + Serialize,
+    R: Serialize + serde::de::DeserializeOwned + Send + 'static,
+{
     pub(crate) fn declare(name: &str, cell: Arc<ServiceCell>) -> (RequiredOperation<A, R>, Member) {
         let op = RequiredOperation {
             name: Arc::from(name),
@@ -462,6 +524,7 @@ impl<A: Args, R: Serialize + Send + 'static> RequiredOperation<A, R> {
             cell,
         };
         let slot = op.caller.clone();
+        let remote_slot = op.caller.clone();
         let unbind_slot = op.caller.clone();
         let member = Member {
             name: name.to_string(),
@@ -483,6 +546,18 @@ impl<A: Args, R: Serialize + Send + 'static> RequiredOperation<A, R> {
                     }
                     Err(_) => Err(ResolveError::WrongType(info_signature(&info))),
                 }
+            }),
+            resolve_remote: Box::new(move |call, full| {
+                let caller = OperationCaller {
+                    name: Arc::from(full),
+                    inner: Arc::new(remote::RemoteOp::<A, R> {
+                        name: Arc::from(full),
+                        call: call.clone(),
+                        _types: std::marker::PhantomData,
+                    }),
+                };
+                let slot = remote_slot.clone();
+                Box::new(move || slot.store(Some(Arc::new(caller))))
             }),
             unbind: Box::new(move || unbind_slot.store(None)),
         };
