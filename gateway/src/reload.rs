@@ -544,9 +544,16 @@ impl Diff<'_> {
             } else if self.scope_card() == Some(c.name.as_str()) {
                 "ThreadScope pulses its output".to_string()
             } else if let Some(l) = self.old.logical.iter().find(|l| {
-                crate::logical::devices_named(l)
-                    .iter()
-                    .any(|d| on_card(d, &BTreeSet::from([c.name.clone()])))
+                crate::logical::devices_named(l).iter().any(|d| {
+                    // An alias stands for its target's card.
+                    let d = self
+                        .old
+                        .aliases
+                        .iter()
+                        .find(|a| a.name == *d)
+                        .map_or(*d, |a| a.target.as_str());
+                    on_card(d, &BTreeSet::from([c.name.clone()]))
+                })
             }) {
                 format!("the logical device {:?} is built on it", l.name())
             } else {

@@ -326,7 +326,8 @@ fn every_broken_config_gets_its_exact_error() {
         // Logical devices: located in their entry, the drive checked against its card's
         // output policy.
         ("a drive its card would leave on", with_card("[card.outputs]\nsafe = { bit0 = \"keep\" }\n[[logical]]\nname = \"d\"\ntype = \"drive\"\nsetpoint = { device = \"sim0\", channel = 0 }\nvolts_per_unit = 1.0\nenable = { device = \"sim0\", bit = 0 }\n"),
-         "t.toml:18:10: logical[0].enable: the enable output sim0.bit0: at stop the card keeps it as it is; a drive's enable needs the off value or \"initial\" as its [card.outputs] safe value"),
+         "t.toml:16:12: logical[0].setpoint: the setpoint sim0.ch0: at stop the card puts it back to its value before hwgw first wrote it (\"initial\": a value hwgw does not know, or the last one written where the card cannot tell); a drive's setpoint needs its zero-velocity value as its safe value ([card.outputs] safe = { ch0 = 0.0 })\n\
+          t.toml:18:10: logical[0].enable: the enable output sim0.bit0: at stop the card keeps it as it is; a drive's enable needs its off value as its safe value ([card.outputs] safe = { bit0 = false })"),
         ("an axis over a drive that does not exist", with_card("[[logical]]\nname = \"a\"\ntype = \"axis\"\ndrive = \"d\"\nencoder = \"sim0.encoder0\"\ncounts_per_unit = 1.0\n"),
          "t.toml:14:9: logical[0].drive: no Drive named \"d\"; registered: none"),
         ("a sensor over an encoder without counts", with_card("[[logical]]\nname = \"s\"\ntype = \"sensor\"\nencoder = \"sim0.encoder0\"\n"),

@@ -14,6 +14,9 @@ pub struct AxisRig<'a> {
     /// Turns a limit switch on (`true`) or off: the high one when the first argument is
     /// `true`, the low one otherwise. Without it, [`Rule::AxLimit`] is not run.
     pub limit: Option<&'a mut dyn FnMut(bool, bool)>,
+    /// Whether the drive's enable output is on, as the card sees it. Without it, the rules
+    /// check the axis' own account only.
+    pub enabled: Option<&'a dyn Fn() -> bool>,
     /// A velocity that moves the axis measurably in 10 cycles (its sign does not matter).
     pub jog: f64,
     /// How far from the expected position a homed axis may end, in the axis' unit.
@@ -23,6 +26,11 @@ pub struct AxisRig<'a> {
 }
 
 impl AxisRig<'_> {
+    /// True unless the rig says the drive's enable output is not `on`.
+    fn drive_is(&self, on: bool) -> bool {
+        self.enabled.is_none_or(|f| f() == on)
+    }
+
     fn run(&mut self, axis: &dyn Axis, cycles: usize) {
         for _ in 0..cycles {
             (self.cycle)();
@@ -37,11 +45,19 @@ fn refused<T>(r: &Result<T, DeviceError>) -> bool {
 }
 
 /// Checks `axis` on `rig`. The axis moves: run it on a rig, never on a machine that can
-/// hurt. It ends disabled.
+/// hurt. It ends disabled, and not stepping.
 pub fn check_axis(axis: &dyn Axis, mut rig: AxisRig<'_>) -> Report {
     use Rule::*;
     let mut report = Report::new(Interface::Axis);
     let v = rig.jog.abs();
+    // Not stepped by its thread yet: nothing may move it.
+    let early = axis.enable();
+    report.expect(
+        AxRefusedDisabled,
+        refused(&early) && rig.drive_is(false),
+        || format!("enable() before the axis is stepped = {early:?}, expected Refused"),
+    );
+    axis.set_stepping(true);
     let state = axis.state();
     report.expect(
         AxStartsDisabled,
@@ -64,15 +80,25 @@ pub fn check_axis(axis: &dyn Axis, mut rig: AxisRig<'_>) -> Report {
     let ready = axis.state();
     report.expect(
         AxEnableDisable,
-        e.is_ok() && ready == AxisState::Ready && axis.velocity() == 0.0,
-        || format!("enable() = {e:?}, then {ready}"),
+        e.is_ok() && ready == AxisState::Ready && axis.velocity() == 0.0 && rig.drive_is(true),
+        || {
+            format!(
+                "enable() = {e:?}, then {ready}; its enable output on: {}",
+                rig.drive_is(true)
+            )
+        },
     );
     let d = axis.disable();
     let off = axis.state();
     report.expect(
         AxEnableDisable,
-        d.is_ok() && off == AxisState::Disabled,
-        || format!("disable() = {d:?}, then {off}"),
+        d.is_ok() && off == AxisState::Disabled && rig.drive_is(false),
+        || {
+            format!(
+                "disable() = {d:?}, then {off}; its enable output off: {}",
+                rig.drive_is(false)
+            )
+        },
     );
     let _ = axis.enable();
 
@@ -162,7 +188,8 @@ pub fn check_axis(axis: &dyn Axis, mut rig: AxisRig<'_>) -> Report {
                 j.is_ok()
                     && s == AxisState::Error
                     && axis.fault() == Some(fault)
-                    && axis.velocity() == 0.0,
+                    && axis.velocity() == 0.0
+                    && rig.drive_is(false),
                 || {
                     format!(
                         "jog({toward}) = {j:?}, limit on: {s}, fault {:?}",
@@ -196,5 +223,6 @@ pub fn check_axis(axis: &dyn Axis, mut rig: AxisRig<'_>) -> Report {
         }
     }
     let _ = axis.disable();
+    axis.set_stepping(false);
     report
 }

@@ -105,17 +105,20 @@ pub enum Rule {
     EncMotion,
     /// An axis starts disabled, standing still, its drive disabled.
     AxStartsDisabled,
-    /// A disabled axis refuses to move or home, with `Refused`.
+    /// An axis its thread does not step refuses to be enabled; a disabled one refuses to
+    /// move or home; each with `Refused`.
     AxRefusedDisabled,
-    /// `enable` makes it ready at standstill, its drive enabled; `disable` undoes it.
+    /// `enable` makes it ready at standstill, its drive enabled (its enable output on,
+    /// where the rig can tell); `disable` undoes it.
     AxEnableDisable,
     /// `jog` moves it in the velocity's direction; `stop` stands it still, enabled.
     AxJog,
     /// `home` finds the home switch, latches it as the configured position and backs off,
     /// ending ready and homed within the tolerance (needs homing).
     AxHoming,
-    /// A limit switch turning on while moving towards it disables the drive and puts the
-    /// axis in error with that limit as the fault; moves are refused until `reset`; after
+    /// A limit switch turning on while moving towards it disables the drive (its enable
+    /// output off, where the rig can tell) and puts the axis in error with that limit as
+    /// the fault; moves are refused until `reset`; after
     /// it the axis moves away from the limit but not into it (needs a limit stimulus).
     AxLimit,
 }

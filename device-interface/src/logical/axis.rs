@@ -6,8 +6,9 @@
 //! every cycle: [`Axis::home`] only starts it. It searches the home switch at the
 //! configured velocity (first moving off it if it is on already), latches the encoder's
 //! count at the switch's edge as the configured home position, and backs off by the
-//! configured distance. A limit switch the axis moves towards, a drive fault or a failed
-//! device read during any motion disables the drive and puts the axis in error.
+//! configured distance. A limit switch the axis moves towards, a drive fault or a device
+//! failing while the drive is enabled disables the drive and puts the axis in error; a
+//! disable that fails is retried every step until it works.
 
 use crate::channel::DigitalInput;
 use crate::logical::{Drive, EncoderSensor, Sensor, worst_health};
@@ -16,10 +17,11 @@ use std::fmt;
 use std::sync::{Arc, Mutex, MutexGuard};
 
 /// What an axis is doing.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum AxisState {
     /// The drive is disabled.
+    #[default]
     Disabled,
     /// Enabled, standing still.
     Ready,
@@ -53,9 +55,11 @@ pub enum AxisFault {
     LimitMax,
     /// The drive's fault input turned on.
     DriveFault,
-    /// Homing travelled its whole `max_travel` without finding the home switch.
+    /// Homing travelled its whole `max_travel` without finding the home switch's edge
+    /// (moving off it or searching it).
     HomeNotFound,
-    /// A device the axis needs while moving failed (offline, stale, bus error).
+    /// A device the enabled axis needs failed (offline, stale, a bus error, a write not
+    /// taken, an output changed under the drive).
     Device,
 }
 
@@ -65,8 +69,8 @@ impl fmt::Display for AxisFault {
             AxisFault::LimitMin => "the low limit switch turned on",
             AxisFault::LimitMax => "the high limit switch turned on",
             AxisFault::DriveFault => "the drive reports a fault",
-            AxisFault::HomeNotFound => "homing found no home switch within max_travel",
-            AxisFault::Device => "a device failed while moving",
+            AxisFault::HomeNotFound => "homing found no edge of the home switch within max_travel",
+            AxisFault::Device => "a device failed while the drive was enabled",
         })
     }
 }
@@ -119,6 +123,10 @@ pub trait Axis: Device {
     fn home(&self) -> Result<(), DeviceError>;
     /// Leaves the error state, to disabled (the drive stays off).
     fn reset(&self) -> Result<(), DeviceError>;
+    /// Says whether the axis' own thread steps it (on at its start, off at its stop):
+    /// while it does not, `enable`, `jog` and `home` are refused — nothing would watch
+    /// the limit switches.
+    fn set_stepping(&self, on: bool);
     /// One cycle: keeps the drive's outputs alive ([`Drive::refresh`]), checks the limit
     /// switches and the drive's fault, advances homing.
     /// Errors: the device error that put the axis in error in this cycle.
@@ -153,6 +161,8 @@ enum Phase {
 
 struct Core {
     state: AxisState,
+    /// A disable of the drive failed: retried every step until it works.
+    pending_disable: bool,
     fault: Option<AxisFault>,
     phase: Phase,
     homed: bool,
@@ -167,6 +177,7 @@ struct Core {
 pub struct ServoAxis {
     parts: ServoAxisParts,
     core: Mutex<Core>,
+    stepping: std::sync::atomic::AtomicBool,
 }
 
 impl ServoAxis {
@@ -195,7 +206,9 @@ impl ServoAxis {
         }
         Ok(ServoAxis {
             parts,
+            stepping: std::sync::atomic::AtomicBool::new(false),
             core: Mutex::new(Core {
+                pending_disable: false,
                 state: AxisState::Disabled,
                 fault: None,
                 phase: Phase::Search,
@@ -235,16 +248,35 @@ impl ServoAxis {
         Ok(None)
     }
 
-    /// Disables the drive and holds the axis in error for `fault`.
-    fn trip(&self, c: &mut Core, fault: AxisFault) {
-        // Disabling tries both outputs; a failure here is the device's own, already seen.
-        let _ = self.parts.drive.disable();
-        if c.state == AxisState::Homing {
+    /// Disables the drive; a failure is retried every step until it works.
+    fn disable_drive(&self, c: &mut Core) -> Result<(), DeviceError> {
+        let r = self.parts.drive.disable();
+        c.pending_disable = r.is_err();
+        r
+    }
+
+    /// Holds the axis in error for `fault` and disables the drive; the error of a disable
+    /// that failed (retried every step).
+    fn trip(&self, c: &mut Core, fault: AxisFault) -> Result<(), DeviceError> {
+        if c.state == AxisState::Homing || fault == AxisFault::Device {
+            // Homing unfinished, or counts perhaps lost: the latch no longer holds.
             c.homed = false;
         }
         c.state = AxisState::Error;
         c.fault = Some(fault);
         c.velocity = 0.0;
+        self.disable_drive(c)
+    }
+
+    /// Refuses a command that would move the axis while its own thread does not step it.
+    fn check_stepping(&self) -> Result<(), DeviceError> {
+        if self.stepping.load(std::sync::atomic::Ordering::Acquire) {
+            Ok(())
+        } else {
+            Err(DeviceError::Refused {
+                reason: "the axis' own thread is not stepping it (start its component)",
+            })
+        }
     }
 
     fn set_velocity(&self, c: &mut Core, velocity: f64) -> Result<(), DeviceError> {
@@ -264,20 +296,27 @@ impl ServoAxis {
             return Ok(());
         };
         let on = home.is_on()?;
+        let too_far = h.max_travel.is_some_and(|m| self.travelled(c, count) > m);
         match c.phase {
             Phase::Clear if !on => {
                 c.phase = Phase::Search;
                 c.phase_start = count;
+                if let Some(limit) = self.blocking_limit(h.velocity)? {
+                    return self.trip(c, limit);
+                }
                 self.set_velocity(c, h.velocity)?;
             }
             Phase::Search if on => {
                 c.latch = (count, h.position);
                 c.phase = Phase::BackOff;
                 c.phase_start = count;
+                if let Some(limit) = self.blocking_limit(-h.velocity)? {
+                    return self.trip(c, limit);
+                }
                 self.set_velocity(c, -h.velocity)?;
             }
-            Phase::Search if h.max_travel.is_some_and(|m| self.travelled(c, count) > m) => {
-                self.trip(c, AxisFault::HomeNotFound);
+            Phase::Clear | Phase::Search if too_far => {
+                return self.trip(c, AxisFault::HomeNotFound);
             }
             Phase::BackOff if self.travelled(c, count) >= h.back_off => {
                 self.set_velocity(c, 0.0)?;
@@ -292,12 +331,10 @@ impl ServoAxis {
     fn cycle(&self, c: &mut Core) -> Result<(), DeviceError> {
         self.parts.drive.refresh()?;
         if self.parts.drive.faulted()? {
-            self.trip(c, AxisFault::DriveFault);
-            return Ok(());
+            return self.trip(c, AxisFault::DriveFault);
         }
         if let Some(limit) = self.blocking_limit(c.velocity)? {
-            self.trip(c, limit);
-            return Ok(());
+            return self.trip(c, limit);
         }
         if c.state == AxisState::Homing {
             let count = self.parts.encoder.count()?;
@@ -353,6 +390,7 @@ impl Axis for ServoAxis {
     }
 
     fn enable(&self) -> Result<(), DeviceError> {
+        self.check_stepping()?;
         let mut c = self.lock();
         match c.state {
             AxisState::Error => Err(DeviceError::Refused {
@@ -373,14 +411,26 @@ impl Axis for ServoAxis {
         if c.state == AxisState::Homing {
             c.homed = false;
         }
-        if c.state != AxisState::Error {
-            c.state = AxisState::Disabled;
-        }
         c.velocity = 0.0;
-        self.parts.drive.disable()
+        match self.disable_drive(&mut c) {
+            Ok(()) => {
+                if c.state != AxisState::Error {
+                    c.state = AxisState::Disabled;
+                }
+                Ok(())
+            }
+            // Not known to be off: in error, the disable retried every step.
+            Err(e) => {
+                c.state = AxisState::Error;
+                c.fault = Some(AxisFault::Device);
+                c.homed = false;
+                Err(e)
+            }
+        }
     }
 
     fn jog(&self, velocity: f64) -> Result<(), DeviceError> {
+        self.check_stepping()?;
         let mut c = self.lock();
         let reason = match c.state {
             AxisState::Ready | AxisState::Moving => None,
@@ -417,8 +467,17 @@ impl Axis for ServoAxis {
                 if c.state == AxisState::Homing {
                     c.homed = false;
                 }
-                c.state = AxisState::Ready;
-                self.set_velocity(&mut c, 0.0)
+                match self.set_velocity(&mut c, 0.0) {
+                    Ok(()) => {
+                        c.state = AxisState::Ready;
+                        Ok(())
+                    }
+                    // Still moving, perhaps: stopped the hard way.
+                    Err(e) => {
+                        let _ = self.trip(&mut c, AxisFault::Device);
+                        Err(e)
+                    }
+                }
             }
             AxisState::Disabled | AxisState::Error => Ok(()),
         }
@@ -430,6 +489,7 @@ impl Axis for ServoAxis {
                 what: "homing (the axis has no home switch or no homing section)",
             });
         };
+        self.check_stepping()?;
         let mut c = self.lock();
         if c.state != AxisState::Ready {
             return Err(DeviceError::Refused {
@@ -462,25 +522,31 @@ impl Axis for ServoAxis {
     fn reset(&self) -> Result<(), DeviceError> {
         let mut c = self.lock();
         if c.state == AxisState::Error {
-            self.parts.drive.disable()?;
+            self.disable_drive(&mut c)?;
             c.state = AxisState::Disabled;
             c.fault = None;
         }
         Ok(())
     }
 
+    fn set_stepping(&self, on: bool) {
+        self.stepping
+            .store(on, std::sync::atomic::Ordering::Release);
+    }
+
     fn step(&self) -> Result<(), DeviceError> {
         let mut c = self.lock();
+        if c.pending_disable {
+            return self.disable_drive(&mut c);
+        }
         if matches!(c.state, AxisState::Disabled | AxisState::Error) {
             return Ok(());
         }
-        match self.cycle(&mut c) {
-            Ok(()) => Ok(()),
-            Err(e) if c.velocity != 0.0 => {
-                self.trip(&mut c, AxisFault::Device);
-                Err(e)
+        // Any device failing while enabled: the drive's state is not known to be safe.
+        self.cycle(&mut c).inspect_err(|_| {
+            if c.state != AxisState::Error {
+                let _ = self.trip(&mut c, AxisFault::Device);
             }
-            Err(e) => Err(e),
-        }
+        })
     }
 }

@@ -154,13 +154,21 @@ impl Drive for AnalogDrive {
                 reason: "the drive reports a fault",
             });
         }
-        self.setpoint.write(self.offset)?;
         s.velocity = 0.0;
-        if let Some(e) = &self.enable {
-            e.switch_on()?;
+        let on = self.setpoint.write(self.offset).and_then(|()| {
+            self.enable
+                .as_ref()
+                .map_or(Ok(()), DigitalOutput::switch_on)
+        });
+        if on.is_err() {
+            // The enable may have taken (a write that timed out): off again, both tried.
+            let _ = self.setpoint.write(self.offset);
+            if let Some(e) = &self.enable {
+                let _ = e.switch_off();
+            }
         }
-        s.enabled = true;
-        Ok(())
+        s.enabled = on.is_ok();
+        on
     }
 
     fn disable(&self) -> Result<(), DeviceError> {
@@ -208,13 +216,26 @@ impl Drive for AnalogDrive {
         &self.unit
     }
 
+    /// Also checks that the outputs still read back as the drive set them: an output
+    /// changed under the drive (an output watchdog drove it to its safe value) is
+    /// [`Refused`](DeviceError::Refused), not written over.
     fn refresh(&self) -> Result<(), DeviceError> {
         let s = self.lock();
         if !s.enabled {
             return Ok(());
         }
-        self.setpoint
-            .write(self.volts_per_unit * s.velocity + self.offset)?;
+        let want = self.volts_per_unit * s.velocity + self.offset;
+        let step = self.setpoint.device().resolution(self.setpoint.channel())?;
+        let off = self
+            .enable
+            .as_ref()
+            .map_or(Ok(false), |e| e.is_on().map(|on| !on))?;
+        if off || (self.setpoint.read_back()? - want).abs() > step {
+            return Err(DeviceError::Refused {
+                reason: "an output of the drive was changed under it (an output watchdog?)",
+            });
+        }
+        self.setpoint.write(want)?;
         self.enable
             .as_ref()
             .map_or(Ok(()), DigitalOutput::switch_on)

@@ -36,8 +36,10 @@
 //! A drive is enabled only when asked; [`Drive::disable`] writes the zero-velocity setpoint
 //! before it switches the enable output off, and tries both even when the first fails. An
 //! axis disables its drive when a limit switch it moves towards turns on, when the drive
-//! reports a fault, and when a device it needs while moving fails; it then stays in error
-//! until [`Axis::reset`].
+//! reports a fault, and when a device it needs while the drive is enabled fails (an output
+//! changed under the drive included); it then stays in error until [`Axis::reset`], and a
+//! disable that failed is tried again every step. It takes no command that moves it while
+//! its own thread does not step it ([`Axis::set_stepping`]).
 
 mod axis;
 mod drive;

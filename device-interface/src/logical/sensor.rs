@@ -113,9 +113,20 @@ impl EncoderSensor {
 
     /// The encoder's whole count now: turns × |resolution| + position, in the positive
     /// direction.
+    ///
+    /// Position and turn are two reads: a roll-over between them would be a turn off, so
+    /// the turn is read before and after and the three reads made again (at most four
+    /// times) until it did not change. An encoder turning over on every try is
+    /// [`Stale`](DeviceError::Stale).
     pub fn count(&self) -> Result<i64, DeviceError> {
-        let (p, t) = (self.encoder.position()?, self.encoder.turn()?);
-        self.geometry.join(p, t)
+        for _ in 0..4 {
+            let before = self.encoder.turn()?;
+            let p = self.encoder.position()?;
+            if self.encoder.turn()? == before {
+                return self.geometry.join(p, before);
+            }
+        }
+        Err(DeviceError::Stale { age: None })
     }
 
     /// Counts per unit.

@@ -14,7 +14,7 @@ use device_interface::logical::{
 };
 use device_interface::time::{SimClock, Timestamp};
 use device_interface::{DeviceError, Registry};
-use driver_sim::{OutputWrite, SimCard, SimConfig};
+use driver_sim::{OutputWrite, SimCard, SimConfig, SimFault};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -108,6 +108,13 @@ impl Bench {
         })
         .unwrap()
     }
+
+    /// An axis as its own thread would have it: stepped.
+    fn stepped_axis(&self, drive: Arc<AnalogDrive>) -> ServoAxis {
+        let axis = self.axis(drive);
+        axis.set_stepping(true);
+        axis
+    }
 }
 
 #[test]
@@ -121,11 +128,14 @@ fn the_axis_keeps_the_conformance_kits_contract() {
             .set_digital_in(if high { 9 } else { 10 }, on)
             .unwrap();
     };
+    let dout = bench.registry.digital_out().lookup("sim0").unwrap();
+    let enabled = || dout.check_bit(0).unwrap();
     let report = check_axis(
         &axis,
         AxisRig {
             cycle: &mut cycle,
             limit: Some(&mut limit),
+            enabled: Some(&enabled),
             jog: 5.0,
             // One cycle at the search velocity latching, one backing off.
             tolerance: 2.0 * 5.0 * CYCLE.as_secs_f64(),
@@ -139,7 +149,7 @@ fn the_axis_keeps_the_conformance_kits_contract() {
 fn homing_latches_the_switch_edge_as_the_home_position_and_backs_off() {
     let bench = Bench::new();
     let drive = bench.drive();
-    let axis = bench.axis(drive.clone());
+    let axis = bench.stepped_axis(drive.clone());
     axis.enable().unwrap();
     axis.home().unwrap();
     let mut cycles = 0;
@@ -173,7 +183,7 @@ fn homing_latches_the_switch_edge_as_the_home_position_and_backs_off() {
 #[test]
 fn homing_on_the_switch_moves_off_it_first_and_a_limit_stops_homing() {
     let bench = Bench::new();
-    let axis = bench.axis(bench.drive());
+    let axis = bench.stepped_axis(bench.drive());
     bench.card.move_encoder(0, 5500).unwrap();
     bench.cycle();
     axis.enable().unwrap();
@@ -208,7 +218,7 @@ fn homing_on_the_switch_moves_off_it_first_and_a_limit_stops_homing() {
 #[test]
 fn a_search_beyond_max_travel_fails_and_homing_needs_an_enabled_axis() {
     let bench = Bench::new();
-    let axis = bench.axis(bench.drive());
+    let axis = bench.stepped_axis(bench.drive());
     assert!(matches!(axis.home(), Err(DeviceError::Refused { .. })));
     bench.card.move_encoder(0, 7000).unwrap(); // past the switch: the search never meets it
     axis.enable().unwrap();
@@ -323,4 +333,82 @@ fn switches_are_checked_against_the_card() {
         bad("[[switch]]\ndigital_in = 16\nencoder = 0\nfrom = 0\nto = 1\n").as_deref(),
         Some("switch[1].digital_in: digital input 16 does not exist (the card has 16)")
     );
+}
+
+#[test]
+fn an_output_changed_under_the_drive_trips_the_axis_instead_of_being_written_over() {
+    let bench = Bench::new();
+    let axis = bench.stepped_axis(bench.drive());
+    axis.enable().unwrap();
+    axis.jog(5.0).unwrap();
+    bench.cycle();
+    axis.step().unwrap();
+    // An output watchdog (or anyone) switches the enable off.
+    let dout = bench.registry.digital_out().lookup("sim0").unwrap();
+    dout.set_bit(0, false).unwrap();
+    bench.cycle();
+    assert!(matches!(axis.step(), Err(DeviceError::Refused { .. })));
+    assert_eq!(axis.state(), AxisState::Error);
+    assert_eq!(axis.fault(), Some(AxisFault::Device));
+    for _ in 0..5 {
+        bench.cycle();
+        let _ = axis.step();
+    }
+    assert!(!dout.check_bit(0).unwrap(), "switched on again");
+    assert!(axis.jog(5.0).is_err());
+}
+
+#[test]
+fn a_disable_that_failed_is_tried_again_every_step() {
+    let bench = Bench::new();
+    let axis = bench.stepped_axis(bench.drive());
+    axis.enable().unwrap();
+    axis.jog(5.0).unwrap();
+    bench.card.set_fault(SimFault::Offline);
+    // The step's reads fail: in error, the drive's disable failing too.
+    assert!(axis.step().is_err());
+    assert_eq!(axis.state(), AxisState::Error);
+    let dout = bench.registry.digital_out().lookup("sim0").unwrap();
+    bench.card.set_fault(SimFault::None);
+    assert!(
+        dout.check_bit(0).unwrap(),
+        "the failed disable left the enable on"
+    );
+    bench.cycle();
+    axis.step().unwrap();
+    assert!(!dout.check_bit(0).unwrap(), "not retried");
+    assert!(axis.reset().is_ok());
+    assert_eq!(axis.state(), AxisState::Disabled);
+}
+
+#[test]
+fn a_home_switch_stuck_on_ends_homing_at_max_travel() {
+    let bench = Bench::new();
+    let axis = bench.stepped_axis(bench.drive());
+    bench.card.set_digital_in(8, true).unwrap();
+    bench.cycle();
+    axis.enable().unwrap();
+    axis.home().unwrap();
+    let mut cycles = 0;
+    while axis.state() == AxisState::Homing {
+        bench.cycle();
+        let _ = axis.step();
+        cycles += 1;
+        assert!(cycles < 10_000, "moving off a stuck switch forever");
+    }
+    assert_eq!(axis.fault(), Some(AxisFault::HomeNotFound));
+    assert!(axis.position().unwrap() < -199.0);
+}
+
+#[test]
+fn an_axis_no_thread_steps_takes_no_command_that_moves_it() {
+    let bench = Bench::new();
+    let axis = bench.axis(bench.drive());
+    assert!(matches!(axis.enable(), Err(DeviceError::Refused { .. })));
+    axis.set_stepping(true);
+    axis.enable().unwrap();
+    axis.set_stepping(false);
+    assert!(matches!(axis.jog(1.0), Err(DeviceError::Refused { .. })));
+    assert!(matches!(axis.home(), Err(DeviceError::Refused { .. })));
+    axis.disable().unwrap();
 }

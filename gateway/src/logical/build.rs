@@ -21,6 +21,10 @@ struct Ctx<'p, 's, 'a, 'c> {
     cards: &'c [CardRt],
     /// (card, port, writer): the drives' outputs and who writes them.
     writers: Vec<(String, String, String)>,
+    /// The drives axes command, by name, as built (the registry serves them read-only).
+    owned: Vec<(String, Arc<dyn Drive>)>,
+    /// (axis, drive) of the axes built so far.
+    axes: Vec<(String, String)>,
 }
 
 /// What [`build`] made: the IO components in start order, and who writes which card
@@ -44,6 +48,8 @@ pub(crate) fn build(
         registry: &registry,
         cards,
         writers: Vec::new(),
+        owned: Vec::new(),
+        axes: Vec::new(),
     };
     let mut tasks = Vec::new();
     let mut failed: Vec<&str> = Vec::new();
@@ -90,8 +96,16 @@ pub(crate) fn build(
                     .then_some(task)
             }),
             LogicalConfig::Drive(dc) => cx.drive(&at, dc).and_then(|d| {
-                let task = io::drive(runtime, &dc.name, d.clone(), claimed(list, &dc.name));
-                cx.register(&at, |r| r.drive().register(&dc.name, &dc.name, d))
+                let owned = claimed(list, &dc.name);
+                let task = io::drive(runtime, &dc.name, d.clone(), owned);
+                // Everyone else gets a drive that takes no command: its axis' is the real one.
+                let served: Arc<dyn Drive> = if owned {
+                    cx.owned.push((dc.name.clone(), d.clone()));
+                    Arc::new(super::claimed::ClaimedDrive(d))
+                } else {
+                    d
+                };
+                cx.register(&at, |r| r.drive().register(&dc.name, &dc.name, served))
                     .then_some(task)
             }),
             LogicalConfig::Axis(a) => cx.axis(&at, a).and_then(|d| {
@@ -130,6 +144,10 @@ pub(crate) fn build(
         writers: cx.writers,
     }
 }
+
+/// What the default output policy does at stop, said of a drive's output.
+const INITIAL: &str = "puts it back to its value before hwgw first wrote it (\"initial\": \
+    a value hwgw does not know, or the last one written where the card cannot tell)";
 
 /// True when an axis of `list` uses drive `name`.
 fn claimed(list: &[LogicalConfig], name: &str) -> bool {
@@ -206,6 +224,11 @@ impl Ctx<'_, '_, '_, '_> {
 
     fn sensor(&mut self, at: &KeyPath, s: &SensorConfig) -> Option<Arc<dyn Sensor<f64>>> {
         self.period(&at.key("sample_period_ms"), s.sample_period_ms)?;
+        if let Some(why) = device_interface::text::non_finite(s.offset) {
+            self.problems
+                .at(&at.key("offset"), format!("{why}: give a finite number"));
+            return None;
+        }
         match (&s.analog_in, &s.encoder) {
             (Some(c), None) => {
                 if s.counts_per_unit.is_some() {
@@ -320,20 +343,23 @@ impl Ctx<'_, '_, '_, '_> {
                 .device()
                 .resolution(c.setpoint.channel)
                 .unwrap_or(0.0);
+            // As TOML writes a float (`0.0`, not `0`).
+            let zero = format!("{:?}", drive.zero_output());
             let bad = match p {
                 Policy::Keep => Some("keeps it as it is".to_string()),
+                Policy::Initial => Some(INITIAL.to_string()),
                 Policy::Safe(v) if (v - drive.zero_output()).abs() > step => Some(format!(
-                    "drives it to {}, not to zero velocity ({})",
+                    "drives it to {}, not to zero velocity",
                     device_interface::text::Number(v),
-                    device_interface::text::Number(drive.zero_output())
                 )),
-                _ => None,
+                Policy::Safe(_) => None,
             };
             if let Some(what) = bad {
                 ok = false;
                 let msg = format!(
-                    "the setpoint {port}: at stop the card {what}; a drive's setpoint needs the \
-                     zero-velocity value or \"initial\" as its [card.outputs] safe value"
+                    "the setpoint {port}: at stop the card {what}; a drive's setpoint needs its \
+                     zero-velocity value as its safe value ([card.outputs] safe = {{ {} = {zero} }})",
+                    port.rsplit('.').next().unwrap_or(&port)
                 );
                 self.problems.at(&at.key("setpoint"), msg);
             }
@@ -344,14 +370,17 @@ impl Ctx<'_, '_, '_, '_> {
             let on = f64::from(u8::from(!b.invert));
             let bad = match p {
                 Policy::Keep => Some("keeps it as it is"),
+                Policy::Initial => Some(INITIAL),
                 Policy::Safe(v) if v == on => Some("switches the drive on"),
-                _ => None,
+                Policy::Safe(_) => None,
             };
             if let Some(what) = bad {
                 ok = false;
                 let msg = format!(
                     "the enable output {port}: at stop the card {what}; a drive's enable needs \
-                     the off value or \"initial\" as its [card.outputs] safe value"
+                     its off value as its safe value ([card.outputs] safe = {{ {} = {} }})",
+                    port.rsplit('.').next().unwrap_or(&port),
+                    b.invert
                 );
                 self.problems.at(&at.key("enable"), msg);
             }
@@ -365,7 +394,19 @@ impl Ctx<'_, '_, '_, '_> {
             self.problems.at(&at.key("thread"), e);
             return None;
         }
-        let drive = self.ok(&at.key("drive"), self.registry.drive().lookup(&a.drive))?;
+        if let Some(first) = self.axes.iter().find(|(_, d)| *d == a.drive) {
+            let msg = format!(
+                "drive {:?} is commanded by axis {:?} already",
+                a.drive, first.0
+            );
+            self.problems.at(&at.key("drive"), msg);
+            return None;
+        }
+        self.axes.push((a.name.clone(), a.drive.clone()));
+        let drive = match self.owned.iter().find(|(n, _)| *n == a.drive) {
+            Some((_, d)) => d.clone(),
+            None => self.ok(&at.key("drive"), self.registry.drive().lookup(&a.drive))?,
+        };
         let enc = self.ok(
             &at.key("encoder"),
             self.registry.encoder().lookup(&a.encoder),

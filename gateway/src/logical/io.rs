@@ -172,7 +172,7 @@ struct AxisStatus {
 struct AxisIo {
     device: Arc<dyn Axis>,
     position: OutputPort<f64>,
-    state: OutputPort<String>,
+    state: OutputPort<AxisState>,
     homed: OutputPort<bool>,
     /// Steps that failed (a device error), counted as warnings.
     failed: bool,
@@ -195,13 +195,19 @@ impl Component for AxisIo {
         if let Ok(p) = self.device.position() {
             self.position.write(&p);
         }
-        self.state.write(&self.device.state().to_string());
+        self.state.write(&self.device.state());
         self.homed.write(&self.device.homed());
+        Ok(())
+    }
+
+    fn start_hook(&mut self, _: &mut Context<'_>) -> HookResult {
+        self.device.set_stepping(true);
         Ok(())
     }
 
     fn stop_hook(&mut self, ctx: &mut Context<'_>) {
         disabled_at_stop(ctx.name(), self.device.disable());
+        self.device.set_stepping(false);
     }
 }
 

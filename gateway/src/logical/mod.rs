@@ -28,6 +28,7 @@
 //! keeps or drives to anything but zero velocity.
 
 mod build;
+mod claimed;
 mod io;
 
 pub(crate) use build::build;
