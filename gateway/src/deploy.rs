@@ -198,10 +198,11 @@ impl Gateway {
     }
 
     /// `Ok` while every component that should run is running and every periodic activity
-    /// keeps its period; else what is wrong. This is what feeds the systemd watchdog. A
-    /// component in RunTimeError (waiting out a device that is offline, stepping on time)
-    /// counts as running: restarting the service would not bring the device back; its
-    /// state shows in `hwgw ls` and `status`.
+    /// keeps its period; else what is wrong. This is what feeds the systemd watchdog. The
+    /// error model's warning is healthy (the component runs, its flag shows in `ls` and
+    /// `status`); RunTimeError is not (manual L832–884: an error the component waits out,
+    /// not a state to run in) — a spell shorter than the watchdog's interval passes
+    /// unnoticed, a longer one starves it and systemd restarts the service.
     pub fn health(&self) -> Result<(), String> {
         self.health_since(&mut HashMap::new())
     }
@@ -220,7 +221,8 @@ impl Gateway {
                 .insert(t.name().to_string(), stats.unhealthy_spells)
                 .unwrap_or(stats.unhealthy_spells);
             match t.state() {
-                TaskState::Running | TaskState::RunTimeError => {}
+                TaskState::Running => {}
+                TaskState::RunTimeError => wrong.push(format!("{} is in RunTimeError", t.name())),
                 s if *start => wrong.push(format!("{} is {s}", t.name())),
                 _ => continue,
             }

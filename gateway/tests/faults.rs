@@ -1,7 +1,9 @@
 //! The shared fault policy on the IO components (a card's `faults`): a simulated card gone
 //! offline raises the sampling component's warning at the first missed sample and puts it
 //! in RunTimeError at the fifth; the card back, it is Running without the warning, by
-//! itself. Without `faults` nothing changes state (the device's health tells).
+//! itself. Without `faults` nothing changes state (the device's health tells). And the
+//! gateway's health, which feeds the systemd watchdog: a warning is healthy, RunTimeError
+//! is not.
 
 #![allow(
     clippy::unwrap_used,
@@ -66,4 +68,66 @@ fn without_a_policy_the_state_stays() {
     });
     assert_eq!(ai.state(), TaskState::Running);
     assert!(!ai.counters().warning);
+}
+
+/// Raises a warning, goes to RunTimeError or recovers, as its property `mode` says.
+struct Moody {
+    mode: rtt::property::Property<String>,
+}
+
+impl rtt::Component for Moody {
+    fn update_hook(&mut self, ctx: &mut rtt::Context<'_>) -> rtt::HookResult {
+        match self.mode.get().as_str() {
+            "warn" => ctx.warning(),
+            "error" => ctx.error(),
+            _ => ctx.recovered(),
+        }
+        Ok(())
+    }
+
+    fn error_hook(&mut self, ctx: &mut rtt::Context<'_>) {
+        if self.mode.get() != "error" {
+            ctx.recovered();
+        }
+    }
+}
+
+#[test]
+fn the_watchdogs_health_takes_a_warning_as_healthy_and_an_error_as_not() {
+    let mut types = hwgw::types::Types::builtin();
+    types.components.register("moody", |rt, name, spec| {
+        rt.add(name, spec, rtt::InitialState::Stopped, |i| {
+            Ok(Moody {
+                mode: i
+                    .properties()
+                    .add("mode", "ok".to_string(), "ok, warn or error")?,
+            })
+        })
+    });
+    let text = "[[component]]\nname = \"m\"\ntype = \"moody\"\nactivity = { type = \"periodic\", period_ms = 5 }\n";
+    let d = hwgw::config::Deployment::parse(text, "m.toml").unwrap();
+    let gw = hwgw::deploy::Gateway::build(&d, "m.toml", text, &types)
+        .unwrap_or_else(|p| panic!("{p:?}"));
+    gw.start().unwrap();
+    let m = gw.runtime().component("m").unwrap();
+    assert_eq!(gw.health(), Ok(()));
+    let mode = |v: &str| {
+        m.properties()
+            .set_value("mode", serde_json::json!(v))
+            .unwrap()
+    };
+
+    mode("warn");
+    wait_until("the warning raised", || m.counters().warning);
+    assert_eq!(m.state(), TaskState::Running);
+    assert_eq!(gw.health(), Ok(()), "a warning is healthy");
+
+    mode("error");
+    wait_until("RunTimeError", || m.state() == TaskState::RunTimeError);
+    assert_eq!(gw.health(), Err("m is in RunTimeError".to_string()));
+
+    mode("ok");
+    wait_until("Running again", || m.state() == TaskState::Running);
+    assert_eq!(gw.health(), Ok(()));
+    drop(gw.shutdown());
 }
