@@ -131,6 +131,11 @@ fn bind_unnamed(runtime: &Runtime, task: &TaskContext, req: &RequiredInfo) -> Re
                 [p] => task
                     .bind_service(name, p, name, false)
                     .map_err(|e| e.to_string()),
+                // Bound before (a reload took its name away) and now to nothing: unbound,
+                // so no provider it no longer names goes on serving it.
+                [] if req.optional && !req.bound_to.is_empty() => {
+                    task.unbind(name).map_err(|e| e.to_string())
+                }
                 [] if req.optional => Ok(()),
                 [] => Err(format!(
                     "{:?} requires service {name:?}, which no component provides; bind it \

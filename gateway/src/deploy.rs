@@ -201,8 +201,8 @@ impl Gateway {
     /// keeps its period; else what is wrong. This is what feeds the systemd watchdog. The
     /// error model's warning is healthy (the component runs, its flag shows in `ls` and
     /// `status`); RunTimeError is not (manual L832–884: an error the component waits out,
-    /// not a state to run in) — a spell shorter than the watchdog's interval passes
-    /// unnoticed, a longer one starves it and systemd restarts the service.
+    /// not a state to run in). A look that finds it withholds that feed of the watchdog;
+    /// none for a whole interval and systemd restarts the service.
     pub fn health(&self) -> Result<(), String> {
         self.health_since(&mut HashMap::new())
     }

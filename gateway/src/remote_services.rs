@@ -8,9 +8,13 @@
 //! for the component every [`POLL`] (`describe`): the binding is ready while that
 //! gateway answers, the component is Running and each required operation is there with
 //! the required type; otherwise it is not ready, and the requiring component is told
-//! (`service_lost`) and counted as for a local provider. A mismatch of types is logged
-//! once, naming the operation and both types. The watcher ends when the binding goes
-//! (the component unloaded, rebuilt, bound elsewhere).
+//! (`service_lost`) and counted as for a local provider. A call that gets no answer makes
+//! it not ready at once; the watcher's own look may wait for the Zenoh request timeout
+//! (`request_timeout_ms`, 2 s by default), so a gateway gone silent is seen within a poll
+//! and that timeout. A mismatch of types is logged once, naming the operation and both
+//! types. The watcher ends when the binding goes (the component unloaded, rebuilt, bound
+//! elsewhere). A remote call waits for the other gateway's answer, up to that timeout:
+//! make one from a component that may wait, never on a real-time path.
 //!
 //! `hwgw check` cannot see the other gateway: it checks the address's form only.
 
@@ -50,6 +54,7 @@ pub(crate) fn bind(
 mod imp {
     use super::POLL;
     use crate::remote::Node;
+    use device_interface::text::Cut;
     use rtt::service::{RemoteCall, RemoteProvider, RemoteState, RequiredKind};
     use rtt::{TaskContext, TaskState};
     use serde_json::{Value, json};
@@ -108,6 +113,7 @@ mod imp {
             gateway: gw.to_string(),
             component: component.to_string(),
             stop: stop.clone(),
+            state: state.clone(),
         });
         let provider = RemoteProvider {
             label: address.to_string(),
@@ -120,12 +126,14 @@ mod imp {
             .into_iter()
             .find(|r| r.name == requirement)
             .and_then(|r| r.bound_to.first().cloned());
-        task.bind_remote_service(requirement, &provider, check_only)
-            .map_err(|e| e.to_string())?;
         if check_only || before.as_deref() == Some(address) {
-            // Bound there already: its watcher runs on.
-            return Ok(());
+            // Bound there already (its watcher runs on), or only checked.
+            return task
+                .bind_remote_service(requirement, &provider, check_only)
+                .map_err(|e| e.to_string());
         }
+        // The watcher first: a binding without one would never be ready. It ends with the
+        // provider's caller, bound below or dropped at once when the binding is refused.
         let watch = Watch {
             node: node.clone(),
             label: format!("{}: {address}", task.name()),
@@ -139,8 +147,9 @@ mod imp {
         std::thread::Builder::new()
             .name(format!("svc {address}"))
             .spawn(move || watch.run())
-            .map(|_| ())
-            .map_err(|e| format!("{address:?}: no thread to watch it: {e}"))
+            .map_err(|e| format!("{address:?}: no thread to watch it: {e}"))?;
+        task.bind_remote_service(requirement, &provider, false)
+            .map_err(|e| e.to_string())
     }
 
     /// Calls through the provider's gateway; dropped with the binding, it ends its watcher.
@@ -149,6 +158,8 @@ mod imp {
         gateway: String,
         component: String,
         stop: Arc<AtomicBool>,
+        /// Set not Running when a call gets no answer (the watcher sets it again).
+        state: RemoteState,
     }
 
     impl Drop for ZenohCall {
@@ -165,11 +176,30 @@ mod imp {
                 "operation": operation,
                 "args": args,
             });
-            let reply = self
-                .node
-                .request(&self.gateway, &req)
-                .map_err(|e| e.to_string())?;
-            crate::protocol::reply_body(reply).map_err(|(_, m)| format!("{}: {m}", self.gateway))
+            let reply = self.node.request(&self.gateway, &req).map_err(|e| {
+                // No answer: not ready from now until the watcher hears the provider again.
+                self.state.set(TaskState::Stopped);
+                e.to_string()
+            })?;
+            crate::protocol::reply_body(reply)
+                .map_err(|(_, m)| format!("{}: {}", self.gateway, Cut(&m)))
+        }
+    }
+
+    /// Why a look heard no usable provider.
+    enum Heard {
+        /// This gateway's node is not started (yet, or ever: a check's build).
+        NotStarted,
+        /// Why not.
+        Not(String),
+    }
+
+    impl std::fmt::Display for Heard {
+        fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+            match self {
+                Heard::NotStarted => f.write_str("this gateway's Zenoh node is not started"),
+                Heard::Not(why) => f.write_str(why),
+            }
         }
     }
 
@@ -194,7 +224,10 @@ mod imp {
                 let heard = self.look();
                 let state = heard.as_ref().copied().unwrap_or(TaskState::Stopped);
                 self.state.set(state);
-                if last.as_ref() != Some(&heard) {
+                // The node not started yet (or a check's build): nothing to tell.
+                let quiet = matches!(&heard, Err(Heard::NotStarted));
+                let heard = heard.map_err(|h| h.to_string());
+                if !quiet && last.as_ref() != Some(&heard) {
                     match &heard {
                         Ok(s) => tracing::info!("{}: the provider is {s}", self.label),
                         Err(why) => tracing::warn!("{}: not ready: {why}", self.label),
@@ -211,14 +244,15 @@ mod imp {
         }
 
         /// The provider's state, its operations' types checked; or why it cannot be used.
-        fn look(&self) -> Result<TaskState, String> {
+        fn look(&self) -> Result<TaskState, Heard> {
             let req = json!({"cmd": "describe", "component": self.component});
-            let reply = self
-                .node
-                .request(&self.gateway, &req)
-                .map_err(|e| e.to_string())?;
+            let reply = match self.node.request(&self.gateway, &req) {
+                Ok(r) => r,
+                Err(scaleout::NodeError::NotStarted) => return Err(Heard::NotStarted),
+                Err(e) => return Err(Heard::Not(e.to_string())),
+            };
             let d = crate::protocol::reply_body(reply)
-                .map_err(|(_, m)| format!("{}: {m}", self.gateway))?;
+                .map_err(|(_, m)| Heard::Not(format!("{}: {}", self.gateway, Cut(&m))))?;
             let offered: Vec<rtt::operation::OperationInfo> = d["operations"]
                 .as_array()
                 .map(Vec::as_slice)
@@ -227,12 +261,12 @@ mod imp {
                 .filter_map(|o| serde_json::from_value(o.clone()).ok())
                 .collect();
             let at = format!("{}/{}", self.gateway, self.component);
-            check_types(&at, &self.service, &self.required, &offered)?;
+            check_types(&at, &self.service, &self.required, &offered).map_err(Heard::Not)?;
             serde_json::from_value(d["state"].clone()).map_err(|e| {
-                format!(
+                Heard::Not(format!(
                     "{}/{}: no state in its description: {e}",
                     self.gateway, self.component
-                )
+                ))
             })
         }
     }

@@ -66,6 +66,30 @@ pub struct RemoteProvider {
     pub call: Arc<dyn RemoteCall>,
 }
 
+/// `answer` as an `R`. The type names the protocol compares show a `Result<T, E>` as its
+/// `T`, so either side may have a `Result` the other has not: `{"Ok": v}` is taken as `v`,
+/// `{"Err": e}` as the error `e`, and a plain `v` as `{"Ok": v}`.
+fn result_of<R: DeserializeOwned>(answer: &serde_json::Value) -> Result<R, String> {
+    let direct = R::deserialize(answer).map_err(|e| e.to_string());
+    if direct.is_ok() {
+        return direct;
+    }
+    if let Some(o) = answer.as_object().filter(|o| o.len() == 1) {
+        if let Some(v) = o.get("Ok") {
+            return R::deserialize(v).map_err(|e| e.to_string());
+        }
+        if let Some(e) = o.get("Err") {
+            let text = e.as_str().map_or_else(|| e.to_string(), str::to_string);
+            return Err(format!(
+                "the provider answered an error: {}",
+                device_interface::text::Cut(&text)
+            ));
+        }
+    }
+    R::deserialize(serde_json::json!({ "Ok": answer }))
+        .map_err(|_| direct.err().unwrap_or_default())
+}
+
 /// A required operation bound to a remote provider's operation `name`.
 pub(crate) struct RemoteOp<A, R> {
     pub(crate) name: Arc<str>,
@@ -89,7 +113,10 @@ where
             one => vec![one],
         };
         let answer = self.call.call(&self.name, args).map_err(remote)?;
-        serde_json::from_value(answer.clone()).map_err(|e| {
+        result_of(&answer).map_err(|e| {
+            if e.starts_with("the provider answered an error") {
+                return remote(e);
+            }
             remote(format!(
                 "the answer {} is not of the type required: {e}",
                 device_interface::text::Cut(&answer.to_string())
@@ -100,5 +127,30 @@ where
     /// Waits for the answer as [`call`](Self::call) does: the call is in another process.
     fn send(&self, args: A) -> SendHandle<R> {
         SendHandle::ready(Invoke::call(self, args))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::result_of;
+    use serde_json::json;
+
+    #[test]
+    fn a_result_on_either_side_is_taken_as_its_value() {
+        assert_eq!(result_of::<bool>(&json!(true)), Ok(true));
+        assert_eq!(result_of::<bool>(&json!({"Ok": true})), Ok(true));
+        assert_eq!(
+            result_of::<Result<bool, String>>(&json!(true)),
+            Ok(Ok(true))
+        );
+        assert_eq!(
+            result_of::<Result<bool, String>>(&json!({"Err": "no"})),
+            Ok(Err("no".to_string()))
+        );
+        assert_eq!(
+            result_of::<()>(&json!({"Err": "the valve is stuck"})),
+            Err("the provider answered an error: the valve is stuck".to_string())
+        );
+        assert!(result_of::<u32>(&json!("x")).is_err());
     }
 }
