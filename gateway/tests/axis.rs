@@ -71,6 +71,7 @@ fn the_axis_homes_stops_at_a_limit_and_leaves_the_drive_disabled_at_stop() {
         std::mem::replace(&mut seen, now) == now
     });
     // At most 250 ms of motion at the search velocity late (a loaded machine's steps).
+    eprintln!("latched at {seen} mm of travel; the switch's edge is at 50 mm");
     assert!(
         (50.0..55.0).contains(&seen),
         "latched at {seen} mm of travel"
