@@ -88,7 +88,7 @@ pub(crate) fn bind(
         };
         let result = match (&req.kind, binding) {
             (RequiredKind::Service { .. }, Binding::One(address)) if address.contains('/') => {
-                crate::remote_services::bind(zenoh, task, name, address, false)
+                crate::remote_services::bind(zenoh, task, name, address)
             }
             (RequiredKind::Service { .. }, Binding::One(address)) => provider(runtime, address)
                 .and_then(|(p, service)| {

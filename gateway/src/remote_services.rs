@@ -18,32 +18,19 @@
 //!
 //! `hwgw check` cannot see the other gateway: it checks the address's form only.
 
-use rtt::TaskContext;
-
 /// How often the provider's gateway is asked for the component.
 pub const POLL: std::time::Duration = std::time::Duration::from_millis(200);
 
-/// Binds `task`'s requirement `requirement` to `address` (`gateway/component.service`)
-/// through `node`.
 #[cfg(feature = "zenoh")]
-pub(crate) fn bind(
-    node: Option<&std::sync::Arc<crate::remote::Node>>,
-    task: &TaskContext,
-    requirement: &str,
-    address: &str,
-    check_only: bool,
-) -> Result<(), String> {
-    imp::bind(node, task, requirement, address, check_only)
-}
+pub(crate) use imp::bind;
 
 /// A build without Zenoh binds no service of another gateway.
 #[cfg(not(feature = "zenoh"))]
 pub(crate) fn bind(
     _node: Option<&std::sync::Arc<crate::remote::Node>>,
-    _task: &TaskContext,
+    _task: &rtt::TaskContext,
     _requirement: &str,
     address: &str,
-    _check_only: bool,
 ) -> Result<(), String> {
     Err(format!(
         "{address:?} is a service of another gateway, and this build has no Zenoh"
@@ -79,12 +66,13 @@ mod imp {
         Ok((gw, component, service))
     }
 
-    pub(super) fn bind(
+    /// Binds `task`'s requirement `requirement` to `address`
+    /// (`gateway/component.service`) through `node`.
+    pub(crate) fn bind(
         node: Option<&Arc<Node>>,
         task: &TaskContext,
         requirement: &str,
         address: &str,
-        check_only: bool,
     ) -> Result<(), String> {
         let (gw, component, service) = split(address)?;
         let Some(node) = node else {
@@ -97,15 +85,19 @@ mod imp {
                 "{address:?}: {gw:?} is this gateway; bind \"{component}.{service}\""
             ));
         }
-        let required = task
+        let (required, bound_to) = task
             .required()
             .into_iter()
             .find(|r| r.name == requirement)
             .map(|r| match r.kind {
-                RequiredKind::Service { operations } => operations,
-                RequiredKind::Devices { .. } => Vec::new(),
+                RequiredKind::Service { operations } => (operations, r.bound_to),
+                RequiredKind::Devices { .. } => (Vec::new(), r.bound_to),
             })
             .unwrap_or_default();
+        if bound_to.first().map(String::as_str) == Some(address) {
+            // Bound there already: its watcher runs on.
+            return Ok(());
+        }
         let stop = Arc::new(AtomicBool::new(false));
         let state = RemoteState::default();
         let call = Arc::new(ZenohCall {
@@ -121,17 +113,6 @@ mod imp {
             state: state.clone(),
             call,
         };
-        let before = task
-            .required()
-            .into_iter()
-            .find(|r| r.name == requirement)
-            .and_then(|r| r.bound_to.first().cloned());
-        if check_only || before.as_deref() == Some(address) {
-            // Bound there already (its watcher runs on), or only checked.
-            return task
-                .bind_remote_service(requirement, &provider, check_only)
-                .map_err(|e| e.to_string());
-        }
         // The watcher first: a binding without one would never be ready. It ends with the
         // provider's caller, bound below or dropped at once when the binding is refused.
         let watch = Watch {

@@ -386,7 +386,8 @@ impl Axis for ServoAxis {
     }
 
     fn homing(&self) -> Option<HomingConfig> {
-        self.parts.home.as_ref().and(self.parts.homing)
+        // `new` refuses homing without a home switch.
+        self.parts.homing
     }
 
     fn enable(&self) -> Result<(), DeviceError> {

@@ -296,17 +296,14 @@ impl Ctx<'_, '_, '_, '_> {
         Some(Arc::new(drive))
     }
 
-    /// The card's output policy of `device` output `channel` (`analog`), if `device` is a
-    /// card's (or an alias of one).
-    fn policy(&self, device: &str, analog: bool, channel: u32) -> Option<(Policy, String)> {
-        let (c, port) = self.output(device, analog, channel)?;
-        let (p, _) = c.outputs.policy(analog, channel)?;
-        Some((p, format!("{}.{port}", c.name)))
-    }
-
-    /// The card and port name of `device` output `channel` (`analog`), if `device` is a
-    /// card's (or an alias of one).
-    fn output(&self, device: &str, analog: bool, channel: u32) -> Option<(&CardRt, String)> {
+    /// The card, output policy and port name of `device` output `channel` (`analog`), if
+    /// `device` is a card's (or an alias of one).
+    fn output(
+        &self,
+        device: &str,
+        analog: bool,
+        channel: u32,
+    ) -> Option<(&CardRt, Policy, String)> {
         let server = if analog {
             self.registry.analog_out().names()
         } else {
@@ -315,9 +312,9 @@ impl Ctx<'_, '_, '_, '_> {
         let info = server.into_iter().find(|n| n.name == device)?;
         let card = info.alias_of.unwrap_or(info.name);
         let c = self.cards.iter().find(|c| c.name == card)?;
-        let (_, port) = c.outputs.policy(analog, channel)?;
+        let (policy, port) = c.outputs.policy(analog, channel)?;
         let port = port.to_string();
-        Some((c, port))
+        Some((c, policy, port))
     }
 
     /// Notes `writer` as the writer of drive `c`'s outputs: the output watchdog drives them
@@ -326,7 +323,7 @@ impl Ctx<'_, '_, '_, '_> {
         let mut outputs = vec![(c.setpoint.device.as_str(), true, c.setpoint.channel)];
         outputs.extend(c.enable.iter().map(|b| (b.device.as_str(), false, b.bit)));
         for (device, analog, channel) in outputs {
-            if let Some((card, port)) = self.output(device, analog, channel) {
+            if let Some((card, _, port)) = self.output(device, analog, channel) {
                 card.outputs.add_writer(&port, writer);
                 self.writers
                     .push((card.name.clone(), port, writer.to_string()));
@@ -337,7 +334,10 @@ impl Ctx<'_, '_, '_, '_> {
     /// Refuses a drive its cards would leave enabled or moving at stop.
     fn safe_at_stop(&mut self, at: &KeyPath, c: &DriveConfig, drive: &AnalogDrive) -> Option<()> {
         let mut ok = true;
-        if let Some((p, port)) = self.policy(&c.setpoint.device, true, c.setpoint.channel) {
+        let setpoint = self
+            .output(&c.setpoint.device, true, c.setpoint.channel)
+            .map(|(card, p, port)| (card.name.clone(), p, port));
+        if let Some((card, p, port)) = setpoint {
             let step = drive
                 .setpoint()
                 .device()
@@ -357,16 +357,18 @@ impl Ctx<'_, '_, '_, '_> {
             if let Some(what) = bad {
                 ok = false;
                 let msg = format!(
-                    "the setpoint {port}: at stop the card {what}; a drive's setpoint needs its \
-                     zero-velocity value as its safe value ([card.outputs] safe = {{ {} = {zero} }})",
-                    port.rsplit('.').next().unwrap_or(&port)
+                    "the setpoint {card}.{port}: at stop the card {what}; a drive's setpoint \
+                     needs its zero-velocity value as its safe value ([card.outputs] safe = \
+                     {{ {port} = {zero} }})"
                 );
                 self.problems.at(&at.key("setpoint"), msg);
             }
         }
-        if let Some(b) = &c.enable
-            && let Some((p, port)) = self.policy(&b.device, false, b.bit)
-        {
+        let enable = c.enable.as_ref().and_then(|b| {
+            self.output(&b.device, false, b.bit)
+                .map(|(card, p, port)| (b, card.name.clone(), p, port))
+        });
+        if let Some((b, card, p, port)) = enable {
             let on = f64::from(u8::from(!b.invert));
             let bad = match p {
                 Policy::Keep => Some("keeps it as it is"),
@@ -377,9 +379,9 @@ impl Ctx<'_, '_, '_, '_> {
             if let Some(what) = bad {
                 ok = false;
                 let msg = format!(
-                    "the enable output {port}: at stop the card {what}; a drive's enable needs \
-                     its off value as its safe value ([card.outputs] safe = {{ {} = {} }})",
-                    port.rsplit('.').next().unwrap_or(&port),
+                    "the enable output {card}.{port}: at stop the card {what}; a drive's enable \
+                     needs its off value as its safe value ([card.outputs] safe = \
+                     {{ {port} = {} }})",
                     b.invert
                 );
                 self.problems.at(&at.key("enable"), msg);
