@@ -110,7 +110,7 @@ where
     C: Send + 'static,
     D: ?Sized + Send + Sync + 'static,
     A: rtt::operation::Args,
-    R: serde::Serialize + 'static,
+    R: serde::Serialize + Send + 'static,
 {
     let d = device.clone();
     iface.client_operation(name, doc, args, move |a: A| {

@@ -419,7 +419,37 @@ pub(crate) trait DynOperation: Send + Sync {
     /// `fn(A, B) -> R` in Rust's names, for a Rust caller that asked for other types.
     fn rust_signature(&self) -> String;
     fn call_value(&self, args: Vec<Value>) -> Result<Value, CallError>;
+    fn send_value(&self, args: Vec<Value>) -> Result<ValueHandle, CallError>;
     fn as_any(&self) -> &dyn Any;
+}
+
+/// The pending or finished result of a send through the dynamic layer
+/// ([`TaskContext::send_value`](crate::TaskContext::send_value)), as a value.
+pub struct ValueHandle {
+    poll: Box<dyn FnMut() -> Option<Result<Value, CallError>> + Send>,
+}
+
+impl ValueHandle {
+    /// The result if the call has finished (`None` if not yet); after a result,
+    /// [`CallError::AlreadyCollected`].
+    pub fn collect_if_done(&mut self) -> Option<Result<Value, CallError>> {
+        (self.poll)()
+    }
+}
+
+impl std::fmt::Debug for ValueHandle {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("ValueHandle")
+    }
+}
+
+/// `r` as a value, or why it is none.
+fn result_value<R: Serialize>(operation: &str, r: &R) -> Result<Value, CallError> {
+    serde_json::to_value(r).map_err(|e| CallError::WrongArguments {
+        operation: operation.to_string(),
+        expected: "a result that serialises".into(),
+        detail: e.to_string(),
+    })
 }
 
 pub(crate) struct OperationEntry<A, R> {
@@ -427,20 +457,9 @@ pub(crate) struct OperationEntry<A, R> {
     pub(crate) caller: OperationCaller<A, R>,
 }
 
-impl<A: Args, R: Serialize + 'static> DynOperation for OperationEntry<A, R> {
-    fn info(&self) -> &OperationInfo {
-        &self.info
-    }
-
-    fn rust_signature(&self) -> String {
-        format!(
-            "fn({}) -> {}",
-            A::type_names().join(", "),
-            std::any::type_name::<R>()
-        )
-    }
-
-    fn call_value(&self, args: Vec<Value>) -> Result<Value, CallError> {
+impl<A: Args, R: Serialize + 'static> OperationEntry<A, R> {
+    /// `args` as the operation's argument tuple, or what does not fit.
+    fn arguments(&self, args: Vec<Value>) -> Result<A, CallError> {
         let wrong = |detail: String| {
             let types: Vec<&str> = self
                 .info
@@ -466,12 +485,37 @@ impl<A: Args, R: Serialize + 'static> DynOperation for OperationEntry<A, R> {
         } else {
             Value::Array(args)
         };
-        let a: A = serde_json::from_value(value).map_err(|e| wrong(e.to_string()))?;
-        let r = self.caller.call(a)?;
-        serde_json::to_value(&r).map_err(|e| CallError::WrongArguments {
-            operation: self.info.name.clone(),
-            expected: "a result that serialises".into(),
-            detail: e.to_string(),
+        serde_json::from_value(value).map_err(|e| wrong(e.to_string()))
+    }
+}
+
+impl<A: Args, R: Serialize + Send + 'static> DynOperation for OperationEntry<A, R> {
+    fn info(&self) -> &OperationInfo {
+        &self.info
+    }
+
+    fn rust_signature(&self) -> String {
+        format!(
+            "fn({}) -> {}",
+            A::type_names().join(", "),
+            std::any::type_name::<R>()
+        )
+    }
+
+    fn call_value(&self, args: Vec<Value>) -> Result<Value, CallError> {
+        let r = self.caller.call(self.arguments(args)?)?;
+        result_value(&self.info.name, &r)
+    }
+
+    fn send_value(&self, args: Vec<Value>) -> Result<ValueHandle, CallError> {
+        let mut handle = self.caller.send(self.arguments(args)?);
+        let name = self.info.name.clone();
+        Ok(ValueHandle {
+            poll: Box::new(move || {
+                handle
+                    .collect_if_done()
+                    .map(|r| r.and_then(|r| result_value(&name, &r)))
+            }),
         })
     }
 

@@ -127,12 +127,8 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
         sample: T,
     ) -> Result<OutputPort<T>, IntrospectError> {
         self.check_port_name(name)?;
-        let port = OutputPort::with_sample(name, sample);
-        self.ports.push(Arc::new(OutEntry {
-            shared: port.shared().clone(),
-            doc: doc.to_string(),
-            values: std::sync::OnceLock::new(),
-        }));
+        let (port, entry) = output_entry(name, doc, sample);
+        self.ports.push(entry);
         Ok(port)
     }
 
@@ -202,24 +198,13 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
         driving: Option<(Check<T>, Check<T>)>,
     ) -> Result<InputPort<T>, IntrospectError> {
         self.check_port_name(name)?;
-        let port = InputPort::with_sample(name, sample.clone());
-        if event {
-            let _ = port.shared().waker.set(self.waker.clone());
-        }
-        self.ports.push(Arc::new(InEntry {
-            shared: port.shared().clone(),
-            doc: doc.to_string(),
-            values: std::sync::OnceLock::new(),
-            sample,
-            event,
-            read_back,
-            check: driving.as_ref().map(|(c, _)| c.clone()),
-            apply: driving.map(|(_, a)| a),
-        }));
+        let waker = event.then(|| self.waker.clone());
+        let (port, entry) = input_entry(name, doc, sample, waker, read_back, driving);
+        self.ports.push(entry);
         Ok(port)
     }
 
-    fn add_operation<A: Args, R: Serialize + 'static>(
+    fn add_operation<A: Args, R: Serialize + Send + 'static>(
         &mut self,
         name: &str,
         doc: &str,
@@ -268,7 +253,7 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
 
     /// Adds an operation run in the caller's thread. `args` documents the arguments as
     /// (name, doc) pairs, in order.
-    pub fn client_operation<A: Args, R: Serialize + 'static>(
+    pub fn client_operation<A: Args, R: Serialize + Send + 'static>(
         &mut self,
         name: &str,
         doc: &str,
@@ -325,4 +310,46 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
     pub fn name(&self) -> &str {
         &self.name
     }
+}
+
+/// A new output port and its entry in the component's list.
+pub(super) fn output_entry<T: PortData>(
+    name: &str,
+    doc: &str,
+    sample: T,
+) -> (OutputPort<T>, Arc<dyn DynPort>) {
+    let port = OutputPort::with_sample(name, sample);
+    let entry = Arc::new(OutEntry {
+        shared: port.shared().clone(),
+        doc: doc.to_string(),
+        values: std::sync::OnceLock::new(),
+    });
+    (port, entry)
+}
+
+/// A new input port and its entry in the component's list; with a waker, an event port.
+pub(super) fn input_entry<T: PortData>(
+    name: &str,
+    doc: &str,
+    sample: T,
+    waker: Option<Arc<dyn Waker>>,
+    read_back: Option<ReadBack<T>>,
+    driving: Option<(Check<T>, Check<T>)>,
+) -> (InputPort<T>, Arc<dyn DynPort>) {
+    let port = InputPort::with_sample(name, sample.clone());
+    let event = waker.is_some();
+    if let Some(w) = waker {
+        let _ = port.shared().waker.set(w);
+    }
+    let entry = Arc::new(InEntry {
+        shared: port.shared().clone(),
+        doc: doc.to_string(),
+        values: std::sync::OnceLock::new(),
+        sample,
+        event,
+        read_back,
+        check: driving.as_ref().map(|(c, _)| c.clone()),
+        apply: driving.map(|(_, a)| a),
+    });
+    (port, entry)
 }

@@ -5,7 +5,9 @@
 
 use super::{IntrospectError, TaskContext, TaskCore};
 use crate::activity::{Activity, FdEvents, StepTiming};
+use crate::info::PortData;
 use crate::lock::lock;
+use crate::port::{InputPort, OutputPort};
 use crate::state::TaskState;
 use device_interface::Registry;
 use device_interface::time::Timestamp;
@@ -82,6 +84,15 @@ impl Context<'_> {
         self.asked.exception = Some(reason.into());
     }
 
+    /// What the component may keep of itself beyond a hook: it adds ports the component
+    /// learns of only after it was built (a script declares its own while it configures,
+    /// and again when it is reloaded) and finds peers outside hooks (a script's callbacks).
+    pub fn self_ref(&self) -> SelfRef {
+        SelfRef {
+            core: self.core.me.clone(),
+        }
+    }
+
     /// For a file-descriptor activity: which descriptors woke this step, or the timeout.
     pub fn fd_events(&self) -> &FdEvents {
         self.events
@@ -102,21 +113,113 @@ impl Context<'_> {
     /// as RTT peers (a reporter connecting to the ports it records). Not for real-time
     /// paths.
     pub fn peer(&self, name: &str) -> Result<TaskContext, IntrospectError> {
-        let aliased = lock(&self.core.peer_aliases)
-            .iter()
-            .find(|(a, _)| a == name)
-            .map(|(_, t)| t.clone());
-        let name = aliased.as_deref().unwrap_or(name);
-        let peers = self.core.peers.upgrade();
-        let list = peers.as_ref().map(|p| lock(p).clone()).unwrap_or_default();
-        list.iter()
-            .find(|t| t.name() == name)
-            .cloned()
-            .ok_or_else(|| IntrospectError::NotFound {
-                component: self.core.name.clone(),
-                kind: "peer",
-                name: name.to_string(),
-                known: list.iter().map(|t| t.name().to_string()).collect(),
-            })
+        find_peer(self.core, name)
     }
+}
+
+/// What a component keeps of itself beyond a hook (a weak reference: it never keeps the
+/// component alive). It adds ports after the component was built — while it is
+/// PreOperational or Stopped (configuring, or reloaded while stopped), never while it runs;
+/// a port added is there for connections from then on, for the component's whole life —
+/// and finds peers as [`Context::peer`] does. Neither is for real-time paths.
+#[derive(Clone)]
+pub struct SelfRef {
+    core: std::sync::Weak<TaskCore>,
+}
+
+impl SelfRef {
+    /// Another component of the same runtime, as [`Context::peer`] finds it.
+    pub fn peer(&self, name: &str) -> Result<TaskContext, IntrospectError> {
+        let core = self
+            .core
+            .upgrade()
+            .ok_or_else(|| IntrospectError::NotFound {
+                component: "runtime".into(),
+                kind: "component",
+                name: name.to_string(),
+                known: Vec::new(),
+            })?;
+        find_peer(&core, name)
+    }
+
+    /// Adds output port `name`; refused while running or when the name is taken.
+    pub fn add_output<T: PortData + Default>(
+        &self,
+        name: &str,
+        doc: &str,
+    ) -> Result<OutputPort<T>, IntrospectError> {
+        let core = self.may_add(name)?;
+        let (port, entry) = super::builder::output_entry(name, doc, T::default());
+        push_port(&core, entry);
+        Ok(port)
+    }
+
+    /// Adds input port `name`, as [`add_output`](Self::add_output); an `event` port wakes a
+    /// non-periodic or file-descriptor activity when data comes.
+    pub fn add_input<T: PortData + Default>(
+        &self,
+        name: &str,
+        doc: &str,
+        event: bool,
+    ) -> Result<InputPort<T>, IntrospectError> {
+        let core = self.may_add(name)?;
+        let waker = event.then(|| core.activity.waker());
+        let (port, entry) = super::builder::input_entry(name, doc, T::default(), waker, None, None);
+        push_port(&core, entry);
+        Ok(port)
+    }
+
+    fn may_add(&self, name: &str) -> Result<Arc<TaskCore>, IntrospectError> {
+        let refused = |detail: String| IntrospectError::Refused {
+            what: format!("port {name:?}"),
+            detail,
+        };
+        let core = self
+            .core
+            .upgrade()
+            .ok_or_else(|| refused("the component is gone".into()))?;
+        let state = core.state();
+        if !matches!(state, TaskState::PreOperational | TaskState::Stopped) {
+            return Err(refused(format!(
+                "{:?} adds ports while configured or stopped, not in {state:?}",
+                core.name
+            )));
+        }
+        if core.ports.load().iter().any(|p| p.info().name == name) {
+            return Err(IntrospectError::Duplicate {
+                component: core.name.clone(),
+                kind: "port",
+                name: name.to_string(),
+            });
+        }
+        Ok(core)
+    }
+}
+
+fn push_port(core: &TaskCore, entry: Arc<dyn super::DynPort>) {
+    core.ports.rcu(|list| {
+        let mut list = Vec::clone(list);
+        list.push(entry.clone());
+        list
+    });
+}
+
+/// Component `name` of `core`'s runtime, by name or by `core`'s alias for it.
+fn find_peer(core: &TaskCore, name: &str) -> Result<TaskContext, IntrospectError> {
+    let aliased = lock(&core.peer_aliases)
+        .iter()
+        .find(|(a, _)| a == name)
+        .map(|(_, t)| t.clone());
+    let name = aliased.as_deref().unwrap_or(name);
+    let peers = core.peers.upgrade();
+    let list = peers.as_ref().map(|p| lock(p).clone()).unwrap_or_default();
+    list.iter()
+        .find(|t| t.name() == name)
+        .cloned()
+        .ok_or_else(|| IntrospectError::NotFound {
+            component: core.name.clone(),
+            kind: "peer",
+            name: name.to_string(),
+            known: list.iter().map(|t| t.name().to_string()).collect(),
+        })
 }

@@ -13,13 +13,14 @@ use std::sync::Arc;
 impl TaskContext {
     /// Every port.
     pub fn ports(&self) -> Vec<PortInfo> {
-        self.core.ports.iter().map(|p| p.info()).collect()
+        self.core.ports.load().iter().map(|p| p.info()).collect()
     }
 
     /// The port `name`, or an error listing the ports.
     pub fn port(&self, name: &str) -> Result<Arc<dyn DynPort>, IntrospectError> {
         self.core
             .ports
+            .load()
             .iter()
             .find(|p| p.info().name == name)
             .cloned()
@@ -82,6 +83,17 @@ impl TaskContext {
     pub fn call_value(&self, name: &str, args: Vec<Value>) -> Result<Value, CallOrIntrospect> {
         let op = self.find_operation(name)?;
         Ok(op.call_value(args)?)
+    }
+
+    /// Sends operation `name` with dynamically typed arguments: the handle gives the
+    /// result once it is done (an own-thread operation runs at its component's next step).
+    pub fn send_value(
+        &self,
+        name: &str,
+        args: Vec<Value>,
+    ) -> Result<crate::operation::ValueHandle, CallOrIntrospect> {
+        let op = self.find_operation(name)?;
+        Ok(op.send_value(args)?)
     }
 
     /// The properties.

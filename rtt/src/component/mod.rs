@@ -31,7 +31,7 @@ pub use crate::info::{Direction, NamedValue, PortData, PortInfo};
 pub use crate::state::{InitialState, TaskState};
 pub use builder::InterfaceBuilder;
 use context::Asked;
-pub use context::Context;
+pub use context::{Context, SelfRef};
 pub use dynport::{DynPort, DynReader, DynWriter};
 pub use hook_error::{HookError, HookResult};
 pub use services::{Provides, Requires};
@@ -147,11 +147,14 @@ pub struct TaskCounters {
 
 pub(crate) struct TaskCore {
     name: String,
+    /// Itself, for what a component keeps of itself ([`SelfRef`]).
+    me: Weak<TaskCore>,
     state: Arc<StateCell>,
     component: Mutex<Box<dyn ErasedComponent>>,
     queue: SegQueue<Message>,
     activity: Activity,
-    ports: Vec<Arc<dyn DynPort>>,
+    /// Swapped whole when a component adds a port while it configures.
+    ports: arc_swap::ArcSwap<Vec<Arc<dyn DynPort>>>,
     operations: Vec<Arc<dyn DynOperation>>,
     properties: PropertyBag,
     attributes: PropertyBag,
@@ -438,11 +441,12 @@ impl TaskContext {
             let iface = iface.into_parts();
             TaskCore {
                 name: name.to_string(),
+                me: weak.clone(),
                 state: Arc::new(StateCell::new(TaskState::Init)),
                 component: Mutex::new(component),
                 queue: SegQueue::new(),
                 activity,
-                ports: iface.ports,
+                ports: arc_swap::ArcSwap::from_pointee(iface.ports),
                 operations: iface.operations,
                 properties: iface.properties,
                 attributes: iface.attributes,

@@ -98,7 +98,7 @@ impl<C: Send + 'static> Provides<'_, C> {
 
     /// An operation of the service run in the caller's thread; see
     /// [`InterfaceBuilder::client_operation`].
-    pub fn client_operation<A: Args, R: Serialize + 'static>(
+    pub fn client_operation<A: Args, R: Serialize + Send + 'static>(
         &mut self,
         name: &str,
         doc: &str,

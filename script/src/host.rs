@@ -1,0 +1,40 @@
+//! The component's side of a script's Lua state (the state's app data): who it is, its
+//! ports, the registry, and what the running call asked of the error model.
+
+use crate::ports::PortMap;
+use rtt::component::SelfRef;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+/// What the error model's requests from a step ask for, done once the step returns.
+#[derive(Default, Debug, Clone)]
+pub struct Requests {
+    /// `rtt.error()`: to RunTimeError.
+    pub error: bool,
+    /// `rtt.recover()`: back to Running.
+    pub recover: bool,
+    /// `rtt.warning()`.
+    pub warning: bool,
+    /// `rtt.recovered()`.
+    pub recovered: bool,
+    /// `rtt.exception(reason)`.
+    pub exception: Option<String>,
+}
+
+/// The component's side of a Lua state (its app data).
+pub struct Host {
+    /// The component's name.
+    pub name: String,
+    /// The component itself, for ports and peers.
+    pub me: SelfRef,
+    /// Its ports.
+    pub ports: PortMap,
+    /// Ports may be declared (the script's top level is running).
+    pub declaring: bool,
+    /// What the running step asked for.
+    pub requests: Requests,
+    /// The device registry.
+    pub registry: Arc<device_interface::Registry>,
+    /// The folder `io.open` may reach, if any.
+    pub data_dir: Option<PathBuf>,
+}
