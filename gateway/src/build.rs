@@ -751,6 +751,12 @@ impl Build<'_, '_, '_> {
                 return None;
             }
         };
+        if task.properties().get_value("base_dir").is_ok() {
+            let base = std::path::absolute(self.base).unwrap_or_else(|_| self.base.to_path_buf());
+            let _ = task
+                .properties()
+                .set_value("base_dir", serde_json::json!(base));
+        }
         let files_ok = c.properties_file.iter().enumerate().all(|(j, f)| {
             let at = at.key("properties_file").index(j);
             crate::propfiles::load(&task, &self.base.join(f), &at, &mut self.problems)

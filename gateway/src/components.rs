@@ -10,6 +10,11 @@
 //!   never through a link and only when it is this process's own regular file.
 //! - `recorder`: records ports and activity steps into an MCAP file, whole or the window
 //!   around a trigger (see [`crate::recorder::component`]).
+//! - `script`: a Lua 5.4 script — hooks, programs, a state machine — sandboxed and bounded
+//!   (the `script` crate; `docs/scripts.md`).
+//!
+//! A component with a `base_dir` property is given the deployment's folder there before
+//! its properties are set (a script finds its file relative to it).
 //!
 //! A user's own types go into a [`ComponentTypes`] beside these, in a binary of their own
 //! that calls [`cli::main`](crate::cli::main) (see `examples/custom-component`).
@@ -45,7 +50,7 @@ impl ComponentTypes {
         }
     }
 
-    /// The types built into hwgw: blinker, follow, reporter, recorder.
+    /// The types built into hwgw: blinker, follow, reporter, recorder, script.
     pub fn builtin() -> Self {
         let mut t = Self::empty();
         t.types.insert("blinker".into(), |rt, name, spec| {
@@ -57,6 +62,7 @@ impl ComponentTypes {
         t.types.insert("reporter".into(), |rt, name, spec| {
             rt.add(name, spec, rtt::InitialState::PreOperational, Reporter::new)
         });
+        t.types.insert(script::TYPE.into(), script::add);
         t.types.insert("recorder".into(), |rt, name, spec| {
             rt.add(
                 name,

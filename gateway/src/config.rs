@@ -415,6 +415,24 @@ pub struct ComponentConfig {
     /// `Context::peer("device")` finds `press_io`; `cd device` in `browse` goes there).
     #[serde(default)]
     pub peers: BTreeMap<String, String>,
+    /// A digest of the files it reads when it is built (its property files, a script's
+    /// `file`), taken when the deployment is read: a reload rebuilds a component whose
+    /// files changed though its table did not.
+    #[serde(skip)]
+    pub files_digest: u64,
+}
+
+impl ComponentConfig {
+    /// The files this component reads when it is built, relative to `base`.
+    pub fn files_read(&self, base: &Path) -> Vec<std::path::PathBuf> {
+        let mut files: Vec<_> = self.properties_file.iter().map(|f| base.join(f)).collect();
+        if self.kind == script::TYPE
+            && let Some(toml::Value::String(f)) = self.properties.get("file")
+        {
+            files.push(base.join(f));
+        }
+        files
+    }
 }
 
 /// What one requirement is bound to.
@@ -522,7 +540,7 @@ impl Deployment {
         if !not_numbers.is_empty() {
             return Err(ConfigError::Invalid(not_numbers));
         }
-        serde_path_to_error::deserialize(de).map_err(|e| {
+        let mut d: Deployment = serde_path_to_error::deserialize(de).map_err(|e| {
             // toml::Spanned shows up in serde's path as a private field name.
             let path = e
                 .path()
@@ -534,6 +552,24 @@ impl Deployment {
                 if path == "." { "" } else { &path },
                 inner.message().trim(),
             )])
-        })
+        })?;
+        let base = Path::new(file).parent().unwrap_or(Path::new(""));
+        for c in &mut d.components {
+            c.files_digest = digest(&c.files_read(base));
+        }
+        Ok(d)
     }
+}
+
+/// A digest of the files' contents (a file that cannot be read counts as its error).
+fn digest(files: &[std::path::PathBuf]) -> u64 {
+    use std::hash::{Hash, Hasher};
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    for f in files {
+        match std::fs::read(f) {
+            Ok(bytes) => bytes.hash(&mut h),
+            Err(e) => e.kind().hash(&mut h),
+        }
+    }
+    h.finish()
 }

@@ -261,7 +261,7 @@ fn check_accepts_the_demo_and_reports_every_error() {
         lines[0].ends_with("bad.toml:5:1: alias[0]: no Encoder named \"none\"; registered: none"),
         "{err}"
     );
-    assert!(lines[1].ends_with("bad.toml:11:8: component[0].type: unknown component type \"nope\"; this build has: blinker, follow, recorder, reporter"), "{err}");
+    assert!(lines[1].ends_with("bad.toml:11:8: component[0].type: unknown component type \"nope\"; this build has: blinker, follow, recorder, reporter, script"), "{err}");
 
     let out = Command::new(HWGW)
         .args(["check", "/nonexistent.toml"])
