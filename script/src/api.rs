@@ -129,26 +129,26 @@ fn rtt_table(lua: &Lua) -> mlua::Result<Table> {
     let t = lua.create_table()?;
     t.set(
         "error",
-        lua.create_function(|lua, ()| host(lua, |h| h.requests.error = true))?,
+        lua.create_function(|lua, ()| host(lua, |h| h.ask(|r| r.error = true)))?,
     )?;
     t.set(
         "recover",
-        lua.create_function(|lua, ()| host(lua, |h| h.requests.recover = true))?,
+        lua.create_function(|lua, ()| host(lua, |h| h.ask(|r| r.recover = true)))?,
     )?;
     t.set(
         "warning",
-        lua.create_function(|lua, ()| host(lua, |h| h.requests.warning = true))?,
+        lua.create_function(|lua, ()| host(lua, |h| h.ask(|r| r.warning = true)))?,
     )?;
     t.set(
         "recovered",
-        lua.create_function(|lua, ()| host(lua, |h| h.requests.recovered = true))?,
+        lua.create_function(|lua, ()| host(lua, |h| h.ask(|r| r.recovered = true)))?,
     )?;
     t.set(
         "exception",
         lua.create_function(|lua, reason: String| {
             let at = where_called(lua);
             host(lua, |h| {
-                h.requests.exception = Some(format!("{at}{reason}"))
+                h.ask(|r| r.exception = Some(format!("{at}{reason}")))
             })
         })?,
     )?;

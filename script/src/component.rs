@@ -15,7 +15,7 @@ use rtt::property::Property;
 use rtt::{Component, Context, HookError, HookResult, InterfaceBuilder};
 use serde_json::Value;
 use std::path::PathBuf;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 /// Hook indices in [`HOOKS`].
 const CONFIGURE: usize = 0;
@@ -27,6 +27,15 @@ const ERROR_UPDATE: usize = 5;
 
 /// A full collection runs between steps once Lua memory passes this share of `memory_kb`.
 const FULL_GC_AT: f64 = 0.75;
+
+/// Time spent collecting between steps.
+#[derive(Default)]
+struct GcTime {
+    total_ns: u64,
+    max_ns: u64,
+    /// Bytes allocated by the steps since the collector last ran.
+    pending: usize,
+}
 
 /// The script component.
 pub struct Script {
@@ -40,6 +49,9 @@ pub struct Script {
     overruns: Property<u64>,
     memory_used_kb: Property<u64>,
     full_collections: Property<u64>,
+    gc_ns_total: Property<u64>,
+    gc_ns_max: Property<u64>,
+    gc: GcTime,
     ports: PortMap,
     name: String,
     me: Option<SelfRef>,
@@ -82,12 +94,13 @@ impl Script {
             max_step_us: p.add(
                 "max_step_us",
                 100_000u32,
-                "a call into the script running longer is stopped (an overrun; 0: no limit)",
+                "a call into the script running longer is stopped (an overrun; 0: no limit and no \
+                 instruction hook, read at configure)",
             )?,
             gc_step_kb: p.add(
                 "gc_step_kb",
                 0u32,
-                "collector work between steps, KiB (0: twice what the step allocated)",
+                "collector work between steps, KiB, once the steps allocated 1 KiB (0: twice what they allocated)",
             )?,
             overruns: iface
                 .attributes()
@@ -102,6 +115,17 @@ impl Script {
                 0u64,
                 "full collections run because memory passed 3/4 of memory_kb",
             )?,
+            gc_ns_total: iface.attributes().add(
+                "gc_ns_total",
+                0u64,
+                "time spent collecting between steps, ns (every 1000 steps)",
+            )?,
+            gc_ns_max: iface.attributes().add(
+                "gc_ns_max",
+                0u64,
+                "the longest collection between two steps, ns (every 1000 steps)",
+            )?,
+            gc: GcTime::default(),
             ports: PortMap::default(),
             name: iface.name().to_string(),
             me: None,
@@ -148,6 +172,7 @@ impl Script {
             me: me.clone(),
             ports: self.ports.clone(),
             registry: registry.clone(),
+            unbounded: self.max_step_us.get() == 0,
         })
     }
 
@@ -171,12 +196,19 @@ impl Script {
         loaded.sandbox.arm(self.budget());
         let r = f.call::<R>(args);
         loaded.sandbox.disarm();
-        let requests = loaded
-            .sandbox
-            .lua
-            .app_data_mut::<Host>()
-            .map(|mut h| std::mem::take(&mut h.requests))
-            .unwrap_or_default();
+        let requests = if loaded
+            .asked
+            .swap(false, std::sync::atomic::Ordering::Relaxed)
+        {
+            loaded
+                .sandbox
+                .lua
+                .app_data_mut::<Host>()
+                .map(|mut h| std::mem::take(&mut h.requests))
+                .unwrap_or_default()
+        } else {
+            Requests::default()
+        };
         match r {
             Ok(v) => Ok((v, requests)),
             Err(e) if loaded.sandbox.overran() => {
@@ -209,11 +241,25 @@ impl Script {
     fn collect(&mut self, loaded: &Loaded, before: usize) {
         let lua = &loaded.sandbox.lua;
         let used = lua.used_memory();
-        let allocated_kb = used.saturating_sub(before) / 1024;
+        // What the steps allocated since the collector last ran: a script whose steps
+        // allocate nothing is never collected, and pays nothing for it.
+        self.gc.pending += used.saturating_sub(before);
+        self.steps += 1;
+        // Published every 1000 steps: setting an attribute allocates.
+        if self.steps % 1000 == 1 {
+            self.memory_used_kb.set((used / 1024) as u64);
+            self.gc_ns_total.set(self.gc.total_ns);
+            self.gc_ns_max.set(self.gc.max_ns);
+        }
+        if self.gc.pending < 1024 {
+            return;
+        }
         let kb = match self.gc_step_kb.get() {
-            0 => (allocated_kb * 2).max(1),
+            0 => self.gc.pending / 1024 * 2,
             k => k as usize,
         };
+        self.gc.pending = 0;
+        let began = Instant::now();
         let _ = lua.gc_step_kbytes(i32::try_from(kb).unwrap_or(i32::MAX));
         let limit = usize::try_from(self.memory_kb.get()).unwrap_or(usize::MAX) * 1024;
         if used as f64 > limit as f64 * FULL_GC_AT {
@@ -221,37 +267,36 @@ impl Script {
             self.full_count += 1;
             self.full_collections.set(self.full_count);
         }
-        self.steps += 1;
-        if self.steps % 1000 == 1 {
-            self.memory_used_kb.set((lua.used_memory() / 1024) as u64);
-        }
+        let took = began.elapsed().as_nanos() as u64;
+        self.gc.total_ns += took;
+        self.gc.max_ns = self.gc.max_ns.max(took);
     }
 
     /// One step of the script: `update`, the programs, the machine; the state port.
     fn step(&mut self, ctx: &mut Context<'_>, loaded: &Loaded) -> HookResult {
         let before = loaded.sandbox.lua.used_memory();
-        let requests = match &loaded.hooks[UPDATE] {
-            Some(f) => self.call::<_, ()>(loaded, &f.clone(), ())?.1,
-            None => Requests::default(),
-        };
         let step = loaded.step.clone();
-        let ((failed, state), more) =
-            self.call::<_, (mlua::Table, Option<mlua::String>)>(loaded, &step, ())?;
-        for f in failed.sequence_values::<mlua::Table>().flatten() {
+        let update = loaded.hooks[UPDATE].clone();
+        let ((state, failed), requests) =
+            self.call::<_, (Option<mlua::String>, Option<mlua::Table>)>(loaded, &step, update)?;
+        for f in failed
+            .iter()
+            .flat_map(|t| t.sequence_values::<mlua::Table>().flatten())
+        {
             let name: String = f.get("name").unwrap_or_default();
             let error: String = f.get("error").unwrap_or_default();
             tracing::warn!("script {:?}: program {name:?} failed: {error}", ctx.name());
         }
-        let now = state
-            .as_ref()
-            .map(|s| s.as_bytes().to_vec())
-            .unwrap_or_default();
-        if now != self.last_state.as_bytes() {
-            self.last_state = String::from_utf8_lossy(&now).into_owned();
+        // Compared in place: a step whose state did not change allocates nothing here.
+        let same = match &state {
+            Some(s) => *s.as_bytes() == *self.last_state.as_bytes(),
+            None => self.last_state.is_empty(),
+        };
+        if !same {
+            self.last_state = state.map(|s| s.to_string_lossy()).unwrap_or_default();
             self.state.write(&self.last_state);
         }
         apply(ctx, requests);
-        apply(ctx, more);
         self.collect(loaded, before);
         Ok(())
     }

@@ -33,8 +33,18 @@ pub struct Host {
     pub declaring: bool,
     /// What the running step asked for.
     pub requests: Requests,
+    /// Whether `requests` holds anything (looked at without the app data's lookup).
+    pub asked: Arc<std::sync::atomic::AtomicBool>,
     /// The device registry.
     pub registry: Arc<device_interface::Registry>,
     /// The folder `io.open` may reach, if any.
     pub data_dir: Option<PathBuf>,
+}
+
+impl Host {
+    /// Records a request of the error model.
+    pub fn ask(&mut self, f: impl FnOnce(&mut Requests)) {
+        f(&mut self.requests);
+        self.asked.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
 }

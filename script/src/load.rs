@@ -44,6 +44,8 @@ pub struct Loaded {
     pub hooks: [Option<Function>; 6],
     /// The per-step entry point (programs, machine).
     pub step: Function,
+    /// Set when a call asked something of the error model ([`Host::ask`]).
+    pub asked: Arc<std::sync::atomic::AtomicBool>,
 }
 
 /// What a load needs.
@@ -66,6 +68,8 @@ pub struct Setup<'a> {
     pub ports: PortMap,
     /// The registry.
     pub registry: Arc<device_interface::Registry>,
+    /// No instruction hook once loaded (`max_step_us = 0`).
+    pub unbounded: bool,
 }
 
 /// `file` resolved against `base`.
@@ -111,12 +115,14 @@ pub fn load(s: Setup<'_>) -> Result<Loaded, ScriptError> {
     let text = read(&path)?;
     let sandbox = Sandbox::new(s.memory).map_err(|e| ScriptError::lua(&e))?;
     let lua = &sandbox.lua;
+    let asked = Arc::new(std::sync::atomic::AtomicBool::new(false));
     lua.set_app_data(Host {
         name: s.name.to_string(),
         me: s.me,
         ports: s.ports,
         declaring: true,
         requests: Requests::default(),
+        asked: asked.clone(),
         registry: s.registry,
         data_dir: s.data_dir,
     });
@@ -150,10 +156,16 @@ pub fn load(s: Setup<'_>) -> Result<Loaded, ScriptError> {
     let step: Function = lua.globals().raw_get("__hwgw_step").map_err(lua_err)?;
     // From here on the collector runs between steps, in steps the component sizes.
     lua.gc_stop();
+    if s.unbounded {
+        // No instruction hook: every instruction runs without the hook's check (see
+        // the benchmark), and nothing stops an endless loop.
+        lua.remove_hook();
+    }
     Ok(Loaded {
         sandbox,
         hooks,
         step,
+        asked,
     })
 }
 

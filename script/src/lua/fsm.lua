@@ -282,6 +282,14 @@ end
 local function take_event(m)
   local st = m._states[m._state]
   local q = m._queue
+  local events = st.events
+  -- The common step: nothing queued, no event transition here. Nothing to do.
+  if events[1] == nil then
+    if q[1] ~= nil then
+      for i = #q, 1, -1 do q[i] = nil end -- no transition here wants them
+    end
+    return false
+  end
   for _ = 1, #q do
     local ev = table.remove(q, 1)
     for _, t in ipairs(st.events) do
@@ -290,10 +298,11 @@ local function take_event(m)
       end
     end
   end
-  local read = {}
+  local read = nil -- made only when a port is read: a step with no port event allocates nothing
   for _, t in ipairs(st.events) do
     local port = t.event
     if type(port) ~= "string" then
+      read = read or {}
       local r = read[port]
       if r == nil then
         local value, status = port:read()
@@ -306,10 +315,21 @@ local function take_event(m)
   return false
 end
 
--- Evaluates the non-event transitions in order; the first that is taken ends it.
+-- Evaluates the non-event transitions in order; the first that is taken ends it. (A
+-- numeric loop and a direct guard call: this runs every step of an automatic machine.)
 local function take_transition(m)
-  for _, t in ipairs(m._states[m._state].conds) do
-    if try(m, t) then return true end
+  local conds = m._states[m._state].conds
+  for i = 1, #conds do
+    local t = conds[i]
+    local guard = t.guard
+    if guard == nil or t.failure ~= nil or t.failure_to ~= nil then
+      if try(m, t) then return true end
+    elseif guard(m) then
+      -- try() without its failure path, the guard called once.
+      local before = m._changes
+      if enterable(m, t.to) then transit(m, t.to, t.program) end
+      if m._changes ~= before then return true end
+    end
   end
   return false
 end
@@ -323,8 +343,9 @@ local function cycle(m, automatic)
     if st.run then st.run(m) end
     if m._changes == before and not take_transition(m) and st.handle then st.handle(m) end
   end
-  for _, n in ipairs(m._subnames) do
-    local child = m.sub[n]
+  local subnames = m._subnames
+  for i = 1, #subnames do
+    local child = m.sub[subnames[i]]
     if child._mode ~= "inactive" then child:update() end
   end
 end

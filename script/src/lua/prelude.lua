@@ -35,12 +35,18 @@ function __hwgw_stop()
   if root and root:is_active() then root:stop() end
 end
 
--- One step: the programs, then the machine. Returns the programs that failed this step
--- and the machine's state.
-function __hwgw_step()
+-- One step: the script's update (passed in: the one it defined when it loaded), the
+-- programs, then the machine; one call from the component a step. Returns the machine's
+-- state and, when programs failed this step, their list.
+function __hwgw_step(update)
+  if update then update() end
   local failed = programs._step()
-  if root then root:update() end
-  return failed, root and root:get_state()
+  if failed[1] == nil then failed = nil end
+  if root then
+    root:update()
+    return root:get_state(), failed
+  end
+  return nil, failed
 end
 
 local machine_ops = {

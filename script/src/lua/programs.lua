@@ -228,17 +228,25 @@ end
 -- seen when the step began); one paused during it is skipped. Never raises for a
 -- program's error: returns the list of {name=, error=} of the programs that failed since
 -- the previous call (in this step, or through programs.step() in between), else {}.
+-- The answer when no program failed: shared, so that a step with nothing to report
+-- allocates nothing (the step of a real-time script should not feed the collector).
+local NO_FAILURES = setmetatable({}, { __newindex = function() error("read-only", 2) end })
+
 function programs._step()
-  local due = {}
+  local due = nil
   for _, p in ipairs(order) do
-    if p.state == "running" then due[#due + 1] = { p = p, co = p.co } end
+    if p.state == "running" then
+      due = due or {}
+      due[#due + 1] = { p = p, co = p.co }
+    end
   end
-  for _, d in ipairs(due) do
+  for _, d in ipairs(due or NO_FAILURES) do
     local p = d.p
     if p.state == "running" and p.co == d.co and coroutine.status(d.co) == "suspended" then
       resume(p)
     end
   end
+  if #failures == 0 then return NO_FAILURES end
   local out = failures
   failures = {}
   return out
