@@ -419,7 +419,21 @@ pub struct ComponentConfig {
     /// `file`), taken when the deployment is read: a reload rebuilds a component whose
     /// files changed though its table did not.
     #[serde(skip)]
-    pub files_digest: u64,
+    pub files_digest: FilesDigest,
+}
+
+/// A digest of the files a component reads; one not taken (a deployment edited at run
+/// time, not read from its file) equals any, so that it rebuilds nothing by itself.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct FilesDigest(pub Option<u64>);
+
+impl PartialEq for FilesDigest {
+    fn eq(&self, other: &Self) -> bool {
+        match (self.0, other.0) {
+            (Some(a), Some(b)) => a == b,
+            _ => true,
+        }
+    }
 }
 
 impl ComponentConfig {
@@ -553,22 +567,42 @@ impl Deployment {
                 inner.message().trim(),
             )])
         })?;
-        let base = Path::new(file).parent().unwrap_or(Path::new(""));
-        for c in &mut d.components {
-            c.files_digest = digest(&c.files_read(base));
+        // Only a deployment read from its file: one edited at run time has no folder.
+        if Path::new(file).is_file() {
+            let base = Path::new(file).parent().unwrap_or(Path::new(""));
+            for c in &mut d.components {
+                c.files_digest = FilesDigest(Some(digest(&c.files_read(base))));
+            }
         }
         Ok(d)
     }
 }
 
-/// A digest of the files' contents (a file that cannot be read counts as its error).
+/// A digest of the files' contents: regular files only, opened without waiting (never a
+/// FIFO's writer), at most [`script::load::MAX_FILE`] bytes each read; a file that
+/// cannot be read counts as its error.
 fn digest(files: &[std::path::PathBuf]) -> u64 {
     use std::hash::{Hash, Hasher};
+    use std::io::Read;
+    use std::os::unix::fs::OpenOptionsExt;
     let mut h = std::collections::hash_map::DefaultHasher::new();
     for f in files {
-        match std::fs::read(f) {
+        let read = std::fs::OpenOptions::new()
+            .read(true)
+            .custom_flags(libc::O_NONBLOCK)
+            .open(f)
+            .and_then(|file| {
+                if !file.metadata()?.is_file() {
+                    return Err(std::io::Error::other("not a regular file"));
+                }
+                let mut bytes = Vec::new();
+                file.take(script::load::MAX_FILE + 1)
+                    .read_to_end(&mut bytes)?;
+                Ok(bytes)
+            });
+        match read {
             Ok(bytes) => bytes.hash(&mut h),
-            Err(e) => e.kind().hash(&mut h),
+            Err(e) => e.to_string().hash(&mut h),
         }
     }
     h.finish()

@@ -163,10 +163,14 @@ fn marker(comment: &str) -> Result<Marker, String> {
     Ok(Marker { base, fails })
 }
 
-/// A scratch directory with the files the guide's deployments name.
-fn scratch() -> TempDir {
-    let dir = TempDir::new("docs");
-    let mut files = vec![repo().join("config/can.dbc")];
+/// A scratch directory (named after `tag`: each test its own) with the files the guide's
+/// deployments name.
+fn scratch(tag: &str) -> TempDir {
+    let dir = TempDir::new(tag);
+    let mut files = vec![
+        repo().join("config/can.dbc"),
+        repo().join("config/interlock.lua"),
+    ];
     for e in std::fs::read_dir(repo().join("gateway/tests/data")).unwrap() {
         files.push(e.unwrap().path());
     }
@@ -258,7 +262,7 @@ fn check(block: &Block, dir: &Path) -> Result<(), String> {
 
 #[test]
 fn every_toml_block_of_the_guide_is_what_hwgw_check_says() {
-    let dir = scratch();
+    let dir = scratch("docs");
     let mut checked = 0;
     let mut wrong = Vec::new();
     for page in pages() {
@@ -275,6 +279,49 @@ fn every_toml_block_of_the_guide_is_what_hwgw_check_says() {
     assert!(wrong.is_empty(), "\n{}", wrong.join("\n\n"));
     // The guide has examples on every topic; none may quietly vanish from this count.
     assert!(checked >= 20, "only {checked} toml blocks found");
+}
+
+/// Every `lua` block of the guide is a whole script that loads: `hwgw check` of the demo
+/// with a script component running it (its syntax, its top level, its ports declared,
+/// the names it calls there). A block may use the demo's card `sim0` by name.
+#[test]
+fn every_lua_block_of_the_guide_loads_as_a_script() {
+    let dir = scratch("docs-lua");
+    let demo = std::fs::read_to_string(repo().join("config/demo.toml")).unwrap();
+    let mut checked = 0;
+    let mut wrong = Vec::new();
+    for page in pages() {
+        for b in blocks(&page) {
+            if b.info != "lua" {
+                continue;
+            }
+            checked += 1;
+            let stem = b.page.file_stem().unwrap().to_string_lossy().into_owned();
+            let lua = format!("{stem}-{}.lua", b.line);
+            std::fs::write(dir.path().join(&lua), &b.text).unwrap();
+            let toml = format!("{stem}-{}-lua.toml", b.line);
+            let component = format!(
+                "{demo}\n[[component]]\nname = \"doc_script\"\ntype = \"script\"\n\
+                 activity = {{ type = \"periodic\", period_ms = 100 }}\n\
+                 properties = {{ file = \"{lua}\" }}\n"
+            );
+            std::fs::write(dir.path().join(&toml), component).unwrap();
+            let out = Command::new(HWGW)
+                .args(["check", &toml])
+                .current_dir(dir.path())
+                .output()
+                .unwrap();
+            if !out.status.success() {
+                wrong.push(format!(
+                    "{}: {}",
+                    b.at(),
+                    String::from_utf8_lossy(&out.stderr)
+                ));
+            }
+        }
+    }
+    assert!(wrong.is_empty(), "\n{}", wrong.join("\n\n"));
+    assert!(checked >= 3, "only {checked} lua blocks found");
 }
 
 #[test]

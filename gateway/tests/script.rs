@@ -26,8 +26,16 @@ fn wait_state(svc: &Service, want: &str) {
 
 #[test]
 fn the_interlock_starts_trips_resets_and_refuses_a_start_without_pressure() {
-    let svc =
-        Service::start(HWGW, "interlock", &[INTERLOCK], &[]).unwrap_or_else(|e| panic!("{e}"));
+    // The shipped deployment with a 3 s warning instead of 0.3 s: a loaded machine's CLI
+    // polls see the starting state and the program running.
+    let dir = testkit::TempDir::new("interlock-files");
+    let text = std::fs::read_to_string(INTERLOCK).unwrap();
+    assert!(text.contains("warn_s = 0.3"));
+    let toml = dir.path().join("interlock.toml");
+    std::fs::write(&toml, text.replace("warn_s = 0.3", "warn_s = 3.0")).unwrap();
+    let lua = INTERLOCK.replace(".toml", ".lua");
+    std::fs::copy(lua, dir.path().join("interlock.lua")).unwrap();
+    let svc = Service::start(HWGW, "interlock", &[&toml], &[]).unwrap_or_else(|e| panic!("{e}"));
     let ok = |args: &[&str]| svc.out(args).unwrap_or_else(|e| panic!("{args:?}: {e}"));
     let bit = |b: &str| ok(&["get", "sim0.do", b]);
     wait_until("the supervisor running", || {

@@ -74,6 +74,16 @@ pub enum LifecycleError {
         /// The requirement.
         requirement: String,
     },
+    /// Asked from the thread that is inside one of the component's own hooks or steps
+    /// (a script stopping its own component, two components stopping each other from
+    /// their hooks): refused, where waiting would never end.
+    #[error("component {component:?}: cannot {command} from within its own step or hook")]
+    Reentrant {
+        /// The component.
+        component: String,
+        /// The command.
+        command: &'static str,
+    },
     /// The command is not allowed in the current state.
     #[error("component {component:?}: cannot {command} in state {state}")]
     Illegal {

@@ -1,6 +1,6 @@
 //! What a script reaches, as Lua globals, all through the by-name layer `browse` uses:
 //! `port` (its own ports), `component(name)` (another component's ports, properties,
-//! operations and lifecycle), `device` (devices from the registry by name and
+//! operations and lifecycle), `service(name)` (a service another component provides), `device` (devices from the registry by name and
 //! interface), `log` (and `print`), `rtt` (the error model's requests and the time),
 //! `vars` (values the deployment passes in), `io.open` within `data_dir`.
 
@@ -29,6 +29,14 @@ pub fn install(lua: &Lua, vars: &serde_json::Value) -> mlua::Result<()> {
             let peer = host(lua, |h| h.me.peer(&name))?.map_err(mlua::Error::external)?;
             let own = host(lua, |h| h.name.clone())?;
             Ok(LuaPeer::new(peer, own))
+        })?,
+    )?;
+    g.set(
+        "service",
+        lua.create_function(|lua, name: String| {
+            let (me, own) = host(lua, |h| (h.me.clone(), h.name.clone()))?;
+            let task = me.provider(&name).map_err(mlua::Error::external)?;
+            Ok(crate::peers::LuaService::new(task, own, name))
         })?,
     )?;
     g.set(

@@ -56,6 +56,12 @@ pub struct Script {
     name: String,
     me: Option<SelfRef>,
     reload: crate::operations::Reload,
+    /// What operations and the start's glue asked of the error model, carried out at
+    /// the next hook that has a context.
+    pending: Requests,
+    /// An operation moved the machine since the last step: that was the step's one
+    /// transition.
+    requested: bool,
     registry: Option<std::sync::Arc<device_interface::Registry>>,
     loaded: Option<Loaded>,
     state: OutputPort<String>,
@@ -130,6 +136,8 @@ impl Script {
             name: iface.name().to_string(),
             me: None,
             reload: Default::default(),
+            pending: Requests::default(),
+            requested: false,
             registry: None,
             loaded: None,
             state: iface.output("state", "the root machine's state (empty: none)")?,
@@ -147,6 +155,12 @@ impl Script {
             0 => None,
             us => Some(Duration::from_micros(u64::from(us))),
         }
+    }
+
+    fn budget_text(loaded: &Loaded) -> String {
+        loaded
+            .budget
+            .map_or("none".into(), |b| format!("{} µs", b.as_micros()))
     }
 
     /// Loads the script afresh (it is not kept: see [`Self::install`]).
@@ -172,7 +186,7 @@ impl Script {
             me: me.clone(),
             ports: self.ports.clone(),
             registry: registry.clone(),
-            unbounded: self.max_step_us.get() == 0,
+            budget: self.budget(),
         })
     }
 
@@ -193,7 +207,7 @@ impl Script {
         f: &Function,
         args: A,
     ) -> Result<(R, Requests), HookError> {
-        loaded.sandbox.arm(self.budget());
+        loaded.sandbox.arm(loaded.budget);
         let r = f.call::<R>(args);
         loaded.sandbox.disarm();
         let requests = if loaded
@@ -210,15 +224,26 @@ impl Script {
             Requests::default()
         };
         match r {
+            // A call that caught its own overrun (pcall) and returned is stopped all the same.
+            Ok(_) if loaded.sandbox.overran() => {
+                self.overrun_count += 1;
+                self.overruns.set(self.overrun_count);
+                Err(HookError::new(format!(
+                    "{}: stopped: it ran past its time (overrun {}: max_step_us = {})",
+                    self.file.get(),
+                    self.overrun_count,
+                    Self::budget_text(loaded),
+                )))
+            }
             Ok(v) => Ok((v, requests)),
             Err(e) if loaded.sandbox.overran() => {
                 self.overrun_count += 1;
                 self.overruns.set(self.overrun_count);
                 Err(HookError::new(format!(
-                    "{} (overrun {}: max_step_us = {} µs)",
+                    "{} (overrun {}: max_step_us = {})",
                     message(&e),
                     self.overrun_count,
-                    self.max_step_us.get(),
+                    Self::budget_text(loaded),
                 )))
             }
             Err(e) => Err(HookError::new(message(&e))),
@@ -261,7 +286,7 @@ impl Script {
         self.gc.pending = 0;
         let began = Instant::now();
         let _ = lua.gc_step_kbytes(i32::try_from(kb).unwrap_or(i32::MAX));
-        let limit = usize::try_from(self.memory_kb.get()).unwrap_or(usize::MAX) * 1024;
+        let limit = loaded.memory;
         if used as f64 > limit as f64 * FULL_GC_AT {
             let _ = lua.gc_collect();
             self.full_count += 1;
@@ -277,8 +302,14 @@ impl Script {
         let before = loaded.sandbox.lua.used_memory();
         let step = loaded.step.clone();
         let update = loaded.hooks[UPDATE].clone();
-        let ((state, failed), requests) =
-            self.call::<_, (Option<mlua::String>, Option<mlua::Table>)>(loaded, &step, update)?;
+        let requested = std::mem::take(&mut self.requested);
+        let ((state, failed), mut requests) = self
+            .call::<_, (Option<mlua::String>, Option<mlua::Table>)>(
+                loaded,
+                &step,
+                (update, requested),
+            )?;
+        requests.merge(std::mem::take(&mut self.pending));
         for f in failed
             .iter()
             .flat_map(|t| t.sequence_values::<mlua::Table>().flatten())
@@ -302,13 +333,13 @@ impl Script {
     }
 
     /// Replaces the loaded script with `new` (configured already), the old one cleaned up.
-    pub(crate) fn install(&mut self, new: Loaded) -> Result<(), HookError> {
-        let _ = self.call_hook(&new, CONFIGURE)?;
+    pub(crate) fn install(&mut self, new: Loaded) -> Result<Requests, HookError> {
+        let asked = self.call_hook(&new, CONFIGURE)?;
         if let Some(old) = self.loaded.take() {
             let _ = self.call_hook(&old, CLEANUP);
         }
         self.loaded = Some(new);
-        Ok(())
+        Ok(asked)
     }
 }
 
@@ -320,13 +351,29 @@ impl crate::operations::Glue for Script {
             .take()
             .ok_or_else(|| "no script is loaded: configure the component".to_string())?;
         let f: Result<Function, _> = loaded.sandbox.lua.globals().raw_get(name);
+        // One transition per step: a second request before the next step waits for it.
+        let moves = name == "__hwgw_machine" && matches!(args.0.as_str(), "request_state" | "step");
+        if moves && self.requested {
+            self.loaded = Some(loaded);
+            return Err(
+                "the machine made a transition this step already: ask again after the \
+                        next step"
+                    .into(),
+            );
+        }
         let r = match f {
-            Ok(f) => self
-                .call::<_, mlua::MultiValue>(&loaded, &f, args)
-                .map_err(|e| e.to_string())
-                .and_then(|(v, _)| result(&loaded, v)),
+            Ok(f) => match self.call::<_, mlua::MultiValue>(&loaded, &f, args) {
+                Ok((v, asked)) => {
+                    self.pending.merge(asked);
+                    result(&loaded, v)
+                }
+                Err(e) => Err(e.to_string()),
+            },
             Err(e) => Err(message(&e)),
         };
+        if moves && r.is_ok() {
+            self.requested = true;
+        }
         self.loaded = Some(loaded);
         r
     }
@@ -377,7 +424,9 @@ impl Component for Script {
         // Configured again while stopped (reload_script): a script that fails to load
         // leaves the loaded one in place.
         let new = self.load().map_err(|e| HookError::new(e.to_string()))?;
-        self.install(new)
+        let asked = self.install(new)?;
+        apply(ctx, asked);
+        Ok(())
     }
 
     fn start_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
@@ -385,6 +434,7 @@ impl Component for Script {
         let _ = self
             .glue("__hwgw_start", (String::new(), None))
             .map_err(HookError::new)?;
+        apply(ctx, std::mem::take(&mut self.pending));
         Ok(())
     }
 

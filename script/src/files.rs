@@ -2,7 +2,8 @@
 //! no `..`, no link followed (the file or a folder on the way), regular files only, at
 //! most [`MAX_READ`] read at once. Without `data_dir`, `io.open` refuses every path. The
 //! file object has the usual `read` ("a", "l", "n"), `lines`, `write` and `close`; a
-//! file opened for writing is written at `close` (or when collected), whole.
+//! file opened for writing is written at `flush` and `close` (not when collected: a
+//! script has no finalizers).
 
 use crate::host::Host;
 use mlua::Lua;
@@ -52,7 +53,7 @@ fn read(dir: Option<&Path>, path: &str) -> Result<String, String> {
     let full = resolve(dir, path)?;
     let f = std::fs::OpenOptions::new()
         .read(true)
-        .custom_flags(libc::O_NOFOLLOW)
+        .custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK)
         .open(&full)
         .map_err(|e| format!("io.open({path:?}): {e}"))?;
     let meta = f
@@ -77,7 +78,7 @@ fn write(dir: Option<&Path>, path: &str, text: &[u8], append: bool) -> Result<()
         .write(true)
         .create(true)
         .append(append)
-        .custom_flags(libc::O_NOFOLLOW)
+        .custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK)
         .open(&full)
         .map_err(|e| format!("io.open({path:?}): {e}"))?;
     let meta = f
@@ -139,7 +140,7 @@ local function writer(path, append)
     return true
   end
   function f:close() if not closed then f:flush(); closed = true end return true end
-  return setmetatable(f, { __gc = function() if not closed then pcall(f.close, f) end end })
+  return f
 end
 io = setmetatable({
   open = function(path, mode)

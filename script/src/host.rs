@@ -33,12 +33,27 @@ pub struct Host {
     pub declaring: bool,
     /// What the running step asked for.
     pub requests: Requests,
+    /// How long the call under way may still take (a script's `call` waits no longer).
+    pub deadline: crate::sandbox::Deadline,
     /// Whether `requests` holds anything (looked at without the app data's lookup).
     pub asked: Arc<std::sync::atomic::AtomicBool>,
     /// The device registry.
     pub registry: Arc<device_interface::Registry>,
     /// The folder `io.open` may reach, if any.
     pub data_dir: Option<PathBuf>,
+}
+
+impl Requests {
+    /// Adds what `other` asks to what this asks.
+    pub fn merge(&mut self, other: Requests) {
+        self.error |= other.error;
+        self.recover |= other.recover;
+        self.warning |= other.warning;
+        self.recovered |= other.recovered;
+        if other.exception.is_some() {
+            self.exception = other.exception;
+        }
+    }
 }
 
 impl Host {

@@ -23,6 +23,9 @@ pub const LIBRARIES: [(&str, &str); 3] = [
 /// The most a script's top level may run (an endless loop there is stopped).
 pub const LOAD_BUDGET: Duration = Duration::from_secs(2);
 
+/// The least memory a script may be given (its libraries take about 100 KiB).
+pub const MIN_MEMORY: usize = 256 << 10;
+
 /// The largest script file read.
 pub const MAX_FILE: u64 = 4 << 20;
 
@@ -44,8 +47,13 @@ pub struct Loaded {
     pub hooks: [Option<Function>; 6],
     /// The per-step entry point (programs, machine).
     pub step: Function,
-    /// Set when a call asked something of the error model ([`Host::ask`]).
+    /// Set when a call asked something of the error model (the host's `ask`).
     pub asked: Arc<std::sync::atomic::AtomicBool>,
+    /// The time a call may take, as the properties said at load (a script cannot lift
+    /// it by setting them).
+    pub budget: Option<Duration>,
+    /// Its memory limit, bytes.
+    pub memory: usize,
 }
 
 /// What a load needs.
@@ -68,8 +76,9 @@ pub struct Setup<'a> {
     pub ports: PortMap,
     /// The registry.
     pub registry: Arc<device_interface::Registry>,
-    /// No instruction hook once loaded (`max_step_us = 0`).
-    pub unbounded: bool,
+    /// The time a call into the script may take (`max_step_us`; none: no limit and no
+    /// instruction hook once loaded).
+    pub budget: Option<Duration>,
 }
 
 /// `file` resolved against `base`.
@@ -88,7 +97,16 @@ fn read(path: &Path) -> Result<String, ScriptError> {
         path: path.display().to_string(),
         source,
     };
-    let f = std::fs::File::open(path).map_err(err)?;
+    use std::os::unix::fs::OpenOptionsExt;
+    // Without waiting for a FIFO's writer; a regular file only.
+    let f = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NONBLOCK)
+        .open(path)
+        .map_err(err)?;
+    if !f.metadata().map_err(err)?.is_file() {
+        return Err(err(std::io::Error::other("not a regular file")));
+    }
     let mut text = String::new();
     f.take(MAX_FILE + 1)
         .read_to_string(&mut text)
@@ -111,6 +129,16 @@ pub fn load(s: Setup<'_>) -> Result<Loaded, ScriptError> {
             detail: "empty: name the Lua script to run".into(),
         });
     }
+    if s.memory < MIN_MEMORY {
+        return Err(ScriptError::Property {
+            name: "memory_kb",
+            detail: format!(
+                "{} KiB is less than the {} KiB a script's libraries need",
+                s.memory / 1024,
+                MIN_MEMORY / 1024
+            ),
+        });
+    }
     let path = resolve(s.base_dir, s.file);
     let text = read(&path)?;
     let sandbox = Sandbox::new(s.memory).map_err(|e| ScriptError::lua(&e))?;
@@ -123,6 +151,7 @@ pub fn load(s: Setup<'_>) -> Result<Loaded, ScriptError> {
         declaring: true,
         requests: Requests::default(),
         asked: asked.clone(),
+        deadline: sandbox.deadline(),
         registry: s.registry,
         data_dir: s.data_dir,
     });
@@ -156,7 +185,7 @@ pub fn load(s: Setup<'_>) -> Result<Loaded, ScriptError> {
     let step: Function = lua.globals().raw_get("__hwgw_step").map_err(lua_err)?;
     // From here on the collector runs between steps, in steps the component sizes.
     lua.gc_stop();
-    if s.unbounded {
+    if s.budget.is_none() {
         // No instruction hook: every instruction runs without the hook's check (see
         // the benchmark), and nothing stops an endless loop.
         lua.remove_hook();
@@ -166,6 +195,8 @@ pub fn load(s: Setup<'_>) -> Result<Loaded, ScriptError> {
         hooks,
         step,
         asked,
+        budget: s.budget,
+        memory: s.memory,
     })
 }
 

@@ -121,7 +121,7 @@ fn reload_script(me: &Reload) -> Answer {
     let Some((name, me)) = rtt::lock(me).clone() else {
         return Err("not configured yet: configure loads the script".into());
     };
-    let task = me.peer(&name).map_err(|e| e.to_string())?;
+    let task = me.task().ok_or_else(|| format!("{name:?} is gone"))?;
     match task.state() {
         TaskState::Stopped => {}
         TaskState::PreOperational => {

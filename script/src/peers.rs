@@ -30,7 +30,42 @@ impl LuaPeer {
         }
     }
 
+    /// Calls `op`: sent, then waited for no longer than the step's time left (1 s
+    /// without a limit), so that two components calling each other cannot wait forever.
+    fn call(&self, lua: &Lua, op: &str, a: Vec<serde_json::Value>) -> mlua::Result<Value> {
+        self.not_own(&format!("call({op:?})"))?;
+        refuse_operation(op)?;
+        let mut h = self.task.send_value(op, a).map_err(mlua::Error::external)?;
+        let limit = lua
+            .app_data_ref::<crate::host::Host>()
+            .and_then(|h| h.deadline.remaining())
+            .unwrap_or(CALL_WAIT);
+        let began = std::time::Instant::now();
+        loop {
+            if let Some(r) = h.collect_if_done() {
+                return lua.to_value(&r.map_err(mlua::Error::external)?);
+            }
+            if began.elapsed() >= limit {
+                return Err(mlua::Error::runtime(format!(
+                    "call({op:?}) of {:?}: no answer within {} µs (the step's time left)",
+                    self.task.name(),
+                    limit.as_micros()
+                )));
+            }
+            std::thread::yield_now();
+        }
+    }
+
+    fn send(&self, lua: &Lua, op: &str, a: MultiValue) -> mlua::Result<SendHandle> {
+        self.not_own(&format!("send({op:?})"))?;
+        refuse_operation(op)?;
+        let a = args(lua, a)?;
+        let h = self.task.send_value(op, a).map_err(mlua::Error::external)?;
+        Ok(SendHandle(Some(h)))
+    }
+
     fn set(&mut self, port: &str, value: serde_json::Value) -> mlua::Result<()> {
+        self.not_own("set")?;
         if !self.writers.contains_key(port) {
             let p = self.task.port(port).map_err(mlua::Error::external)?;
             if let Some(r) = p.drive(value.clone()) {
@@ -48,13 +83,20 @@ impl LuaPeer {
         }
     }
 
-    fn lifecycle(&self, what: &str) -> mlua::Result<()> {
+    /// Refuses what a script may not do to its own component (it runs inside it: a
+    /// lifecycle command or an own-thread call would wait for itself).
+    fn not_own(&self, what: &str) -> mlua::Result<()> {
         if self.task.name() == self.own {
             return Err(mlua::Error::runtime(format!(
-                "{what}: a script does not change its own component's lifecycle; \
-                 use rtt.error(), rtt.exception() or rtt.recover()"
+                "{what}: not on the script's own component (use rtt.error(), \
+                 rtt.exception(), rtt.recover(), or the script's own functions)"
             )));
         }
+        Ok(())
+    }
+
+    fn lifecycle(&self, what: &str) -> mlua::Result<()> {
+        self.not_own(what)?;
         let r = match what {
             "configure" => self.task.configure(),
             "start" => self.task.start(),
@@ -64,6 +106,30 @@ impl LuaPeer {
         };
         r.map_err(mlua::Error::external)
     }
+}
+
+/// How long a script's `call` waits for an answer when the step has no time limit.
+const CALL_WAIT: std::time::Duration = std::time::Duration::from_secs(1);
+
+/// Properties a script may not set on any component: where files are and the bounds of
+/// a script (set through them, a script would reach outside its sandbox, or lift it).
+const GUARDED: [&str; 6] = [
+    "file",
+    "base_dir",
+    "data_dir",
+    "memory_kb",
+    "max_step_us",
+    "gc_step_kb",
+];
+
+/// Operations a script may not call: a reload runs another script's configure.
+fn refuse_operation(op: &str) -> mlua::Result<()> {
+    if op == "reload_script" {
+        return Err(mlua::Error::runtime(
+            "reload_script: not from a script (the operator's or the deployment's)",
+        ));
+    }
+    Ok(())
 }
 
 fn json(lua: &Lua, v: Value) -> mlua::Result<serde_json::Value> {
@@ -98,6 +164,14 @@ impl UserData for LuaPeer {
             lua.to_value(&v)
         });
         methods.add_method("set_property", |lua, this, (name, v): (String, Value)| {
+            this.not_own("set_property")?;
+            if GUARDED.contains(&name.as_str()) {
+                return Err(mlua::Error::runtime(format!(
+                    "set_property({name:?}): a script does not set where files are or the \
+                     bounds of a component ({}): the deployment does",
+                    GUARDED.join(", ")
+                )));
+            }
             let v = json(lua, v)?;
             this.task
                 .properties()
@@ -106,25 +180,53 @@ impl UserData for LuaPeer {
         });
         methods.add_method("call", |lua, this, (op, a): (String, MultiValue)| {
             let a = args(lua, a)?;
-            let r = this
-                .task
-                .call_value(&op, a)
-                .map_err(mlua::Error::external)?;
-            lua.to_value(&r)
+            this.call(lua, &op, a)
         });
         methods.add_method("send", |lua, this, (op, a): (String, MultiValue)| {
-            let a = args(lua, a)?;
-            let h = this
-                .task
-                .send_value(&op, a)
-                .map_err(mlua::Error::external)?;
-            Ok(SendHandle(Some(h)))
+            this.send(lua, &op, a)
         });
         for what in ["configure", "start", "stop", "cleanup", "recover"] {
             methods.add_method(what, move |_, this, ()| this.lifecycle(what));
         }
         methods.add_meta_method("__tostring", |_, this, ()| {
             Ok(format!("component {:?}", this.task.name()))
+        });
+    }
+}
+
+/// A service of another component as a script reaches it: `service("limit")` finds the
+/// component providing it (by the component's `peers` alias of that name, else the one
+/// provider); `call(op, ...)` and `send(op, ...)` reach `limit.op`; `ready()` is whether
+/// the provider runs.
+pub struct LuaService {
+    peer: LuaPeer,
+    service: String,
+}
+
+impl LuaService {
+    /// Service `service` of `task`, seen from component `own`.
+    pub fn new(task: TaskContext, own: String, service: String) -> Self {
+        LuaService {
+            peer: LuaPeer::new(task, own),
+            service,
+        }
+    }
+}
+
+impl UserData for LuaService {
+    fn add_methods<M: UserDataMethods<Self>>(methods: &mut M) {
+        methods.add_method("provider", |_, this, ()| {
+            Ok(this.peer.task.name().to_string())
+        });
+        methods.add_method("ready", |_, this, ()| {
+            Ok(this.peer.task.state() == rtt::TaskState::Running)
+        });
+        methods.add_method("call", |lua, this, (op, a): (String, MultiValue)| {
+            let a = args(lua, a)?;
+            this.peer.call(lua, &format!("{}.{op}", this.service), a)
+        });
+        methods.add_method("send", |lua, this, (op, a): (String, MultiValue)| {
+            this.peer.send(lua, &format!("{}.{op}", this.service), a)
         });
     }
 }

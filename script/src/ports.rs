@@ -16,6 +16,9 @@ use std::sync::{Arc, Mutex};
 /// The types a script's port may carry, by the names `describe` shows.
 pub const TYPES: [&str; 7] = ["bool", "f64", "i64", "u64", "i32", "u32", "String"];
 
+/// The most ports one script component declares (over all its reloads).
+pub const MAX_PORTS: usize = 256;
+
 /// One typed port of either direction.
 enum Typed {
     InBool(InputPort<bool>, bool),
@@ -91,7 +94,23 @@ pub fn declare(
             TYPES.join(", ")
         ))
     })?;
+    if d.name.is_empty()
+        || !d
+            .name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+    {
+        return Err(bad(
+            "a port's name is letters, digits, '_' and '-' (a '.' would read as a component's)"
+                .into(),
+        ));
+    }
     let mut map = rtt::lock(ports);
+    if !map.contains_key(d.name) && map.len() >= MAX_PORTS {
+        return Err(bad(format!(
+            "a script component has at most {MAX_PORTS} ports (ports stay for the component's life)"
+        )));
+    }
     if let Some(p) = map.get(d.name) {
         let kept = rtt::lock(p);
         if kept.type_name != type_name || kept.input != d.input || kept.event != d.event {
@@ -218,7 +237,7 @@ impl Port {
 
     /// Writes `value` to the output port, converted exactly or refused.
     fn write(&mut self, value: Value) -> mlua::Result<()> {
-        let name = self.name.clone();
+        let name = &self.name;
         let refuse = |what: &str| {
             mlua::Error::runtime(format!(
                 "port {name:?}: {what} does not fit {}",

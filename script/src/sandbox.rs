@@ -24,7 +24,7 @@ pub struct Sandbox {
 }
 
 /// The names a script may miss: each raises an error that says why it is not there.
-const LEFT_OUT: &str = r#"
+const LEFT_OUT: &str = r##"
 local function refuse(what)
   return function() error(what .. " is not available in a script (the sandbox: no processes, no files outside data_dir, no native modules)", 2) end
 end
@@ -34,10 +34,61 @@ require = refuse("require")
 string.dump = refuse("string.dump")
 do
   local text_load = load
-  -- Text chunks only: binary chunks can break the interpreter.
-  load = function(chunk, name, mode, env)
+  -- Text chunks only: binary chunks can break the interpreter. The environment is passed
+  -- on only when given (a fourth argument, even nil, would be the chunk's _ENV).
+  load = function(chunk, name, mode, ...)
     if mode ~= nil and mode ~= "t" then error("load: only text chunks (mode \"t\") in a script", 2) end
-    return text_load(chunk, name, "t", env)
+    if select("#", ...) > 0 then return text_load(chunk, name, "t", ...) end
+    return text_load(chunk, name, "t")
+  end
+end
+do
+  -- A call stopped for its time stays stopped: pcall, xpcall and coroutine.resume give
+  -- the error back to their caller's caller once the time is past, so no loop of
+  -- protected calls outlives the deadline.
+  local overran = __hwgw_overran
+  local function pass(ok, ...)
+    if overran() then error("stopped: it ran past its time", 0) end
+    return ok, ...
+  end
+  local raw_pcall, raw_xpcall, raw_resume = pcall, xpcall, coroutine.resume
+  pcall = function(...) return pass(raw_pcall(...)) end
+  xpcall = function(...) return pass(raw_xpcall(...)) end
+  coroutine.resume = function(...) return pass(raw_resume(...)) end
+  -- C functions the hook cannot stop: string.rep of nothing many times, and patterns
+  -- whose backtracking grows as (subject length)^(quantifiers).
+  local raw_rep = string.rep
+  string.rep = function(s, n, sep)
+    local len = #tostring(s) + #tostring(sep or "")
+    if type(n) == "number" and n > 0 and (len == 0 or n > (1 << 40) // len) then
+      if len == 0 then return "" end
+      error("string.rep: " .. tostring(n) .. " copies do not fit a script's memory", 2)
+    end
+    return raw_rep(s, n, sep)
+  end
+  local raw_gsub, raw_gmatch = string.gsub, string.gmatch
+  local function costly(subject, pattern, plain)
+    if plain or type(pattern) ~= "string" or type(subject) ~= "string" then return end
+    local q = 0
+    for _ in raw_gmatch((raw_gsub(pattern, "%%.", "")), "[%*%-%+%?]") do q = q + 1 end
+    if q >= 2 and q * math.log(math.max(#subject, 2), 10) > 8 then
+      error(string.format("pattern with %d quantifiers over %d characters: too costly for a script", q, #subject), 3)
+    end
+  end
+  for _, f in ipairs({ "find", "match", "gmatch", "gsub" }) do
+    local raw = string[f]
+    string[f] = function(s, p, a, plain)
+      costly(s, p, f == "find" and plain)
+      return raw(s, p, a, plain)
+    end
+  end
+  -- No finalizers: they would run outside any step's time (in the collector, at close).
+  local raw_setmetatable = setmetatable
+  setmetatable = function(t, mt)
+    if type(mt) == "table" and rawget(mt, "__gc") ~= nil then
+      error("setmetatable: __gc is not available in a script (finalizers run outside its time)", 2)
+    end
+    return raw_setmetatable(t, mt)
   end
 end
 do
@@ -57,8 +108,8 @@ os = strict("os", { time = __hwgw_time, clock = __hwgw_clock })
 io = strict("io", {})
 package = strict("package", {})
 debug = strict("debug", { traceback = function(m) return m end })
-__hwgw_time, __hwgw_clock = nil, nil
-"#;
+__hwgw_time, __hwgw_clock, __hwgw_overran = nil, nil, nil
+"##;
 
 /// Undefined globals as errors; run after everything the script may use is defined.
 pub const STRICT: &str = r#"
@@ -89,9 +140,14 @@ impl Sandbox {
             "__hwgw_clock",
             lua.create_function(move |_, ()| Ok(epoch.elapsed().as_secs_f64()))?,
         )?;
-        lua.load(LEFT_OUT).set_name("=hwgw/sandbox").exec()?;
         let deadline = Arc::new(AtomicU64::new(0));
         let overran = Arc::new(AtomicBool::new(false));
+        let o = overran.clone();
+        g.set(
+            "__hwgw_overran",
+            lua.create_function(move |_, ()| Ok(o.load(Ordering::Relaxed)))?,
+        )?;
+        lua.load(LEFT_OUT).set_name("=hwgw/sandbox").exec()?;
         let (d, o) = (deadline.clone(), overran.clone());
         // Coroutines made from Lua inherit the hook of the thread that made them.
         lua.set_hook(
@@ -134,8 +190,35 @@ impl Sandbox {
         self.deadline.store(0, Ordering::Relaxed);
     }
 
+    /// What tells how long the call under way may still take.
+    pub fn deadline(&self) -> Deadline {
+        Deadline {
+            due: self.deadline.clone(),
+            epoch: self.epoch,
+        }
+    }
+
     /// Whether the last armed call was stopped by its deadline.
     pub fn overran(&self) -> bool {
         self.overran.load(Ordering::Relaxed)
+    }
+}
+
+/// How long the call into the script under way may still take.
+#[derive(Clone)]
+pub struct Deadline {
+    due: Arc<AtomicU64>,
+    epoch: Instant,
+}
+
+impl Deadline {
+    /// The time left, `None` when the call has no deadline.
+    pub fn remaining(&self) -> Option<Duration> {
+        match self.due.load(Ordering::Relaxed) {
+            0 => None,
+            due => Some(Duration::from_nanos(
+                due.saturating_sub(self.epoch.elapsed().as_nanos() as u64),
+            )),
+        }
     }
 }

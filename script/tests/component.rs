@@ -376,3 +376,180 @@ fn reload_replaces_a_stopped_script_and_keeps_the_old_one_on_failure() {
     task.step().expect("a step");
     assert_eq!(value(&task, "o"), Some(json!(2)), "the old script runs on");
 }
+
+struct Limits;
+impl rtt::Component for Limits {}
+
+#[test]
+fn services_peers_calls_and_sends_from_a_script() {
+    let rig = Rig::new("services");
+    let thr = rig
+        .rt
+        .add(
+            "thr",
+            ActivitySpec::Slave,
+            rtt::InitialState::Stopped,
+            |i: &mut rtt::InterfaceBuilder<Limits>| {
+                i.provides("limit")
+                    .client_operation("max", "the limit", &[], |(): ()| 42.5f64)?;
+                i.client_operation("twice", "", &[("x", "")], |(x,): (f64,)| 2.0 * x)?;
+                Ok(Limits)
+            },
+        )
+        .expect("the provider");
+    thr.start().expect("starts");
+    let text = r#"
+local called = port.output("called", "f64")
+local sent = port.output("sent", "f64")
+local limit = service("limit")
+assert(limit:provider() == "thr" and limit:ready())
+program("ask", function()
+  sent:write(wait(component("thr"):send("twice", 4)))
+end)
+function update() called:write(limit:call("max")) end
+"#;
+    let (task, r) = rig.script("svc", text);
+    r.expect("configures");
+    task.start().expect("starts");
+    call(&task, "program.start", vec![json!("ask")]);
+    for _ in 0..3 {
+        task.step().expect("a step");
+    }
+    assert_eq!(value(&task, "called"), Some(json!(42.5)));
+    assert_eq!(value(&task, "sent"), Some(json!(8.0)));
+    let (_, r) = rig.script("nosvc", "service('camera')\n");
+    let e = r.expect_err("no provider");
+    assert!(e.contains("nosvc.lua:1:") && e.contains("camera"), "{e}");
+}
+
+/// Escapes the first review found: a protected-call loop past the deadline, C functions
+/// the hook cannot stop, finalizers, a script lifting its own bounds or reloading itself.
+#[test]
+fn the_sandbox_holds_against_protected_loops_c_functions_and_its_own_component() {
+    let rig = Rig::new("escapes");
+    let (task, r) = rig.script(
+        "ploop",
+        "function update()\n  while true do pcall(function() for i = 1, 1e15 do end end) end\nend\n",
+    );
+    r.expect("configures");
+    task.properties()
+        .set_value("max_step_us", json!(20_000))
+        .expect("set");
+    task.lifecycle_reconfigure();
+    task.start().expect("starts");
+    let _ = task.step();
+    assert_eq!(
+        task.state(),
+        TaskState::Exception,
+        "a pcall loop is stopped too"
+    );
+    let last = task.counters().last_error.unwrap_or_default();
+    assert!(last.contains("ran past its time"), "{last}");
+
+    let text = r##"
+assert(string.rep("", math.maxinteger) == "")
+assert(not pcall(string.rep, "x", 1 << 50))
+local ok, e = pcall(string.find, ("a"):rep(80), (".-"):rep(20) .. "b")
+assert(not ok and e:find("too costly"), e)
+ok, e = pcall(setmetatable, {}, { __gc = function() while true do end end })
+assert(not ok and e:find("__gc"), e)
+assert(load("return math.pi")() == math.pi)
+assert(select("#", ("x"):find("x", 1, true)) == 2)
+local me = component(rtt.name())
+ok, e = pcall(me.call, me, "get_state")
+assert(not ok and tostring(e):find("own component"), tostring(e))
+local other = component("ploop")
+ok, e = pcall(other.set_property, other, "data_dir", "/")
+assert(not ok and tostring(e):find("does not set"), tostring(e))
+ok, e = pcall(other.call, other, "reload_script")
+assert(not ok and tostring(e):find("not from a script"), tostring(e))
+"##;
+    let (_, r) = rig.script("guards", text);
+    r.expect("every guard holds");
+}
+
+trait Reconfigure {
+    fn lifecycle_reconfigure(&self);
+}
+
+impl Reconfigure for TaskContext {
+    /// Configures again (properties read at configure take effect).
+    fn lifecycle_reconfigure(&self) {
+        self.configure().expect("configures again");
+    }
+}
+
+#[test]
+fn a_call_to_a_peer_that_does_not_answer_ends_with_the_steps_time() {
+    let rig = Rig::new("callwait");
+    // A slave nobody steps: its own-thread operations are never answered.
+    let (mute, r) = rig.script(
+        "mute",
+        "rootmachine { initial = 'a', final = 'b', states = { a = {}, b = {} } }\n",
+    );
+    r.expect("configures");
+    mute.start().expect("starts");
+    let (task, r) = rig.script(
+        "caller",
+        "function update()\n  component('mute'):call('get_state')\nend\n",
+    );
+    r.expect("configures");
+    task.properties()
+        .set_value("max_step_us", json!(50_000))
+        .expect("set");
+    task.lifecycle_reconfigure();
+    task.start().expect("starts");
+    let began = std::time::Instant::now();
+    let _ = task.step();
+    assert!(
+        began.elapsed() < std::time::Duration::from_secs(5),
+        "bounded"
+    );
+    assert_eq!(task.state(), TaskState::Exception);
+    let last = task.counters().last_error.unwrap_or_default();
+    assert!(
+        last.contains("caller.lua:2:") && last.contains("no answer"),
+        "{last}"
+    );
+}
+
+struct SelfStopper {
+    me: Option<rtt::component::SelfRef>,
+    said: Arc<std::sync::Mutex<String>>,
+}
+
+impl rtt::Component for SelfStopper {
+    fn configure_hook(&mut self, ctx: &mut rtt::Context<'_>) -> rtt::HookResult {
+        self.me = Some(ctx.self_ref());
+        Ok(())
+    }
+    fn update_hook(&mut self, _: &mut rtt::Context<'_>) -> rtt::HookResult {
+        if let Some(t) = self.me.as_ref().and_then(|m| m.task()) {
+            *self.said.lock().expect("said") = format!("{:?}", t.stop());
+        }
+        Ok(())
+    }
+}
+
+/// A component stopping itself from its own step is refused, not dead-locked.
+#[test]
+fn a_lifecycle_command_from_the_components_own_step_is_refused() {
+    let rig = Rig::new("reentrant");
+    let said = Arc::new(std::sync::Mutex::new(String::new()));
+    let s = said.clone();
+    let task = rig
+        .rt
+        .add(
+            "selfstop",
+            ActivitySpec::Slave,
+            rtt::InitialState::PreOperational,
+            move |_| Ok(SelfStopper { me: None, said: s }),
+        )
+        .expect("built");
+    task.configure().expect("configures");
+    task.start().expect("starts");
+    task.step().expect("a step");
+    let said = said.lock().expect("said").clone();
+    assert!(said.contains("Reentrant"), "{said}");
+    assert_eq!(task.state(), TaskState::Running);
+}

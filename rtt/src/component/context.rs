@@ -128,6 +128,11 @@ pub struct SelfRef {
 }
 
 impl SelfRef {
+    /// The component itself, while it exists.
+    pub fn task(&self) -> Option<TaskContext> {
+        self.core.upgrade().map(|core| TaskContext { core })
+    }
+
     /// Another component of the same runtime, as [`Context::peer`] finds it.
     pub fn peer(&self, name: &str) -> Result<TaskContext, IntrospectError> {
         let core = self
@@ -140,6 +145,39 @@ impl SelfRef {
                 known: Vec::new(),
             })?;
         find_peer(&core, name)
+    }
+
+    /// The component providing service `service`: the peer the component's alias of
+    /// that name names (`peers = { limit = "thr" }`), else the one component of the
+    /// runtime that provides it; none or several is an error naming them.
+    pub fn provider(&self, service: &str) -> Result<TaskContext, IntrospectError> {
+        let core = self
+            .core
+            .upgrade()
+            .ok_or_else(|| IntrospectError::NotFound {
+                component: "runtime".into(),
+                kind: "service",
+                name: service.to_string(),
+                known: Vec::new(),
+            })?;
+        if lock(&core.peer_aliases).iter().any(|(a, _)| a == service) {
+            return find_peer(&core, service);
+        }
+        let peers = core.peers.upgrade();
+        let list = peers.as_ref().map(|p| lock(p).clone()).unwrap_or_default();
+        let providing: Vec<TaskContext> = list
+            .into_iter()
+            .filter(|t| t.provided().iter().any(|p| p.name == service))
+            .collect();
+        match providing.as_slice() {
+            [one] => Ok(one.clone()),
+            _ => Err(IntrospectError::NotFound {
+                component: core.name.clone(),
+                kind: "single provider of service",
+                name: service.to_string(),
+                known: providing.iter().map(|t| t.name().to_string()).collect(),
+            }),
+        }
     }
 
     /// Adds output port `name`; refused while running or when the name is taken.

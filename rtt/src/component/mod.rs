@@ -169,6 +169,9 @@ pub(crate) struct TaskCore {
     warnings: AtomicU64,
     last_error: Mutex<Option<String>>,
     engine_thread: Mutex<Option<std::thread::ThreadId>>,
+    /// The thread holding `component` ([`this_thread`]), 0 when none: a lifecycle command
+    /// or own-thread call from it is refused rather than dead-locked.
+    holder: AtomicU64,
     peers: Weak<Mutex<Vec<TaskContext>>>,
     /// Slave components stepped after each of this one's steps, in order.
     slaves: arc_swap::ArcSwap<Vec<TaskContext>>,
@@ -262,8 +265,31 @@ impl TaskCore {
         while self.queue.pop().is_some() {}
     }
 
+    /// The component, noted as held by this thread while the guard lives; `None` when
+    /// this thread holds it already (a hook that reached its own component).
+    fn lock_component(&self) -> Option<Held<'_>> {
+        let me = this_thread();
+        if self.holder.load(Ordering::Acquire) == me {
+            return None;
+        }
+        let guard = lock(&self.component);
+        self.holder.store(me, Ordering::Release);
+        Some(Held {
+            guard,
+            holder: &self.holder,
+        })
+    }
+
+    /// Whether this thread is inside the component's hook or step.
+    fn held_here(&self) -> bool {
+        self.holder.load(Ordering::Acquire) == this_thread()
+    }
+
     fn step(&self, events: &FdEvents, timing: StepTiming) {
-        let mut guard = lock(&self.component);
+        // A step from within the component's own hook (a script stepping itself) is none.
+        let Some(mut guard) = self.lock_component() else {
+            return;
+        };
         let comp: &mut dyn ErasedComponent = &mut **guard;
         while let Some(msg) = self.queue.pop() {
             msg(comp.as_any_mut());
@@ -331,7 +357,7 @@ impl Engine for TaskCore {
                 state: state.to_string(),
             });
         }
-        if *lock(&self.engine_thread) == Some(std::thread::current().id()) {
+        if *lock(&self.engine_thread) == Some(std::thread::current().id()) || self.held_here() {
             return Err(CallError::Reentrant {
                 operation: operation.to_string(),
             });
@@ -346,6 +372,40 @@ impl Engine for TaskCore {
             }
             _ => Duration::ZERO,
         })
+    }
+}
+
+/// A number for the calling thread (`ThreadId` has no stable integer form); never 0.
+fn this_thread() -> u64 {
+    static NEXT: AtomicU64 = AtomicU64::new(1);
+    thread_local!(static ID: u64 = NEXT.fetch_add(1, Ordering::Relaxed));
+    ID.with(|id| *id)
+}
+
+/// The component's lock, with its holder noted until it is let go.
+struct Held<'a> {
+    guard: std::sync::MutexGuard<'a, Box<dyn ErasedComponent>>,
+    holder: &'a AtomicU64,
+}
+
+impl Drop for Held<'_> {
+    fn drop(&mut self) {
+        // Before the guard lets go (fields drop after this): no other thread can have
+        // noted itself meanwhile.
+        self.holder.store(0, Ordering::Release);
+    }
+}
+
+impl std::ops::Deref for Held<'_> {
+    type Target = Box<dyn ErasedComponent>;
+    fn deref(&self) -> &Self::Target {
+        &self.guard
+    }
+}
+
+impl std::ops::DerefMut for Held<'_> {
+    fn deref_mut(&mut self) -> &mut Self::Target {
+        &mut self.guard
     }
 }
 
@@ -461,6 +521,7 @@ impl TaskContext {
                 warnings: AtomicU64::new(0),
                 last_error: Mutex::new(None),
                 engine_thread: Mutex::new(None),
+                holder: AtomicU64::new(0),
                 peers: setup.peers,
                 slaves: arc_swap::ArcSwap::from_pointee(Vec::new()),
                 peer_aliases: Mutex::new(Vec::new()),
@@ -487,6 +548,13 @@ impl TaskContext {
         self.core.state()
     }
 
+    fn reentrant(&self, command: &'static str) -> LifecycleError {
+        LifecycleError::Reentrant {
+            component: self.core.name.clone(),
+            command,
+        }
+    }
+
     fn illegal(&self, command: &'static str) -> LifecycleError {
         LifecycleError::Illegal {
             component: self.core.name.clone(),
@@ -504,7 +572,9 @@ impl TaskContext {
         f: impl FnOnce(&mut dyn ErasedComponent, &mut Context<'_>) -> HookResult,
         success: TaskState,
     ) -> Result<(), LifecycleError> {
-        let mut guard = lock(&self.core.component);
+        let Some(mut guard) = self.core.lock_component() else {
+            return Err(self.reentrant(command));
+        };
         if !allowed.contains(&self.state()) {
             return Err(self.illegal(command));
         }
@@ -598,6 +668,9 @@ impl TaskContext {
     /// Running or RunTimeError → Stopped: the activity stops (pending OwnThread calls are
     /// cancelled), then the stop hook runs.
     pub fn stop(&self) -> Result<(), LifecycleError> {
+        if self.core.held_here() {
+            return Err(self.reentrant("stop"));
+        }
         if !matches!(self.state(), TaskState::Running | TaskState::RunTimeError) {
             return Err(self.illegal("stop"));
         }
@@ -657,7 +730,9 @@ impl TaskContext {
     pub fn recover(&self) -> Result<(), LifecycleError> {
         match self.state() {
             TaskState::RunTimeError => {
-                let _guard = lock(&self.core.component);
+                let Some(_guard) = self.core.lock_component() else {
+                    return Err(self.reentrant("recover"));
+                };
                 if self.state() != TaskState::RunTimeError {
                     return Err(self.illegal("recover"));
                 }
@@ -677,7 +752,9 @@ impl TaskContext {
 
     /// Running → RunTimeError, from outside the component.
     pub fn error(&self) -> Result<(), LifecycleError> {
-        let _guard = lock(&self.core.component);
+        let Some(_guard) = self.core.lock_component() else {
+            return Err(self.reentrant("error"));
+        };
         if self.state() != TaskState::Running {
             return Err(self.illegal("error"));
         }

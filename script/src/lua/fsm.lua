@@ -250,6 +250,13 @@ local function transit(m, to, program, ...)
     m._state = to
     local entry = m._states[to].entry
     if entry then entry(m) end
+    -- A state reacts to events once its entry is done (L3364–3367): what its event ports
+    -- hold from before is no event of its.
+    local evs = m._states[to].events
+    for i = 1, #evs do
+      local port = evs[i].event
+      if type(port) ~= "string" then port:read() end
+    end
   end
   if m._mode == "reactive" then
     local run = m._states[m._state].run

@@ -36,14 +36,16 @@ function __hwgw_stop()
 end
 
 -- One step: the script's update (passed in: the one it defined when it loaded), the
--- programs, then the machine; one call from the component a step. Returns the machine's
--- state and, when programs failed this step, their list.
-function __hwgw_step(update)
+-- programs, then the machine (not when `requested`: an operation moved it this step);
+-- one call from the component a step. Returns the machine's state and, when programs
+-- failed this step, their list.
+function __hwgw_step(update, requested)
   if update then update() end
   local failed = programs._step()
   if failed[1] == nil then failed = nil end
   if root then
-    root:update()
+    -- A transition an operation requested before this step was the step's one (L3333).
+    if not requested then root:update() end
     return root:get_state(), failed
   end
   return nil, failed
