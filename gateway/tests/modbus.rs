@@ -406,10 +406,20 @@ fn hostile_requests_get_the_specifications_exceptions_and_the_server_survives() 
             .unwrap()
     };
     let before = idle(&gw);
+    let flood_began = std::time::Instant::now();
     let greedy = flood_without_reading(addr);
-    wait_until("the client that never reads closed", || {
-        idle(&gw) > before && gw.server_status()[0].status.counters["clients"] == json!(0)
-    });
+    let flooded = flood_began.elapsed();
+    let closed_in_time = testkit::wait_for(
+        "the client that never reads closed",
+        testkit::wait::PATIENCE,
+        || idle(&gw) > before && gw.server_status()[0].status.counters["clients"] == json!(0),
+    );
+    if let Err(e) = closed_in_time {
+        panic!(
+            "timed out: {e}; the flood took {flooded:?}; server: {}",
+            serde_json::to_value(gw.server_status()).unwrap()
+        );
+    }
     drop(greedy);
     let status = serde_json::to_value(gw.server_status()).unwrap();
     let c = &status[0]["counters"];
