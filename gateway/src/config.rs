@@ -584,17 +584,10 @@ impl Deployment {
 fn digest(files: &[std::path::PathBuf]) -> u64 {
     use std::hash::{Hash, Hasher};
     use std::io::Read;
-    use std::os::unix::fs::OpenOptionsExt;
     let mut h = std::collections::hash_map::DefaultHasher::new();
     for f in files {
-        let read = std::fs::OpenOptions::new()
-            .read(true)
-            .custom_flags(libc::O_NONBLOCK)
-            .open(f)
+        let read = script::load::open_regular(std::fs::OpenOptions::new().read(true), f, 0)
             .and_then(|file| {
-                if !file.metadata()?.is_file() {
-                    return Err(std::io::Error::other("not a regular file"));
-                }
                 let mut bytes = Vec::new();
                 file.take(script::load::MAX_FILE + 1)
                     .read_to_end(&mut bytes)?;

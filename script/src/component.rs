@@ -223,31 +223,23 @@ impl Script {
         } else {
             Requests::default()
         };
-        match r {
-            // A call that caught its own overrun (pcall) and returned is stopped all the same.
-            Ok(_) if loaded.sandbox.overran() => {
-                self.overrun_count += 1;
-                self.overruns.set(self.overrun_count);
-                Err(HookError::new(format!(
-                    "{}: stopped: it ran past its time (overrun {}: max_step_us = {})",
-                    self.file.get(),
-                    self.overrun_count,
-                    Self::budget_text(loaded),
-                )))
-            }
-            Ok(v) => Ok((v, requests)),
-            Err(e) if loaded.sandbox.overran() => {
-                self.overrun_count += 1;
-                self.overruns.set(self.overrun_count);
-                Err(HookError::new(format!(
-                    "{} (overrun {}: max_step_us = {})",
-                    message(&e),
-                    self.overrun_count,
-                    Self::budget_text(loaded),
-                )))
-            }
-            Err(e) => Err(HookError::new(message(&e))),
+        if loaded.sandbox.overran() {
+            // Stopped by its deadline: with the hook's error, or after catching it (pcall)
+            // and returning — stopped all the same.
+            let what = match &r {
+                Ok(_) => format!("{}: stopped: it ran past its time", self.file.get()),
+                Err(e) => message(e),
+            };
+            self.overrun_count += 1;
+            self.overruns.set(self.overrun_count);
+            return Err(HookError::new(format!(
+                "{what} (overrun {}: max_step_us = {})",
+                self.overrun_count,
+                Self::budget_text(loaded),
+            )));
         }
+        r.map(|v| (v, requests))
+            .map_err(|e| HookError::new(message(&e)))
     }
 
     /// The loaded script's hook `i`, its requests applied to `ctx`.

@@ -6,9 +6,10 @@
 //! script has no finalizers).
 
 use crate::host::Host;
+use crate::load::open_regular;
 use mlua::Lua;
+use std::fs::OpenOptions;
 use std::io::{Read, Write};
-use std::os::unix::fs::OpenOptionsExt;
 use std::path::{Component, Path, PathBuf};
 
 /// The most a script reads from one file.
@@ -51,21 +52,12 @@ fn resolve(dir: Option<&Path>, path: &str) -> Result<PathBuf, String> {
 
 fn read(dir: Option<&Path>, path: &str) -> Result<String, String> {
     let full = resolve(dir, path)?;
-    let f = std::fs::OpenOptions::new()
-        .read(true)
-        .custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK)
-        .open(&full)
-        .map_err(|e| format!("io.open({path:?}): {e}"))?;
-    let meta = f
-        .metadata()
-        .map_err(|e| format!("io.open({path:?}): {e}"))?;
-    if !meta.is_file() {
-        return Err(format!("io.open({path:?}): not a regular file"));
-    }
+    let failed = |e: std::io::Error| format!("io.open({path:?}): {e}");
+    let f = open_regular(OpenOptions::new().read(true), &full, libc::O_NOFOLLOW).map_err(failed)?;
     let mut text = String::new();
     f.take(MAX_READ + 1)
         .read_to_string(&mut text)
-        .map_err(|e| format!("io.open({path:?}): {e}"))?;
+        .map_err(failed)?;
     if text.len() as u64 > MAX_READ {
         return Err(format!("io.open({path:?}): larger than {MAX_READ} bytes"));
     }
@@ -74,25 +66,14 @@ fn read(dir: Option<&Path>, path: &str) -> Result<String, String> {
 
 fn write(dir: Option<&Path>, path: &str, text: &[u8], append: bool) -> Result<(), String> {
     let full = resolve(dir, path)?;
-    let mut f = std::fs::OpenOptions::new()
-        .write(true)
-        .create(true)
-        .append(append)
-        .custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK)
-        .open(&full)
-        .map_err(|e| format!("io.open({path:?}): {e}"))?;
-    let meta = f
-        .metadata()
-        .map_err(|e| format!("io.open({path:?}): {e}"))?;
-    if !meta.is_file() {
-        return Err(format!("io.open({path:?}): not a regular file"));
-    }
+    let failed = |e: std::io::Error| format!("io.open({path:?}): {e}");
+    let mut options = OpenOptions::new();
+    options.write(true).create(true).append(append);
+    let mut f = open_regular(&mut options, &full, libc::O_NOFOLLOW).map_err(failed)?;
     if !append {
-        f.set_len(0)
-            .map_err(|e| format!("io.open({path:?}): {e}"))?;
+        f.set_len(0).map_err(failed)?;
     }
-    f.write_all(text)
-        .map_err(|e| format!("io.open({path:?}): {e}"))
+    f.write_all(text).map_err(failed)
 }
 
 fn data_dir(lua: &Lua) -> Option<PathBuf> {
