@@ -586,8 +586,8 @@ fn digest(files: &[std::path::PathBuf]) -> u64 {
     use std::io::Read;
     let mut h = std::collections::hash_map::DefaultHasher::new();
     for f in files {
-        let read = script::load::open_regular(std::fs::OpenOptions::new().read(true), f, 0)
-            .and_then(|file| {
+        let read =
+            script::open_regular(std::fs::OpenOptions::new().read(true), f, 0).and_then(|file| {
                 let mut bytes = Vec::new();
                 file.take(script::load::MAX_FILE + 1)
                     .read_to_end(&mut bytes)?;

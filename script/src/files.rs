@@ -6,7 +6,6 @@
 //! script has no finalizers).
 
 use crate::host::Host;
-use crate::load::open_regular;
 use mlua::Lua;
 use std::fs::OpenOptions;
 use std::io::{Read, Write};
@@ -14,6 +13,22 @@ use std::path::{Component, Path, PathBuf};
 
 /// The most a script reads from one file.
 pub const MAX_READ: u64 = 1 << 20;
+
+/// Opens `path` with `options` and `flags` besides `O_NONBLOCK` (a FIFO's open does not
+/// wait for its writer), and refuses anything but a regular file. The one way a script's
+/// file, its `io.open` and the deployment's digest of script files open what they read.
+pub fn open_regular(
+    options: &mut std::fs::OpenOptions,
+    path: &Path,
+    flags: i32,
+) -> std::io::Result<std::fs::File> {
+    use std::os::unix::fs::OpenOptionsExt;
+    let f = options.custom_flags(libc::O_NONBLOCK | flags).open(path)?;
+    if !f.metadata()?.is_file() {
+        return Err(std::io::Error::other("not a regular file"));
+    }
+    Ok(f)
+}
 
 /// `path` under `dir`, or why not.
 fn resolve(dir: Option<&Path>, path: &str) -> Result<PathBuf, String> {

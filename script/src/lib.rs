@@ -26,6 +26,7 @@ pub mod sandbox;
 
 pub use component::Script;
 pub use error::ScriptError;
+pub use files::open_regular;
 pub use ports::TYPES as PORT_TYPES;
 
 /// The component type's name in a deployment (`type = "script"`).

@@ -91,29 +91,14 @@ pub fn resolve(base: &Path, file: &str) -> PathBuf {
     }
 }
 
-/// Opens `path` with `options` and `flags` besides `O_NONBLOCK` (a FIFO's open does not
-/// wait for its writer), and refuses anything but a regular file. The one way a script's
-/// file, its `io.open` and the deployment's digest of script files open what they read.
-pub fn open_regular(
-    options: &mut std::fs::OpenOptions,
-    path: &Path,
-    flags: i32,
-) -> std::io::Result<std::fs::File> {
-    use std::os::unix::fs::OpenOptionsExt;
-    let f = options.custom_flags(libc::O_NONBLOCK | flags).open(path)?;
-    if !f.metadata()?.is_file() {
-        return Err(std::io::Error::other("not a regular file"));
-    }
-    Ok(f)
-}
-
 fn read(path: &Path) -> Result<String, ScriptError> {
     use std::io::Read;
     let err = |source| ScriptError::Read {
         path: path.display().to_string(),
         source,
     };
-    let f = open_regular(std::fs::OpenOptions::new().read(true), path, 0).map_err(err)?;
+    let f =
+        crate::files::open_regular(std::fs::OpenOptions::new().read(true), path, 0).map_err(err)?;
     let mut text = String::new();
     f.take(MAX_FILE + 1)
         .read_to_string(&mut text)
