@@ -78,6 +78,8 @@ struct Build<'d, 's, 'a> {
     buses: HashMap<String, driver_api::BusSide>,
     /// The Zenoh node, for services of other gateways.
     zenoh: Option<Arc<crate::remote::Node>>,
+    /// The gateway's control protocol, for its servers (joined when it serves).
+    control: driver_api::ControlLink,
 }
 
 impl<'d, 's, 'a> Build<'d, 's, 'a> {
@@ -98,6 +100,7 @@ impl<'d, 's, 'a> Build<'d, 's, 'a> {
             only,
             buses: HashMap::new(),
             zenoh: None,
+            control: driver_api::ControlLink::new(),
         }
     }
 
@@ -207,6 +210,7 @@ fn build(d: &Deployment, file: &str, text: &str, types: &Types) -> Result<Gatewa
         .text = text.to_string();
     gw.scope_vcd = scope_vcd;
     gw.zenoh = zenoh;
+    gw.control = b.control;
     Ok(gw)
 }
 
@@ -221,13 +225,18 @@ pub(crate) fn rebuild(
     file: &str,
     text: &str,
     types: &Types,
-    (runtime, zenoh): (&Runtime, Option<Arc<crate::remote::Node>>),
+    (runtime, zenoh, control): (
+        &Runtime,
+        Option<Arc<crate::remote::Node>>,
+        driver_api::ControlLink,
+    ),
     only: &Selection,
     between: impl FnOnce(&Registry) -> Vec<String>,
 ) -> Result<Rebuilt, (Rebuilt, Vec<String>)> {
     let source = Source::new(file, text);
     let mut b = Build::new(d, types, &source, file, Some(only));
     b.zenoh = zenoh;
+    b.control = control;
     let mut cards = b.cards(runtime.registry());
     let mut problems = between(runtime.registry());
     let order = b.bus_and_io(runtime, &mut cards);
@@ -885,6 +894,13 @@ impl Build<'_, '_, '_> {
     /// registered above.
     fn servers(&mut self, runtime: &Runtime) -> Vec<Box<dyn driver_api::Server>> {
         let types = &self.types.servers;
-        crate::servers::build(self.d, types, runtime, self.base, &mut self.problems)
+        let control = &self.control;
+        crate::servers::build(
+            self.d,
+            types,
+            (runtime, control),
+            self.base,
+            &mut self.problems,
+        )
     }
 }

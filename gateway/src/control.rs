@@ -183,6 +183,8 @@ struct Shared {
     next_id: AtomicU64,
     /// `record` streams under way (at most [`MAX_RECORD_STREAMS`]).
     records: std::sync::atomic::AtomicUsize,
+    /// Set by [`ControlServer::open`]: the gateway's servers are answered from then on.
+    serving: AtomicBool,
 }
 
 /// The most `record` streams at once: each holds buffers on the recorded ports and adds a
@@ -243,7 +245,11 @@ impl ControlServer {
             clients: Mutex::new(HashMap::new()),
             next_id: AtomicU64::new(1),
             records: std::sync::atomic::AtomicUsize::new(0),
+            serving: AtomicBool::new(false),
         });
+        // Weak: the servers live in the gateway, which the shared state holds.
+        let weak: std::sync::Weak<dyn driver_api::Control> = Arc::downgrade(&shared) as _;
+        shared.gw.control_link().join(weak);
         let listener = bound
             .listener
             .try_clone()
@@ -274,6 +280,7 @@ impl ControlServer {
         let Some(listener) = self.listener.take() else {
             return Ok(());
         };
+        self.shared.serving.store(true, Ordering::Release);
         let s = self.shared.clone();
         let accept = std::thread::Builder::new()
             .name("hwgw-control".into())
@@ -627,6 +634,105 @@ fn carry_out(
     }
 }
 
+/// The gateway's servers ask as a client of the socket would, once it serves (before, the
+/// gateway has not started: `unavailable`); streams are not served this way.
+impl driver_api::Control for Shared {
+    fn request(&self, request: Value) -> Result<Value, driver_api::ControlError> {
+        self.admit()?;
+        let reply = match parse(&request.to_string()) {
+            Err(reply) => reply,
+            Ok((id, Request::Watch { .. } | Request::Record { .. })) => Reply::error(
+                id,
+                ErrorKind::BadRequest,
+                "streams (watch, record) are served on the control socket only",
+            ),
+            Ok((id, req)) => carry_out(self, id, &req, &mut HashMap::new(), true),
+        };
+        match reply.body {
+            Body::Ok(v) => Ok(v),
+            Body::Error(e) => {
+                self.stats.errors.fetch_add(1, Ordering::Relaxed);
+                Err(control_error(e.kind, e.message))
+            }
+            Body::Event(_) | Body::Records(_) | Body::Heartbeat(_) => Err(
+                driver_api::ControlError::new("failed", "a stream's line where a reply was due"),
+            ),
+        }
+    }
+
+    fn stream(
+        &self,
+        request: Value,
+        each: &mut dyn FnMut(Value) -> bool,
+    ) -> Result<(), driver_api::ControlError> {
+        self.stream_to(request, each)
+    }
+}
+
+/// A control error of `kind` for the gateway's servers.
+fn control_error(kind: ErrorKind, message: impl Into<String>) -> driver_api::ControlError {
+    let kind = serde_json::to_value(kind).unwrap_or(Value::Null);
+    driver_api::ControlError::new(kind.as_str().unwrap_or("failed"), message)
+}
+
+impl Shared {
+    /// A server's request is carried out once the control server serves (before, the
+    /// gateway has not started: `unavailable`), and counted.
+    fn admit(&self) -> Result<(), driver_api::ControlError> {
+        if !self.serving.load(Ordering::Acquire) {
+            return Err(driver_api::ControlError::new(
+                "unavailable",
+                "the gateway is starting",
+            ));
+        }
+        self.stats.requests.fetch_add(1, Ordering::Relaxed);
+        Ok(())
+    }
+
+    /// The in-process stream of [`driver_api::Control::stream`].
+    fn stream_to(
+        &self,
+        request: Value,
+        each: &mut dyn FnMut(Value) -> bool,
+    ) -> Result<(), driver_api::ControlError> {
+        self.admit()?;
+        let (id, ports, devices, steps, buffer) = match parse(&request.to_string()) {
+            Ok((
+                id,
+                Request::Record {
+                    ports,
+                    devices,
+                    steps,
+                    buffer,
+                },
+            )) => (id, ports, devices, steps, buffer),
+            Ok((_, r)) => {
+                let m = format!("{} is not a stream: ask it with request", r.cmd());
+                return Err(control_error(ErrorKind::BadRequest, m));
+            }
+            Err(reply) => match reply.body {
+                Body::Error(e) => return Err(control_error(e.kind, e.message)),
+                _ => return Err(control_error(ErrorKind::BadRequest, "not a request")),
+            },
+        };
+        let ask = crate::recorder::stream::Ask {
+            ports: &ports,
+            devices,
+            steps,
+            buffer,
+        };
+        let mut sink = |reply: &Reply| match &reply.body {
+            Body::Ok(v) => each(v.clone()),
+            Body::Records(b) => match serde_json::to_value(b) {
+                Ok(v) => each(json!({ "records": v })),
+                Err(_) => false,
+            },
+            _ => true,
+        };
+        record_to(self, &ask, &id, &mut sink).map_err(|Fail(kind, m)| control_error(kind, m))
+    }
+}
+
 /// A control request of another gateway (through Zenoh), carried out here as one from
 /// the socket; its reply body without `id`.
 fn remote_request(shared: &Shared, request: Value) -> Value {
@@ -776,6 +882,21 @@ fn record(
     id: &Value,
     out: &UnixStream,
 ) -> Result<(), Fail> {
+    // A client that stops reading ends its stream (its slot freed) within this long.
+    out.set_write_timeout(Some(RECORD_WRITE_TIMEOUT))
+        .map_err(failed)?;
+    let mut sink = |reply: &Reply| send(out, reply).is_ok() && !peer_closed(out);
+    record_to(shared, ask, id, &mut sink)
+}
+
+/// A `record` stream: its acknowledgement, then its batches, each to `sink` (as reply
+/// lines with `id`) until it returns false or the server closes.
+fn record_to(
+    shared: &Shared,
+    ask: &crate::recorder::stream::Ask<'_>,
+    id: &Value,
+    sink: &mut dyn FnMut(&Reply) -> bool,
+) -> Result<(), Fail> {
     use crate::recorder::stream;
     let taken = shared.records.fetch_add(1, Ordering::AcqRel);
     // Given back however this returns.
@@ -787,20 +908,19 @@ fn record(
         ));
     }
     let (taps, start) = stream::open(&shared.gw, ask).map_err(|(kind, m)| Fail(kind, m))?;
-    // A client that stops reading ends its stream (its slot freed) within this long.
-    out.set_write_timeout(Some(RECORD_WRITE_TIMEOUT))
-        .map_err(failed)?;
     let ack = Reply {
         id: id.clone(),
         body: Body::Ok(serde_json::to_value(start).map_err(failed)?),
     };
-    send(out, &ack).map_err(failed)?;
+    if !sink(&ack) {
+        return Ok(());
+    }
     let batch = |b| {
         let reply = Reply {
             id: id.clone(),
             body: Body::Records(b),
         };
-        send(out, &reply).is_ok() && !peer_closed(out)
+        sink(&reply)
     };
     stream::pump(taps, batch, || shared.closing.load(Ordering::Acquire));
     Ok(())
@@ -828,5 +948,21 @@ fn peer_closed(s: &UnixStream) -> bool {
         Ok(0) => true,
         Ok(_) | Err(nix::Error::EAGAIN) => false,
         Err(_) => true,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::protocol::Request;
+
+    #[test]
+    fn the_documented_table_is_the_table() {
+        let doc = include_str!("control.rs");
+        for line in Request::table().lines() {
+            assert!(
+                doc.contains(&format!("//! {line}")),
+                "control.rs's documentation lacks the line:\n//! {line}\n(it must show Request::table())"
+            );
+        }
     }
 }

@@ -128,6 +128,8 @@ pub struct Gateway {
     pub(crate) scope_vcd: Option<(std::path::PathBuf, u32)>,
     /// The Zenoh node of the `[zenoh]` section (also among the servers).
     pub(crate) zenoh: Option<Arc<crate::remote::Node>>,
+    /// The control protocol for the servers (see [`Self::control_link`]).
+    pub(crate) control: driver_api::ControlLink,
 }
 
 impl Gateway {
@@ -153,7 +155,14 @@ impl Gateway {
             }),
             scope_vcd: None,
             zenoh: None,
+            control: driver_api::ControlLink::new(),
         }
+    }
+
+    /// Where the gateway's servers reach its control protocol: joined by the control
+    /// server when it starts ([`crate::control::ControlServer::start`]).
+    pub fn control_link(&self) -> &driver_api::ControlLink {
+        &self.control
     }
 
     /// What the gateway is made of, to read.

@@ -54,7 +54,7 @@ pub mod logical;
 pub mod outputs;
 pub mod problems;
 pub mod propfiles;
-pub mod protocol;
+pub use ::protocol;
 pub mod recorder;
 mod reload;
 pub mod remote;

@@ -343,7 +343,7 @@ impl Gateway {
             file,
             text,
             &self.types,
-            (runtime, self.zenoh.clone()),
+            (runtime, self.zenoh.clone(), self.control.clone()),
             &plan.build,
             aliases,
         ) {

@@ -36,6 +36,10 @@ fn status(gw: &Gateway, control: ControlReport) -> StatusReport {
         .iter()
         .map(|t| {
             let s = t.stats();
+            let trimmed = |h: &[u64]| {
+                let len = h.iter().rposition(|&n| n != 0).map_or(0, |i| i + 1);
+                h[..len].to_vec()
+            };
             ComponentStatus {
                 name: t.name().to_string(),
                 state: t.state(),
@@ -45,6 +49,10 @@ fn status(gw: &Gateway, control: ControlReport) -> StatusReport {
                 realtime: s.realtime,
                 lateness_p99_us: s.lateness_quantile(0.99).as_secs_f64() * 1e6,
                 step_mean_us: s.step_mean().as_secs_f64() * 1e6,
+                lateness_histogram: trimmed(&s.lateness_histogram),
+                lateness_total_ns: s.lateness_total_ns,
+                step_histogram: trimmed(&s.step_histogram),
+                step_total_ns: s.step_total_ns,
                 counters: t.counters(),
             }
         })

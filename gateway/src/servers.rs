@@ -4,10 +4,12 @@
 //! asks for one with a top-level table named after its type — `[modbus_server]` — and the
 //! type's build function makes it from that section, parsed strictly where it stands (so
 //! its errors point at the file, line and key, as a card's driver section's do), over the
-//! device registry. hwgw ships `modbus_server`; a user's binary adds its own with
+//! device registry. A type may also be registered as `server.NAME`, asked for with a
+//! table under the deployment's `[server]` (`[server.metrics]`): its deployment key is
+//! then `server.NAME`. hwgw ships `modbus_server`; a user's binary adds its own with
 //! [`ServerTypes::register`]. The gateway names no server type itself: a top-level key
-//! that is neither one of the deployment's own ([`DEPLOYMENT_KEYS`]) nor a registered
-//! server is refused, with both lists.
+//! (or a table under `[server]`) that is neither one of the deployment's own
+//! ([`DEPLOYMENT_KEYS`]) nor a registered server is refused, with both lists.
 //!
 //! The Zenoh node (`[zenoh]`) is among the gateway's servers at run time too, but it is
 //! not a plug-in: it is built before the cards' IO components (it registers the devices
@@ -17,7 +19,7 @@
 use crate::config::{DEPLOYMENT_KEYS, Deployment};
 use crate::drivers::{SectionError, parse};
 use crate::problems::{KeyPath, Problems};
-use driver_api::{CardError, Server, ServerBuildFn, ServerContext};
+use driver_api::{CardError, ControlLink, Server, ServerBuildFn, ServerContext};
 use serde::de::DeserializeOwned;
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -70,22 +72,32 @@ impl ServerTypes {
         }
     }
 
-    /// The server types built into hwgw: modbus_server.
+    /// The server types built into hwgw: modbus_server, server.metrics (Prometheus),
+    /// server.web (the web page) and server.foxglove (the Foxglove live stream).
     pub fn builtin() -> Self {
         let mut t = Self::empty();
         t.register("modbus_server", driver_modbus::served::build);
+        t.register("server.metrics", web::metrics::build);
+        t.register("server.web", web::page::build);
+        t.register("server.foxglove", web::foxglove::build);
         t
     }
 
-    /// Adds server type `name`, built by `build` from the top-level section `[name]` (type
-    /// `C`, parsed strictly); a name already taken, by another server type or by one of
-    /// the deployment's own keys ([`DEPLOYMENT_KEYS`]), is refused (returns false).
+    /// Adds server type `name`, built by `build` from the top-level section `[name]` (or,
+    /// for a name `server.NAME`, from `[server.NAME]`; type `C`, parsed strictly); a name
+    /// already taken, by another server type or by one of the deployment's own keys
+    /// ([`DEPLOYMENT_KEYS`]), or `server` itself, is refused (returns false).
     pub fn register<C: DeserializeOwned + 'static>(
         &mut self,
         name: &str,
         build: ServerBuildFn<C>,
     ) -> bool {
-        if self.types.contains_key(name) || DEPLOYMENT_KEYS.contains(&name) {
+        let nested = name.strip_prefix(NESTED).and_then(|n| n.strip_prefix('.'));
+        if self.types.contains_key(name)
+            || DEPLOYMENT_KEYS.contains(&name)
+            || name == NESTED
+            || nested.is_some_and(|n| n.is_empty() || n.contains('.'))
+        {
             return false;
         }
         self.types.insert(name.to_string(), Arc::new(Typed(build)));
@@ -103,10 +115,39 @@ impl ServerTypes {
     }
 }
 
-/// The top-level keys of `d` that are neither the deployment's own nor a server type of
-/// `types`, each with what a deployment may have at the top: refused.
+/// The top-level table whose tables are servers by their type's `server.NAME`.
+pub const NESTED: &str = "server";
+
+/// Every server section of `d`: its type name (`modbus_server`, `server.metrics`) and
+/// where it stands; a `server` key that is not a table is a problem.
+fn sections(d: &Deployment, problems: &mut Problems<'_, '_>) -> Vec<(String, KeyPath)> {
+    let mut out = Vec::new();
+    for (key, value) in &d.servers {
+        if key != NESTED {
+            out.push((key.clone(), KeyPath::top(key)));
+            continue;
+        }
+        match value.as_table() {
+            Some(t) => out.extend(
+                t.keys()
+                    .map(|k| (format!("{NESTED}.{k}"), KeyPath::top(NESTED).key(k))),
+            ),
+            None => problems.at(
+                &KeyPath::top(NESTED),
+                "[server] holds a table for each server: [server.NAME]",
+            ),
+        }
+    }
+    out
+}
+
+/// The server sections of `d` that are neither the deployment's own keys nor a server
+/// type of `types`, each with what a deployment may have at the top: refused.
 pub(crate) fn unknown_keys(d: &Deployment, types: &ServerTypes, problems: &mut Problems<'_, '_>) {
-    for key in d.servers.keys().filter(|k| !types.contains(k)) {
+    for (key, at) in sections(d, problems) {
+        if types.contains(&key) {
+            continue;
+        }
         let servers = match types.names() {
             names if names.is_empty() => "none".to_string(),
             names => names.join(", "),
@@ -115,31 +156,32 @@ pub(crate) fn unknown_keys(d: &Deployment, types: &ServerTypes, problems: &mut P
             "unknown key {key:?}; a deployment has {}, and the servers of this build: {servers}",
             DEPLOYMENT_KEYS.join(", ")
         );
-        problems.at_key(&KeyPath::top(key), msg);
+        problems.at_key(&at, msg);
     }
 }
 
 /// Builds the server of every server section of `d` (unknown keys are
-/// [`unknown_keys`]'s), over the devices `runtime`'s registry holds; files they name are
-/// relative to `base`. Problems go to `problems`, located under the section.
+/// [`unknown_keys`]'s), over the devices `runtime`'s registry holds, each given `control`;
+/// files they name are relative to `base`. Problems go to `problems`, located under the
+/// section.
 pub(crate) fn build(
     d: &Deployment,
     types: &ServerTypes,
-    runtime: &rtt::Runtime,
+    (runtime, control): (&rtt::Runtime, &ControlLink),
     base: &Path,
     problems: &mut Problems<'_, '_>,
 ) -> Vec<Box<dyn Server>> {
     let mut servers = Vec::new();
-    for key in d.servers.keys() {
-        let Some(entry) = types.types.get(key) else {
+    let mut quiet = Problems::new(problems.source());
+    for (key, at) in sections(d, &mut quiet) {
+        let Some(entry) = types.types.get(&key) else {
             continue;
         };
-        let at = KeyPath::top(key);
         let Some(section) = problems.source().value(&at) else {
             problems.at(&at, format!("[{key}] is not in the file"));
             continue;
         };
-        let mut ctx = ServerContext::new(key, runtime, base);
+        let mut ctx = ServerContext::new(&key, runtime, base, control.clone());
         match entry.build(section.clone(), &mut ctx) {
             Ok(server) => servers.push(server),
             Err(ServerProblem::Section(SectionError::Parse {

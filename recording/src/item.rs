@@ -17,8 +17,13 @@ impl PortSpec {
     /// The MCAP topic: the name with `/` for `.`, so `sim0.ai.ch0` is `/sim0/ai/ch0`
     /// (viewers show topics as a tree).
     pub fn topic(&self) -> String {
-        format!("/{}", self.name.replace('.', "/"))
+        port_topic(&self.name)
     }
+}
+
+/// The topic of port `component.port`: `/component/port`, every `.` a `/`.
+pub fn port_topic(name: &str) -> String {
+    format!("/{}", name.replace('.', "/"))
 }
 
 /// One step of an activity, ns on the runtime's monotonic clock.
@@ -65,20 +70,39 @@ impl Item {
     }
 }
 
+/// The topic of activity `name`'s steps: `/activity/<name>`.
+pub fn activity_topic(name: &str) -> String {
+    format!("/activity/{name}")
+}
+
+/// The name of the schema of a port of type `type_name`: `hwgw.sample.<type>`.
+pub fn sample_schema_name(type_name: &str) -> String {
+    format!("hwgw.sample.{type_name}")
+}
+
+/// The name of the schema of an activity's steps.
+pub const STEP_SCHEMA: &str = "hwgw.step";
+
 /// A sample's message: `{"value": …}`.
 #[derive(Serialize)]
-pub(crate) struct SampleMessage<'a> {
-    pub(crate) value: &'a Value,
+pub struct SampleMessage<'a> {
+    /// The value, as the runtime serialises it.
+    pub value: &'a Value,
 }
 
 /// A step's message.
 #[derive(Serialize, Deserialize)]
-pub(crate) struct StepMessage {
-    pub(crate) scheduled_ns: u64,
-    pub(crate) started_ns: u64,
-    pub(crate) ended_ns: u64,
-    pub(crate) lateness_us: f64,
-    pub(crate) duration_us: f64,
+pub struct StepMessage {
+    /// When it was due, ns on the runtime's clock.
+    pub scheduled_ns: u64,
+    /// When it began.
+    pub started_ns: u64,
+    /// When it ended.
+    pub ended_ns: u64,
+    /// How late it began, µs.
+    pub lateness_us: f64,
+    /// How long it took, µs.
+    pub duration_us: f64,
 }
 
 impl From<&Step> for StepMessage {
@@ -97,7 +121,7 @@ impl From<&Step> for StepMessage {
 /// `rtt::typename`; Rust's spelling of a string is taken too). A float may also be the string
 /// `"NaN"`, `"inf"` or `"-inf"` (JSON has no such numbers); a type not known here is left
 /// unconstrained.
-pub(crate) fn value_schema(type_name: &str) -> Value {
+pub fn value_schema(type_name: &str) -> Value {
     match type_name {
         "f32" | "f64" => json!({"type": ["number", "string"]}),
         "bool" => json!({"type": "boolean"}),
@@ -110,7 +134,7 @@ pub(crate) fn value_schema(type_name: &str) -> Value {
 }
 
 /// The schema of a port's messages.
-pub(crate) fn sample_schema(type_name: &str) -> Value {
+pub fn sample_schema(type_name: &str) -> Value {
     json!({
         "title": format!("hwgw sample of {type_name}"),
         "type": "object",
@@ -120,7 +144,7 @@ pub(crate) fn sample_schema(type_name: &str) -> Value {
 }
 
 /// The schema of an activity's messages.
-pub(crate) fn step_schema() -> Value {
+pub fn step_schema() -> Value {
     let int = json!({"type": "integer", "minimum": 0});
     let num = json!({"type": "number", "minimum": 0});
     json!({

@@ -14,7 +14,10 @@
 //! (`unwritten`, part of `lost`).
 
 use crate::item::PortSpec;
-use crate::item::{Item, SampleMessage, StepMessage, sample_schema, step_schema};
+use crate::item::{
+    Item, STEP_SCHEMA, SampleMessage, StepMessage, activity_topic, sample_schema,
+    sample_schema_name, step_schema,
+};
 use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::{BufWriter, Cursor, Seek, SeekFrom, Write};
@@ -295,7 +298,7 @@ impl<W: Sink> Recorder<W> {
         let mut schemas: BTreeMap<String, u16> = BTreeMap::new();
         let mut port_channels = Vec::with_capacity(ports.len());
         for p in &ports {
-            let name = format!("hwgw.sample.{}", p.type_name);
+            let name = sample_schema_name(&p.type_name);
             let schema = match schemas.get(&name) {
                 Some(id) => *id,
                 None => {
@@ -318,12 +321,12 @@ impl<W: Sink> Recorder<W> {
         if !activities.is_empty() {
             let data = serde_json::to_vec(&step_schema())?;
             let schema = mcap
-                .add_schema("hwgw.step", "jsonschema", &data)
+                .add_schema(STEP_SCHEMA, "jsonschema", &data)
                 .map_err(fail)?;
             for a in &activities {
                 let meta = BTreeMap::from([("activity".to_string(), a.clone())]);
                 let id = mcap
-                    .add_channel(schema, &format!("/activity/{a}"), "json", &meta)
+                    .add_channel(schema, &activity_topic(a), "json", &meta)
                     .map_err(fail)?;
                 step_channels.push(Channel::new(id));
             }

@@ -77,4 +77,6 @@ pub use bus::{BuiltCard, BusContext, BusSide, BusTasks, fd_bus, periodic_bus};
 pub use card::{Card, CardStatus, ReadBack, SettleError};
 pub use context::{BuildFn, CardContext, CardError};
 pub use names::{ChannelDetail, ChannelDetails, ChannelNames, NamesError, is_port_name};
-pub use server::{Server, ServerBuildFn, ServerContext, ServerError};
+pub use server::{
+    Control, ControlError, ControlLink, Server, ServerBuildFn, ServerContext, ServerError,
+};

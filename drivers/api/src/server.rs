@@ -9,7 +9,7 @@
 use crate::context::CardError;
 use device_interface::Registry;
 use std::path::Path;
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock, Weak};
 
 /// A server type's build function: its typed section and the context to a server, or
 /// every problem of the section, each at its key under the section.
@@ -17,22 +17,37 @@ pub type ServerBuildFn<C> =
     fn(&C, &mut ServerContext<'_>) -> Result<Box<dyn Server>, Vec<CardError>>;
 
 /// Everything a server type may use to build its server: its key, the runtime with the
-/// registry of the devices the cards registered, the deployment's folder.
+/// registry of the devices the cards registered, the deployment's folder, and the
+/// gateway's control protocol in-process.
 pub struct ServerContext<'a> {
     name: &'a str,
     runtime: &'a rtt::Runtime,
     base: &'a Path,
+    control: ControlLink,
 }
 
 impl<'a> ServerContext<'a> {
     /// A context for the server under deployment key `name`, over `runtime` (its registry
-    /// holds every card's devices by now); files a section names are relative to `base`.
-    pub fn new(name: &'a str, runtime: &'a rtt::Runtime, base: &'a Path) -> ServerContext<'a> {
+    /// holds every card's devices by now); files a section names are relative to `base`;
+    /// `control` reaches the gateway's control protocol once it serves.
+    pub fn new(
+        name: &'a str,
+        runtime: &'a rtt::Runtime,
+        base: &'a Path,
+        control: ControlLink,
+    ) -> ServerContext<'a> {
         ServerContext {
             name,
             runtime,
             base,
+            control,
         }
+    }
+
+    /// The gateway's control protocol, in-process: what `hwgw status`, `hwgw get` and
+    /// `hwgw set` ask, carried out by the same code with the same checks.
+    pub fn control(&self) -> &ControlLink {
+        &self.control
     }
 
     /// Its deployment key (`modbus_server`): what [`Server::name`] returns.
@@ -53,6 +68,95 @@ impl<'a> ServerContext<'a> {
     /// The folder of the deployment file: files a section names are relative to it.
     pub fn base(&self) -> &'a Path {
         self.base
+    }
+}
+
+/// The gateway's control protocol in-process, as the gateway's control server carries it
+/// out for a server: the requests and replies of the control socket, without the socket.
+pub trait Control: Send + Sync {
+    /// Carries out `request` (one request object of the control protocol, such as
+    /// `{"cmd": "status"}`; streams, `watch` and `record`, are not served this way) and
+    /// returns its reply's `ok` value, or its error.
+    fn request(&self, request: serde_json::Value) -> Result<serde_json::Value, ControlError>;
+
+    /// Carries out stream request `request` (`record`): `each` gets its acknowledgement's
+    /// `ok` value, then every line of the stream (a `record` batch: `{"records": …}`),
+    /// until it returns false or the gateway stops; an error when the stream could not
+    /// begin. Blocks the calling thread throughout.
+    fn stream(
+        &self,
+        request: serde_json::Value,
+        each: &mut dyn FnMut(serde_json::Value) -> bool,
+    ) -> Result<(), ControlError>;
+}
+
+/// A control request that was refused or failed: the protocol's error kind and message.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{message} ({kind})")]
+pub struct ControlError {
+    /// The error kind of the control protocol (`not_found`, `failed`, `stopping`, …).
+    pub kind: String,
+    /// What went wrong.
+    pub message: String,
+}
+
+impl ControlError {
+    /// An error of `kind` saying `message`.
+    pub fn new(kind: &str, message: impl Into<String>) -> ControlError {
+        ControlError {
+            kind: kind.to_string(),
+            message: message.into(),
+        }
+    }
+}
+
+/// Where a server reaches the gateway's [`Control`]: given to every server when it is
+/// built, joined to the control server when that starts (so a server built for
+/// `hwgw check`, or before the control server, has none yet), and let go with it.
+#[derive(Clone, Default)]
+pub struct ControlLink(Arc<OnceLock<Weak<dyn Control>>>);
+
+impl ControlLink {
+    /// A link not joined yet.
+    pub fn new() -> ControlLink {
+        ControlLink::default()
+    }
+
+    /// Joins the link to `control` (held weakly: the link keeps nothing alive); a link
+    /// already joined keeps its first (returns false).
+    pub fn join(&self, control: Weak<dyn Control>) -> bool {
+        self.0.set(control).is_ok()
+    }
+
+    /// Carries out `request` through the joined control; `unavailable` when there is none
+    /// (not joined yet, or gone).
+    pub fn request(&self, request: serde_json::Value) -> Result<serde_json::Value, ControlError> {
+        self.joined()?.request(request)
+    }
+
+    /// [`Control::stream`] through the joined control; `unavailable` when there is none.
+    /// The link holds the control only while the stream runs.
+    pub fn stream(
+        &self,
+        request: serde_json::Value,
+        each: &mut dyn FnMut(serde_json::Value) -> bool,
+    ) -> Result<(), ControlError> {
+        self.joined()?.stream(request, each)
+    }
+
+    fn joined(&self) -> Result<Arc<dyn Control>, ControlError> {
+        self.0.get().and_then(Weak::upgrade).ok_or_else(|| {
+            ControlError::new("unavailable", "the gateway's control server is not serving")
+        })
+    }
+}
+
+impl std::fmt::Debug for ControlLink {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let joined = self.0.get().is_some_and(|w| w.strong_count() > 0);
+        f.debug_struct("ControlLink")
+            .field("joined", &joined)
+            .finish()
     }
 }
 

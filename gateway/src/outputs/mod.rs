@@ -90,14 +90,8 @@ pub struct CardOutputs {
     trips: AtomicU64,
 }
 
-/// Counters of a card's outputs, for `hwgw status`.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-pub struct OutputReport {
-    /// Outputs hwgw wrote since it started.
-    pub written: u64,
-    /// Watchdog trips (an output driven to its safe value while running).
-    pub watchdog_trips: u64,
-}
+/// Counters of a card's outputs, for `hwgw status` (defined with the control protocol).
+pub use protocol::OutputReport;
 
 /// How a card's outputs are to be treated, as the deployment says (checked against the
 /// card by [`CardOutputs::new`]).

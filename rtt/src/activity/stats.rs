@@ -29,6 +29,12 @@ pub struct ActivityStats {
     pub lateness_histogram: Vec<u64>,
     /// Largest lateness seen, ns.
     pub lateness_max_ns: u64,
+    /// Sum of every wake-up's lateness, ns (with the histogram's count, its mean).
+    #[serde(default)]
+    pub lateness_total_ns: u64,
+    /// Step duration histogram: bucket `i` counts steps that took `2^i..2^(i+1)` ns.
+    #[serde(default)]
+    pub step_histogram: Vec<u64>,
     /// Longest step, ns.
     pub step_max_ns: u64,
     /// Total time in steps, ns.
@@ -65,6 +71,12 @@ impl ActivityStats {
     }
 }
 
+/// The histogram bucket of `ns`: `i` with `2^i <= ns < 2^(i+1)` (0 and 1 in bucket 0),
+/// the last bucket taking everything beyond.
+fn bucket(ns: u64) -> usize {
+    (63 - ns.max(1).leading_zeros() as usize).min(HISTOGRAM_BUCKETS - 1)
+}
+
 pub(crate) struct StatsCell {
     pub(crate) steps: AtomicU64,
     pub(crate) overruns: AtomicU64,
@@ -73,6 +85,8 @@ pub(crate) struct StatsCell {
     pub(crate) spells: AtomicU64,
     pub(crate) histogram: [AtomicU64; HISTOGRAM_BUCKETS],
     pub(crate) lateness_max: AtomicU64,
+    pub(crate) lateness_total: AtomicU64,
+    pub(crate) step_histogram: [AtomicU64; HISTOGRAM_BUCKETS],
     pub(crate) step_max: AtomicU64,
     pub(crate) step_total: AtomicU64,
     pub(crate) realtime: AtomicBool,
@@ -90,6 +104,8 @@ impl StatsCell {
             spells: AtomicU64::new(0),
             histogram: std::array::from_fn(|_| AtomicU64::new(0)),
             lateness_max: AtomicU64::new(0),
+            lateness_total: AtomicU64::new(0),
+            step_histogram: std::array::from_fn(|_| AtomicU64::new(0)),
             step_max: AtomicU64::new(0),
             step_total: AtomicU64::new(0),
             realtime: AtomicBool::new(false),
@@ -99,9 +115,9 @@ impl StatsCell {
     }
 
     pub(crate) fn lateness(&self, ns: u64) {
-        let bucket = (63 - ns.max(1).leading_zeros() as usize).min(HISTOGRAM_BUCKETS - 1);
-        self.histogram[bucket].fetch_add(1, Ordering::Relaxed);
+        self.histogram[bucket(ns)].fetch_add(1, Ordering::Relaxed);
         self.lateness_max.fetch_max(ns, Ordering::Relaxed);
+        self.lateness_total.fetch_add(ns, Ordering::Relaxed);
     }
 
     /// A step that was due at `scheduled`, began at `started` and ended at `ended` (ns on
@@ -116,6 +132,7 @@ impl StatsCell {
         self.steps.fetch_add(1, Ordering::Relaxed);
         self.step_total.fetch_add(ns, Ordering::Relaxed);
         self.step_max.fetch_max(ns, Ordering::Relaxed);
+        self.step_histogram[bucket(ns)].fetch_add(1, Ordering::Relaxed);
     }
 
     pub(crate) fn snapshot(&self) -> ActivityStats {
@@ -131,6 +148,12 @@ impl StatsCell {
                 .map(|a| a.load(Ordering::Relaxed))
                 .collect(),
             lateness_max_ns: self.lateness_max.load(Ordering::Relaxed),
+            lateness_total_ns: self.lateness_total.load(Ordering::Relaxed),
+            step_histogram: self
+                .step_histogram
+                .iter()
+                .map(|a| a.load(Ordering::Relaxed))
+                .collect(),
             step_max_ns: self.step_max.load(Ordering::Relaxed),
             step_total_ns: self.step_total.load(Ordering::Relaxed),
             realtime: self.realtime.load(Ordering::Relaxed),

@@ -160,6 +160,21 @@ pub const LINTIAN: Peer = Peer {
     packages: &["lintian"],
 };
 
+/// Prometheus: `promtool` checks an exposition, the server scrapes one (Debian's
+/// `prometheus` package has both).
+pub const PROMETHEUS: Peer = Peer {
+    name: "prometheus",
+    probe: Probe::Command("promtool"),
+    packages: &["prometheus"],
+};
+
+/// Headless Chromium and its WebDriver, which selenium drives.
+pub const CHROMIUM: Peer = Peer {
+    name: "chromium and chromedriver",
+    probe: Probe::Command("chromedriver"),
+    packages: &["chromium", "chromium-driver"],
+};
+
 /// Why a peer is not there.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error(

@@ -59,3 +59,29 @@ pub const MCAP: &[&str] = &["mcap==1.6.0"];
 pub fn mcap() -> io::Result<PathBuf> {
     install("mcap-1.6.0", MCAP)
 }
+
+/// selenium and its dependencies, pinned (for Debian 12's Python 3.11): the browser
+/// automation the web page's test drives headless Chromium with (its chromedriver is
+/// Debian's, named to it, so Selenium Manager fetches nothing).
+pub const SELENIUM: &[&str] = &[
+    "selenium==4.51.0",
+    "PySocks==1.7.1",
+    "attrs==26.1.0",
+    "certifi==2026.10.19.post1",
+    "h11==0.16.0",
+    "idna==3.20",
+    "outcome==1.3.0.post0",
+    "sniffio==1.3.1",
+    "sortedcontainers==2.4.0",
+    "trio==0.35.0",
+    "trio_websocket==0.12.2",
+    "typing_extensions==4.16.0",
+    "urllib3==2.8.0",
+    "websocket_client==1.9.2",
+    "wsproto==1.3.2",
+];
+
+/// selenium ([`SELENIUM`]): the directory to put on `PYTHONPATH`.
+pub fn selenium() -> io::Result<PathBuf> {
+    install("selenium-4.51.0", SELENIUM)
+}

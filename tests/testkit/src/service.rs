@@ -195,6 +195,26 @@ impl Service {
             .unwrap_or_else(|| panic!("{req} -> {r}"))
     }
 
+    /// Server `name`'s entry in `status` (`server.web`): its address (`bus`) and
+    /// `counters`; panics when it has none.
+    pub fn server_status(&self, name: &str) -> Value {
+        let s = self.ok(serde_json::json!({"cmd": "status"}));
+        s["servers"]
+            .as_array()
+            .and_then(|l| l.iter().find(|v| v["name"] == name))
+            .cloned()
+            .unwrap_or_else(|| panic!("no server {name} in {s}"))
+    }
+
+    /// Where server `name` listens, as `status` says.
+    pub fn server_address(&self, name: &str) -> std::net::SocketAddr {
+        let e = self.server_status(name);
+        e["bus"]
+            .as_str()
+            .and_then(|b| b.parse().ok())
+            .unwrap_or_else(|| panic!("{name} has no address: {e}"))
+    }
+
     /// `BIN ARGS --socket <its socket>`.
     pub fn cli(&self, args: &[&str]) -> Output {
         Command::new(&self.bin)

@@ -1,7 +1,6 @@
 //! The reports of cards and servers `status` carries: the gateway fills them, the
 //! protocol defines them.
 
-use crate::outputs::OutputReport;
 use driver_api::CardStatus;
 use serde::{Deserialize, Serialize};
 
@@ -17,6 +16,15 @@ pub struct CardReport {
     pub status: CardStatus,
     /// Its outputs: how many hwgw wrote, watchdog trips.
     pub outputs: OutputReport,
+}
+
+/// Counters of a card's outputs, for `hwgw status`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct OutputReport {
+    /// Outputs hwgw wrote since it started.
+    pub written: u64,
+    /// Watchdog trips (an output driven to its safe value while running).
+    pub watchdog_trips: u64,
 }
 
 /// A server's state, for `status`.
