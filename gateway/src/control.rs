@@ -185,7 +185,14 @@ struct Shared {
     records: std::sync::atomic::AtomicUsize,
     /// Set by [`ControlServer::open`]: the gateway's servers are answered from then on.
     serving: AtomicBool,
+    /// The writers the gateway's servers set input ports through, one per port as a
+    /// socket client keeps them (a writer per request would leave a connection behind
+    /// each), with the reload generation they were made in.
+    server_writers: Mutex<(u64, Writers)>,
 }
+
+/// Writers into input ports by (component, port).
+type Writers = HashMap<(String, String), Box<dyn DynWriter>>;
 
 /// The most `record` streams at once: each holds buffers on the recorded ports and adds a
 /// copy to each of their writes.
@@ -246,6 +253,7 @@ impl ControlServer {
             next_id: AtomicU64::new(1),
             records: std::sync::atomic::AtomicUsize::new(0),
             serving: AtomicBool::new(false),
+            server_writers: Mutex::new((0, HashMap::new())),
         });
         // Weak: the servers live in the gateway, which the shared state holds.
         let weak: std::sync::Weak<dyn driver_api::Control> = Arc::downgrade(&shared) as _;
@@ -514,7 +522,7 @@ fn serve_client(shared: &Shared, conn: UnixStream) {
     let _ = conn.set_write_timeout(Some(shared.limits.idle));
     let out = &conn;
     let mut reader = BufReader::new(&conn);
-    let mut writers: HashMap<(String, String), Box<dyn DynWriter>> = HashMap::new();
+    let mut writers: Writers = HashMap::new();
     let mut generation = shared.gw.generation.load(Ordering::Acquire);
     let mut buf = Vec::new();
     let stats = &shared.stats;
@@ -600,7 +608,7 @@ fn carry_out(
     shared: &Shared,
     id: Value,
     req: &Request,
-    writers: &mut HashMap<(String, String), Box<dyn DynWriter>>,
+    writers: &mut Writers,
     forward: bool,
 ) -> Reply {
     let stopping = || {
@@ -646,6 +654,16 @@ impl driver_api::Control for Shared {
                 ErrorKind::BadRequest,
                 "streams (watch, record) are served on the control socket only",
             ),
+            Ok((id, req @ Request::Set { .. })) => {
+                let mut kept = rtt::lock(&self.server_writers);
+                let (generation, writers) = &mut *kept;
+                // Writers into ports a reload has made again since are let go.
+                let now = self.gw.generation.load(Ordering::Acquire);
+                if std::mem::replace(generation, now) != now {
+                    writers.clear();
+                }
+                carry_out(self, id, &req, writers, true)
+            }
             Ok((id, req)) => carry_out(self, id, &req, &mut HashMap::new(), true),
         };
         match reply.body {
@@ -683,6 +701,12 @@ impl Shared {
             return Err(driver_api::ControlError::new(
                 "unavailable",
                 "the gateway is starting",
+            ));
+        }
+        if self.closing.load(Ordering::Acquire) {
+            return Err(control_error(
+                ErrorKind::Stopping,
+                "the gateway is stopping: its outputs are going to their safe values",
             ));
         }
         self.stats.requests.fetch_add(1, Ordering::Relaxed);

@@ -30,13 +30,22 @@ struct Client {
 }
 
 impl Client {
-    /// Connects to `addr` asking for `subprotocol`; the handshake's error when refused.
-    fn try_connect(addr: SocketAddr, subprotocol: &str) -> Result<Client, tungstenite::Error> {
+    /// Connects to `addr` at `path` asking for `subprotocol`, with `headers`; the
+    /// handshake's error when refused.
+    fn try_connect(
+        addr: SocketAddr,
+        path: &str,
+        subprotocol: &str,
+        headers: &[(&'static str, &str)],
+    ) -> Result<Client, tungstenite::Error> {
         let tcp = TcpStream::connect(addr).unwrap();
         tcp.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
-        let mut req = format!("ws://{addr}/").into_client_request().unwrap();
+        let mut req = format!("ws://{addr}{path}").into_client_request().unwrap();
         req.headers_mut()
             .insert("sec-websocket-protocol", subprotocol.parse().unwrap());
+        for (k, v) in headers {
+            req.headers_mut().insert(*k, v.parse().unwrap());
+        }
         let (ws, resp) = tungstenite::client::client(req, tcp).map_err(|e| match e {
             tungstenite::HandshakeError::Failure(e) => e,
             tungstenite::HandshakeError::Interrupted(_) => panic!("handshake interrupted"),
@@ -55,7 +64,7 @@ impl Client {
     }
 
     fn connect(addr: SocketAddr) -> Client {
-        Client::try_connect(addr, "foxglove.websocket.v1").unwrap()
+        Client::try_connect(addr, "/", "foxglove.websocket.v1", &[]).unwrap()
     }
 
     /// The next text operation `op`, taking in advertisements on the way.
@@ -175,6 +184,9 @@ fn two_channels_carry_what_hwgw_get_reads() {
     }
     let times: Vec<u64> = data.iter().filter(|d| d.0 == 10).map(|d| d.1).collect();
     assert!(times.windows(2).all(|w| w[0] < w[1]), "times rise");
+    // Stopped with the client connected and subscribed: the gateway stops as always.
+    let stopped = svc.terminate();
+    assert!(stopped.status.success(), "{}", stopped.log);
 }
 
 #[test]
@@ -199,7 +211,12 @@ fn a_client_that_does_not_read_loses_samples_counted_and_slows_nobody() {
     let mut slow = Client::connect(addr);
     subscribe_all(&mut slow);
     let mut reader = Client::connect(addr);
-    subscribe_all(&mut reader);
+    let (ch0, steps) = (
+        reader.channel("/sim0/ai/ch0"),
+        reader.channel("/activity/sim0"),
+    );
+    reader.send_json(json!({"op": "subscribe", "subscriptions": [
+        {"id": 1, "channelId": ch0}, {"id": 2, "channelId": steps}]}));
     // The slow one never reads again; the other reads on.
     let mut got = 0;
     let end = Instant::now() + Duration::from_secs(60);
@@ -238,9 +255,21 @@ fn a_client_that_does_not_read_loses_samples_counted_and_slows_nobody() {
 #[test]
 fn a_client_publishes_to_an_input_port_only_when_allowed() {
     let ports = "ports = [\"sim0.ai.ch0\"]";
-    let writes = "allow_writes = true\ninputs = [\"sim0.ao.ch1\"]";
+    let token = "a-token-for-the-foxglove-clients";
+    let writes = format!("allow_writes = true\ninputs = [\"sim0.ao.ch1\"]\ntoken = \"{token}\"");
     let (svc, addr) = run("fox-write", &format!("{ports}\n{writes}"));
+    // Without the token: no publishing.
     let mut c = Client::connect(addr);
+    assert_eq!(c.server_info["capabilities"], json!([]));
+    c.send_json(json!({"op": "advertise", "channels": [
+        {"id": 7, "topic": "/sim0/ao/ch1", "encoding": "json", "schemaName": "hwgw.sample.f64"}]}));
+    let status = c.next_op("status");
+    assert!(
+        status["message"].as_str().unwrap().contains("token"),
+        "{status}"
+    );
+    let path = format!("/?token={token}");
+    let mut c = Client::try_connect(addr, &path, "foxglove.websocket.v1", &[]).unwrap();
     assert_eq!(c.server_info["capabilities"], json!(["clientPublish"]));
     c.send_json(json!({"op": "advertise", "channels": [
         {"id": 7, "topic": "/sim0/ao/ch1", "encoding": "json", "schemaName": "hwgw.sample.f64"}]}));
@@ -255,7 +284,7 @@ fn a_client_publishes_to_an_input_port_only_when_allowed() {
     wait_until("the published value reached the output", || {
         (read().as_f64().unwrap() - 2.25).abs() < 1e-3
     });
-    assert_eq!(counters(&svc)["writes"], 1);
+    wait_until("the write counted", || counters(&svc)["writes"] == 1);
     // A streamed output is no input: the client is told, nothing is written.
     c.send_json(json!({"op": "advertise", "channels": [
         {"id": 8, "topic": "/sim0/ai/ch0", "encoding": "json", "schemaName": "hwgw.sample.f64"}]}));
@@ -293,12 +322,19 @@ fn read_of(svc: &Service) -> Value {
 
 #[test]
 fn floods_big_messages_and_strangers_are_bounded_and_counted() {
-    let (svc, addr) = run("fox-flood", "ports = [\"sim0.ai.ch0\"]");
-    // Not a Foxglove client.
-    let refused = Client::try_connect(addr, "chat");
-    assert!(refused.is_err());
-    wait_until("the stranger counted", || {
-        counters(&svc)["handshakes_refused"].as_u64().unwrap() >= 1
+    let section = "ports = [\"sim0.ai.ch0\"]\norigins = [\"https://app.foxglove.dev\"]";
+    let (svc, addr) = run("fox-flood", section);
+    let listed = [("origin", "https://app.foxglove.dev")];
+    assert!(Client::try_connect(addr, "/", "foxglove.websocket.v1", &listed).is_ok());
+    // Not a Foxglove client; a page of another site; a name that is not this host's.
+    let fox = "foxglove.websocket.v1";
+    assert!(Client::try_connect(addr, "/", "chat", &[]).is_err());
+    let evil = [("origin", "http://evil.example")];
+    assert!(Client::try_connect(addr, "/", fox, &evil).is_err());
+    let rebound = [("host", "evil.example:8765")];
+    assert!(Client::try_connect(addr, "/", fox, &rebound).is_err());
+    wait_until("the strangers counted", || {
+        counters(&svc)["handshakes_refused"].as_u64().unwrap() >= 3
     });
     // Ten thousand messages that are not the protocol: closed after a hundred.
     let mut c = Client::connect(addr);

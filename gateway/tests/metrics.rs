@@ -141,6 +141,16 @@ fn prometheus_scrapes_the_demo_and_reads_what_status_says() {
     );
     let steps = prom.query("hwgw_component_steps_total{component=\"blink\"}");
     assert_eq!(steps.first().map(|s| s.1), blink["steps"].as_f64());
+    // Count and sum, independent of how the buckets are laid out.
+    let count = prom.query("hwgw_component_step_seconds_count{component=\"blink\"}");
+    assert_eq!(count[0].1, histogram.iter().sum::<u64>() as f64);
+    let sum = prom.query("hwgw_component_step_seconds_sum{component=\"blink\"}");
+    let want_sum = blink["step_total_ns"].as_u64().unwrap() as f64 * 1e-9;
+    assert!(
+        (sum[0].1 - want_sum).abs() <= want_sum * 1e-12,
+        "{} against {want_sum}",
+        sum[0].1
+    );
 
     svc.ok(json!({"cmd": "start", "component": "blink"}));
     wait_until("healthy again", || get(addr, "/health").status == 200);

@@ -75,7 +75,16 @@ fn a_users_server_type_is_built_from_its_section_and_named_by_its_key() {
         !types.servers.register("card", echo),
         "the deployment's keys are taken"
     );
-    assert_eq!(types.servers.names(), ["echo", "modbus_server"]);
+    assert_eq!(
+        types.servers.names(),
+        [
+            "echo",
+            "modbus_server",
+            "server.foxglove",
+            "server.metrics",
+            "server.web"
+        ]
+    );
     let text = format!("{CARD}[echo]\nat = \"here\"\ndevices = [\"s\"]\n");
     let (gw, _) = Gateway::from_text(&text, "e.toml", &types).unwrap();
     assert_eq!(gw.server_address("echo"), None);
@@ -105,7 +114,28 @@ fn a_users_server_type_is_built_from_its_section_and_named_by_its_key() {
         "{e}"
     );
     assert!(
-        e.ends_with("the servers of this build: modbus_server"),
+        e.ends_with(
+            "the servers of this build: modbus_server, server.foxglove, server.metrics, server.web"
+        ),
         "{e}"
     );
+}
+
+#[test]
+fn a_users_server_type_under_server_is_asked_for_with_server_dot_its_name() {
+    let mut types = Types::builtin();
+    assert!(!types.servers.register("server", echo), "server is taken");
+    assert!(!types.servers.register("server.", echo), "a name is needed");
+    assert!(!types.servers.register("server.a.b", echo), "one level");
+    assert!(types.servers.register("server.echo", echo));
+    let text = format!("{CARD}[server.echo]\nat = \"there\"\ndevices = [\"s\"]\n");
+    let (gw, _) = Gateway::from_text(&text, "e.toml", &types).unwrap();
+    gw.start().unwrap();
+    assert_eq!(gw.server_address("server.echo").as_deref(), Some("there"));
+    gw.shutdown();
+    let text = format!("{CARD}[server.echo]\nat = \"there\"\ndevices = [\"t\"]\n");
+    let Err(e) = Gateway::from_text(&text, "e.toml", &types) else {
+        panic!("a missing device taken");
+    };
+    assert_eq!(e, "e.toml:8:12: server.echo.devices[0]: no \"t\"");
 }

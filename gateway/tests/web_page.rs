@@ -153,3 +153,37 @@ fn a_read_only_page_refuses_every_write_and_says_what_a_browser_needs() {
     let status = get(addr, "/api/status").json();
     assert!(status["components"].as_array().unwrap().len() > 3);
 }
+
+#[test]
+fn writes_with_the_token_reach_only_the_listed_inputs() {
+    let svc = Service::run_text(HWGW, "web-writes", &demo_with_web(true)).unwrap();
+    let addr = svc.server_address("server.web");
+    let auth = format!("Bearer {TOKEN}");
+    let set = |component: &str, port: &str, token: &str| {
+        let body = json!({"component": component, "port": port, "value": 1.5}).to_string();
+        let h = [
+            ("authorization", token),
+            ("content-type", "application/json"),
+        ];
+        request(addr, "POST", "/api/set", &h, body.as_bytes()).unwrap()
+    };
+    let before = svc.ok(json!({"cmd": "get", "component": "sim0.ao", "port": "ch0"}));
+    // Not listed (sim0.ao.ch0), listed but an output (sim0.ai.ch0), no token.
+    assert_eq!(set("sim0.ao", "ch0", &auth).status, 403);
+    assert_eq!(set("sim0.ai", "ch0", &auth).status, 403);
+    assert_eq!(set("sim0.ao", "ch1", "Bearer wrong").status, 401);
+    assert_eq!(
+        svc.ok(json!({"cmd": "get", "component": "sim0.ao", "port": "ch0"})),
+        before
+    );
+    let a = set("sim0.ao", "ch1", &auth);
+    assert_eq!(a.status, 200, "{}", a.text());
+    let v = svc.ok(json!({"cmd": "get", "component": "sim0.ao", "port": "ch1"}));
+    assert!((v.as_f64().unwrap() - 1.5).abs() < 1e-3, "{v}");
+    assert!(
+        svc.server_status("server.web")["counters"]["writes_refused"]
+            .as_u64()
+            .unwrap()
+            >= 3
+    );
+}

@@ -35,6 +35,11 @@ pub struct MetricsConfig {
     /// opt-in, so a big deployment makes no series it was not asked for.
     #[serde(default)]
     pub ports: Vec<String>,
+    /// Host names it answers to besides its addresses and `localhost` (a request whose
+    /// `Host` names another is refused: a web page of another site cannot reach it through
+    /// a name of its own).
+    #[serde(default)]
+    pub hosts: Vec<String>,
 }
 
 /// `[server.web]`: the web page.
@@ -60,6 +65,9 @@ pub struct WebConfig {
     /// required with `allow_writes`.
     #[serde(default)]
     pub token: Option<String>,
+    /// Host names it answers to besides its addresses and `localhost`.
+    #[serde(default)]
+    pub hosts: Vec<String>,
 }
 
 fn default_metrics_listen() -> String {

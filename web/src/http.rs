@@ -4,7 +4,9 @@
 //!
 //! A connection past the client limit is answered `503` at once and closed, without being
 //! read; a head larger than [`Limits::max_head_bytes`] is answered `431` by hyper; a head
-//! not whole within [`Limits::head_timeout`] (slowloris) closes the connection. The
+//! not whole within [`Limits::head_timeout`] (slowloris) closes the connection, and so
+//! does a write the client leaves unread for [`crate::guard::WRITE_STALL`]; a `Host` the
+//! server does not answer to is refused with 421 ([`crate::guard::host_allowed`]). The
 //! server runs on a thread of its own with a single-threaded tokio runtime: nothing of
 //! it runs on a component's thread, and a request that must wait for the gateway (a
 //! control request) waits on the runtime's blocking pool, never on the accept loop.
@@ -40,12 +42,12 @@ pub trait Routes: Send + Sync + 'static {
 /// A connection's own protocol, for a server that speaks more than plain HTTP (the
 /// Foxglove WebSocket server): it is handed each connection within the client limit.
 pub trait Connections: Send + Sync + 'static {
-    /// Serves `tcp` until it ends.
-    fn serve(
-        self: Arc<Self>,
-        tcp: tokio::net::TcpStream,
-    ) -> Pin<Box<dyn Future<Output = ()> + Send>>;
+    /// Serves `conn` until it ends.
+    fn serve(self: Arc<Self>, conn: Conn) -> Pin<Box<dyn Future<Output = ()> + Send>>;
 }
+
+/// A connection as a server's handler gets it: its writes fail once stalled too long.
+pub type Conn = crate::guard::Stalling<tokio::net::TcpStream>;
 
 /// What a server does with a connection it takes.
 #[derive(Clone)]
@@ -57,7 +59,7 @@ pub enum Handler {
 }
 
 /// How much a server takes.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Limits {
     /// Connections at once; one more is answered 503 and closed.
     pub clients: usize,
@@ -66,6 +68,9 @@ pub struct Limits {
     pub head_timeout: Duration,
     /// The largest head read, bytes (at least 8192: hyper's floor).
     pub max_head_bytes: usize,
+    /// Host names it answers to besides addresses and `localhost`
+    /// ([`crate::guard::host_allowed`]).
+    pub hosts: Arc<[String]>,
 }
 
 /// A server's counters.
@@ -85,6 +90,10 @@ pub struct Stats {
     pub head_timeouts: AtomicU64,
     /// Accepts that failed (out of file descriptors: the loop backs off).
     pub accept_failures: AtomicU64,
+    /// Connections closed because the client stopped reading what it was sent.
+    pub write_stalls: Arc<AtomicU64>,
+    /// Requests refused for a `Host` the server does not answer to.
+    pub bad_hosts: AtomicU64,
 }
 
 impl Stats {
@@ -99,6 +108,8 @@ impl Stats {
             bad_requests: load(&self.bad_requests),
             head_timeouts: load(&self.head_timeouts),
             accept_failures: load(&self.accept_failures),
+            write_stalls: load(&self.write_stalls),
+            bad_hosts: load(&self.bad_hosts),
         }
     }
 }
@@ -114,6 +125,8 @@ pub struct StatsSnapshot {
     pub bad_requests: u64,
     pub head_timeouts: u64,
     pub accept_failures: u64,
+    pub write_stalls: u64,
+    pub bad_hosts: u64,
 }
 
 /// A running server: its address, and how to stop it.
@@ -154,9 +167,8 @@ impl HttpServer {
     }
 
     /// Runs `task` on the server's runtime while it serves (it ends with the server).
-    pub fn with_background(mut self, task: Background) -> HttpServer {
+    pub fn set_background(&mut self, task: Background) {
         self.background = Some(task);
-        self
     }
 
     /// Where it is to listen.
@@ -184,7 +196,11 @@ impl HttpServer {
             .thread_name(format!("{}-blocking", self.name))
             .build()?;
         let (stop, stopped) = tokio::sync::watch::channel(false);
-        let (handler, stats, limits) = (self.handler.clone(), self.stats.clone(), self.limits);
+        let (handler, stats, limits) = (
+            self.handler.clone(),
+            self.stats.clone(),
+            self.limits.clone(),
+        );
         let background = self.background.clone();
         let thread = std::thread::Builder::new()
             .name(self.name.clone())
@@ -263,14 +279,16 @@ async fn accept_loop(
                         continue;
                     };
                     stats.accepted.fetch_add(1, Ordering::Relaxed);
-                    let (handler, stats) = (handler.clone(), stats.clone());
+                    let (handler, stats, limits) = (handler.clone(), stats.clone(), limits.clone());
                     conns.spawn(async move {
                         let _slot = slot;
                         stats.connected.fetch_add(1, Ordering::Relaxed);
                         let _connected = Connected(&stats.connected);
+                        let _ = tcp.set_nodelay(true);
+                        let conn = crate::guard::Stalling::new(tcp, stats.write_stalls.clone());
                         match handler {
-                            Handler::Http(routes) => serve(tcp, routes, &stats, limits).await,
-                            Handler::Raw(c) => c.serve(tcp).await,
+                            Handler::Http(routes) => serve(conn, routes, &stats, &limits).await,
+                            Handler::Raw(c) => c.serve(conn).await,
                         }
                     });
                 }
@@ -295,19 +313,29 @@ impl Drop for Connected<'_> {
     }
 }
 
-async fn serve(tcp: tokio::net::TcpStream, routes: Arc<dyn Routes>, stats: &Arc<Stats>, l: Limits) {
-    let _ = tcp.set_nodelay(true);
+async fn serve(conn: Conn, routes: Arc<dyn Routes>, stats: &Arc<Stats>, l: &Limits) {
     let counted = stats.clone();
-    let service = service_fn(move |req| {
+    let hosts = l.hosts.clone();
+    let service = service_fn(move |req: Request<hyper::body::Incoming>| {
         counted.requests.fetch_add(1, Ordering::Relaxed);
-        let answer = routes.clone().route(req);
+        let host = req.headers().get("host").map(|h| h.to_str().unwrap_or(""));
+        let answer = if crate::guard::host_allowed(host, &hosts) {
+            routes.clone().route(req)
+        } else {
+            counted.bad_hosts.fetch_add(1, Ordering::Relaxed);
+            let refused = text(
+                StatusCode::MISDIRECTED_REQUEST,
+                "this server answers to its address, localhost and its configured hosts\n",
+            );
+            Box::pin(async move { refused })
+        };
         async move { Ok::<_, Infallible>(answer.await) }
     });
     let result = http1::Builder::new()
         .timer(TokioTimer::new())
         .header_read_timeout(l.head_timeout)
         .max_buf_size(l.max_head_bytes.max(8192))
-        .serve_connection(TokioIo::new(tcp), service)
+        .serve_connection(TokioIo::new(conn), service)
         .await;
     if let Err(e) = result {
         if e.is_timeout() {
@@ -347,6 +375,17 @@ pub fn headers(r: &mut Response<Body>, content_type: &str, cache: &str) {
             h.insert(k, v);
         }
     }
+}
+
+/// The answer, or 503 when there was none for want of a free permit (too many requests
+/// under way, [`crate::guard::Blocking`]).
+pub fn busy_or(answer: Option<Response<Body>>) -> Response<Body> {
+    answer.unwrap_or_else(|| {
+        text(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "busy: too many requests under way\n",
+        )
+    })
 }
 
 /// A plain-text answer of `status`.

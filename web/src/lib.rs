@@ -14,6 +14,7 @@
 pub mod config;
 pub mod exposition;
 pub mod foxglove;
+pub mod guard;
 pub mod http;
 pub mod metrics;
 pub mod page;

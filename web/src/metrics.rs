@@ -4,12 +4,12 @@
 //! reasons when not: the rule that feeds systemd's watchdog).
 
 use crate::config::{self, MetricsConfig, PortRef};
+use crate::guard::Blocking;
 use crate::http::{self, Answer, Routes};
-use crate::service::HttpService;
+use crate::service::{HttpService, health, status};
 use driver_api::{CardError, ControlLink, Server, ServerContext};
 use hyper::{Method, Request, Response, StatusCode};
-use protocol::StatusReport;
-use serde_json::{Value, json};
+use serde_json::json;
 use std::sync::Arc;
 
 /// The OpenMetrics text content type.
@@ -34,19 +34,18 @@ pub fn build(
     let routes = Arc::new(MetricsRoutes {
         control: ctx.control().clone(),
         ports,
+        pool: Blocking::new(),
     });
     let handler = http::Handler::Http(routes);
-    Ok(Box::new(HttpService::new(
-        ctx.name(),
-        listen,
-        clients,
-        handler,
-    )))
+    let service = HttpService::new(ctx.name(), listen, clients, &c.hosts, handler);
+    Ok(Box::new(service))
 }
 
 struct MetricsRoutes {
     control: ControlLink,
     ports: Vec<PortRef>,
+    /// What the scrapes wait for the gateway in.
+    pool: Blocking,
 }
 
 impl Routes for MetricsRoutes {
@@ -64,11 +63,12 @@ impl Routes for MetricsRoutes {
                         .iter()
                         .filter_map(|v| v.to_str().ok())
                         .any(|v| v.contains("application/openmetrics-text"));
-                    blocking(move || me.metrics(openmetrics)).await
+                    let pool = self.pool.clone();
+                    http::busy_or(pool.try_run(move || me.metrics(openmetrics)).await)
                 }
                 "/health" => {
                     let control = self.control.clone();
-                    blocking(move || health(&control)).await
+                    http::busy_or(self.pool.try_run(move || health(&control)).await)
                 }
                 _ => http::text(StatusCode::NOT_FOUND, "/metrics or /health\n"),
             }
@@ -82,7 +82,7 @@ impl MetricsRoutes {
     fn metrics(&self, openmetrics: bool) -> Response<http::Body> {
         let status = match status(&self.control) {
             Ok(s) => s,
-            Err(e) => return http::text(StatusCode::SERVICE_UNAVAILABLE, e + "\n"),
+            Err(e) => return http::text(StatusCode::SERVICE_UNAVAILABLE, format!("{e}\n")),
         };
         let values: Vec<_> = self
             .ports
@@ -101,40 +101,4 @@ impl MetricsRoutes {
             http::respond(StatusCode::OK, PROMETHEUS_TEXT, text)
         }
     }
-}
-
-/// `f` on the runtime's blocking pool (a control request may wait for the gateway).
-pub(crate) async fn blocking(
-    f: impl FnOnce() -> Response<http::Body> + Send + 'static,
-) -> Response<http::Body> {
-    tokio::task::spawn_blocking(f)
-        .await
-        .unwrap_or_else(|e| http::text(StatusCode::INTERNAL_SERVER_ERROR, format!("failed: {e}\n")))
-}
-
-/// What `hwgw status` says, or why there is nothing.
-pub(crate) fn status(control: &ControlLink) -> Result<StatusReport, String> {
-    let v = control
-        .request(json!({"cmd": "status"}))
-        .map_err(|e| e.to_string())?;
-    serde_json::from_value(v).map_err(|e| format!("status: {e}"))
-}
-
-/// `/health`: 200 while healthy, 503 with the reasons when not.
-pub(crate) fn health(control: &ControlLink) -> Response<http::Body> {
-    let s = match status(control) {
-        Ok(s) => s,
-        Err(_) => {
-            let body = json!({"health": "unavailable", "reasons": ["the gateway is not serving"]});
-            return http::json(StatusCode::SERVICE_UNAVAILABLE, &body);
-        }
-    };
-    if s.health == "ok" {
-        return http::json(StatusCode::OK, &json!({"health": "ok"}));
-    }
-    let reasons: Vec<Value> = s.health.split("; ").map(Value::from).collect();
-    http::json(
-        StatusCode::SERVICE_UNAVAILABLE,
-        &json!({"health": "unhealthy", "reasons": reasons}),
-    )
 }

@@ -16,10 +16,10 @@
 //! and API (no inline script, no eval).
 
 use crate::config::{self, PortRef, WebConfig};
+use crate::guard::Blocking;
 use crate::http::{self, Answer, Routes};
-use crate::metrics::{blocking, health};
 use crate::sampler::Streams;
-use crate::service::HttpService;
+use crate::service::{HttpService, health};
 use driver_api::{CardError, ControlLink, Server, ServerContext};
 use hyper::{Method, Request, Response, StatusCode};
 use serde_json::{Value, json};
@@ -78,11 +78,13 @@ pub fn build(
         writes: if c.allow_writes { token } else { None },
         streams: streams.clone(),
         refused_writes: AtomicU64::new(0),
+        pool: Blocking::new(),
     });
     let (control, period) = (ctx.control().clone(), Duration::from_millis(c.sample_ms));
     let s = streams.clone();
     let counted = routes.clone();
-    let service = HttpService::new(ctx.name(), listen, clients, http::Handler::Http(routes))
+    let handler = http::Handler::Http(routes);
+    let service = HttpService::new(ctx.name(), listen, clients, &c.hosts, handler)
         .with_background(Arc::new(move || {
             Box::pin(crate::sampler::run(
                 control.clone(),
@@ -100,6 +102,10 @@ pub fn build(
             );
             m.insert("live_events".into(), load(&counted.streams.sent));
             m.insert("live_events_dropped".into(), load(&counted.streams.dropped));
+            m.insert(
+                "live_streams_ended_slow".into(),
+                load(&counted.streams.ended_slow),
+            );
             m.insert("writes_refused".into(), load(&counted.refused_writes));
             m
         });
@@ -113,6 +119,8 @@ struct Page {
     writes: Option<String>,
     streams: Arc<Streams>,
     refused_writes: AtomicU64,
+    /// What requests wait for the gateway in.
+    pool: Blocking,
 }
 
 impl Routes for Page {
@@ -126,15 +134,17 @@ impl Routes for Page {
                 (true, _, "/icon.svg") => asset("image/svg+xml", ICON),
                 (true, _, "/health") => {
                     let control = self.control.clone();
-                    blocking(move || health(&control)).await
+                    http::busy_or(self.pool.try_run(move || health(&control)).await)
                 }
                 (true, _, "/api/status") => {
                     let control = self.control.clone();
-                    blocking(move || match control.request(json!({"cmd": "status"})) {
-                        Ok(v) => http::json(StatusCode::OK, &v),
-                        Err(e) => http::text(StatusCode::SERVICE_UNAVAILABLE, e.to_string()),
-                    })
-                    .await
+                    let answer = self.pool.try_run(move || {
+                        match control.request(json!({"cmd": "status"})) {
+                            Ok(v) => http::json(StatusCode::OK, &v),
+                            Err(e) => http::text(StatusCode::SERVICE_UNAVAILABLE, e.to_string()),
+                        }
+                    });
+                    http::busy_or(answer.await)
                 }
                 (true, _, "/api/ports") => http::json(
                     StatusCode::OK,
@@ -188,7 +198,7 @@ impl Page {
             .get("authorization")
             .and_then(|v| v.to_str().ok())
             .and_then(|v| v.strip_prefix("Bearer "));
-        if !given.is_some_and(|g| same(g.as_bytes(), token.as_bytes())) {
+        if !given.is_some_and(|g| crate::guard::same(g.as_bytes(), token.as_bytes())) {
             return refuse(
                 StatusCode::UNAUTHORIZED,
                 "a write needs the deployment's token",
@@ -216,7 +226,8 @@ impl Page {
         }
         let control = self.control.clone();
         let me = self.clone();
-        blocking(move || {
+        let pool = self.pool.clone();
+        let answer = pool.try_run(move || {
             let request = json!({"cmd": "set", "component": ask.component, "port": ask.port, "value": ask.value});
             match control.request(request) {
                 Ok(v) => http::json(StatusCode::OK, &json!({"ok": v})),
@@ -226,8 +237,14 @@ impl Page {
                     http::json(status, &json!({"error": e.to_string()}))
                 }
             }
-        })
-        .await
+        });
+        match answer.await {
+            Some(a) => a,
+            None => refuse(
+                StatusCode::SERVICE_UNAVAILABLE,
+                "busy: too many requests under way",
+            ),
+        }
     }
 }
 
@@ -237,9 +254,4 @@ struct SetAsk {
     component: String,
     port: String,
     value: Value,
-}
-
-/// `a == b` in a time that does not tell where they differ.
-fn same(a: &[u8], b: &[u8]) -> bool {
-    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }

@@ -23,10 +23,16 @@ const QUEUE: usize = 16;
 /// A comment line that keeps an idle stream open, and finds a client that left.
 const KEEP_ALIVE: Duration = Duration::from_secs(10);
 
+/// Sends in a row a stream may find full before it is ended (at 10 Hz, 5 s).
+const FULL_LIMIT: u32 = 50;
+
 /// The streams of a server and what they lost.
 #[derive(Default)]
 pub(crate) struct Streams {
-    clients: Mutex<Vec<mpsc::Sender<Bytes>>>,
+    /// Each stream, with how many sends in a row found it full.
+    clients: Mutex<Vec<(mpsc::Sender<Bytes>, u32)>>,
+    /// Streams ended for not being read.
+    pub(crate) ended_slow: AtomicU64,
     /// Events not delivered because a client's queue was full.
     pub(crate) dropped: AtomicU64,
     /// Events sent.
@@ -43,28 +49,35 @@ impl Streams {
         if let Some(last) = rtt::lock(&self.last).clone() {
             let _ = tx.try_send(last);
         }
-        rtt::lock(&self.clients).push(tx);
+        rtt::lock(&self.clients).push((tx, 0));
         http_body_util::BodyExt::boxed(Events(rx))
     }
 
     /// How many streams are open.
     pub(crate) fn listeners(&self) -> usize {
         let mut clients = rtt::lock(&self.clients);
-        clients.retain(|c| !c.is_closed());
+        clients.retain(|(c, _)| !c.is_closed());
         clients.len()
     }
 
-    /// `event` to every stream; a full one loses it (counted), a closed one is let go.
+    /// `event` to every stream; a full one loses it (counted) and, full too often in a
+    /// row, is ended; a closed one is let go.
     fn send(&self, event: Bytes) {
         let mut clients = rtt::lock(&self.clients);
-        clients.retain(|c| match c.try_send(event.clone()) {
+        clients.retain_mut(|(c, full)| match c.try_send(event.clone()) {
             Ok(()) => {
                 self.sent.fetch_add(1, Ordering::Relaxed);
+                *full = 0;
                 true
             }
             Err(mpsc::error::TrySendError::Full(_)) => {
                 self.dropped.fetch_add(1, Ordering::Relaxed);
-                true
+                *full += 1;
+                let keep = *full < FULL_LIMIT;
+                if !keep {
+                    self.ended_slow.fetch_add(1, Ordering::Relaxed);
+                }
+                keep
             }
             Err(mpsc::error::TrySendError::Closed(_)) => false,
         });

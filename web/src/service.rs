@@ -4,8 +4,10 @@
 
 use crate::config;
 use crate::http::{self, HttpServer, Limits};
-use driver_api::{CardStatus, Server, ServerError};
-use serde_json::Value;
+use driver_api::{CardStatus, ControlError, ControlLink, Server, ServerError};
+use hyper::{Response, StatusCode};
+use protocol::StatusReport;
+use serde_json::{Value, json};
 use std::sync::Arc;
 
 /// What starts and stops with a server beside its connections (a thread of its own).
@@ -31,12 +33,14 @@ impl HttpService {
         name: &str,
         listen: std::net::SocketAddr,
         clients: usize,
+        hosts: &[String],
         handler: http::Handler,
     ) -> HttpService {
         let limits = Limits {
             clients,
             head_timeout: config::HEAD_TIMEOUT,
             max_head_bytes: config::MAX_HEAD,
+            hosts: hosts.into(),
         };
         let thread = format!("hwgw-{}", name.rsplit('.').next().unwrap_or(name));
         HttpService {
@@ -62,7 +66,7 @@ impl HttpService {
     }
 
     pub(crate) fn with_background(mut self, task: http::Background) -> Self {
-        self.http = self.http.with_background(task);
+        self.http.set_background(task);
         self
     }
 }
@@ -119,4 +123,35 @@ impl Server for HttpService {
             )))
         }
     }
+}
+
+impl Drop for HttpService {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
+
+/// What `hwgw status` says, or why there is nothing.
+pub(crate) fn status(control: &ControlLink) -> Result<StatusReport, ControlError> {
+    let v = control.request(json!({"cmd": "status"}))?;
+    serde_json::from_value(v).map_err(|e| ControlError::new("failed", format!("status: {e}")))
+}
+
+/// `/health`: 200 while healthy, 503 with the reasons when not.
+pub(crate) fn health(control: &ControlLink) -> Response<http::Body> {
+    let s = match status(control) {
+        Ok(s) => s,
+        Err(e) => {
+            let body = json!({"health": "unavailable", "reasons": [e.to_string()]});
+            return http::json(StatusCode::SERVICE_UNAVAILABLE, &body);
+        }
+    };
+    if s.health == "ok" {
+        return http::json(StatusCode::OK, &json!({"health": "ok"}));
+    }
+    let reasons: Vec<Value> = s.health.split("; ").map(Value::from).collect();
+    http::json(
+        StatusCode::SERVICE_UNAVAILABLE,
+        &json!({"health": "unhealthy", "reasons": reasons}),
+    )
 }

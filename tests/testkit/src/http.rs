@@ -41,7 +41,8 @@ impl Answer {
 /// How long a request may take.
 const TIMEOUT: Duration = Duration::from_secs(30);
 
-/// `METHOD path` to `addr` with `headers` and `body`; the answer, or why there is none.
+/// `METHOD path` to `addr` with `headers` (`host: ADDR` unless they name one) and
+/// `body`; the answer, or why there is none.
 pub fn request(
     addr: SocketAddr,
     method: &str,
@@ -53,9 +54,12 @@ pub fn request(
     let _ = c.set_read_timeout(Some(TIMEOUT));
     let _ = c.set_write_timeout(Some(TIMEOUT));
     let mut head = format!(
-        "{method} {path} HTTP/1.1\r\nhost: {addr}\r\nconnection: close\r\ncontent-length: {}\r\n",
+        "{method} {path} HTTP/1.1\r\nconnection: close\r\ncontent-length: {}\r\n",
         body.len()
     );
+    if !headers.iter().any(|(k, _)| k.eq_ignore_ascii_case("host")) {
+        head.push_str(&format!("host: {addr}\r\n"));
+    }
     for (k, v) in headers {
         head.push_str(&format!("{k}: {v}\r\n"));
     }

@@ -33,6 +33,14 @@ pub struct Shared {
     pub control: ControlLink,
     /// The input ports clients may publish to, by topic (none: no publishing).
     pub inputs: HashMap<String, Input>,
+    /// What a client must bring to publish (`?token=` or `Authorization: Bearer`).
+    pub token: Option<String>,
+    /// Pages of these origins may connect (a browser names the page; a program does not).
+    pub origins: Vec<String>,
+    /// Host names it answers to besides addresses and `localhost`.
+    pub hosts: Vec<String>,
+    /// What writes wait for the gateway in.
+    pub pool: crate::guard::Blocking,
     /// A client's queue, batches.
     pub queue: usize,
     /// The largest message a client may send, bytes.
@@ -90,6 +98,10 @@ impl Shared {
             hub,
             control,
             inputs,
+            token: None,
+            origins: Vec::new(),
+            hosts: Vec::new(),
+            pool: crate::guard::Blocking::new(),
             queue: 32,
             max_message: 64 * 1024,
             counters: Counters::default(),
@@ -98,52 +110,111 @@ impl Shared {
     }
 }
 
+/// What a handshake found: may the client publish.
+#[derive(Default)]
+struct Admitted {
+    writes: std::sync::atomic::AtomicBool,
+}
+
+/// The handshake's answer to `req`: the Foxglove subprotocol chosen, or the refusal (not a
+/// Foxglove client, a host the server does not answer to, a page of a site not listed in
+/// `origins`); whether it brought the token is left in `admitted`.
+#[allow(
+    clippy::result_large_err,
+    reason = "tungstenite's handshake callback has this signature"
+)]
+fn handshake(
+    shared: &Shared,
+    admitted: &Admitted,
+    req: &Request,
+    mut resp: Response,
+) -> Result<Response, ErrorResponse> {
+    let refuse = |status: hyper::StatusCode, why: &str| {
+        let mut e = ErrorResponse::new(Some(format!("{why}\n")));
+        *e.status_mut() = status;
+        e
+    };
+    let header = |name: &str| req.headers().get(name).and_then(|v| v.to_str().ok());
+    if !crate::guard::host_allowed(header("host"), &shared.hosts) {
+        return Err(refuse(
+            hyper::StatusCode::MISDIRECTED_REQUEST,
+            "this server answers to its address, localhost and its configured hosts",
+        ));
+    }
+    // A browser says which page opened the connection; a program says nothing.
+    if let Some(origin) = header("origin")
+        && !shared.origins.iter().any(|o| o == origin)
+    {
+        return Err(refuse(
+            hyper::StatusCode::FORBIDDEN,
+            "a page of this origin may not connect (origins = [...] lists those that may)",
+        ));
+    }
+    let offered = req
+        .headers()
+        .get_all("sec-websocket-protocol")
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(','))
+        .map(str::trim)
+        .find(|p| wire::SUBPROTOCOLS.contains(p));
+    let Some(chosen) = offered.and_then(|p| p.parse().ok()) else {
+        return Err(refuse(
+            hyper::StatusCode::BAD_REQUEST,
+            "a Foxglove client: Sec-WebSocket-Protocol foxglove.websocket.v1",
+        ));
+    };
+    resp.headers_mut().insert("sec-websocket-protocol", chosen);
+    if let Some(token) = &shared.token {
+        let bearer = header("authorization").and_then(|v| v.strip_prefix("Bearer "));
+        let query = req.uri().query().into_iter().flat_map(|q| q.split('&'));
+        let given = bearer
+            .into_iter()
+            .chain(query.filter_map(|kv| kv.strip_prefix("token=")));
+        let matches = given
+            .into_iter()
+            .any(|g| crate::guard::same(g.as_bytes(), token.as_bytes()));
+        admitted.writes.store(matches, Ordering::Relaxed);
+    }
+    Ok(resp)
+}
+
+/// Takes a client out of the hub however its connection ends (closed, or aborted at
+/// the server's stop).
+struct Leave<'a>(&'a Hub, u64);
+
+impl Drop for Leave<'_> {
+    fn drop(&mut self) {
+        self.0.leave(self.1);
+    }
+}
+
 /// Serves one connection until it ends.
-pub async fn serve(shared: Arc<Shared>, tcp: tokio::net::TcpStream) {
-    let peer = tcp.peer_addr().map(|a| a.to_string()).unwrap_or_default();
-    let _ = tcp.set_nodelay(true);
+pub async fn serve(shared: Arc<Shared>, conn: crate::http::Conn) {
+    let peer = conn
+        .get_ref()
+        .peer_addr()
+        .map(|a| a.to_string())
+        .unwrap_or_default();
     let config = WebSocketConfig::default()
         .max_message_size(Some(shared.max_message))
         .max_frame_size(Some(shared.max_message));
+    let admitted = Admitted::default();
     #[allow(
         clippy::result_large_err,
         reason = "tungstenite's handshake callback has this signature"
     )]
-    let pick = |req: &Request, mut resp: Response| -> Result<Response, ErrorResponse> {
-        let offered = req
-            .headers()
-            .get_all("sec-websocket-protocol")
-            .iter()
-            .filter_map(|v| v.to_str().ok())
-            .flat_map(|v| v.split(','))
-            .map(str::trim)
-            .find(|p| wire::SUBPROTOCOLS.contains(p))
-            .map(str::to_string);
-        match offered.and_then(|p| p.parse().ok()) {
-            Some(p) => {
-                resp.headers_mut().insert("sec-websocket-protocol", p);
-                Ok(resp)
-            }
-            None => {
-                let mut e = ErrorResponse::new(Some(
-                    "a Foxglove client: Sec-WebSocket-Protocol foxglove.websocket.v1\n".into(),
-                ));
-                *e.status_mut() = hyper::StatusCode::BAD_REQUEST;
-                Err(e)
-            }
-        }
-    };
-    let handshake = tokio_tungstenite::accept_hdr_async_with_config(tcp, pick, Some(config));
-    let ws = match tokio::time::timeout(HANDSHAKE, handshake).await {
+    let pick = |req: &Request, resp: Response| handshake(&shared, &admitted, req, resp);
+    let accepting = tokio_tungstenite::accept_hdr_async_with_config(conn, pick, Some(config));
+    let ws = match tokio::time::timeout(HANDSHAKE, accepting).await {
         Ok(Ok(ws)) => ws,
         _ => {
-            shared
-                .counters
-                .handshakes_refused
-                .fetch_add(1, Ordering::Relaxed);
+            let refused = &shared.counters.handshakes_refused;
+            refused.fetch_add(1, Ordering::Relaxed);
             return;
         }
     };
+    let writes = admitted.writes.load(Ordering::Relaxed) && !shared.inputs.is_empty();
     let (mut sink, mut stream) = ws.split();
     let (tx, mut rx) = mpsc::channel(shared.queue);
     let client = Arc::new(Client {
@@ -153,22 +224,20 @@ pub async fn serve(shared: Arc<Shared>, tcp: tokio::net::TcpStream) {
         subscriptions: Default::default(),
         sent: AtomicU64::new(0),
         dropped: AtomicU64::new(0),
+        queued_bytes: Default::default(),
     });
-    client.tell(wire::server_info(
-        &shared.name,
-        !shared.inputs.is_empty(),
-        &shared.session,
-    ));
-    let channels = shared.hub.channels();
+    client.tell(wire::server_info(&shared.name, writes, &shared.session));
+    let _leave = Leave(&shared.hub, client.id);
+    // Joined with the channels of the moment: a stream that begins later tells it anew.
+    let channels = shared.hub.join(client.clone());
     if !channels.list.is_empty() {
         client.tell(wire::advertise(&channels.list));
     }
-    shared.hub.join(client.clone());
     let writer = async {
         while let Some(out) = rx.recv().await {
             let sent = match out {
                 Out::Text(t) => sink.send(Message::text(t)).await,
-                Out::Frames(frames) => {
+                Out::Frames(frames, bytes) => {
                     let mut r = Ok(());
                     for f in frames {
                         r = sink.feed(Message::binary(f)).await;
@@ -176,6 +245,7 @@ pub async fn serve(shared: Arc<Shared>, tcp: tokio::net::TcpStream) {
                             break;
                         }
                     }
+                    client.queued_bytes.fetch_sub(bytes, Ordering::Relaxed);
                     if r.is_ok() { sink.flush().await } else { r }
                 }
             };
@@ -185,16 +255,15 @@ pub async fn serve(shared: Arc<Shared>, tcp: tokio::net::TcpStream) {
         }
         let _ = sink.close().await;
     };
-    let reader = read(&shared, &client, &mut stream);
+    let reader = read(&shared, &client, writes, &mut stream);
     tokio::select! {
         () = writer => {}
         () = reader => {}
     }
-    shared.hub.leave(client.id);
 }
 
 /// The client's messages until it goes, misbehaves or cannot be told.
-async fn read<S>(shared: &Shared, client: &Client, stream: &mut S)
+async fn read<S>(shared: &Shared, client: &Client, writes: bool, stream: &mut S)
 where
     S: futures_util::Stream<Item = Result<Message, tokio_tungstenite::tungstenite::Error>> + Unpin,
 {
@@ -202,8 +271,8 @@ where
     let mut published: HashMap<u32, ClientChannel> = HashMap::new();
     while let Some(m) = stream.next().await {
         let outcome = match m {
-            Ok(Message::Text(t)) => op(shared, client, &mut published, t.as_str()),
-            Ok(Message::Binary(b)) => publish(shared, &published, &b).await,
+            Ok(Message::Text(t)) => op(shared, client, writes, &mut published, t.as_str()),
+            Ok(Message::Binary(b)) => publish(shared, client, &published, &b).await,
             Ok(Message::Close(_)) => return,
             Ok(_) => Ok(()),
             Err(_) => {
@@ -238,6 +307,7 @@ where
 fn op(
     shared: &Shared,
     client: &Client,
+    writes: bool,
     published: &mut HashMap<u32, ClientChannel>,
     text: &str,
 ) -> Result<(), String> {
@@ -273,6 +343,13 @@ fn op(
                     .fetch_add(1, Ordering::Relaxed);
                 return Err("this server takes no writes (allow_writes = false)".into());
             }
+            if !writes {
+                let refused = &shared.counters.writes_refused;
+                refused.fetch_add(1, Ordering::Relaxed);
+                return Err("publishing needs the deployment's token: connect to \
+                            ws://HOST:PORT/?token=TOKEN"
+                    .into());
+            }
             for c in list {
                 if c.encoding != "json" {
                     return Err(format!(
@@ -301,10 +378,13 @@ fn op(
     }
 }
 
-/// A client's message on one of its channels: `{"value": …}` set on the channel's port,
-/// as `hwgw set` sets it; the client hears of a refusal.
+/// A client's message on one of its channels: `{"value": …}` set on the channel's input,
+/// as `hwgw set` sets it, one at a time. A frame that is not the protocol is the caller's
+/// error; a write refused (by the gateway, or not `{"value": …}`) is told to the client
+/// here and counted, but is no misbehaviour.
 async fn publish(
     shared: &Shared,
+    client: &Client,
     published: &HashMap<u32, ClientChannel>,
     frame: &[u8],
 ) -> Result<(), String> {
@@ -312,32 +392,37 @@ async fn publish(
     let channel = published
         .get(&id)
         .ok_or_else(|| format!("channel {id} was not advertised"))?;
-    let refuse = |why: String| {
+    let target = shared
+        .inputs
+        .get(&channel.topic)
+        .cloned()
+        .ok_or_else(|| format!("{}: not an input this server takes", channel.topic))?;
+    let refused = |why: String| {
         shared
             .counters
             .writes_refused
             .fetch_add(1, Ordering::Relaxed);
-        Err(why)
-    };
-    let Some(target) = shared.inputs.get(&channel.topic).cloned() else {
-        return refuse(format!("{}: not an input this server takes", channel.topic));
+        client.tell(wire::status(Level::Error, &why));
+        Ok(())
     };
     let value = match serde_json::from_slice::<Value>(payload) {
         Ok(Value::Object(mut m)) if m.contains_key("value") => {
             m.remove("value").unwrap_or(Value::Null)
         }
-        _ => return refuse(format!("{}: a message is {{\"value\": …}}", channel.topic)),
+        _ => return refused(format!("{}: a message is {{\"value\": …}}", channel.topic)),
     };
     let control = shared.control.clone();
     let request =
         json!({"cmd": "set", "component": target.component, "port": target.port, "value": value});
-    let done = tokio::task::spawn_blocking(move || control.request(request)).await;
-    match done {
-        Ok(Ok(_)) => {
+    match shared.pool.run(move || control.request(request)).await {
+        Some(Ok(_)) => {
             shared.counters.writes.fetch_add(1, Ordering::Relaxed);
             Ok(())
         }
-        Ok(Err(e)) => refuse(format!("{}: {e}", channel.topic)),
-        Err(e) => refuse(format!("{}: {e}", channel.topic)),
+        Some(Err(e)) => refused(format!("{}: {e}", channel.topic)),
+        None => refused(format!(
+            "{}: the write could not be carried out",
+            channel.topic
+        )),
     }
 }

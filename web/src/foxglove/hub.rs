@@ -22,8 +22,8 @@ use tokio::sync::mpsc;
 pub enum Out {
     /// A JSON operation.
     Text(String),
-    /// Message data frames, a batch's worth.
-    Frames(Frames),
+    /// Message data frames, a batch's worth, and their bytes.
+    Frames(Frames, usize),
 }
 
 /// A client's share of one batch: its frames, sent together.
@@ -43,7 +43,12 @@ pub struct Client {
     pub sent: AtomicU64,
     /// Messages it lost for a full queue.
     pub dropped: AtomicU64,
+    /// Bytes in its queue now.
+    pub queued_bytes: std::sync::atomic::AtomicUsize,
 }
+
+/// The most bytes a client's queue holds: a batch that would take it past this is lost.
+pub const MAX_QUEUED_BYTES: usize = 16 << 20;
 
 impl Client {
     /// A JSON operation for it; false when its queue is full or closed (it is too far
@@ -81,8 +86,11 @@ pub struct Hub {
     pub streams: AtomicU64,
     /// Samples and steps the streams brought.
     pub items: AtomicU64,
-    /// Samples the stream lost before they reached the server (its buffers were full).
+    /// Samples the streams lost before they reached the server (their buffers were full):
+    /// the ended streams' and the current one's.
     pub stream_lost: AtomicU64,
+    /// The ended streams' part of `stream_lost`.
+    lost_before: AtomicU64,
     /// What the clients that left had lost.
     pub dropped_left: AtomicU64,
     /// The last reason a stream could not begin.
@@ -112,10 +120,13 @@ impl Hub {
             .clone()
     }
 
-    /// Adds `client`, waking the pump.
-    pub fn join(&self, client: Arc<Client>) {
-        rtt::lock(&self.clients).push(client);
+    /// Adds `client`, waking the pump; the channels of the moment (under the same lock
+    /// a new stream's channels are told to the clients under, so none is missed).
+    pub fn join(&self, client: Arc<Client>) -> Arc<Channels> {
+        let mut clients = rtt::lock(&self.clients);
+        clients.push(client);
         self.wake.notify_all();
+        self.channels()
     }
 
     /// Removes client `id`, keeping the count of what it lost.
@@ -129,9 +140,11 @@ impl Hub {
         });
     }
 
-    /// Stops the pump (its stream ends at its next batch).
+    /// Stops the pump (its stream ends at its next batch) and lets every client go.
     pub fn stop(&self) {
+        let mut clients = rtt::lock(&self.clients);
         self.stopping.store(true, Ordering::Release);
+        clients.clear();
         self.wake.notify_all();
     }
 
@@ -155,10 +168,15 @@ impl Hub {
             }
             self.streams.fetch_add(1, Ordering::Relaxed);
             let result = control.stream(request.clone(), &mut |line| self.line(line));
+            let lost = self.stream_lost.load(Ordering::Relaxed);
+            self.lost_before.store(lost, Ordering::Relaxed);
             if let Err(e) = result {
                 *rtt::lock(&self.last_error) = Some(e.to_string());
-                // Not serving yet, or every record stream taken: again in a while.
-                let clients = rtt::lock(&self.clients);
+            }
+            // Not serving yet, every record stream taken, the gateway stopping, or nobody
+            // left: again in a while, or when a client comes.
+            let clients = rtt::lock(&self.clients);
+            if !self.stopping.load(Ordering::Acquire) {
                 let _ = self.wake.wait_timeout(clients, Duration::from_millis(500));
             }
         }
@@ -233,9 +251,10 @@ impl Hub {
             .map(|c| c.id)
             .collect();
         let advertise = wire::advertise(&new.list);
+        let clients = rtt::lock(&self.clients);
         *self.channels.write().unwrap_or_else(|p| p.into_inner()) = Arc::new(new);
         if changed {
-            for c in rtt::lock(&self.clients).iter() {
+            for c in clients.iter() {
                 if !gone.is_empty() {
                     c.tell(wire::unadvertise(&gone));
                 }
@@ -249,7 +268,8 @@ impl Hub {
     fn deliver(&self, batch: RecordBatch) {
         let channels = self.channels();
         let lost: u64 = batch.ports_lost.iter().sum();
-        self.stream_lost.store(lost, Ordering::Relaxed);
+        let before = self.lost_before.load(Ordering::Relaxed);
+        self.stream_lost.store(before + lost, Ordering::Relaxed);
         let clients = rtt::lock(&self.clients).clone();
         let subscriptions: Vec<HashMap<u32, u32>> = clients
             .iter()
@@ -284,10 +304,16 @@ impl Hub {
                 continue;
             }
             let n = share.len() as u64;
-            match c.tx.try_send(Out::Frames(share)) {
-                Ok(()) => c.sent.fetch_add(n, Ordering::Relaxed),
-                Err(_) => c.dropped.fetch_add(n, Ordering::Relaxed),
-            };
+            let bytes: usize = share.iter().map(Bytes::len).sum();
+            let queued = c.queued_bytes.fetch_add(bytes, Ordering::Relaxed);
+            let taken = queued + bytes <= MAX_QUEUED_BYTES
+                && c.tx.try_send(Out::Frames(share, bytes)).is_ok();
+            if taken {
+                c.sent.fetch_add(n, Ordering::Relaxed);
+            } else {
+                c.queued_bytes.fetch_sub(bytes, Ordering::Relaxed);
+                c.dropped.fetch_add(n, Ordering::Relaxed);
+            }
         }
     }
 }

@@ -63,6 +63,20 @@ pub struct FoxgloveConfig {
     /// port's topic (`/sim0/ao/ch1`), with `allow_writes`.
     #[serde(default)]
     pub inputs: Vec<String>,
+    /// What a client must bring to publish: `ws://HOST:PORT/?token=TOKEN` (Foxglove takes
+    /// the URL as given) or `Authorization: Bearer TOKEN`; at least 16 characters;
+    /// required with `allow_writes`.
+    #[serde(default)]
+    pub token: Option<String>,
+    /// Web pages of these origins may connect (`https://app.foxglove.dev`); a browser
+    /// says which page opens a connection, and one of another origin is refused, so a
+    /// site the operator visits cannot read or write the plant. Programs (Foxglove's
+    /// desktop app, PlotJuggler) name no origin and are not affected.
+    #[serde(default)]
+    pub origins: Vec<String>,
+    /// Host names it answers to besides its addresses and `localhost`.
+    #[serde(default)]
+    pub hosts: Vec<String>,
 }
 
 fn default_listen() -> String {
@@ -112,6 +126,9 @@ pub fn build(
     let hub = Arc::new(hub::Hub::default());
     let mut shared = client::Shared::new("hwgw", hub.clone(), ctx.control().clone(), inputs);
     shared.queue = c.queue;
+    shared.token = c.token.clone();
+    shared.origins = c.origins.clone();
+    shared.hosts = c.hosts.clone();
     let shared = Arc::new(shared);
     let ask = hub::Ask {
         ports: c.ports.clone(),
@@ -130,6 +147,7 @@ pub fn build(
         ctx.name(),
         listen,
         clients,
+        &c.hosts,
         http::Handler::Raw(Arc::new(Accept(shared))),
     )
     .with_status(move || status(&counted))
@@ -144,6 +162,13 @@ fn inputs(
 ) -> Result<std::collections::HashMap<String, client::Input>, Vec<CardError>> {
     let mut out = std::collections::HashMap::new();
     let mut problems = Vec::new();
+    match (&c.token, c.allow_writes) {
+        (Some(t), _) if t.chars().count() < 16 => {
+            problems.push(CardError::at("token", "at least 16 characters"));
+        }
+        (None, true) => problems.push(CardError::at("token", "allow_writes needs a token")),
+        _ => {}
+    }
     match (c.allow_writes, c.inputs.is_empty()) {
         (true, true) => problems.push(CardError::at("inputs", "allow_writes needs inputs")),
         (false, false) => problems.push(CardError::at(
@@ -206,11 +231,8 @@ fn streamable(name: &str, rt: &rtt::Runtime) -> Result<(), String> {
 struct Accept(Arc<client::Shared>);
 
 impl Connections for Accept {
-    fn serve(
-        self: Arc<Self>,
-        tcp: tokio::net::TcpStream,
-    ) -> Pin<Box<dyn Future<Output = ()> + Send>> {
-        Box::pin(client::serve(self.0.clone(), tcp))
+    fn serve(self: Arc<Self>, conn: http::Conn) -> Pin<Box<dyn Future<Output = ()> + Send>> {
+        Box::pin(client::serve(self.0.clone(), conn))
     }
 }
 
