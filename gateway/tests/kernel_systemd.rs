@@ -46,11 +46,13 @@ fn active() -> bool {
 /// `apt-get ARGS` as an operator runs it, offline: what the package needs must already be
 /// on the machine (the guest has no network interface but lo); its output, or an error
 /// with it. (`--no-download` would say so too, but apt 2.6 then refuses a local .deb:
-/// "Pathname to install is not absolute".)
+/// "Pathname to install is not absolute".) It waits up to 120 s for dpkg's lock, as an
+/// operator would: the guest's systemd runs the apt-daily jobs its timers missed, whose
+/// apt-get may hold the lock when a trial begins.
 fn apt(args: &str) -> Result<String, Failed> {
     let out = sh(&format!(
         "DEBIAN_FRONTEND=noninteractive timeout 300 apt-get -y -q --no-install-recommends \
-         {args} 2>&1; echo rc=$?"
+         -o DPkg::Lock::Timeout=120 {args} 2>&1; echo rc=$?"
     ))?;
     match out.trim_end().strip_suffix("rc=0") {
         Some(text) => Ok(text.to_string()),

@@ -32,6 +32,9 @@ pub struct Peer {
     /// The Debian packages it takes, including what its package only *Recommends* but the
     /// tests need (installs are made with `--no-install-recommends`).
     pub packages: &'static [&'static str],
+    /// Services its packages enable and start that the tests do not want running (the
+    /// tests start the program themselves): disabled and stopped once installed.
+    pub services: &'static [&'static str],
 }
 
 /// A Modbus TCP/RTU server from Debian's pymodbus. Its package imports `serial` and
@@ -44,6 +47,7 @@ pub const PYMODBUS: Peer = Peer {
         "python3-serial",
         "python3-serial-asyncio",
     ],
+    services: &[],
 };
 
 /// mbpoll, a libmodbus master.
@@ -51,6 +55,7 @@ pub const MBPOLL: Peer = Peer {
     name: "mbpoll",
     probe: Probe::Command("mbpoll"),
     packages: &["mbpoll"],
+    services: &[],
 };
 
 /// socat, for pty pairs.
@@ -58,6 +63,7 @@ pub const SOCAT: Peer = Peer {
     name: "socat",
     probe: Probe::Command("socat"),
     packages: &["socat"],
+    services: &[],
 };
 
 /// can-utils: candump, cansend, cangen.
@@ -65,6 +71,7 @@ pub const CAN_UTILS: Peer = Peer {
     name: "can-utils",
     probe: Probe::Command("candump"),
     packages: &["can-utils"],
+    services: &[],
 };
 
 /// i2c-tools: i2cget, i2cset, i2cdump, i2cdetect (in /usr/sbin).
@@ -72,6 +79,7 @@ pub const I2C_TOOLS: Peer = Peer {
     name: "i2c-tools",
     probe: Probe::Command("i2cget"),
     packages: &["i2c-tools"],
+    services: &[],
 };
 
 /// cyclictest, the wake-up latency reference of the jitter benchmark.
@@ -79,6 +87,7 @@ pub const CYCLICTEST: Peer = Peer {
     name: "cyclictest",
     probe: Probe::Command("cyclictest"),
     packages: &["rt-tests"],
+    services: &[],
 };
 
 /// libsimavr and its parts (uart_pty), with what the Uno harness is compiled with: a C
@@ -92,6 +101,7 @@ pub const SIMAVR: Peer = Peer {
         "/usr/include/libelf.h",
     ]),
     packages: &["libsimavr-dev", "libelf-dev", "gcc", "libc6-dev"],
+    services: &[],
 };
 
 /// npm, which fetches the StandardFirmata build the tests run.
@@ -99,6 +109,7 @@ pub const NPM: Peer = Peer {
     name: "npm",
     probe: Probe::Command("npm"),
     packages: &["npm"],
+    services: &[],
 };
 
 /// sigrok-cli, which reads ThreadScope's VCD recordings (its `counter` decoder counts
@@ -107,6 +118,7 @@ pub const SIGROK: Peer = Peer {
     name: "sigrok-cli",
     probe: Probe::Command("sigrok-cli"),
     packages: &["sigrok-cli"],
+    services: &[],
 };
 
 /// Debian's Python with pip and pyserial: pyfirmata2 (from PyPI) is installed with them.
@@ -114,6 +126,7 @@ pub const PYSERIAL: Peer = Peer {
     name: "pyserial and pip",
     probe: Probe::Python("serial, pip"),
     packages: &["python3-serial", "python3-pip"],
+    services: &[],
 };
 
 /// Debian's Python with pip: PyPI packages the tests compare with are installed with it
@@ -122,6 +135,7 @@ pub const PIP: Peer = Peer {
     name: "pip",
     probe: Probe::Python("pip"),
     packages: &["python3-pip"],
+    services: &[],
 };
 
 /// iproute2's `ip`: network namespaces and veth pairs for the tests' own hosts.
@@ -129,6 +143,7 @@ pub const IPROUTE2: Peer = Peer {
     name: "iproute2",
     probe: Probe::Command("ip"),
     packages: &["iproute2"],
+    services: &[],
 };
 
 /// The openssl command, which makes the certificates of the TLS tests.
@@ -136,6 +151,7 @@ pub const OPENSSL: Peer = Peer {
     name: "openssl",
     probe: Probe::Command("openssl"),
     packages: &["openssl"],
+    services: &[],
 };
 
 /// man-db: `man` renders the manual pages the hwgw package installs.
@@ -143,6 +159,7 @@ pub const MAN_DB: Peer = Peer {
     name: "man-db",
     probe: Probe::Command("man"),
     packages: &["man-db"],
+    services: &[],
 };
 
 /// bash-completion: the loader that finds a command's completion in
@@ -151,6 +168,7 @@ pub const BASH_COMPLETION: Peer = Peer {
     name: "bash-completion",
     probe: Probe::Files(&["/usr/share/bash-completion/bash_completion"]),
     packages: &["bash-completion"],
+    services: &[],
 };
 
 /// lintian, Debian's package checker (on the hwgw package).
@@ -158,6 +176,7 @@ pub const LINTIAN: Peer = Peer {
     name: "lintian",
     probe: Probe::Command("lintian"),
     packages: &["lintian"],
+    services: &[],
 };
 
 /// Prometheus: `promtool` checks an exposition, the server scrapes one (Debian's
@@ -166,6 +185,9 @@ pub const PROMETHEUS: Peer = Peer {
     name: "prometheus",
     probe: Probe::Command("promtool"),
     packages: &["prometheus"],
+    // Debian's package enables and starts a Prometheus on 0.0.0.0:9090 (and the kernel
+    // rig's guests, which boot this machine's root, would start it too).
+    services: &["prometheus"],
 };
 
 /// Headless Chromium and its WebDriver, which selenium drives.
@@ -173,6 +195,7 @@ pub const CHROMIUM: Peer = Peer {
     name: "chromium and chromedriver",
     probe: Probe::Command("chromedriver"),
     packages: &["chromium", "chromium-driver"],
+    services: &[],
 };
 
 /// Why a peer is not there.
@@ -213,6 +236,12 @@ pub fn require(peer: &Peer) -> Result<(), PeerError> {
         why,
     };
     kernel_rig::prepare::apt_install(peer.packages).map_err(|e| error(e.to_string()))?;
+    for service in peer.services {
+        // Without systemd running (a container), `disable` still removes the links.
+        let _ = Command::new("systemctl")
+            .args(["disable", "--now", service])
+            .output();
+    }
     if present(peer) {
         Ok(())
     } else {
