@@ -167,15 +167,18 @@ fn writes_with_the_token_reach_only_the_listed_inputs() {
         ];
         request(addr, "POST", "/api/set", &h, body.as_bytes()).unwrap()
     };
-    let before = svc.ok(json!({"cmd": "get", "component": "sim0.ao", "port": "ch0"}));
-    // Not listed (sim0.ao.ch0), listed but an output (sim0.ai.ch0), no token.
-    assert_eq!(set("sim0.ao", "ch0", &auth).status, 403);
+    // Not listed (sim0.do.bit12, which nothing else drives), listed but an output
+    // (sim0.ai.ch0), no token: refused, and the unlisted output left alone.
+    let bit12 = || svc.ok(json!({"cmd": "get", "component": "sim0.do", "port": "bit12"}));
+    let before = bit12();
+    let mut h = vec![("authorization", auth.as_str())];
+    h.push(("content-type", "application/json"));
+    let body = json!({"component": "sim0.do", "port": "bit12", "value": true}).to_string();
+    let a = request(addr, "POST", "/api/set", &h, body.as_bytes()).unwrap();
+    assert_eq!(a.status, 403, "{}", a.text());
     assert_eq!(set("sim0.ai", "ch0", &auth).status, 403);
     assert_eq!(set("sim0.ao", "ch1", "Bearer wrong").status, 401);
-    assert_eq!(
-        svc.ok(json!({"cmd": "get", "component": "sim0.ao", "port": "ch0"})),
-        before
-    );
+    assert_eq!(bit12(), before);
     let a = set("sim0.ao", "ch1", &auth);
     assert_eq!(a.status, 200, "{}", a.text());
     let v = svc.ok(json!({"cmd": "get", "component": "sim0.ao", "port": "ch1"}));
