@@ -194,6 +194,15 @@ struct Shared {
 /// Writers into input ports by (component, port).
 type Writers = HashMap<(String, String), Box<dyn DynWriter>>;
 
+/// Lets go of `writers` when a reload has made ports again since `generation` (which
+/// becomes the gateway's now).
+fn drop_stale(gw: &Gateway, generation: &mut u64, writers: &mut Writers) {
+    let now = gw.generation.load(Ordering::Acquire);
+    if std::mem::replace(generation, now) != now {
+        writers.clear();
+    }
+}
+
 /// The most `record` streams at once: each holds buffers on the recorded ports and adds a
 /// copy to each of their writes.
 pub const MAX_RECORD_STREAMS: usize = 4;
@@ -583,11 +592,7 @@ fn serve_client(shared: &Shared, conn: UnixStream) {
                         }
                     }
                     Ok((id, req)) => {
-                        // Writers into ports a reload has made again since are let go.
-                        let now = shared.gw.generation.load(Ordering::Acquire);
-                        if std::mem::replace(&mut generation, now) != now {
-                            writers.clear();
-                        }
+                        drop_stale(&shared.gw, &mut generation, &mut writers);
                         carry_out(shared, id, &req, &mut writers, true)
                     }
                 }
@@ -657,11 +662,7 @@ impl driver_api::Control for Shared {
             Ok((id, req @ Request::Set { .. })) => {
                 let mut kept = rtt::lock(&self.server_writers);
                 let (generation, writers) = &mut *kept;
-                // Writers into ports a reload has made again since are let go.
-                let now = self.gw.generation.load(Ordering::Acquire);
-                if std::mem::replace(generation, now) != now {
-                    writers.clear();
-                }
+                drop_stale(&self.gw, generation, writers);
                 carry_out(self, id, &req, writers, true)
             }
             Ok((id, req)) => carry_out(self, id, &req, &mut HashMap::new(), true),

@@ -125,6 +125,26 @@ pub(crate) fn endpoint(
     address.zip(clients)
 }
 
+/// The token writes must bring: at least 16 characters, and required with
+/// `allow_writes`; the problem at key `token` to `problems`.
+pub(crate) fn token(
+    token: &Option<String>,
+    allow_writes: bool,
+    problems: &mut Vec<CardError>,
+) -> Option<String> {
+    match (token, allow_writes) {
+        (Some(t), _) if t.chars().count() < 16 => {
+            problems.push(CardError::at("token", "at least 16 characters"));
+            None
+        }
+        (None, true) => {
+            problems.push(CardError::at("token", "allow_writes needs a token"));
+            None
+        }
+        (t, _) => t.clone(),
+    }
+}
+
 /// `listen` resolved, or the problem at key `listen`.
 fn address(listen: &str) -> Result<SocketAddr, CardError> {
     match listen.to_socket_addrs().map(|mut a| a.next()) {

@@ -52,17 +52,7 @@ pub fn build(
             format!("{}: 10-10000 ms", c.sample_ms),
         ));
     }
-    let token = match (&c.token, c.allow_writes) {
-        (Some(t), _) if t.chars().count() < 16 => {
-            problems.push(CardError::at("token", "at least 16 characters"));
-            None
-        }
-        (None, true) => {
-            problems.push(CardError::at("token", "allow_writes needs a token"));
-            None
-        }
-        (t, _) => t.clone(),
-    };
+    let token = config::token(&c.token, c.allow_writes, &mut problems);
     let ports = config::ports(&c.ports, ctx)
         .map_err(|p| problems.extend(p))
         .ok();

@@ -162,13 +162,7 @@ fn inputs(
 ) -> Result<std::collections::HashMap<String, client::Input>, Vec<CardError>> {
     let mut out = std::collections::HashMap::new();
     let mut problems = Vec::new();
-    match (&c.token, c.allow_writes) {
-        (Some(t), _) if t.chars().count() < 16 => {
-            problems.push(CardError::at("token", "at least 16 characters"));
-        }
-        (None, true) => problems.push(CardError::at("token", "allow_writes needs a token")),
-        _ => {}
-    }
+    config::token(&c.token, c.allow_writes, &mut problems);
     match (c.allow_writes, c.inputs.is_empty()) {
         (true, true) => problems.push(CardError::at("inputs", "allow_writes needs inputs")),
         (false, false) => problems.push(CardError::at(
