@@ -73,13 +73,15 @@ impl ServerTypes {
     }
 
     /// The server types built into hwgw: modbus_server, server.metrics (Prometheus),
-    /// server.web (the web page) and server.foxglove (the Foxglove live stream).
+    /// server.web (the web page), server.foxglove (the Foxglove live stream) and
+    /// server.mqtt (a Sparkplug B edge node and JSON topics).
     pub fn builtin() -> Self {
         let mut t = Self::empty();
         t.register("modbus_server", driver_modbus::served::build);
         t.register("server.metrics", web::metrics::build);
         t.register("server.web", web::page::build);
         t.register("server.foxglove", web::foxglove::build);
+        t.register("server.mqtt", mqtt::build);
         t
     }
 

@@ -82,6 +82,7 @@ fn a_users_server_type_is_built_from_its_section_and_named_by_its_key() {
             "modbus_server",
             "server.foxglove",
             "server.metrics",
+            "server.mqtt",
             "server.web"
         ]
     );
@@ -115,7 +116,7 @@ fn a_users_server_type_is_built_from_its_section_and_named_by_its_key() {
     );
     assert!(
         e.ends_with(
-            "the servers of this build: modbus_server, server.foxglove, server.metrics, server.web"
+            "the servers of this build: modbus_server, server.foxglove, server.metrics, server.mqtt, server.web"
         ),
         "{e}"
     );

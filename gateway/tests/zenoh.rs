@@ -354,21 +354,6 @@ fn a_deployment_without_zenoh_opens_no_network_socket() {
     );
 }
 
-/// Runs `openssl ARGS` in `dir`.
-fn openssl(dir: &Path, args: &[&str]) {
-    let o = std::process::Command::new("openssl")
-        .args(args)
-        .current_dir(dir)
-        .output()
-        .unwrap_or_else(|e| panic!("openssl: {e}"));
-    assert!(
-        o.status.success(),
-        "openssl {}: {}",
-        args.join(" "),
-        String::from_utf8_lossy(&o.stderr)
-    );
-}
-
 /// `[zenoh]` of example `text` with its endpoint line replaced by `endpoint` and `tls`
 /// added.
 fn over_tls(text: &str, line: &str, endpoint: &str, tls: &str) -> String {
@@ -381,100 +366,35 @@ fn over_tls(text: &str, line: &str, endpoint: &str, tls: &str) -> String {
 
 #[test]
 fn gateways_meet_over_tls_and_a_stranger_is_refused() {
-    testkit::peers::ensure(&testkit::peers::OPENSSL);
     let dir = TempDir::new("zenoh-tls");
     let d = dir.path();
-    // A CA, B's certificate signed by it (for 127.0.0.1), and a CA that signed nothing.
-    let rsa = ["-newkey", "rsa:2048", "-nodes", "-days", "2"];
-    openssl(
-        d,
-        &[
-            &["req", "-x509"][..],
-            &rsa,
-            &[
-                "-keyout",
-                "ca-key.pem",
-                "-out",
-                "ca.pem",
-                "-subj",
-                "/CN=hwgw test CA",
-            ],
-        ]
-        .concat(),
-    );
-    openssl(
-        d,
-        &[
-            &["req"][..],
-            &rsa[..3],
-            &[
-                "-keyout",
-                "b-key.pem",
-                "-out",
-                "b.csr",
-                "-subj",
-                "/CN=127.0.0.1",
-            ],
-        ]
-        .concat(),
-    );
-    std::fs::write(d.join("ext.cnf"), "subjectAltName=IP:127.0.0.1\n")
-        .unwrap_or_else(|e| panic!("{e}"));
-    openssl(
-        d,
-        &[
-            "x509",
-            "-req",
-            "-in",
-            "b.csr",
-            "-CA",
-            "ca.pem",
-            "-CAkey",
-            "ca-key.pem",
-            "-CAcreateserial",
-            "-out",
-            "b.pem",
-            "-days",
-            "2",
-            "-extfile",
-            "ext.cnf",
-        ],
-    );
-    openssl(
-        d,
-        &[
-            &["req", "-x509"][..],
-            &rsa,
-            &[
-                "-keyout",
-                "other-key.pem",
-                "-out",
-                "other.pem",
-                "-subj",
-                "/CN=a stranger's CA",
-            ],
-        ]
-        .concat(),
-    );
-
+    // A CA, B's certificate signed by it (for 127.0.0.1), and a CA that signed nothing
+    // of B's.
+    let certs = testkit::certs::Certs::make();
+    let file = |name: &str| certs.path(name).display().to_string();
     let endpoint = format!("tls/127.0.0.1:{}", testkit::free_port());
     let b_text = over_tls(
         include_str!("../../config/zenoh-b.toml"),
         "listen",
         &endpoint,
-        "{ root_ca = \"ca.pem\", cert = \"b.pem\", key = \"b-key.pem\" }",
+        &format!(
+            "{{ root_ca = \"{}\", cert = \"{}\", key = \"{}\" }}",
+            file("ca.pem"),
+            file("server.pem"),
+            file("server.key")
+        ),
     );
     let a_text = over_tls(
         include_str!("../../config/zenoh-a.toml"),
         "connect",
         &endpoint,
-        "{ root_ca = \"ca.pem\" }",
+        &format!("{{ root_ca = \"{}\" }}", file("ca.pem")),
     );
     let stranger = over_tls(
         include_str!("../../config/zenoh-a.toml"),
         "connect",
         &endpoint,
-        "{ root_ca = \"other.pem\" }",
+        &format!("{{ root_ca = \"{}\" }}", file("other-ca.pem")),
     )
     .replace("name = \"A\"", "name = \"S\"");
     let b_file = write(d, "b.toml", &b_text);

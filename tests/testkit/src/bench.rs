@@ -41,3 +41,36 @@ pub fn fifo_here(priority: i32) -> bool {
     let rc = unsafe { libc::pthread_setschedparam(libc::pthread_self(), libc::SCHED_FIFO, &p) };
     rc == 0
 }
+
+/// A process's CPU time so far (user and system, its threads included) and its resident
+/// memory now, from `/proc`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ProcUsage {
+    /// CPU seconds.
+    pub cpu_s: f64,
+    /// Resident set, KiB.
+    pub rss_kib: u64,
+}
+
+/// [`ProcUsage`] of process `pid`; `None` when it is gone.
+pub fn proc_usage(pid: u32) -> Option<ProcUsage> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // Fields after the command's closing parenthesis: utime and stime are the 12th and
+    // 13th of them.
+    let rest = stat.rsplit_once(')')?.1;
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    #[allow(unsafe_code, reason = "sysconf has no safe wrapper")]
+    // SAFETY: sysconf reads a constant of the system.
+    let hz = unsafe { libc::sysconf(libc::_SC_CLK_TCK) } as f64;
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let rss_kib = status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.split_whitespace().next())
+        .and_then(|v| v.parse().ok())?;
+    Some(ProcUsage {
+        cpu_s: ticks / hz.max(1.0),
+        rss_kib,
+    })
+}

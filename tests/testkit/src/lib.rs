@@ -20,6 +20,8 @@
 //! - [`rng`]: the fuzz tests' seeded random source;
 //! - [`rig`]: kernel rig presets (vcan);
 //! - [`deb`]: hwgw's Debian packages built from a test's binary, and lintian's report;
+//! - [`certs`]: TLS certificates made with openssl;
+//! - [`mosquitto`]: an MQTT broker of the test's own, its clients, a Sparkplug host;
 //! - [`service`]: an `hwgw` binary running a deployment on a socket of its own;
 //! - [`logs`]: what a gateway built in the test's own process logs, captured;
 //! - [`layout`]: checks of the source tree's shape (module cycles, function lengths).
@@ -27,6 +29,7 @@
 pub mod bench;
 mod cache;
 pub mod candump;
+pub mod certs;
 pub mod comedi;
 pub mod deb;
 pub mod fixtures;
@@ -37,6 +40,7 @@ pub mod layout;
 pub mod logs;
 pub mod mbpoll;
 pub mod mcapread;
+pub mod mosquitto;
 pub mod netns;
 pub mod peers;
 pub mod picture;

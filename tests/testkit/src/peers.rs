@@ -190,6 +190,20 @@ pub const PROMETHEUS: Peer = Peer {
     services: &["prometheus"],
 };
 
+/// Eclipse Mosquitto, the MQTT broker, and its command-line clients (`mosquitto_sub`,
+/// `mosquitto_pub`).
+pub const MOSQUITTO: Peer = Peer {
+    name: "mosquitto",
+    probe: Probe::Files(&[
+        "/usr/sbin/mosquitto",
+        "/usr/bin/mosquitto_sub",
+        "/usr/bin/mosquitto_pub",
+    ]),
+    packages: &["mosquitto", "mosquitto-clients"],
+    // Debian's package enables and starts a broker on port 1883.
+    services: &["mosquitto"],
+};
+
 /// Headless Chromium and its WebDriver, which selenium drives.
 pub const CHROMIUM: Peer = Peer {
     name: "chromium and chromedriver",

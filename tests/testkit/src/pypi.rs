@@ -51,6 +51,21 @@ pub fn cantools() -> io::Result<PathBuf> {
     install("cantools-45.1.0", CANTOOLS)
 }
 
+/// mqtt-spb-wrapper and what it pins, exactly: the Sparkplug B protobuf module (and
+/// paho-mqtt, the MQTT client) of the independent Sparkplug host application. paho-mqtt
+/// 1.6.1 is a source package only: pip builds it with Debian's setuptools, which
+/// `python3-pip` depends on.
+pub const SPARKPLUG: &[&str] = &[
+    "mqtt-spb-wrapper==2.1.2",
+    "paho-mqtt==1.6.1",
+    "protobuf==3.20.3",
+];
+
+/// mqtt-spb-wrapper ([`SPARKPLUG`]): the directory to put on `PYTHONPATH`.
+pub fn sparkplug() -> io::Result<PathBuf> {
+    install("mqtt-spb-wrapper-2.1.2", SPARKPLUG)
+}
+
 /// The `mcap` package, the independent MCAP reader. Its codecs (`lz4`, `zstandard`) are
 /// left out: hwgw writes uncompressed chunks, which it reads without them.
 pub const MCAP: &[&str] = &["mcap==1.6.0"];

@@ -1,0 +1,393 @@
+//! What is published: every channel of the chosen devices as a metric (a Sparkplug metric
+//! with its alias, datatype, unit and range; a JSON topic), grouped into Sparkplug
+//! devices (a card, or an IO component), read straight from the device registry — the
+//! values the cards keep anyway, so publishing costs the real-time threads nothing — and
+//! the rule of when a changed value is published again (deadband, shortest and longest
+//! period).
+
+use crate::config::{DevicePer, MqttConfig};
+use device_interface::{
+    AnalogIn, AnalogOut, AnalogRange, DeviceError, DigitalIn, DigitalOut, Encoder, Interface,
+    Registry, Status,
+};
+use driver_api::CardError;
+use rtt::info::Direction;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// A metric's value.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum Value {
+    /// An analog channel.
+    F64(f64),
+    /// A digital channel.
+    Bool(bool),
+    /// An encoder's position or turn.
+    I64(i64),
+}
+
+impl Value {
+    /// As JSON (a float round-trips: the workspace's serde_json has `float_roundtrip`;
+    /// a value JSON cannot carry, NaN or infinite, is null).
+    pub(crate) fn json(self) -> serde_json::Value {
+        match self {
+            Value::F64(v) => {
+                serde_json::Number::from_f64(v).map_or(serde_json::Value::Null, Into::into)
+            }
+            Value::Bool(b) => b.into(),
+            Value::I64(i) => i.into(),
+        }
+    }
+}
+
+/// Where a metric's value is read.
+#[derive(Clone)]
+pub(crate) enum Source {
+    Ai(Arc<dyn AnalogIn>, u32),
+    Ao(Arc<dyn AnalogOut>, u32),
+    Di(Arc<dyn DigitalIn>, u32),
+    Do(Arc<dyn DigitalOut>, u32),
+    Position(Arc<dyn Encoder>),
+    Turn(Arc<dyn Encoder>),
+}
+
+impl Source {
+    /// The channel's value now: an input's newest sample, an output's read-back.
+    pub(crate) fn read(&self) -> Result<Value, DeviceError> {
+        Ok(match self {
+            Source::Ai(d, c) => Value::F64(d.read(*c)?),
+            Source::Ao(d, c) => Value::F64(d.read_back(*c)?),
+            Source::Di(d, c) => Value::Bool(d.read_bit(*c)?),
+            Source::Do(d, c) => Value::Bool(d.check_bit(*c)?),
+            Source::Position(e) => Value::I64(e.position()?),
+            Source::Turn(e) => Value::I64(e.turn()?),
+        })
+    }
+
+    /// Its kind of value, as a Sparkplug datatype.
+    pub(crate) fn datatype(&self) -> DataType {
+        match self {
+            Source::Ai(..) | Source::Ao(..) => DataType::Double,
+            Source::Di(..) | Source::Do(..) => DataType::Boolean,
+            Source::Position(_) | Source::Turn(_) => DataType::Int64,
+        }
+    }
+}
+
+/// The Sparkplug datatypes hwgw uses (numbers of the specification).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum DataType {
+    Int64 = 4,
+    UInt64 = 8,
+    Double = 10,
+    Boolean = 11,
+    String = 12,
+}
+
+/// One channel as a metric.
+#[derive(Clone)]
+pub(crate) struct Metric {
+    /// Its Sparkplug name within its device (`ai/ch0`, or `ch0`).
+    pub name: String,
+    /// Its Sparkplug alias, unique in the edge node.
+    pub alias: u64,
+    /// Its IO component and port (`sim0.ai`, `ch0`): what `hwgw get` names, where a
+    /// write goes, its JSON topic.
+    pub component: String,
+    /// Its port.
+    pub port: String,
+    /// Where it is read.
+    pub source: Source,
+    /// Which device of its group's `devices` it is read from, for its health.
+    pub device: usize,
+    /// An output: may be written when the section allows writes.
+    pub output: bool,
+    /// An analog channel's range and unit.
+    pub range: Option<AnalogRange>,
+    /// Its deadband.
+    pub deadband: f64,
+    /// The value last published, and when.
+    pub sent: Option<(Value, Instant)>,
+}
+
+impl Metric {
+    /// `component.port`.
+    pub(crate) fn address(&self) -> String {
+        format!("{}.{}", self.component, self.port)
+    }
+
+    /// True when `v`, read at `now`, is to be published (it changed beyond the deadband
+    /// and `min` has passed since the last report, or `max` has).
+    pub(crate) fn due(&self, v: Value, now: Instant, min: Duration, max: Option<Duration>) -> bool {
+        let Some((sent, at)) = self.sent else {
+            return true;
+        };
+        let since = now.saturating_duration_since(at);
+        if since < min {
+            return false;
+        }
+        if max.is_some_and(|m| since >= m) {
+            return true;
+        }
+        changed(sent, v, self.deadband)
+    }
+}
+
+/// True when `v` differs from `sent` by more than `deadband` (any difference in bits when
+/// the deadband is 0, or either is not finite).
+fn changed(sent: Value, v: Value, deadband: f64) -> bool {
+    match (sent, v) {
+        (Value::F64(a), Value::F64(b)) => {
+            if deadband == 0.0 || !a.is_finite() || !b.is_finite() {
+                a.to_bits() != b.to_bits()
+            } else {
+                (a - b).abs() > deadband
+            }
+        }
+        (a, b) => a != b,
+    }
+}
+
+/// A Sparkplug device: a card's devices, or one IO component's.
+#[derive(Clone)]
+pub(crate) struct Group {
+    /// Its Sparkplug device id.
+    pub id: String,
+    /// The registry devices it stands for.
+    pub devices: Vec<(Interface, String)>,
+    /// Its metrics.
+    pub metrics: Vec<Metric>,
+    /// Born (a DBIRTH published in this session, no DDEATH since).
+    pub born: bool,
+}
+
+impl Group {
+    /// Each of its devices' status now (offline when it left the registry).
+    pub(crate) fn statuses(&self, registry: &Registry) -> Vec<Status> {
+        self.devices
+            .iter()
+            .map(|(i, n)| registry.health(*i, n).map_or(Status::Offline, |h| h.status))
+            .collect()
+    }
+}
+
+/// Online when any of `statuses` is not offline.
+pub(crate) fn online(statuses: &[Status]) -> bool {
+    statuses.iter().any(|s| *s != Status::Offline)
+}
+
+/// The groups of a section over `registry` and the runtime's IO components; every problem.
+pub(crate) fn groups(
+    c: &MqttConfig,
+    registry: &Registry,
+    rt: &rtt::Runtime,
+) -> Result<Vec<Group>, Vec<CardError>> {
+    let per = c
+        .sparkplug
+        .as_ref()
+        .map_or(DevicePer::Card, |s| s.device_per);
+    let mut problems = Vec::new();
+    let mut entries: Vec<_> = registry
+        .entries()
+        .into_iter()
+        .filter(|e| e.info.alias_of.is_none() && !e.interface.is_logical())
+        .collect();
+    for (i, d) in c.devices.iter().enumerate() {
+        if !entries.iter().any(|e| &e.info.name == d) {
+            let mut names: Vec<_> = entries.iter().map(|e| e.info.name.clone()).collect();
+            names.dedup();
+            problems.push(CardError::at(
+                format!("devices[{i}]"),
+                format!("no device {d:?}; the devices: {}", names.join(", ")),
+            ));
+        }
+    }
+    if !c.devices.is_empty() {
+        entries.retain(|e| c.devices.contains(&e.info.name));
+    }
+    let mut groups: Vec<Group> = Vec::new();
+    let mut alias = 0;
+    for e in &entries {
+        let name = &e.info.name;
+        let metrics = match metrics(registry, rt, e.interface, name) {
+            Ok(m) => m,
+            Err(why) => {
+                problems.push(CardError::new(why));
+                continue;
+            }
+        };
+        let component = metrics.first().map(|m| m.0.clone()).unwrap_or_default();
+        // A card's device: its metrics named after the IO component without the card's
+        // name (`ai/ch0`; an encoder registered under a name of its own, `enc0/position`).
+        let (id, prefix) = match per {
+            DevicePer::Card => {
+                let owner = &e.info.owner;
+                let rest = component
+                    .strip_prefix(owner.as_str())
+                    .and_then(|r| r.strip_prefix('.'));
+                (owner.clone(), Some(rest.unwrap_or(&component).to_string()))
+            }
+            DevicePer::Device => (component.clone(), None),
+        };
+        if let Err(why) = crate::config::topic_level(&id, false) {
+            problems.push(CardError::new(format!(
+                "device {id:?} cannot be a Sparkplug device id: {why}"
+            )));
+            continue;
+        }
+        let group = match groups.iter_mut().position(|g| g.id == id) {
+            Some(i) => &mut groups[i],
+            None => {
+                groups.push(Group {
+                    id: id.clone(),
+                    devices: Vec::new(),
+                    metrics: Vec::new(),
+                    born: false,
+                });
+                groups.last_mut().expect("just pushed")
+            }
+        };
+        group.devices.push((e.interface, name.clone()));
+        let device = group.devices.len() - 1;
+        for (component, port, source, range) in metrics {
+            alias += 1;
+            let address = format!("{component}.{port}");
+            let metric_name = match &prefix {
+                Some(p) if !p.is_empty() => format!("{p}/{port}"),
+                _ => port.clone(),
+            };
+            let output = matches!(source, Source::Ao(..) | Source::Do(..));
+            group.metrics.push(Metric {
+                name: metric_name,
+                alias,
+                deadband: c.deadbands.get(&address).copied().unwrap_or(c.deadband),
+                component,
+                port,
+                source,
+                device,
+                output,
+                range,
+                sent: None,
+            });
+        }
+    }
+    for port in c.deadbands.keys() {
+        if !groups
+            .iter()
+            .flat_map(|g| &g.metrics)
+            .any(|m| &m.address() == port)
+        {
+            problems.push(CardError::at(
+                format!("deadbands.{port}"),
+                format!("{port:?} is no published channel (component.port, e.g. sim0.ai.ch0)"),
+            ));
+        }
+    }
+    if problems.is_empty() {
+        Ok(groups)
+    } else {
+        Err(problems)
+    }
+}
+
+type Found = (String, String, Source, Option<AnalogRange>);
+
+/// The metrics of registry device `name` under `interface`: its IO component's ports in
+/// channel order, each with its source; an error when its IO component is missing.
+fn metrics(
+    registry: &Registry,
+    rt: &rtt::Runtime,
+    interface: Interface,
+    name: &str,
+) -> Result<Vec<Found>, String> {
+    let (suffix, direction) = match interface {
+        Interface::AnalogIn => (Some("ai"), Direction::Output),
+        Interface::AnalogOut => (Some("ao"), Direction::Input),
+        Interface::DigitalIn => (Some("di"), Direction::Output),
+        Interface::DigitalOut => (Some("do"), Direction::Input),
+        _ => (None, Direction::Output),
+    };
+    let component = suffix.map_or_else(|| name.to_string(), |s| format!("{name}.{s}"));
+    let task = rt
+        .component(&component)
+        .map_err(|e| format!("device {name:?} has no IO component: {e}"))?;
+    let ports: Vec<String> = task
+        .ports()
+        .into_iter()
+        .filter(|p| p.direction == direction)
+        .map(|p| p.name)
+        .collect();
+    let gone = || format!("device {name:?} left the registry");
+    let one = |c: u32| {
+        ports
+            .get(c as usize)
+            .cloned()
+            .ok_or_else(|| format!("{component} has no port for channel {c}"))
+    };
+    let sources: Vec<(Source, Option<AnalogRange>)> = match interface {
+        Interface::AnalogIn => {
+            let d = registry.analog_in().get(name).ok_or_else(gone)?;
+            let range = |c| d.range(c).ok();
+            (0..d.channel_count())
+                .map(|c| (Source::Ai(d.clone(), c), range(c)))
+                .collect()
+        }
+        Interface::AnalogOut => {
+            let d = registry.analog_out().get(name).ok_or_else(gone)?;
+            let range = |c| d.range(c).ok();
+            (0..d.channel_count())
+                .map(|c| (Source::Ao(d.clone(), c), range(c)))
+                .collect()
+        }
+        Interface::DigitalIn => {
+            let d = registry.digital_in().get(name).ok_or_else(gone)?;
+            (0..d.input_count())
+                .map(|c| (Source::Di(d.clone(), c), None))
+                .collect()
+        }
+        Interface::DigitalOut => {
+            let d = registry.digital_out().get(name).ok_or_else(gone)?;
+            (0..d.output_count())
+                .map(|c| (Source::Do(d.clone(), c), None))
+                .collect()
+        }
+        Interface::Encoder => {
+            let d = registry.encoder().get(name).ok_or_else(gone)?;
+            return Ok(vec![
+                (
+                    component.clone(),
+                    "position".into(),
+                    Source::Position(d.clone()),
+                    None,
+                ),
+                (component, "turn".into(), Source::Turn(d), None),
+            ]);
+        }
+        Interface::Sensor | Interface::Drive | Interface::Axis => Vec::new(),
+    };
+    (0u32..)
+        .zip(sources)
+        .map(|(c, (source, range))| Ok((component.clone(), one(c)?, source, range)))
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn deadband_and_periods() {
+        assert!(!changed(Value::F64(1.0), Value::F64(1.0), 0.0));
+        assert!(changed(
+            Value::F64(1.0),
+            Value::F64(1.0 + f64::EPSILON),
+            0.0
+        ));
+        assert!(!changed(Value::F64(1.0), Value::F64(1.05), 0.1));
+        assert!(changed(Value::F64(1.0), Value::F64(1.2), 0.1));
+        assert!(changed(Value::F64(1.0), Value::F64(f64::NAN), 0.1));
+        assert!(!changed(Value::F64(f64::NAN), Value::F64(f64::NAN), 0.1));
+        assert!(changed(Value::Bool(false), Value::Bool(true), 0.0));
+        assert!(!changed(Value::I64(3), Value::I64(3), 5.0));
+    }
+}
