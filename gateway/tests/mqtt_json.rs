@@ -79,8 +79,7 @@ fn json_topics_carry_values_and_checked_writes() {
     let v = next_value(&mut sub, "hwgw/sim0.ai/ch1");
     assert_eq!(v, get(&svc, "sim0.ai", "ch1"));
     assert!((v.as_f64().unwrap() - 1.25).abs() < 1e-3, "{v}");
-    let (_, status) = sub.until("the status", WAIT, |t, _| t == "hwgw/status");
-    assert_eq!(status, "online");
+    sub.latest("hwgw/status", WAIT, |p| p == "online");
 
     // A set topic writes the output, with the checks of `hwgw set`.
     publish(
@@ -168,7 +167,7 @@ fn json_topics_carry_values_and_checked_writes() {
             .join("\n")
     );
 
-    // At stop: the status says so (retained), before the outputs go to their safe values.
+    // At stop: the status says so, retained.
     drop(svc.terminate());
     let (_, status) = sub.until("the status offline", WAIT, |t, _| t == "hwgw/status");
     assert_eq!(status, "offline");
@@ -272,4 +271,23 @@ fn mqtt_5_carries_the_same() {
         "not MQTT 5:\n{}",
         broker.log()
     );
+}
+
+#[test]
+fn a_retained_set_is_not_carried_out() {
+    // A retained set message waits on the broker: it would be handed to every session
+    // hwgw makes, and the old value written again at each reconnection.
+    let broker = Broker::start();
+    testkit::mosquitto::publish_retained(broker.port, "hwgw/sim0.ao/ch1/set", b"-3.0", None);
+    let mut sub = Sub::start(broker.port, &["hwgw/#"], None);
+    let text = format!(
+        "{CARD}\n[server.mqtt]\nbroker = \"127.0.0.1:{}\"\nallow_writes = true\n[server.mqtt.json]\n",
+        broker.port
+    );
+    let svc = Service::run_text(HWGW, "mqtt-retained", &text).unwrap();
+    let r = sub.latest("hwgw/sim0.ao/ch1/set/result", WAIT, |_| true);
+    assert!(r.contains("\"ok\":false") && r.contains("retained"), "{r}");
+    let v = get(&svc, "sim0.ao", "ch1").as_f64().unwrap();
+    assert!(v.abs() < 1e-3, "written: {v}");
+    assert_eq!(counters(&svc)["commands_refused"], 1);
 }

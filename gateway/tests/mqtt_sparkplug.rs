@@ -212,13 +212,33 @@ fn births_data_commands_rebirth_and_seq() {
             .to_string();
         assert!(last.contains(why), "{last:?} should say {why:?}");
     }
+    // An output whose IO component is stopped: the whole command refused, the other
+    // output of it not written.
+    svc.ok(json!({"cmd": "stop", "component": "sim0.do"}));
+    dcmd(
+        &mut host,
+        json!([{"name": "ao/ch1", "datatype": 10, "value": 1.0}, {"name": "do/bit0", "datatype": 11, "value": true}]),
+    );
+    let nd = host.until("the refusal", |e| {
+        e["type"] == "NDATA" && has(e, "hwgw/Commands Refused")
+    });
+    assert_eq!(metric(&nd, "hwgw/Commands Refused")["value"], 6, "{nd}");
+    assert!(
+        metric(&nd, "hwgw/Last Refusal")["value"]
+            .as_str()
+            .unwrap()
+            .contains("sim0.do is not running"),
+        "{nd}"
+    );
+    svc.ok(json!({"cmd": "start", "component": "sim0.do"}));
+
     // Not a Sparkplug payload at all.
     let topic = "spBv1.0/plant1/DCMD/hwgw1/sim0";
     testkit::mosquitto::publish(broker.port, topic, b"\xff\xff\xff not protobuf", None);
     let nd = host.until("the refusal", |e| {
         e["type"] == "NDATA" && has(e, "hwgw/Commands Refused")
     });
-    assert_eq!(metric(&nd, "hwgw/Commands Refused")["value"], 6, "{nd}");
+    assert_eq!(metric(&nd, "hwgw/Commands Refused")["value"], 7, "{nd}");
     assert!(
         metric(&nd, "hwgw/Last Refusal")["value"]
             .as_str()
@@ -233,7 +253,7 @@ fn births_data_commands_rebirth_and_seq() {
     let c = counters(&svc);
     assert_eq!(
         (&c["commands_accepted"], &c["commands_refused"]),
-        (&json!(2), &json!(6)),
+        (&json!(2), &json!(7)),
         "{c}"
     );
 
@@ -344,8 +364,11 @@ fn the_primary_host_state_holds_the_data() {
     host.command(json!({"cmd": "state", "online": false}));
     let death = host.message("NDEATH", None);
     assert_eq!(metric(&death, "bdSeq")["value"], 0);
+    // Meanwhile an output changes: the birth at the host's return carries it.
+    svc.ok(json!({"cmd": "set", "component": "sim0.ao", "port": "ch0", "value": -4.0}));
     let mut quiet = Vec::new();
-    while let Some(e) = host.next(Duration::from_secs(2)) {
+    let end = std::time::Instant::now() + Duration::from_secs(2);
+    while let Some(e) = host.next(end.saturating_duration_since(std::time::Instant::now())) {
         quiet.push(e);
     }
     assert!(

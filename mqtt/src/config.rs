@@ -31,7 +31,8 @@ use std::time::Duration;
 pub struct MqttConfig {
     /// The broker, `host:port` (1883 is MQTT's port, 8883 MQTT over TLS).
     pub broker: String,
-    /// The MQTT client id (default `hwgw-` and the Sparkplug node id, or `hwgw`).
+    /// The MQTT client id (default `hwgw-` and the Sparkplug node id, or without
+    /// Sparkplug `hwgw-` and the host's name: two gateways on one broker must differ).
     #[serde(default)]
     pub client_id: Option<String>,
     /// `"3.1.1"` (default; what Sparkplug 3.0 names) or `"5"`.
@@ -82,6 +83,12 @@ pub struct MqttConfig {
     /// newest value goes with the next message or birth).
     #[serde(default = "default_queue")]
     pub queue: usize,
+    /// Bytes the queue towards the broker holds, KiB (64-1048576, default 8192): a
+    /// message that would take it beyond is not queued (counted as dropped, its metrics'
+    /// newest values go later), so a slow broker holds this much, never minutes of old
+    /// data; a message bigger than this goes when the queue is empty.
+    #[serde(default = "default_queue_kib")]
+    pub queue_kib: u64,
     /// A Sparkplug B edge node.
     #[serde(default)]
     pub sparkplug: Option<SparkplugConfig>,
@@ -163,6 +170,9 @@ fn default_sample() -> u64 {
 fn default_queue() -> usize {
     4096
 }
+fn default_queue_kib() -> u64 {
+    8192
+}
 fn default_prefix() -> String {
     "hwgw".into()
 }
@@ -190,8 +200,10 @@ pub struct Settings {
     pub min_period: Duration,
     /// Longest time between two reports of a metric (`None`: on change only).
     pub max_period: Option<Duration>,
-    /// Queue towards the broker.
+    /// Queue towards the broker, messages.
     pub queue: usize,
+    /// Queue towards the broker, bytes.
+    pub queue_bytes: usize,
     /// Writes allowed.
     pub allow_writes: bool,
     /// Sparkplug.
@@ -226,6 +238,7 @@ impl MqttConfig {
         bound("sample_period_ms", self.sample_period_ms, 10, 60_000, "ms");
         bound("min_period_ms", self.min_period_ms, 0, 3_600_000, "ms");
         bound("queue", self.queue as u64, 16, 65_536, "messages");
+        bound("queue_kib", self.queue_kib, 64, 1 << 20, "KiB");
         if self.max_period_ms != 0 {
             bound(
                 "max_period_ms",
@@ -279,6 +292,7 @@ impl MqttConfig {
             min_period: Duration::from_millis(self.min_period_ms),
             max_period: (self.max_period_ms > 0).then(|| Duration::from_millis(self.max_period_ms)),
             queue: self.queue,
+            queue_bytes: (self.queue_kib as usize) << 10,
             allow_writes: self.allow_writes,
             sparkplug: self.sparkplug.clone(),
             json: self.json.as_ref().map(|j| j.prefix.clone()),
@@ -353,19 +367,38 @@ fn sparkplug_ids(s: &SparkplugConfig, problems: &mut Vec<CardError>) {
     }
 }
 
+/// Why a name cannot be an MQTT topic level of hwgw's.
+#[derive(Debug, thiserror::Error)]
+pub enum TopicError {
+    /// Empty or too long.
+    #[error("{0:?}: 1-256 bytes")]
+    Length(String),
+    /// A character MQTT gives a meaning (`+`, `#`, `/` within a level, NUL).
+    #[error("{text:?}: {c:?} is not allowed in a topic level")]
+    Char {
+        /// The name.
+        text: String,
+        /// The character.
+        c: char,
+    },
+    /// Two slashes in a row, or one at an end.
+    #[error("{0:?}: an empty topic level")]
+    EmptyLevel(String),
+}
+
 /// `Ok` when `s` may be one MQTT topic level of hwgw's (or, with `levels`, several).
-pub(crate) fn topic_level(s: &str, levels: bool) -> Result<(), String> {
+pub(crate) fn topic_level(s: &str, levels: bool) -> Result<(), TopicError> {
     if s.is_empty() || s.len() > 256 {
-        return Err(format!("{s:?}: 1-256 bytes"));
+        return Err(TopicError::Length(s.into()));
     }
     if let Some(c) = s
         .chars()
         .find(|&c| matches!(c, '+' | '#' | '\0') || (!levels && c == '/'))
     {
-        return Err(format!("{s:?}: {c:?} is not allowed in a topic level"));
+        return Err(TopicError::Char { text: s.into(), c });
     }
     if levels && s.split('/').any(str::is_empty) {
-        return Err(format!("{s:?}: an empty topic level"));
+        return Err(TopicError::EmptyLevel(s.into()));
     }
     Ok(())
 }
@@ -428,10 +461,8 @@ mod tests {
     #[test]
     fn defaults_and_bounds() {
         let s = settings("").unwrap_or_else(|e| panic!("{e:?}"));
-        assert_eq!(
-            (s.host.as_str(), s.port, s.client_id.as_str()),
-            ("b", 1883, "hwgw")
-        );
+        assert_eq!((s.host.as_str(), s.port), ("b", 1883));
+        assert!(s.client_id.starts_with("hwgw"), "{}", s.client_id);
         assert_eq!(s.max_period, None);
         for (extra, key) in [
             ("keep_alive_s = 4", "keep_alive_s"),

@@ -15,6 +15,7 @@ mod commands;
 pub mod config;
 pub mod link;
 mod model;
+mod publish;
 mod server;
 mod session;
 mod sparkplug;

@@ -73,9 +73,22 @@ pub struct Will {
     pub retain: bool,
 }
 
-/// Largest message hwgw sends (an NBIRTH of many channels) and takes (a command).
+/// Largest message hwgw sends (an NBIRTH of many channels) and takes: what comes is
+/// commands and STATE, small; MQTT 5 tells the broker, which then keeps bigger ones
+/// from hwgw (with 3.1.1 a bigger one ends the connection: see docs/mqtt.md).
 const MAX_OUT: usize = 64 << 20;
-const MAX_IN: usize = 1 << 20;
+const MAX_IN: usize = 256 << 10;
+
+/// Why a session's connection ended.
+#[derive(Debug, thiserror::Error)]
+pub enum LinkError {
+    /// MQTT 3.1.1's client said why.
+    #[error(transparent)]
+    V4(#[from] rumqttc::ConnectionError),
+    /// MQTT 5's client said why.
+    #[error(transparent)]
+    V5(#[from] rumqttc::v5::ConnectionError),
+}
 
 /// A session's client: where messages are queued.
 #[derive(Clone)]
@@ -99,12 +112,13 @@ pub enum Events {
 pub enum Seen {
     /// The broker took the connection.
     Connected,
-    /// A message came.
-    Message(String, Bytes),
+    /// A message came: its topic, payload, and whether it was retained (a broker sends
+    /// the retained message of a topic to every new subscriber).
+    Message(String, Bytes, bool),
     /// A message went out to the broker.
     Published,
-    /// A subscription was acknowledged.
-    Subscribed,
+    /// A subscription was acknowledged; how many of its topics the broker refused.
+    Subscribed(usize),
     /// Anything else.
     Other,
 }
@@ -169,7 +183,7 @@ pub fn session(
 impl Client {
     /// Queues a message (QoS 1 when `qos1`, else 0); false when the queue is full or the
     /// session is over.
-    pub fn publish(&self, topic: String, qos1: bool, retain: bool, payload: Vec<u8>) -> bool {
+    fn publish(&self, topic: String, qos1: bool, retain: bool, payload: Vec<u8>) -> bool {
         match self {
             Client::V4(c) => {
                 let q = if qos1 {
@@ -222,16 +236,42 @@ impl Client {
     }
 }
 
+/// Events of a session's connection, from the task that runs its event loop.
+pub type Seeing = tokio::sync::mpsc::Receiver<Result<Seen, LinkError>>;
+
 impl Events {
-    /// The next event; an error ends the session.
-    pub async fn poll(&mut self) -> Result<Seen, String> {
+    /// Runs the event loop on a task of its own (polled without pause, so no write is
+    /// ever cut off halfway), each event sent to the returned receiver, the error that
+    /// ends the connection last; abort the task to drop the connection.
+    pub fn spawn(mut self) -> (Seeing, tokio::task::JoinHandle<()>) {
+        let (tx, rx) = tokio::sync::mpsc::channel(256);
+        let task = tokio::spawn(async move {
+            loop {
+                let r = self.poll().await;
+                let end = r.is_err();
+                if tx.send(r).await.is_err() || end {
+                    break;
+                }
+            }
+        });
+        (rx, task)
+    }
+
+    async fn poll(&mut self) -> Result<Seen, LinkError> {
         match self {
             Events::V4(e) => {
-                use rumqttc::{Event, Outgoing, Packet};
-                Ok(match e.poll().await.map_err(|e| e.to_string())? {
+                use rumqttc::{Event, Outgoing, Packet, SubscribeReasonCode};
+                Ok(match e.poll().await? {
                     Event::Incoming(Packet::ConnAck(_)) => Seen::Connected,
-                    Event::Incoming(Packet::Publish(p)) => Seen::Message(p.topic, p.payload),
-                    Event::Incoming(Packet::SubAck(_)) => Seen::Subscribed,
+                    Event::Incoming(Packet::Publish(p)) => {
+                        Seen::Message(p.topic, p.payload, p.retain)
+                    }
+                    Event::Incoming(Packet::SubAck(a)) => Seen::Subscribed(
+                        a.return_codes
+                            .iter()
+                            .filter(|c| matches!(c, SubscribeReasonCode::Failure))
+                            .count(),
+                    ),
                     Event::Outgoing(Outgoing::Publish(_)) => Seen::Published,
                     _ => Seen::Other,
                 })
@@ -239,16 +279,71 @@ impl Events {
             Events::V5(e) => {
                 use rumqttc::v5::Event;
                 use rumqttc::{Outgoing, v5::mqttbytes::v5::Packet};
-                Ok(match e.poll().await.map_err(|e| e.to_string())? {
+                Ok(match e.poll().await? {
                     Event::Incoming(Packet::ConnAck(_)) => Seen::Connected,
-                    Event::Incoming(Packet::Publish(p)) => {
-                        Seen::Message(String::from_utf8_lossy(&p.topic).into_owned(), p.payload)
-                    }
-                    Event::Incoming(Packet::SubAck(_)) => Seen::Subscribed,
+                    Event::Incoming(Packet::Publish(p)) => Seen::Message(
+                        String::from_utf8_lossy(&p.topic).into_owned(),
+                        p.payload,
+                        p.retain,
+                    ),
+                    Event::Incoming(Packet::SubAck(a)) => Seen::Subscribed(
+                        a.return_codes
+                            .iter()
+                            .filter(|c| !matches!(c, v5b::SubscribeReasonCode::Success(_)))
+                            .count(),
+                    ),
                     Event::Outgoing(Outgoing::Publish(_)) => Seen::Published,
                     _ => Seen::Other,
                 })
             }
+        }
+    }
+}
+
+/// A session's client with its queue bounded in bytes as well as in messages: a message
+/// is queued when the queue is empty or the bytes under way stay within the budget, so a
+/// slow broker holds at most the budget (and one message), never minutes of old data.
+pub struct Outbox {
+    client: Client,
+    sizes: std::collections::VecDeque<usize>,
+    bytes: usize,
+    budget: usize,
+}
+
+impl Outbox {
+    /// `client`'s outbox with `budget` bytes.
+    pub fn new(client: Client, budget: usize) -> Outbox {
+        Outbox {
+            client,
+            sizes: Default::default(),
+            bytes: 0,
+            budget,
+        }
+    }
+
+    /// The client.
+    pub fn client(&self) -> &Client {
+        &self.client
+    }
+
+    /// Queues a message; false when it does not fit (the budget, or the client's queue).
+    pub fn publish(&mut self, topic: String, qos1: bool, retain: bool, payload: Vec<u8>) -> bool {
+        let size = topic.len() + payload.len();
+        if self.bytes > 0 && self.bytes + size > self.budget {
+            return false;
+        }
+        if !self.client.publish(topic, qos1, retain, payload) {
+            return false;
+        }
+        self.sizes.push_back(size);
+        self.bytes += size;
+        true
+    }
+
+    /// A message went out (the oldest queued: they go in order).
+    pub fn published(&mut self) {
+        if let Some(size) = self.sizes.pop_front() {
+            self.bytes -= size;
         }
     }
 }

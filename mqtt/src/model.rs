@@ -84,6 +84,28 @@ pub(crate) enum DataType {
     String = 12,
 }
 
+/// What a metric's channel is, for writes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Kind {
+    /// An input (or an encoder): not written.
+    Input,
+    /// An analog output.
+    AnalogOut,
+    /// A digital output.
+    DigitalOut,
+}
+
+/// Why a device's metrics could not be found.
+#[derive(Debug, thiserror::Error)]
+pub(crate) enum MetricsError {
+    #[error("device {device:?} has no IO component: {why}")]
+    NoComponent { device: String, why: String },
+    #[error("device {0:?} left the registry")]
+    Gone(String),
+    #[error("{component} has no port for channel {channel}")]
+    NoPort { component: String, channel: u32 },
+}
+
 /// One channel as a metric.
 #[derive(Clone)]
 pub(crate) struct Metric {
@@ -100,8 +122,10 @@ pub(crate) struct Metric {
     pub source: Source,
     /// Which device of its group's `devices` it is read from, for its health.
     pub device: usize,
-    /// An output: may be written when the section allows writes.
-    pub output: bool,
+    /// An input, or which kind of output.
+    pub kind: Kind,
+    /// Its IO component (`None` when the runtime had none by that name).
+    pub task: Option<rtt::TaskContext>,
     /// An analog channel's range and unit.
     pub range: Option<AnalogRange>,
     /// Its deadband.
@@ -116,21 +140,32 @@ impl Metric {
         format!("{}.{}", self.component, self.port)
     }
 
-    /// True when `v`, read at `now`, is to be published (it changed beyond the deadband
-    /// and `min` has passed since the last report, or `max` has).
+    /// True when `v`, read at `now`, is to be published (see [`due`]).
     pub(crate) fn due(&self, v: Value, now: Instant, min: Duration, max: Option<Duration>) -> bool {
-        let Some((sent, at)) = self.sent else {
-            return true;
-        };
-        let since = now.saturating_duration_since(at);
-        if since < min {
-            return false;
-        }
-        if max.is_some_and(|m| since >= m) {
-            return true;
-        }
-        changed(sent, v, self.deadband)
+        due(self.sent, self.deadband, v, now, (min, max))
     }
+}
+
+/// True when `v`, read at `now`, is to be published after `sent`: it changed beyond
+/// `deadband` and `min` has passed since, or `max` has.
+fn due(
+    sent: Option<(Value, Instant)>,
+    deadband: f64,
+    v: Value,
+    now: Instant,
+    (min, max): (Duration, Option<Duration>),
+) -> bool {
+    let Some((sent, at)) = sent else {
+        return true;
+    };
+    let since = now.saturating_duration_since(at);
+    if since < min {
+        return false;
+    }
+    if max.is_some_and(|m| since >= m) {
+        return true;
+    }
+    changed(sent, v, deadband)
 }
 
 /// True when `v` differs from `sent` by more than `deadband` (any difference in bits when
@@ -159,9 +194,22 @@ pub(crate) struct Group {
     pub metrics: Vec<Metric>,
     /// Born (a DBIRTH published in this session, no DDEATH since).
     pub born: bool,
+    /// Its metrics by name and by alias.
+    names: std::collections::HashMap<String, usize>,
+    aliases: std::collections::HashMap<u64, usize>,
 }
 
 impl Group {
+    /// Its metric named `name`.
+    pub(crate) fn by_name(&self, name: &str) -> Option<usize> {
+        self.names.get(name).copied()
+    }
+
+    /// Its metric of alias `alias`.
+    pub(crate) fn by_alias(&self, alias: u64) -> Option<usize> {
+        self.aliases.get(&alias).copied()
+    }
+
     /// Each of its devices' status now (offline when it left the registry).
     pub(crate) fn statuses(&self, registry: &Registry) -> Vec<Status> {
         self.devices
@@ -229,12 +277,13 @@ pub(crate) fn groups(
             }
             DevicePer::Device => (component.clone(), None),
         };
-        if let Err(why) = crate::config::topic_level(&id, false) {
+        if let Some(why) = unfit(c, &id, &metrics) {
             problems.push(CardError::new(format!(
-                "device {id:?} cannot be a Sparkplug device id: {why}"
+                "{why}; leave device {name:?} out with devices = [...]"
             )));
             continue;
         }
+        let task = rt.component(&component).ok();
         let group = match groups.iter_mut().position(|g| g.id == id) {
             Some(i) => &mut groups[i],
             None => {
@@ -243,6 +292,8 @@ pub(crate) fn groups(
                     devices: Vec::new(),
                     metrics: Vec::new(),
                     born: false,
+                    names: Default::default(),
+                    aliases: Default::default(),
                 });
                 groups.last_mut().expect("just pushed")
             }
@@ -256,7 +307,14 @@ pub(crate) fn groups(
                 Some(p) if !p.is_empty() => format!("{p}/{port}"),
                 _ => port.clone(),
             };
-            let output = matches!(source, Source::Ao(..) | Source::Do(..));
+            let kind = match source {
+                Source::Ao(..) => Kind::AnalogOut,
+                Source::Do(..) => Kind::DigitalOut,
+                _ => Kind::Input,
+            };
+            let i = group.metrics.len();
+            group.names.insert(metric_name.clone(), i);
+            group.aliases.insert(alias, i);
             group.metrics.push(Metric {
                 name: metric_name,
                 alias,
@@ -265,7 +323,8 @@ pub(crate) fn groups(
                 port,
                 source,
                 device,
-                output,
+                kind,
+                task: task.clone(),
                 range,
                 sent: None,
             });
@@ -290,6 +349,27 @@ pub(crate) fn groups(
     }
 }
 
+/// Why names of a device cannot be published as the section asks: a Sparkplug device id,
+/// or a JSON topic level, that is not one.
+fn unfit(c: &MqttConfig, id: &str, metrics: &[Found]) -> Option<String> {
+    use crate::config::topic_level;
+    if c.sparkplug.is_some()
+        && let Err(why) = topic_level(id, false)
+    {
+        return Some(format!("{id:?} cannot be a Sparkplug device id: {why}"));
+    }
+    if c.json.is_some() {
+        for (component, port, ..) in metrics {
+            for level in [component, port] {
+                if let Err(why) = topic_level(level, false) {
+                    return Some(format!("{component}.{port} cannot be a JSON topic: {why}"));
+                }
+            }
+        }
+    }
+    None
+}
+
 type Found = (String, String, Source, Option<AnalogRange>);
 
 /// The metrics of registry device `name` under `interface`: its IO component's ports in
@@ -299,7 +379,7 @@ fn metrics(
     rt: &rtt::Runtime,
     interface: Interface,
     name: &str,
-) -> Result<Vec<Found>, String> {
+) -> Result<Vec<Found>, MetricsError> {
     let (suffix, direction) = match interface {
         Interface::AnalogIn => (Some("ai"), Direction::Output),
         Interface::AnalogOut => (Some("ao"), Direction::Input),
@@ -310,19 +390,25 @@ fn metrics(
     let component = suffix.map_or_else(|| name.to_string(), |s| format!("{name}.{s}"));
     let task = rt
         .component(&component)
-        .map_err(|e| format!("device {name:?} has no IO component: {e}"))?;
+        .map_err(|e| MetricsError::NoComponent {
+            device: name.into(),
+            why: e.to_string(),
+        })?;
     let ports: Vec<String> = task
         .ports()
         .into_iter()
         .filter(|p| p.direction == direction)
         .map(|p| p.name)
         .collect();
-    let gone = || format!("device {name:?} left the registry");
+    let gone = || MetricsError::Gone(name.into());
     let one = |c: u32| {
         ports
             .get(c as usize)
             .cloned()
-            .ok_or_else(|| format!("{component} has no port for channel {c}"))
+            .ok_or_else(|| MetricsError::NoPort {
+                component: component.clone(),
+                channel: c,
+            })
     };
     let sources: Vec<(Source, Option<AnalogRange>)> = match interface {
         Interface::AnalogIn => {
@@ -374,6 +460,46 @@ fn metrics(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn periods() {
+        let t0 = Instant::now();
+        let ms = Duration::from_millis;
+        let sent = Some((Value::F64(1.0), t0));
+        let deadband = 0.5;
+        // Never sent: due. Changed beyond the deadband: due once min has passed.
+        assert!(due(None, deadband, Value::F64(1.0), t0, (ms(0), None)));
+        assert!(!due(
+            sent,
+            deadband,
+            Value::F64(2.0),
+            t0 + ms(50),
+            (ms(100), None)
+        ));
+        assert!(due(
+            sent,
+            deadband,
+            Value::F64(2.0),
+            t0 + ms(100),
+            (ms(100), None)
+        ));
+        // Within the deadband: not due, until max has passed.
+        let max = Some(ms(1000));
+        assert!(!due(
+            sent,
+            deadband,
+            Value::F64(1.2),
+            t0 + ms(500),
+            (ms(0), max)
+        ));
+        assert!(due(
+            sent,
+            deadband,
+            Value::F64(1.2),
+            t0 + ms(1000),
+            (ms(0), max)
+        ));
+    }
 
     #[test]
     fn deadband_and_periods() {

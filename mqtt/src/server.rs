@@ -60,6 +60,7 @@ impl Server for MqttServer {
         if running.is_some() {
             return Ok(self.address.clone());
         }
+        self.book.stopping.store(false, Ordering::Release);
         let listen = |source| ServerError::Listen {
             address: self.address.clone(),
             source,
@@ -92,11 +93,13 @@ impl Server for MqttServer {
         let Some(r) = rtt::lock(&self.running).take() else {
             return;
         };
+        // Commands not begun are refused from now on; the one under way finishes.
+        self.book.stopping.store(true, Ordering::Release);
         let _ = r.stop.send(true);
         if r.session.join().is_err() {
             tracing::error!("the MQTT session thread panicked");
         }
-        // The session held the jobs' sender: the worker ends after the command under way.
+        // The session held the jobs' sender: the worker refuses what is left and ends.
         if r.worker.join().is_err() {
             tracing::error!("the MQTT command thread panicked");
         }
@@ -126,6 +129,7 @@ impl Server for MqttServer {
         m.insert("births".into(), n(&c.births));
         m.insert("bd_seq".into(), n(&c.bd_seq));
         m.insert("bad_messages".into(), n(&c.bad_messages));
+        m.insert("subscriptions_refused".into(), n(&c.subscriptions_refused));
         m.insert("commands_accepted".into(), n(&self.book.accepted));
         m.insert("commands_refused".into(), n(&self.book.refused));
         m.insert("outcomes_lost".into(), n(&self.book.outcomes_lost));

@@ -1,20 +1,22 @@
 //! The edge node's life: connect with the NDEATH of the session as the will, subscribe to
 //! the commands, wait for the primary host where there is one, publish the births, then
-//! every sample period what changed; on a lost link start again (a new session, `bdSeq`
-//! one more, a fresh birth with the newest values — nothing is queued for a link that is
-//! down), on stop send the NDEATH and leave cleanly.
+//! every sample period what changed (`publish`); on a lost link start again (a new
+//! session, `bdSeq` one more, a fresh birth with the newest values — nothing is queued
+//! for a link that is down), on stop send the NDEATH and leave cleanly.
+//!
+//! The connection's event loop runs on a task of its own and hands its events over a
+//! channel: the session waits on the channel, the sample period and the stop together,
+//! and no write of the event loop is ever cut off halfway by them.
 
-use crate::commands::{self, Book, Job, Origin};
-use crate::link::{self, Client, Events, Seen, Will};
-use crate::model::{self, Group, Value};
+use crate::commands::{self, Book, Job, Origin, Outcome, Refusal};
+use crate::link::{self, Outbox, Seeing, Seen, Will};
+use crate::model::Group;
 use crate::sparkplug::{self, NodeCommand, Topics};
 use device_interface::{Registry, Status};
-use serde_json::json;
-use std::sync::Arc;
-use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::SyncSender;
-use std::time::{Duration, Instant};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
 use tokio::sync::watch;
 
 /// The counters of the link, for `hwgw status`.
@@ -27,6 +29,7 @@ pub(crate) struct Counters {
     pub reconnects: AtomicU64,
     pub births: AtomicU64,
     pub bad_messages: AtomicU64,
+    pub subscriptions_refused: AtomicU64,
     pub bd_seq: AtomicU64,
     pub last_error: Mutex<Option<String>>,
 }
@@ -41,21 +44,28 @@ pub(crate) struct Node {
     pub book: Arc<Book>,
     pub jobs: SyncSender<Job>,
     /// Each metric's JSON topic state (group, metric order).
-    json: Vec<Vec<JsonState>>,
-    topics: Option<Topics>,
+    pub json: Vec<Vec<JsonState>>,
+    pub topics: Option<Topics>,
     /// The session's `bdSeq`, and the next message's `seq`.
-    bd_seq: u8,
-    seq: u8,
+    pub bd_seq: u8,
+    pub seq: u8,
+    /// The Sparkplug births of this session are out (the NBIRTH: the DBIRTHs follow
+    /// each device as it is online).
+    pub born: bool,
+    /// A rebirth was asked for: made at the next period, once however often asked.
+    pub rebirth_asked: bool,
     /// The newest STATE timestamp of the primary host.
     state_ts: u64,
+    /// Connections made so far.
+    connections: u64,
 }
 
 /// A metric's JSON topic: the device status last published, and whether its newest
 /// value is still to be published (its message was not queued).
 #[derive(Debug, Clone, Copy, Default)]
-struct JsonState {
-    status: Option<Status>,
-    pending: bool,
+pub(crate) struct JsonState {
+    pub status: Option<Status>,
+    pub pending: bool,
 }
 
 /// Why a session ended.
@@ -99,24 +109,29 @@ impl Node {
             topics,
             bd_seq: 0,
             seq: 0,
+            born: false,
+            rebirth_asked: false,
             state_ts: 0,
+            connections: 0,
         }
     }
 
     /// Runs sessions until `stop` turns true.
     pub(crate) async fn run(mut self, mut stop: watch::Receiver<bool>) {
         let mut backoff = Duration::from_millis(200);
-        let mut sessions = 0u64;
         while !*stop.borrow() {
-            let will = self.will();
-            let (client, events) = link::session(&self.settings, self.tls.as_ref(), Some(will));
-            let (end, connected) = self.session(&client, events, &mut stop).await;
+            let (client, events) =
+                link::session(&self.settings, self.tls.as_ref(), Some(self.will()));
+            let (mut seen, task) = events.spawn();
+            let mut out = Outbox::new(client, self.settings.queue_bytes);
+            let (end, connected) = self.session(&mut out, &mut seen, &mut stop).await;
+            task.abort();
             self.counters.connected.store(false, Ordering::Relaxed);
+            self.born = false;
             for g in &mut self.groups {
                 g.born = false;
             }
             if connected {
-                sessions += 1;
                 backoff = Duration::from_millis(200);
                 self.bd_seq = self.bd_seq.wrapping_add(1);
                 self.counters
@@ -133,9 +148,6 @@ impl Node {
                     }
                     backoff = (backoff * 2).min(BACKOFF_MAX);
                 }
-            }
-            if sessions > 0 && !*stop.borrow() {
-                self.counters.reconnects.fetch_add(1, Ordering::Relaxed);
             }
         }
     }
@@ -156,39 +168,44 @@ impl Node {
         }
     }
 
-    fn status_topic(&self) -> String {
+    pub(crate) fn status_topic(&self) -> String {
         format!("{}/status", self.settings.json.as_deref().unwrap_or("hwgw"))
     }
 
     /// One session; whether it got connected.
     async fn session(
         &mut self,
-        client: &Client,
-        mut events: Events,
+        out: &mut Outbox,
+        seen: &mut Seeing,
         stop: &mut watch::Receiver<bool>,
     ) -> (End, bool) {
         // Connected, or why not.
         loop {
             tokio::select! {
                 _ = stop.changed() => return (End::Stop, false),
-                r = events.poll() => match r {
-                    Ok(Seen::Connected) => break,
-                    Ok(_) => {}
-                    Err(e) => {
-                        self.failed(&e);
+                r = seen.recv() => match r {
+                    Some(Ok(Seen::Connected)) => break,
+                    Some(Ok(_)) => {}
+                    Some(Err(e)) => {
+                        self.failed(&e.to_string());
                         return (End::Lost, false);
                     }
+                    None => return (End::Lost, false),
                 }
             }
         }
         self.counters.connected.store(true, Ordering::Relaxed);
+        if self.connections > 0 {
+            self.counters.reconnects.fetch_add(1, Ordering::Relaxed);
+        }
+        self.connections += 1;
         *rtt::lock(&self.counters.last_error) = None;
         tracing::info!(
             "MQTT: connected to {}:{}",
             self.settings.host,
             self.settings.port
         );
-        client.subscribe(&self.subscriptions());
+        out.client().subscribe(&self.subscriptions());
         let primary = self
             .settings
             .sparkplug
@@ -198,55 +215,57 @@ impl Node {
         self.counters
             .host_online
             .store(host_online, Ordering::Relaxed);
-        let mut born = false;
-        if host_online {
-            self.births(client);
-            born = true;
-        }
         if self.settings.json.is_some() {
-            client.publish(self.status_topic(), true, true, b"online".to_vec());
+            out.publish(self.status_topic(), true, true, b"online".to_vec());
         }
+        self.first_values(out, host_online);
         let mut tick = tokio::time::interval(self.settings.sample);
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
         loop {
             tokio::select! {
                 _ = stop.changed() => {
-                    self.leave(client, &mut events, born).await;
+                    self.leave(out, seen, true).await;
                     return (End::Stop, true);
                 }
-                r = events.poll() => match r {
-                    Err(e) => {
-                        self.failed(&e);
+                r = seen.recv() => match r {
+                    Some(Err(e)) => {
+                        self.failed(&e.to_string());
                         return (End::Lost, true);
                     }
-                    Ok(Seen::Published) => {
+                    None => return (End::Lost, true),
+                    Some(Ok(Seen::Published)) => {
+                        out.published();
                         self.counters.published.fetch_add(1, Ordering::Relaxed);
                     }
-                    Ok(Seen::Message(topic, payload)) => {
-                        match self.message(client, &topic, &payload, primary.as_deref()) {
+                    Some(Ok(Seen::Subscribed(refused))) if refused > 0 => {
+                        self.counters.subscriptions_refused.fetch_add(refused as u64, Ordering::Relaxed);
+                        self.failed(&format!("the broker refused {refused} of hwgw's subscriptions (its access control?)"));
+                    }
+                    Some(Ok(Seen::Message(topic, payload, retain))) => {
+                        match self.message(&topic, &payload, retain, primary.as_deref()) {
                             Some(true) if !host_online => {
                                 host_online = true;
                                 self.counters.host_online.store(true, Ordering::Relaxed);
-                                self.births(client);
-                                born = true;
+                                self.rebirth_asked = true;
                             }
                             Some(false) if host_online => {
                                 // The primary host went away: leave, and come back with
                                 // a new session once it is online again.
                                 self.counters.host_online.store(false, Ordering::Relaxed);
-                                self.leave(client, &mut events, born).await;
+                                self.leave(out, seen, false).await;
                                 return (End::HostOffline, true);
                             }
                             _ => {}
                         }
                     }
-                    Ok(_) => {}
+                    Some(Ok(_)) => {}
                 },
                 _ = tick.tick() => {
-                    if born {
-                        self.publish_changes(client);
+                    if std::mem::take(&mut self.rebirth_asked) && host_online {
+                        self.rebirth(out);
                     }
-                    self.publish_outcomes(client, born);
+                    self.publish_changes(out);
+                    self.publish_outcomes(out);
                 }
             }
         }
@@ -257,32 +276,34 @@ impl Node {
         *rtt::lock(&self.counters.last_error) = Some(e.to_string());
     }
 
-    /// Sends the NDEATH (an intentional leave) and the JSON status, disconnects cleanly:
-    /// reads on until the broker closes the connection, so that nothing unread is left
-    /// when it is dropped (a socket closed with unread bytes is reset, and a broker may
-    /// lose the DISCONNECT with it and publish the will as well).
-    async fn leave(&mut self, client: &Client, events: &mut Events, born: bool) {
-        if let (Some(t), true) = (&self.topics, born) {
-            client.publish(
+    /// Sends the NDEATH (an intentional leave) and, when hwgw stops (`last`), the JSON
+    /// status; disconnects cleanly: reads on until the broker closes the connection, so
+    /// that nothing unread is left when it is dropped (a socket closed with unread bytes
+    /// is reset, and a broker may lose the DISCONNECT with it and publish the will too).
+    async fn leave(&mut self, out: &mut Outbox, seen: &mut Seeing, last: bool) {
+        if let (Some(t), true) = (&self.topics, self.born) {
+            out.publish(
                 t.node("NDEATH"),
                 true,
                 false,
                 sparkplug::ndeath(self.bd_seq),
             );
         }
-        if self.settings.json.is_some() {
-            client.publish(self.status_topic(), true, true, b"offline".to_vec());
+        if self.settings.json.is_some() && last {
+            out.publish(self.status_topic(), true, true, b"offline".to_vec());
         }
-        client.disconnect();
+        out.client().disconnect();
         let deadline = tokio::time::sleep(LEAVE);
         tokio::pin!(deadline);
         loop {
             tokio::select! {
                 _ = &mut deadline => break,
-                r = events.poll() => match r {
-                    Ok(Seen::Published) => { self.counters.published.fetch_add(1, Ordering::Relaxed); }
-                    Ok(_) => {}
-                    Err(_) => break,
+                r = seen.recv() => match r {
+                    Some(Ok(Seen::Published)) => {
+                        self.counters.published.fetch_add(1, Ordering::Relaxed);
+                    }
+                    Some(Ok(_)) => {}
+                    Some(Err(_)) | None => break,
                 }
             }
         }
@@ -311,9 +332,9 @@ impl Node {
     /// Handles a message: `Some(online)` for the primary host's STATE.
     fn message(
         &mut self,
-        client: &Client,
         topic: &str,
         payload: &[u8],
+        retain: bool,
         primary: Option<&str>,
     ) -> Option<bool> {
         if let Some(h) = primary
@@ -324,28 +345,32 @@ impl Node {
         if let Some(t) = &self.topics {
             if topic == t.node("NCMD") {
                 match sparkplug::ncmd(payload) {
-                    Ok(cmds) if cmds.contains(&NodeCommand::Rebirth) => self.rebirth(client),
+                    Ok(_) if retain => self.bad(topic, "a retained NCMD"),
+                    Ok(cmds) if cmds.contains(&NodeCommand::Rebirth) => self.rebirth_asked = true,
                     Ok(_) => {}
                     Err(e) => self.bad(topic, &e.to_string()),
                 }
                 return None;
             }
             if let Some(device) = t.dcmd_device(topic) {
-                let device = device.to_string();
-                let job = sparkplug::dcmd(payload)
-                    .map_err(|e| format!("not a Sparkplug B payload: {e}"))
-                    .and_then(|w| {
-                        commands::dcmd(&self.groups, &device, &w, self.settings.allow_writes)
-                    });
-                self.submit(Origin::Sparkplug(device), job);
+                let origin = Origin::Sparkplug(device.to_string());
+                let job = self.writable(retain).and_then(|()| {
+                    let writes = sparkplug::dcmd(payload)
+                        .map_err(|e| Refusal::NotSparkplug(e.to_string()))?;
+                    let registry = &self.registry;
+                    commands::dcmd(&self.groups, device, &writes, |g| g.statuses(registry))
+                });
+                self.submit(origin, job);
                 return None;
             }
         }
         if let Some(p) = &self.settings.json
             && topic.ends_with("/set")
         {
-            let job =
-                commands::json_set(&self.groups, p, topic, payload, self.settings.allow_writes);
+            let registry = &self.registry;
+            let job = self.writable(retain).and_then(|()| {
+                commands::json_set(&self.groups, p, topic, payload, |g| g.statuses(registry))
+            });
             self.submit(Origin::Json(topic.into()), job);
             return None;
         }
@@ -353,10 +378,21 @@ impl Node {
         None
     }
 
-    fn submit(&self, origin: Origin, job: Result<Job, String>) {
+    /// `Ok` when a command may be carried out at all.
+    fn writable(&self, retain: bool) -> Result<(), Refusal> {
+        if !self.settings.allow_writes {
+            Err(Refusal::NotAllowed)
+        } else if retain {
+            Err(Refusal::Retained)
+        } else {
+            Ok(())
+        }
+    }
+
+    fn submit(&self, origin: Origin, job: Result<Job, Refusal>) {
         match job {
             Ok(job) => self.book.submit(&self.jobs, job),
-            Err(why) => self.book.record(commands::Outcome {
+            Err(why) => self.book.record(Outcome {
                 origin,
                 result: Err(why),
             }),
@@ -387,205 +423,5 @@ impl Node {
         }
         self.state_ts = ts;
         Some(online)
-    }
-
-    /// Queues a Sparkplug message made with `self.seq`: the next `seq` once it is queued.
-    fn send(&mut self, client: &Client, topic: String, payload: Vec<u8>) -> bool {
-        let ok = client.publish(topic, false, false, payload);
-        if ok {
-            self.seq = self.seq.wrapping_add(1);
-        } else {
-            self.counters.dropped.fetch_add(1, Ordering::Relaxed);
-        }
-        ok
-    }
-
-    /// NBIRTH and a DBIRTH per online device, and the JSON topics' state, all with the
-    /// values now.
-    fn births(&mut self, client: &Client) {
-        let now = Instant::now();
-        let t = sparkplug::now_ms();
-        let writes = self.settings.allow_writes;
-        if let Some(topics) = self.topics.clone() {
-            self.seq = 0;
-            let refused = self.book.refused.load(Ordering::Relaxed);
-            let last = rtt::lock(&self.book.last_refusal).clone();
-            let bd = self.bd_seq;
-            self.send(
-                client,
-                topics.node("NBIRTH"),
-                sparkplug::nbirth(bd, refused, &last),
-            );
-            self.counters.births.fetch_add(1, Ordering::Relaxed);
-        }
-        for gi in 0..self.groups.len() {
-            let values: Vec<Option<Value>> = self.groups[gi]
-                .metrics
-                .iter()
-                .map(|m| m.source.read().ok())
-                .collect();
-            let statuses = self.groups[gi].statuses(&self.registry);
-            if let Some(topics) = self.topics.clone() {
-                let g = &self.groups[gi];
-                if !model::online(&statuses) {
-                    continue;
-                }
-                let topic = topics.device("DBIRTH", &g.id);
-                let payload = sparkplug::dbirth(self.seq, g, &values, writes);
-                if !self.send(client, topic, payload) {
-                    continue;
-                }
-                self.groups[gi].born = true;
-            }
-            for (mi, v) in values.iter().enumerate() {
-                if let Some(v) = v {
-                    self.groups[gi].metrics[mi].sent = Some((*v, now));
-                }
-                let status = statuses[self.groups[gi].metrics[mi].device];
-                self.publish_json(client, (gi, mi), *v, status, t);
-            }
-        }
-    }
-
-    fn rebirth(&mut self, client: &Client) {
-        self.publish_changes(client);
-        self.births(client);
-    }
-
-    /// What changed since it was last published, and devices gone or back.
-    fn publish_changes(&mut self, client: &Client) {
-        let now = Instant::now();
-        let t = sparkplug::now_ms();
-        let (min, max) = (self.settings.min_period, self.settings.max_period);
-        let writes = self.settings.allow_writes;
-        for gi in 0..self.groups.len() {
-            let statuses = self.groups[gi].statuses(&self.registry);
-            if let Some(topics) = self.topics.clone() {
-                let online = model::online(&statuses);
-                let g = &self.groups[gi];
-                if g.born && !online {
-                    let topic = topics.device("DDEATH", &g.id);
-                    if self.send(client, topic, sparkplug::ddeath(self.seq)) {
-                        self.groups[gi].born = false;
-                    }
-                } else if !g.born && online {
-                    let values: Vec<Option<Value>> =
-                        g.metrics.iter().map(|m| m.source.read().ok()).collect();
-                    let payload = sparkplug::dbirth(self.seq, g, &values, writes);
-                    if self.send(client, topics.device("DBIRTH", &g.id), payload) {
-                        let g = &mut self.groups[gi];
-                        g.born = true;
-                        for (m, v) in g.metrics.iter_mut().zip(values) {
-                            m.sent = v.map(|v| (v, now));
-                        }
-                    }
-                    continue;
-                }
-            }
-            let g = &self.groups[gi];
-            let changes: Vec<(usize, Value)> = g
-                .metrics
-                .iter()
-                .enumerate()
-                .filter_map(|(i, m)| {
-                    m.source
-                        .read()
-                        .ok()
-                        .filter(|v| m.due(*v, now, min, max))
-                        .map(|v| (i, v))
-                })
-                .collect();
-            if let (Some(topics), true, false) = (&self.topics, g.born, changes.is_empty()) {
-                let list: Vec<_> = changes
-                    .iter()
-                    .map(|(i, v)| (&g.metrics[*i], *v, t))
-                    .collect();
-                let topic = topics.device("DDATA", &g.id);
-                let payload = sparkplug::ddata(self.seq, &list);
-                if !self.send(client, topic, payload) {
-                    // Not queued: these values go with the next message.
-                    continue;
-                }
-            }
-            for (i, v) in &changes {
-                self.groups[gi].metrics[*i].sent = Some((*v, now));
-            }
-            if self.settings.json.is_some() {
-                let mut new: Vec<Option<Value>> = vec![None; self.groups[gi].metrics.len()];
-                for (i, v) in &changes {
-                    new[*i] = Some(*v);
-                }
-                for (mi, v) in new.into_iter().enumerate() {
-                    let status = statuses[self.groups[gi].metrics[mi].device];
-                    self.publish_json(client, (gi, mi), v, status, t);
-                }
-            }
-        }
-    }
-
-    /// A JSON topic's state when its value `v` is new, its device's status changed, or
-    /// its newest value is still to be published; a message not queued is counted and
-    /// tried again with the newest value at the next tick.
-    fn publish_json(
-        &mut self,
-        client: &Client,
-        (gi, mi): (usize, usize),
-        v: Option<Value>,
-        status: Status,
-        t: u64,
-    ) {
-        let Some(prefix) = &self.settings.json else {
-            return;
-        };
-        let m = &self.groups[gi].metrics[mi];
-        let state = &mut self.json[gi][mi];
-        if v.is_none() && state.status == Some(status) && !state.pending {
-            return;
-        }
-        let value = v
-            .or(m.sent.map(|s| s.0))
-            .map_or(serde_json::Value::Null, Value::json);
-        let body = json!({"value": value, "status": status.to_string(), "t": t});
-        let topic = format!("{prefix}/{}/{}", m.component, m.port);
-        if client.publish(topic, false, true, body.to_string().into_bytes()) {
-            *state = JsonState {
-                status: Some(status),
-                pending: false,
-            };
-        } else {
-            state.pending = true;
-            self.counters.dropped.fetch_add(1, Ordering::Relaxed);
-        }
-    }
-
-    /// What became of the commands since the last tick.
-    fn publish_outcomes(&mut self, client: &Client, born: bool) {
-        let outcomes: Vec<_> = rtt::lock(&self.book.outcomes).drain(..).collect();
-        let mut refused = false;
-        for o in outcomes {
-            match &o.origin {
-                Origin::Sparkplug(_) => refused |= o.result.is_err(),
-                Origin::Json(topic) => {
-                    let body = match &o.result {
-                        Ok(()) => json!({"ok": true}),
-                        Err(why) => json!({"ok": false, "error": why}),
-                    };
-                    if !client.publish(
-                        format!("{topic}/result"),
-                        true,
-                        false,
-                        body.to_string().into_bytes(),
-                    ) {
-                        self.counters.dropped.fetch_add(1, Ordering::Relaxed);
-                    }
-                }
-            }
-        }
-        if let (true, true, Some(topics)) = (refused, born, self.topics.clone()) {
-            let n = self.book.refused.load(Ordering::Relaxed);
-            let last = rtt::lock(&self.book.last_refusal).clone();
-            let payload = sparkplug::ndata_refusal(self.seq, n, &last);
-            self.send(client, topics.node("NDATA"), payload);
-        }
     }
 }

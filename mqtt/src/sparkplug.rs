@@ -6,7 +6,7 @@
 //! `readOnly` — and is sent by alias alone afterwards. Integers travel as the
 //! specification says: an Int64 in `long_value` as its two's complement.
 
-use crate::model::{DataType, Group, Metric, Value};
+use crate::model::{DataType, Group, Kind, Metric, Value};
 use prost::Message;
 
 use crate::pb;
@@ -205,7 +205,7 @@ fn properties(m: &Metric, writes: bool) -> payload::PropertySet {
             DataType::Double,
         ));
     }
-    let read_only = !(m.output && writes);
+    let read_only = !(m.kind != Kind::Input && writes);
     p.push(property(
         "readOnly",
         property_value::Value::BooleanValue(read_only),

@@ -8,7 +8,9 @@
 //! The broker keeps its sessions on disk (`persistence true`): Mosquitto publishes the
 //! wills of its clients when it is stopped (SIGTERM), and a subscriber with a session of
 //! its own gets them after the restart — as a Sparkplug host sees an edge node's NDEATH
-//! across a broker restart.
+//! across a broker restart. QoS 0 messages are kept for such a session too
+//! (`queue_qos0_messages`): an edge node that is back before the host does not publish
+//! its birth into the void.
 
 use crate::TempDir;
 use crate::certs::Certs;
@@ -94,7 +96,8 @@ impl Broker {
     fn spawn(&mut self) {
         let mut conf = format!(
             "listener {} 127.0.0.1\nallow_anonymous true\nlog_dest stderr\nlog_type all\n\
-             persistence true\npersistence_location {}/\nmax_queued_messages 100000\n",
+             persistence true\npersistence_location {}/\nmax_queued_messages 100000\n\
+             queue_qos0_messages true\n",
             self.port,
             self.dir.path().display()
         );
@@ -329,10 +332,19 @@ impl Sub {
 
 /// `mosquitto_pub` of one message (QoS 1), waited for.
 pub fn publish(port: u16, topic: &str, payload: &[u8], tls: Option<&ClientTls>) {
+    mosquitto_pub(port, topic, payload, tls, &[]);
+}
+
+/// [`publish`] retained.
+pub fn publish_retained(port: u16, topic: &str, payload: &[u8], tls: Option<&ClientTls>) {
+    mosquitto_pub(port, topic, payload, tls, &["-r"]);
+}
+
+fn mosquitto_pub(port: u16, topic: &str, payload: &[u8], tls: Option<&ClientTls>, extra: &[&str]) {
     ensure(&MOSQUITTO);
     let mut cmd = Command::new("mosquitto_pub");
     client_args(&mut cmd, port, tls);
-    cmd.args(["-q", "1", "-t", topic, "-s"]);
+    cmd.args(["-q", "1", "-t", topic, "-s"]).args(extra);
     let mut child = cmd
         .stdin(Stdio::piped())
         .spawn()
