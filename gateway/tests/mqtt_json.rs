@@ -169,8 +169,9 @@ fn json_topics_carry_values_and_checked_writes() {
 
     // At stop: the status says so, retained.
     drop(svc.terminate());
-    let (_, status) = sub.until("the status offline", WAIT, |t, _| t == "hwgw/status");
-    assert_eq!(status, "offline");
+    sub.until("the status offline", WAIT, |t, p| {
+        t == "hwgw/status" && p == "offline"
+    });
 }
 
 #[test]
@@ -290,4 +291,41 @@ fn a_retained_set_is_not_carried_out() {
     let v = get(&svc, "sim0.ao", "ch1").as_f64().unwrap();
     assert!(v.abs() < 1e-3, "written: {v}");
     assert_eq!(counters(&svc)["commands_refused"], 1);
+}
+
+#[test]
+fn user_and_password_from_a_file() {
+    let broker = Broker::start_with_users(&[("hwgw", "a secret of the plant")]);
+    let mut sub = Sub::start(broker.port, &["#"], None);
+    let run = |name: &str, password: &str| {
+        let dir = testkit::TempDir::new(&format!("mqtt-password-{name}"));
+        std::fs::write(dir.path().join("mqtt.pass"), format!("{password}\n")).unwrap();
+        let text = format!(
+            "{CARD}\n[server.mqtt]\nbroker = \"127.0.0.1:{}\"\nclient_id = \"hwgw-{name}\"\n\
+             username = \"hwgw\"\npassword_file = \"{}\"\n[server.mqtt.json]\nprefix = \"{name}\"\n",
+            broker.port,
+            dir.path().join("mqtt.pass").display()
+        );
+        (
+            Service::run_text(HWGW, &format!("mqtt-user-{name}"), &text).unwrap(),
+            dir,
+        )
+    };
+    let (good, _d1) = run("good", "a secret of the plant");
+    sub.latest("good/status", WAIT, |p| p == "online");
+    assert_eq!(counters(&good)["connected"], true);
+    // A wrong password: refused by the broker, said in status, retried.
+    let (bad, _d2) = run("bad", "not the secret");
+    wait_until("the refusal in status", || {
+        counters(&bad)["last_error"]
+            .as_str()
+            .is_some_and(|e| e.contains("refused"))
+    });
+    let c = counters(&bad);
+    assert_eq!(
+        (&c["connected"], &c["published"]),
+        (&json!(false), &json!(0)),
+        "{c}"
+    );
+    eprintln!("refused: {}", c["last_error"]);
 }

@@ -385,7 +385,17 @@ fn the_primary_host_state_holds_the_data() {
     assert_eq!(metric(&nbirth, "bdSeq")["value"], 1);
     let dbirth = host.message("DBIRTH", Some("sim0"));
     assert_eq!(
-        metric(&dbirth, "ai/ch0")["value"],
-        get(&svc, "sim0.ai", "ch0")
+        metric(&dbirth, "ao/ch0")["value"],
+        get(&svc, "sim0.ao", "ch0")
+    );
+    let v = metric(&dbirth, "ao/ch0")["value"].as_f64().unwrap();
+    assert!(
+        (v + 4.0).abs() < 1e-3,
+        "the birth's ao/ch0 is {v}, not the -4 set meanwhile"
+    );
+    let looped = metric(&dbirth, "ai/ch2")["value"].as_f64().unwrap();
+    assert!(
+        (looped + 4.0).abs() < 1e-3,
+        "the birth's ai/ch2 is {looped}"
     );
 }

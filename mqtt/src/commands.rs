@@ -174,7 +174,7 @@ impl Book {
     }
 }
 
-/// Carries out jobs until the channel closes; once stopping, refuses what is left.
+/// Carries out jobs until the channel closes; once stopping, refuses those not begun.
 pub(crate) fn worker(rx: Receiver<Job>, control: ControlLink, book: Arc<Book>) {
     for job in rx {
         let result = carry_out(&job, &control, &book);
@@ -186,14 +186,11 @@ pub(crate) fn worker(rx: Receiver<Job>, control: ControlLink, book: Arc<Book>) {
 }
 
 fn carry_out(job: &Job, control: &ControlLink, book: &Book) -> Result<(), Refusal> {
+    // A command begun is carried out whole (stop waits for it); one not begun is not.
+    if book.stopping.load(Ordering::Acquire) {
+        return Err(Refusal::Stopping);
+    }
     for (i, (component, port, value)) in job.writes.iter().enumerate() {
-        if book.stopping.load(Ordering::Acquire) {
-            return Err(if i == 0 {
-                Refusal::Stopping
-            } else {
-                failed(job, i, "hwgw is stopping".into())
-            });
-        }
         let request = json!({"cmd": "set", "component": component, "port": port, "value": value});
         if let Err(e) = control.request(request) {
             return Err(failed(job, i, e.message));

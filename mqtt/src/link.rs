@@ -332,6 +332,19 @@ impl Outbox {
         if self.bytes > 0 && self.bytes + size > self.budget {
             return false;
         }
+        self.publish_now(topic, qos1, retain, payload)
+    }
+
+    /// Queues a message whatever the budget (births and deaths: bounded in size, and
+    /// what a host must have); false when the client's queue is full.
+    pub fn publish_now(
+        &mut self,
+        topic: String,
+        qos1: bool,
+        retain: bool,
+        payload: Vec<u8>,
+    ) -> bool {
+        let size = topic.len() + payload.len();
         if !self.client.publish(topic, qos1, retain, payload) {
             return false;
         }

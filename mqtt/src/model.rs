@@ -148,7 +148,7 @@ impl Metric {
 
 /// True when `v`, read at `now`, is to be published after `sent`: it changed beyond
 /// `deadband` and `min` has passed since, or `max` has.
-fn due(
+pub(crate) fn due(
     sent: Option<(Value, Instant)>,
     deadband: f64,
     v: Value,

@@ -8,7 +8,7 @@
 use crate::commands::Origin;
 use crate::link::Outbox;
 use crate::model::{self, Value};
-use crate::session::{JsonState, Node};
+use crate::session::Node;
 use crate::sparkplug;
 use device_interface::Status;
 use serde_json::json;
@@ -17,8 +17,13 @@ use std::time::Instant;
 
 impl Node {
     /// Queues a Sparkplug message made with `self.seq`: the next `seq` once it is queued.
-    fn send(&mut self, out: &mut Outbox, topic: String, payload: Vec<u8>) -> bool {
-        let ok = out.publish(topic, false, false, payload);
+    /// A birth goes whatever the byte budget (`birth`).
+    fn send(&mut self, out: &mut Outbox, topic: String, payload: Vec<u8>, birth: bool) -> bool {
+        let ok = if birth {
+            out.publish_now(topic, false, false, payload)
+        } else {
+            out.publish(topic, false, false, payload)
+        };
         if ok {
             self.seq = self.seq.wrapping_add(1);
         } else {
@@ -33,18 +38,13 @@ impl Node {
             self.births(out);
         }
         let t = sparkplug::now_ms();
-        let now = Instant::now();
         for gi in 0..self.groups.len() {
             let statuses = self.groups[gi].statuses(&self.registry);
             for mi in 0..self.groups[gi].metrics.len() {
-                let born = self.born;
-                let m = &mut self.groups[gi].metrics[mi];
+                let m = &self.groups[gi].metrics[mi];
                 let v = m.source.read().ok();
-                if !born {
-                    m.sent = v.map(|v| (v, now));
-                }
                 let status = statuses[m.device];
-                self.publish_json(out, (gi, mi), v, status, t);
+                self.publish_json(out, (gi, mi), (v, v), status, t);
             }
         }
     }
@@ -63,11 +63,12 @@ impl Node {
         let refused = self.book.refused.load(Ordering::Relaxed);
         let last = rtt::lock(&self.book.last_refusal).clone();
         let nbirth = sparkplug::nbirth(self.bd_seq, refused, &last);
-        if !self.send(out, topics.node("NBIRTH"), nbirth) {
+        if !self.send(out, topics.node("NBIRTH"), nbirth, true) {
             self.rebirth_asked = true;
             return;
         }
         self.born = true;
+        self.announced = true;
         self.counters.births.fetch_add(1, Ordering::Relaxed);
         for gi in 0..self.groups.len() {
             let statuses = self.groups[gi].statuses(&self.registry);
@@ -86,7 +87,7 @@ impl Node {
         let g = &self.groups[gi];
         let values: Vec<Option<Value>> = g.metrics.iter().map(|m| m.source.read().ok()).collect();
         let payload = sparkplug::dbirth(self.seq, g, &values, self.settings.allow_writes);
-        if !self.send(out, topics.device("DBIRTH", &g.id), payload) {
+        if !self.send(out, topics.device("DBIRTH", &g.id), payload, true) {
             return false;
         }
         let g = &mut self.groups[gi];
@@ -103,70 +104,99 @@ impl Node {
         self.births(out);
     }
 
-    /// What changed since it was last published, and devices gone or back.
+    /// What changed since it was last published, and devices gone or back. Sparkplug
+    /// and the JSON topics each keep what they last published: a value one of them could
+    /// not queue (or a DBIRTH took) is not lost for the other.
     pub(crate) fn publish_changes(&mut self, out: &mut Outbox) {
         let now = Instant::now();
         let t = sparkplug::now_ms();
-        let (min, max) = (self.settings.min_period, self.settings.max_period);
+        let periods = (self.settings.min_period, self.settings.max_period);
         for gi in 0..self.groups.len() {
             let statuses = self.groups[gi].statuses(&self.registry);
-            let sparkplug = self.topics.clone().filter(|_| self.born);
-            if let Some(topics) = &sparkplug {
-                let online = model::online(&statuses);
-                let g = &self.groups[gi];
-                if g.born && !online {
-                    let payload = sparkplug::ddeath(self.seq);
-                    if self.send(out, topics.device("DDEATH", &g.id), payload) {
-                        self.groups[gi].born = false;
-                    }
-                } else if !g.born && online {
-                    self.dbirth(out, gi);
-                    continue;
-                }
-            }
-            let g = &self.groups[gi];
-            let changes: Vec<(usize, Value)> = g
+            let values: Vec<Option<Value>> = self.groups[gi]
                 .metrics
                 .iter()
-                .enumerate()
-                .filter_map(|(i, m)| {
-                    let v = m.source.read().ok()?;
-                    m.due(v, now, min, max).then_some((i, v))
-                })
+                .map(|m| m.source.read().ok())
                 .collect();
-            if let (Some(topics), true, false) = (&sparkplug, g.born, changes.is_empty()) {
-                let list: Vec<_> = changes
-                    .iter()
-                    .map(|(i, v)| (&g.metrics[*i], *v, t))
-                    .collect();
-                let payload = sparkplug::ddata(self.seq, &list);
-                if !self.send(out, topics.device("DDATA", &g.id), payload) {
-                    // Not queued: these values go with a later message.
-                    continue;
-                }
+            if self.born {
+                self.sparkplug_changes(out, gi, &values, model::online(&statuses));
             }
-            let mut new: Vec<Option<Value>> = vec![None; self.groups[gi].metrics.len()];
-            for (i, v) in changes {
-                self.groups[gi].metrics[i].sent = Some((v, now));
-                new[i] = Some(v);
+            if self.settings.json.is_none() {
+                continue;
             }
-            if self.settings.json.is_some() {
-                for (mi, v) in new.into_iter().enumerate() {
-                    let status = statuses[self.groups[gi].metrics[mi].device];
-                    self.publish_json(out, (gi, mi), v, status, t);
-                }
+            for (mi, newest) in values.into_iter().enumerate() {
+                let m = &self.groups[gi].metrics[mi];
+                let state = &self.json[gi][mi];
+                let due = newest.filter(|v| model::due(state.sent, m.deadband, *v, now, periods));
+                let status = statuses[m.device];
+                self.publish_json(out, (gi, mi), (due, newest), status, t);
             }
         }
     }
 
-    /// A JSON topic's state when its value `v` is new, its device's status changed, or
-    /// its newest value is still to be published; a message not queued is counted and
-    /// tried again with the newest value the next period.
+    /// Group `gi`'s Sparkplug messages of this period: its DDEATH or DBIRTH when it went
+    /// or came back, else a DDATA of what is due among `values`.
+    fn sparkplug_changes(
+        &mut self,
+        out: &mut Outbox,
+        gi: usize,
+        values: &[Option<Value>],
+        online: bool,
+    ) {
+        let Some(topics) = self.topics.clone() else {
+            return;
+        };
+        let g = &self.groups[gi];
+        if g.born && !online {
+            let payload = sparkplug::ddeath(self.seq);
+            if self.send(out, topics.device("DDEATH", &g.id), payload, true) {
+                self.groups[gi].born = false;
+            }
+            return;
+        }
+        if !g.born {
+            if online {
+                self.dbirth(out, gi);
+            }
+            return;
+        }
+        let now = Instant::now();
+        let t = sparkplug::now_ms();
+        let (min, max) = (self.settings.min_period, self.settings.max_period);
+        let changes: Vec<(usize, Value)> = g
+            .metrics
+            .iter()
+            .zip(values)
+            .enumerate()
+            .filter_map(|(i, (m, v))| {
+                let v = (*v)?;
+                m.due(v, now, min, max).then_some((i, v))
+            })
+            .collect();
+        if changes.is_empty() {
+            return;
+        }
+        let list: Vec<_> = changes
+            .iter()
+            .map(|(i, v)| (&g.metrics[*i], *v, t))
+            .collect();
+        let payload = sparkplug::ddata(self.seq, &list);
+        // Not queued: these values go with a later message.
+        if self.send(out, topics.device("DDATA", &g.id), payload, false) {
+            for (i, v) in changes {
+                self.groups[gi].metrics[i].sent = Some((v, now));
+            }
+        }
+    }
+
+    /// A JSON topic's state when its value is due (`due`), its device's status changed,
+    /// or a value of it is still to be published (then the `newest`); a message not queued
+    /// is counted and tried again with the newest value the next period.
     fn publish_json(
         &mut self,
         out: &mut Outbox,
         (gi, mi): (usize, usize),
-        v: Option<Value>,
+        (due, newest): (Option<Value>, Option<Value>),
         status: Status,
         t: u64,
     ) {
@@ -175,19 +205,19 @@ impl Node {
         };
         let m = &self.groups[gi].metrics[mi];
         let state = &mut self.json[gi][mi];
-        if v.is_none() && state.status == Some(status) && !state.pending {
+        if due.is_none() && state.status == Some(status) && !state.pending {
             return;
         }
-        let value = v
-            .or(m.sent.map(|s| s.0))
-            .map_or(serde_json::Value::Null, Value::json);
-        let body = json!({"value": value, "status": status.to_string(), "t": t});
+        let value = due.or(newest).or(state.sent.map(|s| s.0));
+        let text = value.map_or(serde_json::Value::Null, Value::json);
+        let body = json!({"value": text, "status": status.to_string(), "t": t});
         let topic = format!("{prefix}/{}/{}", m.component, m.port);
         if out.publish(topic, false, true, body.to_string().into_bytes()) {
-            *state = JsonState {
-                status: Some(status),
-                pending: false,
-            };
+            state.status = Some(status);
+            state.pending = false;
+            if let Some(v) = value {
+                state.sent = Some((v, Instant::now()));
+            }
         } else {
             state.pending = true;
             self.counters.dropped.fetch_add(1, Ordering::Relaxed);
@@ -217,7 +247,7 @@ impl Node {
             let n = self.book.refused.load(Ordering::Relaxed);
             let last = rtt::lock(&self.book.last_refusal).clone();
             let payload = sparkplug::ndata_refusal(self.seq, n, &last);
-            self.send(out, topics.node("NDATA"), payload);
+            self.send(out, topics.node("NDATA"), payload, false);
         }
     }
 }

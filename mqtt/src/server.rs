@@ -93,7 +93,7 @@ impl Server for MqttServer {
         let Some(r) = rtt::lock(&self.running).take() else {
             return;
         };
-        // Commands not begun are refused from now on; the one under way finishes.
+        // Commands not begun are refused from now on; the one under way finishes whole.
         self.book.stopping.store(true, Ordering::Release);
         let _ = r.stop.send(true);
         if r.session.join().is_err() {

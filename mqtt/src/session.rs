@@ -54,18 +54,23 @@ pub(crate) struct Node {
     pub born: bool,
     /// A rebirth was asked for: made at the next period, once however often asked.
     pub rebirth_asked: bool,
+    /// An NBIRTH went out in this session: the host holds this `bdSeq`, and hwgw leaving
+    /// owes it the NDEATH.
+    pub announced: bool,
     /// The newest STATE timestamp of the primary host.
     state_ts: u64,
     /// Connections made so far.
     connections: u64,
 }
 
-/// A metric's JSON topic: the device status last published, and whether its newest
-/// value is still to be published (its message was not queued).
+/// A metric's JSON topic: the device status and value last published, and whether its
+/// newest value is still to be published (its message was not queued).
 #[derive(Debug, Clone, Copy, Default)]
 pub(crate) struct JsonState {
     pub status: Option<Status>,
     pub pending: bool,
+    /// The value last published, and when.
+    pub sent: Option<(crate::model::Value, std::time::Instant)>,
 }
 
 /// Why a session ended.
@@ -111,6 +116,7 @@ impl Node {
             seq: 0,
             born: false,
             rebirth_asked: false,
+            announced: false,
             state_ts: 0,
             connections: 0,
         }
@@ -128,6 +134,8 @@ impl Node {
             task.abort();
             self.counters.connected.store(false, Ordering::Relaxed);
             self.born = false;
+            self.announced = false;
+            self.rebirth_asked = false;
             for g in &mut self.groups {
                 g.born = false;
             }
@@ -281,16 +289,18 @@ impl Node {
     /// that nothing unread is left when it is dropped (a socket closed with unread bytes
     /// is reset, and a broker may lose the DISCONNECT with it and publish the will too).
     async fn leave(&mut self, out: &mut Outbox, seen: &mut Seeing, last: bool) {
-        if let (Some(t), true) = (&self.topics, self.born) {
-            out.publish(
-                t.node("NDEATH"),
-                true,
-                false,
-                sparkplug::ndeath(self.bd_seq),
-            );
+        // Whatever the byte budget: and when the NDEATH cannot be queued at all, the
+        // connection is dropped without a DISCONNECT, so the broker publishes the will.
+        let mut owed = true;
+        if let (Some(t), true) = (&self.topics, self.announced) {
+            let ndeath = sparkplug::ndeath(self.bd_seq);
+            owed = out.publish_now(t.node("NDEATH"), true, false, ndeath);
         }
         if self.settings.json.is_some() && last {
-            out.publish(self.status_topic(), true, true, b"offline".to_vec());
+            owed &= out.publish_now(self.status_topic(), true, true, b"offline".to_vec());
+        }
+        if !owed {
+            return;
         }
         out.client().disconnect();
         let deadline = tokio::time::sleep(LEAVE);

@@ -44,6 +44,9 @@ pub struct Broker {
     pub port: u16,
     dir: TempDir,
     tls: Option<BrokerTls>,
+    /// A password file (`mosquitto_passwd`): a client that names a user must bring its
+    /// password; one that names none is anonymous, and allowed.
+    users: bool,
 }
 
 impl Drop for Broker {
@@ -63,17 +66,48 @@ impl Broker {
         Broker::start_with(Some(tls))
     }
 
+    /// A plain broker with users `users` (name, password), once it listens.
+    pub fn start_with_users(users: &[(&str, &str)]) -> Broker {
+        let mut b = Broker::new(None);
+        let file = b.dir.path().join("passwords");
+        for (i, (user, password)) in users.iter().enumerate() {
+            let mut cmd = Command::new("mosquitto_passwd");
+            if i == 0 {
+                cmd.arg("-c");
+            }
+            let o = cmd
+                .arg("-b")
+                .arg(&file)
+                .args([user, password])
+                .output()
+                .unwrap_or_else(|e| panic!("cannot run mosquitto_passwd: {e}"));
+            assert!(
+                o.status.success(),
+                "mosquitto_passwd: {}",
+                String::from_utf8_lossy(&o.stderr)
+            );
+        }
+        b.users = true;
+        b.spawn();
+        b
+    }
+
     fn start_with(tls: Option<BrokerTls>) -> Broker {
+        let mut b = Broker::new(tls);
+        b.spawn();
+        b
+    }
+
+    fn new(tls: Option<BrokerTls>) -> Broker {
         ensure(&MOSQUITTO);
         let port = crate::free_port();
-        let mut b = Broker {
+        Broker {
             child: None,
             port,
             dir: TempDir::new(&format!("mosquitto-{port}")),
             tls,
-        };
-        b.spawn();
-        b
+            users: false,
+        }
     }
 
     /// `127.0.0.1:PORT`.
@@ -101,6 +135,12 @@ impl Broker {
             self.port,
             self.dir.path().display()
         );
+        if self.users {
+            conf.push_str(&format!(
+                "password_file {}\n",
+                self.dir.path().join("passwords").display()
+            ));
+        }
         if let Some(t) = &self.tls {
             conf.push_str(&format!(
                 "cafile {}\ncertfile {}\nkeyfile {}\nrequire_certificate true\n",
