@@ -37,14 +37,14 @@ impl Node {
         if host_online {
             self.births(out);
         }
-        let t = sparkplug::now_ms();
+        let at = (Instant::now(), sparkplug::now_ms());
         for gi in 0..self.groups.len() {
             let statuses = self.groups[gi].statuses(&self.registry);
             for mi in 0..self.groups[gi].metrics.len() {
                 let m = &self.groups[gi].metrics[mi];
                 let v = m.source.read().ok();
                 let status = statuses[m.device];
-                self.publish_json(out, (gi, mi), (v, v), status, t);
+                self.publish_json(out, (gi, mi), (v, v), status, at);
             }
         }
     }
@@ -108,8 +108,7 @@ impl Node {
     /// and the JSON topics each keep what they last published: a value one of them could
     /// not queue (or a DBIRTH took) is not lost for the other.
     pub(crate) fn publish_changes(&mut self, out: &mut Outbox) {
-        let now = Instant::now();
-        let t = sparkplug::now_ms();
+        let at = (Instant::now(), sparkplug::now_ms());
         let periods = (self.settings.min_period, self.settings.max_period);
         for gi in 0..self.groups.len() {
             let statuses = self.groups[gi].statuses(&self.registry);
@@ -119,7 +118,7 @@ impl Node {
                 .map(|m| m.source.read().ok())
                 .collect();
             if self.born {
-                self.sparkplug_changes(out, gi, &values, model::online(&statuses));
+                self.sparkplug_changes(out, gi, &values, model::online(&statuses), at);
             }
             if self.settings.json.is_none() {
                 continue;
@@ -127,21 +126,23 @@ impl Node {
             for (mi, newest) in values.into_iter().enumerate() {
                 let m = &self.groups[gi].metrics[mi];
                 let state = &self.json[gi][mi];
-                let due = newest.filter(|v| model::due(state.sent, m.deadband, *v, now, periods));
+                let due = newest.filter(|v| model::due(state.sent, m.deadband, *v, at.0, periods));
                 let status = statuses[m.device];
-                self.publish_json(out, (gi, mi), (due, newest), status, t);
+                self.publish_json(out, (gi, mi), (due, newest), status, at);
             }
         }
     }
 
     /// Group `gi`'s Sparkplug messages of this period: its DDEATH or DBIRTH when it went
-    /// or came back, else a DDATA of what is due among `values`.
+    /// or came back, else a DDATA of what is due among `values`, read at `at` (instant,
+    /// UNIX ms).
     fn sparkplug_changes(
         &mut self,
         out: &mut Outbox,
         gi: usize,
         values: &[Option<Value>],
         online: bool,
+        (now, t): (Instant, u64),
     ) {
         let Some(topics) = self.topics.clone() else {
             return;
@@ -160,8 +161,6 @@ impl Node {
             }
             return;
         }
-        let now = Instant::now();
-        let t = sparkplug::now_ms();
         let (min, max) = (self.settings.min_period, self.settings.max_period);
         let changes: Vec<(usize, Value)> = g
             .metrics
@@ -198,7 +197,7 @@ impl Node {
         (gi, mi): (usize, usize),
         (due, newest): (Option<Value>, Option<Value>),
         status: Status,
-        t: u64,
+        (now, t): (Instant, u64),
     ) {
         let Some(prefix) = &self.settings.json else {
             return;
@@ -216,7 +215,7 @@ impl Node {
             state.status = Some(status);
             state.pending = false;
             if let Some(v) = value {
-                state.sent = Some((v, Instant::now()));
+                state.sent = Some((v, now));
             }
         } else {
             state.pending = true;
