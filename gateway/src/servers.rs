@@ -73,8 +73,9 @@ impl ServerTypes {
     }
 
     /// The server types built into hwgw: modbus_server, server.metrics (Prometheus),
-    /// server.web (the web page), server.foxglove (the Foxglove live stream) and
-    /// server.mqtt (a Sparkplug B edge node and JSON topics).
+    /// server.web (the web page), server.foxglove (the Foxglove live stream),
+    /// server.mqtt (a Sparkplug B edge node and JSON topics) and server.opcua (an OPC UA
+    /// server).
     pub fn builtin() -> Self {
         let mut t = Self::empty();
         t.register("modbus_server", driver_modbus::served::build);
@@ -82,6 +83,7 @@ impl ServerTypes {
         t.register("server.web", web::page::build);
         t.register("server.foxglove", web::foxglove::build);
         t.register("server.mqtt", mqtt::build);
+        t.register("server.opcua", opcua::build);
         t
     }
 

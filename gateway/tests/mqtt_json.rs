@@ -19,35 +19,7 @@ use testkit::{Service, wait_until};
 const HWGW: &str = env!("CARGO_BIN_EXE_hwgw");
 const WAIT: Duration = Duration::from_secs(30);
 
-/// A sim card: two constant inputs, an input reading output 0 back, two outputs, four
-/// digital outputs looped back to four inputs.
-pub const CARD: &str = r#"
-[[card]]
-name = "sim0"
-driver = "sim"
-period_ms = 10
-sample_period_ms = 20
-safe_analog_out = [0.0, 0.0]
-
-[card.sim]
-seed = 1
-digital_inputs = 4
-digital_outputs = 4
-digital_loopback = true
-
-[[card.sim.analog_in]]
-count = 2
-range = { lowest = -10.0, highest = 10.0, unit = "V" }
-waveform = { kind = "constant", value = 1.25 }
-
-[[card.sim.analog_in]]
-range = { lowest = -10.0, highest = 10.0, unit = "V" }
-waveform = { kind = "loopback", analog_out = 0 }
-
-[[card.sim.analog_out]]
-count = 2
-range = { lowest = -10.0, highest = 10.0, unit = "V" }
-"#;
+use testkit::fixtures::SIM_CARD as CARD;
 
 fn get(svc: &Service, component: &str, port: &str) -> Value {
     svc.ok(json!({"cmd": "get", "component": component, "port": port}))

@@ -83,6 +83,7 @@ fn a_users_server_type_is_built_from_its_section_and_named_by_its_key() {
             "server.foxglove",
             "server.metrics",
             "server.mqtt",
+            "server.opcua",
             "server.web"
         ]
     );
@@ -116,7 +117,7 @@ fn a_users_server_type_is_built_from_its_section_and_named_by_its_key() {
     );
     assert!(
         e.ends_with(
-            "the servers of this build: modbus_server, server.foxglove, server.metrics, server.mqtt, server.web"
+            "the servers of this build: modbus_server, server.foxglove, server.metrics, server.mqtt, server.opcua, server.web"
         ),
         "{e}"
     );

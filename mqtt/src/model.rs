@@ -6,71 +6,18 @@
 //! period).
 
 use crate::config::{DevicePer, MqttConfig};
-use device_interface::{
-    AnalogIn, AnalogOut, AnalogRange, DeviceError, DigitalIn, DigitalOut, Encoder, Interface,
-    Registry, Status,
-};
+use device_interface::{AnalogRange, Interface, Registry, Status};
 use driver_api::CardError;
-use rtt::info::Direction;
-use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-/// A metric's value.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub(crate) enum Value {
-    /// An analog channel.
-    F64(f64),
-    /// A digital channel.
-    Bool(bool),
-    /// An encoder's position or turn.
-    I64(i64),
-}
+pub(crate) use driver_api::channels::{Kind, Source, Value};
 
-impl Value {
-    /// As JSON (a float round-trips: the workspace's serde_json has `float_roundtrip`;
-    /// a value JSON cannot carry, NaN or infinite, is null).
-    pub(crate) fn json(self) -> serde_json::Value {
-        match self {
-            Value::F64(v) => {
-                serde_json::Number::from_f64(v).map_or(serde_json::Value::Null, Into::into)
-            }
-            Value::Bool(b) => b.into(),
-            Value::I64(i) => i.into(),
-        }
-    }
-}
-
-/// Where a metric's value is read.
-#[derive(Clone)]
-pub(crate) enum Source {
-    Ai(Arc<dyn AnalogIn>, u32),
-    Ao(Arc<dyn AnalogOut>, u32),
-    Di(Arc<dyn DigitalIn>, u32),
-    Do(Arc<dyn DigitalOut>, u32),
-    Position(Arc<dyn Encoder>),
-    Turn(Arc<dyn Encoder>),
-}
-
-impl Source {
-    /// The channel's value now: an input's newest sample, an output's read-back.
-    pub(crate) fn read(&self) -> Result<Value, DeviceError> {
-        Ok(match self {
-            Source::Ai(d, c) => Value::F64(d.read(*c)?),
-            Source::Ao(d, c) => Value::F64(d.read_back(*c)?),
-            Source::Di(d, c) => Value::Bool(d.read_bit(*c)?),
-            Source::Do(d, c) => Value::Bool(d.check_bit(*c)?),
-            Source::Position(e) => Value::I64(e.position()?),
-            Source::Turn(e) => Value::I64(e.turn()?),
-        })
-    }
-
-    /// Its kind of value, as a Sparkplug datatype.
-    pub(crate) fn datatype(&self) -> DataType {
-        match self {
-            Source::Ai(..) | Source::Ao(..) => DataType::Double,
-            Source::Di(..) | Source::Do(..) => DataType::Boolean,
-            Source::Position(_) | Source::Turn(_) => DataType::Int64,
-        }
+/// A source's kind of value, as a Sparkplug datatype.
+pub(crate) fn datatype(source: &Source) -> DataType {
+    match source {
+        Source::Ai(..) | Source::Ao(..) => DataType::Double,
+        Source::Di(..) | Source::Do(..) => DataType::Boolean,
+        Source::Position(_) | Source::Turn(_) => DataType::Int64,
     }
 }
 
@@ -82,28 +29,6 @@ pub(crate) enum DataType {
     Double = 10,
     Boolean = 11,
     String = 12,
-}
-
-/// What a metric's channel is, for writes.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Kind {
-    /// An input (or an encoder): not written.
-    Input,
-    /// An analog output.
-    AnalogOut,
-    /// A digital output.
-    DigitalOut,
-}
-
-/// Why a device's metrics could not be found.
-#[derive(Debug, thiserror::Error)]
-pub(crate) enum MetricsError {
-    #[error("device {device:?} has no IO component: {why}")]
-    NoComponent { device: String, why: String },
-    #[error("device {0:?} left the registry")]
-    Gone(String),
-    #[error("{component} has no port for channel {channel}")]
-    NoPort { component: String, channel: u32 },
 }
 
 /// One channel as a metric.
@@ -234,37 +159,26 @@ pub(crate) fn groups(
         .sparkplug
         .as_ref()
         .map_or(DevicePer::Card, |s| s.device_per);
-    let mut problems = Vec::new();
-    let mut entries: Vec<_> = registry
-        .entries()
+    let (entries, missing) = driver_api::channels::devices(registry, &c.devices);
+    let mut problems: Vec<CardError> = missing
         .into_iter()
-        .filter(|e| e.info.alias_of.is_none() && !e.interface.is_logical())
+        .map(|(i, why)| CardError::at(format!("devices[{i}]"), why))
         .collect();
-    for (i, d) in c.devices.iter().enumerate() {
-        if !entries.iter().any(|e| &e.info.name == d) {
-            let mut names: Vec<_> = entries.iter().map(|e| e.info.name.clone()).collect();
-            names.dedup();
-            problems.push(CardError::at(
-                format!("devices[{i}]"),
-                format!("no device {d:?}; the devices: {}", names.join(", ")),
-            ));
-        }
-    }
-    if !c.devices.is_empty() {
-        entries.retain(|e| c.devices.contains(&e.info.name));
-    }
     let mut groups: Vec<Group> = Vec::new();
     let mut alias = 0;
     for e in &entries {
         let name = &e.info.name;
-        let metrics = match metrics(registry, rt, e.interface, name) {
+        let metrics = match driver_api::channels::of_device(registry, rt, e.interface, name) {
             Ok(m) => m,
             Err(why) => {
                 problems.push(CardError::new(why));
                 continue;
             }
         };
-        let component = metrics.first().map(|m| m.0.clone()).unwrap_or_default();
+        let component = metrics
+            .first()
+            .map(|m| m.component.clone())
+            .unwrap_or_default();
         // A card's device: its metrics named after the IO component without the card's
         // name (`ai/ch0`; an encoder registered under a name of its own, `enc0/position`).
         let (id, prefix) = match per {
@@ -300,18 +214,20 @@ pub(crate) fn groups(
         };
         group.devices.push((e.interface, name.clone()));
         let device = group.devices.len() - 1;
-        for (component, port, source, range) in metrics {
+        for ch in metrics {
             alias += 1;
-            let address = format!("{component}.{port}");
+            let address = ch.address();
+            let driver_api::channels::Channel {
+                component,
+                port,
+                source,
+                range,
+            } = ch;
             let metric_name = match &prefix {
                 Some(p) if !p.is_empty() => format!("{p}/{port}"),
                 _ => port.clone(),
             };
-            let kind = match source {
-                Source::Ao(..) => Kind::AnalogOut,
-                Source::Do(..) => Kind::DigitalOut,
-                _ => Kind::Input,
-            };
+            let kind = source.kind();
             let i = group.metrics.len();
             group.names.insert(metric_name.clone(), i);
             group.aliases.insert(alias, i);
@@ -351,7 +267,7 @@ pub(crate) fn groups(
 
 /// Why names of a device cannot be published as the section asks: a Sparkplug device id,
 /// or a JSON topic level, that is not one.
-fn unfit(c: &MqttConfig, id: &str, metrics: &[Found]) -> Option<String> {
+fn unfit(c: &MqttConfig, id: &str, metrics: &[driver_api::channels::Channel]) -> Option<String> {
     use crate::config::topic_level;
     if c.sparkplug.is_some()
         && let Err(why) = topic_level(id, false)
@@ -359,7 +275,10 @@ fn unfit(c: &MqttConfig, id: &str, metrics: &[Found]) -> Option<String> {
         return Some(format!("{id:?} cannot be a Sparkplug device id: {why}"));
     }
     if c.json.is_some() {
-        for (component, port, ..) in metrics {
+        for driver_api::channels::Channel {
+            component, port, ..
+        } in metrics
+        {
             for level in [component, port] {
                 if let Err(why) = topic_level(level, false) {
                     return Some(format!("{component}.{port} cannot be a JSON topic: {why}"));
@@ -368,93 +287,6 @@ fn unfit(c: &MqttConfig, id: &str, metrics: &[Found]) -> Option<String> {
         }
     }
     None
-}
-
-type Found = (String, String, Source, Option<AnalogRange>);
-
-/// The metrics of registry device `name` under `interface`: its IO component's ports in
-/// channel order, each with its source; an error when its IO component is missing.
-fn metrics(
-    registry: &Registry,
-    rt: &rtt::Runtime,
-    interface: Interface,
-    name: &str,
-) -> Result<Vec<Found>, MetricsError> {
-    let (suffix, direction) = match interface {
-        Interface::AnalogIn => (Some("ai"), Direction::Output),
-        Interface::AnalogOut => (Some("ao"), Direction::Input),
-        Interface::DigitalIn => (Some("di"), Direction::Output),
-        Interface::DigitalOut => (Some("do"), Direction::Input),
-        _ => (None, Direction::Output),
-    };
-    let component = suffix.map_or_else(|| name.to_string(), |s| format!("{name}.{s}"));
-    let task = rt
-        .component(&component)
-        .map_err(|e| MetricsError::NoComponent {
-            device: name.into(),
-            why: e.to_string(),
-        })?;
-    let ports: Vec<String> = task
-        .ports()
-        .into_iter()
-        .filter(|p| p.direction == direction)
-        .map(|p| p.name)
-        .collect();
-    let gone = || MetricsError::Gone(name.into());
-    let one = |c: u32| {
-        ports
-            .get(c as usize)
-            .cloned()
-            .ok_or_else(|| MetricsError::NoPort {
-                component: component.clone(),
-                channel: c,
-            })
-    };
-    let sources: Vec<(Source, Option<AnalogRange>)> = match interface {
-        Interface::AnalogIn => {
-            let d = registry.analog_in().get(name).ok_or_else(gone)?;
-            let range = |c| d.range(c).ok();
-            (0..d.channel_count())
-                .map(|c| (Source::Ai(d.clone(), c), range(c)))
-                .collect()
-        }
-        Interface::AnalogOut => {
-            let d = registry.analog_out().get(name).ok_or_else(gone)?;
-            let range = |c| d.range(c).ok();
-            (0..d.channel_count())
-                .map(|c| (Source::Ao(d.clone(), c), range(c)))
-                .collect()
-        }
-        Interface::DigitalIn => {
-            let d = registry.digital_in().get(name).ok_or_else(gone)?;
-            (0..d.input_count())
-                .map(|c| (Source::Di(d.clone(), c), None))
-                .collect()
-        }
-        Interface::DigitalOut => {
-            let d = registry.digital_out().get(name).ok_or_else(gone)?;
-            (0..d.output_count())
-                .map(|c| (Source::Do(d.clone(), c), None))
-                .collect()
-        }
-        Interface::Encoder => {
-            let d = registry.encoder().get(name).ok_or_else(gone)?;
-            return Ok(vec![
-                (
-                    component.clone(),
-                    "position".into(),
-                    Source::Position(d.clone()),
-                    None,
-                ),
-                (component, "turn".into(), Source::Turn(d), None),
-            ]);
-        }
-        Interface::Sensor | Interface::Drive | Interface::Axis => Vec::new(),
-    };
-    (0u32..)
-        .zip(sources)
-        .map(|(c, (source, range))| Ok((component.clone(), one(c)?, source, range)))
-        .collect()
 }
 
 #[cfg(test)]

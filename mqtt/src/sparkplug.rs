@@ -227,7 +227,7 @@ pub fn dbirth(seq: u8, group: &Group, values: &[Option<Value>], writes: bool) ->
             name: Some(m.name.clone()),
             alias: Some(m.alias),
             timestamp: Some(t),
-            datatype: Some(m.source.datatype() as u32),
+            datatype: Some(crate::model::datatype(&m.source) as u32),
             is_null: v.is_none().then_some(true),
             properties: Some(properties(m, writes)),
             value: v.map(value),
@@ -244,7 +244,7 @@ pub fn ddata(seq: u8, changes: &[(&Metric, Value, u64)]) -> Vec<u8> {
         .map(|(m, v, t)| payload::Metric {
             alias: Some(m.alias),
             timestamp: Some(*t),
-            datatype: Some(m.source.datatype() as u32),
+            datatype: Some(crate::model::datatype(&m.source) as u32),
             value: Some(value(*v)),
             ..Default::default()
         })

@@ -68,6 +68,7 @@
 
 mod bus;
 mod card;
+pub mod channels;
 mod context;
 mod names;
 pub mod node;

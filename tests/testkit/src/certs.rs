@@ -119,6 +119,42 @@ impl Certs {
         );
     }
 
+    /// A self-signed OPC UA application instance certificate `name.der` (DER) and its key
+    /// `name.key` (PEM): RSA 2048, SHA-256, the application's URI `uri` and `localhost` in
+    /// its SAN, the key usage and extended key usage (client and server) Part 6 names.
+    pub fn opcua_application(&self, name: &str, uri: &str) -> (PathBuf, PathBuf) {
+        self.openssl(&[
+            "req",
+            "-x509",
+            "-newkey",
+            "rsa:2048",
+            "-nodes",
+            "-sha256",
+            "-keyout",
+            &format!("{name}.key"),
+            "-outform",
+            "DER",
+            "-out",
+            &format!("{name}.der"),
+            "-days",
+            "30",
+            "-subj",
+            &format!("/CN={name}/O=hwgw tests"),
+            "-addext",
+            &format!("subjectAltName=URI:{uri},DNS:localhost"),
+            "-addext",
+            "basicConstraints=critical,CA:FALSE",
+            "-addext",
+            "keyUsage=critical,digitalSignature,nonRepudiation,keyEncipherment,dataEncipherment,keyCertSign",
+            "-addext",
+            "extendedKeyUsage=serverAuth,clientAuth",
+        ]);
+        (
+            self.path(&format!("{name}.der")),
+            self.path(&format!("{name}.key")),
+        )
+    }
+
     /// A file of theirs: `ca.pem`, `server.pem`, `client.key`, `stranger.pem`, ….
     pub fn path(&self, name: &str) -> PathBuf {
         self.dir.path().join(name)

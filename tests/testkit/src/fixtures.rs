@@ -36,3 +36,34 @@ address = 5
 table = "coils"
 address = 6
 "#;
+
+/// A sim card (`sim0`) for the northbound servers' tests: two constant inputs (1.25 V),
+/// an input reading analog output 0 back, two outputs, four digital outputs looped back
+/// to four inputs.
+pub const SIM_CARD: &str = r#"
+[[card]]
+name = "sim0"
+driver = "sim"
+period_ms = 10
+sample_period_ms = 20
+safe_analog_out = [0.0, 0.0]
+
+[card.sim]
+seed = 1
+digital_inputs = 4
+digital_outputs = 4
+digital_loopback = true
+
+[[card.sim.analog_in]]
+count = 2
+range = { lowest = -10.0, highest = 10.0, unit = "V" }
+waveform = { kind = "constant", value = 1.25 }
+
+[[card.sim.analog_in]]
+range = { lowest = -10.0, highest = 10.0, unit = "V" }
+waveform = { kind = "loopback", analog_out = 0 }
+
+[[card.sim.analog_out]]
+count = 2
+range = { lowest = -10.0, highest = 10.0, unit = "V" }
+"#;

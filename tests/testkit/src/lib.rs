@@ -42,6 +42,7 @@ pub mod mbpoll;
 pub mod mcapread;
 pub mod mosquitto;
 pub mod netns;
+pub mod opcua;
 pub mod peers;
 pub mod picture;
 pub mod prometheus;

@@ -43,6 +43,13 @@ impl PyModbus {
         panic!("{last}");
     }
 
+    /// A server in `mode` on `port` (a server started again where one was), once it
+    /// listens; panics, saying why, when it does not.
+    pub fn start_on(mode: &str, port: u16) -> PyModbus {
+        ensure(&PYMODBUS);
+        PyModbus::try_start(mode, port).unwrap_or_else(|e| panic!("{e}"))
+    }
+
     fn try_start(mode: &str, port: u16) -> Result<PyModbus, String> {
         let child = Command::new(PYTHON)
             .args([SERVER, mode, &port.to_string()])

@@ -100,3 +100,27 @@ pub const SELENIUM: &[&str] = &[
 pub fn selenium() -> io::Result<PathBuf> {
     install("selenium-4.51.0", SELENIUM)
 }
+
+/// asyncua (FreeOpcUa's OPC UA stack for Python) and its dependencies, pinned (for
+/// Debian 12's Python 3.11): the independent OPC UA client. `cryptography` and `cffi`
+/// are manylinux wheels.
+pub const ASYNCUA: &[&str] = &[
+    "asyncua==2.1.0",
+    "aiosqlite==0.22.1",
+    "anyio==4.16.0",
+    "cffi==2.1.1",
+    "cryptography==50.0.2",
+    "idna==3.20",
+    "pycparser==3.12",
+    "python-dateutil==4.0.0",
+    "pytz==2026.6",
+    "sortedcontainers==2.4.0",
+    "typing_extensions==4.16.0",
+    "tzdata==2026.6",
+    "wait_for2==0.4.1",
+];
+
+/// asyncua ([`ASYNCUA`]): the directory to put on `PYTHONPATH`.
+pub fn asyncua() -> io::Result<PathBuf> {
+    install("asyncua-2.1.0", ASYNCUA)
+}
