@@ -37,8 +37,8 @@ pub struct OpcuaConfig {
     pub allow_none_remote: bool,
     /// The server's certificate store, relative to the deployment's folder: its
     /// certificate `own/cert.der` and key `private/private.pem` (made on first start when
-    /// neither is there, never over one that is), the trusted clients' certificates in
-    /// `trusted/certs/`, the refused ones put in `rejected/certs/`.
+    /// neither is there, never over one that is); a client's certificate that is not
+    /// trusted is refused and put in `rejected/`: moved to `trusted/`, it is trusted.
     pub pki_dir: String,
     /// What a client without a user name may do: `"none"` (it may not connect),
     /// `"read_only"` (default) or `"operator"`.

@@ -9,7 +9,7 @@
 //! None (loopback only unless allowed), Basic256Sha256 and Aes128_Sha256_RsaOaep, signed
 //! or signed and encrypted; its certificate made on first start into the deployment's
 //! store, never over one that is there; clients trusted by their certificates in the
-//! store's `trusted/certs/`; users with roles from a file. Values are read from the device
+//! store's `trusted/` (a refused one is put in `rejected/`); users with roles from a file. Values are read from the device
 //! registry every sample period (the cards' own images: nothing on a real-time path waits
 //! for a client) and what changed goes to the monitored items, whose sampling intervals,
 //! deadband filters and queues async-opcua applies within the section's limits.

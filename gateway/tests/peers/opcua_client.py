@@ -20,6 +20,11 @@ one JSON command a line on stdin and answers each with one JSON line:
   "percent", "value": x}, "queue": n}: statuses of the monitored items.
 - {"cmd": "notifications", "count": n, "timeout": s}: waits until n data changes have come
   (or the timeout), returns them all ({"id", "value", "status"}) and forgets them.
+- {"cmd": "flood", "sessions": n, "url": ...}: opens n more sessions (20 at a time) and
+  keeps them open, never closed: how many opened, and the statuses of those refused.
+- {"cmd": "many_items", "id": ..., "count": n, "chunk": k, "interval": ms}: one
+  subscription with n monitored items of `id`, created k a request: the count of each
+  status.
 - {"cmd": "close"}: closes the session and ends.
 
 Floats travel as JSON numbers written by Python's repr: they round-trip exactly.
@@ -46,6 +51,31 @@ def plain(v):
     if isinstance(v, (list, tuple)):
         return [plain(x) for x in v]
     return str(v)
+
+
+KEEP = []
+
+
+async def flood(url, n):
+    opened, refused = 0, {}
+
+    async def one():
+        nonlocal opened
+        client = Client(url, timeout=30)
+        try:
+            await client.connect()
+            opened += 1
+            KEEP.append(client)
+        except ua.UaStatusCodeError as e:
+            name = status_name(e.code)
+            refused[name] = refused.get(name, 0) + 1
+        except Exception as e:  # noqa: BLE001 - counted by kind
+            name = type(e).__name__
+            refused[name] = refused.get(name, 0) + 1
+
+    for i in range(0, n, 20):
+        await asyncio.gather(*(one() for _ in range(min(20, n - i))))
+    return {"opened": opened, "refused": refused}
 
 
 class Handler:
@@ -195,6 +225,27 @@ async def command(client, ns, node, c, handler):
                 break
         out, handler.changes = handler.changes, []
         return {"changes": out}
+    if cmd == "flood":
+        return await flood(c["url"], c["sessions"])
+    if cmd == "many_items":
+        sub = await client.create_subscription(c.get("interval", 100), handler)
+        counts = {}
+        left = c["count"]
+        while left > 0:
+            n = min(left, c.get("chunk", 1000))
+            left -= n
+            try:
+                handles = await sub._subscribe(
+                    [node(c["id"])] * n, ua.AttributeIds.Value, queuesize=1,
+                    sampling_interval=c.get("interval", 100),
+                )
+                names = [status_name(h) if isinstance(h, ua.StatusCode) else "Good" for h in handles]
+            except ua.UaStatusCodeError as e:
+                names = [status_name(e.code)] * n
+            for name in names:
+                counts[name] = counts.get(name, 0) + 1
+        KEEP.append(sub)
+        return {"items": counts}
     if cmd == "close":
         return {}
     return {"error": f"unknown command {cmd}"}

@@ -120,7 +120,7 @@ impl Certs {
     }
 
     /// A self-signed OPC UA application instance certificate `name.der` (DER) and its key
-    /// `name.key` (PEM): RSA 2048, SHA-256, the application's URI `uri` and `localhost` in
+    /// `name-key.pem` (PEM: asyncua reads a key by its extension): RSA 2048, SHA-256, the application's URI `uri` and `localhost` in
     /// its SAN, the key usage and extended key usage (client and server) Part 6 names.
     pub fn opcua_application(&self, name: &str, uri: &str) -> (PathBuf, PathBuf) {
         self.openssl(&[
@@ -131,7 +131,7 @@ impl Certs {
             "-nodes",
             "-sha256",
             "-keyout",
-            &format!("{name}.key"),
+            &format!("{name}-key.pem"),
             "-outform",
             "DER",
             "-out",
@@ -151,7 +151,7 @@ impl Certs {
         ]);
         (
             self.path(&format!("{name}.der")),
-            self.path(&format!("{name}.key")),
+            self.path(&format!("{name}-key.pem")),
         )
     }
 
