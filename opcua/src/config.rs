@@ -94,6 +94,11 @@ pub struct LimitsConfig {
     /// A message's size, KiB (64–65536, default 4096).
     #[serde(default = "default_message_kib")]
     pub message_kib: usize,
+    /// Notifications one publish response carries, at most (100–100000; default as many
+    /// as fit in a message at 256 bytes each, 16384 for 4096 KiB): lower it for a client
+    /// that takes shorter arrays; the rest go in the next responses.
+    #[serde(default)]
+    pub notifications_per_publish: Option<usize>,
     /// A session nobody uses ends after this, s (1–3600, default 60).
     #[serde(default = "default_session_timeout")]
     pub session_timeout_s: u64,
@@ -108,6 +113,7 @@ impl Default for LimitsConfig {
             queue_size: default_queue(),
             queued_notifications: default_queued(),
             message_kib: default_message_kib(),
+            notifications_per_publish: None,
             session_timeout_s: default_session_timeout(),
         }
     }

@@ -112,6 +112,15 @@ impl OpcuaServer {
             .max_message_size(l.message_kib << 10)
             .with_node_manager(crate::nodes::builder(NAMESPACE));
         let limits = b.limits_mut();
+        // A message may take `message_kib` in chunks of the send buffer (async-opcua's
+        // default is 5 chunks, 320 KiB), and a publish carries at most as many
+        // notifications as fit in one at 256 bytes each (its default is no bound: a
+        // subscription of many items then makes responses too big to send, and its
+        // client never hears a thing).
+        let message = l.message_kib << 10;
+        limits.max_chunk_count = message.div_ceil(limits.send_buffer_size) + 1;
+        limits.subscriptions.max_notifications_per_publish =
+            l.notifications_per_publish.unwrap_or(message / 256) as u64;
         limits.subscriptions.max_subscriptions_per_session = l.subscriptions_per_session;
         limits.subscriptions.max_monitored_items_per_sub = l.monitored_items_per_subscription;
         limits.subscriptions.max_monitored_item_queue_size = l.queue_size;
