@@ -160,11 +160,17 @@ pub(crate) fn command() -> clap::Command {
     <Cli as clap::CommandFactory>::command()
 }
 
+/// The log filter without `RUST_LOG`: info, and async-opcua's crates (the OPC UA
+/// server) from warnings up — they log every connection at info.
+const DEFAULT_LOG: &str =
+    "info,opcua_server=warn,opcua_core=warn,opcua_crypto=warn,opcua_types=warn,opcua_nodes=warn";
+
 /// Logs to the journal when systemd runs us (JOURNAL_STREAM is set), else to stderr.
 fn init_logging() {
     use tracing_subscriber::prelude::*;
-    let filter =
-        || tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into());
+    let filter = || {
+        tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| DEFAULT_LOG.into())
+    };
     if std::env::var_os("JOURNAL_STREAM").is_some()
         && let Ok(journal) = tracing_journald::layer()
     {

@@ -309,3 +309,20 @@ fn a_modbus_card_browsed_offline_bad_and_back_good() {
     });
     assert_eq!(read(&mut c, "plc.ai.ch0")["value"], json!(-12.3));
 }
+
+#[test]
+fn the_example_serves_and_takes_writes() {
+    let example = include_str!("../../config/opcua.toml");
+    let port = testkit::free_port();
+    let text = example.replace("127.0.0.1:4840", &format!("127.0.0.1:{port}"));
+    assert_ne!(text, example, "the example's listen address moved");
+    let svc = Service::run_text(HWGW, "opcua-example", &text).unwrap();
+    let mut c = UaClient::open(&format!("opc.tcp://127.0.0.1:{port}/"));
+    assert_eq!(write(&mut c, "sim0.ao.ch0", "Double", json!(-4.0)), "Good");
+    testkit::wait_until("analog output 0 read back on input 1", || {
+        let g = get(&svc, "sim0.ai", "ch1");
+        g.as_f64().is_some_and(|v| (v + 4.0).abs() < 1e-3)
+            && read(&mut c, "sim0.ai.ch1")["value"] == g
+    });
+    assert!(svc.dir().join("opcua-pki/own/cert.der").exists());
+}

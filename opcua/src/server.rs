@@ -246,6 +246,12 @@ impl Server for OpcuaServer {
             use std::os::unix::fs::PermissionsExt;
             std::fs::set_permissions(&key, std::fs::Permissions::from_mode(0o600))
                 .map_err(listen)?;
+            tracing::info!(
+                "{}: made its certificate {} and key {}",
+                self.name,
+                self.settings.pki_dir.join("own/cert.der").display(),
+                key.display()
+            );
         }
         let secured = self
             .settings

@@ -19,6 +19,9 @@
 //! [`BusContext`]), so it is added once by type and a driver keeps no cell to take it
 //! from.
 //!
+//! [`channels`] finds the registry's channels with their IO components and ports, as the
+//! northbound servers (MQTT, OPC UA) serve them.
+//!
 //! A [`Server`] is the other plug-in shape: something served beside the cards (hwgw as a
 //! Modbus TCP server), built by a [`ServerBuildFn`] from its typed top-level section over
 //! the device registry ([`ServerContext`]), started with the gateway and stopped first at
