@@ -169,7 +169,7 @@ fn values_writes_and_calls() {
     assert_eq!(get(&svc, "sim0.di", "bit1"), json!(true));
     let counters = svc.server_status("server.opcua")["counters"].clone();
     assert_eq!(counters["writes"], 2, "{counters}");
-    assert_eq!(counters["writes_refused"], 3, "{counters}");
+    assert_eq!(counters["writes_refused"], 4, "{counters}");
 
     // An operation called with its typed argument; a wrong call refused.
     let a = c.ask(json!({"cmd": "call", "object": "component:sim0.ai", "method": "call:sim0.ai.read", "args": [["UInt32", 0]]}));
@@ -181,10 +181,8 @@ fn values_writes_and_calls() {
     c.ask(json!({"cmd": "close"}));
 }
 
-/// Writes `v` to `id`, waits until a read of it gives it back (the sampler has seen it;
-/// the sim's 16-bit converter reads it back within a step), then holds it two of the
-/// monitored items' sampling intervals (20 ms), as a value must last to be sampled at the
-/// interval the client asked for. Returns the value read back.
+/// Writes `v` to `id` and waits until a read of it gives it back (the sampler has seen it;
+/// the sim's 16-bit converter reads it back within a step); returns the value read back.
 fn settle(c: &mut UaClient, id: &str, v: f64) -> Value {
     assert_eq!(write(c, id, "Double", json!(v)), "Good");
     let mut back = Value::Null;
@@ -192,8 +190,23 @@ fn settle(c: &mut UaClient, id: &str, v: f64) -> Value {
         back = read(c, id)["value"].clone();
         back.as_f64().is_some_and(|b| (b - v).abs() < 1e-3)
     });
-    std::thread::sleep(std::time::Duration::from_millis(40));
     back
+}
+
+/// Writes each of `values` to `id`; after one that `crosses` the deadband, waits for its
+/// notification (and only it), so each arrives before the next write.
+fn walk(c: &mut UaClient, id: &str, values: &[(f64, bool)]) {
+    for &(v, crosses) in values {
+        let back = settle(c, id, v);
+        if crosses {
+            let got = c.ask(json!({"cmd": "notifications", "count": 1, "timeout": 30}));
+            assert_eq!(
+                got["changes"],
+                json!([{"id": id, "value": back, "status": "Good"}]),
+                "{id} = {v}"
+            );
+        }
+    }
 }
 
 #[test]
@@ -214,40 +227,23 @@ fn a_subscription_with_a_deadband_gets_exactly_the_changes_beyond_it() {
     assert_eq!(a["items"], json!(["Good"]), "{a}");
     let first = c.ask(json!({"cmd": "notifications", "count": 2, "timeout": 30}));
     assert_eq!(first["changes"].as_array().unwrap().len(), 2, "{first}");
-    let ch1: Vec<Value> = [1.0, 1.2, 1.6, 1.7, 3.0, 2.6]
-        .iter()
-        .map(|v| settle(&mut c, "sim0.ao.ch1", *v))
-        .collect();
-    let ch0: Vec<Value> = [1.5, 2.5, 4.0, 5.0]
-        .iter()
-        .map(|v| settle(&mut c, "sim0.ao.ch0", *v))
-        .collect();
-    let got = c.ask(json!({"cmd": "notifications", "count": 5, "timeout": 30}));
-    // Nothing more comes (a short wait: the values above were all sampled already).
-    let more = c.ask(json!({"cmd": "notifications", "count": 1, "timeout": 1}));
-    let mut by: BTreeMap<String, Vec<Value>> = BTreeMap::new();
-    for ch in got["changes"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .chain(more["changes"].as_array().unwrap())
-    {
-        by.entry(ch["id"].as_str().unwrap().into())
-            .or_default()
-            .push(ch["value"].clone());
-    }
     // Beyond 0.5 from the last reported: 1.0 (from 0), 1.6, 3.0; not 1.2, 1.7, 2.6.
-    assert_eq!(
-        by["sim0.ao.ch1"],
-        vec![ch1[0].clone(), ch1[2].clone(), ch1[4].clone()],
-        "{got}"
-    );
+    let ch1 = [
+        (1.0, true),
+        (1.2, false),
+        (1.6, true),
+        (1.7, false),
+        (3.0, true),
+        (2.6, false),
+    ];
+    walk(&mut c, "sim0.ao.ch1", &ch1);
     // Beyond 2 V: 2.5 (from 0), 5.0; not 1.5, 4.0.
-    assert_eq!(
-        by["sim0.ao.ch0"],
-        vec![ch0[1].clone(), ch0[3].clone()],
-        "{got}"
-    );
+    let ch0 = [(1.5, false), (2.5, true), (4.0, false), (5.0, true)];
+    walk(&mut c, "sim0.ao.ch0", &ch0);
+    // Nothing more comes: the values that did not cross were sampled before those that
+    // did were notified.
+    let more = c.ask(json!({"cmd": "notifications", "count": 1, "timeout": 1}));
+    assert_eq!(more["changes"], json!([]), "{more}");
 }
 
 #[test]

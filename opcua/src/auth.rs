@@ -1,6 +1,8 @@
 //! Who may connect and what each may do: anonymous clients with the section's role, the
-//! users of the users file with theirs (user names taken on signed endpoints only, so a
-//! password never crosses the network in clear); a read-only user's view of an output
+//! users of the users file with theirs (user names offered and taken on the signed and
+//! encrypted endpoints only: async-opcua takes a password the client did not encrypt, and
+//! only there is the whole message encrypted, so a password never crosses the network in
+//! clear); a read-only user's view of an output
 //! has no write access, and only operators may call methods.
 
 use crate::config::{Role, Security, User};
@@ -51,9 +53,9 @@ impl Users {
     }
 }
 
-/// The endpoint's security is more than none.
-fn signed(endpoint: &ServerEndpoint) -> bool {
-    endpoint.message_security_mode() != MessageSecurityMode::None
+/// The endpoint signs and encrypts.
+fn encrypted(endpoint: &ServerEndpoint) -> bool {
+    endpoint.message_security_mode() == MessageSecurityMode::SignAndEncrypt
 }
 
 /// Compares without stopping at the first difference.
@@ -76,10 +78,10 @@ impl AuthManager for Users {
         username: &str,
         password: &Password,
     ) -> Result<UserToken, Error> {
-        if !signed(endpoint) {
+        if !encrypted(endpoint) {
             return Err(self.refuse(format!(
-                "user {username:?} on the unsigned endpoint: user names are taken on signed \
-                 endpoints only"
+                "user {username:?} on an endpoint that does not encrypt: user names are \
+                 taken on signed and encrypted endpoints only"
             )));
         }
         match self.users.get(username) {
@@ -134,7 +136,7 @@ impl AuthManager for Users {
                 security_policy_uri: UAString::null(),
             });
         }
-        if signed(endpoint) && !self.users.is_empty() {
+        if encrypted(endpoint) && !self.users.is_empty() {
             policies.push(UserTokenPolicy {
                 policy_id: user_pass_security_policy_id(endpoint),
                 token_type: UserTokenType::UserName,

@@ -31,7 +31,7 @@ pub(crate) struct Book {
 
 impl Book {
     /// Counts refusal `code` of `what`, keeps its text; returns the code.
-    fn refuse(&self, calls: bool, code: StatusCode, what: String) -> StatusCode {
+    pub(crate) fn refuse(&self, calls: bool, code: StatusCode, what: String) -> StatusCode {
         let n = if calls {
             &self.calls_refused
         } else {
@@ -216,13 +216,14 @@ impl ChannelWrite {
     }
 }
 
-/// A write to input port `port` of `component`, of type `type_name`.
+/// A write to input port `port` of `task`, of type `type_name`.
 pub(crate) fn port_write(
     control: &ControlLink,
     book: &Book,
-    (component, port, type_name): (&str, &str, &str),
+    (task, port, type_name): (&rtt::TaskContext, &str, &str),
     value: &DataValue,
 ) -> StatusCode {
+    let component = task.name();
     let what = format!("write of {component}.{port}");
     if book.stopping.load(Ordering::Acquire) {
         return book.refuse(false, StatusCode::BadShutdown, what);
@@ -232,6 +233,9 @@ pub(crate) fn port_write(
         Some(Err(code)) => return book.refuse(false, code, what),
         None => return book.refuse(false, StatusCode::BadTypeMismatch, what),
     };
+    if task.state() != rtt::TaskState::Running {
+        return book.refuse(false, StatusCode::BadInvalidState, what);
+    }
     match set(control, component, port, json) {
         Ok(()) => {
             book.writes.fetch_add(1, Ordering::Relaxed);

@@ -46,7 +46,7 @@ pub struct OpcuaConfig {
     pub anonymous: Role,
     /// A TOML file of users (relative to the deployment's folder), readable by its owner
     /// only: `[users.NAME]` with `password` and `role` (`"read_only"` or `"operator"`).
-    /// User names are taken on the signed endpoints only, never in clear.
+    /// User names are taken on the signed and encrypted endpoints only, never in clear.
     #[serde(default)]
     pub users_file: Option<String>,
     /// Outputs may be written (by operators), through the checks `hwgw set` passes.
@@ -76,10 +76,10 @@ pub struct OpcuaConfig {
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LimitsConfig {
-    /// Sessions at once (1–1000, default 50).
+    /// Sessions at once (1–1000, default 20).
     #[serde(default = "default_sessions")]
     pub sessions: usize,
-    /// Subscriptions of a session (1–1000, default 10).
+    /// Subscriptions of a session (1–1000, default 5).
     #[serde(default = "default_subscriptions")]
     pub subscriptions_per_session: usize,
     /// Monitored items of a subscription (1–100000, default 20000).
@@ -176,10 +176,10 @@ fn default_sample() -> u64 {
     10
 }
 fn default_sessions() -> usize {
-    50
+    20
 }
 fn default_subscriptions() -> usize {
-    10
+    5
 }
 fn default_items() -> usize {
     20_000
@@ -197,14 +197,23 @@ fn default_session_timeout() -> u64 {
     60
 }
 
-/// A user of the users file.
-#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+/// A user of the users file (its password not shown when debugged).
+#[derive(Clone, PartialEq, Eq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct User {
     /// The password.
     pub password: String,
     /// The role: `"read_only"` or `"operator"`.
     pub role: Role,
+}
+
+impl std::fmt::Debug for User {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("User")
+            .field("password", &"****")
+            .field("role", &self.role)
+            .finish()
+    }
 }
 
 #[derive(Deserialize)]
@@ -312,6 +321,15 @@ impl OpcuaConfig {
             65_536,
             "KiB",
         );
+        if let Some(n) = l.notifications_per_publish {
+            bound(
+                "limits.notifications_per_publish",
+                n as u64,
+                100,
+                100_000,
+                "notifications",
+            );
+        }
         bound(
             "limits.session_timeout_s",
             l.session_timeout_s,
@@ -379,7 +397,14 @@ fn users(path: &Path) -> Result<BTreeMap<String, User>, String> {
         ));
     }
     let text = std::fs::read_to_string(path).map_err(|e| e.to_string())?;
-    let file: UsersFile = toml::from_str(&text).map_err(|e| e.to_string())?;
+    // toml's own text quotes the line, which may hold a password: its message and line
+    // only.
+    let file: UsersFile = toml::from_str(&text).map_err(|e| {
+        let line = e.span().map_or(0, |s| {
+            text[..s.start.min(text.len())].matches('\n').count() + 1
+        });
+        format!("line {line}: {}", e.message())
+    })?;
     for (name, u) in &file.users {
         if u.role == Role::None {
             return Err(format!(
@@ -400,6 +425,15 @@ mod tests {
 
     fn parse(text: &str) -> OpcuaConfig {
         toml::from_str(text).expect("parses")
+    }
+
+    #[test]
+    fn notifications_per_publish_is_bounded() {
+        let c = parse(
+            "listen = \"127.0.0.1:4840\"\npki_dir = \"p\"\n[limits]\nnotifications_per_publish = 0",
+        );
+        let e = c.settings(Path::new("/tmp")).expect_err("refused");
+        assert!(e[0].to_string().contains("100-100000"), "{e:?}");
     }
 
     #[test]
@@ -432,6 +466,15 @@ mod tests {
         let u = users(&f).expect("read");
         assert_eq!(u["ann"].role, Role::Operator);
         assert_eq!(u["bob"].role, Role::ReadOnly);
+        assert!(!format!("{u:?}").contains("pw"), "{u:?}");
+        // A mistake on a password's line does not show the password.
+        std::fs::write(
+            &f,
+            "[users.ann]\npasword = \"s3cret\"\nrole = \"operator\"\n",
+        )
+        .expect("write");
+        let e = users(&f).expect_err("refused");
+        assert!(e.starts_with("line 2: ") && !e.contains("s3cret"), "{e}");
         std::fs::remove_dir_all(&dir).expect("clean");
     }
 }

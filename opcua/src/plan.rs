@@ -33,8 +33,12 @@ pub(crate) struct Device {
 pub(crate) struct Plan {
     /// The devices, in registry order.
     pub devices: Vec<Device>,
-    /// Every component of the runtime.
+    /// The components of the runtime served: all but the IO components of devices left
+    /// out.
     pub components: Vec<TaskContext>,
+    /// The served IO components that drive outputs (analog and digital outputs, encoders):
+    /// their operations write outputs past the checks of a write.
+    pub drives_outputs: Vec<String>,
 }
 
 impl Plan {
@@ -92,10 +96,34 @@ pub(crate) fn plan(
             channels: found,
         });
     }
+    // The IO components of devices not served are not served either.
+    let (all, _) = channels::devices(registry, &[]);
+    let hidden: Vec<String> = all
+        .iter()
+        .filter_map(|e| channels::io_component(e.interface, &e.info.name))
+        .map(|(c, _)| c)
+        .filter(|c| !devices.iter().any(|d| &d.component == c))
+        .collect();
+    let components = rt
+        .components()
+        .into_iter()
+        .filter(|t| !hidden.iter().any(|h| h == t.name()))
+        .collect();
+    let drives_outputs = devices
+        .iter()
+        .filter(|d| {
+            matches!(
+                d.interface,
+                Interface::AnalogOut | Interface::DigitalOut | Interface::Encoder
+            )
+        })
+        .map(|d| d.component.clone())
+        .collect();
     if problems.is_empty() {
         Ok(Plan {
             devices,
-            components: rt.components(),
+            components,
+            drives_outputs,
         })
     } else {
         Err(problems)

@@ -102,15 +102,23 @@ impl OpcuaServer {
             .create_sample_keypair(true)
             .pki_dir(&s.pki_dir)
             .trust_client_certs(false)
-            .host(s.listen.ip().to_string())
+            .host(advertised_host(s.listen.ip()))
             .port(s.listen.port())
-            .discovery_urls(vec![self.address()])
+            .discovery_urls(vec![format!(
+                "opc.tcp://{}:{}/",
+                advertised_host(s.listen.ip()),
+                s.listen.port()
+            )])
             .with_authenticator(self.users.clone())
             .diagnostics_enabled(true)
             .max_sessions(l.sessions)
             .max_session_timeout_ms(l.session_timeout_s * 1000)
             .max_message_size(l.message_kib << 10)
-            .with_node_manager(crate::nodes::builder(NAMESPACE));
+            // A secure channel's token lives at most a minute (clients renew it): a
+            // connection that opened a channel and went quiet is closed after 80 s, not
+            // the library's 400.
+            .max_secure_channel_token_lifetime_ms(60_000)
+            .with_node_manager(crate::nodes::builder(NAMESPACE, self.book.clone()));
         let limits = b.limits_mut();
         // A message may take `message_kib` in chunks of the send buffer (async-opcua's
         // default is 5 chunks, 320 KiB), and a publish carries at most as many
@@ -179,19 +187,47 @@ impl OpcuaServer {
     }
 }
 
-/// Makes the store's `private/` (readable by its owner only) when it is not there, before
-/// async-opcua makes a key in it; returns the key's path when there is none yet.
+/// The host name endpoints are advertised with: the listening address, or the host's
+/// name when it listens on every address (`0.0.0.0` is nowhere to connect to).
+fn advertised_host(ip: std::net::IpAddr) -> String {
+    if ip.is_unspecified() {
+        std::fs::read_to_string("/proc/sys/kernel/hostname")
+            .map(|h| h.trim().to_string())
+            .unwrap_or_else(|_| "localhost".into())
+    } else {
+        ip.to_string()
+    }
+}
+
+/// Makes the store's `private/` readable by its owner only (made so, or its mode set
+/// when it is there without a key yet) before async-opcua makes a key in it; returns the
+/// key's path when there is none yet. A key others may read is refused.
 fn private_dir(dir: &Path) -> std::io::Result<Option<std::path::PathBuf>> {
-    use std::os::unix::fs::DirBuilderExt;
+    use std::os::unix::fs::{DirBuilderExt, PermissionsExt};
     let private = dir.join("private");
+    let key = private.join("private.pem");
     if !private.exists() {
         std::fs::DirBuilder::new()
             .recursive(true)
             .mode(0o700)
             .create(&private)?;
     }
-    let key = private.join("private.pem");
-    Ok((!key.exists()).then_some(key))
+    if key.exists() {
+        let mode = std::fs::metadata(&key)?.permissions().mode() & 0o777;
+        if mode & 0o077 != 0 {
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::PermissionDenied,
+                format!(
+                    "{} is readable by others (mode {mode:04o}): make it readable by its \
+                     owner only (chmod 600)",
+                    key.display()
+                ),
+            ));
+        }
+        return Ok(None);
+    }
+    std::fs::set_permissions(&private, std::fs::Permissions::from_mode(0o700))?;
+    Ok(Some(key))
 }
 
 /// Refuses a store holding one of its certificate and key without the other.

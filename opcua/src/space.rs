@@ -130,8 +130,7 @@ impl Build<'_> {
                 };
                 self.nm
                     .inner()
-                    .simple()
-                    .add_write_callback(vid, move |v, range| w.write(&v, range));
+                    .add_writer(vid, Arc::new(move |v, range| w.write(v, range)));
             }
         }
     }
@@ -205,8 +204,12 @@ impl Build<'_> {
                 }
                 self.port(&mut sp, &id, t, &p);
             }
-            for op in t.operations() {
-                self.method(&mut sp, &id, t, op);
+            // An output's IO component's operations write it past a write's checks: they
+            // are methods only where writes are allowed too.
+            if !self.plan.drives_outputs.contains(&cname) || self.allow_writes {
+                for op in t.operations() {
+                    self.method(&mut sp, &id, t, op);
+                }
             }
         }
     }
@@ -254,17 +257,17 @@ impl Build<'_> {
                 })
             });
         if writable {
-            let (control, book) = (self.control.clone(), self.book.clone());
+            let (control, book, task) = (self.control.clone(), self.book.clone(), t.clone());
             let (port, ty) = (p.name.clone(), p.type_name.clone());
-            self.nm
-                .inner()
-                .simple()
-                .add_write_callback(pid, move |v, range| {
+            self.nm.inner().add_writer(
+                pid,
+                Arc::new(move |v, range| {
                     if !matches!(range, ua::types::NumericRange::None) {
                         return StatusCode::BadIndexRangeInvalid;
                     }
-                    calls::port_write(&control, &book, (&cname, &port, &ty), &v)
-                });
+                    calls::port_write(&control, &book, (&task, &port, &ty), v)
+                }),
+            );
         }
     }
 
@@ -312,10 +315,10 @@ impl Build<'_> {
             .insert(sp);
         if self.allow_calls {
             let (task, book) = (t.clone(), self.book.clone());
-            self.nm
-                .inner()
-                .simple()
-                .add_method_callback(mid, move |args| calls::call(&task, &book, &op, args));
+            self.nm.inner().add_method(
+                mid,
+                Arc::new(move |args| calls::call(&task, &book, &op, args)),
+            );
         }
     }
 

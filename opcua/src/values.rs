@@ -41,22 +41,24 @@ pub(crate) fn status(health: Option<&Health>, read: &Result<Value, DeviceError>)
         return StatusCode::BadNoCommunication;
     };
     match (h.status, read) {
-        (_, Err(e)) => bad(e),
-        (Status::Online, Ok(_)) => StatusCode::Good,
-        (Status::Stale, Ok(_)) => StatusCode::UncertainLastUsableValue,
-        (Status::Offline, Ok(_)) => h
+        (Status::Offline, _) => h
             .last_error
             .as_ref()
             .map_or(StatusCode::BadNoCommunication, bad),
+        // A stale device's inputs say so when read: the last good value is what is served.
+        (_, Err(DeviceError::Stale { .. })) | (Status::Stale, Ok(_)) => {
+            StatusCode::UncertainLastUsableValue
+        }
+        (_, Err(e)) => bad(e),
+        (Status::Online, Ok(_)) => StatusCode::Good,
     }
 }
 
 /// The Bad status of a device error.
 fn bad(e: &DeviceError) -> StatusCode {
     match e {
-        DeviceError::Offline => StatusCode::BadNoCommunication,
         DeviceError::Bus { .. } => StatusCode::BadCommunicationError,
-        DeviceError::Stale { .. } => StatusCode::UncertainLastUsableValue,
+        DeviceError::Offline | DeviceError::Stale { .. } => StatusCode::BadNoCommunication,
         _ => StatusCode::BadDeviceFailure,
     }
 }
@@ -73,6 +75,8 @@ struct Entry {
     source: Source,
     device: usize,
     last: Option<(Option<Value>, StatusCode)>,
+    /// The last value read without error: an Uncertain value's.
+    last_good: Option<Value>,
 }
 
 /// One served device: its health's source and its error variable.
@@ -121,6 +125,7 @@ impl Sampler {
                     source: c.source.clone(),
                     device: i,
                     last: None,
+                    last_good: None,
                 });
             }
         }
@@ -168,7 +173,14 @@ impl Sampler {
             let h = healths[e.device].as_ref();
             let read = e.source.read();
             let code = status(h, &read);
-            let value = read.ok();
+            if let Ok(v) = read {
+                e.last_good = Some(v);
+            }
+            let value = match read {
+                Ok(v) => Some(v),
+                Err(_) if code.is_uncertain() => e.last_good,
+                Err(_) => None,
+            };
             let same = e.last.as_ref().is_some_and(|(v, c)| {
                 *c == code
                     && match (v, &value) {
@@ -241,6 +253,17 @@ mod tests {
         assert_eq!(status(None, &ok), StatusCode::BadNoCommunication);
         assert_eq!(
             status(Some(&h(Status::Online, None)), &Err(DeviceError::Offline)),
+            StatusCode::BadNoCommunication
+        );
+        let stale = DeviceError::Stale {
+            age: Some(Duration::from_millis(500)),
+        };
+        assert_eq!(
+            status(Some(&h(Status::Stale, None)), &Err(stale.clone())),
+            StatusCode::UncertainLastUsableValue
+        );
+        assert_eq!(
+            status(Some(&h(Status::Offline, Some(stale))), &ok),
             StatusCode::BadNoCommunication
         );
     }

@@ -159,6 +159,21 @@ pub fn devices(
     (entries, problems)
 }
 
+/// The IO component of registry device `name` under `interface` (`sim0.ai`; an encoder's
+/// is its own name), and the direction of its channel ports; `None` for an interface
+/// without channels.
+pub fn io_component(interface: Interface, name: &str) -> Option<(String, Direction)> {
+    let (suffix, direction) = match interface {
+        Interface::AnalogIn => ("ai", Direction::Output),
+        Interface::AnalogOut => ("ao", Direction::Input),
+        Interface::DigitalIn => ("di", Direction::Output),
+        Interface::DigitalOut => ("do", Direction::Input),
+        Interface::Encoder => return Some((name.to_string(), Direction::Output)),
+        Interface::Sensor | Interface::Drive | Interface::Axis => return None,
+    };
+    Some((format!("{name}.{suffix}"), direction))
+}
+
 /// The channels of registry device `name` under `interface`: its IO component's ports in
 /// channel order, each with its source; an error when its IO component is missing.
 pub fn of_device(
@@ -167,14 +182,9 @@ pub fn of_device(
     interface: Interface,
     name: &str,
 ) -> Result<Vec<Channel>, ChannelsError> {
-    let (suffix, direction) = match interface {
-        Interface::AnalogIn => (Some("ai"), Direction::Output),
-        Interface::AnalogOut => (Some("ao"), Direction::Input),
-        Interface::DigitalIn => (Some("di"), Direction::Output),
-        Interface::DigitalOut => (Some("do"), Direction::Input),
-        _ => (None, Direction::Output),
+    let Some((component, direction)) = io_component(interface, name) else {
+        return Ok(Vec::new());
     };
-    let component = suffix.map_or_else(|| name.to_string(), |s| format!("{name}.{s}"));
     let task = rt
         .component(&component)
         .map_err(|e| ChannelsError::NoComponent {
