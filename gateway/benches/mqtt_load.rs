@@ -25,30 +25,14 @@ use serde_json::{Value, json};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use testkit::Service;
-use testkit::bench::{ProcUsage, proc_usage};
+use testkit::bench::proc_usage;
 use testkit::mosquitto::{Broker, Sub};
 
 const HWGW: &str = env!("CARGO_BIN_EXE_hwgw");
 const CHANNELS: u32 = 10_000;
 
 fn card() -> String {
-    format!(
-        r#"
-[[card]]
-name = "big"
-driver = "sim"
-period_ms = 100
-sample_period_ms = 100
-
-[card.sim]
-seed = 7
-
-[[card.sim.analog_in]]
-count = {CHANNELS}
-range = {{ lowest = -10.0, highest = 10.0, unit = "V" }}
-waveform = {{ kind = "noise", mean = 0.0, amplitude = 5.0 }}
-"#
-    )
+    testkit::bench::noise_card(CHANNELS)
 }
 
 /// One run's figures.
@@ -62,10 +46,6 @@ struct Figures {
     bytes_per_s: f64,
     published: Value,
     dropped: Value,
-}
-
-fn cpu_percent(a: ProcUsage, b: ProcUsage, s: f64) -> f64 {
-    (b.cpu_s - a.cpu_s) / s * 100.0
 }
 
 /// Measures `svc` and the broker for `seconds`, `count` telling the receiver's totals
@@ -95,10 +75,10 @@ fn measure(
         .map(|v| v["counters"].clone())
         .unwrap_or_default();
     Figures {
-        cpu_percent: cpu_percent(a, b, s),
+        cpu_percent: b.cpu_percent_since(a, s),
         rss_mib: b.rss_kib as f64 / 1024.0,
-        broker_cpu_percent: cpu_percent(ba, bb, s),
-        receiver_cpu_percent: cpu_percent(ra, rb, s),
+        broker_cpu_percent: bb.cpu_percent_since(ba, s),
+        receiver_cpu_percent: rb.cpu_percent_since(ra, s),
         received_per_s: (cb.0 - ca.0) as f64 / s,
         metrics_per_s: (cb.1 - ca.1) as f64 / s,
         bytes_per_s: (cb.2 - ca.2) as f64 / s,

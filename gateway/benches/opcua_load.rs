@@ -27,7 +27,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 use testkit::Service;
-use testkit::bench::{ProcUsage, proc_usage};
+use testkit::bench::proc_usage;
 use ua_client::client::{ClientBuilder, DataChangeCallback, IdentityToken};
 use ua_client::types::{
     MessageSecurityMode, MonitoredItemCreateRequest, NodeId, TimestampsToReturn, UserTokenPolicy,
@@ -37,23 +37,7 @@ const HWGW: &str = env!("CARGO_BIN_EXE_hwgw");
 const CHANNELS: u32 = 10_000;
 
 fn card() -> String {
-    format!(
-        r#"
-[[card]]
-name = "big"
-driver = "sim"
-period_ms = 100
-sample_period_ms = 100
-
-[card.sim]
-seed = 7
-
-[[card.sim.analog_in]]
-count = {CHANNELS}
-range = {{ lowest = -10.0, highest = 10.0, unit = "V" }}
-waveform = {{ kind = "noise", mean = 0.0, amplitude = 5.0 }}
-"#
-    )
+    testkit::bench::noise_card(CHANNELS)
 }
 
 /// One run's figures.
@@ -62,10 +46,6 @@ struct Figures {
     rss_mib: f64,
     client_cpu_percent: f64,
     notifications_per_s: f64,
-}
-
-fn cpu_percent(a: ProcUsage, b: ProcUsage, s: f64) -> f64 {
-    (b.cpu_s - a.cpu_s) / s * 100.0
 }
 
 fn measure(svc: &Service, seconds: f64, count: &AtomicU64) -> Figures {
@@ -81,9 +61,9 @@ fn measure(svc: &Service, seconds: f64, count: &AtomicU64) -> Figures {
     let (b, mb, nb) = (usage(pid), usage(me), count.load(Ordering::Relaxed));
     let s = t0.elapsed().as_secs_f64();
     Figures {
-        cpu_percent: cpu_percent(a, b, s),
+        cpu_percent: b.cpu_percent_since(a, s),
         rss_mib: b.rss_kib as f64 / 1024.0,
-        client_cpu_percent: cpu_percent(ma, mb, s),
+        client_cpu_percent: mb.cpu_percent_since(ma, s),
         notifications_per_s: (nb - na) as f64 / s,
     }
 }

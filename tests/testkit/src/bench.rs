@@ -52,6 +52,36 @@ pub struct ProcUsage {
     pub rss_kib: u64,
 }
 
+impl ProcUsage {
+    /// The CPU this process used between `earlier` and this reading, `seconds` apart, as a
+    /// % of one core.
+    pub fn cpu_percent_since(self, earlier: ProcUsage, seconds: f64) -> f64 {
+        (self.cpu_s - earlier.cpu_s) / seconds * 100.0
+    }
+}
+
+/// A simulated card `big` of `channels` analog inputs, each new noise every 100 ms: the
+/// northbound servers' benchmarks' load (`channels` values changing at 10 Hz).
+pub fn noise_card(channels: u32) -> String {
+    format!(
+        r#"
+[[card]]
+name = "big"
+driver = "sim"
+period_ms = 100
+sample_period_ms = 100
+
+[card.sim]
+seed = 7
+
+[[card.sim.analog_in]]
+count = {channels}
+range = {{ lowest = -10.0, highest = 10.0, unit = "V" }}
+waveform = {{ kind = "noise", mean = 0.0, amplitude = 5.0 }}
+"#
+    )
+}
+
 /// [`ProcUsage`] of process `pid`; `None` when it is gone.
 pub fn proc_usage(pid: u32) -> Option<ProcUsage> {
     let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
