@@ -9,10 +9,15 @@
 //!   before the line has been quiet that long since the last frame on it. A reply is read to
 //!   the length its function code gives, its CRC and unit checked. A broadcast (unit 0) is
 //!   sent and not answered: the line waits its transmission time and the turnaround instead.
+//! - **RTU over TCP**: the same frames, CRC and all, on a TCP stream, as serial device
+//!   servers (Moxa NPort, USR-TCP232 and the like in their "TCP server" mode) carry them to
+//!   their serial side. The device server keeps the serial line's silences; hwgw keeps only
+//!   the turnaround. Like RTU it has no transaction id: a late reply cannot be told from the
+//!   next one's, so a timeout reconnects.
 
 use std::io;
 use std::time::Duration;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::time::Instant;
 
 /// A read reply's values.
@@ -86,17 +91,54 @@ pub enum Client {
         /// cancelled is completed by the next request's reads and dropped by its id).
         rx: Vec<u8>,
     },
-    /// Modbus RTU on a serial port.
+    /// Modbus RTU on a serial port, or RTU frames on a TCP stream.
     Rtu {
         /// The port.
-        port: tokio_serial::SerialStream,
-        /// Bits per second (for the silence and the transmission time).
-        baud: u32,
-        /// Extra wait after each frame before the next request.
-        turnaround: Duration,
+        port: RtuPort,
+        /// The line's silences.
+        timing: RtuTiming,
         /// The line is quiet enough for a request from then on.
         quiet_from: Instant,
     },
+}
+
+/// Where RTU frames go.
+pub enum RtuPort {
+    /// A serial port.
+    Serial(tokio_serial::SerialStream),
+    /// A TCP stream to a serial device server.
+    Tcp(tokio::net::TcpStream),
+}
+
+/// The silences of an RTU line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RtuTiming {
+    /// Between frames: 3.5 character times on a serial line ([`t35`]), none on TCP.
+    pub silence: Duration,
+    /// One character's time on the wire (11 bits at the baud rate); none on TCP.
+    pub char_time: Duration,
+    /// Extra wait after each frame before the next request (slow RS-485 bridges).
+    pub turnaround: Duration,
+}
+
+impl RtuTiming {
+    /// A serial line at `baud` with `turnaround`.
+    pub fn serial(baud: u32, turnaround: Duration) -> RtuTiming {
+        RtuTiming {
+            silence: t35(baud),
+            char_time: Duration::from_secs_f64(11.0 / f64::from(baud.max(1))),
+            turnaround,
+        }
+    }
+
+    /// RTU frames on TCP with `turnaround`: the device server keeps the serial silences.
+    pub fn tcp(turnaround: Duration) -> RtuTiming {
+        RtuTiming {
+            silence: Duration::ZERO,
+            char_time: Duration::ZERO,
+            turnaround,
+        }
+    }
 }
 
 impl Client {
@@ -133,11 +175,15 @@ impl Client {
                 rx,
             } => tcp(stream, tid, mid_frame, rx, unit, pdu, out, stale).await,
             Client::Rtu {
-                port,
-                baud,
-                turnaround,
+                port: RtuPort::Serial(port),
+                timing,
                 quiet_from,
-            } => rtu(port, *baud, *turnaround, quiet_from, unit, pdu, out).await,
+            } => rtu(port, *timing, quiet_from, unit, pdu, out).await,
+            Client::Rtu {
+                port: RtuPort::Tcp(stream),
+                timing,
+                quiet_from,
+            } => rtu(stream, *timing, quiet_from, unit, pdu, out).await,
         }
     }
 }
@@ -238,10 +284,9 @@ fn pdu_reply(request: &[u8], out: &[u8]) -> Result<Reply, ClientError> {
     }
 }
 
-async fn rtu(
-    port: &mut tokio_serial::SerialStream,
-    baud: u32,
-    turnaround: Duration,
+async fn rtu<P: AsyncRead + AsyncWrite + Unpin>(
+    port: &mut P,
+    timing: RtuTiming,
     quiet_from: &mut Instant,
     unit: u8,
     pdu: &[u8],
@@ -256,15 +301,16 @@ async fn rtu(
     let mut junk = [0u8; 256];
     while let Ok(Ok(n)) = tokio::time::timeout(Duration::ZERO, port.read(&mut junk)).await {
         if n == 0 {
+            // A closed TCP peer: the reply's read says so.
             break;
         }
     }
     port.write_all(&frame).await?;
     let sent = Instant::now();
     // The frame's own time on the wire (the port's buffer empties at the baud rate).
-    let on_wire = Duration::from_secs_f64(frame.len() as f64 * 11.0 / f64::from(baud.max(1)));
+    let on_wire = timing.char_time * frame.len() as u32;
     if unit == 0 {
-        *quiet_from = sent + on_wire + t35(baud) + turnaround;
+        *quiet_from = sent + on_wire + timing.silence + timing.turnaround;
         return Ok(Reply::Broadcast);
     }
     // unit, function, then: an exception code; a byte count and that many bytes; or the
@@ -279,7 +325,7 @@ async fn rtu(
     };
     let mut tail = vec![0u8; rest];
     port.read_exact(&mut tail).await?;
-    *quiet_from = Instant::now() + t35(baud) + turnaround;
+    *quiet_from = Instant::now() + timing.silence + timing.turnaround;
     let mut whole = head.to_vec();
     whole.extend_from_slice(&tail);
     let n = whole.len();

@@ -18,7 +18,7 @@
 //! ```
 
 use crate::card::ModbusCard;
-use crate::line::{Parity, Serial, Transport, UnitTiming};
+use crate::line::{Parity, RtuOverTcp, Serial, Transport, UnitTiming};
 use crate::map::{Map, MapError, PointConfig};
 use device_interface::time::Clock;
 use driver_api::CardError;
@@ -52,6 +52,16 @@ pub enum TransportConfig {
         stop_bits: u8,
         /// Extra quiet time after every frame before the next request, ms, for slow
         /// RS-485 bridges (0-10000; default 0: the 3.5 character times alone).
+        #[serde(default)]
+        turnaround_ms: u32,
+    },
+    /// Modbus RTU frames (with their CRC) on a TCP stream, as serial device servers
+    /// (Moxa NPort, USR-TCP232 and the like) carry them to their serial side.
+    RtuOverTcp {
+        /// `host:port` of the device server.
+        address: String,
+        /// Extra quiet time after every frame before the next request, ms, for slow
+        /// device servers (0-10000; default 0).
         #[serde(default)]
         turnaround_ms: u32,
     },
@@ -141,17 +151,37 @@ fn ms(key: &str, v: f64) -> Result<Duration, CardError> {
     }
 }
 
+/// A turnaround of `ms` in µs, checked (0-10000 ms).
+fn turnaround(ms: u32) -> Result<u32, CardError> {
+    if ms > 10_000 {
+        return Err(CardError::at(
+            "transport.turnaround_ms",
+            format!("{ms}: expected 0 to 10000 ms"),
+        ));
+    }
+    Ok(ms * 1000)
+}
+
 impl ModbusConfig {
     /// The line's transport; a TCP address is resolved now.
     pub fn transport(&self) -> Result<Transport, CardError> {
         let key = "transport.address";
-        match &self.transport {
-            TransportConfig::Tcp { address } => address
+        let resolve = |address: &str| {
+            address
                 .to_socket_addrs()
                 .map_err(|e| CardError::at(key, format!("{address:?}: {e}")))?
                 .next()
-                .map(Transport::Tcp)
-                .ok_or_else(|| CardError::at(key, format!("{address:?} resolves to no address"))),
+                .ok_or_else(|| CardError::at(key, format!("{address:?} resolves to no address")))
+        };
+        match &self.transport {
+            TransportConfig::Tcp { address } => resolve(address).map(Transport::Tcp),
+            TransportConfig::RtuOverTcp {
+                address,
+                turnaround_ms,
+            } => Ok(Transport::RtuOverTcp(RtuOverTcp {
+                addr: resolve(address)?,
+                turnaround_us: turnaround(*turnaround_ms)?,
+            })),
             TransportConfig::Rtu {
                 device,
                 baud,
@@ -159,12 +189,7 @@ impl ModbusConfig {
                 stop_bits,
                 turnaround_ms,
             } => {
-                if *turnaround_ms > 10_000 {
-                    return Err(CardError::at(
-                        "transport.turnaround_ms",
-                        format!("{turnaround_ms}: expected 0 to 10000 ms"),
-                    ));
-                }
+                let turnaround_us = turnaround(*turnaround_ms)?;
                 if !matches!(stop_bits, 1 | 2) {
                     return Err(CardError::at(
                         "transport.stop_bits",
@@ -192,7 +217,7 @@ impl ModbusConfig {
                     baud: *baud,
                     parity: *parity,
                     stop_bits: *stop_bits,
-                    turnaround_us: turnaround_ms * 1000,
+                    turnaround_us,
                 }))
             }
         }

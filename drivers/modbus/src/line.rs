@@ -23,7 +23,7 @@
 //!   stops, fails the writes still on their way ([`ModbusCard::fail_pending`]).
 
 use crate::card::{ModbusCard, ReadData};
-use crate::client::{Client, ClientError, Data, Reply};
+use crate::client::{Client, ClientError, Data, Reply, RtuPort, RtuTiming};
 use crate::plan::{Barrier, Read};
 use device_interface::time::Timestamp;
 use device_interface::{DeviceError, Status};
@@ -175,6 +175,15 @@ pub struct Serial {
     pub turnaround_us: u32,
 }
 
+/// RTU frames over TCP: where, and the turnaround.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RtuOverTcp {
+    /// The serial device server's address.
+    pub addr: SocketAddr,
+    /// Extra quiet time after each frame before the next request, µs (0: none).
+    pub turnaround_us: u32,
+}
+
 /// Where the line goes.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Transport {
@@ -182,6 +191,9 @@ pub enum Transport {
     Tcp(SocketAddr),
     /// Modbus RTU on a serial port; several units multi-dropped by unit id.
     Rtu(Serial),
+    /// Modbus RTU frames on a TCP stream to a serial device server; the units on its
+    /// serial side by unit id.
+    RtuOverTcp(RtuOverTcp),
 }
 
 impl Transport {
@@ -190,16 +202,35 @@ impl Transport {
         match self {
             Transport::Tcp(a) => a.to_string(),
             Transport::Rtu(s) => s.device.display().to_string(),
+            Transport::RtuOverTcp(r) => r.addr.to_string(),
         }
     }
 
-    /// True when both go to the same address or serial device (whatever their settings).
+    /// True when both go to the same address or serial device (whatever their settings or
+    /// framing).
     pub fn same_place(&self, other: &Transport) -> bool {
-        match (self, other) {
-            (Transport::Tcp(a), Transport::Tcp(b)) => a == b,
-            (Transport::Rtu(a), Transport::Rtu(b)) => a.device == b.device,
-            _ => false,
+        match (self.address(), other.address()) {
+            (Some(a), Some(b)) => a == b,
+            _ => match (self, other) {
+                (Transport::Rtu(a), Transport::Rtu(b)) => a.device == b.device,
+                _ => false,
+            },
         }
+    }
+
+    /// The TCP address, for the transports over TCP.
+    fn address(&self) -> Option<SocketAddr> {
+        match self {
+            Transport::Tcp(a) => Some(*a),
+            Transport::RtuOverTcp(r) => Some(r.addr),
+            Transport::Rtu(_) => None,
+        }
+    }
+
+    /// True for RTU framing (a serial line, or RTU over TCP): no transaction id, so a
+    /// late reply cannot be told from the next request's.
+    pub fn rtu_framed(&self) -> bool {
+        !matches!(self, Transport::Tcp(_))
     }
 
     /// The line's settings, for messages: "19200 baud, even parity, 1 stop bit, turnaround
@@ -211,6 +242,10 @@ impl Transport {
                 "{} baud, {:?} parity, {} stop bits, turnaround {} µs",
                 s.baud, s.parity, s.stop_bits, s.turnaround_us
             ),
+            Transport::RtuOverTcp(r) => format!(
+                "RTU over TCP to {}, turnaround {} µs",
+                r.addr, r.turnaround_us
+            ),
         }
     }
 
@@ -221,6 +256,16 @@ impl Transport {
                 let stream = tokio::net::TcpStream::connect(addr).await?;
                 let _ = stream.set_nodelay(true);
                 Ok(crate::client::tcp_client(stream))
+            }
+            Transport::RtuOverTcp(r) => {
+                let stream = tokio::net::TcpStream::connect(r.addr).await?;
+                let _ = stream.set_nodelay(true);
+                let timing = RtuTiming::tcp(Duration::from_micros(u64::from(r.turnaround_us)));
+                Ok(Client::Rtu {
+                    port: RtuPort::Tcp(stream),
+                    timing,
+                    quiet_from: tokio::time::Instant::now(),
+                })
             }
             Transport::Rtu(s) => {
                 use tokio_serial::SerialPortBuilderExt;
@@ -238,15 +283,13 @@ impl Transport {
                     .data_bits(tokio_serial::DataBits::Eight)
                     .open_native_async()
                     .map_err(std::io::Error::other)?;
-                let turnaround = Duration::from_micros(u64::from(s.turnaround_us));
+                let timing =
+                    RtuTiming::serial(s.baud, Duration::from_micros(u64::from(s.turnaround_us)));
                 Ok(Client::Rtu {
-                    port,
-                    baud: s.baud,
-                    turnaround,
+                    port: RtuPort::Serial(port),
+                    timing,
                     // A port just opened: the line may be mid-frame; wait a silence.
-                    quiet_from: tokio::time::Instant::now()
-                        + crate::client::t35(s.baud)
-                        + turnaround,
+                    quiet_from: tokio::time::Instant::now() + timing.silence + timing.turnaround,
                 })
             }
         }
@@ -360,7 +403,7 @@ pub(crate) async fn poll_and_schedule(
             state.next = due.saturating_add(t.poll).max(now());
         }
         Err(e) => {
-            if e.breaks_connection(matches!(transport, Transport::Rtu(_))) {
+            if e.breaks_connection(transport.rtu_framed()) {
                 *ctx = None;
             }
             state.failures += 1;

@@ -90,10 +90,7 @@ pub fn build(config: &ModbusConfig, ctx: &mut CardContext<'_>) -> Result<BuiltCa
         } => CardError::at(format!("point[{point}].{key}"), problem),
         _ => CardError::new(e),
     })?;
-    if matches!(transport, crate::line::Transport::Rtu(_))
-        && timing.unit == 0
-        && !card.map().reads().is_empty()
-    {
+    if transport.rtu_framed() && timing.unit == 0 && !card.map().reads().is_empty() {
         return Err(CardError::at(
             "unit",
             "unit 0 is the broadcast address on RTU: every unit takes its writes and none answers, so it can have outputs only (no inputs, no read_back)",
@@ -115,9 +112,14 @@ pub fn build(config: &ModbusConfig, ctx: &mut CardContext<'_>) -> Result<BuiltCa
         return Err(CardError::at(
             "transport",
             format!(
-                "{} is a line already, with other settings ({}); every unit on one port shares its baud rate, parity, stop bits and turnaround",
+                "{} is a line already, with other settings ({}); {}",
                 transport.describe(),
-                other.transport.settings()
+                other.transport.settings(),
+                if matches!(transport, Transport::Rtu(_)) {
+                    "every unit on one port shares its baud rate, parity, stop bits and turnaround"
+                } else {
+                    "every unit behind one address shares its framing (tcp or rtu_over_tcp) and turnaround"
+                }
             ),
         ));
     }

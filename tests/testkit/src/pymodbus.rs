@@ -78,3 +78,30 @@ impl PyModbus {
         Ok(peer)
     }
 }
+
+/// The pattern `pymodbus_server.py pattern_…` serves (2000 addresses a table): what a
+/// test expects at an address, computed as the script does.
+pub mod pattern {
+    /// Addresses served in each table.
+    pub const SIZE: u16 = 2000;
+
+    /// Input register `n`.
+    pub fn input_register(n: u16) -> u16 {
+        n.wrapping_mul(0x9E37).wrapping_add(0x1234)
+    }
+
+    /// Holding register `n`.
+    pub fn holding_register(n: u16) -> u16 {
+        n.wrapping_mul(0x6C8B).wrapping_add(0x4321)
+    }
+
+    /// Discrete input `n`.
+    pub fn discrete_input(n: u16) -> bool {
+        (u32::from(n) * 7) % 3 == 0
+    }
+
+    /// Coil `n`.
+    pub fn coil(n: u16) -> bool {
+        (u32::from(n) * 5) % 4 == 1
+    }
+}

@@ -4,13 +4,20 @@
 Usage: pymodbus_server.py tcp PORT
        pymodbus_server.py rtu DEVICE
        pymodbus_server.py sparse PORT
+       pymodbus_server.py pattern_rtu_over_tcp PORT
 
 sparse: input registers only at 0-9, 20-29 and 100-109 (register n holds 1000 + n); a
 read that touches any other address is refused with IllegalDataAddress, as devices with
 holes in their map do.
 
 Its registers hold known values the tests decode; on RTU, units 1 and 2 share the line
-with different contents (multi-drop). It serves until killed. Debian's
+with different contents (multi-drop). pattern_rtu_over_tcp: RTU frames on TCP (as a serial device server carries them), any
+unit id, 2000 addresses in every table holding a pattern the tests compute alike
+(testkit::pymodbus::pattern): input register n = (n * 0x9E37 + 0x1234) mod 2^16, holding
+register n = (n * 0x6C8B + 0x4321) mod 2^16, discrete input n = (n * 7) mod 3 == 0, coil
+n = (n * 5) mod 4 == 1.
+
+It serves until killed. Debian's
 python3-pymodbus (3.0) runs under Debian's /usr/bin/python3.
 """
 import sys
@@ -48,7 +55,21 @@ store = ModbusSlaveContext(
     zero_mode=True,  # address n is register n, as on the wire
 )
 
-if sys.argv[1] == "sparse":
+if sys.argv[1] == "pattern_rtu_over_tcp":
+    n = range(2000)
+    pattern = ModbusSlaveContext(
+        di=ModbusSequentialDataBlock(0, [(a * 7) % 3 == 0 for a in n]),
+        co=ModbusSequentialDataBlock(0, [(a * 5) % 4 == 1 for a in n]),
+        hr=ModbusSequentialDataBlock(0, [(a * 0x6C8B + 0x4321) & 0xFFFF for a in n]),
+        ir=ModbusSequentialDataBlock(0, [(a * 0x9E37 + 0x1234) & 0xFFFF for a in n]),
+        zero_mode=True,
+    )
+    StartTcpServer(
+        context=ModbusServerContext(slaves=pattern, single=True),
+        framer=ModbusRtuFramer,
+        address=("127.0.0.1", int(sys.argv[2])),
+    )
+elif sys.argv[1] == "sparse":
     from pymodbus.datastore import ModbusSparseDataBlock
     regs = {a: 1000 + a for a in list(range(0, 10)) + list(range(20, 30)) + list(range(100, 110))}
     sparse = ModbusSlaveContext(
