@@ -8,12 +8,18 @@
 //! - [`holes`]: the unmapped addresses a unit refuses, found by reading parts of a refused read;
 //! - [`card`]: a unit's devices — images fed by replies, outputs turned into writes;
 //! - [`line`](mod@line): the poller of one connection and the units on it;
-//! - [`client`]: the poller's Modbus TCP and RTU framing (silences, broadcast, stale replies);
+//! - [`client`]: the poller's Modbus TCP and RTU framing, RTU over TCP too (silences,
+//!   broadcast, stale replies);
 //! - [`value`]: an analog point's value in the card's image (floats exact);
 //! - [`config`]: a card's section of a deployment;
-//! - [`server`]: hwgw as a Modbus TCP server over chosen registry devices: its table;
+//! - [`server`]: hwgw as a Modbus server over chosen registry devices: its table;
 //! - [`pdu`]: requests checked before anything acts on them, replies encoded;
-//! - [`listener`]: the server's TCP loop, its limits and counters.
+//! - [`framing`]: how the server cuts requests from a stream (MBAP or RTU) and frames
+//!   replies;
+//! - [`conn`]: one stream served, its requests routed by unit id;
+//! - [`shared`]: what a server's streams share (table, limits, units, counters);
+//! - [`listener`]: the server's TCP loops, its limits and counters;
+//! - [`slave`]: the server as an RTU slave on a serial port (RS-485 mode).
 //!
 //! ```
 //! use driver_modbus::codec::{Layout, Number, ValueType};
@@ -28,6 +34,8 @@ pub mod client;
 pub mod codec;
 pub mod component;
 pub mod config;
+pub mod conn;
+pub mod framing;
 pub mod holes;
 mod limits;
 pub mod line;
@@ -39,6 +47,8 @@ pub mod plugin;
 mod point;
 pub mod served;
 pub mod server;
+pub mod shared;
+pub mod slave;
 #[cfg(feature = "test-server")]
 pub mod testing;
 pub mod value;

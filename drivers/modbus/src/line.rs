@@ -268,21 +268,7 @@ impl Transport {
                 })
             }
             Transport::Rtu(s) => {
-                use tokio_serial::SerialPortBuilderExt;
-                let port = tokio_serial::new(s.device.to_string_lossy(), s.baud)
-                    .parity(match s.parity {
-                        Parity::Even => tokio_serial::Parity::Even,
-                        Parity::Odd => tokio_serial::Parity::Odd,
-                        Parity::None => tokio_serial::Parity::None,
-                    })
-                    .stop_bits(if s.stop_bits == 2 {
-                        tokio_serial::StopBits::Two
-                    } else {
-                        tokio_serial::StopBits::One
-                    })
-                    .data_bits(tokio_serial::DataBits::Eight)
-                    .open_native_async()
-                    .map_err(std::io::Error::other)?;
+                let port = open_serial(s)?;
                 let timing =
                     RtuTiming::serial(s.baud, Duration::from_micros(u64::from(s.turnaround_us)));
                 Ok(Client::Rtu {
@@ -294,6 +280,25 @@ impl Transport {
             }
         }
     }
+}
+
+/// Opens serial port `s` with its settings (8 data bits).
+pub(crate) fn open_serial(s: &Serial) -> std::io::Result<tokio_serial::SerialStream> {
+    use tokio_serial::SerialPortBuilderExt;
+    tokio_serial::new(s.device.to_string_lossy(), s.baud)
+        .parity(match s.parity {
+            Parity::Even => tokio_serial::Parity::Even,
+            Parity::Odd => tokio_serial::Parity::Odd,
+            Parity::None => tokio_serial::Parity::None,
+        })
+        .stop_bits(if s.stop_bits == 2 {
+            tokio_serial::StopBits::Two
+        } else {
+            tokio_serial::StopBits::One
+        })
+        .data_bits(tokio_serial::DataBits::Eight)
+        .open_native_async()
+        .map_err(std::io::Error::other)
 }
 
 #[derive(Debug, thiserror::Error)]

@@ -1,5 +1,8 @@
-//! hwgw's Modbus TCP server loop: MBAP framing, every request checked by [`pdu`] before
-//! the [`RegisterTable`] answers it, and the limits a server on a plant network needs.
+//! hwgw's Modbus server: its TCP loops (Modbus TCP, and RTU frames over TCP; see
+//! [`framing`](crate::framing)), its serial port ([`slave`](crate::slave)), every request
+//! checked by [`pdu`](crate::pdu) before the [`RegisterTable`] answers it
+//! ([`conn`](crate::conn)), and the limits a server on a plant network needs (per TCP
+//! listener).
 //!
 //! - At most `max_clients` connections at once. When they are all open, a new one is
 //!   admitted by closing the connection idle longest — the one whose last complete request
@@ -32,40 +35,22 @@
 //! not run (stopped, or its thread ended by a panic) and while `accept` has failed without
 //! a success for [`ACCEPT_FAILING_LIMIT`] — what the gateway's watchdog sees.
 
-use crate::pdu::{self, Refusal, Resp, exception};
-use crate::server::{Answer, ExceptionCode, RegisterTable, Unsettled};
+use crate::conn::Conn;
+use crate::framing::Framing;
+use crate::server::RegisterTable;
+use crate::shared::{Shared, Stats, Units, bump, first_of_hundred};
+use crate::slave::SerialSlave;
 use serde::Serialize;
 use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
+pub use crate::conn::answer_pdu;
 pub use crate::limits::{DEFAULT_WRITE_CONFIRM, Limits};
 
 /// How long `accept` may fail without a success before the server is unhealthy.
 pub const ACCEPT_FAILING_LIMIT: Duration = Duration::from_secs(5);
-
-#[derive(Debug, Default)]
-struct Stats {
-    running: AtomicBool,
-    /// When `accept` started failing (ns since `epoch`, plus 1), 0 while it succeeds.
-    failing_since: AtomicU64,
-    clients: AtomicUsize,
-    connections: AtomicU64,
-    evicted: AtomicU64,
-    refused_per_address: AtomicU64,
-    requests: AtomicU64,
-    exceptions: AtomicU64,
-    malformed: AtomicU64,
-    idle_closed: AtomicU64,
-    frame_timeouts: AtomicU64,
-    accept_errors: AtomicU64,
-    panics: AtomicU64,
-    writes_confirmed: AtomicU64,
-    writes_failed: AtomicU64,
-    writes_unconfirmed: AtomicU64,
-}
 
 /// The server's state and counters.
 #[derive(Debug, Clone, Default, PartialEq, Eq, Serialize)]
@@ -103,15 +88,55 @@ pub struct ServerCounters {
     /// Write requests answered 0x0B because a write was still on its way after
     /// `write_confirm`.
     pub writes_unconfirmed: u64,
+    /// RTU frames with a bad CRC, dropped (with what followed them until a gap).
+    pub crc_errors: u64,
+    /// RTU broadcasts (unit 0) taken: their writes applied, not answered.
+    pub broadcasts: u64,
+    /// RTU requests for another unit on the line, not answered.
+    pub other_units: u64,
+    /// MBAP requests for a unit the server has no path to, answered 0x0A.
+    pub unreachable: u64,
+    /// Times the serial port was opened (the RTU slave; 0 without one).
+    pub port_opens: u64,
+    /// Failures to open or set up the serial port, and errors that closed it.
+    pub port_errors: u64,
 }
 
-fn bump(c: &AtomicU64) {
-    c.fetch_add(1, Ordering::Relaxed);
+/// Where a server serves, and as which units.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct Endpoints {
+    /// Modbus TCP (MBAP) on this address.
+    pub tcp: Option<SocketAddr>,
+    /// RTU frames over TCP on this address (a serial device server's way).
+    pub rtu_over_tcp: Option<SocketAddr>,
+    /// An RTU slave on this serial port.
+    pub serial: Option<SerialSlave>,
+    /// The unit ids it answers as its own (see [`conn`](crate::conn)).
+    pub units: Units,
+}
+
+impl Endpoints {
+    /// Where, for messages and status: "127.0.0.1:502, rtu_over_tcp 127.0.0.1:5020, rtu
+    /// /dev/ttyS1" (Modbus TCP's address alone, as a server of Modbus TCP only shows it).
+    pub fn describe(&self) -> String {
+        let mut v = Vec::new();
+        if let Some(a) = self.tcp {
+            v.push(a.to_string());
+        }
+        if let Some(a) = self.rtu_over_tcp {
+            v.push(format!("rtu_over_tcp {a}"));
+        }
+        if let Some(s) = &self.serial {
+            v.push(format!("rtu {}", s.serial.device.display()));
+        }
+        v.join(", ")
+    }
 }
 
 /// A running server; dropping it stops it and closes its clients' connections.
 pub struct ModbusServer {
-    addr: SocketAddr,
+    /// Where it serves, the ports bound.
+    bound: Endpoints,
     stats: Arc<Stats>,
     epoch: std::time::Instant,
     stop: Option<tokio::sync::oneshot::Sender<()>>,
@@ -119,34 +144,97 @@ pub struct ModbusServer {
 }
 
 impl ModbusServer {
-    /// Serves `table` on `listen` from a thread of its own, within `limits`.
+    /// Serves `table` over Modbus TCP on `listen`, every unit id, from a thread of its
+    /// own, within `limits`.
     pub fn start(
         listen: SocketAddr,
+        table: RegisterTable,
+        limits: Limits,
+    ) -> std::io::Result<ModbusServer> {
+        let at = Endpoints {
+            tcp: Some(listen),
+            ..Endpoints::default()
+        };
+        ModbusServer::serve(at, table, limits)
+    }
+
+    /// Serves `table` at `endpoints` from a thread of its own, within `limits`. The TCP
+    /// listeners are bound now (an error if one cannot be); the serial port is opened on
+    /// the thread, and opened again after a failure (see [`slave`](crate::slave)).
+    pub fn serve(
+        endpoints: Endpoints,
         table: RegisterTable,
         limits: Limits,
     ) -> std::io::Result<ModbusServer> {
         let rt = tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()?;
-        let listener = rt.block_on(tokio::net::TcpListener::bind(listen))?;
-        let addr = listener.local_addr()?;
+        let bind = |at: Option<SocketAddr>| -> std::io::Result<_> {
+            at.map(|a| rt.block_on(tokio::net::TcpListener::bind(a)))
+                .transpose()
+        };
+        let (tcp, rtu) = (bind(endpoints.tcp)?, bind(endpoints.rtu_over_tcp)?);
+        let local =
+            |l: &Option<tokio::net::TcpListener>| l.as_ref().map(|l| l.local_addr()).transpose();
+        let (addr, rtu_addr) = (local(&tcp)?, local(&rtu)?);
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
         let stats = Arc::new(Stats::default());
         stats.running.store(true, Ordering::Release);
         quiet_panics();
         let epoch = std::time::Instant::now();
-        let (table, s) = (Arc::new(table), stats.clone());
+        let bound = Endpoints {
+            tcp: addr,
+            rtu_over_tcp: rtu_addr,
+            ..endpoints.clone()
+        };
+        let shared = Arc::new(Shared {
+            table,
+            stats: stats.clone(),
+            limits,
+            units: endpoints.units.clone(),
+            epoch,
+        });
+        let slave = endpoints.serial;
         let thread = std::thread::Builder::new()
             .name(SERVER_THREAD.into())
             .spawn(move || {
                 // Not running once this thread ends, however it ends (a panic too).
-                let _running = Running(s.clone());
-                rt.block_on(accept_loop(listener, table, s, limits, rx, epoch));
+                let _running = Running(shared.stats.clone());
+                let gap = crate::framing::rtu_gap(None);
+                let all = async {
+                    tokio::join!(
+                        async {
+                            if let Some(l) = tcp {
+                                accept_loop(l, shared.clone(), Framing::Mbap).await
+                            }
+                        },
+                        async {
+                            if let Some(l) = rtu {
+                                accept_loop(l, shared.clone(), Framing::Rtu { gap }).await
+                            }
+                        },
+                        async {
+                            if let Some(s) = slave {
+                                crate::slave::serve(s, shared.clone()).await
+                            }
+                        },
+                    )
+                };
+                rt.block_on(async {
+                    tokio::select! {
+                        _ = rx => {}
+                        _ = all => {}
+                    }
+                });
                 // Dropping the runtime here cancels every connection's task.
             })?;
-        tracing::info!("modbus server listening on {addr}");
+        for (what, at) in [("Modbus TCP", addr), ("RTU over TCP", rtu_addr)] {
+            if let Some(a) = at {
+                tracing::info!("modbus server: {what} on {a}");
+            }
+        }
         Ok(ModbusServer {
-            addr,
+            bound,
             stats,
             epoch,
             stop: Some(tx),
@@ -154,9 +242,29 @@ impl ModbusServer {
         })
     }
 
-    /// Where it listens.
+    /// Where it listens for Modbus TCP (else for RTU over TCP; else 0.0.0.0:0, a server
+    /// on a serial port only).
     pub fn addr(&self) -> SocketAddr {
-        self.addr
+        self.bound
+            .tcp
+            .or(self.bound.rtu_over_tcp)
+            .unwrap_or(SocketAddr::from(([0, 0, 0, 0], 0)))
+    }
+
+    /// Where it listens for RTU frames over TCP.
+    pub fn rtu_addr(&self) -> Option<SocketAddr> {
+        self.bound.rtu_over_tcp
+    }
+
+    /// Everywhere it serves, for messages: "127.0.0.1:502, rtu_over_tcp …, rtu
+    /// /dev/ttyS1" (with the ports bound; see [`Endpoints::describe`]).
+    pub fn describe(&self) -> String {
+        self.bound.describe()
+    }
+
+    /// Where it serves, the ports bound.
+    pub fn endpoints(&self) -> &Endpoints {
+        &self.bound
     }
 
     /// Its state and counters now.
@@ -179,15 +287,31 @@ impl ModbusServer {
             writes_confirmed: n(&s.writes_confirmed),
             writes_failed: n(&s.writes_failed),
             writes_unconfirmed: n(&s.writes_unconfirmed),
+            crc_errors: n(&s.crc_errors),
+            broadcasts: n(&s.broadcasts),
+            other_units: n(&s.other_units),
+            unreachable: n(&s.unreachable),
+            port_opens: n(&s.port.opens),
+            port_errors: n(&s.port.errors),
         }
     }
 
     /// `Ok` while the accept loop runs and accepts: `Err` once it stopped, or while
     /// `accept` has failed for [`ACCEPT_FAILING_LIMIT`] without a success.
     pub fn health(&self) -> Result<(), ServerFault> {
-        let addr = self.addr;
+        let addr = self.describe();
         if !self.stats.running.load(Ordering::Acquire) {
             return Err(ServerFault::Stopped { addr });
+        }
+        if let Some(device) = self.bound.serial.as_ref().map(|s| &s.serial.device)
+            && let Some((failing, error)) = self.stats.port.failing(self.epoch)
+            && failing >= ACCEPT_FAILING_LIMIT
+        {
+            return Err(ServerFault::Port {
+                device: device.clone(),
+                failing,
+                error,
+            });
         }
         let since = self.stats.failing_since.load(Ordering::Acquire);
         if since != 0 {
@@ -212,8 +336,22 @@ pub enum ServerFault {
     /// Its loop does not run (stopped, or its thread ended by a panic).
     #[error("the modbus server on {addr} has stopped")]
     Stopped {
-        /// Where it listened.
-        addr: SocketAddr,
+        /// Where it served ([`ModbusServer::describe`]).
+        addr: String,
+    },
+    /// Its serial port has not served for this long.
+    #[error(
+        "the modbus server's serial port {} has not served for {:.1} s: {error}",
+        device.display(),
+        failing.as_secs_f64()
+    )]
+    Port {
+        /// The port.
+        device: std::path::PathBuf,
+        /// How long it has failed.
+        failing: Duration,
+        /// The last error.
+        error: String,
     },
     /// `accept` has failed without a success this long.
     #[error(
@@ -222,7 +360,7 @@ pub enum ServerFault {
     )]
     AcceptFailing {
         /// Where it listens.
-        addr: SocketAddr,
+        addr: String,
         /// How long accept has failed.
         failing: Duration,
         /// Accept errors counted.
@@ -318,23 +456,15 @@ fn since(epoch: std::time::Instant) -> u64 {
     epoch.elapsed().as_nanos() as u64
 }
 
-async fn accept_loop(
-    listener: tokio::net::TcpListener,
-    table: Arc<RegisterTable>,
-    stats: Arc<Stats>,
-    limits: Limits,
-    mut stop: tokio::sync::oneshot::Receiver<()>,
-    epoch: std::time::Instant,
-) {
+/// Accepts connections on `listener` and serves each in a task of its own, `framing` on
+/// all of them, until dropped.
+async fn accept_loop(listener: tokio::net::TcpListener, shared: Arc<Shared>, framing: Framing) {
+    let (stats, limits, epoch) = (&shared.stats, shared.limits, shared.epoch);
     const FIRST: Duration = Duration::from_millis(10);
     let mut backoff = FIRST;
     let mut slots: Vec<Slot> = Vec::with_capacity(limits.max_clients);
     loop {
-        let accepted = tokio::select! {
-            _ = &mut stop => return,
-            a = listener.accept() => a,
-        };
-        match accepted {
+        match listener.accept().await {
             Ok((stream, peer)) => {
                 backoff = FIRST;
                 stats.failing_since.store(0, Ordering::Release);
@@ -374,18 +504,23 @@ async fn accept_loop(
                 bump(&stats.connections);
                 let last = Arc::new(AtomicU64::new(since(epoch)));
                 let open = Open(stats.clone());
-                let (table, stats, at) = (table.clone(), stats.clone(), last.clone());
+                let (shared, at) = (shared.clone(), last.clone());
                 let task = tokio::spawn(async move {
                     let _open = open;
+                    let mut stream = stream;
                     let _ = stream.set_nodelay(true);
                     let conn = Conn {
-                        table: &table,
-                        stats: &stats,
-                        limits,
+                        table: &shared.table,
+                        stats: &shared.stats,
+                        limits: shared.limits,
+                        units: &shared.units,
+                        framing,
+                        reply_delay: Duration::ZERO,
+                        idle_close: true,
                         last: &at,
-                        epoch,
+                        epoch: shared.epoch,
                     };
-                    if let Err(e) = conn.serve(stream).await {
+                    if let Err(e) = conn.serve(&mut stream).await {
                         tracing::debug!("modbus server: {peer}: {e}");
                     }
                 });
@@ -402,191 +537,9 @@ async fn accept_loop(
                 if first_of_hundred(&stats.accept_errors) {
                     tracing::warn!("modbus server: accept: {e} (retrying in {backoff:?})");
                 }
-                tokio::select! {
-                    _ = &mut stop => return,
-                    _ = tokio::time::sleep(backoff) => {}
-                }
+                tokio::time::sleep(backoff).await;
                 backoff = (backoff * 2).min(Duration::from_secs(1));
             }
         }
     }
-}
-
-/// One connection's context.
-struct Conn<'a> {
-    table: &'a RegisterTable,
-    stats: &'a Stats,
-    limits: Limits,
-    /// Set to `since(epoch)` at each complete request.
-    last: &'a AtomicU64,
-    epoch: std::time::Instant,
-}
-
-impl Conn<'_> {
-    /// Serves one connection until the client closes it, it idles out, stops mid-frame or
-    /// sends no Modbus.
-    async fn serve(&self, mut stream: tokio::net::TcpStream) -> std::io::Result<()> {
-        let (stats, idle) = (self.stats, self.limits.idle_timeout);
-        let frame = self.limits.frame_timeout.min(idle);
-        let mut head = [0u8; 7];
-        let mut body = [0u8; 253];
-        let mut out = Vec::with_capacity(260);
-        loop {
-            // A frame's first bytes, for up to `idle`; the rest of it within `frame` of them.
-            let got = match tokio::time::timeout(idle, stream.read(&mut head)).await {
-                Err(_) => {
-                    bump(&stats.idle_closed);
-                    return Ok(());
-                }
-                Ok(Ok(0)) => return Ok(()),
-                Ok(r) => r?,
-            };
-            let deadline = tokio::time::Instant::now() + frame;
-            if got < head.len() {
-                match tokio::time::timeout_at(deadline, stream.read_exact(&mut head[got..])).await {
-                    Err(_) => {
-                        bump(&stats.frame_timeouts);
-                        return Ok(());
-                    }
-                    Ok(Err(e)) if e.kind() == std::io::ErrorKind::UnexpectedEof => return Ok(()),
-                    Ok(r) => r?,
-                };
-            }
-            // The transaction id (head[0..2]) is echoed as it came.
-            let (pid, len, unit) = (
-                u16::from_be_bytes([head[2], head[3]]),
-                usize::from(u16::from_be_bytes([head[4], head[5]])),
-                head[6],
-            );
-            if pid != 0 || !(2..=254).contains(&len) {
-                bump(&stats.malformed);
-                return Ok(());
-            }
-            let pdu = &mut body[..len - 1];
-            match tokio::time::timeout_at(deadline, stream.read_exact(pdu)).await {
-                Err(_) => {
-                    bump(&stats.frame_timeouts);
-                    return Ok(());
-                }
-                Ok(r) => r?,
-            };
-            // A complete request: this connection is not idle (eviction goes by this).
-            self.last.store(since(self.epoch), Ordering::Relaxed);
-            bump(&stats.requests);
-            let function = pdu[0];
-            let answer = match take(self.table, stats, pdu) {
-                Ok(Answer { reply, unsettled }) if !unsettled.is_empty() => {
-                    // Awaited here, in this connection's task: the others are served
-                    // meanwhile.
-                    self.settle(unsettled)
-                        .await
-                        .map(|()| reply)
-                        .map_err(|code| Refusal { function, code })
-                }
-                other => other.map(|a| a.reply),
-            };
-            out.clear();
-            out.extend_from_slice(&[head[0], head[1], 0, 0, 0, 0, unit]);
-            encode(stats, answer, &mut out);
-            let n = (out.len() - 6) as u16;
-            out[4..6].copy_from_slice(&n.to_be_bytes());
-            match tokio::time::timeout(idle, stream.write_all(&out)).await {
-                Err(_) => {
-                    // The client does not take its replies.
-                    bump(&stats.idle_closed);
-                    return Ok(());
-                }
-                Ok(r) => r?,
-            }
-        }
-    }
-}
-
-impl Conn<'_> {
-    /// Waits until the writes of a request are settled, at most `write_confirm`: `Ok` once
-    /// every one is delivered, else the exception answering the request (see
-    /// [`server::undelivered`](crate::server::undelivered)). Counts the outcome.
-    async fn settle(&self, mut writes: Unsettled) -> Result<(), ExceptionCode> {
-        const FIRST: Duration = Duration::from_millis(1);
-        const MOST: Duration = Duration::from_millis(5);
-        let stats = self.stats;
-        let deadline = tokio::time::Instant::now() + self.limits.write_confirm;
-        let mut pause = FIRST;
-        loop {
-            let Ok(now) = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| writes.check()))
-            else {
-                // A device's bug, as a panic while answering.
-                bump(&stats.panics);
-                return Err(exception::SERVER_DEVICE_FAILURE);
-            };
-            match now {
-                Some(Ok(())) => {
-                    bump(&stats.writes_confirmed);
-                    return Ok(());
-                }
-                Some(Err(why)) => {
-                    if first_of_hundred(&stats.writes_failed) {
-                        tracing::warn!("modbus server: a write was not delivered: {why}");
-                    }
-                    return Err(crate::server::undelivered(&why));
-                }
-                None if tokio::time::Instant::now() >= deadline => {
-                    if first_of_hundred(&stats.writes_unconfirmed) {
-                        tracing::warn!(
-                            "modbus server: {} write(s) still on their way after {:?} (write_confirm_ms): answered 0x0B",
-                            writes.len(),
-                            self.limits.write_confirm
-                        );
-                    }
-                    return Err(exception::GATEWAY_TARGET_FAILED_TO_RESPOND);
-                }
-                None => {
-                    tokio::time::sleep_until(deadline.min(tokio::time::Instant::now() + pause))
-                        .await;
-                    pause = (pause * 2).min(MOST);
-                }
-            }
-        }
-    }
-}
-
-/// Checks `pdu` and has the table answer it (its writes made): the reply and the writes
-/// it waits for, or the refusal.
-fn take(table: &RegisterTable, stats: &Stats, pdu: &[u8]) -> Result<Answer, Refusal> {
-    pdu::parse(pdu).and_then(|req| {
-        let function = pdu[0];
-        std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| table.answer(req)))
-            .unwrap_or_else(|_| {
-                bump(&stats.panics);
-                Err(exception::SERVER_DEVICE_FAILURE)
-            })
-            .map_err(|code| Refusal { function, code })
-    })
-}
-
-/// Appends the reply PDU (or the exception) to `out`.
-fn encode(stats: &Stats, answer: Result<Resp, Refusal>, out: &mut Vec<u8>) {
-    match answer {
-        Ok(resp) => pdu::encode(&resp, out),
-        Err(r) => {
-            bump(&stats.exceptions);
-            pdu::encode_refusal(r, out);
-        }
-    }
-}
-
-/// Answers `pdu` as the server would, into `out` (for tests and the fuzz run: the whole
-/// request path but the socket) — except that it does not wait for writes a device's bus
-/// carries later: it answers as if they were delivered.
-pub fn answer_pdu(table: &RegisterTable, pdu: &[u8], out: &mut Vec<u8>) {
-    thread_local! {
-        static STATS: Stats = Stats::default();
-    }
-    STATS.with(|s| encode(s, take(table, s, pdu).map(|a| a.reply), out));
-}
-
-/// Counts one more on `counter`; true for the first of every hundred (what is logged, so a
-/// flood is counted in full but said only now and then).
-fn first_of_hundred(counter: &AtomicU64) -> bool {
-    counter.fetch_add(1, Ordering::Relaxed).is_multiple_of(100)
 }

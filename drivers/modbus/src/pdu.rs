@@ -35,6 +35,9 @@ pub mod exception {
     /// The device behind the address is offline or stale, or failed; a write it took
     /// was refused on its way.
     pub const SERVER_DEVICE_FAILURE: u8 = 0x04;
+    /// The server has no path to the unit the request is for (a gateway's unit not
+    /// configured, or its line's queue full).
+    pub const GATEWAY_PATH_UNAVAILABLE: u8 = 0x0A;
     /// A write taken by a device that a bus carries later (a Modbus unit behind hwgw's
     /// client, another gateway's output) got no answer from its target: the target is
     /// offline, or the write was still on its way when the server stopped waiting.

@@ -19,22 +19,36 @@
 //! ```
 
 use crate::codec::{ByteOrder, Layout, ValueType, WordOrder};
-use crate::listener::{Limits, ModbusServer};
+use crate::listener::{Endpoints, Limits, ModbusServer};
 use crate::plan::Table;
 use crate::server::{Entry, RegisterTable, Source};
+use crate::shared::Units;
 use device_interface::text::{Number, Quoted};
 use device_interface::{Interface, Registry};
 use driver_api::{CardError, Server, ServerContext, ServerError};
 use serde::Deserialize;
-use std::net::{SocketAddr, ToSocketAddrs};
+use std::net::ToSocketAddrs;
 use std::sync::Mutex;
 
-/// hwgw as a Modbus TCP server.
+/// hwgw as a Modbus server: on TCP, RTU over TCP, a serial port, or all three.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ServerConfig {
-    /// `address:port` to listen on (e.g. 127.0.0.1:5502; 0.0.0.0 only on purpose).
-    pub listen: String,
+    /// `address:port` to serve Modbus TCP on (e.g. 127.0.0.1:5502; 0.0.0.0 only on
+    /// purpose).
+    #[serde(default)]
+    pub listen: Option<String>,
+    /// `address:port` to serve RTU frames over TCP on (for masters that speak to serial
+    /// device servers).
+    #[serde(default)]
+    pub rtu_over_tcp: Option<String>,
+    /// An RTU slave on a serial port.
+    #[serde(default)]
+    pub serial: Option<crate::slave::SerialConfig>,
+    /// The unit ids served as the server's own (1-247; and 255 on TCP). Unset: every
+    /// unit id on TCP, unit 1 on a serial port.
+    #[serde(default)]
+    pub units: Option<Vec<u8>>,
     /// Connections served at once (1–1024; default 16). With all of them open, a new one
     /// is admitted by closing the one idle longest (no complete request for longest).
     #[serde(default = "default_max_clients")]
@@ -179,19 +193,9 @@ impl ServerConfig {
     pub fn table(
         &self,
         registry: &Registry,
-    ) -> Result<(SocketAddr, RegisterTable, Limits), Vec<ServerConfigError>> {
+    ) -> Result<(Endpoints, RegisterTable, Limits), Vec<ServerConfigError>> {
         let mut problems = Vec::new();
-        let listen = self
-            .listen
-            .to_socket_addrs()
-            .ok()
-            .and_then(|mut a| a.next());
-        if listen.is_none() {
-            problems.push(ServerConfigError {
-                key: "listen".into(),
-                message: format!("{}: expected address:port", Quoted(&self.listen)),
-            });
-        }
+        let endpoints = self.endpoints().map_err(|e| problems.push(e)).ok();
         let mut entries = Vec::new();
         for (i, r) in self.registers.iter().enumerate() {
             if let Some(message) = r.scale_overflow() {
@@ -228,14 +232,86 @@ impl ServerConfig {
             key: key.into(),
             message,
         });
-        match (listen, table, limits) {
-            (Some(addr), Ok(table), Ok(limits)) if problems.is_empty() => Ok((addr, table, limits)),
+        match (endpoints, table, limits) {
+            (Some(at), Ok(table), Ok(limits)) if problems.is_empty() => Ok((at, table, limits)),
             (_, table, limits) => {
                 problems.extend(table.err());
                 problems.extend(limits.err());
                 Err(problems)
             }
         }
+    }
+}
+
+impl ServerConfig {
+    /// Where it serves, as which units: (key, message) when one is wrong.
+    fn endpoints(&self) -> Result<Endpoints, ServerConfigError> {
+        let err = |key: &str, message: String| ServerConfigError {
+            key: key.into(),
+            message,
+        };
+        let resolve = |key: &str, at: &Option<String>| match at {
+            None => Ok(None),
+            Some(text) => text
+                .to_socket_addrs()
+                .ok()
+                .and_then(|mut a| a.next())
+                .map(Some)
+                .ok_or_else(|| err(key, format!("{}: expected address:port", Quoted(text)))),
+        };
+        let tcp = resolve("listen", &self.listen)?;
+        let rtu_over_tcp = resolve("rtu_over_tcp", &self.rtu_over_tcp)?;
+        let serial = match &self.serial {
+            None => None,
+            Some(s) => Some(
+                s.slave()
+                    .map_err(|(key, message)| err(&format!("serial.{key}"), message))?,
+            ),
+        };
+        if tcp.is_none() && rtu_over_tcp.is_none() && serial.is_none() {
+            return Err(err(
+                "listen",
+                "missing: give listen (Modbus TCP), rtu_over_tcp or serial (an RTU slave): where to serve".into(),
+            ));
+        }
+        if tcp.is_some() && tcp == rtu_over_tcp {
+            return Err(err(
+                "rtu_over_tcp",
+                format!(
+                    "{}: listen has it already; give each its own port",
+                    Quoted(self.rtu_over_tcp.as_deref().unwrap_or(""))
+                ),
+            ));
+        }
+        let units = match &self.units {
+            None if serial.is_some() && tcp.is_none() && rtu_over_tcp.is_none() => {
+                Units::Only(vec![1])
+            }
+            None => Units::Any,
+            Some(v) => {
+                if v.is_empty() {
+                    return Err(err(
+                        "units",
+                        "empty: give the unit ids served, or leave units out".into(),
+                    ));
+                }
+                if let Some(bad) = v.iter().find(|u| !(1..=247).contains(*u) && **u != 255) {
+                    return Err(err(
+                        "units",
+                        format!(
+                            "{bad}: expected 1 to 247 (or 255, TCP's \"this server\"); 0 is the broadcast"
+                        ),
+                    ));
+                }
+                Units::Only(v.clone())
+            }
+        };
+        Ok(Endpoints {
+            tcp,
+            rtu_over_tcp,
+            serial,
+            units,
+        })
     }
 }
 
@@ -247,8 +323,8 @@ pub fn build(
     ctx: &mut ServerContext<'_>,
 ) -> Result<Box<dyn Server>, Vec<CardError>> {
     match config.table(ctx.registry()) {
-        Ok((listen, table, limits)) => Ok(Box::new(
-            TableServer::new(listen, table, limits).named(ctx.name()),
+        Ok((at, table, limits)) => Ok(Box::new(
+            TableServer::new(at, table, limits).named(ctx.name()),
         )),
         Err(problems) => Err(problems
             .into_iter()
@@ -261,19 +337,18 @@ pub fn build(
 /// its stop.
 pub struct TableServer {
     name: String,
-    listen: SocketAddr,
+    at: Endpoints,
     table: RegisterTable,
     limits: Limits,
     running: Mutex<Option<ModbusServer>>,
 }
 
 impl TableServer {
-    /// A server of `table` on `listen` within `limits`, not started, named
-    /// `modbus_server`.
-    pub fn new(listen: SocketAddr, table: RegisterTable, limits: Limits) -> TableServer {
+    /// A server of `table` at `at` within `limits`, not started, named `modbus_server`.
+    pub fn new(at: Endpoints, table: RegisterTable, limits: Limits) -> TableServer {
         TableServer {
             name: "modbus_server".into(),
-            listen,
+            at,
             table,
             limits,
             running: Mutex::new(None),
@@ -295,13 +370,12 @@ impl Server for TableServer {
     }
 
     fn start(&self) -> Result<String, ServerError> {
-        let server = ModbusServer::start(self.listen, self.table.clone(), self.limits).map_err(
-            |source| ServerError::Listen {
-                address: self.listen.to_string(),
+        let server = ModbusServer::serve(self.at.clone(), self.table.clone(), self.limits)
+            .map_err(|source| ServerError::Listen {
+                address: self.at.describe(),
                 source,
-            },
-        )?;
-        let addr = server.addr().to_string();
+            })?;
+        let addr = server.describe();
         *rtt::lock(&self.running) = Some(server);
         Ok(addr)
     }
@@ -312,9 +386,16 @@ impl Server for TableServer {
     }
 
     fn address(&self) -> Option<String> {
-        rtt::lock(&self.running)
-            .as_ref()
-            .map(|s| s.addr().to_string())
+        // The Modbus TCP address as `host:port` (else the RTU-over-TCP one; else the
+        // serial port): what a client connects to.
+        rtt::lock(&self.running).as_ref().map(|s| {
+            let at = s.endpoints();
+            match (at.tcp.or(at.rtu_over_tcp), &at.serial) {
+                (Some(a), _) => a.to_string(),
+                (None, Some(s)) => s.serial.device.display().to_string(),
+                (None, None) => String::new(),
+            }
+        })
     }
 
     fn status(&self) -> Option<driver_api::CardStatus> {
@@ -323,9 +404,11 @@ impl Server for TableServer {
             .as_ref()
             .map(ModbusServer::counters)
             .unwrap_or_default();
-        // Where it listens: the bound address once running (a port 0 given is chosen then).
-        let at = running.as_ref().map_or(self.listen, ModbusServer::addr);
-        Some(driver_api::CardStatus::new(at.to_string(), &counters))
+        // Where it serves: the bound addresses once running (a port 0 given is chosen then).
+        let at = running
+            .as_ref()
+            .map_or_else(|| self.at.describe(), ModbusServer::describe);
+        Some(driver_api::CardStatus::new(at, &counters))
     }
 
     fn health(&self) -> Result<(), ServerError> {

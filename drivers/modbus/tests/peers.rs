@@ -21,7 +21,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use testkit::fixtures::MODBUS_MAP;
 use testkit::mbpoll::Mbpoll;
-use testkit::peers::{PYMODBUS, PYTHON, SOCAT, ensure};
+use testkit::peers::{PYMODBUS, PYTHON, ensure};
+use testkit::pty::PtyPair;
 use testkit::wait_until;
 
 use testkit::pymodbus::{PyModbus, SERVER};
@@ -260,46 +261,6 @@ fn a_unit_with_holes_is_learned_and_polled_at_the_minimum() {
     );
     assert_eq!(load(&stats.exceptions), 6, "no refusal once learned");
     assert!(card.health().last_error.is_none(), "{:?}", card.health());
-}
-
-/// A socat pty pair: the line's end and the unit's end.
-struct PtyPair {
-    child: Child,
-    dir: std::path::PathBuf,
-}
-
-impl PtyPair {
-    fn new(tag: &str) -> PtyPair {
-        ensure(&SOCAT);
-        let dir = std::env::temp_dir().join(format!("hwgw-pty-{tag}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).unwrap();
-        let child = Command::new("socat")
-            .arg(format!(
-                "pty,raw,echo=0,link={}",
-                dir.join("line").display()
-            ))
-            .arg(format!(
-                "pty,raw,echo=0,link={}",
-                dir.join("unit").display()
-            ))
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap_or_else(|e| panic!("cannot run socat: {e}"));
-        let pair = PtyPair { child, dir };
-        wait_until("socat's ptys", || {
-            pair.dir.join("line").exists() && pair.dir.join("unit").exists()
-        });
-        pair
-    }
-}
-
-impl Drop for PtyPair {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-        let _ = std::fs::remove_dir_all(&self.dir);
-    }
 }
 
 #[test]

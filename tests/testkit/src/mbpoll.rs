@@ -42,3 +42,51 @@ impl Mbpoll<'_> {
         )
     }
 }
+
+/// One mbpoll transaction over RTU (`baud`, `parity` none, even or odd, one stop bit) on
+/// serial port `device` to `unit`: `table` as in [`Mbpoll`], 0-based
+/// `address`, `count` items to read, or `write` values (a read when empty; `count` is not
+/// given to a write: mbpoll writes as many as there are values). Returns standard output
+/// followed by standard error.
+pub fn rtu(
+    device: &std::path::Path,
+    (baud, parity): (u32, &str),
+    unit: u8,
+    (table, address, count): (&str, u16, u16),
+    write: &[&str],
+) -> String {
+    ensure(&MBPOLL);
+    let mut cmd = Command::new("mbpoll");
+    cmd.args([
+        "-m",
+        "rtu",
+        "-b",
+        &baud.to_string(),
+        "-P",
+        parity,
+        "-s",
+        "1",
+    ])
+    .args([
+        "-a",
+        &unit.to_string(),
+        "-t",
+        table,
+        "-r",
+        &address.to_string(),
+    ]);
+    if write.is_empty() {
+        cmd.args(["-c", &count.to_string()]);
+    }
+    let out = cmd
+        .args(["-0", "-1", "-o", "2"])
+        .arg(device)
+        .args(write)
+        .output()
+        .unwrap_or_else(|e| panic!("cannot run mbpoll: {e}"));
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    )
+}

@@ -2,12 +2,10 @@
 //! installed by the tests when missing) running `gateway/tests/peers/opcua_client.py`, one
 //! session a client, driven by JSON lines (see the script for its commands).
 
+use crate::jsonlines::JsonPeer;
 use crate::peers::PYTHON;
 use serde_json::Value;
-use std::io::{BufRead, BufReader, Write};
-use std::process::{Child, ChildStdin, Command, Stdio};
-use std::sync::mpsc::{Receiver, RecvTimeoutError, channel};
-use std::time::Duration;
+use std::process::Command;
 
 /// The client script.
 pub const CLIENT: &str = concat!(
@@ -15,24 +13,11 @@ pub const CLIENT: &str = concat!(
     "/../../gateway/tests/peers/opcua_client.py"
 );
 
-/// Longest wait for one answer (a subscription's notifications wait less, by their own
-/// timeout; a loaded machine is slow).
-const ANSWER: Duration = Duration::from_secs(120);
-
 /// A connected asyncua session; its process killed when dropped.
 pub struct UaClient {
-    child: Child,
-    stdin: ChildStdin,
-    lines: Receiver<String>,
+    peer: JsonPeer,
     /// The namespace index of hwgw's nodes.
     pub ns: u64,
-}
-
-impl Drop for UaClient {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 impl UaClient {
@@ -41,30 +26,12 @@ impl UaClient {
     pub fn connect(conf: &Value) -> Result<UaClient, String> {
         let path = crate::pypi::asyncua()
             .unwrap_or_else(|e| panic!("cannot install asyncua from PyPI (pip, python3-pip): {e}"));
-        let mut child = Command::new(PYTHON)
-            .arg(CLIENT)
+        let mut cmd = Command::new(PYTHON);
+        cmd.arg(CLIENT)
             .arg(conf.to_string())
-            .env("PYTHONPATH", path)
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .unwrap_or_else(|e| panic!("cannot run {PYTHON} {CLIENT}: {e}"));
-        let stdin = child.stdin.take().expect("piped");
-        let stdout = child.stdout.take().expect("piped");
-        let (tx, lines) = channel();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stdout).lines() {
-                let Ok(line) = line else { break };
-                if tx.send(line).is_err() {
-                    break;
-                }
-            }
-        });
+            .env("PYTHONPATH", path);
         let mut c = UaClient {
-            child,
-            stdin,
-            lines,
+            peer: JsonPeer::spawn(cmd, "the OPC UA client"),
             ns: 0,
         };
         let hello = c.answer();
@@ -82,21 +49,11 @@ impl UaClient {
     }
 
     fn answer(&mut self) -> Value {
-        match self.lines.recv_timeout(ANSWER) {
-            Ok(line) => serde_json::from_str(&line)
-                .unwrap_or_else(|e| panic!("the OPC UA client said {line:?}: {e}")),
-            Err(RecvTimeoutError::Timeout) => panic!("the OPC UA client did not answer"),
-            Err(RecvTimeoutError::Disconnected) => {
-                let status = self.child.wait();
-                panic!("the OPC UA client ended ({status:?})")
-            }
-        }
+        self.peer.answer()
     }
 
     /// Sends `command`, returns its answer.
     pub fn ask(&mut self, command: Value) -> Value {
-        writeln!(self.stdin, "{command}").expect("the OPC UA client's stdin");
-        self.stdin.flush().expect("flushed");
-        self.answer()
+        self.peer.ask(&command)
     }
 }

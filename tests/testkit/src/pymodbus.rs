@@ -105,3 +105,33 @@ pub mod pattern {
         (u32::from(n) * 5) % 4 == 1
     }
 }
+
+/// The master script (`drivers/modbus/tests/peers/pymodbus_client.py`).
+pub const CLIENT: &str = concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/../../drivers/modbus/tests/peers/pymodbus_client.py"
+);
+
+/// A pymodbus master as a peer, driven by JSON lines (see the script for its requests
+/// and results); killed when dropped.
+pub struct PyMaster(crate::jsonlines::JsonPeer);
+
+impl PyMaster {
+    /// A master in `mode` (`tcp`, `rtu_over_tcp`: `at` a port; `serial`: `at` a device, its
+    /// baud rate and parity, "DEVICE BAUD N"), once connected. Fails the test when pymodbus cannot
+    /// be had or does not connect.
+    pub fn connect(mode: &str, at: &str) -> PyMaster {
+        ensure(&PYMODBUS);
+        let mut cmd = Command::new(PYTHON);
+        cmd.arg(CLIENT).arg(mode).args(at.split(' '));
+        let mut peer = crate::jsonlines::JsonPeer::spawn(cmd, "the pymodbus master");
+        let hello = peer.answer();
+        assert_eq!(hello["ready"], true, "the pymodbus master: {hello}");
+        PyMaster(peer)
+    }
+
+    /// Sends `request`, returns its result.
+    pub fn ask(&mut self, request: &serde_json::Value) -> serde_json::Value {
+        self.0.ask(request)
+    }
+}

@@ -1,0 +1,399 @@
+//! How hwgw's Modbus server cuts requests out of a byte stream and frames its replies:
+//! MBAP on TCP, or RTU (unit, PDU, CRC) on a serial port or a TCP stream.
+//!
+//! - **MBAP**: a 7-byte header (transaction id, protocol 0, length 2-254, unit) and the
+//!   PDU. A header that is not Modbus cannot be resynchronised on a stream: the connection
+//!   is closed.
+//! - **RTU**: a request's length follows from its function code (8 bytes for FC1-6 and 8,
+//!   9 plus the byte count for FC15 and 16, and so on). A frame whose function gives no
+//!   length (or a frame cut short) ends at a gap of [`rtu_gap`] with no byte: if what
+//!   arrived has a good CRC it is a frame (an unknown function is then answered
+//!   IllegalFunction). A frame with a bad CRC is dropped and counted, and so is everything
+//!   after it until the line has been quiet for a gap: that is how an RTU slave finds the
+//!   start of the next frame (on a multi-drop line, other units' replies look like bad
+//!   frames too). A partial frame never blocks the line longer than a gap.
+
+use crate::client::crc16;
+use std::io;
+use std::time::Duration;
+use tokio::io::{AsyncRead, AsyncReadExt};
+use tokio::time::Instant;
+
+/// How a stream frames requests.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Framing {
+    /// Modbus TCP (MBAP header).
+    Mbap,
+    /// Modbus RTU (unit, PDU, CRC), ending partial frames after `gap` with no byte.
+    Rtu {
+        /// The longest pause within a frame.
+        gap: Duration,
+    },
+}
+
+/// The longest pause within an RTU frame the server waits for: 50 ms, or four character
+/// times at slow rates. The specification's 1.5 characters cannot be kept by a Linux tty
+/// (USB adapters deliver in bursts up to 16 ms apart); a stalled frame still costs no more.
+pub fn rtu_gap(baud: Option<u32>) -> Duration {
+    let chars = baud.map_or(Duration::ZERO, |b| {
+        Duration::from_secs_f64(4.0 * 11.0 / f64::from(b.max(1)))
+    });
+    chars.max(Duration::from_millis(50))
+}
+
+/// A request cut from the stream: its PDU is [`Reader::pdu`] until [`Reader::consume`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Request {
+    /// The MBAP transaction id (0 on RTU).
+    pub tid: u16,
+    /// The unit id.
+    pub unit: u8,
+    /// Where the PDU starts in the reader's buffer.
+    start: usize,
+    /// Where the frame ends.
+    end: usize,
+}
+
+/// What the stream gave.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Event {
+    /// A whole request.
+    Request(Request),
+    /// The peer closed the stream.
+    Closed,
+    /// Nothing for the idle timeout.
+    Idle,
+    /// A frame begun and not whole in time (MBAP: the frame timeout; RTU: a gap). MBAP
+    /// closes the connection; RTU drops the bytes and goes on.
+    FrameTimeout,
+    /// An MBAP header that is not Modbus: the connection is closed.
+    Malformed,
+    /// An RTU frame with a bad CRC, dropped with what followed it until a gap.
+    BadCrc,
+}
+
+/// The most bytes a reader keeps: two whole frames.
+const KEEP: usize = 2 * 260;
+
+/// Cuts requests out of a stream.
+pub struct Reader {
+    framing: Framing,
+    buf: Vec<u8>,
+}
+
+impl Reader {
+    /// A reader of `framing`.
+    pub fn new(framing: Framing) -> Reader {
+        Reader {
+            framing,
+            buf: Vec::with_capacity(KEEP),
+        }
+    }
+
+    /// The PDU of `r` (function code first).
+    pub fn pdu(&self, r: &Request) -> &[u8] {
+        &self.buf[r.start..r.end - self.trailer()]
+    }
+
+    /// Drops request `r`'s bytes: the next call to [`next`](Self::next) looks past it.
+    pub fn consume(&mut self, r: &Request) {
+        self.buf.drain(..r.end);
+    }
+
+    fn trailer(&self) -> usize {
+        match self.framing {
+            Framing::Mbap => 0,
+            Framing::Rtu { .. } => 2,
+        }
+    }
+
+    /// The next request, or why there is none. `idle` bounds the wait for a frame's first
+    /// byte (None: forever); `frame` the wait for the rest of an MBAP frame.
+    pub async fn next<S: AsyncRead + Unpin>(
+        &mut self,
+        stream: &mut S,
+        idle: Option<Duration>,
+        frame: Duration,
+    ) -> io::Result<Event> {
+        let mut deadline: Option<Instant> = None;
+        loop {
+            match self.cut() {
+                Cut::Whole(r) => return Ok(Event::Request(r)),
+                Cut::Malformed => return Ok(Event::Malformed),
+                Cut::BadCrc => {
+                    self.buf.clear();
+                    self.quiet(stream).await?;
+                    return Ok(Event::BadCrc);
+                }
+                Cut::More => {}
+            }
+            // The first byte of a frame waits for `idle`; the rest for the frame timeout
+            // (MBAP) or a gap (RTU).
+            let wait = match (self.buf.is_empty(), self.framing) {
+                (true, _) => idle.map(|i| Instant::now() + i),
+                (false, Framing::Mbap) => {
+                    Some(*deadline.get_or_insert_with(|| Instant::now() + frame))
+                }
+                (false, Framing::Rtu { gap }) => Some(Instant::now() + gap),
+            };
+            if self.buf.len() >= KEEP {
+                // Cannot happen (a frame is cut at its length), but never grow.
+                self.buf.clear();
+                return Ok(Event::FrameTimeout);
+            }
+            self.buf.reserve(260);
+            let read = stream.read_buf(&mut self.buf);
+            let n = match wait {
+                None => read.await?,
+                Some(at) => match tokio::time::timeout_at(at, read).await {
+                    Ok(n) => n?,
+                    Err(_) if self.buf.is_empty() => return Ok(Event::Idle),
+                    Err(_) => return Ok(self.stalled()),
+                },
+            };
+            if n == 0 {
+                // A last RTU frame whose length was not known is whole at the end.
+                if matches!(self.framing, Framing::Rtu { .. }) && !self.buf.is_empty() {
+                    return Ok(self.stalled());
+                }
+                return Ok(Event::Closed);
+            }
+        }
+    }
+
+    /// A frame that stopped coming: on RTU, a frame if its CRC is good (a function whose
+    /// length the reader does not know), else dropped.
+    fn stalled(&mut self) -> Event {
+        if let Framing::Rtu { .. } = self.framing
+            && self.buf.len() >= 4
+            && crc_ok(&self.buf)
+        {
+            let end = self.buf.len();
+            return Event::Request(Request {
+                tid: 0,
+                unit: self.buf[0],
+                start: 1,
+                end,
+            });
+        }
+        let was_rtu_bad = matches!(self.framing, Framing::Rtu { .. }) && self.buf.len() >= 4;
+        self.buf.clear();
+        if was_rtu_bad {
+            Event::BadCrc
+        } else {
+            Event::FrameTimeout
+        }
+    }
+
+    /// Reads and drops bytes until a gap passes with none.
+    async fn quiet<S: AsyncRead + Unpin>(&mut self, stream: &mut S) -> io::Result<()> {
+        let Framing::Rtu { gap } = self.framing else {
+            return Ok(());
+        };
+        let mut junk = [0u8; 256];
+        while let Ok(n) = tokio::time::timeout(gap, stream.read(&mut junk)).await {
+            if n? == 0 {
+                break;
+            }
+        }
+        Ok(())
+    }
+
+    fn cut(&self) -> Cut {
+        match self.framing {
+            Framing::Mbap => cut_mbap(&self.buf),
+            Framing::Rtu { .. } => cut_rtu(&self.buf),
+        }
+    }
+}
+
+enum Cut {
+    Whole(Request),
+    More,
+    Malformed,
+    BadCrc,
+}
+
+fn cut_mbap(b: &[u8]) -> Cut {
+    if b.len() < 7 {
+        return Cut::More;
+    }
+    let (pid, len) = (
+        u16::from_be_bytes([b[2], b[3]]),
+        usize::from(u16::from_be_bytes([b[4], b[5]])),
+    );
+    if pid != 0 || !(2..=254).contains(&len) {
+        return Cut::Malformed;
+    }
+    if b.len() < 6 + len {
+        return Cut::More;
+    }
+    Cut::Whole(Request {
+        tid: u16::from_be_bytes([b[0], b[1]]),
+        unit: b[6],
+        start: 7,
+        end: 6 + len,
+    })
+}
+
+/// An RTU request's whole length from its first bytes: Some(Ok(n)), Some(Err(k)) when byte
+/// k (a byte count) is needed first, None for a function whose length is not known.
+fn rtu_length(b: &[u8]) -> Option<Result<usize, usize>> {
+    let count_at =
+        |k: usize, fixed: usize| Some(b.get(k).map(|c| fixed + usize::from(*c)).ok_or(k));
+    match *b.get(1)? {
+        1..=6 | 8 => Some(Ok(8)),
+        7 | 11 | 12 | 17 => Some(Ok(4)),
+        15 | 16 => count_at(6, 9),
+        20 | 21 => count_at(2, 5),
+        22 => Some(Ok(10)),
+        23 => count_at(10, 13),
+        24 => Some(Ok(6)),
+        _ => None,
+    }
+}
+
+fn crc_ok(frame: &[u8]) -> bool {
+    let n = frame.len();
+    n >= 4 && crc16(&frame[..n - 2]).to_le_bytes() == [frame[n - 2], frame[n - 1]]
+}
+
+fn cut_rtu(b: &[u8]) -> Cut {
+    let len = match rtu_length(b) {
+        None | Some(Err(_)) => return Cut::More,
+        Some(Ok(n)) => n,
+    };
+    if b.len() < len {
+        return Cut::More;
+    }
+    if !crc_ok(&b[..len]) {
+        return Cut::BadCrc;
+    }
+    Cut::Whole(Request {
+        tid: 0,
+        unit: b[0],
+        start: 1,
+        end: len,
+    })
+}
+
+/// Starts a reply to `r` in `out` (cleared): the header the PDU follows.
+pub fn begin_reply(framing: Framing, r: &Request, out: &mut Vec<u8>) {
+    out.clear();
+    match framing {
+        Framing::Mbap => {
+            out.extend_from_slice(&r.tid.to_be_bytes());
+            out.extend_from_slice(&[0, 0, 0, 0, r.unit]);
+        }
+        Framing::Rtu { .. } => out.push(r.unit),
+    }
+}
+
+/// Ends the reply begun by [`begin_reply`] once its PDU is in `out`: the MBAP length, or
+/// the CRC.
+pub fn end_reply(framing: Framing, out: &mut Vec<u8>) {
+    match framing {
+        Framing::Mbap => {
+            let n = (out.len() - 6) as u16;
+            out[4..6].copy_from_slice(&n.to_be_bytes());
+        }
+        Framing::Rtu { .. } => {
+            let crc = crc16(out);
+            out.extend_from_slice(&crc.to_le_bytes());
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, reason = "test code")]
+    use super::*;
+
+    fn rtu(unit: u8, pdu: &[u8]) -> Vec<u8> {
+        let mut f = vec![unit];
+        f.extend_from_slice(pdu);
+        let crc = crc16(&f);
+        f.extend_from_slice(&crc.to_le_bytes());
+        f
+    }
+
+    async fn events(framing: Framing, bytes: &[u8]) -> Vec<(Event, Vec<u8>)> {
+        let (mut a, mut b) = tokio::io::duplex(4096);
+        tokio::io::AsyncWriteExt::write_all(&mut a, bytes)
+            .await
+            .unwrap();
+        drop(a);
+        let mut r = Reader::new(framing);
+        let mut out = Vec::new();
+        loop {
+            let e = r.next(&mut b, None, Duration::from_secs(1)).await.unwrap();
+            let pdu = match e {
+                Event::Request(q) => {
+                    let p = r.pdu(&q).to_vec();
+                    r.consume(&q);
+                    p
+                }
+                Event::Closed => break,
+                Event::Malformed => {
+                    out.push((e, Vec::new()));
+                    break;
+                }
+                _ => Vec::new(),
+            };
+            out.push((e, pdu));
+        }
+        out
+    }
+
+    #[tokio::test]
+    async fn rtu_frames_are_cut_by_function_and_checked_by_crc() {
+        let gap = Framing::Rtu {
+            gap: Duration::from_millis(20),
+        };
+        let mut bytes = rtu(1, &[3, 0, 0, 0, 10]);
+        bytes.extend(rtu(2, &[16, 0, 1, 0, 2, 4, 0, 7, 0, 8]));
+        let got = events(gap, &bytes).await;
+        assert_eq!(got.len(), 2);
+        assert_eq!(got[0].1, [3, 0, 0, 0, 10]);
+        assert!(matches!(got[0].0, Event::Request(Request { unit: 1, .. })));
+        assert_eq!(got[1].1, [16, 0, 1, 0, 2, 4, 0, 7, 0, 8]);
+        // A bad CRC: dropped with what follows it (no gap in between).
+        let mut bad = rtu(1, &[3, 0, 0, 0, 10]);
+        bad[6] ^= 1;
+        bad.extend(rtu(1, &[3, 0, 0, 0, 1]));
+        let got = events(gap, &bad).await;
+        assert_eq!(got.len(), 1);
+        assert_eq!(got[0].0, Event::BadCrc);
+    }
+
+    #[tokio::test]
+    async fn an_unknown_function_is_a_frame_at_the_gap_if_its_crc_is_good() {
+        let gap = Framing::Rtu {
+            gap: Duration::from_millis(20),
+        };
+        let got = events(gap, &rtu(1, &[0x2B, 0x0E, 1, 0])).await;
+        assert_eq!(got[0].1, [0x2B, 0x0E, 1, 0]);
+        let got = events(gap, &[1, 0x2B, 0x0E, 1, 0, 0]).await;
+        assert_eq!(got[0].0, Event::BadCrc);
+        // Too short to be a frame: dropped at the gap.
+        let got = events(gap, &[1, 3, 0]).await;
+        assert_eq!(got[0].0, Event::FrameTimeout);
+    }
+
+    #[tokio::test]
+    async fn mbap_frames_and_replies() {
+        let bytes = [0, 7, 0, 0, 0, 6, 9, 3, 0, 0, 0, 2];
+        let got = events(Framing::Mbap, &bytes).await;
+        let Event::Request(r) = got[0].0 else {
+            panic!("{got:?}")
+        };
+        assert_eq!((r.tid, r.unit), (7, 9));
+        let mut out = Vec::new();
+        begin_reply(Framing::Mbap, &r, &mut out);
+        out.extend_from_slice(&[3, 2, 0, 1]);
+        end_reply(Framing::Mbap, &mut out);
+        assert_eq!(out, [0, 7, 0, 0, 0, 5, 9, 3, 2, 0, 1]);
+        let got = events(Framing::Mbap, &[0, 7, 0, 1, 0, 6, 9, 3]).await;
+        assert_eq!(got[0].0, Event::Malformed);
+    }
+}
