@@ -35,11 +35,7 @@ impl Mbpoll<'_> {
             .args(self.write)
             .output()
             .unwrap_or_else(|e| panic!("cannot run mbpoll: {e}"));
-        format!(
-            "{}{}",
-            String::from_utf8_lossy(&out.stdout),
-            String::from_utf8_lossy(&out.stderr)
-        )
+        text(&out)
     }
 }
 
@@ -84,6 +80,11 @@ pub fn rtu(
         .args(write)
         .output()
         .unwrap_or_else(|e| panic!("cannot run mbpoll: {e}"));
+    text(&out)
+}
+
+/// mbpoll's standard output followed by its standard error.
+fn text(out: &std::process::Output) -> String {
     format!(
         "{}{}",
         String::from_utf8_lossy(&out.stdout),
