@@ -75,8 +75,14 @@ pub struct Runtime {
     scope: Arc<ThreadScope>,
     next_thread: Arc<AtomicU32>,
     components: Arc<Mutex<Vec<TaskContext>>>,
+    /// [`shared`](Runtime::shared) state, one value per type.
+    shared: Mutex<SharedState>,
     _cpu_latency: Option<std::fs::File>,
 }
+
+/// One value per type, each shared as an `Arc`.
+type SharedState =
+    std::collections::HashMap<std::any::TypeId, Arc<dyn std::any::Any + Send + Sync>>;
 
 impl Runtime {
     /// A runtime over `registry`. With ThreadScope on, a DigitalOut named "ThreadScope"
@@ -102,6 +108,7 @@ impl Runtime {
             scope: Arc::new(scope),
             next_thread: Arc::new(AtomicU32::new(1)),
             components: Arc::new(Mutex::new(Vec::new())),
+            shared: Mutex::new(SharedState::new()),
             _cpu_latency: options.cpu_dma_latency_us.and_then(hold_cpu_latency),
         })
     }
@@ -114,6 +121,35 @@ impl Runtime {
     /// The clock.
     pub fn clock(&self) -> &Arc<dyn Clock> {
         &self.clock
+    }
+
+    /// State the parts of one deployment share beyond ports, operations and devices, one
+    /// value of each type, made (`T::default()`) on first use and kept as long as the
+    /// runtime: a driver's lines that its server forwards requests to, say, found by the
+    /// server whichever was built first. Takes a lock: not for real-time paths.
+    ///
+    /// ```
+    /// use std::sync::atomic::{AtomicU32, Ordering};
+    /// let registry = std::sync::Arc::new(device_interface::Registry::new());
+    /// let rt = rtt::Runtime::new(registry, Default::default())?;
+    /// rt.shared::<AtomicU32>().store(7, Ordering::Relaxed);
+    /// assert_eq!(rt.shared::<AtomicU32>().load(Ordering::Relaxed), 7);
+    /// # Ok::<(), Box<dyn std::error::Error>>(())
+    /// ```
+    pub fn shared<T: Default + Send + Sync + 'static>(&self) -> Arc<T> {
+        let mut map = crate::lock(&self.shared);
+        let slot = map
+            .entry(std::any::TypeId::of::<T>())
+            .or_insert_with(|| Arc::new(T::default()));
+        match slot.clone().downcast::<T>() {
+            Ok(t) => t,
+            Err(_) => {
+                // Never: the entry for TypeId::of::<T>() is only ever given a T.
+                let t = Arc::new(T::default());
+                *slot = t.clone();
+                t
+            }
+        }
     }
 
     /// The ThreadScope (on or off).

@@ -319,8 +319,14 @@ async fn rtu<P: AsyncRead + AsyncWrite + Unpin>(
     port.read_exact(&mut head).await?;
     let rest = match head[1] {
         f if f & 0x80 != 0 => 2,
-        1..=4 => usize::from(head[2]) + 2,
-        5 | 6 | 15 | 16 => 5,
+        // A byte count, then that many bytes (reads, FC23, report server id, files).
+        1..=4 | 12 | 17 | 20 | 21 | 23 => usize::from(head[2]) + 2,
+        // Four bytes: an echo, or a counter (FC11).
+        5 | 6 | 8 | 11 | 15 | 16 => 5,
+        // The exception status byte (FC7).
+        7 => 2,
+        // Mask write: address and both masks.
+        22 => 7,
         f => return Err(ClientError::Bad(format!("unknown function {f} in a reply"))),
     };
     let mut tail = vec![0u8; rest];

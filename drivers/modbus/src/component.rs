@@ -2,9 +2,11 @@
 //! file-descriptor activity of its own, woken at each unit's next due time.
 //!
 //! Each step polls the units that are due, in order, one request outstanding at a time
-//! (each bounded by its unit's timeout), then sets the activity's next wake-up to the
-//! earliest next poll. A stop waits for the poll under way. An operation `counters`
-//! returns every unit's line diagnostics.
+//! (each bounded by its unit's timeout), then sends the requests hwgw's Modbus server
+//! forwards to the line ([`gateway`](crate::gateway)) while no unit is due, at most
+//! [`FORWARDS_PER_STEP`] a step, then sets the activity's next wake-up to the earliest next
+//! poll (at once while forwarded requests wait). A stop waits for the request under way.
+//! An operation `counters` returns every unit's line diagnostics.
 //!
 //! ```no_run
 //! # use std::sync::Arc;
@@ -16,6 +18,7 @@
 //! # Ok(()) }
 //! ```
 
+use crate::gateway::{Forwarding, Lines};
 use crate::line::{LineUnit, Transport, UnitCounters, UnitState, poll_and_schedule};
 use device_interface::DeviceError;
 use device_interface::time::{Clock, MonotonicClock, Timestamp};
@@ -23,9 +26,15 @@ use rtt::component::IntrospectError;
 use rtt::{Component, Context, HookError, HookResult, InterfaceBuilder};
 use std::sync::Arc;
 
+/// The most forwarded requests one step sends (then it returns, to be stepped again at
+/// once): a stop or an operation never waits behind a long queue.
+pub const FORWARDS_PER_STEP: usize = 16;
+
 /// The poller of one Modbus line.
 pub struct LineIo {
     transport: Transport,
+    /// Requests forwarded by the server in gateway mode.
+    forwarding: Arc<Forwarding>,
     units: Arc<Vec<LineUnit>>,
     states: Vec<UnitState>,
     /// The connection, while open.
@@ -48,8 +57,11 @@ impl LineIo {
         units: Vec<LineUnit>,
         thread: rtt::ThreadOptions,
     ) -> Result<rtt::TaskContext, rtt::RuntimeError> {
+        let lines = runtime.shared::<Lines>();
         driver_api::fd_bus(runtime, name, thread, move |iface| {
-            LineIo::new(transport, units, iface)
+            let line = LineIo::new(transport, units, iface)?;
+            lines.register(&line.transport, &line.forwarding);
+            Ok(line)
         })
     }
 
@@ -70,6 +82,7 @@ impl LineIo {
         let t0 = now();
         Ok(LineIo {
             transport,
+            forwarding: Arc::new(Forwarding::default()),
             states: units
                 .iter()
                 .map(|u| UnitState::new(&u.timing, t0))
@@ -96,6 +109,7 @@ impl Component for LineIo {
             *s = UnitState::new(&u.timing, t0);
         }
         ctx.activity().wake_at(t0)?;
+        self.forwarding.open(ctx.activity().waker());
         Ok(())
     }
 
@@ -123,13 +137,33 @@ impl Component for LineIo {
                 &now,
             ));
         }
-        if let Some(next) = self.states.iter().map(|s| s.next).min() {
+        // Then the forwarded requests, while no unit is due.
+        let mut forwarded = 0;
+        while forwarded < FORWARDS_PER_STEP
+            && self.states.iter().all(|s| s.next > now())
+            && let Some(f) = self.forwarding.take()
+        {
+            let outcome = tokio.block_on(crate::gateway::forward(
+                &mut self.client,
+                &self.transport,
+                &f,
+            ));
+            // A master that gave up (its server stopped) is not there to hear it.
+            let _ = f.reply.send(outcome);
+            forwarded += 1;
+        }
+        let next = self.states.iter().map(|s| s.next).min();
+        if self.forwarding.waiting() {
+            ctx.activity().wake_at(now())?;
+        } else if let Some(next) = next {
             ctx.activity().wake_at(next)?;
         }
         Ok(())
     }
 
     fn stop_hook(&mut self, _: &mut Context<'_>) {
+        // Forwarded requests are answered 0x0A from now on.
+        self.forwarding.close();
         // A new start opens the connection anew.
         self.client = None;
         // Nothing carries the writes still on their way now: their writers hear so.

@@ -18,8 +18,9 @@
 //! ```
 
 use crate::card::ModbusCard;
-use crate::line::{Parity, RtuOverTcp, Serial, Transport, UnitTiming};
+use crate::line::UnitTiming;
 use crate::map::{Map, MapError, PointConfig};
+use crate::transport::{Parity, RtuOverTcp, Serial, Transport};
 use device_interface::time::Clock;
 use driver_api::CardError;
 use serde::Deserialize;
@@ -151,20 +152,10 @@ fn ms(key: &str, v: f64) -> Result<Duration, CardError> {
     }
 }
 
-/// A turnaround of `ms` in µs, checked (0-10000 ms).
-fn turnaround(ms: u32) -> Result<u32, CardError> {
-    if ms > 10_000 {
-        return Err(CardError::at(
-            "transport.turnaround_ms",
-            format!("{ms}: expected 0 to 10000 ms"),
-        ));
-    }
-    Ok(ms * 1000)
-}
-
-impl ModbusConfig {
-    /// The line's transport; a TCP address is resolved now.
-    pub fn transport(&self) -> Result<Transport, CardError> {
+impl TransportConfig {
+    /// The transport, checked; a TCP address is resolved now. Errors are at keys under
+    /// `transport`.
+    pub fn resolve(&self) -> Result<Transport, CardError> {
         let key = "transport.address";
         let resolve = |address: &str| {
             address
@@ -173,7 +164,7 @@ impl ModbusConfig {
                 .next()
                 .ok_or_else(|| CardError::at(key, format!("{address:?} resolves to no address")))
         };
-        match &self.transport {
+        match self {
             TransportConfig::Tcp { address } => resolve(address).map(Transport::Tcp),
             TransportConfig::RtuOverTcp {
                 address,
@@ -221,6 +212,24 @@ impl ModbusConfig {
                 }))
             }
         }
+    }
+}
+
+/// A turnaround of `ms` in µs, checked (0-10000 ms).
+fn turnaround(ms: u32) -> Result<u32, CardError> {
+    if ms > 10_000 {
+        return Err(CardError::at(
+            "transport.turnaround_ms",
+            format!("{ms}: expected 0 to 10000 ms"),
+        ));
+    }
+    Ok(ms * 1000)
+}
+
+impl ModbusConfig {
+    /// The line's transport; a TCP address is resolved now.
+    pub fn transport(&self) -> Result<Transport, CardError> {
+        self.transport.resolve()
     }
 
     /// The unit's timing, checked.

@@ -8,6 +8,7 @@
 //! |---|---|---|
 //! | one of `units` | answered | answered |
 //! | 0, not in `units` | 0x0A | broadcast: writes applied, no reply |
+//! | another, a gateway route's | forwarded | forwarded (over TCP; on a serial port, ignored) |
 //! | another | 0x0A (no path to it) | ignored (another unit's), counted |
 //!
 //! With `units` not given every unit id but RTU's broadcast 0 is the server's own.
@@ -22,9 +23,11 @@ use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncWrite, AsyncWriteExt};
 
 /// What becomes of a request for a unit.
-enum Route {
+enum Route<'a> {
     /// Answered here.
     Local,
+    /// Forwarded on a line (gateway mode).
+    Forward(&'a crate::gateway::Route),
     /// An RTU broadcast: applied here, not answered.
     Broadcast,
     /// Another unit's on an RTU line: not answered.
@@ -39,6 +42,9 @@ pub(crate) struct Conn<'a> {
     pub(crate) stats: &'a Stats,
     pub(crate) limits: Limits,
     pub(crate) units: &'a Units,
+    /// Where requests for other units go (none on a serial port: other units there are
+    /// on the same line and answer themselves).
+    pub(crate) routes: &'a [crate::gateway::Route],
     pub(crate) framing: Framing,
     /// Wait this long after a request's last byte before its reply (a serial line's
     /// silence and turnaround; zero on TCP).
@@ -52,10 +58,12 @@ pub(crate) struct Conn<'a> {
 }
 
 impl Conn<'_> {
-    fn route(&self, unit: u8) -> Route {
+    fn route(&self, unit: u8) -> Route<'_> {
         let rtu = matches!(self.framing, Framing::Rtu { .. });
         if self.units.own(unit, rtu) {
             Route::Local
+        } else if let Some(r) = self.routes.iter().find(|r| r.takes(unit)) {
+            Route::Forward(r)
         } else if !rtu {
             Route::Unreachable
         } else if unit == 0 {
@@ -153,6 +161,31 @@ impl Conn<'_> {
                     function,
                     code: exception::GATEWAY_PATH_UNAVAILABLE,
                 })
+            }
+            Route::Forward(route) => {
+                bump(&stats.requests);
+                match route.forward(r.unit, pdu).await {
+                    Ok(reply) => {
+                        bump(&stats.forwarded);
+                        begin_reply(self.framing, r, out);
+                        out.extend_from_slice(&reply);
+                        end_reply(self.framing, out);
+                        return true;
+                    }
+                    Err(failed) => {
+                        bump(
+                            if failed.exception() == exception::GATEWAY_PATH_UNAVAILABLE {
+                                &stats.gateway_unavailable
+                            } else {
+                                &stats.gateway_no_response
+                            },
+                        );
+                        Err(Refusal {
+                            function,
+                            code: failed.exception(),
+                        })
+                    }
+                }
             }
             Route::Local => {
                 bump(&stats.requests);

@@ -19,7 +19,8 @@
 //! - [`conn`]: one stream served, its requests routed by unit id;
 //! - [`shared`]: what a server's streams share (table, limits, units, counters);
 //! - [`listener`]: the server's TCP loops, its limits and counters;
-//! - [`slave`]: the server as an RTU slave on a serial port (RS-485 mode).
+//! - [`slave`]: the server as an RTU slave on a serial port (RS-485 mode);
+//! - [`gateway`]: gateway mode, other units' requests forwarded to a card's line.
 //!
 //! ```
 //! use driver_modbus::codec::{Layout, Number, ValueType};
@@ -36,6 +37,7 @@ pub mod component;
 pub mod config;
 pub mod conn;
 pub mod framing;
+pub mod gateway;
 pub mod holes;
 mod limits;
 pub mod line;
@@ -51,4 +53,5 @@ pub mod shared;
 pub mod slave;
 #[cfg(feature = "test-server")]
 pub mod testing;
+pub mod transport;
 pub mod value;

@@ -94,8 +94,15 @@ pub struct ServerCounters {
     pub broadcasts: u64,
     /// RTU requests for another unit on the line, not answered.
     pub other_units: u64,
-    /// MBAP requests for a unit the server has no path to, answered 0x0A.
+    /// TCP requests for a unit the server has no route to, answered 0x0A.
     pub unreachable: u64,
+    /// Requests forwarded to a line and answered by their target (its exceptions too).
+    pub forwarded: u64,
+    /// Forwarded requests answered 0x0B: no reply from the target within the timeout.
+    pub gateway_no_response: u64,
+    /// Forwarded requests answered 0x0A: the line's queue full, the line stopped or
+    /// broken.
+    pub gateway_unavailable: u64,
     /// Times the serial port was opened (the RTU slave; 0 without one).
     pub port_opens: u64,
     /// Failures to open or set up the serial port, and errors that closed it.
@@ -113,6 +120,9 @@ pub struct Endpoints {
     pub serial: Option<SerialSlave>,
     /// The unit ids it answers as its own (see [`conn`](crate::conn)).
     pub units: Units,
+    /// Where requests for other units go (gateway mode; see [`gateway`](crate::gateway)),
+    /// the first route that takes a unit.
+    pub gateway: Vec<crate::gateway::Route>,
 }
 
 impl Endpoints {
@@ -192,6 +202,7 @@ impl ModbusServer {
             stats: stats.clone(),
             limits,
             units: endpoints.units.clone(),
+            routes: endpoints.gateway.clone(),
             epoch,
         });
         let slave = endpoints.serial;
@@ -291,6 +302,9 @@ impl ModbusServer {
             broadcasts: n(&s.broadcasts),
             other_units: n(&s.other_units),
             unreachable: n(&s.unreachable),
+            forwarded: n(&s.forwarded),
+            gateway_no_response: n(&s.gateway_no_response),
+            gateway_unavailable: n(&s.gateway_unavailable),
             port_opens: n(&s.port.opens),
             port_errors: n(&s.port.errors),
         }
@@ -514,6 +528,7 @@ async fn accept_loop(listener: tokio::net::TcpListener, shared: Arc<Shared>, fra
                         stats: &shared.stats,
                         limits: shared.limits,
                         units: &shared.units,
+                        routes: &shared.routes,
                         framing,
                         reply_delay: Duration::ZERO,
                         idle_close: true,

@@ -19,6 +19,7 @@
 //! ```
 
 use crate::codec::{ByteOrder, Layout, ValueType, WordOrder};
+use crate::gateway::Lines;
 use crate::listener::{Endpoints, Limits, ModbusServer};
 use crate::plan::Table;
 use crate::server::{Entry, RegisterTable, Source};
@@ -28,7 +29,7 @@ use device_interface::{Interface, Registry};
 use driver_api::{CardError, Server, ServerContext, ServerError};
 use serde::Deserialize;
 use std::net::ToSocketAddrs;
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 
 /// hwgw as a Modbus server: on TCP, RTU over TCP, a serial port, or all three.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -73,6 +74,10 @@ pub struct ServerConfig {
     /// The register table.
     #[serde(default, rename = "register")]
     pub registers: Vec<ServedRegister>,
+    /// Gateway mode: where requests for units that are not the server's own go, the
+    /// first route that takes a unit (`units` must then be given: the server's own).
+    #[serde(default, rename = "gateway")]
+    pub gateway: Vec<crate::gateway::GatewayConfig>,
 }
 
 fn default_max_clients() -> usize {
@@ -193,9 +198,10 @@ impl ServerConfig {
     pub fn table(
         &self,
         registry: &Registry,
+        lines: &Arc<Lines>,
     ) -> Result<(Endpoints, RegisterTable, Limits), Vec<ServerConfigError>> {
         let mut problems = Vec::new();
-        let endpoints = self.endpoints().map_err(|e| problems.push(e)).ok();
+        let endpoints = self.endpoints(lines).map_err(|e| problems.push(e)).ok();
         let mut entries = Vec::new();
         for (i, r) in self.registers.iter().enumerate() {
             if let Some(message) = r.scale_overflow() {
@@ -245,7 +251,7 @@ impl ServerConfig {
 
 impl ServerConfig {
     /// Where it serves, as which units: (key, message) when one is wrong.
-    fn endpoints(&self) -> Result<Endpoints, ServerConfigError> {
+    fn endpoints(&self, lines: &Arc<Lines>) -> Result<Endpoints, ServerConfigError> {
         let err = |key: &str, message: String| ServerConfigError {
             key: key.into(),
             message,
@@ -289,7 +295,7 @@ impl ServerConfig {
             }
             None => Units::Any,
             Some(v) => {
-                if v.is_empty() {
+                if v.is_empty() && self.gateway.is_empty() {
                     return Err(err(
                         "units",
                         "empty: give the unit ids served, or leave units out".into(),
@@ -306,11 +312,29 @@ impl ServerConfig {
                 Units::Only(v.clone())
             }
         };
+        if !self.gateway.is_empty() && self.units.is_none() {
+            return Err(err(
+                "units",
+                "missing: with gateway routes, give the unit ids the server answers itself \
+                 (units = [] for none)"
+                    .into(),
+            ));
+        }
+        let gateway = self
+            .gateway
+            .iter()
+            .enumerate()
+            .map(|(i, g)| {
+                g.route(lines)
+                    .map_err(|(key, message)| err(&format!("gateway[{i}].{key}"), message))
+            })
+            .collect::<Result<Vec<_>, _>>()?;
         Ok(Endpoints {
             tcp,
             rtu_over_tcp,
             serial,
             units,
+            gateway,
         })
     }
 }
@@ -322,7 +346,7 @@ pub fn build(
     config: &ServerConfig,
     ctx: &mut ServerContext<'_>,
 ) -> Result<Box<dyn Server>, Vec<CardError>> {
-    match config.table(ctx.registry()) {
+    match config.table(ctx.registry(), &ctx.runtime().shared::<Lines>()) {
         Ok((at, table, limits)) => Ok(Box::new(
             TableServer::new(at, table, limits).named(ctx.name()),
         )),

@@ -52,6 +52,9 @@ pub(crate) struct Stats {
     pub(crate) broadcasts: AtomicU64,
     pub(crate) other_units: AtomicU64,
     pub(crate) unreachable: AtomicU64,
+    pub(crate) forwarded: AtomicU64,
+    pub(crate) gateway_no_response: AtomicU64,
+    pub(crate) gateway_unavailable: AtomicU64,
     pub(crate) port: PortState,
 }
 
@@ -99,6 +102,8 @@ pub(crate) struct Shared {
     pub(crate) stats: Arc<Stats>,
     pub(crate) limits: Limits,
     pub(crate) units: Units,
+    /// Where requests for other units go (gateway mode).
+    pub(crate) routes: Vec<crate::gateway::Route>,
     pub(crate) epoch: std::time::Instant,
 }
 

@@ -16,8 +16,8 @@
 
 use crate::conn::Conn;
 use crate::framing::Framing;
-use crate::line::Serial;
 use crate::shared::Shared;
+use crate::transport::Serial;
 use serde::Deserialize;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -57,7 +57,7 @@ pub struct SerialConfig {
     pub baud: u32,
     /// Parity (default even).
     #[serde(default)]
-    pub parity: crate::line::Parity,
+    pub parity: crate::transport::Parity,
     /// Stop bits, 1 or 2 (default 1).
     #[serde(default = "default_stop_bits")]
     pub stop_bits: u8,
@@ -144,7 +144,7 @@ impl SerialConfig {
             }
         };
         Ok(SerialSlave {
-            serial: crate::line::Serial {
+            serial: crate::transport::Serial {
                 device: self.device.clone(),
                 baud: self.baud,
                 parity: self.parity,
@@ -171,6 +171,7 @@ pub(crate) async fn serve(slave: SerialSlave, shared: Arc<Shared>) {
         stats: &shared.stats,
         limits: shared.limits,
         units: &shared.units,
+        routes: &[],
         framing: Framing::Rtu {
             gap: crate::framing::rtu_gap(Some(slave.serial.baud)),
         },
@@ -205,7 +206,7 @@ pub(crate) async fn serve(slave: SerialSlave, shared: Arc<Shared>) {
 /// Opens the port with its settings and RS-485 mode; the error names the port and step.
 fn open(slave: &SerialSlave) -> Result<tokio_serial::SerialStream, String> {
     let device = slave.serial.device.display();
-    let stream = crate::line::open_serial(&slave.serial)
+    let stream = crate::transport::open_serial(&slave.serial)
         .map_err(|e| format!("cannot open {device}: {e}"))?;
     if let Some(rs) = slave.rs485 {
         set_rs485(&stream, rs).map_err(|e| {

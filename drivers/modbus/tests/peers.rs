@@ -16,25 +16,14 @@ use driver_modbus::map::{Map, PointConfig};
 use driver_modbus::testing::TestLine;
 use std::io::{Read, Write};
 use std::net::SocketAddr;
-use std::process::{Child, Command, Stdio};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use testkit::fixtures::MODBUS_MAP;
 use testkit::mbpoll::Mbpoll;
-use testkit::peers::{PYMODBUS, PYTHON, ensure};
 use testkit::pty::PtyPair;
 use testkit::wait_until;
 
-use testkit::pymodbus::{PyModbus, SERVER};
-
-/// The RTU server's process, killed when dropped.
-struct Peer(Child);
-impl Drop for Peer {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
+use testkit::pymodbus::PyModbus;
 
 fn start_pymodbus_tcp() -> (PyModbus, SocketAddr) {
     start_pymodbus("tcp")
@@ -267,15 +256,7 @@ fn a_unit_with_holes_is_learned_and_polled_at_the_minimum() {
 fn two_units_multi_dropped_on_an_rtu_line_against_pymodbus() {
     use driver_modbus::line::{Parity, Serial};
     let pty = PtyPair::new("rtu");
-    ensure(&PYMODBUS);
-    let _peer = Peer(
-        Command::new(PYTHON)
-            .args([SERVER, "rtu", pty.dir.join("unit").to_str().unwrap()])
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap_or_else(|e| panic!("cannot run {PYTHON}: {e}")),
-    );
+    let _peer = testkit::pymodbus::PyRtu::start(&pty.unit());
     let one = card();
     let t: toml::Table = toml::from_str(
         "[[point]]\ntable = \"input_registers\"\naddress = 0\n\

@@ -4,7 +4,8 @@
 use crate::peers::{MBPOLL, ensure};
 use std::process::Command;
 
-/// One mbpoll transaction against unit 1 on 127.0.0.1:`port`.
+/// One mbpoll transaction against unit 1 (or another: [`Mbpoll::run_unit`]) on
+/// 127.0.0.1:`port`.
 #[derive(Debug, Clone, Copy)]
 pub struct Mbpoll<'a> {
     /// TCP port.
@@ -23,10 +24,22 @@ impl Mbpoll<'_> {
     /// Runs it once (`-1`, 0-based addresses `-0`); returns its standard output followed by
     /// its standard error. Fails the test when mbpoll cannot be had.
     pub fn run(&self) -> String {
+        self.run_unit(1)
+    }
+
+    /// The same, to unit `unit`.
+    pub fn run_unit(&self, unit: u8) -> String {
         ensure(&MBPOLL);
         let mut cmd = Command::new("mbpoll");
-        cmd.args(["-m", "tcp", "-p", &self.port.to_string(), "-a", "1"])
-            .args(["-t", self.table, "-r", &self.address.to_string()]);
+        cmd.args([
+            "-m",
+            "tcp",
+            "-p",
+            &self.port.to_string(),
+            "-a",
+            &unit.to_string(),
+        ])
+        .args(["-t", self.table, "-r", &self.address.to_string()]);
         if let Some(n) = self.count {
             cmd.args(["-c", &n.to_string()]);
         }

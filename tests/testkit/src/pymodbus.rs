@@ -135,3 +135,36 @@ impl PyMaster {
         self.0.ask(request)
     }
 }
+
+/// pymodbus's RTU server on serial port `device` (the script's `rtu` mode: units 1 and 2
+/// multi-dropped, 19200 baud); killed when dropped. Ready once it answers: wait for a
+/// unit's reply.
+pub struct PyRtu(Child);
+
+impl PyRtu {
+    /// Starts it; fails the test when pymodbus cannot be had or run.
+    pub fn start(device: &std::path::Path) -> PyRtu {
+        ensure(&PYMODBUS);
+        let child = Command::new(PYTHON)
+            .arg(SERVER)
+            .arg("rtu")
+            .arg(device)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap_or_else(|e| panic!("cannot run {PYTHON} {SERVER}: {e}"));
+        PyRtu(child)
+    }
+
+    /// Kills it now (a unit that stops answering).
+    pub fn kill(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+impl Drop for PyRtu {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
