@@ -222,6 +222,12 @@ fn every_broken_config_gets_its_exact_error() {
          "t.toml:11:1: modbus_server.units: missing: with gateway routes, give the unit ids the server answers itself (units = [] for none)"),
         ("served: a gateway to no card's line", with_card("[modbus_server]\nlisten = \"127.0.0.1:0\"\nunits = []\n[[modbus_server.gateway]]\ntransport = { type = \"tcp\", address = \"127.0.0.1:502\" }\n"),
          "t.toml:15:13: modbus_server.gateway[0].transport: no Modbus card's line goes to 127.0.0.1:502: the gateway forwards on a card's line, one request at a time with its polls (a card with no points is the line alone)"),
+        ("served: a gateway on a serial port alone", "[[card]]\nname = \"plc\"\ndriver = \"modbus\"\n[card.modbus]\ntransport = { type = \"tcp\", address = \"127.0.0.1:502\" }\n[modbus_server]\nunits = [1]\nserial = { device = \"/dev/ttyS0\" }\n[[modbus_server.gateway]]\ntransport = { type = \"tcp\", address = \"127.0.0.1:502\" }\n".into(),
+         "t.toml:9:1: modbus_server.gateway: a gateway forwards TCP masters' requests: give listen or rtu_over_tcp (on a serial port the other units answer themselves)"),
+        ("served: a gateway route over the own units", "[[card]]\nname = \"plc\"\ndriver = \"modbus\"\n[card.modbus]\ntransport = { type = \"tcp\", address = \"127.0.0.1:502\" }\n[modbus_server]\nlisten = \"127.0.0.1:0\"\nunits = [1, 2]\n[[modbus_server.gateway]]\nunits = [2, 3]\ntransport = { type = \"tcp\", address = \"127.0.0.1:502\" }\n".into(),
+         "t.toml:10:9: modbus_server.gateway[0].units: unit 2 is the server's own (units): it is never forwarded"),
+        ("served: a slave on a card's line", "[[card]]\nname = \"plc\"\ndriver = \"modbus\"\n[card.modbus]\ntransport = { type = \"rtu\", device = \"/dev/ttyS0\" }\n[modbus_server]\nserial = { device = \"/dev/ttyS0\" }\n".into(),
+         "t.toml:7:21: modbus_server.serial.device: /dev/ttyS0 is a Modbus card's line: one port is either hwgw's line to its units (a master) or its slave's, not both"),
         // What a hostile configuration tried (issue 12): each gets its error, none a panic,
         // a hang or an unbounded allocation.
         ("a component that wakes itself", with_card("[[component]]\nname = \"f\"\ntype = \"follow\"\nactivity = { type = \"non_periodic\" }\n[[connection]]\nfrom = \"f.out\"\nto = \"f.in\"\n"),

@@ -113,13 +113,19 @@ fn rtu_frames_over_tcp_write_and_read_random_tables_as_modbus_tcp_does() {
     let mut rng = Rng::new(0x395e_17e5);
     for round in 0..4 {
         let (table, served) = random_table(&mut rng);
-        let rtu_port = testkit::free_port();
         let text = format!(
-            "{OUTPUTS}\n[modbus_server]\nlisten = \"127.0.0.1:0\"\nrtu_over_tcp = \"127.0.0.1:{rtu_port}\"\n{table}"
+            "{OUTPUTS}\n[modbus_server]\nlisten = \"127.0.0.1:0\"\nrtu_over_tcp = \"127.0.0.1:0\"\n{table}"
         );
         let gw = start(&text);
         let tcp_port: std::net::SocketAddr =
             gw.server_address("modbus_server").unwrap().parse().unwrap();
+        // Where it serves, as `hwgw status` shows: "127.0.0.1:P, rtu_over_tcp 127.0.0.1:Q".
+        let bus = gw.server_status()[0].status.bus.clone();
+        let rtu_port: std::net::SocketAddr = bus
+            .split_once("rtu_over_tcp ")
+            .map(|(_, a)| a.parse().unwrap())
+            .unwrap_or_else(|| panic!("{bus}"));
+        let rtu_port = rtu_port.port();
         let mut rtu = PyMaster::connect("rtu_over_tcp", &rtu_port.to_string());
         let mut tcp = PyMaster::connect("tcp", &tcp_port.port().to_string());
         for s in &served {
@@ -147,7 +153,6 @@ fn rtu_frames_over_tcp_write_and_read_random_tables_as_modbus_tcp_does() {
                 "over Modbus TCP: {why}"
             );
         }
-        // The whole table at once where entries sit side by side: one read over both.
         let c = counters(&gw);
         assert_eq!(
             (
@@ -271,6 +276,59 @@ fn an_rtu_slave_on_a_serial_port_serves_pymodbus_and_mbpoll() {
         (Some(1), Some(1), Some(1)),
         "{c}"
     );
+    gw.shutdown();
+}
+
+#[test]
+fn on_a_multi_drop_line_other_units_traffic_is_skipped_and_the_next_request_answered() {
+    let pty = PtyPair::new("rtu-multidrop");
+    let gw = start(&slave(&pty.line(), ""));
+    wait_until("the serial port open", || {
+        counters(&gw)["port_opens"].as_u64() >= Some(1)
+    });
+    let mut master = PyMaster::connect("serial", &format!("{} 19200 N", pty.unit().display()));
+    let frame = |unit: u8, pdu: &[u8]| {
+        let mut f = vec![unit];
+        f.extend_from_slice(pdu);
+        let crc = driver_modbus::client::crc16(&f);
+        f.extend_from_slice(&crc.to_le_bytes());
+        f.iter().map(|b| format!("{b:02x}")).collect::<String>()
+    };
+    // Unit 2's exchange as another master and unit 2 put it on the line — its request and
+    // its 7-byte reply, shorter than a request — and the request to unit 7 right after
+    // (no pause on the line to find the frame by).
+    let others = frame(2, &[3, 0, 0, 0, 1]) + &frame(2, &[3, 2, 0, 42]);
+    assert_eq!(master.ask(&json!({"raw": others})), json!({"ok": []}));
+    let read = json!({"fn": 3, "unit": 7, "address": 0, "count": 2});
+    assert_eq!(master.ask(&read), json!({"ok": [0, 0]}));
+    let c = counters(&gw);
+    assert_eq!(
+        (c["other_units"].as_u64(), c["crc_errors"].as_u64()),
+        (Some(2), Some(0)),
+        "unit 2's request and reply skipped, no error: {c}"
+    );
+    gw.shutdown();
+}
+
+#[test]
+fn a_slave_beside_tcp_answers_unit_1_alone_when_units_are_unset() {
+    let pty = PtyPair::new("rtu-default-unit");
+    let text = slave(&pty.line(), "listen = \"127.0.0.1:0\"\n").replace("units = [7, 8]\n", "");
+    let gw = start(&text);
+    wait_until("the serial port open", || {
+        counters(&gw)["port_opens"].as_u64() >= Some(1)
+    });
+    let mut master = PyMaster::connect("serial", &format!("{} 19200 N", pty.unit().display()));
+    let write = |unit: u8| json!({"fn": 16, "unit": unit, "address": 0, "values": [0, 5]});
+    // Unit 3 is another device on the line: its writes are not hwgw's.
+    assert_eq!(master.ask(&write(3))["error"], "no reply");
+    assert_eq!(master.ask(&write(1)), json!({"ok": []}));
+    drop(master);
+    // Over TCP every unit id is the server's (unset units).
+    let port = gw.server_address("modbus_server").unwrap();
+    let mut tcp = PyMaster::connect("tcp", port.rsplit(':').next().unwrap());
+    let read = json!({"fn": 3, "unit": 3, "address": 0, "count": 2});
+    assert_eq!(tcp.ask(&read), json!({"ok": [0, 5]}));
     gw.shutdown();
 }
 

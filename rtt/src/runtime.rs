@@ -125,8 +125,9 @@ impl Runtime {
 
     /// State the parts of one deployment share beyond ports, operations and devices, one
     /// value of each type, made (`T::default()`) on first use and kept as long as the
-    /// runtime: a driver's lines that its server forwards requests to, say, found by the
-    /// server whichever was built first. Takes a lock: not for real-time paths.
+    /// runtime: a driver's lines that its server forwards requests to, say, registered by
+    /// the lines as they are added and found by the server when it is built after them or
+    /// when it serves. Takes a lock: not for real-time paths.
     ///
     /// ```
     /// use std::sync::atomic::{AtomicU32, Ordering};

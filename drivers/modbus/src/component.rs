@@ -3,8 +3,9 @@
 //!
 //! Each step polls the units that are due, in order, one request outstanding at a time
 //! (each bounded by its unit's timeout), then sends the requests hwgw's Modbus server
-//! forwards to the line ([`gateway`](crate::gateway)) while no unit is due, at most
-//! [`FORWARDS_PER_STEP`] a step, then sets the activity's next wake-up to the earliest next
+//! forwards to the line ([`gateway`](crate::gateway)) — one at least, more while no unit
+//! is due, at most [`FORWARDS_PER_STEP`] a step and none begun after [`FORWARD_BUDGET`] but
+//! the first — then sets the activity's next wake-up to the earliest next
 //! poll (at once while forwarded requests wait). A stop waits for the request under way.
 //! An operation `counters` returns every unit's line diagnostics.
 //!
@@ -29,6 +30,10 @@ use std::sync::Arc;
 /// The most forwarded requests one step sends (then it returns, to be stepped again at
 /// once): a stop or an operation never waits behind a long queue.
 pub const FORWARDS_PER_STEP: usize = 16;
+
+/// No forwarded request but the step's first is begun once the step has run this long: a
+/// stop or an operation waits for the request under way and little more.
+pub const FORWARD_BUDGET: std::time::Duration = std::time::Duration::from_millis(20);
 
 /// The poller of one Modbus line.
 pub struct LineIo {
@@ -137,10 +142,14 @@ impl Component for LineIo {
                 &now,
             ));
         }
-        // Then the forwarded requests, while no unit is due.
+        // Then the forwarded requests: at least one (so a unit always due, failing or
+        // overrunning its period, cannot starve them), more while no unit is due, within
+        // the step's budget.
         let mut forwarded = 0;
         while forwarded < FORWARDS_PER_STEP
-            && self.states.iter().all(|s| s.next > now())
+            && (forwarded == 0
+                || (self.states.iter().all(|s| s.next > now())
+                    && now().duration_since(started) < FORWARD_BUDGET))
             && let Some(f) = self.forwarding.take()
         {
             let outcome = tokio.block_on(crate::gateway::forward(

@@ -52,6 +52,9 @@ pub(crate) struct Conn<'a> {
     /// Close the stream after `idle_timeout` without a request (TCP; a serial line is
     /// never idle-closed).
     pub(crate) idle_close: bool,
+    /// The port reads back what it sends (RS-485 `rx_during_tx`): each reply's echo is
+    /// skipped.
+    pub(crate) echo: bool,
     /// Set to `since(epoch)` at each complete request.
     pub(crate) last: &'a AtomicU64,
     pub(crate) epoch: std::time::Instant,
@@ -108,6 +111,10 @@ impl Conn<'_> {
                     bump(&stats.crc_errors);
                     continue;
                 }
+                Event::Other => {
+                    bump(&stats.other_units);
+                    continue;
+                }
             };
             let got = tokio::time::Instant::now();
             // A complete request: this connection is not idle (eviction goes by this).
@@ -129,6 +136,9 @@ impl Conn<'_> {
                     return Ok(());
                 }
                 Ok(r) => r?,
+            }
+            if self.echo {
+                reader.expect_echo(&out);
             }
         }
     }

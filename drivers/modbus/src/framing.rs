@@ -5,13 +5,16 @@
 //!   PDU. A header that is not Modbus cannot be resynchronised on a stream: the connection
 //!   is closed.
 //! - **RTU**: a request's length follows from its function code (8 bytes for FC1-6 and 8,
-//!   9 plus the byte count for FC15 and 16, and so on). A frame whose function gives no
-//!   length (or a frame cut short) ends at a gap of [`rtu_gap`] with no byte: if what
-//!   arrived has a good CRC it is a frame (an unknown function is then answered
-//!   IllegalFunction). A frame with a bad CRC is dropped and counted, and so is everything
-//!   after it until the line has been quiet for a gap: that is how an RTU slave finds the
-//!   start of the next frame (on a multi-drop line, other units' replies look like bad
-//!   frames too). A partial frame never blocks the line longer than a gap.
+//!   9 plus the byte count for FC15 and 16, and so on), a reply's too (5 plus its byte
+//!   count for reads, 8 for a write's echo, 5 for an exception). Bytes that are a request
+//!   with a good CRC are one; bytes that are a reply with a good CRC — another unit's, on a
+//!   multi-drop line — are skipped ([`Event::Other`]). Bytes that are neither are dropped
+//!   one at a time until a good frame starts (counted once, [`Event::BadCrc`]): the reader
+//!   finds the next frame at once, with no pause on the line needed, however busy the
+//!   line. A frame whose function gives no length ends at a gap of [`rtu_gap`] with no
+//!   byte: if what arrived has a good CRC it is a request (an unknown function, answered
+//!   IllegalFunction). A partial frame waits at most a gap on a serial line, the frame
+//!   timeout on TCP (where a frame may come in two segments).
 
 use crate::client::crc16;
 use std::io;
@@ -24,10 +27,14 @@ use tokio::time::Instant;
 pub enum Framing {
     /// Modbus TCP (MBAP header).
     Mbap,
-    /// Modbus RTU (unit, PDU, CRC), ending partial frames after `gap` with no byte.
+    /// Modbus RTU (unit, PDU, CRC), ending frames of no known length after `gap` with no
+    /// byte.
     Rtu {
-        /// The longest pause within a frame.
+        /// The longest pause within a frame of no known length (and on a serial line
+        /// within any frame).
         gap: Duration,
+        /// On TCP: a frame of known length may take the frame timeout to come whole.
+        tcp: bool,
     },
 }
 
@@ -68,8 +75,11 @@ pub enum Event {
     FrameTimeout,
     /// An MBAP header that is not Modbus: the connection is closed.
     Malformed,
-    /// An RTU frame with a bad CRC, dropped with what followed it until a gap.
+    /// RTU bytes that are no frame (a bad CRC, noise), dropped until a good frame starts;
+    /// said once for a run of them.
     BadCrc,
+    /// Another unit's RTU reply (a multi-drop line), skipped.
+    Other,
 }
 
 /// The most bytes a reader keeps: two whole frames.
@@ -79,6 +89,10 @@ const KEEP: usize = 2 * 260;
 pub struct Reader {
     framing: Framing,
     buf: Vec<u8>,
+    /// Dropping bytes that are no frame (said once a run).
+    skipping: bool,
+    /// The own reply a serial port that receives while it sends will read back.
+    echo: Vec<u8>,
 }
 
 impl Reader {
@@ -87,7 +101,16 @@ impl Reader {
         Reader {
             framing,
             buf: Vec::with_capacity(KEEP),
+            skipping: false,
+            echo: Vec::new(),
         }
+    }
+
+    /// Bytes just sent that come back (a port receiving while it sends): skipped when they
+    /// arrive first.
+    pub fn expect_echo(&mut self, sent: &[u8]) {
+        self.echo.clear();
+        self.echo.extend_from_slice(sent);
     }
 
     /// The PDU of `r` (function code first).
@@ -117,52 +140,73 @@ impl Reader {
     ) -> io::Result<Event> {
         let mut deadline: Option<Instant> = None;
         loop {
+            self.skip_echo();
             match self.cut() {
-                Cut::Whole(r) => return Ok(Event::Request(r)),
+                Cut::Whole(r) => {
+                    self.skipping = false;
+                    return Ok(Event::Request(r));
+                }
                 Cut::Malformed => return Ok(Event::Malformed),
-                Cut::BadCrc => {
-                    self.buf.clear();
-                    self.quiet(stream).await?;
-                    return Ok(Event::BadCrc);
+                Cut::Other(n) => {
+                    self.skipping = false;
+                    self.buf.drain(..n);
+                    return Ok(Event::Other);
                 }
-                Cut::More => {}
-            }
-            // The first byte of a frame waits for `idle`; the rest for the frame timeout
-            // (MBAP) or a gap (RTU).
-            let wait = match (self.buf.is_empty(), self.framing) {
-                (true, _) => idle.map(|i| Instant::now() + i),
-                (false, Framing::Mbap) => {
-                    Some(*deadline.get_or_insert_with(|| Instant::now() + frame))
+                Cut::Skip(n) => {
+                    self.buf.drain(..n);
+                    if !std::mem::replace(&mut self.skipping, true) {
+                        return Ok(Event::BadCrc);
+                    }
+                    continue;
                 }
-                (false, Framing::Rtu { gap }) => Some(Instant::now() + gap),
-            };
-            if self.buf.len() >= KEEP {
-                // Cannot happen (a frame is cut at its length), but never grow.
-                self.buf.clear();
-                return Ok(Event::FrameTimeout);
-            }
-            self.buf.reserve(260);
-            let read = stream.read_buf(&mut self.buf);
-            let n = match wait {
-                None => read.await?,
-                Some(at) => match tokio::time::timeout_at(at, read).await {
-                    Ok(n) => n?,
-                    Err(_) if self.buf.is_empty() => return Ok(Event::Idle),
-                    Err(_) => return Ok(self.stalled()),
-                },
-            };
-            if n == 0 {
-                // A last RTU frame whose length was not known is whole at the end.
-                if matches!(self.framing, Framing::Rtu { .. }) && !self.buf.is_empty() {
-                    return Ok(self.stalled());
+                Cut::More { known } => {
+                    // The first byte of a frame waits for `idle`; the rest for the frame
+                    // timeout (MBAP, and RTU of a known length on TCP) or a gap (RTU).
+                    let wait = match (self.buf.is_empty(), self.framing) {
+                        (true, _) => idle.map(|i| Instant::now() + i),
+                        (false, Framing::Rtu { gap, tcp }) if !(tcp && known) => {
+                            Some(Instant::now() + gap)
+                        }
+                        (false, _) => Some(*deadline.get_or_insert_with(|| Instant::now() + frame)),
+                    };
+                    self.buf.reserve(260);
+                    let read = stream.read_buf(&mut self.buf);
+                    let n = match wait {
+                        None => read.await?,
+                        Some(at) => match tokio::time::timeout_at(at, read).await {
+                            Ok(n) => n?,
+                            Err(_) if self.buf.is_empty() => return Ok(Event::Idle),
+                            Err(_) => return Ok(self.stalled()),
+                        },
+                    };
+                    if n == 0 {
+                        // A last RTU frame whose length was not known is whole at the end.
+                        if matches!(self.framing, Framing::Rtu { .. }) && !self.buf.is_empty() {
+                            return Ok(self.stalled());
+                        }
+                        return Ok(Event::Closed);
+                    }
                 }
-                return Ok(Event::Closed);
             }
         }
     }
 
-    /// A frame that stopped coming: on RTU, a frame if its CRC is good (a function whose
-    /// length the reader does not know), else dropped.
+    /// Drops the own reply's echo from the front of the buffer once it is there whole.
+    fn skip_echo(&mut self) {
+        if self.echo.is_empty() || self.buf.is_empty() {
+            return;
+        }
+        let n = self.echo.len().min(self.buf.len());
+        if self.buf[..n] != self.echo[..n] {
+            self.echo.clear();
+        } else if n == self.echo.len() {
+            self.buf.drain(..n);
+            self.echo.clear();
+        }
+    }
+
+    /// A frame that stopped coming: on RTU, a request if its CRC is good (a function whose
+    /// length the reader does not know); else dropped.
     fn stalled(&mut self) -> Event {
         if let Framing::Rtu { .. } = self.framing
             && self.buf.len() >= 4
@@ -176,27 +220,9 @@ impl Reader {
                 end,
             });
         }
-        let was_rtu_bad = matches!(self.framing, Framing::Rtu { .. }) && self.buf.len() >= 4;
         self.buf.clear();
-        if was_rtu_bad {
-            Event::BadCrc
-        } else {
-            Event::FrameTimeout
-        }
-    }
-
-    /// Reads and drops bytes until a gap passes with none.
-    async fn quiet<S: AsyncRead + Unpin>(&mut self, stream: &mut S) -> io::Result<()> {
-        let Framing::Rtu { gap } = self.framing else {
-            return Ok(());
-        };
-        let mut junk = [0u8; 256];
-        while let Ok(n) = tokio::time::timeout(gap, stream.read(&mut junk)).await {
-            if n? == 0 {
-                break;
-            }
-        }
-        Ok(())
+        self.echo.clear();
+        Event::FrameTimeout
     }
 
     fn cut(&self) -> Cut {
@@ -208,15 +234,21 @@ impl Reader {
 }
 
 enum Cut {
+    /// A request.
     Whole(Request),
-    More,
+    /// Not whole yet (`known`: its length is known).
+    More { known: bool },
+    /// An MBAP header that is not Modbus.
     Malformed,
-    BadCrc,
+    /// Another unit's RTU reply of this many bytes.
+    Other(usize),
+    /// This many bytes that start no frame.
+    Skip(usize),
 }
 
 fn cut_mbap(b: &[u8]) -> Cut {
     if b.len() < 7 {
-        return Cut::More;
+        return Cut::More { known: true };
     }
     let (pid, len) = (
         u16::from_be_bytes([b[2], b[3]]),
@@ -226,7 +258,7 @@ fn cut_mbap(b: &[u8]) -> Cut {
         return Cut::Malformed;
     }
     if b.len() < 6 + len {
-        return Cut::More;
+        return Cut::More { known: true };
     }
     Cut::Whole(Request {
         tid: u16::from_be_bytes([b[0], b[1]]),
@@ -258,23 +290,78 @@ fn crc_ok(frame: &[u8]) -> bool {
     n >= 4 && crc16(&frame[..n - 2]).to_le_bytes() == [frame[n - 2], frame[n - 1]]
 }
 
-fn cut_rtu(b: &[u8]) -> Cut {
-    let len = match rtu_length(b) {
-        None | Some(Err(_)) => return Cut::More,
-        Some(Ok(n)) => n,
+/// An RTU reply's whole length from its first bytes, as [`rtu_length`] gives a request's.
+fn reply_length(b: &[u8]) -> Option<Result<usize, usize>> {
+    let count_at =
+        |k: usize, fixed: usize| Some(b.get(k).map(|c| fixed + usize::from(*c)).ok_or(k));
+    match *b.get(1)? {
+        f if f & 0x80 != 0 => Some(Ok(5)),
+        1..=4 | 12 | 17 | 20 | 21 | 23 => count_at(2, 5),
+        5 | 6 | 8 | 11 | 15 | 16 => Some(Ok(8)),
+        7 => Some(Ok(5)),
+        22 => Some(Ok(10)),
+        _ => None,
+    }
+}
+
+/// What the bytes at the start of a buffer are, read as a request and as a reply.
+enum At {
+    /// A request with a good CRC, this long.
+    Request(usize),
+    /// A reply with a good CRC, this long.
+    Reply(usize),
+    /// Not whole yet as one of them (`known`: as a request of known length).
+    More { known: bool },
+    /// Neither.
+    Nothing,
+}
+
+fn at(b: &[u8]) -> At {
+    let whole = |l: Option<Result<usize, usize>>| match l {
+        Some(Ok(n)) if b.len() >= n => crc_ok(&b[..n]).then_some(n),
+        _ => None,
     };
-    if b.len() < len {
-        return Cut::More;
+    let (req, rep) = (rtu_length(b), reply_length(b));
+    if let Some(n) = whole(req) {
+        return At::Request(n);
     }
-    if !crc_ok(&b[..len]) {
-        return Cut::BadCrc;
+    if let Some(n) = whole(rep) {
+        return At::Reply(n);
     }
-    Cut::Whole(Request {
-        tid: 0,
-        unit: b[0],
-        start: 1,
-        end: len,
-    })
+    let waiting = |l: Option<Result<usize, usize>>| match l {
+        Some(Ok(n)) => b.len() < n,
+        Some(Err(_)) => true,
+        None => false,
+    };
+    if b.len() < 2 || waiting(req) || waiting(rep) || (req.is_none() && rep.is_none()) {
+        return At::More {
+            known: matches!(req, Some(Ok(_))),
+        };
+    }
+    At::Nothing
+}
+
+fn cut_rtu(b: &[u8]) -> Cut {
+    match at(b) {
+        At::Request(end) => Cut::Whole(Request {
+            tid: 0,
+            unit: b[0],
+            start: 1,
+            end,
+        }),
+        At::Reply(n) => Cut::Other(n),
+        // Waiting may be waiting on noise: a good frame after it is taken now instead, and
+        // nothing is kept past the longest frame.
+        At::More { known } => {
+            let good = (1..b.len()).find(|&k| matches!(at(&b[k..]), At::Request(_) | At::Reply(_)));
+            match good {
+                Some(k) => Cut::Skip(k),
+                None if b.len() >= 260 => Cut::Skip(1),
+                None => Cut::More { known },
+            }
+        }
+        At::Nothing => Cut::Skip(1),
+    }
 }
 
 /// Starts a reply to `r` in `out` (cleared): the header the PDU follows.
@@ -349,6 +436,7 @@ mod tests {
     async fn rtu_frames_are_cut_by_function_and_checked_by_crc() {
         let gap = Framing::Rtu {
             gap: Duration::from_millis(20),
+            tcp: false,
         };
         let mut bytes = rtu(1, &[3, 0, 0, 0, 10]);
         bytes.extend(rtu(2, &[16, 0, 1, 0, 2, 4, 0, 7, 0, 8]));
@@ -357,24 +445,93 @@ mod tests {
         assert_eq!(got[0].1, [3, 0, 0, 0, 10]);
         assert!(matches!(got[0].0, Event::Request(Request { unit: 1, .. })));
         assert_eq!(got[1].1, [16, 0, 1, 0, 2, 4, 0, 7, 0, 8]);
-        // A bad CRC: dropped with what follows it (no gap in between).
+        // A bad CRC: dropped, said once, and the request right after it found.
         let mut bad = rtu(1, &[3, 0, 0, 0, 10]);
         bad[6] ^= 1;
         bad.extend(rtu(1, &[3, 0, 0, 0, 1]));
         let got = events(gap, &bad).await;
-        assert_eq!(got.len(), 1);
+        assert_eq!(got.len(), 2, "{got:?}");
         assert_eq!(got[0].0, Event::BadCrc);
+        assert_eq!(got[1].1, [3, 0, 0, 0, 1]);
+    }
+
+    #[tokio::test]
+    async fn other_units_replies_on_a_multi_drop_line_are_skipped_not_errors() {
+        let gap = Framing::Rtu {
+            gap: Duration::from_millis(20),
+            tcp: false,
+        };
+        // Unit 2 asked for one register and answered (7 bytes: shorter than a request),
+        // unit 2 written (its echo is the request), then a request to unit 7 at once.
+        let mut bytes = rtu(2, &[3, 0, 0, 0, 1]);
+        bytes.extend(rtu(2, &[3, 2, 0, 42]));
+        bytes.extend(rtu(2, &[16, 0, 1, 0, 1, 2, 0, 7]));
+        bytes.extend(rtu(2, &[16, 0, 1, 0, 1]));
+        bytes.extend(rtu(2, &[0x83, 2]));
+        bytes.extend(rtu(7, &[4, 0, 0, 0, 2]));
+        let got = events(gap, &bytes).await;
+        let kinds: Vec<_> = got
+            .iter()
+            .map(|(e, _)| match e {
+                Event::Request(r) => format!("request to {}", r.unit),
+                other => format!("{other:?}"),
+            })
+            .collect();
+        assert_eq!(
+            kinds,
+            [
+                "request to 2",
+                "Other",
+                "request to 2",
+                "Other",
+                "Other",
+                "request to 7"
+            ]
+        );
+        // Noise before a request: said once, the request found.
+        let mut noisy = vec![0x55, 0xAA, 0x01, 0x03, 0xFF];
+        noisy.extend(rtu(7, &[4, 0, 0, 0, 2]));
+        let got = events(gap, &noisy).await;
+        assert_eq!(got.len(), 2, "{got:?}");
+        assert_eq!(
+            (got[0].0, &got[1].1[..]),
+            (Event::BadCrc, &[4u8, 0, 0, 0, 2][..])
+        );
+    }
+
+    #[tokio::test]
+    async fn a_reader_keeps_no_more_than_a_frame_of_noise() {
+        let gap = Framing::Rtu {
+            gap: Duration::from_secs(10),
+            tcp: false,
+        };
+        // 4 KiB of an unknown function's noise, arriving without a pause.
+        let noise: Vec<u8> = (0..4096u32)
+            .map(|i| if i % 2 == 0 { 1 } else { 0x41 })
+            .collect();
+        let (mut a, mut b) = tokio::io::duplex(64);
+        let writer = tokio::spawn(async move {
+            // Ends when the reader is dropped.
+            let _ = tokio::io::AsyncWriteExt::write_all(&mut a, &noise).await;
+        });
+        let mut r = Reader::new(gap);
+        let e = r.next(&mut b, None, Duration::from_secs(1)).await.unwrap();
+        assert!(r.buf.len() <= KEEP, "{}", r.buf.len());
+        assert_eq!(e, Event::BadCrc);
+        drop(b);
+        writer.await.unwrap();
     }
 
     #[tokio::test]
     async fn an_unknown_function_is_a_frame_at_the_gap_if_its_crc_is_good() {
         let gap = Framing::Rtu {
             gap: Duration::from_millis(20),
+            tcp: false,
         };
         let got = events(gap, &rtu(1, &[0x2B, 0x0E, 1, 0])).await;
         assert_eq!(got[0].1, [0x2B, 0x0E, 1, 0]);
         let got = events(gap, &[1, 0x2B, 0x0E, 1, 0, 0]).await;
-        assert_eq!(got[0].0, Event::BadCrc);
+        assert_eq!(got[0].0, Event::FrameTimeout);
         // Too short to be a frame: dropped at the gap.
         let got = events(gap, &[1, 3, 0]).await;
         assert_eq!(got[0].0, Event::FrameTimeout);

@@ -29,11 +29,12 @@ pub enum Failed {
     Full,
     /// The line is not running (or there is none).
     Stopped,
-    /// The line could not be opened, or broke.
+    /// The line could not be opened before the request was sent.
     Transport,
-    /// No reply within the timeout (or the request waited that long in the queue).
+    /// No reply within the timeout (or the request waited that long in the queue), or the
+    /// connection broke after it was sent.
     Timeout,
-    /// A reply that was not one (bad CRC, another unit's).
+    /// A reply that was not one (bad CRC, another unit's, too long).
     Garbled,
 }
 
@@ -63,15 +64,33 @@ pub(crate) struct Forwarded {
 
 /// A line's queue of forwarded requests.
 #[derive(Default)]
-pub struct Forwarding {
-    queue: Mutex<VecDeque<Forwarded>>,
-    /// Wakes the line's activity (set while it runs).
-    waker: Mutex<Option<Arc<dyn rtt::activity::Waker>>>,
+pub struct Forwarding(Mutex<Queue>);
+
+/// The queue, and the line's waker while it runs (one lock: a request is never queued
+/// after the line closed).
+#[derive(Default)]
+struct Queue {
+    waiting: VecDeque<Forwarded>,
+    waker: Option<Arc<dyn rtt::activity::Waker>>,
+}
+
+impl Forwarded {
+    /// Nobody waits for it any more: its master was answered (the server's own timeout)
+    /// or is gone, or its time is up.
+    fn abandoned(&self, now: Instant) -> bool {
+        self.reply.is_closed() || now >= self.deadline
+    }
+
+    /// Answers it 0x0B if its time is up (a closed master hears nothing).
+    fn expire(self) {
+        let _ = self.reply.send(Err(Failed::Timeout));
+    }
 }
 
 impl Forwarding {
     /// Queues `pdu` for `unit`, to be answered within `timeout` of now, if fewer than
-    /// `capacity` requests wait: the receiver of its outcome.
+    /// `capacity` requests wait (those whose time is up are answered first): the receiver
+    /// of its outcome.
     pub fn submit(
         &self,
         unit: u8,
@@ -79,43 +98,63 @@ impl Forwarding {
         timeout: Duration,
         capacity: usize,
     ) -> Result<tokio::sync::oneshot::Receiver<Outcome>, Failed> {
-        let waker = rtt::lock(&self.waker).clone().ok_or(Failed::Stopped)?;
         let (tx, rx) = tokio::sync::oneshot::channel();
-        {
-            let mut q = rtt::lock(&self.queue);
-            if q.len() >= capacity {
-                return Err(Failed::Full);
+        let now = Instant::now();
+        let waker = {
+            let mut q = rtt::lock(&self.0);
+            let waker = q.waker.clone().ok_or(Failed::Stopped)?;
+            if q.waiting.len() >= capacity {
+                let (gone, kept): (VecDeque<_>, VecDeque<_>) =
+                    q.waiting.drain(..).partition(|f| f.abandoned(now));
+                q.waiting = kept;
+                gone.into_iter().for_each(Forwarded::expire);
+                if q.waiting.len() >= capacity {
+                    return Err(Failed::Full);
+                }
             }
-            q.push_back(Forwarded {
+            q.waiting.push_back(Forwarded {
                 unit,
                 pdu: pdu.to_vec(),
-                deadline: Instant::now() + timeout,
+                deadline: now + timeout,
                 reply: tx,
             });
-        }
+            waker
+        };
         waker.wake();
         Ok(rx)
     }
 
-    /// The oldest request waiting.
+    /// The oldest request still awaited (those before it whose time is up are answered
+    /// 0x0B, those nobody waits for dropped).
     pub(crate) fn take(&self) -> Option<Forwarded> {
-        rtt::lock(&self.queue).pop_front()
+        let now = Instant::now();
+        let mut q = rtt::lock(&self.0);
+        while let Some(f) = q.waiting.pop_front() {
+            if !f.abandoned(now) {
+                return Some(f);
+            }
+            f.expire();
+        }
+        None
     }
 
     /// True while a request waits.
     pub(crate) fn waiting(&self) -> bool {
-        !rtt::lock(&self.queue).is_empty()
+        !rtt::lock(&self.0).waiting.is_empty()
     }
 
     /// The line runs: requests are taken, and `waker` wakes it for each.
     pub(crate) fn open(&self, waker: Arc<dyn rtt::activity::Waker>) {
-        *rtt::lock(&self.waker) = Some(waker);
+        rtt::lock(&self.0).waker = Some(waker);
     }
 
     /// The line stopped: no request is taken, those waiting are answered 0x0A.
     pub(crate) fn close(&self) {
-        *rtt::lock(&self.waker) = None;
-        let waiting: Vec<Forwarded> = rtt::lock(&self.queue).drain(..).collect();
+        let waiting: Vec<Forwarded> = {
+            let mut q = rtt::lock(&self.0);
+            q.waker = None;
+            q.waiting.drain(..).collect()
+        };
         for f in waiting {
             let _ = f.reply.send(Err(Failed::Stopped));
         }
@@ -306,26 +345,34 @@ pub(crate) async fn forward(
         return Err(Failed::Timeout);
     }
     if ctx.is_none() {
+        // A line that cannot be opened in time is no path: 0x0A.
         match tokio::time::timeout_at(deadline, transport.open()).await {
             Ok(Ok(c)) => *ctx = Some(c),
-            Ok(Err(_)) => return Err(Failed::Transport),
-            Err(_) => return Err(Failed::Timeout),
+            Ok(Err(_)) | Err(_) => return Err(Failed::Transport),
         }
     }
     let Some(c) = ctx.as_mut() else {
         return Err(Failed::Transport);
     };
+    // Opening may have taken the time: a request is never sent once its master was
+    // answered.
+    if f.abandoned(Instant::now()) {
+        return Err(Failed::Timeout);
+    }
     let (mut out, mut stale) = (Vec::with_capacity(256), 0);
     let sent = tokio::time::timeout_at(deadline, c.request(f.unit, &f.pdu, &mut out, &mut stale));
     let rtu = transport.rtu_framed();
+    // Sent, whatever went wrong after is the target's not answering: 0x0B.
     match sent.await {
+        // A reply longer than a PDU may be (an RTU byte count of up to 255) is none.
+        Ok(Ok(Reply::Pdu)) if out.len() > MAX_PDU => Err(Failed::Garbled),
         Ok(Ok(Reply::Pdu)) => Ok(out),
         Ok(Ok(Reply::Exception(code))) => Ok(vec![f.pdu[0] | 0x80, code]),
         // Unit 0 is never forwarded; a broadcast has no reply to give.
         Ok(Ok(Reply::Broadcast)) => Err(Failed::Garbled),
         Ok(Err(ClientError::Io(_))) => {
             *ctx = None;
-            Err(Failed::Transport)
+            Err(Failed::Timeout)
         }
         Ok(Err(ClientError::Bad(_))) => {
             if rtu {
@@ -341,3 +388,6 @@ pub(crate) async fn forward(
         }
     }
 }
+
+/// The longest PDU (a Modbus TCP frame's 253 bytes).
+const MAX_PDU: usize = 253;

@@ -77,6 +77,39 @@ pub struct UnitStats {
     pub splits: AtomicU64,
     /// TCP replies to another transaction (late answers), dropped.
     pub stale_replies: AtomicU64,
+    /// How late each poll started after it was due, µs (its first request waited for the
+    /// line: the units before it, forwarded requests, a slow wake-up).
+    pub lateness: PollLateness,
+}
+
+/// Poll lateness, µs, 3 significant figures, up to an hour; recorded by the line's thread
+/// only (an uncontended lock, not a real-time path).
+#[derive(Debug)]
+pub struct PollLateness(std::sync::Mutex<hdrhistogram::Histogram<u64>>);
+
+impl Default for PollLateness {
+    fn default() -> Self {
+        let h = hdrhistogram::Histogram::new_with_bounds(1, 3_600_000_000, 3)
+            .unwrap_or_else(|_| unreachable!("valid bounds"));
+        PollLateness(std::sync::Mutex::new(h))
+    }
+}
+
+impl PollLateness {
+    /// Records a poll `late` after its due time.
+    pub fn record(&self, late: Duration) {
+        let us = u64::try_from(late.as_micros()).unwrap_or(u64::MAX);
+        rtt::lock(&self.0).saturating_record(us.max(1));
+    }
+
+    /// (p99, max) so far, µs; 0 before the first poll.
+    pub fn p99_max_us(&self) -> (u64, u64) {
+        let h = rtt::lock(&self.0);
+        if h.is_empty() {
+            return (0, 0);
+        }
+        (h.value_at_quantile(0.99), h.max())
+    }
 }
 
 /// A snapshot of one unit's [`UnitStats`], for status reports and the line's `counters`
@@ -108,13 +141,22 @@ pub struct UnitCounters {
     pub splits: u64,
     /// TCP replies to another transaction, dropped.
     pub stale_replies: u64,
+    /// 99th percentile of how late polls started after they were due, µs (since start).
+    #[serde(default)]
+    pub poll_lateness_p99_us: u64,
+    /// The latest a poll started after it was due, µs (since start).
+    #[serde(default)]
+    pub poll_lateness_max_us: u64,
 }
 
 impl UnitCounters {
     /// The counters of unit `unit` now.
     pub fn from_stats(unit: u8, s: &UnitStats) -> UnitCounters {
         let load = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        let (p99, max) = s.lateness.p99_max_us();
         UnitCounters {
+            poll_lateness_p99_us: p99,
+            poll_lateness_max_us: max,
             unit,
             polls: load(&s.polls),
             requests: load(&s.requests),
@@ -237,6 +279,9 @@ pub(crate) async fn poll_and_schedule(
     now: &dyn Fn() -> Timestamp,
 ) {
     let t = unit.timing;
+    unit.stats.lateness.record(Duration::from_nanos(
+        now().as_nanos().saturating_sub(due.as_nanos()),
+    ));
     match poll_unit(ctx, transport, unit, state).await {
         Ok(refused) => {
             if let Some(e) = refused {

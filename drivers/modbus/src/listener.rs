@@ -74,7 +74,8 @@ pub struct ServerCounters {
     pub malformed: u64,
     /// Connections closed after `idle_timeout` of silence, or of a reply not taken.
     pub idle_closed: u64,
-    /// Connections closed on a frame begun and not whole within `frame_timeout`.
+    /// Connections closed on an MBAP frame begun and not whole within `frame_timeout`;
+    /// partial RTU frames dropped (after a pause on a serial line, `frame_timeout` on TCP).
     pub frame_timeouts: u64,
     /// Failed `accept` calls (e.g. out of descriptors), each retried after a backoff.
     pub accept_errors: u64,
@@ -88,11 +89,11 @@ pub struct ServerCounters {
     /// Write requests answered 0x0B because a write was still on its way after
     /// `write_confirm`.
     pub writes_unconfirmed: u64,
-    /// RTU frames with a bad CRC, dropped (with what followed them until a gap).
+    /// Runs of RTU bytes that are no frame (a bad CRC, noise), dropped until a good frame.
     pub crc_errors: u64,
     /// RTU broadcasts (unit 0) taken: their writes applied, not answered.
     pub broadcasts: u64,
-    /// RTU requests for another unit on the line, not answered.
+    /// RTU frames of other units on the line (requests for them, their replies), skipped.
     pub other_units: u64,
     /// TCP requests for a unit the server has no route to, answered 0x0A.
     pub unreachable: u64,
@@ -221,7 +222,8 @@ impl ModbusServer {
                         },
                         async {
                             if let Some(l) = rtu {
-                                accept_loop(l, shared.clone(), Framing::Rtu { gap }).await
+                                accept_loop(l, shared.clone(), Framing::Rtu { gap, tcp: true })
+                                    .await
                             }
                         },
                         async {
@@ -532,6 +534,7 @@ async fn accept_loop(listener: tokio::net::TcpListener, shared: Arc<Shared>, fra
                         framing,
                         reply_delay: Duration::ZERO,
                         idle_close: true,
+                        echo: false,
                         last: &at,
                         epoch: shared.epoch,
                     };

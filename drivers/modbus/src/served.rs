@@ -50,7 +50,7 @@ pub struct ServerConfig {
     /// unit id on TCP, unit 1 on a serial port.
     #[serde(default)]
     pub units: Option<Vec<u8>>,
-    /// Connections served at once (1–1024; default 16). With all of them open, a new one
+    /// Connections served at once, on each TCP listener (1–1024; default 16). With all of them open, a new one
     /// is admitted by closing the one idle longest (no complete request for longest).
     #[serde(default = "default_max_clients")]
     pub max_clients: usize,
@@ -280,7 +280,7 @@ impl ServerConfig {
                 "missing: give listen (Modbus TCP), rtu_over_tcp or serial (an RTU slave): where to serve".into(),
             ));
         }
-        if tcp.is_some() && tcp == rtu_over_tcp {
+        if tcp.is_some_and(|a| a.port() != 0) && tcp == rtu_over_tcp {
             return Err(err(
                 "rtu_over_tcp",
                 format!(
@@ -329,6 +329,34 @@ impl ServerConfig {
                     .map_err(|(key, message)| err(&format!("gateway[{i}].{key}"), message))
             })
             .collect::<Result<Vec<_>, _>>()?;
+        if !gateway.is_empty() && tcp.is_none() && rtu_over_tcp.is_none() {
+            return Err(err(
+                "gateway",
+                "a gateway forwards TCP masters' requests: give listen or rtu_over_tcp (on a serial port the other units answer themselves)".into(),
+            ));
+        }
+        if let Units::Only(own) = &units {
+            for (i, g) in gateway.iter().enumerate() {
+                if let Some(u) = own.iter().find(|u| g.takes(**u) && g.units.is_some()) {
+                    return Err(err(
+                        &format!("gateway[{i}].units"),
+                        format!("unit {u} is the server's own (units): it is never forwarded"),
+                    ));
+                }
+            }
+        }
+        if let Some(s) = &serial {
+            let port = crate::transport::Transport::Rtu(s.serial.clone());
+            if !matches!(lines.find(&port), Ok(None)) {
+                return Err(err(
+                    "serial.device",
+                    format!(
+                        "{} is a Modbus card's line: one port is either hwgw's line to its units (a master) or its slave's, not both",
+                        s.serial.device.display()
+                    ),
+                ));
+            }
+        }
         Ok(Endpoints {
             tcp,
             rtu_over_tcp,

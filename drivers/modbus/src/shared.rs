@@ -65,15 +65,41 @@ pub(crate) struct PortState {
     pub(crate) opens: AtomicU64,
     /// Failures to open or set up the port, and errors that closed it.
     pub(crate) errors: AtomicU64,
-    /// When the port stopped serving (ns since the server's epoch, plus 1), 0 while open.
-    pub(crate) failing_since: AtomicU64,
+    /// When the port stopped serving (ns since the server's epoch, plus 1), 0 before a
+    /// failure.
+    failing_since: AtomicU64,
+    /// When the port was opened (ns since the server's epoch, plus 1), 0 while closed.
+    open_since: AtomicU64,
     /// Why, last.
     last_error: std::sync::Mutex<String>,
 }
 
+/// How long a port must stay open to count as serving again: one that opens and fails at
+/// once (a USB adapter returning EIO) is still failing.
+pub(crate) const PORT_UP: Duration = Duration::from_secs(5);
+
 impl PortState {
-    /// How long the port has not served and why, if it does not.
+    /// The port opened.
+    pub(crate) fn opened(&self, epoch: std::time::Instant) {
+        self.opens.fetch_add(1, Ordering::Relaxed);
+        self.open_since
+            .store(epoch.elapsed().as_nanos() as u64 + 1, Ordering::Release);
+    }
+
+    /// How long the port has been open, if it is.
+    pub(crate) fn up(&self, epoch: std::time::Instant) -> Option<Duration> {
+        let since = self.open_since.load(Ordering::Acquire);
+        (since != 0).then(|| {
+            Duration::from_nanos((epoch.elapsed().as_nanos() as u64).saturating_sub(since - 1))
+        })
+    }
+
+    /// How long the port has not served and why, if it does not: not while it has been
+    /// open for [`PORT_UP`].
     pub(crate) fn failing(&self, epoch: std::time::Instant) -> Option<(Duration, String)> {
+        if self.up(epoch).is_some_and(|u| u >= PORT_UP) {
+            return None;
+        }
         let since = self.failing_since.load(Ordering::Acquire);
         (since != 0).then(|| {
             let now = epoch.elapsed().as_nanos() as u64;
@@ -88,9 +114,16 @@ impl PortState {
     pub(crate) fn failed(&self, epoch: std::time::Instant, why: String) -> bool {
         let first = first_of_hundred(&self.errors);
         let now = epoch.elapsed().as_nanos() as u64 + 1;
-        let _ = self
-            .failing_since
-            .compare_exchange(0, now, Ordering::AcqRel, Ordering::Relaxed);
+        // A port that served for a while fails anew from now; one that failed at once
+        // goes on failing since it first did.
+        if self.up(epoch).is_some_and(|u| u >= PORT_UP) {
+            self.failing_since.store(now, Ordering::Release);
+        } else {
+            let _ =
+                self.failing_since
+                    .compare_exchange(0, now, Ordering::AcqRel, Ordering::Relaxed);
+        }
+        self.open_since.store(0, Ordering::Release);
         *rtt::lock(&self.last_error) = why;
         first
     }

@@ -11,16 +11,17 @@
 //!   on it, logs why and says so in its health, since a half-duplex line driven without
 //!   direction control would garble every reply.
 //! - A port that cannot be opened (unplugged) or fails while served is opened again after
-//!   1 s, doubling up to 30 s; each failure is counted (`port_errors`), and the server's
-//!   health says so once it has not served for 5 s.
+//!   1 s, doubling up to 30 s (starting over after a port that stayed open 5 s); each
+//!   failure is counted (`port_errors`), and the server's health says so once it has not
+//!   served for 5 s (a port that opens and fails at once has not served).
 
 use crate::conn::Conn;
 use crate::framing::Framing;
-use crate::shared::Shared;
+use crate::shared::{PORT_UP, Shared, Units};
 use crate::transport::Serial;
 use serde::Deserialize;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::AtomicU64;
 use std::time::Duration;
 
 /// The kernel's RS-485 settings for a port (`struct serial_rs485`).
@@ -166,17 +167,25 @@ pub(crate) async fn serve(slave: SerialSlave, shared: Arc<Shared>) {
         Duration::from_micros(u64::from(slave.serial.turnaround_us)),
     );
     let last = AtomicU64::new(0);
+    // Unset, the units are every one on TCP but unit 1 here: a slave on a multi-drop line
+    // answering every unit would answer (and take the writes of) the other units.
+    let units = match &shared.units {
+        Units::Any => Units::Only(vec![1]),
+        only => only.clone(),
+    };
     let conn = Conn {
         table: &shared.table,
         stats: &shared.stats,
         limits: shared.limits,
-        units: &shared.units,
+        units: &units,
         routes: &[],
         framing: Framing::Rtu {
             gap: crate::framing::rtu_gap(Some(slave.serial.baud)),
+            tcp: false,
         },
         reply_delay: timing.silence + timing.turnaround,
         idle_close: false,
+        echo: slave.rs485.is_some_and(|r| r.rx_during_tx),
         last: &last,
         epoch: shared.epoch,
     };
@@ -184,9 +193,7 @@ pub(crate) async fn serve(slave: SerialSlave, shared: Arc<Shared>) {
     loop {
         let why = match open(&slave) {
             Ok(mut stream) => {
-                port.opens.fetch_add(1, Ordering::Relaxed);
-                port.failing_since.store(0, Ordering::Release);
-                backoff = FIRST;
+                port.opened(shared.epoch);
                 tracing::info!("modbus server: RTU slave on {device}");
                 match conn.serve(&mut stream).await {
                     Ok(()) => format!("{device} closed"),
@@ -195,6 +202,10 @@ pub(crate) async fn serve(slave: SerialSlave, shared: Arc<Shared>) {
             }
             Err(e) => e,
         };
+        // The backoff starts over only after a port that served for a while.
+        if port.up(shared.epoch).is_some_and(|u| u >= PORT_UP) {
+            backoff = FIRST;
+        }
         if port.failed(shared.epoch, why.clone()) {
             tracing::warn!("modbus server: {why} (opening it again in {backoff:?})");
         }

@@ -50,6 +50,11 @@ impl PyModbus {
         PyModbus::try_start(mode, port).unwrap_or_else(|e| panic!("{e}"))
     }
 
+    /// Its process id.
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
     fn try_start(mode: &str, port: u16) -> Result<PyModbus, String> {
         let child = Command::new(PYTHON)
             .args([SERVER, mode, &port.to_string()])

@@ -5,6 +5,7 @@ Usage: pymodbus_server.py tcp PORT
        pymodbus_server.py rtu DEVICE
        pymodbus_server.py sparse PORT
        pymodbus_server.py pattern_rtu_over_tcp PORT
+       pymodbus_server.py pattern_tcp PORT
 
 sparse: input registers only at 0-9, 20-29 and 100-109 (register n holds 1000 + n); a
 read that touches any other address is refused with IllegalDataAddress, as devices with
@@ -12,7 +13,7 @@ holes in their map do.
 
 Its registers hold known values the tests decode; on RTU, units 1 and 2 share the line
 with different contents (multi-drop). pattern_rtu_over_tcp: RTU frames on TCP (as a serial device server carries them), any
-unit id, 2000 addresses in every table holding a pattern the tests compute alike
+unit id, 2000 addresses (pattern_tcp: the same over Modbus TCP) in every table holding a pattern the tests compute alike
 (testkit::pymodbus::pattern): input register n = (n * 0x9E37 + 0x1234) mod 2^16, holding
 register n = (n * 0x6C8B + 0x4321) mod 2^16, discrete input n = (n * 7) mod 3 == 0, coil
 n = (n * 5) mod 4 == 1.
@@ -55,7 +56,7 @@ store = ModbusSlaveContext(
     zero_mode=True,  # address n is register n, as on the wire
 )
 
-if sys.argv[1] == "pattern_rtu_over_tcp":
+if sys.argv[1] in ("pattern_rtu_over_tcp", "pattern_tcp"):
     n = range(2000)
     pattern = ModbusSlaveContext(
         di=ModbusSequentialDataBlock(0, [(a * 7) % 3 == 0 for a in n]),
@@ -66,8 +67,8 @@ if sys.argv[1] == "pattern_rtu_over_tcp":
     )
     StartTcpServer(
         context=ModbusServerContext(slaves=pattern, single=True),
-        framer=ModbusRtuFramer,
         address=("127.0.0.1", int(sys.argv[2])),
+        **({"framer": ModbusRtuFramer} if sys.argv[1] == "pattern_rtu_over_tcp" else {}),
     )
 elif sys.argv[1] == "sparse":
     from pymodbus.datastore import ModbusSparseDataBlock
