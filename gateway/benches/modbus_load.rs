@@ -9,13 +9,17 @@
 //! back, every reply checked (its transaction id, and the ten registers as mbpoll — a
 //! libmodbus master — read them first). With 1, 10 and 100 masters: requests a second,
 //! p50 and p99 latency, the server's CPU (all its threads, % of one core) and resident
-//! memory, and the generator's CPU.
+//! memory, and the generator's CPU. A third server is the floor: this bench's own process
+//! answering every request with the same canned reply on one tokio thread, as hwgw's
+//! server is built, with no table, checks or counters — what the loopback, the generator
+//! and the runtime allow on this machine.
 //!
 //! **The client.** hwgw polls pymodbus units over Modbus TCP: ten units of 1 000 points
 //! each (u16 input registers 0-999: eight reads a poll) every second, then one unit of
 //! 1 000 points every 100 ms — the scenarios EMQX NeuronEX publishes. hwgw's CPU and
 //! memory, the units' poll lateness (p99 and max from `hwgw status`, µs) and the polls it
-//! made, beside the reference: the same binary running one simulated card.
+//! made, beside the reference: the same binary running one simulated card. Each card's IO
+//! component samples its channels at its poll period.
 
 #![allow(
     clippy::unwrap_used,
@@ -193,9 +197,12 @@ fn server_bench(seconds: f64) {
         "gen%",
         "ratio"
     );
+    let floor = floor();
+    let zeros = vec![0u16; 10];
     for n in [1, 10, 100] {
         let h = load(addr, hwgw.pid().unwrap(), n, seconds, &want);
         let p = load(py.addr, py.pid(), n, seconds, &py_want);
+        let f = load(floor.1, floor.0.id(), n, seconds, &zeros);
         println!(
             "{n:>7} | {:>9.0} {:>6} {:>6} {:>6.1} {:>7.1} {:>5.0} | {:>9.0} {:>6} {:>6} {:>6.1} {:>7.1} {:>5.0} | {:>6.1}",
             h.rate,
@@ -212,13 +219,24 @@ fn server_bench(seconds: f64) {
             p.generator_cpu,
             h.rate / p.rate
         );
+        println!(
+            "{:>7} | floor {:>9.0}/s p50 {} µs p99 {} µs, its CPU {:.1}%, generator {:.0}%: hwgw at {:.2}x the floor's rate",
+            "",
+            f.rate,
+            f.p50,
+            f.p99,
+            f.server_cpu,
+            f.generator_cpu,
+            h.rate / f.rate
+        );
     }
 }
 
-/// A Modbus card of 1 000 u16 input registers (0-999) on `addr`, polled every `poll_ms`.
+/// A Modbus card of 1 000 u16 input registers (0-999) on `addr`, polled every `poll_ms`;
+/// its IO component samples the channels as often (`period_ms`).
 fn unit_card(name: &str, addr: SocketAddr, poll_ms: u32) -> String {
     let mut t = format!(
-        "[[card]]\nname = \"{name}\"\ndriver = \"modbus\"\n[card.modbus]\n\
+        "[[card]]\nname = \"{name}\"\ndriver = \"modbus\"\nperiod_ms = {poll_ms}\n[card.modbus]\n\
          transport = {{ type = \"tcp\", address = \"{addr}\" }}\npoll_ms = {poll_ms}\ntimeout_ms = 1000\n"
     );
     for a in 0..1000 {
@@ -309,9 +327,67 @@ fn client_bench(seconds: f64) {
     client_run("1 unit x 1000 points, 100 ms", &one, seconds, &units[..1]);
 }
 
+/// The floor: a server process that reads each 12-byte request and writes the canned
+/// 29-byte reply with its transaction id, on one tokio thread; prints its port.
+fn echo_server() {
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    rt.block_on(async {
+        let l = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        println!("{}", l.local_addr().unwrap().port());
+        loop {
+            let (mut s, _) = l.accept().await.unwrap();
+            tokio::spawn(async move {
+                let _ = s.set_nodelay(true);
+                let mut req = [0u8; 12];
+                let mut reply = [0u8; 29];
+                reply[5] = 23;
+                reply[6] = 1;
+                reply[7..9].copy_from_slice(&[3, 20]);
+                while s.read_exact(&mut req).await.is_ok() {
+                    reply[..2].copy_from_slice(&req[..2]);
+                    if s.write_all(&reply).await.is_err() {
+                        break;
+                    }
+                }
+            });
+        }
+    });
+}
+
+/// The floor server as a process of its own, and where it listens.
+struct Floor(std::process::Child, SocketAddr);
+
+impl Drop for Floor {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn floor() -> Floor {
+    use std::io::BufRead;
+    let mut child = std::process::Command::new(std::env::current_exe().unwrap())
+        .env("MODBUS_BENCH_FLOOR", "1")
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let port: u16 = line.trim().parse().unwrap();
+    Floor(child, SocketAddr::from(([127, 0, 0, 1], port)))
+}
+
 fn main() {
     if std::env::args().any(|a| a == "--list" || a == "--test") {
         return;
+    }
+    if std::env::var_os("MODBUS_BENCH_FLOOR").is_some() {
+        return echo_server();
     }
     let seconds = seconds();
     server_bench(seconds);

@@ -268,3 +268,48 @@ fn a_dead_rtu_unit_is_answered_0x0b_within_the_timeout() {
     assert_eq!(c["gateway_no_response"].as_u64(), Some(4), "{c}");
     gw.shutdown();
 }
+
+#[test]
+fn requests_go_through_to_a_modbus_tcp_unit_and_rtu_frames_over_tcp_too() {
+    // The line is a card with no points: it keeps the connection and sends nothing of its
+    // own. The masters speak Modbus TCP and RTU frames over TCP.
+    let unit = testkit::pymodbus::PyModbus::start("tcp");
+    let text = format!(
+        r#"
+[[card]]
+name = "plc"
+driver = "modbus"
+[card.modbus]
+transport = {{ type = "tcp", address = "{addr}" }}
+
+[modbus_server]
+listen = "127.0.0.1:0"
+rtu_over_tcp = "127.0.0.1:0"
+units = []
+[[modbus_server.gateway]]
+transport = {{ type = "tcp", address = "{addr}" }}
+"#,
+        addr = unit.addr
+    );
+    let (gw, addr) = start(&text);
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
+    // Input registers 0-1 of the unit behind: -123 and 0x40C8 (any unit id reaches it).
+    assert_eq!(
+        request(&mut s, 1, 17, &[4, 0, 0, 0, 2]),
+        Some(vec![4, 4, 0xFF, 0x85, 0x40, 0xC8])
+    );
+    let bus = gw.server_status()[0].status.bus.clone();
+    let rtu_port = bus
+        .split_once("rtu_over_tcp 127.0.0.1:")
+        .map(|(_, p)| p.to_string())
+        .unwrap_or_else(|| panic!("{bus}"));
+    let mut master = testkit::pymodbus::PyMaster::connect("rtu_over_tcp", &rtu_port);
+    let read = serde_json::json!({"fn": 4, "unit": 17, "address": 0, "count": 2});
+    assert_eq!(
+        master.ask(&read),
+        serde_json::json!({"ok": [0xFF85, 0x40C8]})
+    );
+    assert_eq!(server_counters(&gw)["forwarded"].as_u64(), Some(2));
+    gw.shutdown();
+}
