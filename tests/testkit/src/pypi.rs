@@ -124,3 +124,18 @@ pub const ASYNCUA: &[&str] = &[
 pub fn asyncua() -> io::Result<PathBuf> {
     install("asyncua-2.1.0", ASYNCUA)
 }
+
+/// Python canopen and what it needs, pinned: the independent CANopen stack (its EDS
+/// reader, and later its nodes on vcan).
+pub const CANOPEN: &[&str] = &[
+    "canopen==2.4.1",
+    "python-can==4.6.1",
+    "packaging==26.3",
+    "typing_extensions==4.16.0",
+    "wrapt==1.17.3",
+];
+
+/// canopen ([`CANOPEN`]): the directory to put on `PYTHONPATH`.
+pub fn canopen() -> io::Result<PathBuf> {
+    install("canopen-2.4.1", CANOPEN)
+}
