@@ -2,7 +2,9 @@
 //!
 //! - [`eds`]: a node's object dictionary read from its EDS (CiA 306, the INI file a
 //!   vendor ships): objects, sub-indices, data types, access, defaults with `$NODEID`,
-//!   limits, PDO mapping — checked against Python `canopen`'s reading of the same files.
+//!   limits, PDO mapping — checked against Python `canopen`'s reading of the same files;
+//! - [`sdo`]: the SDO client, expedited and segmented upload and download, as a state
+//!   machine without I/O; aborts named by CiA 301's table.
 //!
 //! ```
 //! let od = driver_canopen::eds::parse(
@@ -15,3 +17,4 @@
 //! ```
 
 pub mod eds;
+pub mod sdo;
