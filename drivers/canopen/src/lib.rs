@@ -4,7 +4,9 @@
 //!   vendor ships): objects, sub-indices, data types, access, defaults with `$NODEID`,
 //!   limits, PDO mapping — checked against Python `canopen`'s reading of the same files;
 //! - [`sdo`]: the SDO client, expedited and segmented upload and download, as a state
-//!   machine without I/O; aborts named by CiA 301's table.
+//!   machine without I/O; aborts named by CiA 301's table;
+//! - [`pdo`]: a PDO's mapping and communication parameters checked against the node's
+//!   dictionary, and the SDO writes that configure it in CiA 301's order.
 //!
 //! ```
 //! let od = driver_canopen::eds::parse(
@@ -17,4 +19,5 @@
 //! ```
 
 pub mod eds;
+pub mod pdo;
 pub mod sdo;

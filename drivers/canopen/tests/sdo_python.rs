@@ -131,3 +131,54 @@ fn the_nodes_aborts_are_errors_naming_the_object_and_the_reason() {
         "SDO 0x1000 sub 0: the node aborted with 0x06010002: attempt to write a read only object"
     );
 }
+
+#[test]
+fn pdo_mappings_written_by_sdo_are_what_python_canopen_reads_back() {
+    use driver_canopen::pdo::{Direction, Mapped, Pdo};
+    let mut node = node();
+    let text = std::fs::read_to_string(format!("{DIR}/eds/io401.eds")).unwrap();
+    let od = driver_canopen::eds::parse(&text, Some(NODE)).unwrap();
+    let m = |index, sub, bits| Mapped { index, sub, bits };
+    // The EDS maps TPDO1 as digital inputs and analog input 2; map analog input 1 and the
+    // digital inputs instead, sent on event every 50 ms. RPDO1: both analog outputs.
+    let tpdo = Pdo {
+        direction: Direction::Tpdo,
+        number: 1,
+        cob_id: 0x185,
+        transmission: 255,
+        event_timer_ms: Some(50),
+        inhibit_100us: None,
+        mapped: vec![m(0x6401, 1, 16), m(0x6000, 1, 8)],
+    };
+    let rpdo = Pdo {
+        direction: Direction::Rpdo,
+        number: 1,
+        cob_id: 0x205,
+        transmission: 1,
+        event_timer_ms: None,
+        inhibit_100us: None,
+        mapped: vec![m(0x6411, 1, 16), m(0x6411, 2, 16)],
+    };
+    for pdo in [&tpdo, &rpdo] {
+        for w in pdo.writes(&od).unwrap() {
+            let (r, _) = download(&mut node, w.index, w.sub, &w.data);
+            assert_eq!(r, Ok(Vec::new()), "{w:?}");
+        }
+    }
+    let seen = |node: &mut JsonPeer, kind: &str| node.ask(&json!({"pdo": kind, "number": 1}));
+    assert_eq!(
+        seen(&mut node, "tpdo"),
+        json!({"cob_id": 0x185, "enabled": true, "trans_type": 255, "event_timer": 50,
+               "mapped": [[0x6401, 1, 16], [0x6000, 1, 8]]})
+    );
+    let r = seen(&mut node, "rpdo");
+    assert_eq!(
+        (&r["cob_id"], &r["enabled"], &r["trans_type"], &r["mapped"]),
+        (
+            &json!(0x205),
+            &json!(true),
+            &json!(1),
+            &json!([[0x6411, 1, 16], [0x6411, 2, 16]])
+        )
+    );
+}
