@@ -161,19 +161,7 @@ fn load(addr: SocketAddr, pid: u32, n: usize, seconds: f64, want: &[u16]) -> Loa
 
 fn server_bench(seconds: f64) {
     let hwgw = Service::run_text(HWGW, "modbus-bench-server", &served()).unwrap();
-    let mut addr = None;
-    testkit::wait_until("hwgw's Modbus server listening", || {
-        let status: serde_json::Value = hwgw
-            .out(&["status", "--json"])
-            .ok()
-            .and_then(|s| serde_json::from_str(&s).ok())
-            .unwrap_or_default();
-        addr = status["servers"][0]["bus"]
-            .as_str()
-            .and_then(|a| a.parse().ok());
-        addr.is_some()
-    });
-    let addr: SocketAddr = addr.unwrap();
+    let addr = hwgw.wait_listening("modbus_server");
     let want = mbpoll(addr.port());
     let expected: Vec<u16> = (0..10).map(|n| 1000 + 111 * n).collect();
     assert_eq!(want, expected, "mbpoll reads what the card holds");

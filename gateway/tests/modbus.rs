@@ -461,19 +461,8 @@ fn the_requests_that_panic_tokio_modbus_leave_no_trace_in_hwgws_output() {
         &[],
     )
     .unwrap();
-    let mut addr = None;
-    wait_until("the server listening", || {
-        let status: serde_json::Value = gw
-            .out(&["status", "--json"])
-            .ok()
-            .and_then(|s| serde_json::from_str(&s).ok())
-            .unwrap_or_default();
-        addr = status["servers"][0]["bus"]
-            .as_str()
-            .and_then(|a| a.parse().ok());
-        addr.is_some_and(|a: std::net::SocketAddr| a.port() != 0)
-    });
-    let mut s = connect(addr.unwrap());
+    let addr = gw.wait_listening("modbus_server");
+    let mut s = connect(addr);
     assert_eq!(
         exchange(&mut s, 1, &[15, 0, 0, 0, 100, 1, 0xFF]).unwrap(),
         [0x8F, 3]
@@ -541,14 +530,7 @@ fn hwgw_status_counts_evictions_and_refusals() {
             .and_then(|s| serde_json::from_str(&s).ok())
             .unwrap_or_default()
     };
-    let mut addr = None;
-    wait_until("the server listening", || {
-        addr = status()["servers"][0]["bus"]
-            .as_str()
-            .and_then(|a| a.parse().ok());
-        addr.is_some_and(|a: std::net::SocketAddr| a.port() != 0)
-    });
-    let addr = addr.unwrap();
+    let addr = gw.wait_listening("modbus_server");
     let clients = |n: u64| {
         wait_until("the server counts its clients", || {
             status()["servers"][0]["counters"]["clients"] == json!(n)

@@ -215,6 +215,20 @@ impl Service {
             .unwrap_or_else(|| panic!("{name} has no address: {e}"))
     }
 
+    /// Where server `name` listens once it does: until it started, `status` gives its
+    /// configured address (port 0, perhaps); this waits for a bound port.
+    pub fn wait_listening(&self, name: &str) -> std::net::SocketAddr {
+        let mut addr = None;
+        crate::wait_until(&format!("{name} listening"), || {
+            addr = self.server_status(name)["bus"]
+                .as_str()
+                .and_then(|b| b.parse::<std::net::SocketAddr>().ok())
+                .filter(|a| a.port() != 0);
+            addr.is_some()
+        });
+        addr.unwrap_or_else(|| unreachable!("waited for"))
+    }
+
     /// `BIN ARGS --socket <its socket>`.
     pub fn cli(&self, args: &[&str]) -> Output {
         Command::new(&self.bin)
