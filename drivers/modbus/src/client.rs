@@ -50,21 +50,7 @@ pub enum ClientError {
     Bad(String),
 }
 
-/// The CRC-16/MODBUS of `data` (polynomial 0xA001 reflected, initial 0xFFFF).
-pub fn crc16(data: &[u8]) -> u16 {
-    let mut crc = 0xFFFFu16;
-    for b in data {
-        crc ^= u16::from(*b);
-        for _ in 0..8 {
-            crc = if crc & 1 != 0 {
-                (crc >> 1) ^ 0xA001
-            } else {
-                crc >> 1
-            };
-        }
-    }
-    crc
-}
+pub use crate::framing::crc16;
 
 /// The silence between RTU frames at `baud`: 3.5 characters of 11 bits, 1.75 ms above
 /// 19200 baud (the specification's fixed value there).
@@ -317,17 +303,13 @@ async fn rtu<P: AsyncRead + AsyncWrite + Unpin>(
     // echoed address and value (writes). Then the CRC.
     let mut head = [0u8; 3];
     port.read_exact(&mut head).await?;
-    let rest = match head[1] {
-        f if f & 0x80 != 0 => 2,
-        // A byte count, then that many bytes (reads, FC23, report server id, files).
-        1..=4 | 12 | 17 | 20 | 21 | 23 => usize::from(head[2]) + 2,
-        // Four bytes: an echo, or a counter (FC11).
-        5 | 6 | 8 | 11 | 15 | 16 => 5,
-        // The exception status byte (FC7).
-        7 => 2,
-        // Mask write: address and both masks.
-        22 => 7,
-        f => return Err(ClientError::Bad(format!("unknown function {f} in a reply"))),
+    // The reply's whole length from its function (and byte count).
+    let rest = match crate::framing::reply_length(&head) {
+        Some(Ok(n)) => n - head.len(),
+        _ => {
+            let f = head[1];
+            return Err(ClientError::Bad(format!("unknown function {f} in a reply")));
+        }
     };
     let mut tail = vec![0u8; rest];
     port.read_exact(&mut tail).await?;

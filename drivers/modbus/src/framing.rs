@@ -16,11 +16,26 @@
 //!   IllegalFunction). A partial frame waits at most a gap on a serial line, the frame
 //!   timeout on TCP (where a frame may come in two segments).
 
-use crate::client::crc16;
 use std::io;
 use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncReadExt};
 use tokio::time::Instant;
+
+/// The CRC-16/MODBUS of `data` (polynomial 0xA001 reflected, initial 0xFFFF).
+pub fn crc16(data: &[u8]) -> u16 {
+    let mut crc = 0xFFFFu16;
+    for b in data {
+        crc ^= u16::from(*b);
+        for _ in 0..8 {
+            crc = if crc & 1 != 0 {
+                (crc >> 1) ^ 0xA001
+            } else {
+                crc >> 1
+            };
+        }
+    }
+    crc
+}
 
 /// How a stream frames requests.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -290,8 +305,9 @@ fn crc_ok(frame: &[u8]) -> bool {
     n >= 4 && crc16(&frame[..n - 2]).to_le_bytes() == [frame[n - 2], frame[n - 1]]
 }
 
-/// An RTU reply's whole length from its first bytes, as [`rtu_length`] gives a request's.
-fn reply_length(b: &[u8]) -> Option<Result<usize, usize>> {
+/// An RTU reply's whole length from its first bytes, as [`rtu_length`] gives a request's
+/// (the client reads its replies by it too).
+pub(crate) fn reply_length(b: &[u8]) -> Option<Result<usize, usize>> {
     let count_at =
         |k: usize, fixed: usize| Some(b.get(k).map(|c| fixed + usize::from(*c)).ok_or(k));
     match *b.get(1)? {
