@@ -32,4 +32,4 @@ pub mod map;
 pub mod netlink;
 pub mod plugin;
 pub mod section;
-pub mod signal;
+pub use can_socket::signal;

@@ -29,80 +29,26 @@
 
 mod link;
 
-pub use link::can_interfaces;
+pub use can_socket::link::can_interfaces;
 
 use crate::card::{CanCard, ErrorReport, Received};
+use can_socket::socket::{Filter, Frame, RawSocket, check_interface, realtime_offset};
 use device_interface::time::Timestamp;
-use link::{ARPHRD_CAN, link, sys_u32};
 use nix::sys::eventfd::{EfdFlags, EventFd};
-use nix::sys::socket::{ControlMessageOwned, MsgFlags, recvmsg, setsockopt, sockopt};
 use nix::sys::time::TimeSpec;
 use nix::sys::timerfd::{ClockId, Expiration, TimerFd, TimerFlags, TimerSetTimeFlags};
-use socketcan::{CanFdSocket, CanFilter, Socket, SocketOptions};
-use std::os::fd::{AsFd, AsRawFd, BorrowedFd};
+use std::os::fd::{AsFd, BorrowedFd};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
-/// Why a bus could not be opened.
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum BusError {
-    /// No network interface of that name.
-    #[error("interface {name:?}: no such network interface (CAN interfaces here: {})", if .available.is_empty() { "none".to_string() } else { .available.join(", ") })]
-    NoInterface {
-        /// The name asked for.
-        name: String,
-        /// The CAN interfaces that exist.
-        available: Vec<String>,
-    },
-    /// The interface is not a CAN interface.
-    #[error("interface {0:?} is not a CAN interface")]
-    NotCan(String),
-    /// FD frames are mapped but the interface is classic CAN only.
-    #[error("interface {name:?} is classic CAN (MTU {mtu}); frame {frame} is a CAN FD frame")]
-    NoFd {
-        /// The interface.
-        name: String,
-        /// Its MTU.
-        mtu: u32,
-        /// A frame that needs FD.
-        frame: String,
-    },
-    /// A system call failed.
-    #[error("interface {name:?}: {what}: {source}")]
-    Os {
-        /// The interface.
-        name: String,
-        /// What was being done.
-        what: &'static str,
-        /// The error.
-        source: std::io::Error,
-    },
-}
-
-const CAN_EFF_FLAG: u32 = 0x8000_0000;
-const CAN_RTR_FLAG: u32 = 0x4000_0000;
-const CAN_ERR_FLAG: u32 = 0x2000_0000;
-const CAN_SFF_MASK: u32 = 0x7FF;
-const CAN_EFF_MASK: u32 = 0x1FFF_FFFF;
-const CAN_ERR_MASK: u32 = 0x1FFF_FFFF;
-/// Size of a classic `struct can_frame` and of a `struct canfd_frame`.
-const CAN_MTU: usize = 16;
-const CANFD_MTU: usize = 72;
-
-/// CLOCK_MONOTONIC minus CLOCK_REALTIME now, ns.
-fn realtime_offset() -> i128 {
-    let real = nix::time::clock_gettime(nix::time::ClockId::CLOCK_REALTIME)
-        .map(|t| t.tv_sec() as i128 * 1_000_000_000 + t.tv_nsec() as i128)
-        .unwrap_or(0);
-    now_ns() as i128 - real
-}
+/// Why a bus could not be opened (the socket layer's interface checks).
+pub use can_socket::socket::InterfaceError as BusError;
 
 /// A card's socket, timer and wake-up.
 pub struct CanBus {
     card: Arc<CanCard>,
-    socket: Option<CanFdSocket>,
+    socket: Option<RawSocket>,
     ifindex: u32,
     /// Counts the sockets opened (see [`CanBus::socket_generation`]).
     generation: u64,
@@ -115,12 +61,7 @@ pub struct CanBus {
     /// Next send time (ns) of each cyclic tx frame.
     next_tx: Vec<Option<u64>>,
     next_check: u64,
-    /// The kernel's drop counter as last seen.
-    drops_seen: u32,
     buf: [u8; 64],
-    /// Room for the timestamp and drop-count control messages (allocated once, not per
-    /// receive).
-    cmsg: Vec<u8>,
     /// The physical values of the frame just received (room for the widest rx frame).
     values: Vec<f64>,
     /// Whether the interface is a real controller with a state to ask netlink for
@@ -151,25 +92,8 @@ impl CanBus {
             let f = os(what);
             move |e: nix::Error| f(std::io::Error::from(e))
         };
-        let Some((_, ifindex)) = link(&name) else {
-            return Err(BusError::NoInterface {
-                name,
-                available: can_interfaces(),
-            });
-        };
-        if sys_u32(&name, "type") != Some(ARPHRD_CAN) {
-            return Err(BusError::NotCan(name));
-        }
-        let mtu = sys_u32(&name, "mtu").unwrap_or(0);
-        if mtu as usize != CANFD_MTU
-            && let Some(f) = card.map().rx().iter().chain(card.map().tx()).find(|f| f.fd)
-        {
-            return Err(BusError::NoFd {
-                name,
-                mtu,
-                frame: f.name.clone(),
-            });
-        }
+        let fd_frame = card.map().rx().iter().chain(card.map().tx()).find(|f| f.fd);
+        let ifindex = check_interface(&name, fd_frame.map(|f| f.name.as_str()))?;
         let timer = TimerFd::new(
             ClockId::CLOCK_MONOTONIC,
             TimerFlags::TFD_NONBLOCK | TimerFlags::TFD_CLOEXEC,
@@ -205,9 +129,7 @@ impl CanBus {
             armed: 0,
             next_tx,
             next_check: now,
-            drops_seen: 0,
             buf: [0; 64],
-            cmsg: nix::cmsg_space!(TimeSpec, u32),
             values: Vec::with_capacity(widest),
             controller: None,
         };
@@ -220,27 +142,12 @@ impl CanBus {
     fn open_socket(&mut self) -> std::io::Result<()> {
         self.socket = None;
         let map = self.card.map();
-        let s = CanFdSocket::open(map.interface())?;
-        let filters: Vec<CanFilter> = map
+        let filters: Vec<Filter> = map
             .rx()
             .iter()
-            .map(|f| {
-                if f.extended {
-                    CanFilter::new(
-                        f.id | CAN_EFF_FLAG,
-                        CAN_EFF_MASK | CAN_EFF_FLAG | CAN_RTR_FLAG,
-                    )
-                } else {
-                    CanFilter::new(f.id, CAN_SFF_MASK | CAN_EFF_FLAG | CAN_RTR_FLAG)
-                }
-            })
+            .map(|f| Filter::exact(f.id, f.extended))
             .collect();
-        s.set_filters(&filters)?;
-        s.set_error_filter(CAN_ERR_MASK)?;
-        s.set_nonblocking(true)?;
-        setsockopt(&s, sockopt::ReceiveTimestampns, &true).map_err(std::io::Error::from)?;
-        setsockopt(&s, sockopt::RxqOvfl, &1).map_err(std::io::Error::from)?;
-        self.drops_seen = 0;
+        let s = RawSocket::open(map.interface(), &filters)?;
         self.socket = Some(s);
         self.generation += 1;
         Ok(())
@@ -308,110 +215,65 @@ impl CanBus {
     }
 
     fn receive(&mut self, on_frame: &mut dyn FnMut(usize, &[f64], Timestamp)) {
-        let mut cmsg = std::mem::take(&mut self.cmsg);
-        self.receive_into(&mut cmsg, on_frame);
-        self.cmsg = cmsg;
-    }
-
-    #[allow(
-        clippy::ptr_arg,
-        reason = "nix's recvmsg takes the control buffer as a Vec"
-    )]
-    fn receive_into(
-        &mut self,
-        cmsg: &mut Vec<u8>,
-        on_frame: &mut dyn FnMut(usize, &[f64], Timestamp),
-    ) {
-        let Some(socket) = &self.socket else { return };
-        let fd = socket.as_raw_fd();
         // The kernel stamps frames with CLOCK_REALTIME; the card's time base is
         // CLOCK_MONOTONIC. One offset per batch (taken at its first frame) is exact to
         // well under a microsecond.
         let mut offset = None;
-        let mut raw = [0u8; CANFD_MTU];
+        let mut data = [0u8; 64];
         loop {
-            let (n, stamp, drops) = {
-                let mut iov = [std::io::IoSliceMut::new(&mut raw)];
-                match recvmsg::<()>(fd, &mut iov, Some(cmsg), MsgFlags::MSG_DONTWAIT) {
-                    Ok(msg) => {
-                        let mut stamp = None;
-                        let mut drops = None;
-                        if let Ok(cmsgs) = msg.cmsgs() {
-                            for c in cmsgs {
-                                match c {
-                                    ControlMessageOwned::ScmTimestampns(t) => {
-                                        stamp = Some(
-                                            t.tv_sec() as i128 * 1_000_000_000
-                                                + t.tv_nsec() as i128,
-                                        )
-                                    }
-                                    ControlMessageOwned::RxqOvfl(d) => drops = Some(d),
-                                    _ => {}
-                                }
-                            }
-                        }
-                        (msg.bytes, stamp, drops)
-                    }
-                    Err(nix::Error::EAGAIN) => break,
-                    Err(nix::Error::EINTR) => continue,
-                    Err(e @ (nix::Error::ENETDOWN | nix::Error::ENODEV)) => {
-                        self.link_lost(e);
-                        break;
-                    }
-                    Err(e) => {
-                        tracing::warn!(interface = %self.card.map().interface(), "recvmsg: {e}");
-                        break;
-                    }
+            let Some(socket) = &mut self.socket else {
+                return;
+            };
+            let got = match socket.recv(&mut data) {
+                Ok(Some(got)) => got,
+                Ok(None) => break,
+                Err(e @ (nix::Error::ENETDOWN | nix::Error::ENODEV)) => {
+                    self.link_lost(e);
+                    break;
+                }
+                Err(e) => {
+                    tracing::warn!(interface = %self.card.map().interface(), "recvmsg: {e}");
+                    break;
                 }
             };
-            if let Some(d) = drops {
-                let new = d.wrapping_sub(self.drops_seen);
-                if new > 0 {
-                    self.card.dropped(u64::from(new));
-                }
-                self.drops_seen = d;
+            if got.dropped > 0 {
+                self.card.dropped(u64::from(got.dropped));
             }
-            let at = match stamp {
+            let at = match got.stamp {
                 Some(real) => {
                     let offset = *offset.get_or_insert_with(realtime_offset);
                     Timestamp::from_nanos((real + offset).max(0) as u64)
                 }
                 None => Timestamp::from_nanos(now_ns()),
             };
-            if n != CAN_MTU && n != CANFD_MTU {
-                self.card.wrong_kind();
-                continue;
-            }
-            let can_id = u32::from_ne_bytes([raw[0], raw[1], raw[2], raw[3]]);
-            let len = usize::from(raw[4]).min(if n == CAN_MTU { 8 } else { 64 });
-            let data = &raw[8..8 + len];
-            if can_id & CAN_ERR_FLAG != 0 {
-                self.error_frame(can_id, data);
-                continue;
-            }
-            let extended = can_id & CAN_EFF_FLAG != 0;
-            let id = can_id & if extended { CAN_EFF_MASK } else { CAN_SFF_MASK };
-            if can_id & CAN_RTR_FLAG != 0 {
-                self.card.wrong_kind();
-                continue;
-            }
-            if let Received::Decoded(f) = self.card.receive_with_values(
-                id,
-                extended,
-                n == CANFD_MTU,
-                data,
-                at,
-                &mut self.values,
-            ) {
-                on_frame(f, &self.values, at);
+            match got.frame {
+                Frame::WrongKind => self.card.wrong_kind(),
+                Frame::Error { class, len } => self.error_frame(class, &data[..len]),
+                Frame::Data {
+                    id,
+                    extended,
+                    fd,
+                    len,
+                } => {
+                    if let Received::Decoded(f) = self.card.receive_with_values(
+                        id,
+                        extended,
+                        fd,
+                        &data[..len],
+                        at,
+                        &mut self.values,
+                    ) {
+                        on_frame(f, &self.values, at);
+                    }
+                }
             }
         }
     }
 
-    fn error_frame(&self, can_id: u32, data: &[u8]) {
+    fn error_frame(&self, class: u32, data: &[u8]) {
         let mut d = [0u8; 8];
         d[..data.len().min(8)].copy_from_slice(&data[..data.len().min(8)]);
-        let Ok(frame) = socketcan::CanErrorFrame::new_error(can_id & CAN_ERR_MASK, &d) else {
+        let Ok(frame) = socketcan::CanErrorFrame::new_error(class, &d) else {
             self.card.error_frame(ErrorReport::default());
             return;
         };
@@ -471,34 +333,13 @@ impl CanBus {
         }
         let Some(socket) = &self.socket else { return };
         let f = &self.card.map().tx()[t];
-        let id: socketcan::Id = if f.extended {
-            match socketcan::ExtendedId::new(f.id) {
-                Some(i) => i.into(),
-                None => return,
-            }
-        } else {
-            match u16::try_from(f.id)
-                .ok()
-                .and_then(socketcan::StandardId::new)
-            {
-                Some(i) => i.into(),
-                None => return,
-            }
-        };
-        let data = &self.buf[..len];
-        let result = if f.fd {
-            use socketcan::EmbeddedFrame;
-            match socketcan::CanFdFrame::new(id, data) {
-                Some(frame) => socket.write_frame(&frame),
-                None => return,
-            }
-        } else {
-            use socketcan::EmbeddedFrame;
-            match socketcan::CanFrame::new(id, data) {
-                Some(frame) => socket.write_frame(&frame),
-                None => return,
-            }
-        };
+        let result = socket.send(f.id, f.extended, f.fd, &self.buf[..len]);
+        if result
+            .as_ref()
+            .is_err_and(|e| e.kind() == std::io::ErrorKind::InvalidInput)
+        {
+            return;
+        }
         if let Err(e) = &result {
             tracing::debug!(frame = %f.name, "send failed: {e}");
             if e.raw_os_error() == Some(nix::Error::ENETDOWN as i32) {

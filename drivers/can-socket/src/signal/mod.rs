@@ -11,7 +11,7 @@
 //!   down to bit 0 of that byte and on at bit 7 of the next byte.
 //!
 //! ```
-//! use driver_can::signal::{ByteOrder, Signal};
+//! use can_socket::signal::{ByteOrder, Signal};
 //!
 //! // Engine temperature: one byte at bit 16, degC = raw - 40.
 //! let t = Signal::new(16, 8, ByteOrder::Intel, false, 1.0, -40.0, "degC")?;
@@ -20,7 +20,7 @@
 //! // A Motorola 16-bit value whose most significant bit is bit 7 of byte 0.
 //! let s = Signal::new(7, 16, ByteOrder::Motorola, false, 1.0, 0.0, "")?;
 //! assert_eq!(s.extract(&[0x12, 0x34])?, 0x1234);
-//! # Ok::<(), driver_can::signal::SignalError>(())
+//! # Ok::<(), can_socket::signal::SignalError>(())
 //! ```
 
 use device_interface::{RawRange, Scale, ScaleError, Unit};
