@@ -79,12 +79,14 @@ impl DriverTypes {
         }
     }
 
-    /// The drivers built into hwgw: comedi, firmata, gpio, i2c, modbus, sim, socketcan.
+    /// The drivers built into hwgw: canopen, comedi, firmata, gpio, i2c, modbus, sim,
+    /// socketcan.
     pub fn builtin() -> Self {
         let mut t = Self::empty();
         t.register("sim", driver_sim::plugin::build);
         t.register("modbus", driver_modbus::plugin::build);
         t.register("socketcan", driver_can::plugin::build);
+        t.register("canopen", driver_canopen::plugin::build);
         t.register("gpio", driver_gpio::plugin::build);
         t.register("i2c", driver_i2c::plugin::build);
         t.register("comedi", driver_comedi::plugin::build);

@@ -16,6 +16,7 @@ range = { lowest = 0.0, highest = 10.0 }
 "#;
 
 const CAN: &str = "[[card]]\nname = \"can\"\ndriver = \"socketcan\"\n[card.socketcan]\n";
+const CANOPEN: &str = "[[card]]\nname = \"io\"\ndriver = \"canopen\"\n[card.canopen]\ninterface = \"can7\"\n[[card.canopen.node]]\nid = 5\neds = \"../drivers/canopen/tests/eds/io401.eds\"\n";
 
 /// Every error `text` produces, one per line, or "ok".
 fn errors(text: &str) -> String {
@@ -115,9 +116,24 @@ fn every_broken_config_gets_its_exact_error() {
         ("missing card name", "[[card]]\ndriver = \"sim\"\n".into(),
          "t.toml:1:1: card[0]: missing field `name`"),
         ("unknown driver", "[[card]]\nname = \"x\"\ndriver = \"canbus\"\n".into(),
-         "t.toml:3:10: card[0].driver: unknown driver \"canbus\"; this build has: comedi, firmata, gpio, i2c, modbus, sim, socketcan"),
+         "t.toml:3:10: card[0].driver: unknown driver \"canbus\"; this build has: canopen, comedi, firmata, gpio, i2c, modbus, sim, socketcan"),
         // A CAN interface that is not here checks (the summary warns; `run` needs it).
         ("CAN interface missing", format!("{CAN}interface = \"can7\"\n"), "ok"),
+        ("CANopen: interface missing", format!("{CANOPEN}[[card.canopen.node.tpdo]]\nnumber = 1\nobjects = [{{ object = \"0x6000:1\" }}]\n"), "ok"),
+        ("CANopen: an object not in the EDS", format!("{CANOPEN}[[card.canopen.node.tpdo]]\nnumber = 1\nobjects = [{{ object = \"0x6001:1\" }}]\n"), 
+         "t.toml:11:23: card[0].canopen.node[0].tpdo[0].objects[0].object: card \"io\": 0x6001 sub 1 is not in the node's dictionary"),
+        ("CANopen: an RPDO carrying an input", format!("{CANOPEN}[[card.canopen.node.rpdo]]\nnumber = 1\nobjects = [{{ object = \"0x6000:1\" }}]\n"), 
+         "t.toml:9:1: card[0].canopen.node[0].rpdo[0]: card \"io\": RPDO1: 0x6000 sub 1 (Read input 1h to 8h) is ro: an RPDO carries what it may write"),
+        ("CANopen: an object written wrong", format!("{CANOPEN}[[card.canopen.node.tpdo]]\nnumber = 1\nobjects = [{{ object = \"6000.1\" }}]\n"), 
+         "t.toml:11:23: card[0].canopen.node[0].tpdo[0].objects[0].object: card \"io\": \"6000.1\": expected 0xINDEX:SUB"),
+        ("CANopen: a node twice", format!("{CANOPEN}[[card.canopen.node]]\nid = 5\neds = \"../drivers/canopen/tests/eds/io401.eds\"\n"), 
+         "t.toml:10:6: card[0].canopen.node[1].id: card \"io\": node 5 is node[0] already"),
+        ("CANopen: an EDS missing", "[[card]]\nname = \"io\"\ndriver = \"canopen\"\n[card.canopen]\ninterface = \"can7\"\n[[card.canopen.node]]\nid = 5\neds = \"nothing.eds\"\n".into(), 
+         "t.toml:8:7: card[0].canopen.node[0].eds: card \"io\": nothing.eds: No such file or directory (os error 2)"),
+        ("CANopen: PDO 5 without a COB-ID", format!("{CANOPEN}[[card.canopen.node.tpdo]]\nnumber = 5\nobjects = [{{ object = \"0x6000:1\" }}]\n"), 
+         "t.toml:9:1: card[0].canopen.node[0].tpdo[0].cob_id: card \"io\": TPDO5 has no predefined COB-ID: give one"),
+        ("CANopen: a digital object with a factor", format!("{CANOPEN}[[card.canopen.node.tpdo]]\nnumber = 1\nobjects = [{{ object = \"0x6000:1\", factor = 2.0 }}]\n"), 
+         "t.toml:11:44: card[0].canopen.node[0].tpdo[0].objects[0].factor: card \"io\": a digital object has no factor or offset"),
         // A message that does not parse is refused where it is mapped, not before.
         ("malformed DBC file, unmapped", format!("{CAN}interface = \"can7\"\ndbc = \"tests/data/broken.dbc\"\n"), "ok"),
         ("malformed DBC message, mapped", format!("{CAN}interface = \"can7\"\ndbc = \"tests/data/broken.dbc\"\n[[card.socketcan.rx]]\nmessage = \"Motion\"\n"),
@@ -380,7 +396,7 @@ fn every_broken_config_gets_its_exact_error() {
         ("a 10 MB string", format!("thread_scope = \"{}\"\n", "x".repeat(10_000_000)),
          &*Box::leak(format!("t.toml:1:16: thread_scope: invalid type: string \"{}…\" (10000000 characters), expected a boolean", "x".repeat(80)).into_boxed_str())),
         ("a 10 MB driver name", format!("[[card]]\nname = \"x\"\ndriver = \"{}\"\n", "d".repeat(10_000_000)),
-         &*Box::leak(format!("t.toml:3:10: card[0].driver: unknown driver \"{}…\" (10000000 characters); this build has: comedi, firmata, gpio, i2c, modbus, sim, socketcan", "d".repeat(80)).into_boxed_str())),
+         &*Box::leak(format!("t.toml:3:10: card[0].driver: unknown driver \"{}…\" (10000000 characters); this build has: canopen, comedi, firmata, gpio, i2c, modbus, sim, socketcan", "d".repeat(80)).into_boxed_str())),
         ("a 10 MB key", format!("[[alias]]\n{} = 1\n", "k".repeat(10_000_000)),
          &*Box::leak(format!("t.toml:2:1: alias[0].{}… (10000009 characters): unknown field `{k}…` (10000000 characters), expected one of `interface`, `name`, `target`", "k".repeat(71), k = "k".repeat(80)).into_boxed_str())),
         ("an initial value outside the range (no Debug text)", CARD.replace("range = { lowest = 0.0, highest = 10.0 }", "range = { lowest = 0.0, highest = 10.0, unit = \"V\" }\ninitial = 11.0"),

@@ -11,8 +11,9 @@
 //!   it, every error line it prints holds one of the TEXTs and each TEXT is in one;
 //! - `<!-- check: cargo manifest -->`: part of a `Cargo.toml`, which must parse.
 //!
-//! `hwgw check` runs in a temporary directory holding copies of `config/can.dbc` and
-//! `gateway/tests/data/*`, so a block names those files as a deployment in `config/` does.
+//! `hwgw check` runs in a temporary directory holding copies of `config/can.dbc`,
+//! `gateway/tests/data/*` and the CANopen tests' EDS files, so a block names those files as
+//! a deployment in `config/` does.
 
 #![allow(
     clippy::unwrap_used,
@@ -171,8 +172,10 @@ fn scratch(tag: &str) -> TempDir {
         repo().join("config/can.dbc"),
         repo().join("config/interlock.lua"),
     ];
-    for e in std::fs::read_dir(repo().join("gateway/tests/data")).unwrap() {
-        files.push(e.unwrap().path());
+    for dir in ["gateway/tests/data", "drivers/canopen/tests/eds"] {
+        for e in std::fs::read_dir(repo().join(dir)).unwrap() {
+            files.push(e.unwrap().path());
+        }
     }
     for f in files.iter().filter(|f| f.is_file()) {
         std::fs::copy(f, dir.path().join(f.file_name().unwrap())).unwrap();

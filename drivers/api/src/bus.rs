@@ -198,3 +198,43 @@ impl rtt::Component for Cycle {
         Ok(())
     }
 }
+
+/// What an fd-activity bus component watches of a socket that can be replaced (a CAN
+/// interface removed and added again): the descriptor watched and the socket's
+/// generation. [`SocketWatch::follow`] watches the current socket and lets go of the old.
+#[derive(Debug, Default)]
+pub struct SocketWatch {
+    watched: Option<(std::os::fd::RawFd, u64)>,
+}
+
+impl SocketWatch {
+    /// Watches `socket` (of generation `generation`) when it is not the one watched,
+    /// letting go of the old; none: nothing is watched. A failed watch is said and tried
+    /// again at the next call.
+    pub fn follow(
+        &mut self,
+        ctx: &mut rtt::Context<'_>,
+        socket: Option<std::os::fd::BorrowedFd<'_>>,
+        generation: u64,
+    ) {
+        use std::os::fd::AsRawFd;
+        let current = socket.map(|fd| (fd.as_raw_fd(), generation));
+        if self.watched == current {
+            return;
+        }
+        self.forget(ctx);
+        if let Some(fd) = socket {
+            match ctx.activity().watch(fd) {
+                Ok(()) => self.watched = current,
+                Err(e) => tracing::warn!(component = ctx.name(), "cannot watch the socket: {e}"),
+            }
+        }
+    }
+
+    /// Lets go of the socket watched, if any (at stop).
+    pub fn forget(&mut self, ctx: &mut rtt::Context<'_>) {
+        if let Some((old, _)) = self.watched.take() {
+            ctx.activity().unwatch(old);
+        }
+    }
+}

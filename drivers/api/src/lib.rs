@@ -77,7 +77,7 @@ mod names;
 pub mod node;
 mod server;
 
-pub use bus::{BuiltCard, BusContext, BusSide, BusTasks, fd_bus, periodic_bus};
+pub use bus::{BuiltCard, BusContext, BusSide, BusTasks, SocketWatch, fd_bus, periodic_bus};
 pub use card::{Card, CardStatus, ReadBack, SettleError};
 pub use context::{BuildFn, CardContext, CardError};
 pub use names::{ChannelDetail, ChannelDetails, ChannelNames, NamesError, is_port_name};

@@ -5,7 +5,8 @@
 //!   drop counts, and the checks that an interface can carry a driver's frames;
 //! - [`link`]: an interface's presence, state and identity from sysfs;
 //! - [`signal`]: values in frame payloads as DBC files and CANopen PDOs lay them out
-//!   (Intel/Motorola bit order, signed, 64-bit, IEEE float and double, factor, offset).
+//!   (Intel/Motorola bit order, signed, 64-bit, IEEE float and double, factor, offset);
+//! - [`wakeups`]: the timer and wake-up a bus side waits on beside its socket.
 //!
 //! ```
 //! use can_socket::signal::{ByteOrder, Signal};
@@ -19,3 +20,4 @@
 pub mod link;
 pub mod signal;
 pub mod socket;
+pub mod wakeups;

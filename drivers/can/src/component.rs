@@ -20,11 +20,12 @@
 use crate::bus::CanBus;
 use crate::card::{CanCard, CanCounters};
 use crate::netlink::Controller;
+use driver_api::SocketWatch;
 use rtt::component::IntrospectError;
 use rtt::port::OutputPort;
 use rtt::{Component, Context, HookError, HookResult, InterfaceBuilder};
 use serde::{Deserialize, Serialize};
-use std::os::fd::{AsRawFd, RawFd};
+use std::os::fd::AsRawFd;
 use std::sync::Arc;
 
 /// One received frame as published on its message's port.
@@ -45,8 +46,8 @@ pub struct CanIo {
     card: Arc<CanCard>,
     ports: Vec<OutputPort<CanMessage>>,
     sample: CanMessage,
-    /// The socket the activity watches: its descriptor and [`CanBus::socket_generation`].
-    watched: Option<(RawFd, u64)>,
+    /// The socket the activity watches.
+    watched: SocketWatch,
     /// A real controller's state, written when it changes.
     controller: OutputPort<Controller>,
     controller_seen: Option<Controller>,
@@ -128,33 +129,19 @@ impl CanIo {
             },
             controller,
             controller_seen: None,
-            watched: None,
+            watched: SocketWatch::default(),
         })
     }
 }
 
 impl CanIo {
     /// Watches the bus's socket when it is not the one watched (the first, or a new one
-    /// after the interface was replaced), letting go of the old. A failed watch is said
-    /// and tried again at the next step (the timer steps the bus at each link check).
+    /// after the interface was replaced), letting go of the old (the timer steps the bus
+    /// at each link check, so a failed watch is tried again).
     fn watch_socket(&mut self, ctx: &mut Context<'_>) {
-        let Some(bus) = &self.bus else { return };
-        let generation = bus.socket_generation();
-        // The socket now (none after a failed reopen: the old one is let go of too).
-        let current = bus.socket_fd().map(|fd| (fd.as_raw_fd(), generation));
-        if self.watched == current {
-            return;
-        }
-        if let Some((old, _)) = self.watched.take() {
-            ctx.activity().unwatch(old);
-        }
-        if let Some(fd) = bus.socket_fd() {
-            match ctx.activity().watch(fd) {
-                Ok(()) => self.watched = current,
-                Err(e) => {
-                    tracing::warn!(interface = %self.card.map().interface(), "cannot watch the socket: {e}")
-                }
-            }
+        if let Some(bus) = &self.bus {
+            self.watched
+                .follow(ctx, bus.socket_fd(), bus.socket_generation());
         }
     }
 }
@@ -174,7 +161,7 @@ impl Component for CanIo {
         {
             ctx.activity().watch(fd)?;
         }
-        self.watched = None;
+        self.watched.forget(ctx);
         self.watch_socket(ctx);
         // Send the first cyclic frames and learn the link state at once.
         self.update_hook(ctx)
@@ -214,8 +201,6 @@ impl Component for CanIo {
                 ctx.activity().unwatch(fd.as_raw_fd());
             }
         }
-        if let Some((old, _)) = self.watched.take() {
-            ctx.activity().unwatch(old);
-        }
+        self.watched.forget(ctx);
     }
 }

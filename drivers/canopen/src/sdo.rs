@@ -78,6 +78,8 @@ impl SdoError {
 pub mod code {
     /// Toggle bit not alternated.
     pub const TOGGLE: u32 = 0x0503_0000;
+    /// SDO protocol timed out.
+    pub const TIMEOUT: u32 = 0x0504_0000;
     /// Client/server command specifier not valid or unknown.
     pub const COMMAND: u32 = 0x0504_0001;
     /// Out of memory.

@@ -82,7 +82,7 @@ fn its_section_is_checked_like_any_driver_s() {
     );
     assert_eq!(
         errors("[[card]]\nname = \"x\"\ndriver = \"lopback\"\n"),
-        "t.toml:3:10: card[0].driver: unknown driver \"lopback\"; this build has: comedi, firmata, gpio, i2c, loopback, modbus, sim, socketcan"
+        "t.toml:3:10: card[0].driver: unknown driver \"lopback\"; this build has: canopen, comedi, firmata, gpio, i2c, loopback, modbus, sim, socketcan"
     );
 }
 

@@ -33,14 +33,10 @@ pub use can_socket::link::can_interfaces;
 
 use crate::card::{CanCard, ErrorReport, Received};
 use can_socket::socket::{Filter, Frame, RawSocket, check_interface, realtime_offset};
+use can_socket::wakeups::Wakeups;
 use device_interface::time::Timestamp;
-use nix::sys::eventfd::{EfdFlags, EventFd};
-use nix::sys::time::TimeSpec;
-use nix::sys::timerfd::{ClockId, Expiration, TimerFd, TimerFlags, TimerSetTimeFlags};
 use std::os::fd::{AsFd, BorrowedFd};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Duration;
 
 /// Why a bus could not be opened (the socket layer's interface checks).
 pub use can_socket::socket::InterfaceError as BusError;
@@ -52,12 +48,7 @@ pub struct CanBus {
     ifindex: u32,
     /// Counts the sockets opened (see [`CanBus::socket_generation`]).
     generation: u64,
-    timer: TimerFd,
-    wake: Arc<EventFd>,
-    /// Set with each wake-up written to `wake` (so it is read only when written).
-    woken: Arc<AtomicBool>,
-    /// The deadline the timer is armed for (ns; 0: none).
-    armed: u64,
+    wakeups: Wakeups,
     /// Next send time (ns) of each cyclic tx frame.
     next_tx: Vec<Option<u64>>,
     next_check: u64,
@@ -94,22 +85,8 @@ impl CanBus {
         };
         let fd_frame = card.map().rx().iter().chain(card.map().tx()).find(|f| f.fd);
         let ifindex = check_interface(&name, fd_frame.map(|f| f.name.as_str()))?;
-        let timer = TimerFd::new(
-            ClockId::CLOCK_MONOTONIC,
-            TimerFlags::TFD_NONBLOCK | TimerFlags::TFD_CLOEXEC,
-        )
-        .map_err(nix_os("timerfd_create"))?;
-        let wake = Arc::new(
-            EventFd::from_value_and_flags(0, EfdFlags::EFD_NONBLOCK | EfdFlags::EFD_CLOEXEC)
-                .map_err(nix_os("eventfd"))?,
-        );
-        let w = wake.clone();
-        let woken = Arc::new(AtomicBool::new(false));
-        let flag = woken.clone();
-        card.set_waker(Box::new(move || {
-            flag.store(true, Ordering::Release);
-            let _ = w.write(1);
-        }));
+        let wakeups = Wakeups::new().map_err(|(what, e)| nix_os(what)(e))?;
+        card.set_waker(wakeups.waker());
         let now = now_ns();
         let next_tx = card
             .map()
@@ -123,10 +100,7 @@ impl CanBus {
             socket: None,
             ifindex,
             generation: 0,
-            timer,
-            wake,
-            woken,
-            armed: 0,
+            wakeups,
             next_tx,
             next_check: now,
             buf: [0; 64],
@@ -161,7 +135,7 @@ impl CanBus {
             .as_ref()
             .map(|s| s.as_fd())
             .into_iter()
-            .chain([self.timer.as_fd(), self.wake.as_fd()])
+            .chain(self.wakeups.fds())
     }
 
     /// The socket's descriptor, if open.
@@ -192,19 +166,8 @@ impl CanBus {
     /// only when its deadline moves. A frame thus costs no other system call.
     pub fn service(&mut self, on_frame: &mut dyn FnMut(usize, &[f64], Timestamp)) {
         self.receive(on_frame);
-        if self.woken.swap(false, Ordering::AcqRel) && self.wake.read().is_err() {
-            // The waker set the flag and has not yet written: the write is coming, and
-            // must not leave the eventfd readable with nobody to read it (the activity
-            // would step in a loop). The next call reads it.
-            self.woken.store(true, Ordering::Release);
-        }
         let now = now_ns();
-        if self.armed != 0 && now >= self.armed {
-            // Clears the expiry (EAGAIN if the kernel has not quite fired it: the re-arm
-            // below then replaces it).
-            let _ = self.timer.wait();
-            self.armed = 0;
-        }
+        self.wakeups.clear(now);
         if now >= self.next_check {
             self.check_link();
             self.card.check_stale();
@@ -349,8 +312,7 @@ impl CanBus {
         self.card.sent(result.is_ok());
     }
 
-    /// Sets the timer to the earliest of the next send and the next check.
-    /// Arms the timer for the next send or check, unless it is armed for that already.
+    /// Arms the timer for the next send or check.
     fn arm(&mut self) {
         let next = self
             .next_tx
@@ -359,20 +321,7 @@ impl CanBus {
             .copied()
             .chain([self.next_check])
             .min()
-            .unwrap_or(self.next_check)
-            .max(1);
-        if next == self.armed {
-            return;
-        }
-        let ts = TimeSpec::from_duration(Duration::from_nanos(next));
-        // Only a timer that took the deadline counts as armed for it (else the next call
-        // tries again).
-        self.armed = match self.timer.set(
-            Expiration::OneShot(ts),
-            TimerSetTimeFlags::TFD_TIMER_ABSTIME,
-        ) {
-            Ok(()) => next,
-            Err(_) => 0,
-        };
+            .unwrap_or(self.next_check);
+        self.wakeups.arm(next);
     }
 }

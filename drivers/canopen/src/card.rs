@@ -1,0 +1,529 @@
+//! The card: its nodes' PDO images as devices. The bus side stores each received TPDO's
+//! payload and the nodes' states; reads decode the channel's object from its PDO and fail
+//! while its node is not operational; writes store the output and mark its RPDO to be
+//! sent. No I/O of its own.
+
+use crate::map::{CanopenMap, Channel};
+use crate::node::NodeStatus;
+use arc_swap::ArcSwap;
+use can_socket::signal::{Signal, ValueKind};
+use device_interface::bits::{BitImage, BitSpan, Written};
+use device_interface::time::{Clock, Timestamp};
+use device_interface::{AnalogIn, AnalogOut, Device, DeviceError, Health, Scale, Status};
+use serde::Serialize;
+use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU64, Ordering};
+use std::sync::{Arc, OnceLock};
+
+/// One received PDO: its payload (little endian in a u64) and when it came (ns + 1; 0:
+/// never since its node was last started).
+#[derive(Default)]
+struct RxPdo {
+    payload: AtomicU64,
+    at: AtomicU64,
+}
+
+/// The card's counters.
+#[derive(Debug, Default)]
+pub struct Counters {
+    /// Frames received.
+    pub rx_frames: AtomicU64,
+    /// TPDOs decoded.
+    pub tpdos: AtomicU64,
+    /// PDOs shorter than their mapping (not decoded).
+    pub short_pdos: AtomicU64,
+    /// RPDOs sent.
+    pub rpdos: AtomicU64,
+    /// SYNCs sent.
+    pub syncs: AtomicU64,
+    /// Frames the kernel refused to send.
+    pub send_errors: AtomicU64,
+    /// Frames dropped by the socket's full buffer.
+    pub dropped: AtomicU64,
+    /// Error frames.
+    pub error_frames: AtomicU64,
+    /// Remote frames and frames of no known kind.
+    pub wrong_kind: AtomicU64,
+}
+
+/// The card's status snapshot.
+#[derive(Debug, Serialize)]
+pub struct CardSnapshot {
+    /// Whether the link is up.
+    pub link_up: bool,
+    /// The nodes.
+    pub nodes: Vec<NodeStatus>,
+    /// Frames received.
+    pub rx_frames: u64,
+    /// TPDOs decoded.
+    pub tpdos: u64,
+    /// PDOs shorter than their mapping.
+    pub short_pdos: u64,
+    /// RPDOs sent.
+    pub rpdos: u64,
+    /// SYNCs sent.
+    pub syncs: u64,
+    /// Frames the kernel refused to send.
+    pub send_errors: u64,
+    /// Frames dropped by the socket.
+    pub dropped: u64,
+    /// Error frames.
+    pub error_frames: u64,
+    /// Frames of no known kind.
+    pub wrong_kind: u64,
+}
+
+/// A CANopen card.
+pub struct CanopenCard {
+    map: CanopenMap,
+    clock: Arc<dyn Clock>,
+    link_up: AtomicBool,
+    operational: Vec<AtomicBool>,
+    status: Vec<ArcSwap<NodeStatus>>,
+    rx: Vec<RxPdo>,
+    /// Each TPDO's digital input bits: (channel, …).
+    rx_digital: Vec<Vec<u32>>,
+    dirty: Vec<AtomicBool>,
+    di: BitImage,
+    dout: BitImage,
+    ao: Vec<AtomicI64>,
+    waker: OnceLock<Box<dyn Fn() + Send + Sync>>,
+    /// Its counters.
+    pub counters: Counters,
+}
+
+impl CanopenCard {
+    /// A card over `map`, every node waiting.
+    pub fn new(map: CanopenMap, clock: Arc<dyn Clock>, statuses: Vec<NodeStatus>) -> Arc<Self> {
+        let mut rx_digital = vec![Vec::new(); map.tpdos.len()];
+        for (k, c) in map.digital_in.iter().enumerate() {
+            rx_digital[c.pdo].push(k as u32);
+        }
+        let dout = BitImage::new(map.digital_out.len() as u32);
+        let ao = map
+            .analog_out
+            .iter()
+            .map(|c| AtomicI64::new(initial_bits(&c.signal)))
+            .collect();
+        Arc::new(CanopenCard {
+            clock,
+            link_up: AtomicBool::new(false),
+            operational: map.nodes.iter().map(|_| AtomicBool::new(false)).collect(),
+            status: statuses.into_iter().map(ArcSwap::from_pointee).collect(),
+            rx: map.tpdos.iter().map(|_| RxPdo::default()).collect(),
+            rx_digital,
+            dirty: map.rpdos.iter().map(|_| AtomicBool::new(false)).collect(),
+            di: BitImage::new(map.digital_in.len() as u32),
+            dout,
+            ao,
+            waker: OnceLock::new(),
+            counters: Counters::default(),
+            map,
+        })
+    }
+
+    /// The resolved section.
+    pub fn map(&self) -> &CanopenMap {
+        &self.map
+    }
+
+    /// Sets the call that wakes the bus side when an output changed (once).
+    pub fn set_waker(&self, wake: Box<dyn Fn() + Send + Sync>) {
+        let _ = self.waker.set(wake);
+    }
+
+    fn wake(&self) {
+        if let Some(w) = self.waker.get() {
+            w();
+        }
+    }
+
+    /// The link state, from the bus side.
+    pub fn set_link(&self, up: bool) {
+        self.link_up.store(up, Ordering::Release);
+    }
+
+    /// Whether the link is up.
+    pub fn link_up(&self) -> bool {
+        self.link_up.load(Ordering::Acquire)
+    }
+
+    /// Node `n`'s status, from the bus side; its PDOs are live while it is operational.
+    pub fn set_node(&self, n: usize, status: &NodeStatus, operational: bool) {
+        let was = self.operational[n].swap(operational, Ordering::AcqRel);
+        if operational && !was {
+            // Freshly started: old inputs are not its values now. Its outputs were
+            // seeded from the node: nothing goes out until somebody writes (a synchronous
+            // RPDO goes out at each SYNC, carrying what the node has).
+            for (p, pdo) in self.map.tpdos.iter().enumerate() {
+                if pdo.node == n {
+                    self.rx[p].at.store(0, Ordering::Release);
+                }
+            }
+            for (p, pdo) in self.map.rpdos.iter().enumerate() {
+                if pdo.node == n {
+                    self.dirty[p].store(false, Ordering::Release);
+                }
+            }
+        }
+        self.status[n].store(Arc::new(status.clone()));
+    }
+
+    /// Node `n`'s object `index`:`sub` holds `data` (read at its configuration): the
+    /// outputs mapped from it start there.
+    pub fn seed(&self, n: usize, index: u16, sub: u8, data: &[u8]) {
+        let mut b = [0u8; 8];
+        let len = data.len().min(8);
+        b[..len].copy_from_slice(&data[..len]);
+        let raw = u64::from_le_bytes(b);
+        let of_node = |c: &Channel| c.object == (index, sub) && self.map.rpdos[c.pdo].node == n;
+        for (k, c) in self.map.analog_out.iter().enumerate() {
+            if of_node(c) {
+                let (_, bits, _, signed) = c.signal.layout();
+                let signed = signed && c.signal.kind() == ValueKind::Integer;
+                let v = if signed && bits < 64 {
+                    let shift = 64 - bits;
+                    ((raw << shift) as i64) >> shift
+                } else {
+                    raw as i64
+                };
+                self.ao[k].store(v, Ordering::Release);
+            }
+        }
+        for (k, c) in self.map.digital_out.iter().enumerate() {
+            if of_node(c) {
+                let _ = self.dout.set(k as u32, (raw >> c.bit) & 1 != 0);
+            }
+        }
+    }
+
+    /// Whether node `n` is operational.
+    pub fn node_operational(&self, n: usize) -> bool {
+        self.operational[n].load(Ordering::Acquire)
+    }
+
+    /// TPDO `p` received with `data` at `at`: stored, or counted as short.
+    pub fn receive(&self, p: usize, data: &[u8], at: Timestamp) {
+        let pdo = &self.map.tpdos[p];
+        if data.len() < pdo.len {
+            self.counters.short_pdos.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
+        let mut b = [0u8; 8];
+        let n = data.len().min(8);
+        b[..n].copy_from_slice(&data[..n]);
+        let payload = u64::from_le_bytes(b);
+        self.rx[p].payload.store(payload, Ordering::Release);
+        for &k in &self.rx_digital[p] {
+            let c = &self.map.digital_in[k as usize];
+            if let Ok(raw) = c.signal.extract(&b) {
+                let _ = self.di.set(k, (raw >> c.bit) & 1 != 0);
+            }
+        }
+        self.rx[p].at.store(at.as_nanos() + 1, Ordering::Release);
+        self.counters.tpdos.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// RPDO `p`'s payload now, clearing its dirty mark.
+    pub fn compose(&self, p: usize, out: &mut [u8; 8]) -> usize {
+        self.dirty[p].store(false, Ordering::Release);
+        *out = [0; 8];
+        for (k, c) in self.map.analog_out.iter().enumerate() {
+            if c.pdo == p {
+                let _ = c.signal.insert(out, self.ao[k].load(Ordering::Acquire));
+            }
+        }
+        // A digital object's bits are channels of their own, in order: each object is
+        // inserted whole once its bits are gathered.
+        let mut object: Option<(&Channel, i64)> = None;
+        for (k, c) in self.map.digital_out.iter().enumerate() {
+            if c.pdo != p {
+                continue;
+            }
+            let on = self.dout.get(k as u32).unwrap_or(false);
+            let bit = i64::from(on) << c.bit;
+            match &mut object {
+                Some((first, raw)) if first.object == c.object => *raw |= bit,
+                _ => {
+                    if let Some((first, raw)) = object.replace((c, bit)) {
+                        let _ = first.signal.insert(out, raw);
+                    }
+                }
+            }
+        }
+        if let Some((first, raw)) = object {
+            let _ = first.signal.insert(out, raw);
+        }
+        self.map.rpdos[p].len
+    }
+
+    /// Whether RPDO `p` has changed since it was last composed.
+    pub fn is_dirty(&self, p: usize) -> bool {
+        self.dirty[p].load(Ordering::Acquire)
+    }
+
+    /// Marks every RPDO to be sent again (the safe values at stop).
+    pub fn flush(&self) {
+        for d in &self.dirty {
+            d.store(true, Ordering::Release);
+        }
+        self.wake();
+    }
+
+    /// Whether any RPDO of an operational node waits to be sent.
+    pub fn sends_pending(&self) -> bool {
+        self.map
+            .rpdos
+            .iter()
+            .enumerate()
+            .any(|(p, pdo)| self.is_dirty(p) && self.node_operational(pdo.node))
+    }
+
+    /// The status snapshot.
+    pub fn snapshot(&self) -> CardSnapshot {
+        let c = &self.counters;
+        let l = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        CardSnapshot {
+            link_up: self.link_up(),
+            nodes: self.status.iter().map(|s| (**s.load()).clone()).collect(),
+            rx_frames: l(&c.rx_frames),
+            tpdos: l(&c.tpdos),
+            short_pdos: l(&c.short_pdos),
+            rpdos: l(&c.rpdos),
+            syncs: l(&c.syncs),
+            send_errors: l(&c.send_errors),
+            dropped: l(&c.dropped),
+            error_frames: l(&c.error_frames),
+            wrong_kind: l(&c.wrong_kind),
+        }
+    }
+
+    /// The input channel's PDO payload, its node operational and the PDO received.
+    fn input(&self, c: &Channel) -> Result<[u8; 8], DeviceError> {
+        if !self.link_up() || !self.node_operational(self.map.tpdos[c.pdo].node) {
+            return Err(DeviceError::Offline);
+        }
+        let rx = &self.rx[c.pdo];
+        if rx.at.load(Ordering::Acquire) == 0 {
+            return Err(DeviceError::Stale { age: None });
+        }
+        Ok(rx.payload.load(Ordering::Acquire).to_le_bytes())
+    }
+
+    fn check_output(&self, pdo: usize) -> Result<(), DeviceError> {
+        if self.link_up() && self.node_operational(self.map.rpdos[pdo].node) {
+            Ok(())
+        } else {
+            Err(DeviceError::Offline)
+        }
+    }
+
+    fn channel(list: &[Channel], channel: u32) -> Result<&Channel, DeviceError> {
+        list.get(channel as usize)
+            .ok_or(DeviceError::ChannelOutOfRange {
+                channel,
+                count: list.len() as u32,
+            })
+    }
+
+    fn value_of(channel: u32, signal: &Signal, bits: i64) -> Result<f64, DeviceError> {
+        let v = signal.physical(bits);
+        if v.is_finite() {
+            Ok(v)
+        } else {
+            Err(DeviceError::NotANumber {
+                channel,
+                what: if v.is_nan() { "NaN" } else { "an infinity" },
+            })
+        }
+    }
+}
+
+/// A float output's bits for 0.0; 0 for an integer.
+fn initial_bits(s: &Signal) -> i64 {
+    match s.kind() {
+        ValueKind::Integer => 0,
+        _ => s.raw_of(0.0).unwrap_or(0),
+    }
+}
+
+impl Device for CanopenCard {
+    fn health(&self) -> Health {
+        let now = self.clock.now();
+        let newest = self
+            .rx
+            .iter()
+            .map(|r| r.at.load(Ordering::Acquire))
+            .max()
+            .unwrap_or(0);
+        let down: Vec<u8> = self
+            .map
+            .nodes
+            .iter()
+            .enumerate()
+            .filter(|(n, _)| !self.node_operational(*n))
+            .map(|(_, node)| node.id)
+            .collect();
+        let status = if self.link_up() && down.is_empty() {
+            Status::Online
+        } else {
+            Status::Offline
+        };
+        Health {
+            status,
+            last_good: (newest != 0).then(|| Timestamp::from_nanos(newest - 1)),
+            checked_at: now,
+            last_error: (status != Status::Online).then_some(DeviceError::Offline),
+        }
+    }
+}
+
+impl AnalogIn for CanopenCard {
+    fn channel_count(&self) -> u32 {
+        self.map.analog_in.len() as u32
+    }
+
+    fn scale(&self, channel: u32) -> Result<Scale, DeviceError> {
+        Ok(*Self::channel(&self.map.analog_in, channel)?.signal.scale())
+    }
+
+    fn read_raw(&self, channel: u32) -> Result<i64, DeviceError> {
+        let c = Self::channel(&self.map.analog_in, channel)?;
+        let bits = c
+            .signal
+            .extract(&self.input(c)?)
+            .map_err(DeviceError::bus)?;
+        match c.signal.kind() {
+            ValueKind::Integer => Ok(bits),
+            _ => Ok(c
+                .signal
+                .scale()
+                .to_raw_saturating(Self::value_of(channel, &c.signal, bits)?)),
+        }
+    }
+
+    fn read(&self, channel: u32) -> Result<f64, DeviceError> {
+        let c = Self::channel(&self.map.analog_in, channel)?;
+        let bits = c
+            .signal
+            .extract(&self.input(c)?)
+            .map_err(DeviceError::bus)?;
+        Self::value_of(channel, &c.signal, bits)
+    }
+}
+
+impl AnalogOut for CanopenCard {
+    fn channel_count(&self) -> u32 {
+        self.map.analog_out.len() as u32
+    }
+
+    fn scale(&self, channel: u32) -> Result<Scale, DeviceError> {
+        Ok(*Self::channel(&self.map.analog_out, channel)?.signal.scale())
+    }
+
+    fn write(&self, channel: u32, value: f64) -> Result<(), DeviceError> {
+        let c = Self::channel(&self.map.analog_out, channel)?;
+        let bits = c.signal.raw_of(value).ok_or_else(|| {
+            let r = c.signal.scale().range();
+            DeviceError::ValueOutOfRange {
+                channel,
+                value,
+                lowest: r.lowest,
+                highest: r.highest,
+            }
+        })?;
+        self.store(channel, c.pdo, bits)
+    }
+
+    fn write_raw(&self, channel: u32, raw: i64) -> Result<(), DeviceError> {
+        let c = Self::channel(&self.map.analog_out, channel)?;
+        c.signal.scale().check_raw(channel, raw)?;
+        let bits = match c.signal.kind() {
+            ValueKind::Integer => raw,
+            _ => c.signal.raw_of(c.signal.scale().to_physical(raw)).ok_or(
+                DeviceError::RawOutOfRange {
+                    channel,
+                    raw,
+                    min: c.signal.scale().raw_range().min,
+                    max: c.signal.scale().raw_range().max,
+                },
+            )?,
+        };
+        self.store(channel, c.pdo, bits)
+    }
+
+    fn read_back(&self, channel: u32) -> Result<f64, DeviceError> {
+        let c = Self::channel(&self.map.analog_out, channel)?;
+        Self::value_of(
+            channel,
+            &c.signal,
+            self.ao[channel as usize].load(Ordering::Acquire),
+        )
+    }
+
+    fn read_back_raw(&self, channel: u32) -> Result<i64, DeviceError> {
+        let c = Self::channel(&self.map.analog_out, channel)?;
+        let bits = self.ao[channel as usize].load(Ordering::Acquire);
+        match c.signal.kind() {
+            ValueKind::Integer => Ok(bits),
+            _ => Ok(c
+                .signal
+                .scale()
+                .to_raw_saturating(Self::value_of(channel, &c.signal, bits)?)),
+        }
+    }
+}
+
+impl CanopenCard {
+    /// Stores analog output `channel`'s bits and marks its RPDO (refused while its node is
+    /// not operational: the write could not reach it).
+    fn store(&self, channel: u32, pdo: usize, bits: i64) -> Result<(), DeviceError> {
+        self.check_output(pdo)?;
+        self.ao[channel as usize].store(bits, Ordering::Release);
+        self.dirty[pdo].store(true, Ordering::Release);
+        self.wake();
+        Ok(())
+    }
+}
+
+impl device_interface::bits::DigitalInputImage for CanopenCard {
+    fn inputs(&self) -> &BitImage {
+        &self.di
+    }
+
+    fn check_inputs(&self, span: BitSpan) -> Result<(), DeviceError> {
+        for b in span.start()..=span.stop() {
+            self.input(Self::channel(&self.map.digital_in, b)?)?;
+        }
+        Ok(())
+    }
+}
+
+impl device_interface::bits::DigitalOutputImage for CanopenCard {
+    fn outputs(&self) -> &BitImage {
+        &self.dout
+    }
+
+    fn check_outputs_writable(&self) -> Result<(), DeviceError> {
+        // The image does not say which bits are written: a span may cross nodes, and one
+        // node down must not refuse the others' outputs. A bit of a node that is not
+        // operational is kept and goes out in its RPDO when the node is started.
+        if self.link_up() {
+            Ok(())
+        } else {
+            Err(DeviceError::Offline)
+        }
+    }
+
+    fn outputs_written(&self, written: Written) {
+        let (start, stop) = match written {
+            Written::Bit { bit, .. } => (bit, bit),
+            Written::Span { span, .. } => (span.start(), span.stop()),
+        };
+        for b in start..=stop {
+            if let Some(c) = self.map.digital_out.get(b as usize) {
+                self.dirty[c.pdo].store(true, Ordering::Release);
+            }
+        }
+        self.wake();
+    }
+}
