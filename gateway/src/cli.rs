@@ -492,6 +492,31 @@ fn set(
     })
 }
 
+/// The arguments of a call as JSON, each as its operation declares it: an argument the
+/// operation takes as a string is the text typed (`22F190`, `1001`: hex, not a number; a
+/// JSON string literal is its content); the others are JSON, else text. An operation the
+/// gateway cannot describe gets JSON-else-text throughout.
+fn call_args(client: &Client, component: &str, operation: &str, args: &[String]) -> Vec<Value> {
+    let types: Vec<String> = client
+        .typed::<Description>(&Request::Describe {
+            component: component.to_string(),
+        })
+        .ok()
+        .and_then(|d| d.operations.into_iter().find(|o| o.name == operation))
+        .map(|o| o.args.into_iter().map(|a| a.type_name).collect())
+        .unwrap_or_default();
+    args.iter()
+        .enumerate()
+        .map(
+            |(i, a)| match (types.get(i).map(String::as_str), json_arg(a)) {
+                (_, v @ Value::String(_)) => v,
+                (Some("string"), _) => Value::String(a.clone()),
+                (_, v) => v,
+            },
+        )
+        .collect()
+}
+
 /// `call COMPONENT OPERATION ARGS…`: the operation's value (nothing for none), or its
 /// error as the command's; `--json` prints the answer as the gateway gave it.
 fn call(
@@ -502,10 +527,11 @@ fn call(
     form: Form,
 ) -> Result<Option<String>, ClientError> {
     let what = format!("{component}.{operation}");
+    let args = call_args(client, &component, &operation, args);
     let answer = client.request(&Request::Call {
         component,
         operation,
-        args: args.iter().map(|a| json_arg(a)).collect(),
+        args,
     })?;
     if form.json {
         // The machine form: `{"Ok": …}` or `{"Err": …}`, and the exit code as the call went.

@@ -418,8 +418,90 @@ fn a_vehicle_dbc_as_tools_write_it() -> Result<(), Failed> {
     Ok(())
 }
 
+/// True when a CAN_RAW or CAN_ISOTP receiver for standard id `id` is bound on `iface`
+/// (the kernel's receive lists).
+fn receiving(iface: &str, id: u32) -> bool {
+    let list = std::fs::read_to_string("/proc/net/can/rcvlist_sff").unwrap_or_default();
+    let id = format!("{id:03x}");
+    list.lines().any(|l| {
+        let mut w = l.split_whitespace();
+        w.next() == Some(iface) && w.next() == Some(id.as_str())
+    })
+}
+
+/// `hwgw call CARD request NAME HEX` sends a 100-byte request through the kernel's ISO-TP
+/// and returns the 200-byte response that can-utils' isotpsend gives on the other end;
+/// isotprecv there receives the request whole.
+fn isotp_request_and_response_through_hwgw_call() -> Result<(), Failed> {
+    sh("ip link add vcan2 type vcan && ip link set vcan2 up")?;
+    let gw = Service::run_text(
+        HWGW,
+        "can-isotp",
+        r#"
+[[card]]
+name = "diag"
+driver = "socketcan"
+
+[card.socketcan]
+interface = "vcan2"
+isotp = [{ name = "ecu", tx_id = 0x7E0, rx_id = 0x7E8, timeout_ms = 10000, block_size = 4, st_min_us = 500 }]
+"#,
+    )?;
+    let request: Vec<u8> = (0..100u32).map(|i| (i * 7 + 3) as u8).collect();
+    let response: Vec<u8> = (0..200u32).map(|i| (255 - i) as u8).collect();
+    let hex = |b: &[u8]| b.iter().map(|x| format!("{x:02X}")).collect::<Vec<_>>();
+
+    // The ECU's side: isotprecv takes one request on 0x7E0 (flow control on 0x7E8).
+    let recv = std::process::Command::new("isotprecv")
+        .args(["-s", "7E8", "-d", "7E0", "vcan2"])
+        .stdout(std::process::Stdio::piped())
+        .spawn()?;
+    wait_ok("isotprecv bound", || Ok(receiving("vcan2", 0x7E0)))?;
+    let call = std::process::Command::new(HWGW)
+        .args(["call", "diag", "request", "ecu", &hex(&request).concat()])
+        .arg("--socket")
+        .arg(gw.dir().join("hwgw.sock"))
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()?;
+    let got = recv.wait_with_output()?;
+    assert_eq!(
+        String::from_utf8_lossy(&got.stdout).trim(),
+        hex(&request).join(" ")
+    );
+    // hwgw waits for the answer on 0x7E8 (its socket bound before the request went out).
+    sh(&format!(
+        "echo '{}' | isotpsend -s 7E8 -d 7E0 vcan2",
+        hex(&response).join(" ")
+    ))?;
+    let out = call.wait_with_output()?;
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(
+        String::from_utf8_lossy(&out.stdout).trim(),
+        format!("\"{}\"", hex(&response).concat())
+    );
+
+    // Nobody answering: a timeout error, not a hang; a bad pair or bad hex: named.
+    let none = gw.cli(&["call", "diag", "request", "nothing", "3E00"]);
+    let err = String::from_utf8_lossy(&none.stderr);
+    assert!(
+        err.contains("no ISO-TP address pair \"nothing\" (there are: ecu)"),
+        "{err}"
+    );
+    let bad = gw.cli(&["call", "diag", "request", "ecu", "3G"]);
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(err.contains("\"3G\" is not a hex byte"), "{err}");
+    let stopped = gw.terminate();
+    assert!(stopped.status.success(), "{}", stopped.log);
+    Ok(())
+}
+
 fn main() -> std::process::ExitCode {
-    let rig = testkit::rig::vcan();
+    let rig = testkit::rig::vcan().module("can_isotp");
     kernel_rig::harness(
         &rig,
         vec![
@@ -430,6 +512,10 @@ fn main() -> std::process::ExitCode {
             Trial::test(
                 "a_vehicle_dbc_as_tools_write_it",
                 a_vehicle_dbc_as_tools_write_it,
+            ),
+            Trial::test(
+                "isotp_request_and_response_through_hwgw_call",
+                isotp_request_and_response_through_hwgw_call,
             ),
         ],
     )

@@ -3,6 +3,7 @@
 //!
 //! - [`socket`]: a non-blocking CAN_RAW socket with kernel filters, receive timestamps and
 //!   drop counts, and the checks that an interface can carry a driver's frames;
+//! - [`isotp`]: ISO-TP exchanges through the kernel's `CAN_ISOTP` sockets;
 //! - [`link`]: an interface's presence, state and identity from sysfs;
 //! - [`signal`]: values in frame payloads as DBC files and CANopen PDOs lay them out
 //!   (Intel/Motorola bit order, signed, 64-bit, IEEE float and double, factor, offset);
@@ -17,6 +18,7 @@
 //! # Ok::<(), can_socket::signal::SignalError>(())
 //! ```
 
+pub mod isotp;
 pub mod link;
 pub mod signal;
 pub mod socket;

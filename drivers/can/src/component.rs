@@ -112,6 +112,9 @@ impl CanIo {
             "a real controller's state from netlink (error state, error counters, restart \
              delay, bit rate, restarts seen), written when it changes; never on vcan",
         )?;
+        if !card.map().isotp().is_empty() {
+            isotp_operation(&card, iface)?;
+        }
         let c = card.clone();
         iface.client_operation(
             "counters",
@@ -132,6 +135,69 @@ impl CanIo {
             watched: SocketWatch::default(),
         })
     }
+}
+
+/// Operation `request NAME HEX`: one ISO-TP exchange on address pair NAME, the response
+/// as hex; one at a time per pair, on the caller's thread (never the bus thread).
+fn isotp_operation(
+    card: &Arc<CanCard>,
+    iface: &mut InterfaceBuilder<CanIo>,
+) -> Result<(), IntrospectError> {
+    let interface = card.map().interface().to_string();
+    let pairs: Vec<(String, can_socket::isotp::IsoTp, std::sync::Mutex<()>)> = card
+        .map()
+        .isotp()
+        .iter()
+        .map(|(n, t)| (n.clone(), t.clone(), std::sync::Mutex::new(())))
+        .collect();
+    let names: Vec<String> = pairs.iter().map(|(n, ..)| n.clone()).collect();
+    iface.client_operation(
+        "request",
+        &format!(
+            "sends an ISO-TP request and returns the response (UDS diagnostics), both as \
+             hex bytes; address pairs: {}",
+            names.join(", ")
+        ),
+        &[
+            ("name", "the address pair"),
+            ("request", "the request, hex (e.g. 22F190)"),
+        ],
+        move |(name, hex): (String, String)| -> Result<String, String> {
+            let Some((_, tp, lock)) = pairs.iter().find(|(n, ..)| *n == name) else {
+                return Err(format!(
+                    "no ISO-TP address pair {name:?} (there are: {})",
+                    names.join(", ")
+                ));
+            };
+            let request = parse_hex(&hex)?;
+            let _one = lock.lock().unwrap_or_else(|e| e.into_inner());
+            let response = tp
+                .exchange(&interface, &request)
+                .map_err(|e| e.to_string())?;
+            Ok(response.iter().map(|b| format!("{b:02X}")).collect())
+        },
+    )
+}
+
+/// Hex bytes (spaces allowed) as bytes.
+fn parse_hex(text: &str) -> Result<Vec<u8>, String> {
+    let digits: Vec<u8> = text.bytes().filter(|b| !b.is_ascii_whitespace()).collect();
+    if !digits.len().is_multiple_of(2) || digits.len() > 2 * can_socket::isotp::MAX_LEN {
+        return Err(format!(
+            "a request is 1 to {} bytes as pairs of hex digits, not {} digits",
+            can_socket::isotp::MAX_LEN,
+            digits.len()
+        ));
+    }
+    digits
+        .chunks(2)
+        .map(|pair| {
+            std::str::from_utf8(pair)
+                .ok()
+                .and_then(|p| u8::from_str_radix(p, 16).ok())
+                .ok_or_else(|| format!("{:?} is not a hex byte", String::from_utf8_lossy(pair)))
+        })
+        .collect()
 }
 
 impl CanIo {

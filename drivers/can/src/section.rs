@@ -31,6 +31,42 @@ pub struct CanConfig {
     /// Frames to send.
     #[serde(default)]
     pub tx: Vec<FrameConfig>,
+    /// ISO-TP address pairs, each an exchange (request, response) the bus component's
+    /// `request` operation makes.
+    #[serde(default)]
+    pub isotp: Vec<IsoTpConfig>,
+}
+
+/// One `[[isotp]]` address pair.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct IsoTpConfig {
+    /// Its name (`hwgw call CARD request NAME HEX`).
+    pub name: String,
+    /// The id requests go out on (e.g. 0x7E0).
+    pub tx_id: u32,
+    /// The id responses come on (e.g. 0x7E8).
+    pub rx_id: u32,
+    /// 29-bit ids.
+    #[serde(default)]
+    pub extended: bool,
+    /// How long a response may take, ms (default 1000).
+    #[serde(default = "default_isotp_timeout")]
+    pub timeout_ms: u32,
+    /// The block size hwgw's flow control asks for (0, the default: no waiting).
+    #[serde(default)]
+    pub block_size: u8,
+    /// The separation time hwgw's flow control asks for, µs (0 to 127000; under 1000 in
+    /// steps of 100).
+    #[serde(default)]
+    pub st_min_us: u32,
+    /// Pad sent frames to 8 bytes with this byte (e.g. 0xCC).
+    #[serde(default)]
+    pub padding: Option<u8>,
+}
+
+fn default_isotp_timeout() -> u32 {
+    1000
 }
 
 fn default_stale_cycles() -> u32 {

@@ -38,6 +38,7 @@
 
 pub use crate::section::{CanConfig, FrameConfig, SignalConfig, SignalRole};
 
+mod isotp;
 mod signals;
 
 pub use signals::QUALIFIER;
@@ -143,6 +144,7 @@ pub struct CanMap {
     tx: Vec<MappedFrame>,
     counts: [u32; 4],
     encoders: u32,
+    isotp: Vec<(String, can_socket::isotp::IsoTp)>,
 }
 
 /// The payload lengths a CAN FD frame can have.
@@ -218,6 +220,7 @@ impl CanMap {
             tx,
             counts: [next[0], next[1], next[2], next[3]],
             encoders: next[4],
+            isotp: isotp::resolve(&config.isotp)?,
         })
     }
 
@@ -249,6 +252,11 @@ impl CanMap {
     /// Channel counts: analog in, analog out, digital in bits, digital out bits.
     pub fn counts(&self) -> [u32; 4] {
         self.counts
+    }
+
+    /// The ISO-TP address pairs, by name.
+    pub fn isotp(&self) -> &[(String, can_socket::isotp::IsoTp)] {
+        &self.isotp
     }
 
     /// Number of encoders.
