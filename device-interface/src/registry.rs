@@ -403,6 +403,9 @@ pub struct CardDevices {
     pub digital_out: Option<Arc<dyn DigitalOut>>,
     /// Its encoders, each with the suffix of its name (`card.suffix`).
     pub encoders: Vec<(String, Arc<dyn Encoder>)>,
+    /// Its drives (a CANopen CiA 402 node), each with the suffix of its name
+    /// (`card.suffix`), registered as logical [`Drive`]s.
+    pub drives: Vec<(String, Arc<dyn Drive>)>,
 }
 
 /// One name in a [`Registry`] listing.
@@ -522,7 +525,8 @@ impl Served for dyn Sensor<f64> {
 }
 
 impl Registry {
-    /// Registers every device of card `name` under `name` (encoders as `name.suffix`),
+    /// Registers every device of card `name` under `name` (encoders and drives as
+    /// `name.suffix`),
     /// owned by `name`. All or nothing: on error, what this call registered is removed again
     /// and a name held by someone else stays theirs.
     pub fn register_card(&self, name: &str, devices: CardDevices) -> Result<(), RegistryError> {
@@ -548,6 +552,11 @@ impl Registry {
                 let full = format!("{name}.{suffix}");
                 self.encoder.register(&full, name, d)?;
                 done.push((Interface::Encoder, full));
+            }
+            for (suffix, d) in devices.drives {
+                let full = format!("{name}.{suffix}");
+                self.drive.register(&full, name, d)?;
+                done.push((Interface::Drive, full));
             }
             Ok(())
         })();

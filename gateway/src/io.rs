@@ -683,8 +683,14 @@ pub fn build(
                 .encoder()
                 .get(n)
                 .map(|d| encoder(runtime, n, d, sample)),
-            // A card registers no logical device; `[[logical]]` ones have their own.
-            Interface::Sensor | Interface::Drive | Interface::Axis => None,
+            // A card's drive (a CANopen CiA 402 node) gets the drive component of
+            // `[[logical]]` drives: enable, disable, set_velocity, readings.
+            Interface::Drive => registry
+                .drive()
+                .get(n)
+                .map(|d| crate::logical::drive_io(runtime, n, d, false)),
+            // A card registers no sensor or axis; `[[logical]]` ones have their own.
+            Interface::Sensor | Interface::Axis => None,
         };
         if let Some(t) = task {
             out.push(t?);

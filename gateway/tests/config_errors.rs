@@ -138,6 +138,10 @@ fn every_broken_config_gets_its_exact_error() {
          "t.toml:6:68: card[0].socketcan.isotp[0].st_min_us: card \"can\": 150 µs: ISO 15765-2 codes 100 to 900 µs in steps of 100, or 1 to 127 ms"),
         ("ISO-TP: the same id both ways", format!("{CAN}interface = \"can7\"\nisotp = [{{ name = \"ecu\", tx_id = 0x7E0, rx_id = 0x7E0 }}]\n"), 
          "t.toml:6:49: card[0].socketcan.isotp[0].rx_id: card \"can\": the response id must differ from the request id"),
+        ("CANopen: a drive on an IO module", format!("{CANOPEN}drive = {{ name = \"axis\" }}\n"), 
+         "t.toml:9:9: card[0].canopen.node[0].drive: card \"io\": 0x6060 sub 0 is not in the node's dictionary"),
+        ("CANopen: a drive without its controlword", format!("{CANOPEN}drive = {{ name = \"axis\" }}\n").replace("io401", "drive402"), 
+         "t.toml:9:9: card[0].canopen.node[0].drive: card \"io\": a drive's RPDOs carry its controlword (0x6040:0) and target velocity (0x60FF:0)"),
         // A message that does not parse is refused where it is mapped, not before.
         ("malformed DBC file, unmapped", format!("{CAN}interface = \"can7\"\ndbc = \"tests/data/broken.dbc\"\n"), "ok"),
         ("malformed DBC message, mapped", format!("{CAN}interface = \"can7\"\ndbc = \"tests/data/broken.dbc\"\n[[card.socketcan.rx]]\nmessage = \"Motion\"\n"),

@@ -18,13 +18,19 @@ const EDS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../drivers/canopen/tests
 
 /// The nodes `ids` (each a CiA 401 module over io401.eds) on `iface`, booted.
 fn nodes(iface: &str, ids: &[u8]) -> JsonPeer {
+    let specs: Vec<String> = ids
+        .iter()
+        .map(|id| format!("{id}:{EDS}/io401.eds"))
+        .collect();
+    peer(iface, &specs)
+}
+
+/// Python canopen's nodes `specs` (`ID:EDS[:402]`) on `iface`, booted.
+fn peer(iface: &str, specs: &[String]) -> JsonPeer {
     let path = testkit::pypi::canopen()
         .unwrap_or_else(|e| panic!("cannot install canopen from PyPI (pip, python3-pip): {e}"));
     let mut cmd = Command::new("python3");
-    cmd.arg(PEER).arg(iface);
-    for id in ids {
-        cmd.arg(format!("{id}:{EDS}/io401.eds"));
-    }
+    cmd.arg(PEER).arg(iface).args(specs);
     cmd.env("PYTHONPATH", path);
     let mut peer = JsonPeer::spawn(cmd, "python canopen's nodes");
     assert_eq!(peer.answer(), json!({"ready": true}));
@@ -325,6 +331,79 @@ fn aborts_are_named_and_hostile_frames_counted() -> Result<(), Failed> {
     Ok(())
 }
 
+/// A CiA 402 drive (Python canopen node 9 over drive402.eds, its state machine in the
+/// peer) as the card's drive `io.axis`: profile velocity mode set by SDO, enabled through
+/// shutdown, switch on, enable operation; moved; a fault seen, reset by disable, enabled
+/// again; at stop shut down at zero velocity.
+fn a_cia402_drive_is_enabled_moved_and_shut_down() -> Result<(), Failed> {
+    sh("ip link add vcan3 type vcan && ip link set vcan3 up")?;
+    let mut peer = peer("vcan3", &[format!("9:{EDS}/drive402.eds:402")]);
+    let section = format!(
+        r#"
+[[card.canopen.node]]
+id = 9
+eds = "{EDS}/drive402.eds"
+heartbeat_ms = 100
+drive = {{ name = "axis", velocity_factor = 0.1, unit = "rpm" }}
+
+[[card.canopen.node.tpdo]]
+number = 1
+objects = [{{ object = "0x6041:0", name = "status", type = "analog" }}, {{ object = "0x606C:0", name = "speed", factor = 0.1, unit = "rpm" }}]
+
+[[card.canopen.node.rpdo]]
+number = 1
+objects = [{{ object = "0x6040:0" }}, {{ object = "0x60FF:0" }}]
+"#
+    );
+    let gw = Service::run_text(HWGW, "canopen-402", &deployment("vcan3", &section, ""))?;
+    wait_state(&gw, 9, "operational")?;
+    // Profile velocity mode, written at configuration.
+    assert_eq!(od(&mut peer, 9, 0x6060, 0), json!(3));
+    let sw = |peer: &mut JsonPeer| od(peer, 9, 0x6041, 0).as_u64().unwrap_or(0) & 0x6F;
+    // Disabled, nothing written: the drive is as it booted.
+    assert_eq!(gw.out(&["call", "io.axis", "enabled"])?, "false");
+    assert_eq!(sw(&mut peer), 0x40);
+    assert_eq!(peer.ask(&json!({"rpdos": 9})), json!({"count": 0}));
+
+    gw.out(&["call", "io.axis", "enable"])?;
+    wait_ok("operation enabled", || Ok(sw(&mut peer) == 0x27))?;
+    gw.out(&["call", "io.axis", "set_velocity", "150"])?;
+    wait_ok("the target velocity at the drive", || {
+        Ok(od(&mut peer, 9, 0x60FF, 0) == json!(1500))
+    })?;
+    // raw × factor in f64, bit for bit.
+    let speed = 1500.0 * 0.1f64;
+    let number = |s: String| s.parse::<f64>().map(f64::to_bits).ok();
+    wait_ok("the velocity actual", || {
+        Ok(number(get(&gw, "ai", "speed")?) == Some(speed.to_bits()))
+    })?;
+    let set = number(gw.out(&["call", "io.axis", "velocity"])?);
+    assert_eq!(set, Some(speed.to_bits()));
+
+    // A fault: enabled no more, enable refused; disable resets it; enabled again.
+    peer.ask(&json!({"fault": 9}));
+    wait_ok("the fault seen", || {
+        Ok(gw.out(&["call", "io.axis", "faulted"])? == "true")
+    })?;
+    assert_eq!(gw.out(&["call", "io.axis", "enabled"])?, "false");
+    assert!(!gw.cli(&["call", "io.axis", "enable"]).status.success());
+    gw.out(&["call", "io.axis", "disable"])?;
+    wait_ok("the fault reset", || Ok(sw(&mut peer) == 0x40))?;
+    gw.out(&["call", "io.axis", "enable"])?;
+    wait_ok("operation enabled again", || Ok(sw(&mut peer) == 0x27))?;
+    gw.out(&["call", "io.axis", "set_velocity", "-20"])?;
+    wait_ok("the new velocity", || {
+        Ok(od(&mut peer, 9, 0x60FF, 0) == json!(-200))
+    })?;
+
+    // Stop: zero velocity, shut down (ready to switch on).
+    let stopped = gw.terminate();
+    assert!(stopped.status.success(), "{}", stopped.log);
+    assert_eq!(od(&mut peer, 9, 0x60FF, 0), json!(0), "{}", stopped.log);
+    assert_eq!(sw(&mut peer), 0x21, "{}", stopped.log);
+    Ok(())
+}
+
 fn main() -> std::process::ExitCode {
     if !kernel_rig::in_guest()
         && let Err(e) = testkit::pypi::canopen()
@@ -343,6 +422,10 @@ fn main() -> std::process::ExitCode {
             Trial::test(
                 "aborts_are_named_and_hostile_frames_counted",
                 aborts_are_named_and_hostile_frames_counted,
+            ),
+            Trial::test(
+                "a_cia402_drive_is_enabled_moved_and_shut_down",
+                a_cia402_drive_is_enabled_moved_and_shut_down,
             ),
         ],
     )

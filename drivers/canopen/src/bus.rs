@@ -163,13 +163,14 @@ impl CanopenBus {
             if !self.started {
                 self.started = true;
                 for node in &mut self.nodes {
-                    node.start(&mut self.out);
+                    node.start(now, &mut self.out);
                 }
             }
             for node in &mut self.nodes {
                 node.tick(now, &mut self.out);
             }
             self.publish();
+            crate::drive::step(&self.card);
             self.send_sync(now);
             self.send_rpdos(false);
         }

@@ -22,6 +22,25 @@ struct RxPdo {
     at: AtomicU64,
 }
 
+/// What one drive is asked to be.
+#[derive(Debug, Default)]
+pub struct Wanted {
+    pub(crate) enable: AtomicBool,
+    /// A fault reset was asked (by `disable` while faulted).
+    pub(crate) reset: AtomicBool,
+    /// Target velocity, counts.
+    pub(crate) velocity: AtomicI64,
+}
+
+impl Wanted {
+    /// Disabled at zero velocity (a drive started again).
+    pub(crate) fn reset(&self) {
+        self.enable.store(false, Ordering::Release);
+        self.reset.store(false, Ordering::Release);
+        self.velocity.store(0, Ordering::Release);
+    }
+}
+
 /// The card's counters.
 #[derive(Debug, Default)]
 pub struct Counters {
@@ -86,6 +105,10 @@ pub struct CanopenCard {
     di: BitImage,
     dout: BitImage,
     ao: Vec<AtomicI64>,
+    /// The drives' controlwords and target velocities, as `map.drive_out`.
+    drive_out: Vec<AtomicI64>,
+    /// What each drive is asked to be.
+    pub(crate) drives: Vec<Wanted>,
     waker: OnceLock<Box<dyn Fn() + Send + Sync>>,
     /// Its counters.
     pub counters: Counters,
@@ -115,6 +138,8 @@ impl CanopenCard {
             di: BitImage::new(map.digital_in.len() as u32),
             dout,
             ao,
+            drive_out: map.drive_out.iter().map(|_| AtomicI64::new(0)).collect(),
+            drives: map.drives.iter().map(|_| Default::default()).collect(),
             waker: OnceLock::new(),
             counters: Counters::default(),
             map,
@@ -162,6 +187,12 @@ impl CanopenCard {
             for (p, pdo) in self.map.rpdos.iter().enumerate() {
                 if pdo.node == n {
                     self.dirty[p].store(false, Ordering::Release);
+                }
+            }
+            // A drive (re)started is disabled until somebody enables it.
+            for (d, drive) in self.map.drives.iter().enumerate() {
+                if drive.node == n {
+                    self.drives[d].reset();
                 }
             }
         }
@@ -227,6 +258,13 @@ impl CanopenCard {
     pub fn compose(&self, p: usize, out: &mut [u8; 8]) -> usize {
         self.dirty[p].store(false, Ordering::Release);
         *out = [0; 8];
+        for (k, c) in self.map.drive_out.iter().enumerate() {
+            if c.pdo == p {
+                let _ = c
+                    .signal
+                    .insert(out, self.drive_out[k].load(Ordering::Acquire));
+            }
+        }
         for (k, c) in self.map.analog_out.iter().enumerate() {
             if c.pdo == p {
                 let _ = c.signal.insert(out, self.ao[k].load(Ordering::Acquire));
@@ -254,6 +292,29 @@ impl CanopenCard {
             let _ = first.signal.insert(out, raw);
         }
         self.map.rpdos[p].len
+    }
+
+    /// Drive output `k` (`map.drive_out`): its value now.
+    pub(crate) fn drive_out(&self, k: usize) -> i64 {
+        self.drive_out[k].load(Ordering::Acquire)
+    }
+
+    /// Sets drive output `k` and marks its RPDO, when it changes.
+    pub(crate) fn set_drive_out(&self, k: usize, value: i64) {
+        if self.drive_out[k].swap(value, Ordering::AcqRel) != value {
+            self.dirty[self.map.drive_out[k].pdo].store(true, Ordering::Release);
+        }
+    }
+
+    /// Analog input `channel`'s raw value, its node operational and its PDO received.
+    pub(crate) fn input_raw(&self, channel: usize) -> Result<i64, DeviceError> {
+        let c = Self::channel(&self.map.analog_in, channel as u32)?;
+        c.signal.extract(&self.input(c)?).map_err(DeviceError::bus)
+    }
+
+    /// Wakes the bus side (a drive was asked something).
+    pub(crate) fn wake_bus(&self) {
+        self.wake();
     }
 
     /// Whether RPDO `p` has changed since it was last composed.

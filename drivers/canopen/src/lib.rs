@@ -28,7 +28,9 @@
 
 pub mod bus;
 pub mod card;
+pub mod cia402;
 pub mod component;
+pub mod drive;
 pub mod eds;
 pub mod map;
 pub mod node;
@@ -36,3 +38,4 @@ pub mod pdo;
 pub mod plugin;
 pub mod sdo;
 pub mod section;
+pub mod setting;

@@ -104,6 +104,29 @@ pub struct CanopenMap {
     pub analog_out: Vec<Channel>,
     /// Digital outputs.
     pub digital_out: Vec<Channel>,
+    /// The drives' controlwords and target velocities (no channels: the drives own them).
+    pub drive_out: Vec<Channel>,
+    /// The CiA 402 drives.
+    pub drives: Vec<DriveMap>,
+}
+
+/// A node's CiA 402 drive, resolved.
+#[derive(Debug, Clone)]
+pub struct DriveMap {
+    /// Index into [`CanopenMap::nodes`].
+    pub node: usize,
+    /// Its name under the card.
+    pub name: String,
+    /// Velocity units per count.
+    pub factor: f64,
+    /// The velocity unit.
+    pub unit: String,
+    /// Its controlword in [`CanopenMap::drive_out`].
+    pub controlword: usize,
+    /// Its target velocity in [`CanopenMap::drive_out`].
+    pub velocity: usize,
+    /// Its statusword in [`CanopenMap::analog_in`].
+    pub statusword: usize,
 }
 
 impl CanopenMap {
@@ -127,6 +150,8 @@ impl CanopenMap {
             digital_in: Vec::new(),
             analog_out: Vec::new(),
             digital_out: Vec::new(),
+            drive_out: Vec::new(),
+            drives: Vec::new(),
         };
         for (n, node) in config.node.iter().enumerate() {
             let key = format!("node[{n}]");
@@ -183,9 +208,18 @@ impl CanopenMap {
                 data: ms.to_le_bytes().to_vec(),
             });
         }
+        if node.drive.is_some() {
+            // Profile velocity mode.
+            setup.push(
+                crate::setting::write(&od, "0x6060:0", crate::section::toml_value::Number::Int(3))
+                    .map_err(|m| at(format!("{key}.drive"), m))?,
+            );
+        }
         for (s, setting) in node.sdo.iter().enumerate() {
             let k = format!("{key}.sdo[{s}]");
-            setup.push(sdo_setting(&od, &setting.object, setting.value).map_err(|m| at(k, m))?);
+            setup.push(
+                crate::setting::write(&od, &setting.object, setting.value).map_err(|m| at(k, m))?,
+            );
         }
         let node_index = self.nodes.len();
         for (direction, list, label) in [
@@ -194,10 +228,21 @@ impl CanopenMap {
         ] {
             for (p, pdo) in list.iter().enumerate() {
                 let k = format!("{key}.{label}[{p}]");
+                let drive = node.drive.is_some();
                 self.add_pdo(
-                    node_index, node.id, &name, &od, direction, pdo, &k, &mut setup,
+                    (node_index, drive),
+                    node.id,
+                    &name,
+                    &od,
+                    direction,
+                    pdo,
+                    &k,
+                    &mut setup,
                 )?;
             }
+        }
+        if let Some(d) = &node.drive {
+            self.add_drive(node_index, node.id, d, &format!("{key}.drive"))?;
         }
         // Each readable object's final value, read back once configured (a PDO's COB-ID
         // with its valid bit, not the invalid one written first).
@@ -241,7 +286,7 @@ impl CanopenMap {
     )]
     fn add_pdo(
         &mut self,
-        node: usize,
+        (node, drive): (usize, bool),
         id: u8,
         name: &str,
         od: &ObjectDictionary,
@@ -345,8 +390,18 @@ impl CanopenMap {
             self.rpdos.push(entry);
         }
         for (k, obj, index, sub, data_type, offset, bits) in channels {
+            let owned = drive
+                && direction == Direction::Rpdo
+                && matches!((index, sub), (0x6040, 0) | (0x60FF, 0));
             self.add_channel(
-                direction, pdo_index, name, &k, obj, index, sub, data_type, offset, bits,
+                (direction, owned),
+                pdo_index,
+                name,
+                &k,
+                obj,
+                (index, sub, data_type),
+                offset,
+                bits,
             )?;
         }
         Ok(())
@@ -358,14 +413,12 @@ impl CanopenMap {
     )]
     fn add_channel(
         &mut self,
-        direction: Direction,
+        (direction, owned): (Direction, bool),
         pdo: usize,
         node_name: &str,
         key: &str,
         obj: &ObjectConfig,
-        index: u16,
-        sub: u8,
-        data_type: u16,
+        (index, sub, data_type): (u16, u8, u16),
         offset: u32,
         bits: u8,
     ) -> Result<(), MapError> {
@@ -417,6 +470,8 @@ impl CanopenMap {
         })
         .map_err(|e| at(key, e))?;
         let list = match (direction, kind) {
+            // A drive's controlword and target velocity: its own, not a channel.
+            _ if owned => &mut self.drive_out,
             (Direction::Tpdo, Kind::Analog) => &mut self.analog_in,
             (Direction::Tpdo, Kind::Digital) => &mut self.digital_in,
             (Direction::Rpdo, Kind::Analog) => &mut self.analog_out,
@@ -444,51 +499,61 @@ impl CanopenMap {
     }
 }
 
-/// The write of one `sdo` setting: the value as the object's type stores it.
-fn sdo_setting(
-    od: &ObjectDictionary,
-    object: &str,
-    value: crate::section::toml_value::Number,
-) -> Result<Write, String> {
-    use crate::section::toml_value::Number;
-    let (index, sub) = crate::section::parse_object(object)
-        .ok_or_else(|| format!("{object:?}: expected 0xINDEX:SUB"))?;
-    let v = od
-        .variable(index, sub)
-        .ok_or_else(|| format!("{index:#06x} sub {sub} is not in the node's dictionary"))?;
-    let bits = type_bits(v.data_type)
-        .ok_or_else(|| format!("{index:#06x} sub {sub} ({}) is not a number", v.name))?;
-    let bytes = usize::from(bits).div_ceil(8);
-    let data = match (v.data_type, value) {
-        (data_type::REAL32, Number::Float(f)) => (f as f32).to_le_bytes().to_vec(),
-        (data_type::REAL32, Number::Int(i)) => (i as f32).to_le_bytes().to_vec(),
-        (data_type::REAL64, Number::Float(f)) => f.to_le_bytes().to_vec(),
-        (data_type::REAL64, Number::Int(i)) => (i as f64).to_le_bytes().to_vec(),
-        (_, Number::Float(f)) => {
-            return Err(format!(
-                "{f}: {index:#06x} sub {sub} ({}) is an integer",
-                v.name
+impl CanopenMap {
+    /// Node `node`'s drive: its RPDOs must carry the controlword and the target velocity,
+    /// a TPDO its statusword.
+    fn add_drive(
+        &mut self,
+        node: usize,
+        id: u8,
+        d: &crate::section::DriveConfig,
+        key: &str,
+    ) -> Result<(), MapError> {
+        let of_node = |c: &Channel, pdos: &[PdoMap]| pdos[c.pdo].node == node;
+        let out = |object: (u16, u8)| {
+            self.drive_out
+                .iter()
+                .position(|c| c.object == object && of_node(c, &self.rpdos))
+        };
+        let (Some(controlword), Some(velocity)) = (out((0x6040, 0)), out((0x60FF, 0))) else {
+            return Err(at(
+                key,
+                "a drive's RPDOs carry its controlword (0x6040:0) and target velocity (0x60FF:0)",
+            ));
+        };
+        let Some(statusword) = self
+            .analog_in
+            .iter()
+            .position(|c| c.object == (0x6041, 0) && of_node(c, &self.tpdos))
+        else {
+            return Err(at(
+                key,
+                "a drive's TPDO carries its statusword (0x6041:0), mapped as analog",
+            ));
+        };
+        let factor = d.velocity_factor.unwrap_or(1.0);
+        if !factor.is_finite() || factor == 0.0 {
+            return Err(at(
+                format!("{key}.velocity_factor"),
+                format!("{factor}: a finite number other than 0"),
             ));
         }
-        (t, Number::Int(i)) => {
-            let signed = data_type::signed_bits(t).is_some();
-            let fits = if bits >= 64 {
-                signed || i >= 0
-            } else if signed {
-                let half = 1i64 << (bits - 1);
-                (-half..half).contains(&i)
-            } else {
-                (0..1i64 << bits).contains(&i)
-            };
-            if !fits {
-                return Err(format!(
-                    "{i} does not fit {index:#06x} sub {sub} ({}, {bits} bits{})",
-                    v.name,
-                    if signed { ", signed" } else { "" }
-                ));
-            }
-            i.to_le_bytes()[..bytes].to_vec()
+        let name = d.name.clone().unwrap_or_else(|| format!("drive{id}"));
+        if !driver_api::is_port_name(&name) || self.drives.iter().any(|o| o.name == name) {
+            return Err(at(
+                format!("{key}.name"),
+                format!("{name:?}: a drive needs a name of its own without dots or spaces"),
+            ));
         }
-    };
-    Ok(Write { index, sub, data })
+        self.drives.push(DriveMap {
+            node,
+            name,
+            factor,
+            unit: d.unit.clone().unwrap_or_else(|| "counts/s".into()),
+            controlword,
+            velocity,
+            statusword,
+        });
+        Ok(())
+    }
 }

@@ -92,6 +92,15 @@ impl Card for CanopenPlugin {
             digital_in: (!map.digital_in.is_empty()).then(|| c.clone() as Arc<dyn DigitalIn>),
             digital_out: (!map.digital_out.is_empty()).then(|| c.clone() as Arc<dyn DigitalOut>),
             encoders: Vec::new(),
+            drives: (0..map.drives.len())
+                .map(|d| {
+                    let drive = crate::drive::Cia402Drive::new(c.clone(), d);
+                    (
+                        map.drives[d].name.clone(),
+                        Arc::new(drive) as Arc<dyn device_interface::logical::Drive>,
+                    )
+                })
+                .collect(),
         }
     }
 
@@ -154,13 +163,22 @@ impl Card for CanopenPlugin {
     }
 
     fn settle(&self, deadline: Instant, bus_running: bool) -> Result<(), SettleError> {
-        self.card.flush();
-        while bus_running
-            && self.card.link_up()
-            && self.card.sends_pending()
-            && Instant::now() < deadline
-        {
-            std::thread::sleep(Duration::from_millis(2));
+        // The drives disabled (zero velocity, shutdown), then every RPDO once more; twice,
+        // so that a bus step that ran while the drives were told is followed by one that
+        // saw it.
+        for d in 0..self.card.map().drives.len() {
+            use device_interface::logical::Drive;
+            let _ = crate::drive::Cia402Drive::new(self.card.clone(), d).disable();
+        }
+        for _ in 0..2 {
+            self.card.flush();
+            while bus_running
+                && self.card.link_up()
+                && self.card.sends_pending()
+                && Instant::now() < deadline
+            {
+                std::thread::sleep(Duration::from_millis(2));
+            }
         }
         if !self.card.link_up() {
             return Err(SettleError::Offline(format!(

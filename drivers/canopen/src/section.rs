@@ -85,6 +85,26 @@ pub struct NodeConfig {
     /// The node's RPDOs: its outputs.
     #[serde(default)]
     pub rpdo: Vec<PdoConfig>,
+    /// A CiA 402 drive in profile velocity mode: its RPDOs carry the controlword
+    /// (0x6040) and the target velocity (0x60FF), a TPDO its statusword (0x6041); it is
+    /// the card's drive `<card>.<name>`.
+    #[serde(default)]
+    pub drive: Option<DriveConfig>,
+}
+
+/// A node's CiA 402 drive.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DriveConfig {
+    /// Its name under the card (default `drive<ID>`).
+    #[serde(default)]
+    pub name: Option<String>,
+    /// Velocity units per count of 0x60FF (default 1).
+    #[serde(default)]
+    pub velocity_factor: Option<f64>,
+    /// The velocity unit (default `counts/s`).
+    #[serde(default)]
+    pub unit: Option<String>,
 }
 
 /// One object written at configuration.

@@ -212,6 +212,7 @@ impl ComediCard {
             analog_out: (!self.ao.is_empty()).then(|| self.clone() as Arc<dyn AnalogOut>),
             digital_in: (!self.di.is_empty()).then(|| self.clone() as Arc<dyn DigitalIn>),
             digital_out: (!self.dout.is_empty()).then(|| self.clone() as Arc<dyn DigitalOut>),
+            drives: Vec::new(),
             encoders: CardEncoder::all(self, self.counters.len()),
         }
     }

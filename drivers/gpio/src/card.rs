@@ -228,6 +228,7 @@ impl GpioCard {
         CardDevices {
             digital_in: (!self.inputs.is_empty()).then(|| self.clone() as Arc<dyn DigitalIn>),
             digital_out: (!self.outputs.is_empty()).then(|| self.clone() as Arc<dyn DigitalOut>),
+            drives: Vec::new(),
             encoders: CardEncoder::all(self, self.encoders.len()),
             ..CardDevices::default()
         }

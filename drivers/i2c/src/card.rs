@@ -313,6 +313,7 @@ impl I2cCard {
             digital_out: (!self.outputs.is_empty()).then(|| self.clone() as Arc<dyn DigitalOut>),
             analog_in: (!self.analog_scale.is_empty()).then(|| self.clone() as Arc<dyn AnalogIn>),
             analog_out: (!self.out_scale.is_empty()).then(|| self.clone() as Arc<dyn AnalogOut>),
+            drives: Vec::new(),
             encoders: CardEncoder::all(self, self.encoders.len()),
         }
     }

@@ -275,6 +275,7 @@ impl ModbusCard {
             analog_out: (ao > 0).then(|| self.clone() as Arc<dyn AnalogOut>),
             digital_in: (di > 0).then(|| self.clone() as Arc<dyn DigitalIn>),
             digital_out: (dout > 0).then(|| self.clone() as Arc<dyn DigitalOut>),
+            drives: Vec::new(),
             encoders: (0..self.encoders.len())
                 .map(|index| {
                     let e: Arc<dyn device_interface::Encoder> =

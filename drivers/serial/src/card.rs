@@ -235,6 +235,7 @@ impl FirmataCard {
                 .then(|| self.clone() as Arc<dyn device_interface::DigitalIn>),
             digital_out: (!c.digital_out.is_empty())
                 .then(|| self.clone() as Arc<dyn device_interface::DigitalOut>),
+            drives: Vec::new(),
             encoders: CardEncoder::all(self, self.encoders.len()),
         }
     }

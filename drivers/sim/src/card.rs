@@ -668,6 +668,7 @@ impl SimCard {
             analog_out: (!self.ao.is_empty()).then(|| self.clone() as Arc<dyn AnalogOut>),
             digital_in: (!self.di.is_empty()).then(|| self.clone() as Arc<dyn DigitalIn>),
             digital_out: (!self.dout.is_empty()).then(|| self.clone() as Arc<dyn DigitalOut>),
+            drives: Vec::new(),
             encoders: (0..self.encoders.len())
                 .filter_map(|i| {
                     self.encoder(i)

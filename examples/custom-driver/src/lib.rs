@@ -159,6 +159,7 @@ impl Loopback {
             analog_out: analog.then(|| self.clone() as Arc<dyn AnalogOut>),
             digital_in: digital.then(|| self.clone() as Arc<dyn device_interface::DigitalIn>),
             digital_out: digital.then(|| self.clone() as Arc<dyn device_interface::DigitalOut>),
+            drives: Vec::new(),
             encoders: Vec::new(),
         }
     }

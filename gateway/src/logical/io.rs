@@ -99,7 +99,7 @@ impl Component for DriveIo {
 
 /// The drive's component. A drive an axis uses (`owned`) offers only what reads it: its
 /// commands are the axis'.
-pub(super) fn drive(
+pub(crate) fn drive(
     runtime: &Runtime,
     name: &str,
     device: Arc<dyn Drive>,

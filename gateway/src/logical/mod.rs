@@ -32,6 +32,7 @@ mod claimed;
 mod io;
 
 pub(crate) use build::build;
+pub(crate) use io::drive as drive_io;
 
 use serde::Deserialize;
 

@@ -10,7 +10,11 @@ application a real IO module or drive runs around its object dictionary:
   reader), RPDOs subscribed (each one received is written into the dictionary by
   canopen's PDO decoding), event-driven TPDOs sent once;
 - a dictionary value set by the test: every TPDO carrying it is filled by canopen's PDO
-  encoding and sent at once (event-driven) or at the next SYNC (synchronous).
+  encoding and sent at once (event-driven) or at the next SYNC (synchronous);
+- a CiA 402 drive (`ID:EDS:402`): each controlword received moves its statusword through
+  the CiA 402 state diagram (shutdown, switch on, enable operation, disable voltage,
+  quick stop, fault reset on a rising edge of bit 7); its velocity actual (0x606C) follows
+  the target velocity (0x60FF) while operation is enabled, else 0.
 
 JSON lines on stdin, one answer each:
 
@@ -23,8 +27,9 @@ JSON lines on stdin, one answer each:
   {"emcy": [ID, CODE, REGISTER]}        -> one emergency sent
   {"refuse": [ID, INDEX, SUB, CODE]}    -> SDO writes of that object aborted with CODE
   {"rpdos": ID}                         -> {"count": N}  RPDOs received while operational
+  {"fault": ID}                         -> the drive goes to Fault
 
-Usage: canopen_nodes.py IFACE ID:EDS [ID:EDS ...]
+Usage: canopen_nodes.py IFACE ID:EDS[:402] [ID:EDS[:402] ...]
 """
 import json
 import struct
@@ -35,12 +40,45 @@ import canopen
 from canopen.sdo.exceptions import SdoAbortedError
 
 lock = threading.RLock()
+
+
+def var(node, index, sub):
+    """The dictionary entry: a sub-index of a record or array, or a plain variable."""
+    obj = node.sdo[index]
+    try:
+        return obj[sub]
+    except TypeError:
+        return obj
 net = canopen.Network()
 net.connect(interface="socketcan", channel=sys.argv[1])
 
 
+# CiA 402: statusword per state, and the transitions a controlword makes.
+SW = {"disabled": 0x40, "ready": 0x21, "on": 0x23, "enabled": 0x27, "quick": 0x07, "fault": 0x08}
+
+
+def cia402(state, cw, last):
+    if state == "fault":
+        return "disabled" if cw & 0x80 and not last & 0x80 else "fault"
+    c = cw & 0x8F
+    if c & 0x02 == 0:  # disable voltage
+        return "disabled"
+    if c & 0x04 == 0:  # quick stop
+        return "quick" if state == "enabled" else "disabled"
+    if c & 0x0F == 0x06:  # shutdown
+        return "ready" if state in ("disabled", "ready", "on", "enabled") else state
+    if c & 0x0F == 0x07:  # switch on
+        return {"ready": "on", "on": "on", "enabled": "on"}.get(state, state)
+    if c & 0x0F == 0x0F:  # enable operation
+        return {"ready": "enabled", "on": "enabled", "enabled": "enabled"}.get(state, state)
+    return state
+
+
 class Device:
-    def __init__(self, node_id, eds):
+    def __init__(self, node_id, eds, profile=None):
+        self.drive = profile == "402"
+        self.state = "disabled"
+        self.last_cw = 0
         self.id = node_id
         self.node = canopen.LocalNode(node_id, eds)
         self.alive = True
@@ -69,6 +107,10 @@ class Device:
             self.unsubscribe()
             # Pre-operational before the boot-up frame goes out, as a device is: a master
             # answering the boot-up at once (writing 0x1017) finds it there.
+            if self.drive:
+                self.state, self.last_cw = "disabled", 0
+                self.node.set_data(0x6041, 0, struct.pack("<H", SW["disabled"]))
+                self.node.set_data(0x606C, 0, struct.pack("<i", 0))
             self.node.nmt.send_command(0x80)
             net.send_message(0x700 + self.id, [0])
             self.node.nmt.start_heartbeat(self.node.sdo[0x1017].raw)
@@ -118,6 +160,42 @@ class Device:
             self.rpdos += 1
             for var in m.map:
                 self.node.set_data(var.index, var.subindex, var.get_data())
+            if self.drive:
+                self.drive_step()
+
+    def drive_step(self):
+        cw = struct.unpack("<H", self.node.get_data(0x6040, 0))[0]
+        self.state = cia402(self.state, cw, self.last_cw)
+        self.last_cw = cw
+        target = struct.unpack("<i", self.node.get_data(0x60FF, 0))[0]
+        self.publish({0x6041: struct.pack("<H", SW[self.state]),
+                      0x606C: struct.pack("<i", target if self.state == "enabled" else 0)})
+
+    def publish(self, values):
+        """Writes `values` (index -> bytes, sub 0) and sends the event TPDOs carrying
+        any that changed."""
+        changed = set()
+        for index, data in values.items():
+            try:
+                old = self.node.get_data(index, 0)
+            except SdoAbortedError:
+                old = None
+            if old != data:
+                self.node.set_data(index, 0, data)
+                changed.add(index)
+        if not changed or self.node.nmt.state != "OPERATIONAL":
+            return
+        for m in self.node.tpdo.map.values():
+            if m.enabled and (m.trans_type or 0) >= 254 and any(
+                    (v.index, v.subindex) in [(i, 0) for i in changed] for v in m.map):
+                self.fill(m)
+                m.transmit()
+
+    def fault(self):
+        with lock:
+            self.state = "fault"
+            self.publish({0x6041: struct.pack("<H", SW["fault"]),
+                          0x606C: struct.pack("<i", 0)})
 
     def fill(self, m):
         for var in m.map:
@@ -139,7 +217,7 @@ class Device:
 
     def set(self, index, sub, value):
         with lock:
-            self.node.sdo[index][sub].raw = value
+            var(self.node, index, sub).raw = value
             if not self.alive or self.node.nmt.state != "OPERATIONAL":
                 return
             for m in self.node.tpdo.map.values():
@@ -152,8 +230,9 @@ class Device:
 
 devices = {}
 for spec in sys.argv[2:]:
-    node_id, eds = spec.split(":", 1)
-    devices[int(node_id, 0)] = Device(int(node_id, 0), eds)
+    node_id, rest = spec.split(":", 1)
+    eds, _, profile = rest.partition(":")
+    devices[int(node_id, 0)] = Device(int(node_id, 0), eds, profile or None)
 print(json.dumps({"ready": True}), flush=True)
 
 for line in sys.stdin:
@@ -166,7 +245,7 @@ for line in sys.stdin:
         i, index, sub = req["get"]
         with lock:
             d = devices[i]
-            answer = {"value": d.node.sdo[index][sub].raw,
+            answer = {"value": var(d.node, index, sub).raw,
                       "data": d.node.get_data(index, sub).hex()}
     elif "pdo" in req:
         i, kind, n = req["pdo"]
@@ -193,6 +272,9 @@ for line in sys.stdin:
     elif "refuse" in req:
         i, index, sub, code = req["refuse"]
         devices[i].refused[(index, sub)] = code
+        answer = {"ok": True}
+    elif "fault" in req:
+        devices[req["fault"]].fault()
         answer = {"ok": True}
     elif "rpdos" in req:
         answer = {"count": devices[req["rpdos"]].rpdos}

@@ -199,6 +199,7 @@ impl CanCard {
             digital_in: (di > 0).then(|| Arc::new(CanDigitalIn::new(self)) as Arc<dyn DigitalIn>),
             digital_out: (dout > 0)
                 .then(|| Arc::new(CanDigitalOut::new(self)) as Arc<dyn DigitalOut>),
+            drives: Vec::new(),
             encoders: self
                 .map
                 .encoders()

@@ -132,6 +132,13 @@ pub struct NodeRun {
     transfer: Option<(Transfer, u16, u8)>,
     deadline: u64,
     last_heartbeat: Option<u64>,
+    /// Until when a heartbeat without a boot-up does not start a configuration: the
+    /// reset sent at start makes the node boot (ns).
+    booting_until: u64,
+    /// A boot-up came while an SDO transfer was under way: its response (or its timeout)
+    /// is waited for and dropped, then the configuration starts again (a late response
+    /// must not be taken for the new transfer's).
+    restart: bool,
     /// Set when the status changed (the caller publishes it and clears this).
     pub changed: bool,
     /// The values of its RPDOs' objects as read at its configuration (index, sub, data):
@@ -167,6 +174,8 @@ impl NodeRun {
             transfer: None,
             deadline: 0,
             last_heartbeat: None,
+            booting_until: 0,
+            restart: false,
             changed: true,
             outputs_read: Vec::new(),
         }
@@ -194,9 +203,11 @@ impl NodeRun {
         }
     }
 
-    /// At start: reset its communication, so that it boots up and is configured.
-    pub fn start(&mut self, out: &mut Vec<Tx>) {
+    /// At start (`now`): reset its communication, so that it boots up and is configured;
+    /// a heartbeat heard before its boot-up, for one SDO timeout, is its old life's.
+    pub fn start(&mut self, now: u64, out: &mut Vec<Tx>) {
         out.push(Tx::nmt(nmt::RESET_COMMUNICATION, self.map.id));
+        self.booting_until = now + self.sdo_timeout;
     }
 
     /// Its heartbeat or boot-up frame.
@@ -214,10 +225,18 @@ impl NodeRun {
         }
         if state == 0 {
             self.status.boot_ups += 1;
-            self.configure(now, out);
+            self.booting_until = 0;
+            if self.transfer.is_some() {
+                self.restart = true;
+                self.set_state(NodeState::Configuring);
+            } else {
+                self.configure(now, out);
+            }
             return;
         }
-        if matches!(self.status.state, NodeState::Waiting | NodeState::Offline) {
+        if matches!(self.status.state, NodeState::Waiting | NodeState::Offline)
+            && now >= self.booting_until
+        {
             // Alive, its boot-up missed: configured from pre-operational.
             out.push(Tx::nmt(nmt::PRE_OPERATIONAL, self.map.id));
             self.configure(now, out);
@@ -225,6 +244,7 @@ impl NodeRun {
     }
 
     fn configure(&mut self, now: u64, out: &mut Vec<Tx>) {
+        self.restart = false;
         self.transfer = None;
         self.step = 0;
         self.outputs_read.clear();
@@ -261,6 +281,11 @@ impl NodeRun {
 
     /// An SDO response from it.
     pub fn on_sdo(&mut self, data: &[u8], now: u64, out: &mut Vec<Tx>) {
+        if self.restart && self.transfer.is_some() {
+            // The answer to a request of before the boot-up: dropped.
+            self.configure(now, out);
+            return;
+        }
         let Some((transfer, index, sub)) = &mut self.transfer else {
             self.status.sdo_unexpected += 1;
             self.changed = true;
@@ -356,6 +381,9 @@ impl NodeRun {
 
     /// Checks its SDO and heartbeat timeouts at `now`.
     pub fn tick(&mut self, now: u64, out: &mut Vec<Tx>) {
+        if self.restart && now >= self.deadline {
+            self.configure(now, out);
+        }
         if let Some((_, index, sub)) = &self.transfer
             && now >= self.deadline
         {

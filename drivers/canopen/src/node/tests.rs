@@ -89,7 +89,7 @@ fn serve(node: &mut NodeRun, server: &mut Server, out: &mut Vec<Tx>, now: u64) -
 fn boot_up_configures_reads_back_and_starts() {
     let mut node = run("");
     let mut out = Vec::new();
-    node.start(&mut out);
+    node.start(0, &mut out);
     assert_eq!(out, [Tx::nmt(nmt::RESET_COMMUNICATION, 5)]);
     out.clear();
     let mut server = Server::default();
@@ -222,4 +222,35 @@ fn bad_frames_and_stray_responses_are_counted_and_emergencies_bounded() {
     assert_eq!(s.last_emergencies.len(), EMERGENCIES_KEPT);
     assert_eq!(s.last_emergencies.back().unwrap().code, 0x8113);
     assert!(out.is_empty());
+}
+
+#[test]
+fn a_boot_up_during_a_transfer_waits_for_its_answer_then_starts_over() {
+    let mut node = run("");
+    let (mut out, mut server) = (Vec::new(), Server::default());
+    node.on_heartbeat(&[0], 0, &mut out);
+    let first = out.pop().unwrap();
+    // It boots again before answering: the answer to the old request comes after.
+    node.on_heartbeat(&[0], MS, &mut out);
+    assert!(out.is_empty(), "nothing new before the old answer: {out:?}");
+    let late = server.answer(&first.data);
+    node.on_sdo(&late, 2 * MS, &mut out);
+    assert_eq!(out.len(), 1, "the configuration started over");
+    let other = serve(&mut node, &mut server, &mut out, 2 * MS);
+    assert_eq!(other, [Tx::nmt(nmt::START, 5)]);
+    assert_eq!(node.status().sdo_aborts, 0);
+}
+
+#[test]
+fn a_heartbeat_before_the_boot_up_after_the_reset_is_the_old_life() {
+    let mut node = run("");
+    let mut out = Vec::new();
+    node.start(0, &mut out);
+    out.clear();
+    node.on_heartbeat(&[127], MS, &mut out);
+    assert!(out.is_empty());
+    assert_eq!(node.status().state, NodeState::Waiting);
+    // No boot-up within one SDO timeout: configured from what it says.
+    node.on_heartbeat(&[127], 100 * MS, &mut out);
+    assert_eq!(out[0], Tx::nmt(nmt::PRE_OPERATIONAL, 5));
 }
