@@ -352,6 +352,13 @@ pub trait DigitalOutputImage: crate::Device + Send + Sync {
     fn outputs(&self) -> &BitImage;
     /// `Ok` when the card takes writes now (not offline).
     fn check_outputs_writable(&self) -> Result<(), DeviceError>;
+    /// `Ok` when the card takes a write of `span` now: for a card whose bits go to
+    /// several devices that come and go on their own (CANopen nodes). Default: the card's
+    /// [`check_outputs_writable`](Self::check_outputs_writable).
+    fn check_span_writable(&self, span: BitSpan) -> Result<(), DeviceError> {
+        let _ = span;
+        self.check_outputs_writable()
+    }
     /// Called after each accepted write.
     fn outputs_written(&self, written: Written);
     /// Where the writes to output `bit` stand, for a card whose bus carries them later
@@ -370,7 +377,7 @@ impl<T: DigitalOutputImage> crate::DigitalOut for T {
 
     fn set_bit(&self, bit: u32, value: bool) -> Result<(), DeviceError> {
         self.outputs().check_bit(bit)?;
-        self.check_outputs_writable()?;
+        self.check_span_writable(BitSpan::new(bit, bit, self.outputs().len())?)?;
         self.outputs().set(bit, value)?;
         self.outputs_written(Written::Bit { bit, value });
         Ok(())
@@ -383,7 +390,7 @@ impl<T: DigitalOutputImage> crate::DigitalOut for T {
     fn set_sequence(&self, start: u32, stop: u32, value: u64) -> Result<(), DeviceError> {
         let span = BitSpan::new(start, stop, self.outputs().len())?;
         span.check_value(value)?;
-        self.check_outputs_writable()?;
+        self.check_span_writable(span)?;
         self.outputs().write_span(span, value)?;
         self.outputs_written(Written::Span { span, value });
         Ok(())

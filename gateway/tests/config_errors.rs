@@ -142,6 +142,10 @@ fn every_broken_config_gets_its_exact_error() {
          "t.toml:9:9: card[0].canopen.node[0].drive: card \"io\": 0x6060 sub 0 is not in the node's dictionary"),
         ("CANopen: a drive without its controlword", format!("{CANOPEN}drive = {{ name = \"axis\" }}\n").replace("io401", "drive402"), 
          "t.toml:9:9: card[0].canopen.node[0].drive: card \"io\": a drive's RPDOs carry its controlword (0x6040:0) and target velocity (0x60FF:0)"),
+        ("CANopen: a synchronous RPDO without SYNC", format!("{CANOPEN}[[card.canopen.node.rpdo]]\nnumber = 1\ntransmission = \"sync\"\nobjects = [{{ object = \"0x6200:1\" }}]\n"), 
+         "t.toml:4:1: card[0].canopen.sync_ms: card \"io\": n5 RPDO1 is synchronous: hwgw sends it after its SYNC, so give sync_ms"),
+        ("CANopen: a TPDO on a heartbeat id", format!("{CANOPEN}[[card.canopen.node.tpdo]]\nnumber = 1\ncob_id = 0x705\nobjects = [{{ object = \"0x6000:1\" }}]\n"), 
+         "t.toml:6:1: card[0].canopen.node: card \"io\": n5 TPDO1's COB-ID 0x705 is node 5's heartbeat id"),
         // A message that does not parse is refused where it is mapped, not before.
         ("malformed DBC file, unmapped", format!("{CAN}interface = \"can7\"\ndbc = \"tests/data/broken.dbc\"\n"), "ok"),
         ("malformed DBC message, mapped", format!("{CAN}interface = \"can7\"\ndbc = \"tests/data/broken.dbc\"\n[[card.socketcan.rx]]\nmessage = \"Motion\"\n"),

@@ -444,7 +444,10 @@ driver = "socketcan"
 
 [card.socketcan]
 interface = "vcan2"
-isotp = [{ name = "ecu", tx_id = 0x7E0, rx_id = 0x7E8, timeout_ms = 10000, block_size = 4, st_min_us = 500 }]
+isotp = [
+    { name = "ecu", tx_id = 0x7E0, rx_id = 0x7E8, timeout_ms = 10000, block_size = 4, st_min_us = 500 },
+    { name = "mute", tx_id = 0x7E1, rx_id = 0x7E9, timeout_ms = 300 },
+]
 "#,
     )?;
     let request: Vec<u8> = (0..100u32).map(|i| (i * 7 + 3) as u8).collect();
@@ -469,11 +472,15 @@ isotp = [{ name = "ecu", tx_id = 0x7E0, rx_id = 0x7E8, timeout_ms = 10000, block
         String::from_utf8_lossy(&got.stdout).trim(),
         hex(&request).join(" ")
     );
-    // hwgw waits for the answer on 0x7E8 (its socket bound before the request went out).
+    // hwgw waits for the answer on 0x7E8 (its socket bound before the request went out);
+    // its flow control asks for blocks of 4 frames 500 µs apart (STmin 0xF5).
+    let fc = Candump::start(&["-n", "1", "-T", "5000", "vcan2,7E0:7FF"])?;
     sh(&format!(
         "echo '{}' | isotpsend -s 7E8 -d 7E0 vcan2",
         hex(&response).join(" ")
     ))?;
+    let fc: Vec<String> = fc.frames()?.into_iter().map(|(_, f)| f).collect();
+    assert_eq!(fc, ["7E0#3004F5"]);
     let out = call.wait_with_output()?;
     assert!(
         out.status.success(),
@@ -486,10 +493,13 @@ isotp = [{ name = "ecu", tx_id = 0x7E0, rx_id = 0x7E8, timeout_ms = 10000, block
     );
 
     // Nobody answering: a timeout error, not a hang; a bad pair or bad hex: named.
+    let mute = gw.cli(&["call", "diag", "request", "mute", "3E00"]);
+    let err = String::from_utf8_lossy(&mute.stderr);
+    assert!(err.contains("no response on 0x7e9 within 300ms"), "{err}");
     let none = gw.cli(&["call", "diag", "request", "nothing", "3E00"]);
     let err = String::from_utf8_lossy(&none.stderr);
     assert!(
-        err.contains("no ISO-TP address pair \"nothing\" (there are: ecu)"),
+        err.contains("no ISO-TP address pair \"nothing\" (there are: ecu, mute)"),
         "{err}"
     );
     let bad = gw.cli(&["call", "diag", "request", "ecu", "3G"]);

@@ -107,6 +107,13 @@ fn wait_state(gw: &Service, id: u8, state: &str) -> Result<(), Failed> {
     })
 }
 
+/// Waits for three SYNCs on `iface` (time for a PDO sent at a SYNC to have come).
+fn three_syncs(iface: &str) -> Result<(), Failed> {
+    let syncs = Candump::start(&["-n", "3", "-T", "3000", &format!("{iface},080:7FF")])?;
+    assert_eq!(syncs.frames()?.len(), 3);
+    Ok(())
+}
+
 fn get(gw: &Service, device: &str, port: &str) -> Result<String, Failed> {
     Ok(gw.out(&["get", &format!("io.{device}"), port])?)
 }
@@ -147,8 +154,10 @@ fn an_io_module_is_configured_read_written_and_left_safe() -> Result<(), Failed>
         json!({"state": "OPERATIONAL", "heartbeat_ms": 100})
     );
 
-    // Outputs start as the node has them (0x6411:1 defaults to -100): nothing written.
+    // Outputs start as the node has them (0x6411:1 defaults to -100): nothing written,
+    // seen after three SYNCs of the node operational.
     assert_eq!(get(&gw, "ao", "m_ao")?, "-0.1");
+    three_syncs("vcan0")?;
     assert_eq!(peer.ask(&json!({"rpdos": 5})), json!({"count": 0}));
 
     // Inputs: the node's TPDO, as hwgw decodes it.
@@ -245,8 +254,10 @@ fn an_io_module_is_configured_read_written_and_left_safe() -> Result<(), Failed>
     // Stop: the safe values reach the node, then it is left pre-operational.
     let stopped = gw.terminate();
     assert!(stopped.status.success(), "{}", stopped.log);
-    assert_eq!(od(&mut peer, 5, 0x6411, 1), json!(0), "{}", stopped.log);
-    assert_eq!(od(&mut peer, 5, 0x6200, 1), json!(0));
+    // The node applies a PDO on its own thread: waited for, not raced.
+    wait_ok("the safe values at the node", || {
+        Ok(od(&mut peer, 5, 0x6411, 1) == json!(0) && od(&mut peer, 5, 0x6200, 1) == json!(0))
+    })?;
     wait_ok("pre-operational", || {
         Ok(peer.ask(&json!({"nmt": 5}))["state"] == json!("PRE-OPERATIONAL"))
     })?;
@@ -363,6 +374,10 @@ objects = [{{ object = "0x6040:0" }}, {{ object = "0x60FF:0" }}]
     // Disabled, nothing written: the drive is as it booted.
     assert_eq!(gw.out(&["call", "io.axis", "enabled"])?, "false");
     assert_eq!(sw(&mut peer), 0x40);
+    wait_ok("the drive operational", || {
+        Ok(peer.ask(&json!({"nmt": 9}))["state"] == json!("OPERATIONAL"))
+    })?;
+    three_syncs("vcan3")?;
     assert_eq!(peer.ask(&json!({"rpdos": 9})), json!({"count": 0}));
 
     gw.out(&["call", "io.axis", "enable"])?;
@@ -399,8 +414,9 @@ objects = [{{ object = "0x6040:0" }}, {{ object = "0x60FF:0" }}]
     // Stop: zero velocity, shut down (ready to switch on).
     let stopped = gw.terminate();
     assert!(stopped.status.success(), "{}", stopped.log);
-    assert_eq!(od(&mut peer, 9, 0x60FF, 0), json!(0), "{}", stopped.log);
-    assert_eq!(sw(&mut peer), 0x21, "{}", stopped.log);
+    wait_ok("zero velocity, shut down", || {
+        Ok(od(&mut peer, 9, 0x60FF, 0) == json!(0) && sw(&mut peer) == 0x21)
+    })?;
     Ok(())
 }
 

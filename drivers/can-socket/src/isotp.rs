@@ -7,7 +7,7 @@
 //! replaced is simply used again; one exchange at a time per address pair (a second socket
 //! bound to the same ids would answer the peer's flow control twice).
 
-use std::os::fd::{AsFd, AsRawFd, FromRawFd, OwnedFd};
+use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
 use std::time::Duration;
 
 /// `SOL_CAN_ISOTP`.
@@ -18,8 +18,10 @@ const CAN_ISOTP_OPTS: libc::c_int = 1;
 const CAN_ISOTP_RECV_FC: libc::c_int = 2;
 /// Pad sent frames to 8 bytes.
 const CAN_ISOTP_TX_PADDING: u32 = 0x004;
-/// The largest classic ISO-TP message.
+/// The largest request (a classic ISO-TP message).
 pub const MAX_LEN: usize = 4095;
+/// The largest response taken: the kernel's default `max_pdu_size`.
+pub const MAX_RESPONSE: usize = 8300;
 
 /// `struct can_isotp_options` (linux/can/isotp.h).
 #[repr(C)]
@@ -78,7 +80,7 @@ pub enum IsoTpError {
         /// The error.
         source: std::io::Error,
     },
-    /// Sending failed (the kernel reports a missing flow control as ECOMM).
+    /// Sending failed.
     #[error("sending {len} bytes to {tx_id:#x}: {source}")]
     Send {
         /// The request's length.
@@ -96,7 +98,16 @@ pub enum IsoTpError {
         /// The time waited.
         timeout: Duration,
     },
-    /// Receiving failed.
+    /// A response longer than [`MAX_RESPONSE`]: refused, not cut.
+    #[error("the response on {rx_id:#x} is {len} bytes, more than the {MAX_RESPONSE} taken")]
+    TooLong {
+        /// The id listened on.
+        rx_id: u32,
+        /// Its length.
+        len: usize,
+    },
+    /// Receiving failed (ECOMM: the peer's flow control did not come, or a frame of the
+    /// response was missing).
     #[error("receiving on {rx_id:#x}: {source}")]
     Receive {
         /// The id listened on.
@@ -213,9 +224,21 @@ impl IsoTp {
             tx_id: self.tx_id,
             source: e.into(),
         })?;
-        let mut buf = vec![0u8; MAX_LEN];
+        // Room for the largest message the kernel reassembles by default (its
+        // max_pdu_size, 8300); MSG_TRUNC tells a longer one, refused rather than cut.
+        let mut buf = vec![0u8; MAX_RESPONSE];
         loop {
-            match nix::unistd::read(fd.as_fd(), &mut buf) {
+            match nix::sys::socket::recv(
+                fd.as_raw_fd(),
+                &mut buf,
+                nix::sys::socket::MsgFlags::MSG_TRUNC,
+            ) {
+                Ok(n) if n > buf.len() => {
+                    return Err(IsoTpError::TooLong {
+                        rx_id: self.rx_id,
+                        len: n,
+                    });
+                }
                 Ok(n) => {
                     buf.truncate(n);
                     return Ok(buf);

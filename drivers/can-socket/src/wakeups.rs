@@ -17,7 +17,7 @@ use std::time::Duration;
 pub struct Wakeups {
     timer: TimerFd,
     wake: Arc<EventFd>,
-    /// Set with each wake-up written (so the eventfd is read only when written).
+    /// Set after each wake-up written (so the eventfd is read only when written).
     woken: Arc<AtomicBool>,
     /// The deadline the timer is armed for (CLOCK_MONOTONIC ns; 0: none).
     armed: u64,
@@ -44,9 +44,12 @@ impl Wakeups {
     /// What another thread calls to wake the bus side.
     pub fn waker(&self) -> Box<dyn Fn() + Send + Sync> {
         let (wake, woken) = (self.wake.clone(), self.woken.clone());
+        // The write first, then the flag: a flag seen set means the count is there (or a
+        // read took it already), so the eventfd is never left readable with the flag
+        // clear for longer than between these two lines.
         Box::new(move || {
-            woken.store(true, Ordering::Release);
             let _ = wake.write(1);
+            woken.store(true, Ordering::Release);
         })
     }
 
@@ -58,11 +61,9 @@ impl Wakeups {
     /// Takes what fired by `now` (CLOCK_MONOTONIC ns): the wake-up if it was written, the
     /// timer if its deadline passed.
     pub fn clear(&mut self, now: u64) {
-        if self.woken.swap(false, Ordering::AcqRel) && self.wake.read().is_err() {
-            // The waker set the flag and has not yet written: the write is coming, and
-            // must not leave the eventfd readable with nobody to read it (the activity
-            // would step in a loop). The next call reads it.
-            self.woken.store(true, Ordering::Release);
+        if self.woken.swap(false, Ordering::AcqRel) {
+            // Empties the count (EAGAIN when an earlier read took this write's too).
+            let _ = self.wake.read();
         }
         if self.armed != 0 && now >= self.armed {
             // Clears the expiry (EAGAIN if the kernel has not quite fired it: the re-arm

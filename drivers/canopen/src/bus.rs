@@ -25,6 +25,9 @@ use std::sync::atomic::Ordering;
 /// How often the link is checked.
 const LINK_CHECK: u64 = 100_000_000;
 
+/// The most frames kept for a full transmit queue.
+const QUEUED: usize = 1024;
+
 /// What a received COB-ID is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Route {
@@ -307,20 +310,44 @@ impl CanopenBus {
         }
     }
 
+    /// Sends what is queued, in order. A full transmit queue (the controller's, or the
+    /// socket's buffer) keeps the frame and those after it for the next step (at most
+    /// [`QUEUED`]; older ones are dropped and counted); any other failure drops the frame
+    /// and counts it.
     fn flush(&mut self) {
         let Some(socket) = &self.socket else {
             self.out.clear();
             return;
         };
-        for tx in self.out.drain(..) {
+        let mut sent = 0;
+        for tx in &self.out {
             let len = usize::from(tx.len).min(8);
-            if let Err(e) = socket.send(u32::from(tx.id), false, false, &tx.data[..len]) {
-                tracing::debug!(id = tx.id, "send failed: {e}");
-                self.card
-                    .counters
-                    .send_errors
-                    .fetch_add(1, Ordering::Relaxed);
+            match socket.send(u32::from(tx.id), false, false, &tx.data[..len]) {
+                Ok(()) => {}
+                Err(e)
+                    if e.kind() == std::io::ErrorKind::WouldBlock
+                        || e.raw_os_error() == Some(nix::Error::ENOBUFS as i32) =>
+                {
+                    break;
+                }
+                Err(e) => {
+                    tracing::debug!(id = tx.id, "send failed: {e}");
+                    self.card
+                        .counters
+                        .send_errors
+                        .fetch_add(1, Ordering::Relaxed);
+                }
             }
+            sent += 1;
+        }
+        self.out.drain(..sent);
+        if self.out.len() > QUEUED {
+            let over = self.out.len() - QUEUED;
+            self.out.drain(..over);
+            self.card
+                .counters
+                .send_errors
+                .fetch_add(over as u64, Ordering::Relaxed);
         }
     }
 
@@ -351,7 +378,21 @@ impl CanopenBus {
         for node in &self.nodes {
             node.stop(at_stop, &mut self.out);
         }
-        self.flush();
+        // The stop's frames get a bounded while (100 ms) for a full transmit queue.
+        for _ in 0..50 {
+            self.flush();
+            if self.out.is_empty() {
+                break;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(2));
+        }
+        if !self.out.is_empty() {
+            tracing::warn!(
+                interface = %self.card.map().interface,
+                "{} frames of the stop not sent: the transmit queue stayed full",
+                self.out.len()
+            );
+        }
     }
 
     fn arm(&mut self) {
@@ -361,6 +402,8 @@ impl CanopenBus {
             .filter_map(|n| n.next_deadline())
             .chain(self.next_sync)
             .chain([self.next_check])
+            // Frames kept for a full transmit queue: tried again in 1 ms.
+            .chain((!self.out.is_empty()).then(|| now_ns() + 1_000_000))
             .min()
             .unwrap_or(self.next_check);
         self.wakeups.arm(next);

@@ -163,6 +163,39 @@ impl CanopenMap {
             }
             map.add_node(node, &key, base)?;
         }
+        if map.sync.is_none()
+            && let Some(p) = map.rpdos.iter().find(|p| p.sync)
+        {
+            return Err(at(
+                "sync_ms",
+                format!(
+                    "{} is synchronous: hwgw sends it after its SYNC, so give sync_ms",
+                    p.name
+                ),
+            ));
+        }
+        // A PDO on a managed node's service id would take its frames (or send to it).
+        for p in map.tpdos.iter().chain(&map.rpdos) {
+            let clash = map.nodes.iter().find_map(|n| {
+                let id = u16::from(n.id);
+                [
+                    (0x80 + id, "emergency"),
+                    (0x580 + id, "SDO response"),
+                    (0x600 + id, "SDO request"),
+                    (0x700 + id, "heartbeat"),
+                ]
+                .into_iter()
+                .find(|(c, _)| *c == p.cob_id)
+                .map(|(_, what)| format!("node {}'s {what} id", n.id))
+            });
+            let clash = clash.or_else(|| (p.cob_id == 0x80).then(|| "the SYNC id".to_string()));
+            if let Some(what) = clash {
+                return Err(at(
+                    "node",
+                    format!("{}'s COB-ID {:#x} is {what}", p.name, p.cob_id),
+                ));
+            }
+        }
         let mut names: Vec<&str> = [
             &map.analog_in,
             &map.digital_in,
@@ -269,11 +302,16 @@ impl CanopenMap {
             },
             setup,
             verify,
+            // A write-only object cannot be read: it starts at 0 in hwgw's image.
             outputs: node
                 .rpdo
                 .iter()
                 .flat_map(|p| &p.objects)
                 .filter_map(|o| crate::section::parse_object(&o.object))
+                .filter(|&(i, s)| {
+                    od.variable(i, s)
+                        .is_some_and(|v| v.access != crate::eds::Access::Wo)
+                })
                 .collect(),
             od,
         });

@@ -186,6 +186,15 @@ impl Card for CanopenPlugin {
                 self.card.map().interface
             )));
         }
+        let unreachable = self.card.outputs_unreachable();
+        if !unreachable.is_empty() {
+            let ids: Vec<String> = unreachable.iter().map(u8::to_string).collect();
+            return Err(SettleError::Offline(format!(
+                "{} node(s) {} (not operational: their outputs could not be sent)",
+                self.card.map().interface,
+                ids.join(", ")
+            )));
+        }
         if self.card.sends_pending() {
             return Err(match bus_running {
                 true => SettleError::Late("safe values sent in RPDOs".into()),

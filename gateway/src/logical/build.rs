@@ -407,7 +407,24 @@ impl Ctx<'_, '_, '_, '_> {
         self.axes.push((a.name.clone(), a.drive.clone()));
         let drive = match self.owned.iter().find(|(n, _)| *n == a.drive) {
             Some((_, d)) => d.clone(),
-            None => self.ok(&at.key("drive"), self.registry.drive().lookup(&a.drive))?,
+            None => {
+                // A card's drive (a CANopen CiA 402 node) has its own drive component,
+                // whose commands would race the axis'.
+                let card = self.registry.entries().into_iter().find(|e| {
+                    e.interface == device_interface::Interface::Drive
+                        && e.info.name == a.drive
+                        && e.info.owner != a.drive
+                });
+                if let Some(e) = card {
+                    let msg = format!(
+                        "drive {:?} is card {:?}'s: an axis does not yet take a card's drive",
+                        a.drive, e.info.owner
+                    );
+                    self.problems.at(&at.key("drive"), msg);
+                    return None;
+                }
+                self.ok(&at.key("drive"), self.registry.drive().lookup(&a.drive))?
+            }
         };
         let enc = self.ok(
             &at.key("encoder"),

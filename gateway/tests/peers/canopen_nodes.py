@@ -155,7 +155,8 @@ class Device:
 
     def on_rpdo(self, m):
         with lock:
-            if not self.alive:
+            # A node takes PDOs only while operational.
+            if not self.alive or self.node.nmt.state != "OPERATIONAL":
                 return
             self.rpdos += 1
             for var in m.map:

@@ -135,6 +135,9 @@ pub struct NodeRun {
     /// Until when a heartbeat without a boot-up does not start a configuration: the
     /// reset sent at start makes the node boot (ns).
     booting_until: u64,
+    /// When it was started (ns): a heartbeat sent before the START took effect still
+    /// says pre-operational.
+    started_at: u64,
     /// A boot-up came while an SDO transfer was under way: its response (or its timeout)
     /// is waited for and dropped, then the configuration starts again (a late response
     /// must not be taken for the new transfer's).
@@ -175,6 +178,7 @@ impl NodeRun {
             deadline: 0,
             last_heartbeat: None,
             booting_until: 0,
+            started_at: 0,
             restart: false,
             changed: true,
             outputs_read: Vec::new(),
@@ -234,6 +238,19 @@ impl NodeRun {
             }
             return;
         }
+        if self.status.state == NodeState::Operational
+            && state != 5
+            && now >= self.started_at + self.sdo_timeout
+        {
+            // It left operational on its own (its error behaviour, another master): its
+            // PDOs are not live; configured and started again.
+            let why = format!("it left operational (NMT state {state}); configured again");
+            tracing::warn!(node = self.map.id, "{why}");
+            self.status.error = Some(why);
+            out.push(Tx::nmt(nmt::PRE_OPERATIONAL, self.map.id));
+            self.configure(now, out);
+            return;
+        }
         if matches!(self.status.state, NodeState::Waiting | NodeState::Offline)
             && now >= self.booting_until
         {
@@ -268,6 +285,7 @@ impl NodeRun {
             (Transfer::ReadOutput(u), first, (index, sub))
         } else {
             out.push(Tx::nmt(nmt::START, self.map.id));
+            self.started_at = now;
             self.status.configured += 1;
             self.status.error = None;
             self.set_state(NodeState::Operational);
@@ -302,6 +320,19 @@ impl NodeRun {
                 out.push(Tx::sdo(self.map.id, frame));
             }
             Ok(Step::Done(read)) => {
+                // An expedited upload that does not give its size has 4 bytes: the
+                // object's are the first, the rest zero.
+                let mut read = read;
+                let size = match &self.transfer {
+                    Some((Transfer::Verify(_, wrote), ..)) => Some(wrote.len()),
+                    _ => self.object_size(index, sub),
+                };
+                if let Some(size) = size
+                    && read.len() > size
+                    && read[size..].iter().all(|&b| b == 0)
+                {
+                    read.truncate(size);
+                }
                 if let Some((Transfer::Verify(_, wrote), ..)) = &self.transfer
                     && read != *wrote
                 {
@@ -330,6 +361,12 @@ impl NodeRun {
                 self.fail(what);
             }
         }
+    }
+
+    /// The size of object `index`:`sub` in bytes, from its EDS data type.
+    fn object_size(&self, index: u16, sub: u8) -> Option<usize> {
+        let v = self.map.od.variable(index, sub)?;
+        crate::pdo::type_bits(v.data_type).map(|b| usize::from(b).div_ceil(8))
     }
 
     fn object_name(&self, index: u16, sub: u8) -> String {

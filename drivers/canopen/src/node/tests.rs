@@ -254,3 +254,42 @@ fn a_heartbeat_before_the_boot_up_after_the_reset_is_the_old_life() {
     node.on_heartbeat(&[127], 100 * MS, &mut out);
     assert_eq!(out[0], Tx::nmt(nmt::PRE_OPERATIONAL, 5));
 }
+
+#[test]
+fn a_node_that_leaves_operational_is_configured_and_started_again() {
+    let mut node = run("");
+    let (mut out, mut server) = (Vec::new(), Server::default());
+    node.on_heartbeat(&[0], 0, &mut out);
+    serve(&mut node, &mut server, &mut out, 0);
+    // A heartbeat sent before the START took effect: the old state, not a departure.
+    node.on_heartbeat(&[127], MS, &mut out);
+    assert!(node.is_operational() && out.is_empty());
+    node.on_heartbeat(&[5], 100 * MS, &mut out);
+    // Later it drops to pre-operational on its own: not operational, configured again.
+    node.on_heartbeat(&[127], 300 * MS, &mut out);
+    assert_eq!(node.status().state, NodeState::Configuring);
+    assert_eq!(out.remove(0), Tx::nmt(nmt::PRE_OPERATIONAL, 5));
+    let other = serve(&mut node, &mut server, &mut out, 300 * MS);
+    assert_eq!(other, [Tx::nmt(nmt::START, 5)]);
+    assert_eq!(node.status().configured, 2);
+}
+
+#[test]
+fn an_expedited_read_back_without_its_size_is_the_objects_bytes() {
+    let mut node = run("");
+    let mut out = Vec::new();
+    node.on_heartbeat(&[0], 0, &mut out);
+    let mut server = Server::default();
+    while let Some(tx) = out.pop() {
+        if tx.id != 0x605 {
+            continue;
+        }
+        let mut r = server.answer(&tx.data);
+        if r[0] & 0xE0 == 0x40 {
+            // Expedited, size not indicated: four bytes, zero-padded.
+            r[0] = 0x42;
+        }
+        node.on_sdo(&r, 0, &mut out);
+    }
+    assert!(node.is_operational(), "{:?}", node.status().error);
+}

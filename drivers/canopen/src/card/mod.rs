@@ -7,9 +7,9 @@ use crate::map::{CanopenMap, Channel};
 use crate::node::NodeStatus;
 use arc_swap::ArcSwap;
 use can_socket::signal::{Signal, ValueKind};
-use device_interface::bits::{BitImage, BitSpan, Written};
+use device_interface::DeviceError;
+use device_interface::bits::BitImage;
 use device_interface::time::{Clock, Timestamp};
-use device_interface::{AnalogIn, AnalogOut, Device, DeviceError, Health, Scale, Status};
 use serde::Serialize;
 use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU64, Ordering};
 use std::sync::{Arc, OnceLock};
@@ -209,20 +209,19 @@ impl CanopenCard {
         let of_node = |c: &Channel| c.object == (index, sub) && self.map.rpdos[c.pdo].node == n;
         for (k, c) in self.map.analog_out.iter().enumerate() {
             if of_node(c) {
-                let (_, bits, _, signed) = c.signal.layout();
-                let signed = signed && c.signal.kind() == ValueKind::Integer;
-                let v = if signed && bits < 64 {
-                    let shift = 64 - bits;
-                    ((raw << shift) as i64) >> shift
-                } else {
-                    raw as i64
-                };
-                self.ao[k].store(v, Ordering::Release);
+                self.ao[k].store(object_bits(c, raw), Ordering::Release);
             }
         }
         for (k, c) in self.map.digital_out.iter().enumerate() {
             if of_node(c) {
                 let _ = self.dout.set(k as u32, (raw >> c.bit) & 1 != 0);
+            }
+        }
+        // A drive's controlword and target velocity too: its RPDO carries what the
+        // drive has until the drive is stepped.
+        for (k, c) in self.map.drive_out.iter().enumerate() {
+            if of_node(c) {
+                self.drive_out[k].store(object_bits(c, raw), Ordering::Release);
             }
         }
     }
@@ -339,6 +338,19 @@ impl CanopenCard {
             .any(|(p, pdo)| self.is_dirty(p) && self.node_operational(pdo.node))
     }
 
+    /// The nodes with outputs or a drive that are not operational (their ids).
+    pub fn outputs_unreachable(&self) -> Vec<u8> {
+        self.map
+            .nodes
+            .iter()
+            .enumerate()
+            .filter(|(n, _)| {
+                !self.node_operational(*n) && self.map.rpdos.iter().any(|p| p.node == *n)
+            })
+            .map(|(_, node)| node.id)
+            .collect()
+    }
+
     /// The status snapshot.
     pub fn snapshot(&self) -> CardSnapshot {
         let c = &self.counters;
@@ -399,6 +411,18 @@ impl CanopenCard {
     }
 }
 
+/// An object's value read by SDO (`raw`, little endian) as its channel's bits: a signed
+/// integer sign-extended, anything else as it is.
+fn object_bits(c: &Channel, raw: u64) -> i64 {
+    let (_, bits, _, signed) = c.signal.layout();
+    if signed && bits < 64 && c.signal.kind() == ValueKind::Integer {
+        let shift = 64 - bits;
+        ((raw << shift) as i64) >> shift
+    } else {
+        raw as i64
+    }
+}
+
 /// A float output's bits for 0.0; 0 for an integer.
 fn initial_bits(s: &Signal) -> i64 {
     match s.kind() {
@@ -407,184 +431,4 @@ fn initial_bits(s: &Signal) -> i64 {
     }
 }
 
-impl Device for CanopenCard {
-    fn health(&self) -> Health {
-        let now = self.clock.now();
-        let newest = self
-            .rx
-            .iter()
-            .map(|r| r.at.load(Ordering::Acquire))
-            .max()
-            .unwrap_or(0);
-        let down: Vec<u8> = self
-            .map
-            .nodes
-            .iter()
-            .enumerate()
-            .filter(|(n, _)| !self.node_operational(*n))
-            .map(|(_, node)| node.id)
-            .collect();
-        let status = if self.link_up() && down.is_empty() {
-            Status::Online
-        } else {
-            Status::Offline
-        };
-        Health {
-            status,
-            last_good: (newest != 0).then(|| Timestamp::from_nanos(newest - 1)),
-            checked_at: now,
-            last_error: (status != Status::Online).then_some(DeviceError::Offline),
-        }
-    }
-}
-
-impl AnalogIn for CanopenCard {
-    fn channel_count(&self) -> u32 {
-        self.map.analog_in.len() as u32
-    }
-
-    fn scale(&self, channel: u32) -> Result<Scale, DeviceError> {
-        Ok(*Self::channel(&self.map.analog_in, channel)?.signal.scale())
-    }
-
-    fn read_raw(&self, channel: u32) -> Result<i64, DeviceError> {
-        let c = Self::channel(&self.map.analog_in, channel)?;
-        let bits = c
-            .signal
-            .extract(&self.input(c)?)
-            .map_err(DeviceError::bus)?;
-        match c.signal.kind() {
-            ValueKind::Integer => Ok(bits),
-            _ => Ok(c
-                .signal
-                .scale()
-                .to_raw_saturating(Self::value_of(channel, &c.signal, bits)?)),
-        }
-    }
-
-    fn read(&self, channel: u32) -> Result<f64, DeviceError> {
-        let c = Self::channel(&self.map.analog_in, channel)?;
-        let bits = c
-            .signal
-            .extract(&self.input(c)?)
-            .map_err(DeviceError::bus)?;
-        Self::value_of(channel, &c.signal, bits)
-    }
-}
-
-impl AnalogOut for CanopenCard {
-    fn channel_count(&self) -> u32 {
-        self.map.analog_out.len() as u32
-    }
-
-    fn scale(&self, channel: u32) -> Result<Scale, DeviceError> {
-        Ok(*Self::channel(&self.map.analog_out, channel)?.signal.scale())
-    }
-
-    fn write(&self, channel: u32, value: f64) -> Result<(), DeviceError> {
-        let c = Self::channel(&self.map.analog_out, channel)?;
-        let bits = c.signal.raw_of(value).ok_or_else(|| {
-            let r = c.signal.scale().range();
-            DeviceError::ValueOutOfRange {
-                channel,
-                value,
-                lowest: r.lowest,
-                highest: r.highest,
-            }
-        })?;
-        self.store(channel, c.pdo, bits)
-    }
-
-    fn write_raw(&self, channel: u32, raw: i64) -> Result<(), DeviceError> {
-        let c = Self::channel(&self.map.analog_out, channel)?;
-        c.signal.scale().check_raw(channel, raw)?;
-        let bits = match c.signal.kind() {
-            ValueKind::Integer => raw,
-            _ => c.signal.raw_of(c.signal.scale().to_physical(raw)).ok_or(
-                DeviceError::RawOutOfRange {
-                    channel,
-                    raw,
-                    min: c.signal.scale().raw_range().min,
-                    max: c.signal.scale().raw_range().max,
-                },
-            )?,
-        };
-        self.store(channel, c.pdo, bits)
-    }
-
-    fn read_back(&self, channel: u32) -> Result<f64, DeviceError> {
-        let c = Self::channel(&self.map.analog_out, channel)?;
-        Self::value_of(
-            channel,
-            &c.signal,
-            self.ao[channel as usize].load(Ordering::Acquire),
-        )
-    }
-
-    fn read_back_raw(&self, channel: u32) -> Result<i64, DeviceError> {
-        let c = Self::channel(&self.map.analog_out, channel)?;
-        let bits = self.ao[channel as usize].load(Ordering::Acquire);
-        match c.signal.kind() {
-            ValueKind::Integer => Ok(bits),
-            _ => Ok(c
-                .signal
-                .scale()
-                .to_raw_saturating(Self::value_of(channel, &c.signal, bits)?)),
-        }
-    }
-}
-
-impl CanopenCard {
-    /// Stores analog output `channel`'s bits and marks its RPDO (refused while its node is
-    /// not operational: the write could not reach it).
-    fn store(&self, channel: u32, pdo: usize, bits: i64) -> Result<(), DeviceError> {
-        self.check_output(pdo)?;
-        self.ao[channel as usize].store(bits, Ordering::Release);
-        self.dirty[pdo].store(true, Ordering::Release);
-        self.wake();
-        Ok(())
-    }
-}
-
-impl device_interface::bits::DigitalInputImage for CanopenCard {
-    fn inputs(&self) -> &BitImage {
-        &self.di
-    }
-
-    fn check_inputs(&self, span: BitSpan) -> Result<(), DeviceError> {
-        for b in span.start()..=span.stop() {
-            self.input(Self::channel(&self.map.digital_in, b)?)?;
-        }
-        Ok(())
-    }
-}
-
-impl device_interface::bits::DigitalOutputImage for CanopenCard {
-    fn outputs(&self) -> &BitImage {
-        &self.dout
-    }
-
-    fn check_outputs_writable(&self) -> Result<(), DeviceError> {
-        // The image does not say which bits are written: a span may cross nodes, and one
-        // node down must not refuse the others' outputs. A bit of a node that is not
-        // operational is kept and goes out in its RPDO when the node is started.
-        if self.link_up() {
-            Ok(())
-        } else {
-            Err(DeviceError::Offline)
-        }
-    }
-
-    fn outputs_written(&self, written: Written) {
-        let (start, stop) = match written {
-            Written::Bit { bit, .. } => (bit, bit),
-            Written::Span { span, .. } => (span.start(), span.stop()),
-        };
-        for b in start..=stop {
-            if let Some(c) = self.map.digital_out.get(b as usize) {
-                self.dirty[c.pdo].store(true, Ordering::Release);
-            }
-        }
-        self.wake();
-    }
-}
+mod devices;
