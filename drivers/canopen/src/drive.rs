@@ -16,7 +16,7 @@ use std::sync::atomic::Ordering;
 /// Drive `d`'s state from its statusword, if its node runs and the TPDO came.
 fn drive_state(card: &CanopenCard, d: usize) -> Result<State, DeviceError> {
     let m = &card.map().drives[d];
-    let sw = card.input_raw(m.statusword)?;
+    let (sw, _) = card.input_bits(m.statusword as u32)?;
     Ok(state(sw as u16))
 }
 

@@ -472,7 +472,7 @@ impl CanopenMap {
             .name
             .clone()
             .unwrap_or_else(|| format!("{node_name}_{index:04x}_{sub}"));
-        if name.is_empty() || name.contains('.') || name.chars().any(char::is_whitespace) {
+        if !driver_api::is_port_name(&name) {
             return Err(at(
                 format!("{key}.name"),
                 format!("{name:?}: a port name has no dots or spaces"),

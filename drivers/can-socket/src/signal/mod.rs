@@ -23,7 +23,7 @@
 //! # Ok::<(), can_socket::signal::SignalError>(())
 //! ```
 
-use device_interface::{RawRange, Scale, ScaleError, Unit};
+use device_interface::{DeviceError, RawRange, Scale, ScaleError, Unit};
 use serde::Deserialize;
 
 /// How a signal's bits hold its value (DBC `SIG_VALTYPE_`).
@@ -471,6 +471,77 @@ impl Signal {
             return Err(SignalError::Short { need, got: len });
         }
         Ok(())
+    }
+
+    /// The physical value of `bits` (as [`extract`](Self::extract) gives them) read as
+    /// device channel `channel`: an error for NaN and the infinities a float can carry.
+    pub fn channel_value(&self, channel: u32, bits: i64) -> Result<f64, DeviceError> {
+        let v = self.physical(bits);
+        if v.is_finite() {
+            return Ok(v);
+        }
+        Err(DeviceError::NotANumber {
+            channel,
+            what: if v.is_nan() {
+                "NaN"
+            } else if v > 0.0 {
+                "+inf"
+            } else {
+                "-inf"
+            },
+        })
+    }
+
+    /// The raw value of `bits` as device channel `channel`'s scale counts it: the integer
+    /// itself; a float's nearest step; an unsigned 64-bit value above 2^63 − 1 is out of
+    /// the raw range (its physical value reads).
+    pub fn channel_raw(&self, channel: u32, bits: i64) -> Result<i64, DeviceError> {
+        match self.kind {
+            ValueKind::Integer if self.length == 64 && !self.signed && bits < 0 => {
+                let r = self.scale.range();
+                Err(DeviceError::ValueOutOfRange {
+                    channel,
+                    value: self.physical(bits),
+                    lowest: r.lowest,
+                    highest: r.highest,
+                })
+            }
+            ValueKind::Integer => Ok(bits),
+            _ => Ok(self
+                .scale
+                .to_raw_saturating(self.channel_value(channel, bits)?)),
+        }
+    }
+
+    /// The bits that carry physical `value` written to device channel `channel`: an error
+    /// when the signal cannot hold it.
+    pub fn channel_bits_of_value(&self, channel: u32, value: f64) -> Result<i64, DeviceError> {
+        self.raw_of(value).ok_or_else(|| {
+            let r = self.scale.range();
+            DeviceError::ValueOutOfRange {
+                channel,
+                value,
+                lowest: r.lowest,
+                highest: r.highest,
+            }
+        })
+    }
+
+    /// The bits that carry raw value `raw` of device channel `channel`'s scale: the
+    /// integer itself; for a float, the value that step of the scale stands for.
+    pub fn channel_bits_of_raw(&self, channel: u32, raw: i64) -> Result<i64, DeviceError> {
+        self.scale.check_raw(channel, raw)?;
+        match self.kind {
+            ValueKind::Integer => Ok(raw),
+            _ => self
+                .raw_of(self.scale.to_physical(raw))
+                .ok_or(DeviceError::RawOutOfRange {
+                    channel,
+                    raw,
+                    min: self.scale.raw_range().min,
+                    max: self.scale.raw_range().max,
+                }),
+        }
     }
 
     /// The raw value in `payload` (sign-extended when signed).

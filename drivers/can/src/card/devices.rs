@@ -3,7 +3,7 @@
 //! signal's) freshness and the link.
 
 use super::{BusState, CanCard};
-use crate::signal::{Signal, ValueKind};
+use crate::signal::Signal;
 use device_interface::bits::{BitImage, BitSpan};
 use device_interface::time::Timestamp;
 use device_interface::{AnalogIn, AnalogOut, Device, DeviceError, Health, Scale, Status};
@@ -76,45 +76,6 @@ impl CanCard {
         let bits = self.ai[channel as usize].load(Ordering::Acquire);
         Ok((bits, self.signal_at(false, at)))
     }
-
-    /// The physical value of `bits` of `signal` on `channel`: an error for NaN and the
-    /// infinities a float signal can carry.
-    fn value_of(channel: u32, signal: &Signal, bits: i64) -> Result<f64, DeviceError> {
-        let v = signal.physical(bits);
-        if v.is_finite() {
-            return Ok(v);
-        }
-        Err(DeviceError::NotANumber {
-            channel,
-            what: if v.is_nan() {
-                "NaN"
-            } else if v > 0.0 {
-                "+inf"
-            } else {
-                "-inf"
-            },
-        })
-    }
-
-    /// The raw value of `bits` as the channel's scale counts it: the integer itself; a
-    /// float's nearest step; an unsigned 64-bit value above 2^63 − 1 is out of the raw
-    /// range (`read` gives it).
-    fn raw_of_bits(channel: u32, signal: &Signal, bits: i64) -> Result<i64, DeviceError> {
-        let scale = signal.scale();
-        match signal.kind() {
-            ValueKind::Integer if signal.layout().1 == 64 && !signal.layout().3 && bits < 0 => {
-                let r = scale.range();
-                Err(DeviceError::ValueOutOfRange {
-                    channel,
-                    value: signal.physical(bits),
-                    lowest: r.lowest,
-                    highest: r.highest,
-                })
-            }
-            ValueKind::Integer => Ok(bits),
-            _ => Ok(scale.to_raw_saturating(Self::value_of(channel, signal, bits)?)),
-        }
-    }
 }
 
 impl AnalogIn for CanCard {
@@ -128,12 +89,12 @@ impl AnalogIn for CanCard {
 
     fn read_raw(&self, channel: u32) -> Result<i64, DeviceError> {
         let (bits, signal) = self.input_bits(channel)?;
-        Self::raw_of_bits(channel, signal, bits)
+        signal.channel_raw(channel, bits)
     }
 
     fn read(&self, channel: u32) -> Result<f64, DeviceError> {
         let (bits, signal) = self.input_bits(channel)?;
-        Self::value_of(channel, signal, bits)
+        signal.channel_value(channel, bits)
     }
 }
 
@@ -148,52 +109,23 @@ impl AnalogOut for CanCard {
 
     fn write(&self, channel: u32, value: f64) -> Result<(), DeviceError> {
         let signal = self.signal_at(true, self.analog_at(true, channel)?);
-        let bits = signal.raw_of(value).ok_or_else(|| {
-            let r = signal.scale().range();
-            DeviceError::ValueOutOfRange {
-                channel,
-                value,
-                lowest: r.lowest,
-                highest: r.highest,
-            }
-        })?;
-        self.store_output(channel, bits)
+        self.store_output(channel, signal.channel_bits_of_value(channel, value)?)
     }
 
     fn write_raw(&self, channel: u32, raw: i64) -> Result<(), DeviceError> {
+        // A float's raw value is a step of its scale: sent as the float it stands for.
         let signal = self.signal_at(true, self.analog_at(true, channel)?);
-        signal.scale().check_raw(channel, raw)?;
-        let bits = match signal.kind() {
-            ValueKind::Integer => raw,
-            // A float's raw value is a step of its scale: sent as the float it stands for.
-            _ => signal.raw_of(signal.scale().to_physical(raw)).ok_or(
-                DeviceError::RawOutOfRange {
-                    channel,
-                    raw,
-                    min: signal.scale().raw_range().min,
-                    max: signal.scale().raw_range().max,
-                },
-            )?,
-        };
-        self.store_output(channel, bits)
+        self.store_output(channel, signal.channel_bits_of_raw(channel, raw)?)
     }
 
     fn read_back(&self, channel: u32) -> Result<f64, DeviceError> {
         let signal = self.signal_at(true, self.analog_at(true, channel)?);
-        Self::value_of(
-            channel,
-            signal,
-            self.ao[channel as usize].load(Ordering::Acquire),
-        )
+        signal.channel_value(channel, self.ao[channel as usize].load(Ordering::Acquire))
     }
 
     fn read_back_raw(&self, channel: u32) -> Result<i64, DeviceError> {
         let signal = self.signal_at(true, self.analog_at(true, channel)?);
-        Self::raw_of_bits(
-            channel,
-            signal,
-            self.ao[channel as usize].load(Ordering::Acquire),
-        )
+        signal.channel_raw(channel, self.ao[channel as usize].load(Ordering::Acquire))
     }
 }
 

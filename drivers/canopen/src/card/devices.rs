@@ -3,7 +3,6 @@
 //! read or write refused while the channel's node is not operational.
 
 use super::CanopenCard;
-use can_socket::signal::ValueKind;
 use device_interface::bits::{BitImage, BitSpan, Written};
 use device_interface::time::Timestamp;
 use device_interface::{AnalogIn, AnalogOut, Device, DeviceError, Health, Scale, Status};
@@ -50,27 +49,13 @@ impl AnalogIn for CanopenCard {
     }
 
     fn read_raw(&self, channel: u32) -> Result<i64, DeviceError> {
-        let c = Self::channel(&self.map.analog_in, channel)?;
-        let bits = c
-            .signal
-            .extract(&self.input(c)?)
-            .map_err(DeviceError::bus)?;
-        match c.signal.kind() {
-            ValueKind::Integer => Ok(bits),
-            _ => Ok(c
-                .signal
-                .scale()
-                .to_raw_saturating(Self::value_of(channel, &c.signal, bits)?)),
-        }
+        let (bits, signal) = self.input_bits(channel)?;
+        signal.channel_raw(channel, bits)
     }
 
     fn read(&self, channel: u32) -> Result<f64, DeviceError> {
-        let c = Self::channel(&self.map.analog_in, channel)?;
-        let bits = c
-            .signal
-            .extract(&self.input(c)?)
-            .map_err(DeviceError::bus)?;
-        Self::value_of(channel, &c.signal, bits)
+        let (bits, signal) = self.input_bits(channel)?;
+        signal.channel_value(channel, bits)
     }
 }
 
@@ -85,54 +70,28 @@ impl AnalogOut for CanopenCard {
 
     fn write(&self, channel: u32, value: f64) -> Result<(), DeviceError> {
         let c = Self::channel(&self.map.analog_out, channel)?;
-        let bits = c.signal.raw_of(value).ok_or_else(|| {
-            let r = c.signal.scale().range();
-            DeviceError::ValueOutOfRange {
-                channel,
-                value,
-                lowest: r.lowest,
-                highest: r.highest,
-            }
-        })?;
-        self.store(channel, c.pdo, bits)
+        self.store(
+            channel,
+            c.pdo,
+            c.signal.channel_bits_of_value(channel, value)?,
+        )
     }
 
     fn write_raw(&self, channel: u32, raw: i64) -> Result<(), DeviceError> {
         let c = Self::channel(&self.map.analog_out, channel)?;
-        c.signal.scale().check_raw(channel, raw)?;
-        let bits = match c.signal.kind() {
-            ValueKind::Integer => raw,
-            _ => c.signal.raw_of(c.signal.scale().to_physical(raw)).ok_or(
-                DeviceError::RawOutOfRange {
-                    channel,
-                    raw,
-                    min: c.signal.scale().raw_range().min,
-                    max: c.signal.scale().raw_range().max,
-                },
-            )?,
-        };
-        self.store(channel, c.pdo, bits)
+        self.store(channel, c.pdo, c.signal.channel_bits_of_raw(channel, raw)?)
     }
 
     fn read_back(&self, channel: u32) -> Result<f64, DeviceError> {
         let c = Self::channel(&self.map.analog_out, channel)?;
-        Self::value_of(
-            channel,
-            &c.signal,
-            self.ao[channel as usize].load(Ordering::Acquire),
-        )
+        c.signal
+            .channel_value(channel, self.ao[channel as usize].load(Ordering::Acquire))
     }
 
     fn read_back_raw(&self, channel: u32) -> Result<i64, DeviceError> {
         let c = Self::channel(&self.map.analog_out, channel)?;
-        let bits = self.ao[channel as usize].load(Ordering::Acquire);
-        match c.signal.kind() {
-            ValueKind::Integer => Ok(bits),
-            _ => Ok(c
-                .signal
-                .scale()
-                .to_raw_saturating(Self::value_of(channel, &c.signal, bits)?)),
-        }
+        c.signal
+            .channel_raw(channel, self.ao[channel as usize].load(Ordering::Acquire))
     }
 }
 

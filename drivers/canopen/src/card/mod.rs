@@ -305,10 +305,15 @@ impl CanopenCard {
         }
     }
 
-    /// Analog input `channel`'s raw value, its node operational and its PDO received.
-    pub(crate) fn input_raw(&self, channel: usize) -> Result<i64, DeviceError> {
-        let c = Self::channel(&self.map.analog_in, channel as u32)?;
-        c.signal.extract(&self.input(c)?).map_err(DeviceError::bus)
+    /// Analog input `channel`'s bits and signal, its node operational and its PDO
+    /// received.
+    pub(crate) fn input_bits(&self, channel: u32) -> Result<(i64, &Signal), DeviceError> {
+        let c = Self::channel(&self.map.analog_in, channel)?;
+        let bits = c
+            .signal
+            .extract(&self.input(c)?)
+            .map_err(DeviceError::bus)?;
+        Ok((bits, &c.signal))
     }
 
     /// Wakes the bus side (a drive was asked something).
@@ -396,18 +401,6 @@ impl CanopenCard {
                 channel,
                 count: list.len() as u32,
             })
-    }
-
-    fn value_of(channel: u32, signal: &Signal, bits: i64) -> Result<f64, DeviceError> {
-        let v = signal.physical(bits);
-        if v.is_finite() {
-            Ok(v)
-        } else {
-            Err(DeviceError::NotANumber {
-                channel,
-                what: if v.is_nan() { "NaN" } else { "an infinity" },
-            })
-        }
     }
 }
 
