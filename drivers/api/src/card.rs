@@ -154,3 +154,31 @@ pub enum SettleError {
     #[error("safe values not confirmed: {}", .0.join("; "))]
     Refused(Vec<String>),
 }
+
+impl SettleError {
+    /// What was still pending at the deadline (`what` was not done by then, e.g. "safe
+    /// values sent"): late while the bus side ran, else nothing carried it.
+    pub fn pending(bus_running: bool, what: impl Into<String>) -> SettleError {
+        if bus_running {
+            SettleError::Late(what.into())
+        } else {
+            SettleError::BusNotRunning
+        }
+    }
+}
+
+/// Waits, `step` at a time, while `busy()` says a card's safe values are on their way
+/// and `deadline` has not come; returns whether it still is. For [`Card::settle`].
+pub fn wait_while(
+    deadline: Instant,
+    step: std::time::Duration,
+    mut busy: impl FnMut() -> bool,
+) -> bool {
+    while busy() {
+        if Instant::now() >= deadline {
+            return true;
+        }
+        std::thread::sleep(step);
+    }
+    false
+}

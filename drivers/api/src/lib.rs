@@ -78,7 +78,7 @@ pub mod node;
 mod server;
 
 pub use bus::{BuiltCard, BusContext, BusSide, BusTasks, SocketWatch, fd_bus, periodic_bus};
-pub use card::{Card, CardStatus, ReadBack, SettleError};
+pub use card::{Card, CardStatus, ReadBack, SettleError, wait_while};
 pub use context::{BuildFn, CardContext, CardError};
 pub use names::{ChannelDetail, ChannelDetails, ChannelNames, NamesError, is_port_name};
 pub use server::{

@@ -16,7 +16,7 @@ use crate::signal::ValueKind;
 use device_interface::CardDevices;
 use driver_api::{
     BuiltCard, BusSide, Card, CardContext, CardError, CardStatus, ChannelDetail, ChannelDetails,
-    ChannelNames, ReadBack, SettleError, is_port_name,
+    ChannelNames, ReadBack, SettleError, is_port_name, wait_while,
 };
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -238,22 +238,15 @@ impl Card for CanPlugin {
     fn settle(&self, deadline: Instant, bus_running: bool) -> Result<(), SettleError> {
         // Every tx frame goes out once more, with the safe values in it.
         self.card.flush();
-        while bus_running
-            && self.card.link_up()
-            && self.card.sends_pending()
-            && Instant::now() < deadline
-        {
-            std::thread::sleep(Duration::from_millis(2));
-        }
+        wait_while(deadline, Duration::from_millis(2), || {
+            bus_running && self.card.link_up() && self.card.sends_pending()
+        });
         if !self.card.link_up() {
             let link = format!("{} (link down)", self.card.map().interface());
             return Err(SettleError::Offline(link));
         }
         if self.card.sends_pending() {
-            return Err(match bus_running {
-                true => SettleError::Late("safe values sent".into()),
-                false => SettleError::BusNotRunning,
-            });
+            return Err(SettleError::pending(bus_running, "safe values sent"));
         }
         Ok(())
     }

@@ -17,7 +17,7 @@ use can_socket::socket::InterfaceError;
 use device_interface::{AnalogIn, AnalogOut, CardDevices, DigitalIn, DigitalOut};
 use driver_api::{
     BuiltCard, BusSide, Card, CardContext, CardError, CardStatus, ChannelDetail, ChannelDetails,
-    ChannelNames, ReadBack, SettleError,
+    ChannelNames, ReadBack, SettleError, wait_while,
 };
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -157,8 +157,8 @@ impl Card for CanopenPlugin {
     }
 
     fn read_back(&self) -> ReadBack {
-        // The outputs are hwgw's own RPDO values: before hwgw writes one it holds 0 (what
-        // its RPDO carried since the node was started).
+        // The outputs are hwgw's own RPDO values: before hwgw writes one it holds what the
+        // node had when it was started (read at its configuration).
         ReadBack::Device
     }
 
@@ -172,13 +172,9 @@ impl Card for CanopenPlugin {
         }
         for _ in 0..2 {
             self.card.flush();
-            while bus_running
-                && self.card.link_up()
-                && self.card.sends_pending()
-                && Instant::now() < deadline
-            {
-                std::thread::sleep(Duration::from_millis(2));
-            }
+            wait_while(deadline, Duration::from_millis(2), || {
+                bus_running && self.card.link_up() && self.card.sends_pending()
+            });
         }
         if !self.card.link_up() {
             return Err(SettleError::Offline(format!(
@@ -196,10 +192,10 @@ impl Card for CanopenPlugin {
             )));
         }
         if self.card.sends_pending() {
-            return Err(match bus_running {
-                true => SettleError::Late("safe values sent in RPDOs".into()),
-                false => SettleError::BusNotRunning,
-            });
+            return Err(SettleError::pending(
+                bus_running,
+                "safe values sent in RPDOs",
+            ));
         }
         Ok(())
     }

@@ -368,9 +368,9 @@ impl I2cCard {
             !has_outputs(c)
                 || (c.online.load(Ordering::Acquire) && c.sent.load(Ordering::Acquire) >= *w)
         };
-        while !self.chips.iter().zip(&wanted).all(sent) && std::time::Instant::now() < deadline {
-            std::thread::sleep(std::time::Duration::from_millis(1));
-        }
+        driver_api::wait_while(deadline, std::time::Duration::from_millis(1), || {
+            !self.chips.iter().zip(&wanted).all(sent)
+        });
         let unsent: Vec<String> = self
             .chips
             .iter()

@@ -12,7 +12,9 @@ use crate::component::LineIo;
 use crate::config::ModbusConfig;
 use crate::line::{LineUnit, Transport, UnitCounters, UnitStats, UnitTiming};
 use device_interface::CardDevices;
-use driver_api::{BuiltCard, BusSide, Card, CardContext, CardError, CardStatus, SettleError};
+use driver_api::{
+    BuiltCard, BusSide, Card, CardContext, CardError, CardStatus, SettleError, wait_while,
+};
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
@@ -190,17 +192,14 @@ impl Card for ModbusPlugin {
         let line_running = || bus_running && self.line.running();
         let polls = self.stats.polls.load(Ordering::Relaxed);
         let pending = || self.card.writes_pending() || self.card.deliveries_pending();
-        while (pending() || self.stats.polls.load(Ordering::Relaxed) <= polls)
-            && Instant::now() < deadline
-            && line_running()
-        {
-            std::thread::sleep(Duration::from_millis(5));
-        }
+        wait_while(deadline, Duration::from_millis(5), || {
+            (pending() || self.stats.polls.load(Ordering::Relaxed) <= polls) && line_running()
+        });
         if pending() {
-            return Err(match line_running() {
-                true => SettleError::Late("safe values confirmed by the unit".into()),
-                false => SettleError::BusNotRunning,
-            });
+            return Err(SettleError::pending(
+                line_running(),
+                "safe values confirmed by the unit",
+            ));
         }
         // A write the unit refused is not sent again: that output does not hold its value.
         let failed = self.card.failed_outputs();
