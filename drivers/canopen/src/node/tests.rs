@@ -73,10 +73,22 @@ impl Server {
 /// Answers every SDO request `out` holds (and those the answers cause) until none is
 /// left; returns the other frames sent.
 fn serve(node: &mut NodeRun, server: &mut Server, out: &mut Vec<Tx>, now: u64) -> Vec<Tx> {
+    serve_with(node, server, out, now, |_, _| {})
+}
+
+/// [`serve`], `tweak` changing the dictionary or the response after each answer.
+fn serve_with(
+    node: &mut NodeRun,
+    server: &mut Server,
+    out: &mut Vec<Tx>,
+    now: u64,
+    mut tweak: impl FnMut(&mut Server, &mut [u8; 8]),
+) -> Vec<Tx> {
     let mut other = Vec::new();
     while let Some(tx) = out.pop() {
         if tx.id == 0x605 {
-            let r = server.answer(&tx.data);
+            let mut r = server.answer(&tx.data);
+            tweak(server, &mut r);
             node.on_sdo(&r, now, out);
         } else {
             other.push(tx);
@@ -192,14 +204,9 @@ fn a_read_back_that_differs_fails() {
     node.on_heartbeat(&[0], 0, &mut out);
     // The dictionary keeps the heartbeat time at 50 whatever is written.
     let mut server = Server::default();
-    while let Some(tx) = out.pop() {
-        if tx.id != 0x605 {
-            continue;
-        }
-        let r = server.answer(&tx.data);
+    serve_with(&mut node, &mut server, &mut out, 0, |server, _| {
         server.od.insert((0x1017, 0), 50u16.to_le_bytes().to_vec());
-        node.on_sdo(&r, 0, &mut out);
-    }
+    });
     let error = node.status().error.clone().unwrap();
     assert_eq!(
         error,
@@ -280,16 +287,11 @@ fn an_expedited_read_back_without_its_size_is_the_objects_bytes() {
     let mut out = Vec::new();
     node.on_heartbeat(&[0], 0, &mut out);
     let mut server = Server::default();
-    while let Some(tx) = out.pop() {
-        if tx.id != 0x605 {
-            continue;
-        }
-        let mut r = server.answer(&tx.data);
+    serve_with(&mut node, &mut server, &mut out, 0, |_, r| {
         if r[0] & 0xE0 == 0x40 {
             // Expedited, size not indicated: four bytes, zero-padded.
             r[0] = 0x42;
         }
-        node.on_sdo(&r, 0, &mut out);
-    }
+    });
     assert!(node.is_operational(), "{:?}", node.status().error);
 }
