@@ -172,7 +172,11 @@ impl CanopenBus {
             for node in &mut self.nodes {
                 node.tick(now, &mut self.out);
             }
-            self.publish();
+        }
+        // What the frames and timeouts changed, once per step (before the drives and
+        // RPDOs, which need a started node's outputs seeded).
+        self.publish();
+        if self.card.link_up() {
             crate::drive::step(&self.card);
             self.send_sync(now);
             self.send_rpdos(false);
@@ -225,7 +229,6 @@ impl CanopenBus {
                 }
             }
         }
-        self.publish();
         now_ns()
     }
 

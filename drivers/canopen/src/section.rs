@@ -155,7 +155,7 @@ pub struct PdoConfig {
 }
 
 /// When a PDO is sent.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
 #[serde(untagged)]
 pub enum Transmission {
     /// A name: `"event"` (type 255; an RPDO: sent by hwgw when an output changes) or
@@ -163,10 +163,13 @@ pub enum Transmission {
     Named(Named),
     /// A transmission type number: 0-240 synchronous, 254/255 event-driven.
     Type(u8),
-    /// Event-driven.
-    #[default]
-    #[serde(skip)]
-    Default,
+}
+
+/// Event-driven, when the section does not say.
+impl Default for Transmission {
+    fn default() -> Self {
+        Transmission::Named(Named::Event)
+    }
 }
 
 /// The named transmission types.
@@ -183,7 +186,7 @@ impl Transmission {
     /// The transmission type number.
     pub fn number(self) -> u8 {
         match self {
-            Transmission::Named(Named::Event) | Transmission::Default => 255,
+            Transmission::Named(Named::Event) => 255,
             Transmission::Named(Named::Sync) => 1,
             Transmission::Type(t) => t,
         }
