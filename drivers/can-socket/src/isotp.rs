@@ -118,26 +118,7 @@ pub enum IsoTpError {
 }
 
 fn setsockopt<T>(fd: &OwnedFd, name: libc::c_int, value: &T) -> std::io::Result<()> {
-    #[allow(
-        unsafe_code,
-        reason = "CAN_ISOTP's options are kernel structs no safe wrapper knows"
-    )]
-    // SAFETY: `value` is a live `#[repr(C)]` struct of the size passed, read by the kernel
-    // during the call only; `fd` is an open socket.
-    let r = unsafe {
-        libc::setsockopt(
-            fd.as_raw_fd(),
-            SOL_CAN_ISOTP,
-            name,
-            (value as *const T).cast(),
-            std::mem::size_of::<T>() as libc::socklen_t,
-        )
-    };
-    if r == 0 {
-        Ok(())
-    } else {
-        Err(std::io::Error::last_os_error())
-    }
+    crate::socket::set_option(fd, SOL_CAN_ISOTP, name, value)
 }
 
 impl IsoTp {

@@ -4,6 +4,7 @@
 //! - [`socket`]: a non-blocking CAN_RAW socket with kernel filters, receive timestamps and
 //!   drop counts, and the checks that an interface can carry a driver's frames;
 //! - [`isotp`]: ISO-TP exchanges through the kernel's `CAN_ISOTP` sockets;
+//! - [`j1939`]: SAE J1939 parameter groups through the kernel's `CAN_J1939` sockets;
 //! - [`link`]: an interface's presence, state and identity from sysfs;
 //! - [`signal`]: values in frame payloads as DBC files and CANopen PDOs lay them out
 //!   (Intel/Motorola bit order, signed, 64-bit, IEEE float and double, factor, offset);
@@ -19,6 +20,7 @@
 //! ```
 
 pub mod isotp;
+pub mod j1939;
 pub mod link;
 pub mod signal;
 pub mod socket;

@@ -290,3 +290,34 @@ pub fn realtime_offset() -> i128 {
     };
     ns(nix::time::ClockId::CLOCK_MONOTONIC) - ns(nix::time::ClockId::CLOCK_REALTIME)
 }
+
+/// `setsockopt(fd, level, name, value)` for the options no safe wrapper knows (the kernel
+/// structs of CAN_ISOTP and CAN_J1939).
+pub(crate) fn set_option<T>(
+    fd: &impl AsRawFd,
+    level: libc::c_int,
+    name: libc::c_int,
+    value: &T,
+) -> std::io::Result<()> {
+    #[allow(
+        unsafe_code,
+        reason = "CAN_ISOTP's and CAN_J1939's options are kernel structs no safe wrapper knows"
+    )]
+    // SAFETY: `value` is a live value of the size passed, read by the kernel during the
+    // call only; `fd` is an open socket.
+    let r = unsafe {
+        libc::setsockopt(
+            fd.as_raw_fd(),
+            level,
+            name,
+            (value as *const T).cast(),
+            std::mem::size_of::<T>() as libc::socklen_t,
+        )
+    };
+    // SO_J1939_PROMISC and SO_J1939_ERRQUEUE return the value set, not 0.
+    if r >= 0 {
+        Ok(())
+    } else {
+        Err(std::io::Error::last_os_error())
+    }
+}

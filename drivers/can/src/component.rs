@@ -48,6 +48,8 @@ pub struct CanIo {
     sample: CanMessage,
     /// The socket the activity watches.
     watched: SocketWatch,
+    /// The J1939 socket the activity watches (J1939 cards).
+    watched_j1939: SocketWatch,
     /// A real controller's state, written when it changes.
     controller: OutputPort<Controller>,
     controller_seen: Option<Controller>,
@@ -133,6 +135,7 @@ impl CanIo {
             controller,
             controller_seen: None,
             watched: SocketWatch::default(),
+            watched_j1939: SocketWatch::default(),
         })
     }
 }
@@ -208,6 +211,8 @@ impl CanIo {
         if let Some(bus) = &self.bus {
             self.watched
                 .follow(ctx, bus.socket_fd(), bus.socket_generation());
+            self.watched_j1939
+                .follow(ctx, bus.j1939_fd(), bus.j1939_generation());
         }
     }
 }
@@ -220,14 +225,12 @@ impl Component for CanIo {
                 CanBus::open(self.card.clone()).map_err(|e| HookError::new(e.to_string()))?,
             ),
         };
-        // The timer and the wake-up; the socket on its own, as it can be replaced.
-        for fd in bus
-            .fds()
-            .filter(|fd| Some(fd.as_raw_fd()) != bus.socket_fd().map(|s| s.as_raw_fd()))
-        {
+        // The timer and the wake-up; the sockets on their own, as they can be replaced.
+        for fd in bus.timer_fds() {
             ctx.activity().watch(fd)?;
         }
         self.watched.forget(ctx);
+        self.watched_j1939.forget(ctx);
         self.watch_socket(ctx);
         // Send the first cyclic frames and learn the link state at once.
         self.update_hook(ctx)
@@ -263,10 +266,11 @@ impl Component for CanIo {
 
     fn stop_hook(&mut self, ctx: &mut Context<'_>) {
         if let Some(bus) = &self.bus {
-            for fd in bus.fds() {
+            for fd in bus.timer_fds() {
                 ctx.activity().unwatch(fd.as_raw_fd());
             }
         }
         self.watched.forget(ctx);
+        self.watched_j1939.forget(ctx);
     }
 }

@@ -10,6 +10,7 @@
 //! - [`bus`]: the socket side — a CAN_RAW socket with kernel filters for exactly the
 //!   mapped ids, error frames, timestamps, cyclic and on-change sending, link loss and
 //!   return — serviced from one file descriptor.
+//! - [`j1939`]: J1939-81 address claiming for a card's node, without I/O.
 //! - [`netlink`]: a real controller's error state, counters and restart delay from
 //!   rtnetlink.
 //! - [`component`]: that bus as an rtt component on a file-descriptor activity.
@@ -28,6 +29,7 @@ pub mod bus;
 pub mod card;
 pub mod component;
 pub mod dbc;
+pub mod j1939;
 pub mod map;
 pub mod netlink;
 pub mod plugin;

@@ -158,12 +158,14 @@ fn frame_list(frames: &[MappedFrame]) -> String {
                 (Some(c), false) => format!("every {c:?}"),
                 (None, _) => "on change".to_string(),
             };
-            format!(
-                "{} (id {:#x}, {} signals, {when})",
-                f.name,
-                f.id,
-                f.signals.len()
-            )
+            let by = match f.j1939 {
+                Some(j) => match j.source {
+                    Some(s) => format!("PGN {} from {s:#x}", j.pgn),
+                    None => format!("PGN {}", j.pgn),
+                },
+                None => format!("id {:#x}", f.id),
+            };
+            format!("{} ({by}, {} signals, {when})", f.name, f.signals.len())
         })
         .collect::<Vec<_>>()
         .join(", ")

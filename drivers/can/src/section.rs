@@ -35,6 +35,54 @@ pub struct CanConfig {
     /// `request` operation makes.
     #[serde(default)]
     pub isotp: Vec<IsoTpConfig>,
+    /// J1939: the card's extended frames are parameter groups, received and sent through
+    /// the kernel's J1939 stack (matched by PGN), and the card claims an address.
+    #[serde(default)]
+    pub j1939: Option<J1939Config>,
+}
+
+/// The `[j1939]` table: who the card is on a J1939 network.
+#[derive(Debug, Clone, Default, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct J1939Config {
+    /// The 64-bit NAME the address is claimed with (J1939-81), an integer or a hex string
+    /// (`"0x80…"`: a NAME with the arbitrary-address bit does not fit a TOML integer).
+    /// Without it the card only listens.
+    #[serde(default, deserialize_with = "name_number")]
+    pub name: Option<u64>,
+    /// The source address to claim (0 to 253).
+    #[serde(default)]
+    pub address: Option<u8>,
+}
+
+/// A NAME: a non-negative integer or a hex string.
+fn name_number<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option<u64>, D::Error> {
+    struct Visitor;
+    impl serde::de::Visitor<'_> for Visitor {
+        type Value = Option<u64>;
+        fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+            f.write_str("a 64-bit NAME: an integer, or a hex string such as \"0x8000000000000001\"")
+        }
+        fn visit_i64<E: serde::de::Error>(self, v: i64) -> Result<Self::Value, E> {
+            u64::try_from(v)
+                .map(Some)
+                .map_err(|_| E::custom(format!("NAME {v}: expected a non-negative number")))
+        }
+        fn visit_u64<E: serde::de::Error>(self, v: u64) -> Result<Self::Value, E> {
+            Ok(Some(v))
+        }
+        fn visit_str<E: serde::de::Error>(self, v: &str) -> Result<Self::Value, E> {
+            let digits = v
+                .strip_prefix("0x")
+                .or_else(|| v.strip_prefix("0X"))
+                .unwrap_or(v)
+                .replace('_', "");
+            u64::from_str_radix(&digits, 16)
+                .map(Some)
+                .map_err(|_| E::custom(format!("NAME {v:?}: expected up to 16 hex digits (0x…)")))
+        }
+    }
+    d.deserialize_any(Visitor)
 }
 
 /// One `[[isotp]]` address pair.
@@ -106,6 +154,16 @@ pub struct FrameConfig {
     /// tx: send as soon as an output changes (default: only when there is no cycle).
     #[serde(default)]
     pub on_change: Option<bool>,
+    /// J1939, rx: match only messages from this source address (default: any).
+    #[serde(default)]
+    pub source: Option<u8>,
+    /// J1939, rx: match only messages of this priority (default: any); tx: send with it
+    /// (default: the id's).
+    #[serde(default)]
+    pub priority: Option<u8>,
+    /// J1939, tx: the destination address of a PDU1 group (default: the id's).
+    #[serde(default)]
+    pub destination: Option<u8>,
     /// Inline signals, or settings for DBC signals by name.
     #[serde(default)]
     pub signal: Vec<SignalConfig>,

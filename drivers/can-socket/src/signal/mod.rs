@@ -48,6 +48,10 @@ pub enum ByteOrder {
     Motorola,
 }
 
+/// The longest payload a signal can sit in, bytes: a J1939 message carried by the kernel's
+/// transport (a CAN FD frame has 64).
+pub const MAX_PAYLOAD: usize = 65_536;
+
 /// Why a signal is invalid or does not fit a frame.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[non_exhaustive]
@@ -55,8 +59,8 @@ pub enum SignalError {
     /// A length outside 1..=64.
     #[error("a signal is 1 to 64 bits long, not {0}")]
     Length(u32),
-    /// A start bit past the largest frame (64 bytes).
-    #[error("start bit {0} is past the end of a 64-byte frame")]
+    /// A bit past the largest payload mapped ([`MAX_PAYLOAD`] bytes: a J1939 message).
+    #[error("start bit {0} is past the end of the largest payload ({MAX_PAYLOAD} bytes)")]
     Start(u32),
     /// The payload is too short for the signal.
     #[error("the signal needs {need} bytes of payload, the frame has {got}")]
@@ -188,7 +192,7 @@ impl Signal {
         if !(1..=64).contains(&length) {
             return Err(SignalError::Length(length));
         }
-        if start >= 512 {
+        if start as usize >= MAX_PAYLOAD * 8 {
             return Err(SignalError::Start(start));
         }
         let bits: Vec<u32> = match order {
@@ -209,7 +213,7 @@ impl Signal {
                 v
             }
         };
-        if let Some(&beyond) = bits.iter().find(|&&b| b >= 512) {
+        if let Some(&beyond) = bits.iter().find(|&&b| b as usize >= MAX_PAYLOAD * 8) {
             return Err(SignalError::Start(beyond));
         }
         let raw = if signed {

@@ -27,6 +27,7 @@
 //! # }
 //! ```
 
+mod j1939;
 mod link;
 
 pub use can_socket::link::can_interfaces;
@@ -52,7 +53,10 @@ pub struct CanBus {
     /// Next send time (ns) of each cyclic tx frame.
     next_tx: Vec<Option<u64>>,
     next_check: u64,
-    buf: [u8; 64],
+    /// Room for the longest sent payload.
+    buf: Vec<u8>,
+    /// The J1939 socket and node (a card with a `[j1939]` table).
+    j1939: Option<j1939::Side>,
     /// The physical values of the frame just received (room for the widest rx frame).
     values: Vec<f64>,
     /// Whether the interface is a real controller with a state to ask netlink for
@@ -95,6 +99,13 @@ impl CanBus {
             .map(|f| f.cycle.map(|_| now))
             .collect();
         let widest = card.map().widest_rx();
+        let longest_tx = card.map().longest(true);
+        let j1939 = card.map().j1939().map(|node| {
+            j1939::Side::new(
+                card.map().longest(false),
+                node.map(crate::j1939::Claimer::new),
+            )
+        });
         let mut bus = CanBus {
             card,
             socket: None,
@@ -103,7 +114,8 @@ impl CanBus {
             wakeups,
             next_tx,
             next_check: now,
-            buf: [0; 64],
+            buf: vec![0; longest_tx],
+            j1939,
             values: Vec::with_capacity(widest),
             controller: None,
         };
@@ -116,15 +128,17 @@ impl CanBus {
     fn open_socket(&mut self) -> std::io::Result<()> {
         self.socket = None;
         let map = self.card.map();
+        // J1939 groups come through the J1939 socket.
         let filters: Vec<Filter> = map
             .rx()
             .iter()
+            .filter(|f| f.j1939.is_none())
             .map(|f| Filter::exact(f.id, f.extended))
             .collect();
         let s = RawSocket::open(map.interface(), &filters)?;
         self.socket = Some(s);
         self.generation += 1;
-        Ok(())
+        self.open_j1939()
     }
 
     /// The descriptors to wait on, any of them readable when [`service`](Self::service)
@@ -135,7 +149,24 @@ impl CanBus {
             .as_ref()
             .map(|s| s.as_fd())
             .into_iter()
+            .chain(self.j1939_fd())
             .chain(self.wakeups.fds())
+    }
+
+    /// The timer's and the wake-up's descriptors (never replaced).
+    pub fn timer_fds(&self) -> impl Iterator<Item = BorrowedFd<'_>> {
+        self.wakeups.fds().into_iter()
+    }
+
+    /// The J1939 socket's descriptor, if the card speaks J1939 and it is open.
+    pub fn j1939_fd(&self) -> Option<BorrowedFd<'_>> {
+        self.j1939.as_ref()?.socket.as_ref().map(|s| s.as_fd())
+    }
+
+    /// Changes whenever the J1939 socket is replaced (as
+    /// [`socket_generation`](Self::socket_generation)).
+    pub fn j1939_generation(&self) -> u64 {
+        self.j1939.as_ref().map_or(0, |s| s.generation)
     }
 
     /// The socket's descriptor, if open.
@@ -166,6 +197,7 @@ impl CanBus {
     /// only when its deadline moves. A frame thus costs no other system call.
     pub fn service(&mut self, on_frame: &mut dyn FnMut(usize, &[f64], Timestamp)) {
         self.receive(on_frame);
+        self.receive_j1939(on_frame);
         let now = now_ns();
         self.wakeups.clear(now);
         if now >= self.next_check {
@@ -173,6 +205,7 @@ impl CanBus {
             self.card.check_stale();
             self.next_check = now + self.card.map().link_check().as_nanos() as u64;
         }
+        self.claim_step(now);
         self.send_due(now);
         self.arm();
     }
@@ -290,6 +323,12 @@ impl CanBus {
     }
 
     fn send(&mut self, t: usize) {
+        if self.card.map().tx()[t].j1939.is_some() {
+            if self.card.link_up() {
+                self.send_j1939(t);
+            }
+            return;
+        }
         let len = self.card.compose(t, &mut self.buf);
         if !self.card.link_up() {
             return;
@@ -320,6 +359,7 @@ impl CanBus {
             .flatten()
             .copied()
             .chain([self.next_check])
+            .chain(self.claim_deadline())
             .min()
             .unwrap_or(self.next_check);
         self.wakeups.arm(next);

@@ -149,7 +149,8 @@ impl device_interface::bits::DigitalOutputImage for CanCard {
     }
 
     fn check_outputs_writable(&self) -> Result<(), DeviceError> {
-        self.check_link()
+        self.check_link()?;
+        self.check_digital_sendable()
     }
 
     fn outputs_written(&self, written: device_interface::bits::Written) {

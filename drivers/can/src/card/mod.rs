@@ -29,8 +29,11 @@
 //! ```
 
 mod devices;
+mod j1939;
 mod sides;
 mod status;
+
+pub use j1939::J1939Report;
 
 pub use devices::CanEncoder;
 pub use sides::{CanAnalogIn, CanAnalogOut, CanDigitalIn, CanDigitalOut};
@@ -102,6 +105,10 @@ pub struct CanCard {
     controller: ArcSwapOption<crate::netlink::Controller>,
     counters: Counters,
     last_error: ArcSwapOption<DeviceError>,
+    /// The node's address claiming, as the bus side last reported it (J1939 cards).
+    claim: ArcSwapOption<J1939Report>,
+    /// Why the card's J1939 groups cannot be sent now (no address), if they cannot.
+    no_address: ArcSwapOption<DeviceError>,
 }
 
 impl CanCard {
@@ -179,6 +186,8 @@ impl CanCard {
             controller: ArcSwapOption::empty(),
             counters: Counters::default(),
             last_error: ArcSwapOption::empty(),
+            claim: ArcSwapOption::empty(),
+            no_address: ArcSwapOption::empty(),
             map,
             clock,
         })
@@ -258,22 +267,34 @@ impl CanCard {
         fd: bool,
         data: &[u8],
         at: Timestamp,
-        mut values: Option<&mut Vec<f64>>,
+        values: Option<&mut Vec<f64>>,
     ) -> Received {
         let Some(f) = self
             .map
             .rx()
             .iter()
-            .position(|f| f.id == id && f.extended == extended)
+            .position(|f| f.j1939.is_none() && f.id == id && f.extended == extended)
         else {
             bump(&self.counters.rx_unknown_id);
             return Received::UnknownId;
         };
-        let frame = &self.map.rx()[f];
-        if frame.fd != fd {
+        if self.map.rx()[f].fd != fd {
             bump(&self.counters.rx_bad_kind);
             return Received::BadKind;
         }
+        self.decode(f, data, at, values)
+    }
+
+    /// Decodes rx frame `f`'s payload into the channels (a payload of another length is
+    /// counted, not decoded).
+    fn decode(
+        &self,
+        f: usize,
+        data: &[u8],
+        at: Timestamp,
+        mut values: Option<&mut Vec<f64>>,
+    ) -> Received {
+        let frame = &self.map.rx()[f];
         if data.len() != frame.length {
             bump(&self.counters.rx_bad_length);
             return Received::BadLength;
@@ -576,6 +597,7 @@ impl CanCard {
     /// when it goes on change.
     fn store_output(&self, channel: u32, bits: i64) -> Result<(), DeviceError> {
         self.check_link()?;
+        self.check_sendable(self.ao_at[channel as usize].0)?;
         self.ao[channel as usize].store(bits, Ordering::Release);
         self.output(self.ao_at[channel as usize].0);
         Ok(())

@@ -113,6 +113,8 @@ pub struct CanCounters {
     pub link_up: bool,
     /// A real controller's state from netlink (none on vcan).
     pub controller: Option<Controller>,
+    /// A J1939 card's node: its NAME, its address claiming and what it did.
+    pub j1939: Option<super::J1939Report>,
     /// Each received message: how many came, how long ago the last, whether it is stale
     /// (its own channels then read as stale; the others not).
     pub messages: Vec<MessageState>,
@@ -232,6 +234,7 @@ impl CanCard {
             bus_state: Some(self.bus_state()),
             controller: self.controller(),
             link_up: self.link_up(),
+            j1939: self.claim(),
             messages: self.message_states(),
         }
     }

@@ -5,7 +5,7 @@ mod finish;
 
 use super::lex::{Tok, Token, tokens};
 use super::{DbcError, DbcSignal, Message, Mux};
-use crate::signal::{ByteOrder, Signal, SignalError};
+use crate::signal::{ByteOrder, MAX_PAYLOAD, Signal, SignalError};
 use finish::finish;
 use std::collections::HashSet;
 
@@ -320,11 +320,15 @@ fn message(p: &mut Parser<'_>, line: usize) -> Step<Raw> {
     let mut problems = Vec::new();
     let pseudo = name == PSEUDO_MESSAGE;
     if !pseudo {
-        if length > 64 {
+        // Whether the length fits the frame is the map's to say: a classic frame has 8
+        // bytes, an FD frame 64, a J1939 message up to what a signal can sit in.
+        if length > MAX_PAYLOAD as u64 {
             problems.push(p.error(
                 line,
                 None,
-                format!("message {name}: {length} bytes is more than a CAN FD frame carries (64)"),
+                format!(
+                    "message {name}: {length} bytes is more than hwgw maps ({MAX_PAYLOAD}, a J1939 message; a CAN FD frame carries 64)"
+                ),
             ));
         }
         if (!extended && can_id > 0x7FF) || can_id > 0x1FFF_FFFF {
@@ -347,7 +351,7 @@ fn message(p: &mut Parser<'_>, line: usize) -> Step<Raw> {
             extended,
             fd: false,
             name,
-            length: length.min(64) as usize,
+            length: length.min(MAX_PAYLOAD as u64) as usize,
             signals: Vec::new(),
             line,
             cycle: None,

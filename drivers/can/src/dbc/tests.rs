@@ -245,7 +245,8 @@ fn problems_stay_with_their_message() {
     let text = "BO_ 1 Good: 8 X\n SG_ A : 0|8@1+ (1,0) [0|0] \"\" Y\n\
                 BO_ 2 Bad: 2 X\n SG_ A : 16|8@1+ (1,0) [0|0] \"\" Y\n SG_ B : 0|8@2+ (1,0) [0|0] \"\" Y\n SG_ C : 0|8@1+ (1;0) [0|0] \"\" Y\n SG_ D : 0|65@1+ (1,0) [0|0] \"\" Y\n SG_ E : 0|8@1+ (0,0) [0|0] \"\" Y\n SG_ F : 0|8@1+ (1,0) [0|0] \"\" Y\n SG_ F : 8|8@1+ (1,0) [0|0] \"\" Y\n\
                 BO_ 4096 Wide: 8 X\n\
-                BO_ 3 Long: 65 X\n\
+                BO_ 3 Long: 65537 X\n\
+                BO_ 2147483654 J1939: 100 X\n SG_ Last : 792|8@1+ (1,0) [0|0] \"\" Y\n\
                 BO_ 5 After: 8 X\n SG_ Z : 0|8@1+ (1,0) [0|0] \"\" Y\n";
     let dbc = Dbc::parse("bad.dbc", text).unwrap();
     assert!(dbc.message("Good").unwrap().problems.is_empty());
@@ -277,8 +278,12 @@ fn problems_stay_with_their_message() {
     );
     assert_eq!(
         dbc.message("Long").unwrap().problems[0].to_string(),
-        "bad.dbc:12: message Long: 65 bytes is more than a CAN FD frame carries (64)"
+        "bad.dbc:12: message Long: 65537 bytes is more than hwgw maps (65536, a J1939 message; a CAN FD frame carries 64)"
     );
+    // Longer than a frame is the map's to judge: a J1939 message may be.
+    let j = dbc.message("J1939").unwrap();
+    assert!(j.problems.is_empty(), "{:?}", j.problems);
+    assert_eq!((j.length, j.signals[0].signal.bytes_needed()), (100, 100));
     // Text that cannot be cut into tokens refuses the file, naming the line.
     let e = Dbc::parse("open.dbc", "BO_ 1 A: 8 X\nCM_ SG_ 1 A \"never\nclosed").unwrap_err();
     assert_eq!(

@@ -39,7 +39,10 @@
 pub use crate::section::{CanConfig, FrameConfig, SignalConfig, SignalRole};
 
 mod isotp;
+mod j1939;
 mod signals;
+
+pub use j1939::{J1939Frame, J1939Node};
 
 pub use signals::QUALIFIER;
 
@@ -133,6 +136,8 @@ pub struct MappedFrame {
     pub on_change: bool,
     /// Its signals.
     pub signals: Vec<MappedSignal>,
+    /// A J1939 parameter group: what it is matched by or sent as.
+    pub j1939: Option<J1939Frame>,
 }
 
 /// A card's frames and channels.
@@ -145,6 +150,8 @@ pub struct CanMap {
     counts: [u32; 4],
     encoders: u32,
     isotp: Vec<(String, can_socket::isotp::IsoTp)>,
+    /// J1939 is on (a `[j1939]` table), and the node that claims an address, if any.
+    j1939: Option<Option<J1939Node>>,
 }
 
 /// The payload lengths a CAN FD frame can have.
@@ -199,13 +206,10 @@ impl CanMap {
                 let path = format!("{dir}[{i}]");
                 let frame = frame(config, dbc.as_ref(), f, &path, tx, &mut next)?;
                 let same = if tx { &frames[1] } else { &frames[0] };
-                if let Some(j) = same
-                    .iter()
-                    .position(|o: &MappedFrame| o.id == frame.id && o.extended == frame.extended)
-                {
+                if let Some((j, what)) = j1939::clash(same, &frame) {
                     return Err(bad(
                         &path,
-                        format!("id {:#x} is already mapped as {dir}[{j}]", frame.id),
+                        format!("{what} is already mapped as {dir}[{j}]"),
                     ));
                 }
                 frames[usize::from(tx)].push(frame);
@@ -221,6 +225,7 @@ impl CanMap {
             counts: [next[0], next[1], next[2], next[3]],
             encoders: next[4],
             isotp: isotp::resolve(&config.isotp)?,
+            j1939: config.j1939.as_ref().map(j1939::node).transpose()?,
         })
     }
 
@@ -257,6 +262,17 @@ impl CanMap {
     /// The ISO-TP address pairs, by name.
     pub fn isotp(&self) -> &[(String, can_socket::isotp::IsoTp)] {
         &self.isotp
+    }
+
+    /// Whether the card speaks J1939, and the node that claims an address if it does.
+    pub fn j1939(&self) -> Option<Option<J1939Node>> {
+        self.j1939
+    }
+
+    /// The longest payload of the frames in one direction (rx or tx), at least 64 bytes.
+    pub fn longest(&self, tx: bool) -> usize {
+        let frames = if tx { &self.tx } else { &self.rx };
+        frames.iter().map(|f| f.length).max().unwrap_or(0).max(64)
     }
 
     /// Number of encoders.
@@ -379,9 +395,28 @@ fn frame(
             ),
         ));
     }
-    // The TOML's word, else the DBC message's frame format.
-    let fd = f.fd.unwrap_or(base.is_some_and(|m| m.fd));
-    if fd && !FD_LENGTHS.contains(&length) || !fd && length > 8 {
+    // The TOML's word, else the DBC message's frame format (which a J1939 group's length
+    // over 8 does not make FD: the kernel's transport carries it in classic frames).
+    let j1939 = j1939::frame(config, f, path, id, extended, tx)?;
+    let fd =
+        f.fd.unwrap_or(j1939.is_none() && base.is_some_and(|m| m.fd));
+    if j1939.is_some() {
+        if fd {
+            return Err(bad(
+                format!("{path}.fd"),
+                "J1939 groups are sent in classic frames (the kernel's J1939 stack has no FD)",
+            ));
+        }
+        if length > crate::signal::MAX_PAYLOAD {
+            return Err(bad(
+                format!("{path}.length"),
+                format!(
+                    "{length} bytes: hwgw maps J1939 messages of up to {} bytes",
+                    crate::signal::MAX_PAYLOAD
+                ),
+            ));
+        }
+    } else if fd && !FD_LENGTHS.contains(&length) || !fd && length > 8 {
         return Err(bad(
             format!("{path}.length"),
             if fd {
@@ -484,5 +519,6 @@ fn frame(
         timeout,
         on_change,
         signals,
+        j1939,
     })
 }

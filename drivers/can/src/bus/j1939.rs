@@ -1,0 +1,227 @@
+//! The J1939 side of a CAN card's bus: a `CAN_J1939` socket beside the CAN_RAW one,
+//! receiving every parameter group (the card matches them by PGN) and sending the card's
+//! J1939 groups from the address its node claimed, with the kernel's transport carrying
+//! what is longer than a frame. The node's address claiming ([`crate::j1939::Claimer`])
+//! is fed the claims and requests received here; a new address binds the socket anew.
+
+use super::{CanBus, now_ns};
+use crate::card::Received;
+use crate::j1939::{Claimer, Send};
+use can_socket::j1939::{GLOBAL, J1939Socket, NULL_ADDRESS, Name, Pgn};
+use can_socket::socket::realtime_offset;
+use device_interface::time::Timestamp;
+
+/// A bus's J1939 socket and node.
+pub(super) struct Side {
+    pub(super) socket: Option<J1939Socket>,
+    /// The address the socket is bound to.
+    bound: u8,
+    pub(super) generation: u64,
+    /// The node's claiming (a card with a NAME).
+    claimer: Option<Claimer>,
+    /// Whether the node claimed since the link last came up.
+    claimed_on_link: bool,
+    /// What the card was last told of the claiming.
+    reported: Option<(crate::j1939::State, crate::j1939::ClaimCounts)>,
+    /// Room for the longest mapped group and one byte more (a longer one is told by it).
+    buf: Vec<u8>,
+    /// A receive error was said (once per socket).
+    warned: bool,
+}
+
+impl Side {
+    pub(super) fn new(bus_longest_rx: usize, claimer: Option<Claimer>) -> Side {
+        Side {
+            socket: None,
+            bound: GLOBAL,
+            generation: 0,
+            claimer,
+            claimed_on_link: false,
+            reported: None,
+            warned: false,
+            buf: vec![0; bus_longest_rx + 1],
+        }
+    }
+}
+
+impl CanBus {
+    /// (Re)opens the J1939 socket (on a new interface), bound to the node's NAME and
+    /// address (none: receive only).
+    pub(super) fn open_j1939(&mut self) -> std::io::Result<()> {
+        let ifindex = self.ifindex;
+        let Some(side) = &mut self.j1939 else {
+            return Ok(());
+        };
+        side.socket = None;
+        let node = side
+            .claimer
+            .as_ref()
+            .map(|c| (c.node().name, c.bound_address()));
+        side.socket = Some(J1939Socket::open(ifindex, node)?);
+        side.warned = false;
+        side.bound = node.map_or(GLOBAL, |(_, a)| a);
+        side.generation += 1;
+        Ok(())
+    }
+
+    /// Receives every queued parameter group: claims and requests go to the node, the
+    /// rest to the card.
+    pub(super) fn receive_j1939(&mut self, on_frame: &mut dyn FnMut(usize, &[f64], Timestamp)) {
+        let mut offset = None;
+        loop {
+            let Some(side) = &mut self.j1939 else { return };
+            let Some(socket) = &mut side.socket else {
+                return;
+            };
+            let got = match socket.recv(&mut side.buf) {
+                Ok(Some(got)) => got,
+                Ok(None) => break,
+                Err(e) => {
+                    if matches!(e.raw_os_error(), Some(e) if e == nix::Error::ENETDOWN as i32 || e == nix::Error::ENODEV as i32)
+                    {
+                        self.link_lost(nix::Error::ENETDOWN);
+                    } else if !side.warned {
+                        side.warned = true;
+                        tracing::warn!(interface = %self.card.map().interface(), "J1939 recvmsg: {e}");
+                    }
+                    break;
+                }
+            };
+            // A group longer than any mapped one fills the buffer, whose length no mapped
+            // group has: counted as a wrong length, not decoded.
+            let len = got.len;
+            let data = &side.buf[..len];
+            let now = now_ns();
+            let answer = match (&mut side.claimer, got.pgn) {
+                (Some(c), Pgn::ADDRESS_CLAIMED) if len == 8 => {
+                    let name = Name(u64::from_le_bytes(data.try_into().unwrap_or_default()));
+                    Some(c.claim_seen(got.source, name, now))
+                }
+                (Some(c), Pgn::REQUEST) if data == [0x00, 0xEE, 0x00] => {
+                    Some(c.request_seen(got.destination, now))
+                }
+                _ => None,
+            };
+            if let Some(send) = answer {
+                if let Some(send) = send {
+                    self.claim_send(send);
+                }
+                self.report_claim();
+                continue;
+            }
+            let at = match got.stamp {
+                Some(real) => {
+                    let offset = *offset.get_or_insert_with(realtime_offset);
+                    Timestamp::from_nanos((real + offset).max(0) as u64)
+                }
+                None => Timestamp::from_nanos(now),
+            };
+            let Some(side) = &self.j1939 else { return };
+            let data = &side.buf[..len];
+            if let Received::Decoded(f) = self.card.receive_j1939(
+                got.pgn,
+                got.source,
+                got.priority,
+                data,
+                at,
+                &mut self.values,
+            ) {
+                on_frame(f, &self.values, at);
+            }
+        }
+    }
+
+    /// Claims when the link is (back) up, moves the claim on with time, and reports it.
+    pub(super) fn claim_step(&mut self, now: u64) {
+        let up = self.card.link_up();
+        let Some(side) = &mut self.j1939 else { return };
+        let Some(c) = &mut side.claimer else { return };
+        let send = if !up {
+            side.claimed_on_link = false;
+            None
+        } else if !side.claimed_on_link {
+            side.claimed_on_link = true;
+            c.start(now)
+        } else {
+            c.tick(now)
+        };
+        if let Some(send) = send {
+            self.claim_send(send);
+        }
+        self.report_claim();
+    }
+
+    /// When the claiming next needs a step, ns.
+    pub(super) fn claim_deadline(&self) -> Option<u64> {
+        self.j1939.as_ref()?.claimer.as_ref()?.deadline()
+    }
+
+    /// Tells the card where the claiming stands, when that changed.
+    fn report_claim(&mut self) {
+        let Some(side) = &mut self.j1939 else { return };
+        let Some(c) = &side.claimer else { return };
+        let now = Some((c.state(), c.counts()));
+        if side.reported != now {
+            side.reported = now;
+            self.card.set_claim(c.node().name, c.state(), c.counts());
+        }
+    }
+
+    /// Sends a claim or Cannot Claim Address, from the address it must come from (the
+    /// socket is bound anew when that changed).
+    fn claim_send(&mut self, send: Send) {
+        let Some(side) = &self.j1939 else { return };
+        let Some(c) = &side.claimer else { return };
+        let name = c.node().name;
+        let from = match send {
+            Send::Claim(a) => a,
+            Send::CannotClaim => NULL_ADDRESS,
+        };
+        let Some(socket) = &side.socket else { return };
+        if side.bound != from {
+            if let Err(e) = socket.rebind(self.ifindex, Some((name, from))) {
+                tracing::warn!(interface = %self.card.map().interface(), "J1939 socket for address {from:#x}: {e}");
+                return;
+            }
+            if let Some(side) = &mut self.j1939 {
+                side.bound = from;
+            }
+        }
+        let Some(socket) = self.j1939.as_ref().and_then(|s| s.socket.as_ref()) else {
+            return;
+        };
+        let sent = socket.send(Pgn::ADDRESS_CLAIMED, GLOBAL, 6, &name.0.to_le_bytes());
+        if let Err(e) = &sent {
+            tracing::warn!(interface = %self.card.map().interface(), "J1939 address claim from {from:#x}: {e}");
+        }
+        self.card.sent(sent.is_ok());
+    }
+
+    /// Sends tx frame `t`, a J1939 group, when the node holds an address; else it stays
+    /// marked, and an on-change frame is sent once the claim holds.
+    pub(super) fn send_j1939(&mut self, t: usize) {
+        let f = &self.card.map().tx()[t];
+        let Some(j) = f.j1939 else { return };
+        let Some(side) = &self.j1939 else { return };
+        if side
+            .claimer
+            .as_ref()
+            .and_then(Claimer::sending_address)
+            .is_none()
+        {
+            return;
+        }
+        let Some(socket) = &side.socket else { return };
+        let len = self.card.compose(t, &mut self.buf);
+        let sent = socket.send(
+            j.pgn,
+            j.destination,
+            j.priority.unwrap_or(6),
+            &self.buf[..len],
+        );
+        if let Err(e) = &sent {
+            tracing::debug!(frame = %f.name, "J1939 send failed: {e}");
+        }
+        self.card.sent(sent.is_ok());
+    }
+}
