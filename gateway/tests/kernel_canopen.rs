@@ -345,7 +345,7 @@ fn aborts_are_named_and_hostile_frames_counted() -> Result<(), Failed> {
 /// A CiA 402 drive (Python canopen node 9 over drive402.eds, its state machine in the
 /// peer) as the card's drive `io.axis`: profile velocity mode set by SDO, enabled through
 /// shutdown, switch on, enable operation; moved; a fault seen, reset by disable, enabled
-/// again; at stop shut down at zero velocity.
+/// again; quick-stopped and enabled again; at stop shut down at zero velocity.
 fn a_cia402_drive_is_enabled_moved_and_shut_down() -> Result<(), Failed> {
     sh("ip link add vcan3 type vcan && ip link set vcan3 up")?;
     let mut peer = peer("vcan3", &[format!("9:{EDS}/drive402.eds:402")]);
@@ -408,6 +408,26 @@ objects = [{{ object = "0x6040:0" }}, {{ object = "0x60FF:0" }}]
     wait_ok("operation enabled again", || Ok(sw(&mut peer) == 0x27))?;
     gw.out(&["call", "io.axis", "set_velocity", "-20"])?;
     wait_ok("the new velocity", || {
+        Ok(od(&mut peer, 9, 0x60FF, 0) == json!(-200))
+    })?;
+
+    // Quick stop: the quick-stop command (controlword 0x0002) with target 0; the drive
+    // brakes to quick stop active (and, by its option code, may go on to switch on
+    // disabled); enabled again after.
+    gw.out(&["call", "io.axis", "quick_stop"])?;
+    wait_ok("the quick stop at the drive", || {
+        let s = sw(&mut peer);
+        Ok(od(&mut peer, 9, 0x6040, 0) == json!(2)
+            && od(&mut peer, 9, 0x60FF, 0) == json!(0)
+            && (s == 0x07 || s == 0x40))
+    })?;
+    assert_eq!(gw.out(&["call", "io.axis", "enabled"])?, "false");
+    gw.out(&["call", "io.axis", "enable"])?;
+    wait_ok("operation enabled after the quick stop", || {
+        Ok(sw(&mut peer) == 0x27)
+    })?;
+    gw.out(&["call", "io.axis", "set_velocity", "-20"])?;
+    wait_ok("the velocity again", || {
         Ok(od(&mut peer, 9, 0x60FF, 0) == json!(-200))
     })?;
 

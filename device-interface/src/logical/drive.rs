@@ -20,6 +20,12 @@ pub trait Drive: Device {
     /// both; reports the first error.
     fn disable(&self) -> Result<(), DeviceError>;
 
+    /// Stops as fast as the drive can and leaves it disabled: a drive with a quick stop of
+    /// its own (CiA 402) brakes on its quick-stop ramp; the default disables.
+    fn quick_stop(&self) -> Result<(), DeviceError> {
+        self.disable()
+    }
+
     /// True when the drive was enabled and not disabled since.
     fn is_enabled(&self) -> bool;
 

@@ -53,6 +53,10 @@ pub mod command {
     pub const DISABLE_VOLTAGE: u16 = 0x00;
     /// Fault reset (its rising edge).
     pub const FAULT_RESET: u16 = 0x80;
+    /// Quick stop (from operation enabled to quick stop active; the drive brakes on its
+    /// quick-stop ramp, and by its option code stays there or goes on to switch on
+    /// disabled).
+    pub const QUICK_STOP: u16 = 0x02;
 }
 
 /// The controlword that moves a drive in `state` towards enabled (`enable`) or disabled;
@@ -94,6 +98,8 @@ mod tests {
             (SwitchedOn | OperationEnabled, 0x06) => ReadyToSwitchOn, // 6, 8
             (OperationEnabled, 0x07) => SwitchedOn,      // 5
             (ReadyToSwitchOn | SwitchedOn | OperationEnabled, 0x00) => SwitchOnDisabled, // 7, 10, 9
+            (OperationEnabled, 0x02) => QuickStopActive, // 11
+            (QuickStopActive, 0x00) => SwitchOnDisabled, // 12
             (s, _) => s,
         }
     }
@@ -137,6 +143,7 @@ mod tests {
             State::ReadyToSwitchOn,
             State::SwitchedOn,
             State::OperationEnabled,
+            State::QuickStopActive,
             State::Fault,
         ] {
             for (enable, goal) in [
@@ -152,5 +159,20 @@ mod tests {
                 assert_eq!(s, goal, "from {start:?} enable={enable}");
             }
         }
+    }
+
+    #[test]
+    fn a_quick_stop_holds_until_disabled() {
+        let s = drive(
+            State::OperationEnabled,
+            command::QUICK_STOP,
+            command::ENABLE_OPERATION,
+        );
+        assert_eq!(s, State::QuickStopActive);
+        assert_eq!(drive(s, command::QUICK_STOP, command::QUICK_STOP), s);
+        assert_eq!(
+            controlword(s, false, command::QUICK_STOP),
+            command::DISABLE_VOLTAGE
+        );
     }
 }

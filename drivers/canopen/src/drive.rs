@@ -1,6 +1,7 @@
 //! A CiA 402 node as a logical [`Drive`]: `enable` asks for operation enabled, `disable`
-//! for ready to switch on (and resets a fault), `set_velocity` sets the target velocity in
-//! profile velocity mode. The calls only say what is wanted and wake the bus side (they
+//! for ready to switch on (and resets a fault), `quick_stop` for the drive's quick stop
+//! (its own braking ramp), `set_velocity` sets the target velocity in profile velocity
+//! mode. The calls only say what is wanted and wake the bus side (they
 //! do not block, as the drive contract asks); the bus side's [`step`] reads each drive's
 //! statusword from its TPDO and writes the controlword that moves it one transition
 //! nearer, and the target velocity only while operation is enabled — nothing while the
@@ -35,7 +36,11 @@ pub fn step(card: &CanopenCard) {
             w.reset.store(false, Ordering::Release);
         }
         let enable = w.enable.load(Ordering::Acquire);
+        let quick = w.quick_stop.load(Ordering::Acquire);
         let cw = match (enable, s) {
+            (false, State::OperationEnabled | State::QuickStopActive) if quick => {
+                Some(crate::cia402::command::QUICK_STOP)
+            }
             (true, _) => Some(controlword(s, true, last)),
             (false, State::Fault) if w.reset.load(Ordering::Acquire) => {
                 Some(controlword(s, false, last))
@@ -95,6 +100,7 @@ impl Drive for Cia402Drive {
             });
         }
         let w = self.wanted();
+        w.quick_stop.store(false, Ordering::Release);
         w.velocity.store(0, Ordering::Release);
         w.enable.store(true, Ordering::Release);
         self.card.wake_bus();
@@ -103,6 +109,7 @@ impl Drive for Cia402Drive {
 
     fn disable(&self) -> Result<(), DeviceError> {
         let w = self.wanted();
+        w.quick_stop.store(false, Ordering::Release);
         w.velocity.store(0, Ordering::Release);
         w.enable.store(false, Ordering::Release);
         let faulted = self.faulted();
@@ -111,6 +118,15 @@ impl Drive for Cia402Drive {
         }
         self.card.wake_bus();
         faulted.map(|_| ())
+    }
+
+    fn quick_stop(&self) -> Result<(), DeviceError> {
+        let w = self.wanted();
+        w.velocity.store(0, Ordering::Release);
+        w.enable.store(false, Ordering::Release);
+        w.quick_stop.store(true, Ordering::Release);
+        self.card.wake_bus();
+        Ok(())
     }
 
     fn is_enabled(&self) -> bool {

@@ -131,6 +131,14 @@ pub(crate) fn drive(
                 device_op(
                     i,
                     d,
+                    "quick_stop",
+                    "stops as fast as the drive can (CiA 402: its quick stop), then disabled",
+                    &[],
+                    |d, ()| d.quick_stop(),
+                )?;
+                device_op(
+                    i,
+                    d,
                     "set_velocity",
                     "sets the velocity (refused while disabled)",
                     &[("velocity", "in the drive's unit")],

@@ -30,6 +30,8 @@ pub struct Wanted {
     pub(crate) reset: AtomicBool,
     /// Target velocity, counts.
     pub(crate) velocity: AtomicI64,
+    /// A quick stop was asked (until the next enable or disable).
+    pub(crate) quick_stop: AtomicBool,
 }
 
 impl Wanted {
@@ -38,6 +40,7 @@ impl Wanted {
         self.enable.store(false, Ordering::Release);
         self.reset.store(false, Ordering::Release);
         self.velocity.store(0, Ordering::Release);
+        self.quick_stop.store(false, Ordering::Release);
     }
 }
 
