@@ -117,6 +117,8 @@ pub struct Message {
     pub priority: u8,
     /// The kernel's receive time, CLOCK_REALTIME ns.
     pub stamp: Option<i128>,
+    /// The socket's count of messages dropped for a full queue, when the kernel said it.
+    pub drops: Option<u32>,
 }
 
 /// A non-blocking, promiscuous `CAN_J1939` socket bound to one interface and address.
@@ -169,6 +171,7 @@ impl J1939Socket {
         set(&fd, libc::SOL_CAN_J1939, libc::SO_J1939_PROMISC, &on)?;
         set(&fd, libc::SOL_SOCKET, libc::SO_BROADCAST, &on)?;
         set(&fd, libc::SOL_SOCKET, libc::SO_TIMESTAMPNS, &on)?;
+        set(&fd, libc::SOL_SOCKET, libc::SO_RXQ_OVFL, &on)?;
         let socket = J1939Socket {
             fd,
             priority: std::cell::Cell::new(6),
@@ -247,6 +250,7 @@ impl J1939Socket {
             destination: GLOBAL,
             priority: 6,
             stamp: None,
+            drops: None,
         };
         #[allow(
             unsafe_code,
@@ -263,6 +267,9 @@ impl J1939Socket {
                     (libc::SOL_SOCKET, libc::SCM_TIMESTAMPNS) => {
                         let t = std::ptr::read_unaligned(data.cast::<libc::timespec>());
                         got.stamp = Some(t.tv_sec as i128 * 1_000_000_000 + t.tv_nsec as i128);
+                    }
+                    (libc::SOL_SOCKET, libc::SO_RXQ_OVFL) => {
+                        got.drops = Some(std::ptr::read_unaligned(data.cast::<u32>()));
                     }
                     (libc::SOL_CAN_J1939, libc::SCM_J1939_DEST_ADDR) => got.destination = *data,
                     (libc::SOL_CAN_J1939, libc::SCM_J1939_PRIO) => got.priority = *data,
@@ -303,7 +310,15 @@ impl J1939Socket {
                 std::mem::size_of::<libc::sockaddr_can>() as libc::socklen_t,
             )
         };
-        if n < 0 { Err(last_error()) } else { Ok(()) }
+        match usize::try_from(n) {
+            Err(_) => Err(last_error()),
+            Ok(n) if n == data.len() => Ok(()),
+            // Only an ETP message is queued in parts; hwgw sends TP sizes (1785 at most).
+            Ok(n) => Err(std::io::Error::other(format!(
+                "{n} of {} bytes queued",
+                data.len()
+            ))),
+        }
     }
 }
 

@@ -250,6 +250,12 @@ impl Card for CanPlugin {
         if self.card.sends_pending() {
             return Err(SettleError::pending(bus_running, "safe values sent"));
         }
+        if let Some(e) = self.card.unsendable() {
+            return Err(SettleError::Unsent(vec![format!(
+                "{}'s J1939 groups: {e}",
+                self.card.map().interface()
+            )]));
+        }
         Ok(())
     }
 }

@@ -19,8 +19,14 @@ pub(super) struct Side {
     pub(super) generation: u64,
     /// The node's claiming (a card with a NAME).
     claimer: Option<Claimer>,
-    /// Whether the node claimed since the link last came up.
+    /// Whether the node claimed since the link last came up (or the socket was opened).
     claimed_on_link: bool,
+    /// The card's link-down count when last looked at (a new one: open and claim anew).
+    downs_seen: u64,
+    /// The kernel's drop counter as last seen.
+    drops_seen: u32,
+    /// An open failure was said (once until one succeeds).
+    open_warned: bool,
     /// What the card was last told of the claiming.
     reported: Option<(crate::j1939::State, crate::j1939::ClaimCounts)>,
     /// Room for the longest mapped group and one byte more (a longer one is told by it).
@@ -37,6 +43,9 @@ impl Side {
             generation: 0,
             claimer,
             claimed_on_link: false,
+            downs_seen: 0,
+            drops_seen: 0,
+            open_warned: false,
             reported: None,
             warned: false,
             buf: vec![0; bus_longest_rx + 1],
@@ -59,9 +68,30 @@ impl CanBus {
             .map(|c| (c.node().name, c.bound_address()));
         side.socket = Some(J1939Socket::open(ifindex, node)?);
         side.warned = false;
+        side.open_warned = false;
+        side.drops_seen = 0;
+        // A new socket: the kernel holds no claim for it.
+        side.claimed_on_link = false;
         side.bound = node.map_or(GLOBAL, |(_, a)| a);
         side.generation += 1;
         Ok(())
+    }
+
+    /// Opens the J1939 socket if it is not open; a failure (the interface down: the
+    /// kernel refuses the bind) is said once and tried again at the next step.
+    pub(super) fn ensure_j1939(&mut self) {
+        if self.j1939.as_ref().is_none_or(|s| s.socket.is_some()) {
+            return;
+        }
+        if let Err(e) = self.open_j1939() {
+            let interface = self.card.map().interface().to_string();
+            if let Some(side) = &mut self.j1939
+                && !side.open_warned
+            {
+                side.open_warned = true;
+                tracing::warn!(%interface, "J1939 socket: {e} (tried again while the link is up)");
+            }
+        }
     }
 
     /// Receives every queued parameter group: claims and requests go to the node, the
@@ -87,6 +117,13 @@ impl CanBus {
                     break;
                 }
             };
+            if let Some(d) = got.drops {
+                let dropped = d.wrapping_sub(side.drops_seen);
+                side.drops_seen = d;
+                if dropped > 0 {
+                    self.card.dropped(u64::from(dropped));
+                }
+            }
             // A group longer than any mapped one fills the buffer, whose length no mapped
             // group has: counted as a wrong length, not decoded.
             let len = got.len;
@@ -97,7 +134,8 @@ impl CanBus {
                     let name = Name(u64::from_le_bytes(data.try_into().unwrap_or_default()));
                     Some(c.claim_seen(got.source, name, now))
                 }
-                (Some(c), Pgn::REQUEST) if data == [0x00, 0xEE, 0x00] => {
+                // (A request may be padded to 8 bytes.)
+                (Some(c), Pgn::REQUEST) if data.get(..3) == Some(&[0x00, 0xEE, 0x00]) => {
                     Some(c.request_seen(got.destination, now))
                 }
                 _ => None,
@@ -131,22 +169,39 @@ impl CanBus {
         }
     }
 
-    /// Claims when the link is (back) up, moves the claim on with time, and reports it.
+    /// Follows the link: a link that went down (however briefly) takes the socket with it —
+    /// the kernel forgot the claims — and one that is up gets a socket and a claim; then
+    /// moves the claim on with time, and reports it.
     pub(super) fn claim_step(&mut self, now: u64) {
         let up = self.card.link_up();
+        let downs = self.card.link_downs();
         let Some(side) = &mut self.j1939 else { return };
-        let Some(c) = &mut side.claimer else { return };
-        let send = if !up {
+        if side.downs_seen != downs {
+            side.downs_seen = downs;
+            side.socket = None;
             side.claimed_on_link = false;
-            None
-        } else if !side.claimed_on_link {
+        }
+        if !up {
+            return;
+        }
+        self.ensure_j1939();
+        let Some(side) = &mut self.j1939 else { return };
+        if side.socket.is_none() {
+            return;
+        }
+        let Some(c) = &mut side.claimer else { return };
+        let send = if side.claimed_on_link {
+            c.tick(now)
+        } else {
             side.claimed_on_link = true;
             c.start(now)
-        } else {
-            c.tick(now)
         };
-        if let Some(send) = send {
-            self.claim_send(send);
+        if let Some(send) = send
+            && !self.claim_send(send)
+            && let Some(side) = &mut self.j1939
+        {
+            // Not sent: claimed again at the next step rather than taken as claimed.
+            side.claimed_on_link = false;
         }
         self.report_claim();
     }
@@ -168,33 +223,40 @@ impl CanBus {
     }
 
     /// Sends a claim or Cannot Claim Address, from the address it must come from (the
-    /// socket is bound anew when that changed).
-    fn claim_send(&mut self, send: Send) {
-        let Some(side) = &self.j1939 else { return };
-        let Some(c) = &side.claimer else { return };
+    /// socket is bound anew when that changed). False when it could not be sent.
+    fn claim_send(&mut self, send: Send) -> bool {
+        let Some(side) = &self.j1939 else {
+            return false;
+        };
+        let Some(c) = &side.claimer else {
+            return false;
+        };
         let name = c.node().name;
         let from = match send {
             Send::Claim(a) => a,
             Send::CannotClaim => NULL_ADDRESS,
         };
-        let Some(socket) = &side.socket else { return };
+        let Some(socket) = &side.socket else {
+            return false;
+        };
         if side.bound != from {
             if let Err(e) = socket.rebind(self.ifindex, Some((name, from))) {
                 tracing::warn!(interface = %self.card.map().interface(), "J1939 socket for address {from:#x}: {e}");
-                return;
+                return false;
             }
             if let Some(side) = &mut self.j1939 {
                 side.bound = from;
             }
         }
         let Some(socket) = self.j1939.as_ref().and_then(|s| s.socket.as_ref()) else {
-            return;
+            return false;
         };
         let sent = socket.send(Pgn::ADDRESS_CLAIMED, GLOBAL, 6, &name.0.to_le_bytes());
         if let Err(e) = &sent {
             tracing::warn!(interface = %self.card.map().interface(), "J1939 address claim from {from:#x}: {e}");
         }
         self.card.sent(sent.is_ok());
+        sent.is_ok()
     }
 
     /// Sends tx frame `t`, a J1939 group, when the node holds an address; else it stays
@@ -221,6 +283,14 @@ impl CanBus {
         );
         if let Err(e) = &sent {
             tracing::debug!(frame = %f.name, "J1939 send failed: {e}");
+            // Its values go out at the next try, not lost with this one.
+            self.card.resend(t);
+            // The kernel no longer sends from the address: claimed again.
+            if e.raw_os_error() == Some(nix::Error::EADDRNOTAVAIL as i32)
+                && let Some(side) = &mut self.j1939
+            {
+                side.claimed_on_link = false;
+            }
         }
         self.card.sent(sent.is_ok());
     }

@@ -138,7 +138,13 @@ impl CanBus {
         let s = RawSocket::open(map.interface(), &filters)?;
         self.socket = Some(s);
         self.generation += 1;
-        self.open_j1939()
+        // A new interface: a new J1939 socket too (opened now if it can be, else when the
+        // link is up).
+        if let Some(side) = &mut self.j1939 {
+            side.socket = None;
+        }
+        self.ensure_j1939();
+        Ok(())
     }
 
     /// The descriptors to wait on, any of them readable when [`service`](Self::service)

@@ -80,6 +80,17 @@ impl CanCard {
         self.claim.load().as_deref().cloned()
     }
 
+    /// Why the card's J1939 groups cannot be sent now (its node holds no address), if it
+    /// has any and they cannot.
+    pub fn unsendable(&self) -> Option<DeviceError> {
+        let e = self.no_address.load_full()?;
+        self.map
+            .tx()
+            .iter()
+            .any(|f| f.j1939.is_some())
+            .then(|| (*e).clone())
+    }
+
     /// `Ok` unless tx frame `tx` is a J1939 group and the node holds no address.
     pub(super) fn check_sendable(&self, tx: u32) -> Result<(), DeviceError> {
         let j1939 = self

@@ -32,6 +32,7 @@ mod devices;
 mod j1939;
 mod sides;
 mod status;
+mod tx;
 
 pub use j1939::J1939Report;
 
@@ -363,57 +364,6 @@ impl CanCard {
             .fetch_add(frames, Ordering::Relaxed);
     }
 
-    /// Writes tx frame `tx`'s payload into `buf` (at least the frame's length) and clears
-    /// its on-change mark. Returns the payload length.
-    pub fn compose(&self, tx: usize, buf: &mut [u8]) -> usize {
-        let Some(frame) = self.map.tx().get(tx) else {
-            return 0;
-        };
-        self.tx_dirty[tx].store(false, Ordering::Release);
-        let payload = &mut buf[..frame.length];
-        payload.fill(0);
-        for s in &frame.signals {
-            let raw = match s.role {
-                SignalRole::Analog => self.ao[s.channel as usize].load(Ordering::Acquire),
-                SignalRole::Digital => (0..s.width()).fold(0i64, |v, k| {
-                    v | i64::from(self.dout.get(s.channel + k).unwrap_or(false)) << k
-                }),
-                SignalRole::Encoder => continue,
-            };
-            // Values were range-checked when written.
-            let _ = s.signal.insert(payload, raw);
-        }
-        frame.length
-    }
-
-    /// True while some tx frame waits to be sent (after an on-change write or a flush).
-    pub fn sends_pending(&self) -> bool {
-        self.tx_dirty.iter().any(|d| d.load(Ordering::Acquire))
-    }
-
-    /// True when tx frame `tx` waits to be sent because an output of it changed.
-    pub fn is_dirty(&self, tx: usize) -> bool {
-        self.tx_dirty
-            .get(tx)
-            .is_some_and(|d| d.load(Ordering::Acquire))
-    }
-
-    /// Counts a frame sent, or a send that failed.
-    pub fn sent(&self, ok: bool) {
-        bump(if ok {
-            &self.counters.tx_frames
-        } else {
-            &self.counters.tx_errors
-        });
-    }
-
-    /// Counts cyclic sends left out after a late wake-up.
-    pub fn skipped(&self, cycles: u64) {
-        self.counters
-            .tx_skipped_cycles
-            .fetch_add(cycles, Ordering::Relaxed);
-    }
-
     /// Reports the link state; `why` is kept as the last error when it goes down.
     pub fn set_link(&self, up: bool, why: Option<DeviceError>) {
         let was = self.link_up.swap(up, Ordering::AcqRel);
@@ -423,6 +373,11 @@ impl CanCard {
         if let Some(e) = why {
             self.last_error.store(Some(Arc::new(e)));
         }
+    }
+
+    /// How many times the link went down.
+    pub fn link_downs(&self) -> u64 {
+        self.counters.link_down_events.load(Ordering::Relaxed)
     }
 
     /// True while the link is up.
@@ -552,27 +507,6 @@ impl CanCard {
                     _ => Ok(()),
                 }
             }
-        }
-    }
-
-    /// An output of tx frame `tx` changed: an on-change frame is marked and the bus woken
-    /// (a cyclic-only frame just carries the new value at its next cycle).
-    fn output(&self, tx: u32) {
-        if self.map.tx().get(tx as usize).is_some_and(|f| f.on_change) {
-            self.tx_dirty[tx as usize].store(true, Ordering::Release);
-            if let Some(w) = self.waker.load().as_deref() {
-                w();
-            }
-        }
-    }
-
-    /// Asks the bus side to send every tx frame now (at shutdown, after the safe values).
-    pub fn flush(&self) {
-        for d in self.tx_dirty.iter() {
-            d.store(true, Ordering::Release);
-        }
-        if let Some(w) = self.waker.load().as_deref() {
-            w();
         }
     }
 

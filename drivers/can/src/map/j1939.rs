@@ -34,10 +34,40 @@ pub struct J1939Node {
 /// The largest address a node can claim (254 is the null address, 255 global).
 const LAST_ADDRESS: u8 = 253;
 
+/// The longest group hwgw sends: what TP carries (ETP, beyond, is received only).
+pub const MAX_SENT: usize = 1785;
+
+/// The PGNs the kernel's transport and hwgw's address claiming use themselves: TP.DT,
+/// TP.CM, ETP.DT, ETP.CM, Request, Address Claimed.
+const RESERVED: [(u32, &str); 6] = [
+    (0xEB00, "the transport protocol's data transfer (TP.DT)"),
+    (
+        0xEC00,
+        "the transport protocol's connection management (TP.CM)",
+    ),
+    (
+        0xC700,
+        "the extended transport protocol's data transfer (ETP.DT)",
+    ),
+    (
+        0xC800,
+        "the extended transport protocol's connection management (ETP.CM)",
+    ),
+    (0xEA00, "Request, which hwgw's address claiming answers"),
+    (
+        0xEE00,
+        "Address Claimed, which hwgw's address claiming handles",
+    ),
+];
+
 /// The card's node, if it claims an address.
 pub(super) fn node(config: &J1939Config) -> Result<Option<J1939Node>, MapError> {
     match (config.name, config.address) {
         (None, None) => Ok(None),
+        (Some(0), Some(_)) => Err(bad(
+            "j1939.name",
+            "NAME 0 is the kernel's \"no NAME\": give the node's NAME (J1939-81)",
+        )),
         (Some(name), Some(address)) if address <= LAST_ADDRESS => Ok(Some(J1939Node {
             name: Name(name),
             address,
@@ -57,13 +87,13 @@ pub(super) fn node(config: &J1939Config) -> Result<Option<J1939Node>, MapError> 
     }
 }
 
-/// The J1939 side of frame `f` at `path` (id `id`), none when it is a plain CAN frame.
+/// The J1939 side of frame `f` at `path` (its id, whether extended, its length), none
+/// when it is a plain CAN frame.
 pub(super) fn frame(
     config: &CanConfig,
     f: &FrameConfig,
     path: &str,
-    id: u32,
-    extended: bool,
+    (id, extended, length): (u32, bool, usize),
     tx: bool,
 ) -> Result<Option<J1939Frame>, MapError> {
     let keys = [
@@ -81,6 +111,35 @@ pub(super) fn frame(
         return Ok(None);
     };
     let p = parts(id);
+    if let Some((_, what)) = RESERVED.iter().find(|(pgn, _)| *pgn == p.pgn.0) {
+        return Err(bad(
+            path,
+            format!("PGN {} is {what}: it cannot be mapped", p.pgn),
+        ));
+    }
+    if f.fd == Some(true) {
+        return Err(bad(
+            format!("{path}.fd"),
+            "J1939 groups go in classic frames (the kernel's J1939 stack has no FD)",
+        ));
+    }
+    let most = if tx {
+        MAX_SENT
+    } else {
+        crate::signal::MAX_PAYLOAD
+    };
+    if length > most {
+        return Err(bad(
+            format!("{path}.length"),
+            if tx {
+                format!(
+                    "{length} bytes: hwgw sends J1939 groups of up to {MAX_SENT} bytes (TP); longer ones (ETP) it only receives"
+                )
+            } else {
+                format!("{length} bytes: hwgw maps J1939 groups of up to {most} bytes")
+            },
+        ));
+    }
     if let Some(pr) = f.priority.filter(|&pr| pr > 7) {
         return Err(bad(
             format!("{path}.priority"),
@@ -113,6 +172,19 @@ pub(super) fn frame(
             "sending J1939 needs an address: set name and address in the [j1939] table",
         ));
     }
+    let priority = f.priority.unwrap_or(p.priority);
+    if priority < 2 {
+        return Err(bad(
+            if f.priority.is_some() {
+                format!("{path}.priority")
+            } else {
+                path.to_string()
+            },
+            format!(
+                "priority {priority}: the kernel sends priorities 0 and 1 only for CAP_NET_ADMIN, which hwgw's service does not have; set priority = 2 to 7"
+            ),
+        ));
+    }
     let destination = match f.destination {
         Some(_) if !p.pgn.is_pdu1() => {
             return Err(bad(
@@ -126,7 +198,7 @@ pub(super) fn frame(
     Ok(Some(J1939Frame {
         pgn: p.pgn,
         source: None,
-        priority: Some(f.priority.unwrap_or(p.priority)),
+        priority: Some(priority),
         destination,
     }))
 }

@@ -397,26 +397,11 @@ fn frame(
     }
     // The TOML's word, else the DBC message's frame format (which a J1939 group's length
     // over 8 does not make FD: the kernel's transport carries it in classic frames).
-    let j1939 = j1939::frame(config, f, path, id, extended, tx)?;
+    let j1939 = j1939::frame(config, f, path, (id, extended, length), tx)?;
     let fd =
         f.fd.unwrap_or(j1939.is_none() && base.is_some_and(|m| m.fd));
-    if j1939.is_some() {
-        if fd {
-            return Err(bad(
-                format!("{path}.fd"),
-                "J1939 groups are sent in classic frames (the kernel's J1939 stack has no FD)",
-            ));
-        }
-        if length > crate::signal::MAX_PAYLOAD {
-            return Err(bad(
-                format!("{path}.length"),
-                format!(
-                    "{length} bytes: hwgw maps J1939 messages of up to {} bytes",
-                    crate::signal::MAX_PAYLOAD
-                ),
-            ));
-        }
-    } else if fd && !FD_LENGTHS.contains(&length) || !fd && length > 8 {
+    // (A J1939 group's FD and length were checked with the rest of its J1939 side.)
+    if j1939.is_none() && (fd && !FD_LENGTHS.contains(&length) || !fd && length > 8) {
         return Err(bad(
             format!("{path}.length"),
             if fd {
