@@ -319,6 +319,11 @@ fn matched_by_pgn_multi_packet_and_address_claims() -> Result<(), Failed> {
     })?;
     assert_eq!(claim(&gw, "trailer")?.3, 1);
 
+    // The kernel filtered the truck's socket to its PGNs: the trailer's groups, the BAM
+    // frames and j1939acd's never reached it.
+    let c: Value = serde_json::from_str(&gw.out(&["call", "truck", "counters"])?)?;
+    assert_eq!(c["rx_unknown_id"], 0, "{c}");
+
     // At stop the trailer's safe value goes out at once; the truck's cannot, and the stop
     // says so (rather than waiting out the settle time for it, and making the trailer
     // late).

@@ -132,7 +132,12 @@ fn last_error() -> std::io::Error {
     std::io::Error::last_os_error()
 }
 
-fn set<T>(fd: &OwnedFd, level: libc::c_int, name: libc::c_int, value: &T) -> std::io::Result<()> {
+fn set<T: ?Sized>(
+    fd: &OwnedFd,
+    level: libc::c_int,
+    name: libc::c_int,
+    value: &T,
+) -> std::io::Result<()> {
     crate::socket::set_option(fd, level, name, value)
 }
 
@@ -178,6 +183,33 @@ impl J1939Socket {
         };
         socket.rebind(ifindex, node)?;
         Ok(socket)
+    }
+
+    /// Receives only parameter groups `pgns` (the kernel's filter; at most 512, else
+    /// every group), none when empty: a socket that only sends.
+    pub fn receive_only(&self, pgns: &[Pgn]) -> std::io::Result<()> {
+        let exact = |pgn: u32, addr: u8, addr_mask: u8| libc::j1939_filter {
+            name: 0,
+            name_mask: 0,
+            pgn,
+            pgn_mask: libc::J1939_PGN_MAX,
+            addr,
+            addr_mask,
+        };
+        let filters: Vec<libc::j1939_filter> = if pgns.is_empty() {
+            // Claims from the global address, which no node sends from: nothing.
+            vec![exact(Pgn::ADDRESS_CLAIMED.0, GLOBAL, 0xFF)]
+        } else if pgns.len() <= 512 {
+            pgns.iter().map(|p| exact(p.0, 0, 0)).collect()
+        } else {
+            return Ok(());
+        };
+        set(
+            &self.fd,
+            libc::SOL_CAN_J1939,
+            libc::SO_J1939_FILTER,
+            filters.as_slice(),
+        )
     }
 
     /// Binds the socket (again) to `name` and `address` on interface `ifindex` (the one

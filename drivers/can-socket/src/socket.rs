@@ -293,7 +293,7 @@ pub fn realtime_offset() -> i128 {
 
 /// `setsockopt(fd, level, name, value)` for the options no safe wrapper knows (the kernel
 /// structs of CAN_ISOTP and CAN_J1939).
-pub(crate) fn set_option<T>(
+pub(crate) fn set_option<T: ?Sized>(
     fd: &impl AsRawFd,
     level: libc::c_int,
     name: libc::c_int,
@@ -311,7 +311,7 @@ pub(crate) fn set_option<T>(
             level,
             name,
             (value as *const T).cast(),
-            std::mem::size_of::<T>() as libc::socklen_t,
+            std::mem::size_of_val(value) as libc::socklen_t,
         )
     };
     // SO_J1939_PROMISC and SO_J1939_ERRQUEUE return the value set, not 0.

@@ -1,7 +1,11 @@
 //! The J1939 side of a CAN card's bus: a `CAN_J1939` socket beside the CAN_RAW one,
-//! receiving every parameter group (the card matches them by PGN) and sending the card's
-//! J1939 groups from the address its node claimed, with the kernel's transport carrying
-//! what is longer than a frame. The node's address claiming ([`crate::j1939::Claimer`])
+//! receiving the parameter groups the card maps (the kernel filters by PGN; the card
+//! matches source and priority) and the claims and requests of the address claiming, and
+//! sending the card's J1939 groups from the address its node claimed, with the kernel's
+//! transport carrying what is longer than a frame. The node's claims go out through a
+//! second socket of their own: the kernel sends a socket's messages in turn, and a claim
+//! must not wait behind a broadcast transfer (50 ms a packet) when a contest gives it
+//! 250 ms. The node's address claiming ([`crate::j1939::Claimer`])
 //! is fed the claims and requests received here; a new address binds the socket anew.
 
 use super::{CanBus, now_ns};
@@ -14,6 +18,8 @@ use device_interface::time::Timestamp;
 /// A bus's J1939 socket and node.
 pub(super) struct Side {
     pub(super) socket: Option<J1939Socket>,
+    /// The socket the claims go out through (a node with a NAME), receiving nothing.
+    claims: Option<J1939Socket>,
     /// The address the socket is bound to.
     bound: u8,
     pub(super) generation: u64,
@@ -39,6 +45,7 @@ impl Side {
     pub(super) fn new(bus_longest_rx: usize, claimer: Option<Claimer>) -> Side {
         Side {
             socket: None,
+            claims: None,
             bound: GLOBAL,
             generation: 0,
             claimer,
@@ -53,6 +60,25 @@ impl Side {
     }
 }
 
+/// The PGNs a card's J1939 socket receives: those its rx frames map, and for a node the
+/// Request and Address Claimed its claiming answers.
+pub(super) fn pgns(map: &crate::map::CanMap) -> Vec<Pgn> {
+    let node = map.j1939().flatten().is_some();
+    let mut pgns: Vec<Pgn> = map
+        .rx()
+        .iter()
+        .filter_map(|f| f.j1939.map(|j| j.pgn))
+        .chain(
+            node.then_some([Pgn::REQUEST, Pgn::ADDRESS_CLAIMED])
+                .into_iter()
+                .flatten(),
+        )
+        .collect();
+    pgns.sort();
+    pgns.dedup();
+    pgns
+}
+
 impl CanBus {
     /// (Re)opens the J1939 socket (on a new interface), bound to the node's NAME and
     /// address (none: receive only).
@@ -62,11 +88,19 @@ impl CanBus {
             return Ok(());
         };
         side.socket = None;
+        side.claims = None;
         let node = side
             .claimer
             .as_ref()
             .map(|c| (c.node().name, c.bound_address()));
-        side.socket = Some(J1939Socket::open(ifindex, node)?);
+        let socket = J1939Socket::open(ifindex, node)?;
+        socket.receive_only(&self.j1939_pgns)?;
+        if node.is_some() {
+            let claims = J1939Socket::open(ifindex, node)?;
+            claims.receive_only(&[])?;
+            side.claims = Some(claims);
+        }
+        side.socket = Some(socket);
         side.warned = false;
         side.open_warned = false;
         side.drops_seen = 0;
@@ -236,11 +270,16 @@ impl CanBus {
             Send::Claim(a) => a,
             Send::CannotClaim => NULL_ADDRESS,
         };
-        let Some(socket) = &side.socket else {
+        let (Some(socket), Some(claims)) = (&side.socket, &side.claims) else {
             return false;
         };
         if side.bound != from {
-            if let Err(e) = socket.rebind(self.ifindex, Some((name, from))) {
+            // Both: the groups go out from the new address, and a transfer to it is
+            // answered.
+            let rebound = claims
+                .rebind(self.ifindex, Some((name, from)))
+                .and_then(|()| socket.rebind(self.ifindex, Some((name, from))));
+            if let Err(e) = rebound {
                 tracing::warn!(interface = %self.card.map().interface(), "J1939 socket for address {from:#x}: {e}");
                 return false;
             }
@@ -248,10 +287,10 @@ impl CanBus {
                 side.bound = from;
             }
         }
-        let Some(socket) = self.j1939.as_ref().and_then(|s| s.socket.as_ref()) else {
+        let Some(claims) = self.j1939.as_ref().and_then(|s| s.claims.as_ref()) else {
             return false;
         };
-        let sent = socket.send(Pgn::ADDRESS_CLAIMED, GLOBAL, 6, &name.0.to_le_bytes());
+        let sent = claims.send(Pgn::ADDRESS_CLAIMED, GLOBAL, 6, &name.0.to_le_bytes());
         if let Err(e) = &sent {
             tracing::warn!(interface = %self.card.map().interface(), "J1939 address claim from {from:#x}: {e}");
         }

@@ -57,6 +57,9 @@ pub struct CanBus {
     buf: Vec<u8>,
     /// The J1939 socket and node (a card with a `[j1939]` table).
     j1939: Option<j1939::Side>,
+    /// The PGNs the J1939 socket receives: the mapped ones, and a node's Request and
+    /// Address Claimed.
+    j1939_pgns: Vec<can_socket::j1939::Pgn>,
     /// The physical values of the frame just received (room for the widest rx frame).
     values: Vec<f64>,
     /// Whether the interface is a real controller with a state to ask netlink for
@@ -100,6 +103,7 @@ impl CanBus {
             .collect();
         let widest = card.map().widest_rx();
         let longest_tx = card.map().longest(true);
+        let j1939_pgns = j1939::pgns(card.map());
         let j1939 = card.map().j1939().map(|node| {
             j1939::Side::new(
                 card.map().longest(false),
@@ -115,6 +119,7 @@ impl CanBus {
             next_tx,
             next_check: now,
             buf: vec![0; longest_tx],
+            j1939_pgns,
             j1939,
             values: Vec::with_capacity(widest),
             controller: None,
