@@ -157,8 +157,13 @@ fn address(ifindex: u32, name: u64, pgn: u32, addr: u8) -> libc::sockaddr_can {
 impl J1939Socket {
     /// Opens a socket on interface `ifindex` bound to `name` and `address` (none: a
     /// listener, which cannot send; address [`NULL_ADDRESS`]: to send Cannot Claim
-    /// Address), receiving every parameter group, broadcasts allowed.
-    pub fn open(ifindex: u32, node: Option<(Name, u8)>) -> std::io::Result<J1939Socket> {
+    /// Address), receiving parameter groups `receive` whoever they are for (none: a
+    /// socket that only sends; more than 512: all), broadcasts allowed.
+    pub fn open(
+        ifindex: u32,
+        node: Option<(Name, u8)>,
+        receive: &[Pgn],
+    ) -> std::io::Result<J1939Socket> {
         #[allow(unsafe_code, reason = "nix has no CAN_J1939 socket")]
         // SAFETY: plain socket(2); the descriptor it returns (checked) is owned from here.
         let fd = unsafe {
@@ -181,13 +186,15 @@ impl J1939Socket {
             fd,
             priority: std::cell::Cell::new(6),
         };
+        // The filter before the bind: nothing else is queued meanwhile.
+        socket.receive_only(receive)?;
         socket.rebind(ifindex, node)?;
         Ok(socket)
     }
 
     /// Receives only parameter groups `pgns` (the kernel's filter; at most 512, else
     /// every group), none when empty: a socket that only sends.
-    pub fn receive_only(&self, pgns: &[Pgn]) -> std::io::Result<()> {
+    fn receive_only(&self, pgns: &[Pgn]) -> std::io::Result<()> {
         let exact = |pgn: u32, addr: u8, addr_mask: u8| libc::j1939_filter {
             name: 0,
             name_mask: 0,
@@ -197,8 +204,9 @@ impl J1939Socket {
             addr_mask,
         };
         let filters: Vec<libc::j1939_filter> = if pgns.is_empty() {
-            // Claims from the global address, which no node sends from: nothing.
-            vec![exact(Pgn::ADDRESS_CLAIMED.0, GLOBAL, 0xFF)]
+            // A PDU1 PGN with a destination byte, which the kernel clears in every PGN it
+            // receives: nothing matches.
+            vec![exact(0xEF01, 0, 0)]
         } else if pgns.len() <= 512 {
             pgns.iter().map(|p| exact(p.0, 0, 0)).collect()
         } else {
@@ -235,8 +243,9 @@ impl J1939Socket {
     /// Receives one queued message into `buf` without blocking: none when none is queued
     /// (EINTR is retried). A message longer than `buf` is cut and said to be.
     pub fn recv(&mut self, buf: &mut [u8]) -> std::io::Result<Option<Message>> {
-        // Room for a timespec and the three J1939 control messages, aligned.
-        let mut cmsg = [0u64; 16];
+        // Room for a timespec, the drop count and the three J1939 control messages (128
+        // bytes), aligned, and to spare.
+        let mut cmsg = [0u64; 32];
         #[allow(unsafe_code, reason = "sockaddr_can holds a union")]
         // SAFETY: all-zero bytes are a valid sockaddr_can.
         let mut from: libc::sockaddr_can = unsafe { std::mem::zeroed() };

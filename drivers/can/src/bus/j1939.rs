@@ -27,8 +27,18 @@ pub(super) struct Side {
     claimer: Option<Claimer>,
     /// Whether the node claimed since the link last came up (or the socket was opened).
     claimed_on_link: bool,
-    /// The card's link-down count when last looked at (a new one: open and claim anew).
-    downs_seen: u64,
+    /// A socket said the interface went down: the kernel forgot the claims, and closed
+    /// the sockets' transfers; they are opened anew (a carrier lost, at bus-off, is not
+    /// this: the kernel keeps its claims then, and closing a socket with a transfer under
+    /// way would wait for it).
+    pub(super) reopen: bool,
+    /// The next time a failed open is tried again, ns.
+    open_at: u64,
+    /// A claim or answer that could not be sent, sent again at `retry_at`.
+    retry: Option<Send>,
+    retry_at: u64,
+    /// A group that could not be sent goes again at this time, ns.
+    resend_at: Option<u64>,
     /// The kernel's drop counter as last seen.
     drops_seen: u32,
     /// An open failure was said (once until one succeeds).
@@ -50,7 +60,11 @@ impl Side {
             generation: 0,
             claimer,
             claimed_on_link: false,
-            downs_seen: 0,
+            reopen: false,
+            open_at: 0,
+            retry: None,
+            retry_at: 0,
+            resend_at: None,
             drops_seen: 0,
             open_warned: false,
             reported: None,
@@ -93,12 +107,9 @@ impl CanBus {
             .claimer
             .as_ref()
             .map(|c| (c.node().name, c.bound_address()));
-        let socket = J1939Socket::open(ifindex, node)?;
-        socket.receive_only(&self.j1939_pgns)?;
+        let socket = J1939Socket::open(ifindex, node, &self.j1939_pgns)?;
         if node.is_some() {
-            let claims = J1939Socket::open(ifindex, node)?;
-            claims.receive_only(&[])?;
-            side.claims = Some(claims);
+            side.claims = Some(J1939Socket::open(ifindex, node, &[])?);
         }
         side.socket = Some(socket);
         side.warned = false;
@@ -106,25 +117,40 @@ impl CanBus {
         side.drops_seen = 0;
         // A new socket: the kernel holds no claim for it.
         side.claimed_on_link = false;
+        side.retry = None;
         side.bound = node.map_or(GLOBAL, |(_, a)| a);
         side.generation += 1;
         Ok(())
     }
 
     /// Opens the J1939 socket if it is not open; a failure (the interface down: the
-    /// kernel refuses the bind) is said once and tried again at the next step.
+    /// kernel refuses the bind) is said once and tried again a link check later.
     pub(super) fn ensure_j1939(&mut self) {
-        if self.j1939.as_ref().is_none_or(|s| s.socket.is_some()) {
+        let now = now_ns();
+        if self
+            .j1939
+            .as_ref()
+            .is_none_or(|s| s.socket.is_some() || now < s.open_at)
+        {
             return;
         }
         if let Err(e) = self.open_j1939() {
             let interface = self.card.map().interface().to_string();
-            if let Some(side) = &mut self.j1939
-                && !side.open_warned
-            {
-                side.open_warned = true;
-                tracing::warn!(%interface, "J1939 socket: {e} (tried again while the link is up)");
+            let later = now + self.card.map().link_check().as_nanos() as u64;
+            if let Some(side) = &mut self.j1939 {
+                side.open_at = later;
+                if !side.open_warned {
+                    side.open_warned = true;
+                    tracing::warn!(%interface, "J1939 socket: {e} (tried again while the link is up)");
+                }
             }
+        }
+    }
+
+    /// A socket said the interface went down (ENETDOWN, ENODEV).
+    pub(super) fn interface_down(&mut self) {
+        if let Some(side) = &mut self.j1939 {
+            side.reopen = true;
         }
     }
 
@@ -141,8 +167,7 @@ impl CanBus {
                 Ok(Some(got)) => got,
                 Ok(None) => break,
                 Err(e) => {
-                    if matches!(e.raw_os_error(), Some(e) if e == nix::Error::ENETDOWN as i32 || e == nix::Error::ENODEV as i32)
-                    {
+                    if gone(&e) {
                         self.link_lost(nix::Error::ENETDOWN);
                     } else if !side.warned {
                         side.warned = true;
@@ -175,8 +200,10 @@ impl CanBus {
                 _ => None,
             };
             if let Some(send) = answer {
-                if let Some(send) = send {
-                    self.claim_send(send);
+                if let Some(send) = send
+                    && !self.claim_send(send)
+                {
+                    self.retry_claim(send, now);
                 }
                 self.report_claim();
                 continue;
@@ -203,17 +230,19 @@ impl CanBus {
         }
     }
 
-    /// Follows the link: a link that went down (however briefly) takes the socket with it —
-    /// the kernel forgot the claims — and one that is up gets a socket and a claim; then
-    /// moves the claim on with time, and reports it.
+    /// Follows the interface: one that went down (the kernel forgot the claims) takes the
+    /// sockets with it, and one that is up gets sockets and a claim of the configured
+    /// address; then sends again what could not be sent, moves the claim on with time, and
+    /// reports it.
     pub(super) fn claim_step(&mut self, now: u64) {
         let up = self.card.link_up();
-        let downs = self.card.link_downs();
         let Some(side) = &mut self.j1939 else { return };
-        if side.downs_seen != downs {
-            side.downs_seen = downs;
+        if std::mem::take(&mut side.reopen) {
             side.socket = None;
-            side.claimed_on_link = false;
+            side.claims = None;
+        }
+        if side.resend_at.is_some_and(|at| now >= at) {
+            side.resend_at = None;
         }
         if !up {
             return;
@@ -224,25 +253,44 @@ impl CanBus {
             return;
         }
         let Some(c) = &mut side.claimer else { return };
-        let send = if side.claimed_on_link {
-            c.tick(now)
-        } else {
+        let send = if !side.claimed_on_link {
             side.claimed_on_link = true;
             c.start(now)
+        } else if side.retry.is_some() && now >= side.retry_at {
+            side.retry.take()
+        } else {
+            c.tick(now)
         };
         if let Some(send) = send
             && !self.claim_send(send)
-            && let Some(side) = &mut self.j1939
         {
-            // Not sent: claimed again at the next step rather than taken as claimed.
-            side.claimed_on_link = false;
+            self.retry_claim(send, now);
         }
         self.report_claim();
     }
 
-    /// When the claiming next needs a step, ns.
+    /// Keeps `send`, which could not be sent, to be sent again shortly.
+    fn retry_claim(&mut self, send: Send, now: u64) {
+        if let Some(side) = &mut self.j1939 {
+            side.retry = Some(send);
+            side.retry_at = now + RETRY_NS;
+        }
+    }
+
+    /// When the J1939 side next needs a step, ns: none while the link is down or the
+    /// socket not open (the link check steps it then).
     pub(super) fn claim_deadline(&self) -> Option<u64> {
-        self.j1939.as_ref()?.claimer.as_ref()?.deadline()
+        let side = self.j1939.as_ref()?;
+        if !self.card.link_up() || side.socket.is_none() {
+            return None;
+        }
+        let claim = side
+            .claimer
+            .as_ref()
+            .filter(|_| side.claimed_on_link)
+            .and_then(Claimer::deadline);
+        let retry = side.retry.map(|_| side.retry_at);
+        [claim, retry, side.resend_at].into_iter().flatten().min()
     }
 
     /// Tells the card where the claiming stands, when that changed.
@@ -320,17 +368,40 @@ impl CanBus {
             j.priority.unwrap_or(6),
             &self.buf[..len],
         );
-        if let Err(e) = &sent {
-            tracing::debug!(frame = %f.name, "J1939 send failed: {e}");
-            // Its values go out at the next try, not lost with this one.
+        self.card.sent(sent.is_ok());
+        let Err(e) = sent else { return };
+        tracing::debug!(frame = %f.name, "J1939 send failed: {e}");
+        if gone(&e) {
+            self.link_lost(nix::Error::ENETDOWN);
+        }
+        // A transient refusal (a full queue, a transfer under way, an address the kernel
+        // has not mapped yet or no longer: a contest the receive side is about to see):
+        // its values go out at the next try, shortly, not lost with this one.
+        let transient = [
+            nix::Error::EAGAIN,
+            nix::Error::ENOBUFS,
+            nix::Error::EBUSY,
+            nix::Error::EADDRNOTAVAIL,
+            nix::Error::ENETDOWN,
+        ];
+        if transient
+            .iter()
+            .any(|t| e.raw_os_error() == Some(*t as i32))
+        {
             self.card.resend(t);
-            // The kernel no longer sends from the address: claimed again.
-            if e.raw_os_error() == Some(nix::Error::EADDRNOTAVAIL as i32)
-                && let Some(side) = &mut self.j1939
-            {
-                side.claimed_on_link = false;
+            if let Some(side) = &mut self.j1939 {
+                side.resend_at = Some(now_ns() + RETRY_NS);
             }
         }
-        self.card.sent(sent.is_ok());
     }
+}
+
+/// How soon a claim or group that could not be sent is tried again, ns.
+const RETRY_NS: u64 = 20_000_000;
+
+/// An error that says the interface went down or away.
+fn gone(e: &std::io::Error) -> bool {
+    [nix::Error::ENETDOWN, nix::Error::ENODEV]
+        .iter()
+        .any(|g| e.raw_os_error() == Some(*g as i32))
 }

@@ -6,7 +6,9 @@ use can_socket::link::link;
 use device_interface::DeviceError;
 
 impl CanBus {
-    pub(super) fn link_lost(&self, e: nix::Error) {
+    /// A socket said the interface went down or away.
+    pub(super) fn link_lost(&mut self, e: nix::Error) {
+        self.interface_down();
         if self.card.link_up() {
             tracing::warn!(interface = %self.card.map().interface(), "link down: {e}");
         }

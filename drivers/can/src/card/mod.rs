@@ -375,11 +375,6 @@ impl CanCard {
         }
     }
 
-    /// How many times the link went down.
-    pub fn link_downs(&self) -> u64 {
-        self.counters.link_down_events.load(Ordering::Relaxed)
-    }
-
     /// True while the link is up.
     pub fn link_up(&self) -> bool {
         self.link_up.load(Ordering::Acquire)
