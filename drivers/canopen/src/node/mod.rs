@@ -286,6 +286,9 @@ impl NodeRun {
         } else {
             out.push(Tx::nmt(nmt::START, self.map.id));
             self.started_at = now;
+            // The heartbeat consumer counts from the start: while it was configured (its
+            // producer time written first) its answers, not its heartbeat, said it lived.
+            self.last_heartbeat = Some(now);
             self.status.configured += 1;
             self.status.error = None;
             self.set_state(NodeState::Operational);
@@ -436,9 +439,8 @@ impl NodeRun {
             let what = self.describe(index, sub, &e);
             self.fail(what);
         }
-        if let (Some(timeout), Some(last)) = (self.map.heartbeat_timeout, self.last_heartbeat)
-            && now.saturating_sub(last) >= ns(timeout)
-            && self.status.state != NodeState::Offline
+        if let Some(at) = self.heartbeat_deadline()
+            && now >= at
         {
             tracing::warn!(node = self.map.id, "heartbeat lost");
             self.status.heartbeats_lost += 1;
@@ -449,14 +451,28 @@ impl NodeRun {
         }
     }
 
+    /// When its heartbeat is lost if none comes, if it is watched now: not while it is
+    /// offline, nor while it is configured — its producer time is written then, and a
+    /// slow node's SDO answers say it lives (their own timeout says when it does not); a
+    /// lost heartbeat would drop the transfer under way, whose late answer the next
+    /// configuration would take for its own.
+    fn heartbeat_deadline(&self) -> Option<u64> {
+        if matches!(
+            self.status.state,
+            NodeState::Offline | NodeState::Configuring
+        ) {
+            return None;
+        }
+        Some(
+            self.last_heartbeat?
+                .saturating_add(ns(self.map.heartbeat_timeout?)),
+        )
+    }
+
     /// When [`tick`](Self::tick) has something to check next (ns), if ever.
     pub fn next_deadline(&self) -> Option<u64> {
         let sdo = self.transfer.as_ref().map(|_| self.deadline);
-        let hb = match (self.map.heartbeat_timeout, self.last_heartbeat) {
-            (Some(t), Some(last)) => Some(last.saturating_add(ns(t))),
-            _ => None,
-        };
-        sdo.into_iter().chain(hb).min()
+        sdo.into_iter().chain(self.heartbeat_deadline()).min()
     }
 
     /// The NMT command that leaves it as `at_stop` says, if any.

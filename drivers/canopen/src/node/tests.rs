@@ -295,3 +295,26 @@ fn an_expedited_read_back_without_its_size_is_the_objects_bytes() {
     });
     assert!(node.is_operational(), "{:?}", node.status().error);
 }
+
+#[test]
+fn a_slow_configuration_is_not_a_lost_heartbeat() {
+    // The heartbeat would be lost after 50 ms; the node answers its SDOs 70 ms late.
+    let mut node = run("heartbeat_timeout_ms = 50");
+    let (mut out, mut server) = (Vec::new(), Server::default());
+    node.on_heartbeat(&[0], 0, &mut out);
+    assert_eq!(
+        node.next_deadline(),
+        Some(100 * MS),
+        "the SDO timeout alone"
+    );
+    node.tick(60 * MS, &mut out);
+    assert_eq!(node.status().state, NodeState::Configuring);
+    let other = serve(&mut node, &mut server, &mut out, 70 * MS);
+    assert_eq!(other, [Tx::nmt(nmt::START, 5)]);
+    assert!(node.is_operational());
+    assert_eq!(node.status().heartbeats_lost, 0);
+    // Watched from its start on.
+    assert_eq!(node.next_deadline(), Some(120 * MS));
+    node.tick(120 * MS, &mut out);
+    assert_eq!(node.status().heartbeats_lost, 1);
+}
