@@ -162,6 +162,21 @@ pub enum DeviceError {
 }
 
 impl DeviceError {
+    /// [`NotANumber`](DeviceError::NotANumber) for channel `channel` holding `v` (NaN or
+    /// an infinity), naming which.
+    pub fn not_a_number(channel: u32, v: f64) -> DeviceError {
+        DeviceError::NotANumber {
+            channel,
+            what: if v.is_nan() {
+                "NaN"
+            } else if v > 0.0 {
+                "+inf"
+            } else {
+                "-inf"
+            },
+        }
+    }
+
     /// True for a condition of the device or its bus that may pass by itself — offline,
     /// stale, a bus error — as opposed to a call that can never succeed (a channel, value
     /// or operation the device does not have) or outputs held at stop. A component may

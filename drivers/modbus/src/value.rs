@@ -37,19 +37,6 @@ pub fn initial_word(point: &Point) -> i64 {
     }
 }
 
-fn not_a_number(channel: u32, v: f64) -> DeviceError {
-    DeviceError::NotANumber {
-        channel,
-        what: if v.is_nan() {
-            "NaN"
-        } else if v > 0.0 {
-            "+inf"
-        } else {
-            "-inf"
-        },
-    }
-}
-
 /// The physical value of image word `word` of `channel`.
 pub fn physical(point: &Point, channel: u32, word: i64) -> Result<f64, DeviceError> {
     if !point.layout.ty.is_float() {
@@ -57,7 +44,7 @@ pub fn physical(point: &Point, channel: u32, word: i64) -> Result<f64, DeviceErr
     }
     let v = f64::from_bits(word as u64);
     if !v.is_finite() {
-        return Err(not_a_number(channel, v));
+        return Err(DeviceError::not_a_number(channel, v));
     }
     Ok(v)
 }

@@ -484,16 +484,7 @@ impl Signal {
         if v.is_finite() {
             return Ok(v);
         }
-        Err(DeviceError::NotANumber {
-            channel,
-            what: if v.is_nan() {
-                "NaN"
-            } else if v > 0.0 {
-                "+inf"
-            } else {
-                "-inf"
-            },
-        })
+        Err(DeviceError::not_a_number(channel, v))
     }
 
     /// The raw value of `bits` as device channel `channel`'s scale counts it: the integer
