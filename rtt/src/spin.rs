@@ -4,16 +4,27 @@
 //! virtual machine), and a thread that is not spends at most the bound busy. After 2 µs of
 //! pure spinning the spin yields between looks: Linux tends to wake a thread on its
 //! waker's CPU, and a waker that spun without yielding would keep the thread it woke (the
-//! engine that has the call, the caller that has the result) from running.
+//! engine that has the call, the caller that has the result) from running. A SCHED_FIFO
+//! thread's spin is pure to its bound: its yield would be a system call that lets no
+//! lower-priority thread run.
 
 use std::cell::Cell;
 use std::time::{Duration, Instant};
 
 thread_local! {
+    /// Set on a thread that got SCHED_FIFO: its spins never yield. `sched_yield` on a
+    /// SCHED_FIFO thread only lets threads of its own priority run, so it would be a system
+    /// call that gives nothing to the thread it woke.
+    static REALTIME: Cell<bool> = const { Cell::new(false) };
     /// Set when this thread has just unparked another: the scheduler tends to wake that
     /// thread on this one's CPU, so this thread's next wait parks at once rather than spin
     /// and keep it from running.
     static WOKE_ANOTHER: Cell<bool> = const { Cell::new(false) };
+}
+
+/// Notes that this thread runs SCHED_FIFO: its spins stay pure (no `sched_yield`).
+pub(crate) fn note_realtime() {
+    REALTIME.with(|r| r.set(true));
 }
 
 /// Notes that this thread unparked another thread (see [`take_woke_another`]).
@@ -43,6 +54,7 @@ pub(crate) fn spin_until(budget: Duration, mut done: impl FnMut() -> bool) -> bo
         return false;
     }
     let start = Instant::now();
+    let may_yield = !REALTIME.with(Cell::get);
     loop {
         for _ in 0..CHECKS_PER_CLOCK {
             std::hint::spin_loop();
@@ -54,7 +66,7 @@ pub(crate) fn spin_until(budget: Duration, mut done: impl FnMut() -> bool) -> bo
         if spent >= budget {
             return done();
         }
-        if spent >= YIELD_AFTER {
+        if may_yield && spent >= YIELD_AFTER {
             // Past a short pure spin, give the CPU to whatever else is runnable here (a
             // thread this one woke may have been put on this CPU) between looks.
             std::thread::yield_now();

@@ -72,7 +72,10 @@ pub(super) fn apply_thread_options(name: &str, opts: &ThreadOptions) -> bool {
         return false;
     }
     match set_fifo(opts.priority) {
-        Ok(()) => true,
+        Ok(()) => {
+            crate::spin::note_realtime();
+            true
+        }
         Err(e) => {
             if !RT_WARNED.swap(true, Ordering::Relaxed) {
                 tracing::warn!(
@@ -112,18 +115,22 @@ static MEMORY_LOCK: std::sync::atomic::AtomicU8 = std::sync::atomic::AtomicU8::n
 
 /// What a periodic activity's thread does before its first wake-up, as cyclictest does:
 /// its timer slack at the minimum (1 ns: a SCHED_OTHER thread's sleeps are not rounded up
-/// by the default 50 µs), its stack's first [`PREFAULT_STACK`] bytes touched (no page
-/// fault in a step), and — for a thread that got SCHED_FIFO, once per process — all
+/// by the default 50 µs), and — for a thread that got SCHED_FIFO — its stack's first
+/// [`PREFAULT_STACK`] bytes touched (no page fault in a step) and, once per process, all
 /// memory locked (`mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT)`: a page touched is
-/// never paged out), said once with the reason when that is refused. True when the
+/// never paged out), said once with the reason when that is refused. A SCHED_OTHER
+/// periodic thread (a card's bus thread, a sampling component) does not prefault: 256 KiB
+/// of resident stack each would be most of a large deployment's memory. True when the
 /// process's memory is locked.
 pub(super) fn prepare_periodic(name: &str, realtime: bool) -> bool {
     if let Err(e) = nix::sys::prctl::set_timerslack(1) {
         tracing::debug!(activity = name, "timer slack stays as it was: {e}");
     }
-    prefault_stack();
-    if realtime && MEMORY_LOCK.load(Ordering::Acquire) == 0 {
-        lock_memory(name);
+    if realtime {
+        prefault_stack();
+        if MEMORY_LOCK.load(Ordering::Acquire) == 0 {
+            lock_memory(name);
+        }
     }
     MEMORY_LOCK.load(Ordering::Acquire) == 1
 }
@@ -145,6 +152,9 @@ fn lock_memory(name: &str) {
     let flags =
         MlockAllFlags::from_bits_retain(libc::MCL_CURRENT | libc::MCL_FUTURE | libc::MCL_ONFAULT);
     let locked = mlockall(flags);
+    if locked.is_ok() {
+        keep_heap();
+    }
     let state = if locked.is_ok() { 1 } else { 2 };
     if MEMORY_LOCK
         .compare_exchange(0, state, Ordering::AcqRel, Ordering::Acquire)
@@ -163,5 +173,22 @@ fn lock_memory(name: &str) {
              Locking needs CAP_IPC_LOCK or an RLIMIT_MEMLOCK above the process's size \
              (systemd: LimitMEMLOCK=infinity)."
         ),
+    }
+}
+
+/// Once memory is locked, glibc's allocator keeps what it has: it never gives heap back
+/// (`M_TRIM_THRESHOLD` off: a `free` on any thread is not followed by `brk`/`madvise`,
+/// and the next allocation does not fault a fresh page in) and serves large blocks from the
+/// heap rather than a fresh `mmap` each (`M_MMAP_MAX` 0) — what real-time guides ask
+/// beside `mlockall`.
+#[allow(unsafe_code)]
+fn keep_heap() {
+    // SAFETY: mallopt only sets the allocator's parameters; it takes no pointer and any
+    // value is accepted or refused (0 returned) by glibc.
+    let kept = unsafe {
+        libc::mallopt(libc::M_TRIM_THRESHOLD, -1) != 0 && libc::mallopt(libc::M_MMAP_MAX, 0) != 0
+    };
+    if !kept {
+        tracing::debug!("the allocator's trim and mmap settings stay as they were");
     }
 }

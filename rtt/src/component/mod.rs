@@ -168,7 +168,10 @@ pub(crate) struct TaskCore {
     warning: AtomicBool,
     warnings: AtomicU64,
     last_error: Mutex<Option<String>>,
-    engine_thread: Mutex<Option<std::thread::ThreadId>>,
+    /// The engine's thread ([`this_thread`]) once it has stepped, 0 before and after: an
+    /// own-thread call from it is refused rather than queued behind itself. An atomic, so
+    /// that a caller never takes a lock the engine thread could need.
+    engine_thread: AtomicU64,
     /// The thread holding `component` ([`this_thread`]), 0 when none: a lifecycle command
     /// or own-thread call from it is refused rather than dead-locked.
     holder: AtomicU64,
@@ -357,7 +360,7 @@ impl Engine for TaskCore {
                 state: state.to_string(),
             });
         }
-        if *lock(&self.engine_thread) == Some(std::thread::current().id()) || self.held_here() {
+        if self.engine_thread.load(Ordering::Acquire) == this_thread() || self.held_here() {
             return Err(CallError::Reentrant {
                 operation: operation.to_string(),
             });
@@ -433,7 +436,7 @@ impl Runner for EngineRunner {
             return;
         };
         if self.note_thread.swap(false, Ordering::Relaxed) {
-            *lock(&core.engine_thread) = Some(std::thread::current().id());
+            core.engine_thread.store(this_thread(), Ordering::Release);
         }
         core.step(events, timing);
         // Its slaves, after its own step and on its thread (the component's lock let go).
@@ -520,7 +523,7 @@ impl TaskContext {
                 warning: AtomicBool::new(false),
                 warnings: AtomicU64::new(0),
                 last_error: Mutex::new(None),
-                engine_thread: Mutex::new(None),
+                engine_thread: AtomicU64::new(0),
                 holder: AtomicU64::new(0),
                 peers: setup.peers,
                 slaves: arc_swap::ArcSwap::from_pointee(Vec::new()),
@@ -681,7 +684,7 @@ impl TaskContext {
         }
         // Stop the thread first, without holding the component: its step needs it.
         self.core.activity.stop();
-        *lock(&self.core.engine_thread) = None;
+        self.core.engine_thread.store(0, Ordering::Release);
         self.core.drain_queue();
         self.hook(
             "stop",
