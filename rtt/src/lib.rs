@@ -65,6 +65,7 @@ pub mod activity;
 pub mod component;
 pub mod error;
 pub mod faults;
+pub mod histogram;
 pub mod info;
 pub mod lock;
 pub mod operation;
