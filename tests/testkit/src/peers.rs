@@ -90,6 +90,14 @@ pub const CYCLICTEST: Peer = Peer {
     services: &[],
 };
 
+/// strace, which the real-time system-call bench attaches to one thread at a time.
+pub const STRACE: Peer = Peer {
+    name: "strace",
+    probe: Probe::Command("strace"),
+    packages: &["strace"],
+    services: &[],
+};
+
 /// libsimavr and its parts (uart_pty), with what the Uno harness is compiled with: a C
 /// compiler and libelf, which simavr's static library needs (`pkg-config simavr` fails
 /// without libelf's .pc, so the flags are given by hand).
