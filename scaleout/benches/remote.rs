@@ -15,12 +15,13 @@
 //!
 //! `cargo bench -p scaleout --bench remote` (set `HWGW_BENCH_SECONDS` to measure longer).
 
+mod common;
+
 use device_interface::time::{Clock, MonotonicClock};
 use device_interface::{AnalogIn, Device, DeviceError, Health, RawRange, Scale, Status, Unit};
 use hdrhistogram::Histogram;
 use scaleout::config::ImportConfig;
 use scaleout::{Node, ZenohConfig};
-use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -61,24 +62,9 @@ impl AnalogIn for Counting {
 }
 
 fn config(name: &str, listen: Option<String>, connect: Option<String>) -> ZenohConfig {
-    ZenohConfig {
-        name: name.into(),
-        mode: Default::default(),
-        listen: listen.into_iter().collect(),
-        connect: connect.into_iter().collect(),
-        tls: None,
-        gossip: false,
-        publish_ms: Some(PERIOD.as_secs_f64() * 1000.0),
-        stale_ms: None,
-        offline_ms: None,
-        lease_ms: None,
-        request_timeout_ms: None,
-        import: Vec::new(),
-        export: Vec::new(),
-    }
+    common::config(name, listen, connect, PERIOD.as_secs_f64() * 1000.0)
 }
 
-/// CPU time (user + system) in a `/proc/.../stat` file, s (0 when unreadable).
 fn stat_cpu(path: &std::path::Path) -> f64 {
     let stat = std::fs::read_to_string(path).unwrap_or_default();
     let fields: Vec<&str> = stat
@@ -380,37 +366,17 @@ fn field(line: &str, key: &str) -> f64 {
         .unwrap_or(f64::NAN)
 }
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .map(|a| a.port())
-        .unwrap_or_else(|e| panic!("{e}"))
-}
-
 fn main() {
-    let ports = |v: String| {
-        let (a, b) = v.split_once(',').unwrap_or_else(|| panic!("ports {v}"));
-        let p = |s: &str| s.parse().unwrap_or_else(|e| panic!("{s}: {e}"));
-        (p(a), p(b))
-    };
-    match std::env::var("HWGW_BENCH_ROLE").as_deref() {
-        Ok("a") => return role_a(ports(std::env::var("HWGW_BENCH_PORTS").unwrap_or_default())),
-        Ok("b") => return role_b(ports(std::env::var("HWGW_BENCH_PORTS").unwrap_or_default())),
+    match common::role() {
+        Some((role, ports)) if role == "a" => return role_a(ports),
+        Some((role, ports)) if role == "b" => return role_b(ports),
         _ => {}
     }
     if std::env::args().any(|a| a == "--list") {
         return;
     }
-    let exe = std::env::current_exe().unwrap_or_else(|e| panic!("{e}"));
-    let ports = format!("{},{}", free_port(), free_port());
-    let spawn = |role: &str| {
-        Command::new(&exe)
-            .env("HWGW_BENCH_ROLE", role)
-            .env("HWGW_BENCH_PORTS", &ports)
-            .stdout(Stdio::piped())
-            .spawn()
-            .unwrap_or_else(|e| panic!("{e}"))
-    };
+    let ports = common::ports();
+    let spawn = |role: &str| common::spawn(role, &ports);
     let b = spawn("b");
     let a = spawn("a");
     let a = a.wait_with_output().unwrap_or_else(|e| panic!("{e}"));
