@@ -288,9 +288,17 @@ fn trace(deployment: &str, svc: &Service, threads: &[&str], seconds: u64, dir: &
     let mut stray = 0;
     println!("\n## {deployment} ({seconds} s, `status` asked {asked} times meanwhile)");
     for (comm, out, mut child) in tracers {
-        child.wait().unwrap();
-        let text = std::fs::read_to_string(&out).unwrap();
+        // `timeout` ends strace with SIGINT and answers 124; anything else means strace did
+        // not trace for the whole window (refused to attach: ptrace_scope, no
+        // CAP_SYS_PTRACE), and an empty trace would pass for a clean one.
+        let status = child.wait().unwrap();
+        let text = std::fs::read_to_string(&out).unwrap_or_default();
         let t = classify(&text);
+        assert!(
+            status.code() == Some(124) && !t.counts.is_empty(),
+            "strace of {comm} ended with {status} after {} calls: not a trace of {seconds} s",
+            t.counts.values().sum::<u64>()
+        );
         println!("\n{comm}: {:<18} {:>8} {:>8}", "call", "class", "calls");
         for ((name, class), n) in &t.counts {
             println!("{comm}: {name:<18} {class:>8} {n:>8}");

@@ -6,9 +6,10 @@
 //! memory locked, as the activity locks it) for the same number of loops at the same
 //! interval, priority and policy, one latency a loop. Each round prints p50, p99, p99.9 and
 //! max of both, their ratios, and how many periods of each were longer than 1.2× nominal
-//! (Machinekit's overrun: the interval between two wake-ups, from the same formula for both:
-//! `period + lateness[k] − lateness[k−1]`). It also prints the host's steal time during each
-//! half (`/proc/stat`), so a round where the hypervisor stalled the machine says so. Five
+//! (Machinekit's overrun: the interval between two wake-ups — hwgw's from its steps' start
+//! times, cyclictest's rebuilt from its latencies with its own rule for missed wake-ups).
+//! It also prints the host's steal time during each half (`/proc/stat`, CPU-ms summed
+//! over the CPUs), so a round where the hypervisor stalled the machine says so. Five
 //! rounds (`JITTER_RUNS`), then the median of the max and p99 ratios and the rounds where
 //! hwgw had long periods and cyclictest had none.
 //!
@@ -115,8 +116,8 @@ fn figures(late: &[u64], intervals: impl Iterator<Item = u64>, steal_ms: u64) ->
     }
 }
 
-/// The machine's steal time so far, ms (the `steal` column of `/proc/stat`'s `cpu` line,
-/// in USER_HZ ticks of 10 ms); 0 where it cannot be read.
+/// The machine's steal time so far, CPU-ms summed over its CPUs (the `steal` column of
+/// `/proc/stat`'s `cpu` line, in USER_HZ ticks of 10 ms); 0 where it cannot be read.
 fn steal_ms() -> u64 {
     std::fs::read_to_string("/proc/stat")
         .ok()
@@ -233,11 +234,15 @@ fn run_cyclictest(loops: u64, fifo: bool, priority: i32) -> Result<Figures, Stri
             late.len()
         ));
     }
-    // cyclictest never skips a wake-up: each interval is the period plus the change in
-    // lateness.
-    let intervals = late
-        .windows(2)
-        .map(|w| (PERIOD_US + w[1]).saturating_sub(w[0]));
+    // cyclictest's wake-up k was due at its grid point plus `late[k]`; after it, the next
+    // grid point is one period on, or — when it woke a period or more late — the first
+    // point not before its wake-up (its loop moves `next` on while `now` is past it). So
+    // the interval is the points moved over plus the change in lateness: the rebuilt
+    // wake-up times, as the runtime's (which skips missed wake-ups too) are taken.
+    let intervals = late.windows(2).map(|w| {
+        let moved = w[0].div_ceil(PERIOD_US).max(1) * PERIOD_US;
+        (moved + w[1]).saturating_sub(w[0])
+    });
     Ok(figures(&late, intervals, steal))
 }
 
@@ -325,7 +330,13 @@ fn main() -> ExitCode {
     let median = |v: &mut Vec<f64>| {
         v.sort_by(f64::total_cmp);
         let each = v.iter().map(|r| format!("{r:.2}")).collect::<Vec<_>>();
-        format!("{:.2} (sorted: {})", v[v.len() / 2], each.join(", "))
+        let n = v.len();
+        let m = if n.is_multiple_of(2) {
+            (v[n / 2 - 1] + v[n / 2]) / 2.0
+        } else {
+            v[n / 2]
+        };
+        format!("{m:.2} (sorted: {})", each.join(", "))
     };
     println!(
         "median max ratio rtt/cyclictest over {} rounds: {}",

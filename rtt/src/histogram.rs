@@ -88,7 +88,8 @@ impl AtomicHistogram {
         if total == 0 {
             return 0;
         }
-        let want = ((q.clamp(0.0, 1.0) * total as f64).ceil() as u64).max(1);
+        // The rank, less a hair for the float's error (0.07 × 100 is 7.000000000000001).
+        let want = ((q.clamp(0.0, 1.0) * total as f64 - 1e-9).ceil() as u64).max(1);
         let max = self.max();
         let mut seen = 0;
         for (i, n) in counts.iter().enumerate() {
@@ -138,6 +139,7 @@ mod tests {
         assert_eq!(h.max(), 1000);
         assert_eq!(h.quantile(0.0), 1);
         assert_eq!(h.quantile(0.02), 20);
+        assert_eq!(h.quantile(0.007), 7);
         let p99 = h.quantile(0.99);
         assert!((990..=990 + 990 / 32).contains(&p99), "{p99}");
         assert_eq!(h.quantile(1.0), 1000);

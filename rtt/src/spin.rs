@@ -5,16 +5,19 @@
 //! pure spinning the spin yields between looks: Linux tends to wake a thread on its
 //! waker's CPU, and a waker that spun without yielding would keep the thread it woke (the
 //! engine that has the call, the caller that has the result) from running. A SCHED_FIFO
-//! thread's spin is pure to its bound: its yield would be a system call that lets no
-//! lower-priority thread run.
+//! thread's spin is pure to its bound: its yield would let no lower-priority thread run,
+//! and a real-time thread's steady state makes no `sched_yield` (a thread of the same
+//! priority on the same CPU waits out the bound instead).
 
 use std::cell::Cell;
 use std::time::{Duration, Instant};
 
 thread_local! {
-    /// Set on a thread that got SCHED_FIFO: its spins never yield. `sched_yield` on a
-    /// SCHED_FIFO thread only lets threads of its own priority run, so it would be a system
-    /// call that gives nothing to the thread it woke.
+    /// Set on a thread that got SCHED_FIFO: its spins never yield, so that its steady state
+    /// makes no `sched_yield`. A SCHED_FIFO thread's yield lets only threads of its own
+    /// priority on its CPU run, never a lower one; the cost of not yielding falls on a
+    /// thread of the same priority pinned to the same CPU, which waits at most the spin's
+    /// bound (`spin_us`) before the spinning thread parks.
     static REALTIME: Cell<bool> = const { Cell::new(false) };
     /// Set when this thread has just unparked another: the scheduler tends to wake that
     /// thread on this one's CPU, so this thread's next wait parks at once rather than spin
