@@ -149,6 +149,14 @@ to = "meter.ao.setpoint"
     )
 }
 
+/// The calls a thread waits for its next step in, its timer or descriptors with it.
+const TIMED_WAITS: &[&str] = &[
+    "clock_nanosleep",
+    "epoll_wait",
+    "epoll_pwait",
+    "epoll_pwait2",
+];
+
 /// One traced call: its name, and for futexes the operation and the word.
 struct Call {
     name: String,
@@ -196,12 +204,9 @@ fn classify(trace: &str) -> Thread {
     // The word the thread parks on: the one it waits on most, for a thread that waits for
     // its steps on a futex (an event-driven activity). A thread that waits in
     // `clock_nanosleep` or `epoll_wait` parks on nothing: each of its futex waits is a lock.
-    let timed = calls.iter().any(|(c, _)| {
-        matches!(
-            c.name.as_str(),
-            "clock_nanosleep" | "epoll_wait" | "epoll_pwait" | "epoll_pwait2"
-        )
-    });
+    let timed = calls
+        .iter()
+        .any(|(c, _)| TIMED_WAITS.contains(&c.name.as_str()));
     let mut waits: BTreeMap<&str, u64> = BTreeMap::new();
     for (c, _) in &calls {
         if c.name == "futex" && c.args.contains("FUTEX_WAIT") {
@@ -216,7 +221,7 @@ fn classify(trace: &str) -> Thread {
     let mut t = Thread::default();
     for (c, line) in &calls {
         let class = match c.name.as_str() {
-            "clock_nanosleep" | "epoll_wait" | "epoll_pwait" | "epoll_pwait2" => "wait",
+            name if TIMED_WAITS.contains(&name) => "wait",
             "futex" if c.args.contains("FUTEX_WAKE") => "wake",
             "futex" if park.as_deref() == Some(futex_word(&c.args)) => "wait",
             "read" | "write" | "readv" | "writev" | "sendto" | "recvfrom" | "sendmsg"
