@@ -117,6 +117,15 @@ enum Command {
     Lifecycle { command: String, component: String },
     /// List the devices in the registry.
     Devices,
+    /// The real-time log's level of every component and card, or set one's: `hwgw log
+    /// meter debug` (levels: off, error, warn, info, debug, trace).
+    Log {
+        /// The component or card that logs.
+        component: Option<String>,
+        /// Its new level.
+        #[arg(requires = "component")]
+        level: Option<String>,
+    },
     /// Read the deployment file again and rebuild only what changed (as `systemctl reload
     /// hwgw` does): prints what was applied and what needs a restart; with an error in the
     /// file nothing changes, the errors are printed and the exit code is 1.
@@ -160,10 +169,10 @@ pub(crate) fn command() -> clap::Command {
     <Cli as clap::CommandFactory>::command()
 }
 
-/// The log filter without `RUST_LOG`: info, and async-opcua's crates (the OPC UA
-/// server) from warnings up — they log every connection at info.
-const DEFAULT_LOG: &str =
-    "info,opcua_server=warn,opcua_core=warn,opcua_crypto=warn,opcua_types=warn,opcua_nodes=warn";
+/// The log filter without `RUST_LOG`: info; the real-time log (target `hwgw_rt`) at every
+/// level, each component's own level (`hwgw log`) deciding; and async-opcua's crates (the
+/// OPC UA server) from warnings up — they log every connection at info.
+const DEFAULT_LOG: &str = "info,hwgw_rt=trace,opcua_server=warn,opcua_core=warn,opcua_crypto=warn,opcua_types=warn,opcua_nodes=warn";
 
 /// Logs to the journal when systemd runs us (JOURNAL_STREAM is set), else to stderr.
 fn init_logging() {
@@ -320,6 +329,31 @@ struct Form {
     verbose: bool,
 }
 
+/// `hwgw log [COMPONENT [LEVEL]]`: the real-time log's levels, one set first.
+fn log_levels(
+    client: &Client,
+    component: Option<String>,
+    level: Option<String>,
+    json: bool,
+) -> Result<String, ClientError> {
+    let level = match level.as_deref().map(str::parse::<rtt::log::Level>) {
+        Some(Err(e)) => {
+            return Err(ClientError::Refused(crate::protocol::ErrorBody {
+                kind: crate::protocol::ErrorKind::BadRequest,
+                message: e.to_string(),
+            }));
+        }
+        Some(Ok(l)) => Some(l),
+        None => None,
+    };
+    let levels: crate::protocol::LogLevels = client.typed(&Request::Log { component, level })?;
+    Ok(if json {
+        pretty(&serde_json::to_value(&levels).unwrap_or_default())
+    } else {
+        table::log_levels(&levels)
+    })
+}
+
 /// A one-shot command: the text to print.
 fn one_shot(client: &Client, command: Command, form: Form) -> Result<Option<String>, ClientError> {
     let json = form.json;
@@ -367,6 +401,7 @@ fn one_shot(client: &Client, command: Command, form: Form) -> Result<Option<Stri
                 table::status(&s)
             }
         }
+        Command::Log { component, level } => log_levels(client, component, level, json)?,
         Command::Devices => {
             let list: crate::protocol::DeviceList = client.typed(&Request::Devices)?;
             if json {

@@ -39,7 +39,8 @@ fn component_of(req: &Request) -> Option<&str> {
         | Request::SetPeriod { .. }
         | Request::SetPriority { .. }
         | Request::Changes
-        | Request::Deployment => None,
+        | Request::Deployment
+        | Request::Log { .. } => None,
     }
 }
 

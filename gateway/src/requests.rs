@@ -179,6 +179,7 @@ pub(crate) fn handle(
         }
         | Request::Properties { component: c }
         | Request::LoadProperties { component: c, .. } => values(&component(c)?, req),
+        Request::Log { component, level } => log_levels(component.as_deref(), *level),
         Request::Watch { .. } | Request::Record { .. } => Err(Fail(
             ErrorKind::BadRequest,
             format!("{} streams: it is served on its own", req.cmd()),
@@ -221,6 +222,27 @@ fn set_port(
         Some(w) => w.write(value.clone()).map_err(failed).map(|()| Value::Null),
         None => Err(failed("writer vanished")),
     }
+}
+
+/// The real-time log's levels, `component`'s set to `level` first when both are given.
+fn log_levels(component: Option<&str>, level: Option<rtt::log::Level>) -> Result<Value, Fail> {
+    if let (Some(c), Some(l)) = (component, level) {
+        rtt::log::set_level(c, l).map_err(not_found)?;
+    }
+    let areas: Vec<crate::protocol::LogArea> = match component {
+        Some(c) => vec![crate::protocol::LogArea {
+            name: c.to_string(),
+            level: rtt::log::level(c).map_err(not_found)?,
+        }],
+        None => rtt::log::levels()
+            .into_iter()
+            .map(|(name, level)| crate::protocol::LogArea { name, level })
+            .collect(),
+    };
+    to_value(crate::protocol::LogLevels {
+        areas,
+        counters: rtt::log::stats(),
+    })
 }
 
 /// Runs a lifecycle command; the answer is the new state.

@@ -91,6 +91,23 @@ pub fn devices(list: &[RegistryEntry]) -> String {
     table(&["INTERFACE", "NAME", "CARD", "ALIAS OF"], &rows)
 }
 
+/// The real-time log's levels, then its counters.
+pub fn log_levels(levels: &crate::protocol::LogLevels) -> String {
+    let rows: Vec<Vec<String>> = levels
+        .areas
+        .iter()
+        .map(|a| vec![a.name.clone(), a.level.to_string()])
+        .collect();
+    let c = levels.counters;
+    format!(
+        "{}\nreal-time log: {} written, {} dropped (queue full), {} waiting",
+        table(&["COMPONENT", "LEVEL"], &rows),
+        c.written,
+        c.dropped,
+        c.queued
+    )
+}
+
 fn state(s: rtt::TaskState) -> String {
     serde_json::to_value(s)
         .ok()

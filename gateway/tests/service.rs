@@ -441,6 +441,60 @@ fn an_overrunning_activity_starves_the_watchdog() {
         "{described}"
     );
     assert!(described["activity"]["overruns"].as_u64().unwrap() > 0);
+    let stopped = svc.terminate();
+    assert!(stopped.status.success());
+    // Said by the activity's real-time thread through the real-time logger, written by
+    // the logger thread.
+    assert!(
+        stopped.log.lines().any(|l| l.contains("ERROR hwgw_rt:")
+            && l.contains("overruns in a row: activity unhealthy")
+            && l.contains("component=\"fast\"")),
+        "{}",
+        stopped.log
+    );
+}
+
+/// `hwgw log` lists every component's real-time log level and the logger's counters, and
+/// sets one; an unknown component or level is an error that says what there is.
+#[test]
+fn real_time_log_levels_are_listed_and_set_while_it_runs() {
+    let svc = start("log-levels", None);
+    let all = svc.ok(json!({"cmd": "log"}));
+    let names: Vec<&str> = all["areas"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|a| a["name"].as_str().unwrap())
+        .collect();
+    for want in ["follow", "blink", "sim0"] {
+        assert!(names.contains(&want), "{want} not in {all}");
+    }
+    assert!(all["counters"]["dropped"].is_u64(), "{all}");
+
+    let out = svc.cli(&["log", "follow", "debug"]);
+    assert!(out.status.success(), "{out:?}");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.lines()
+            .any(|l| l.split_whitespace().eq(["follow", "debug"])),
+        "{text}"
+    );
+    let one = svc.ok(json!({"cmd": "log", "component": "follow"}));
+    assert_eq!(one["areas"], json!([{"name": "follow", "level": "debug"}]));
+
+    let out = svc.cli(&["log", "nosuch", "debug"]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("nothing logs as \"nosuch\"; what does: ") && err.contains("follow"),
+        "{err}"
+    );
+    let out = svc.cli(&["log", "follow", "loud"]);
+    assert!(!out.status.success());
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("\"loud\" is not a log level"),
+        "{out:?}"
+    );
     assert!(svc.terminate().status.success());
 }
 

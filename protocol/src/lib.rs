@@ -207,6 +207,34 @@ pub enum Request {
     Changes,
     /// The running deployment as TOML (`hwgw save`).
     Deployment,
+    /// The real-time log's levels (every area, or `component`'s), after setting
+    /// `component`'s to `level` when both are given (`hwgw log`).
+    Log {
+        /// The component (or card) that logs; none: every one.
+        #[serde(default)]
+        component: Option<String>,
+        /// Its new level.
+        #[serde(default)]
+        level: Option<rtt::log::Level>,
+    },
+}
+
+/// The answer to `log`: levels and the real-time logger's counters.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LogLevels {
+    /// Each area (a component or card that logs) and its level, by name.
+    pub areas: Vec<LogArea>,
+    /// Records written, dropped (queue full) and waiting, since the gateway started.
+    pub counters: rtt::log::LogStats,
+}
+
+/// One area of the real-time log.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct LogArea {
+    /// The component or card.
+    pub name: String,
+    /// Its level.
+    pub level: rtt::log::Level,
 }
 
 /// What a reload did: applied line by line, what needs a restart, and the errors that
@@ -277,7 +305,7 @@ pub struct Command {
 }
 
 /// Every command, in the order the documentation lists them.
-pub const COMMANDS: [Command; 25] = [
+pub const COMMANDS: [Command; 26] = [
     Command {
         cmd: "ls",
         fields: "optional `all`",
@@ -403,6 +431,11 @@ pub const COMMANDS: [Command; 25] = [
         fields: "—",
         ok: "the running deployment as TOML text: the file's with the run-time changes",
     },
+    Command {
+        cmd: "log",
+        fields: "optional `component`, optional `level` (`off`, `error`, `warn`, `info`, `debug`, `trace`)",
+        ok: "`{\"areas\": [{\"name\", \"level\"}], \"counters\": {\"written\", \"dropped\", \"queued\"}}`: the real-time log's levels (`component`'s only when given), after setting `component`'s to `level`",
+    },
 ];
 
 impl Request {
@@ -434,6 +467,7 @@ impl Request {
             Request::LoadProperties { .. } => "load_properties",
             Request::Changes => "changes",
             Request::Deployment => "deployment",
+            Request::Log { .. } => "log",
         }
     }
 
@@ -451,6 +485,7 @@ impl Request {
                 | Request::SetPriority { .. }
                 | Request::Changes
                 | Request::Deployment
+                | Request::Log { .. }
         )
     }
 

@@ -68,6 +68,7 @@ pub mod faults;
 pub mod histogram;
 pub mod info;
 pub mod lock;
+pub mod log;
 pub mod operation;
 pub mod port;
 pub mod property;

@@ -102,6 +102,10 @@ impl Runtime {
             scope.record_vcd(path)?;
         }
         scope::set_thread_number(0);
+        // What real-time threads log is written by the logger thread.
+        if let Err(e) = crate::log::spawn_writer() {
+            tracing::warn!("no logger thread: {e}; real-time log records wait and drop");
+        }
         Ok(Runtime {
             registry,
             clock: options.clock,
@@ -246,5 +250,7 @@ impl Runtime {
 impl Drop for Runtime {
     fn drop(&mut self) {
         self.stop_all();
+        // The last records of its threads, out before the process ends.
+        crate::log::flush();
     }
 }

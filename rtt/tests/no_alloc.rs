@@ -1,6 +1,7 @@
 //! The real-time paths allocate nothing: port write/read of pre-sized samples, a
-//! ClientThread call, and a whole periodic step (sleep, statistics, ThreadScope, engine,
-//! update). A counting global allocator counts per thread, so other tests running at the
+//! ClientThread call, an OwnThread send and collect (on the caller's thread and on the
+//! engine's), a real-time log call (written, filtered out, or dropped on a full queue),
+//! and a whole periodic step (sleep, statistics, ThreadScope, engine, update). A counting global allocator counts per thread, so other tests running at the
 //! same time cannot disturb the counts.
 
 #![allow(
@@ -357,4 +358,105 @@ fn a_required_operations_ready_call_and_the_engines_look_allocate_nothing() {
         0,
         "a slave step that looks at a bound requirement and calls it"
     );
+}
+
+/// Runs `scale` in its own thread and notes, each call, the allocations its thread made
+/// so far.
+struct Engine {
+    engine_allocations: Arc<AtomicU64>,
+}
+impl Component for Engine {}
+
+/// A component with OwnThread operation `scale` on `spec`; the allocations its engine
+/// thread has made, as of its last call.
+fn own_thread_scaler(rt: &Runtime, spec: ActivitySpec) -> (rtt::TaskContext, Arc<AtomicU64>) {
+    let seen = Arc::new(AtomicU64::new(0));
+    let s = seen.clone();
+    let t = rt
+        .add("engine", spec, rtt::InitialState::Stopped, move |iface| {
+            iface.own_operation(
+                "scale",
+                "doubles, in the component's thread",
+                &[("x", "")],
+                |c: &mut Engine, (x,): (f64,)| {
+                    c.engine_allocations.store(allocations(), Ordering::SeqCst);
+                    2.0 * x
+                },
+            )?;
+            Ok(Engine {
+                engine_allocations: s,
+            })
+        })
+        .unwrap();
+    t.start().unwrap();
+    (t, seen)
+}
+
+/// An OwnThread call, on both threads: the caller's `send` (claim a pooled slot, queue it,
+/// wake the engine) and `collect` (spin, park, take), the engine's wake-up, step and run.
+/// Also a send whose handle is dropped unread, and a result polled for.
+#[test]
+fn an_own_thread_send_allocates_nothing_on_either_thread() {
+    for (spec, calls) in [
+        (ActivitySpec::non_periodic(), 10_000u32),
+        (ActivitySpec::periodic(Duration::from_micros(500)), 300),
+    ] {
+        let label = format!("{spec:?}");
+        let rt = Runtime::new(Arc::new(Registry::new()), RuntimeOptions::default()).unwrap();
+        let (t, engine) = own_thread_scaler(&rt, spec);
+        let scale = t.operation::<(f64,), f64>("scale").unwrap();
+        // Warm up: the first calls meet the thread's first park and first wake-up.
+        for i in 0..50 {
+            assert_eq!(scale.call((f64::from(i),)), Ok(2.0 * f64::from(i)));
+        }
+        let before = engine.load(Ordering::SeqCst);
+        let on_caller = count(|| {
+            for i in 0..calls {
+                let x = f64::from(i);
+                assert_eq!(scale.send((x,)).collect(), Ok(2.0 * x), "{label}");
+                // Sent and dropped: the slot comes back once the engine has run it.
+                drop(scale.send((x,)));
+                let mut h = scale.send((x,));
+                while h.collect_if_done().is_none() {
+                    std::hint::spin_loop();
+                }
+            }
+        });
+        // One more call, so the engine notes its count after the dropped ones ran.
+        scale.call((0.0,)).unwrap();
+        let on_engine = engine.load(Ordering::SeqCst) - before;
+        assert_eq!(on_caller, 0, "{label}: the caller's sends allocated");
+        assert_eq!(on_engine, 0, "{label}: the engine's thread allocated");
+        let counters = t.counters();
+        assert_eq!(counters.call_slots_allocated, 0, "{label}");
+        assert_eq!(counters.calls_refused, 0, "{label}");
+        t.stop().unwrap();
+    }
+}
+
+/// A log call pushes a fixed-size record; one the level leaves out builds nothing; one
+/// that meets a full queue is dropped and counted. None allocates, with an operating
+/// system's error among its arguments.
+#[test]
+fn a_real_time_log_call_allocates_nothing() {
+    let area = rtt::log::Area::named("no_alloc_log");
+    let refused = std::io::Error::from_raw_os_error(111);
+    let other = std::io::Error::other("unit 7 answered exception 2");
+    rtt::rt_log!(area, Info, "warm {}", 1u8);
+    let n = count(|| {
+        for i in 0..2 * rtt::log::QUEUE_CAPACITY {
+            rtt::rt_log!(
+                area,
+                Warn,
+                "unit {} failed {} times: {}, {}",
+                7u8,
+                i,
+                rtt::log::Arg::io(&refused),
+                rtt::log::Arg::io(&other)
+            );
+            rtt::rt_log!(area, Debug, "left out by the level {}", i);
+        }
+    });
+    assert_eq!(n, 0);
+    assert!(rtt::log::stats().dropped > 0, "the queue never filled");
 }

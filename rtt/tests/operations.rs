@@ -494,3 +494,121 @@ fn event_ports_wake_a_non_periodic_component() {
     t.stop().unwrap();
     assert!(t.stats().steps >= 5);
 }
+
+struct Holder;
+impl Component for Holder {}
+
+/// A started component `name` on `spec` with OwnThread operation `echo`.
+fn echo(rt: &Runtime, name: &str, spec: ActivitySpec) -> TaskContext {
+    let t = rt
+        .add(name, spec, rtt::InitialState::Stopped, |iface| {
+            iface.own_operation(
+                "echo",
+                "its argument",
+                &[("x", "")],
+                |_: &mut Holder, (x,): (u32,)| x,
+            )?;
+            Ok(Holder)
+        })
+        .unwrap();
+    t.start().unwrap();
+    t
+}
+
+/// [`echo`] on a slave activity: its calls run only when it is stepped by hand.
+fn stepped_echo(rt: &Runtime) -> TaskContext {
+    echo(rt, "held", ActivitySpec::Slave)
+}
+
+/// More calls outstanding than an operation's pool of slots: each still gets its own
+/// result, and the extra slots are counted.
+#[test]
+fn calls_beyond_the_slot_pool_are_answered_and_counted() {
+    let rt = runtime();
+    let t = stepped_echo(&rt);
+    let echo = t.operation::<(u32,), u32>("echo").unwrap();
+    let handles: Vec<_> = (0..10).map(|i| echo.send((i,))).collect();
+    t.step().unwrap();
+    let got: Vec<_> = handles.into_iter().map(|h| h.collect().unwrap()).collect();
+    assert_eq!(got, (0..10).collect::<Vec<_>>());
+    assert_eq!(t.counters().call_slots_allocated, 6);
+    // The pool's slots are free again: no more allocations for 4 at a time.
+    let handles: Vec<_> = (0..4).map(|i| echo.send((i,))).collect();
+    t.step().unwrap();
+    assert!(handles.into_iter().all(|h| h.collect().is_ok()));
+    assert_eq!(t.counters().call_slots_allocated, 6);
+}
+
+/// A full queue refuses the call with an error that says so, counted; what was queued
+/// runs, and the slot of the refused call is free again.
+#[test]
+fn a_full_call_queue_refuses_and_counts() {
+    let rt = runtime();
+    let t = stepped_echo(&rt);
+    let echo = t.operation::<(u32,), u32>("echo").unwrap();
+    let cap = rtt::operation::QUEUE_CAPACITY as u32;
+    let queued: Vec<_> = (0..cap).map(|i| echo.send((i,))).collect();
+    let e = echo.send((cap,)).collect().unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        format!(
+            "operation \"echo\" was refused: component \"held\" has {cap} calls queued already"
+        )
+    );
+    assert_eq!(t.counters().calls_refused, 1);
+    t.step().unwrap();
+    for (i, h) in queued.into_iter().enumerate() {
+        assert_eq!(h.collect(), Ok(i as u32));
+    }
+    let h = echo.send((7,));
+    t.step().unwrap();
+    assert_eq!(h.collect(), Ok(7));
+}
+
+/// Handles dropped before their call ran, and calls cancelled by a stop: the slots come
+/// back, and later calls get their own results.
+#[test]
+fn dropped_and_cancelled_calls_give_their_slots_back() {
+    let rt = runtime();
+    let t = stepped_echo(&rt);
+    let echo = t.operation::<(u32,), u32>("echo").unwrap();
+    for round in 0..3 {
+        for i in 0..4 {
+            drop(echo.send((i,)));
+        }
+        t.step().unwrap();
+        let h = echo.send((round,));
+        t.step().unwrap();
+        assert_eq!(h.collect(), Ok(round));
+    }
+    let pending: Vec<_> = (0..4).map(|i| echo.send((i,))).collect();
+    t.stop().unwrap();
+    for h in pending {
+        assert!(matches!(h.collect(), Err(CallError::Cancelled { .. })));
+    }
+    t.start().unwrap();
+    let h = echo.send((9,));
+    t.step().unwrap();
+    assert_eq!(h.collect(), Ok(9));
+    assert_eq!(t.counters().call_slots_allocated, 0);
+}
+
+/// Callers on many threads at once, more than the pool: every one gets its own answer.
+#[test]
+fn concurrent_callers_each_get_their_own_result() {
+    let rt = runtime();
+    let t = echo(&rt, "busy", ActivitySpec::non_periodic());
+    let op = t.operation::<(u32,), u32>("echo").unwrap();
+    std::thread::scope(|s| {
+        for k in 0..8u32 {
+            let echo = op.clone();
+            s.spawn(move || {
+                for i in 0..2_000u32 {
+                    let x = k * 100_000 + i;
+                    assert_eq!(echo.call((x,)), Ok(x));
+                }
+            });
+        }
+    });
+    t.stop().unwrap();
+}

@@ -33,7 +33,7 @@ struct CanPlugin {
 /// opened interface (or opening it at its start).
 pub fn build(config: &CanConfig, ctx: &mut CardContext<'_>) -> Result<BuiltCard, CardError> {
     let map = crate::map::CanMap::new(config, ctx.base()).map_err(keyed)?;
-    let card = CanCard::new(map, ctx.clock());
+    let card = CanCard::with_log(map, ctx.clock(), rtt::log::Area::named(ctx.name()));
     // An interface that is not here is for the start to find (`hwgw check` validates a
     // deployment before it is installed); one that is here must be a CAN interface that
     // can carry what is mapped.

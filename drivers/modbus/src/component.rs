@@ -46,6 +46,8 @@ pub struct LineIo {
     client: Option<crate::client::Client>,
     /// The single-threaded tokio runtime the transactions run on (made at start).
     tokio: Option<tokio::runtime::Runtime>,
+    /// Where the line logs: the card's name.
+    log: rtt::log::Area,
 }
 
 fn now() -> Timestamp {
@@ -85,13 +87,15 @@ impl LineIo {
             move |()| -> Vec<UnitCounters> { u.iter().map(UnitCounters::of).collect() },
         )?;
         let t0 = now();
+        let log = rtt::log::Area::named(iface.name());
         Ok(LineIo {
             transport,
             forwarding: Arc::new(Forwarding::default()),
             states: units
                 .iter()
-                .map(|u| UnitState::new(&u.timing, t0))
+                .map(|u| UnitState::new(&u.timing, t0, log.clone()))
                 .collect(),
+            log,
             units,
             client: None,
             tokio: None,
@@ -111,7 +115,7 @@ impl Component for LineIo {
         }
         let t0 = now();
         for (s, u) in self.states.iter_mut().zip(self.units.iter()) {
-            *s = UnitState::new(&u.timing, t0);
+            *s = UnitState::new(&u.timing, t0, self.log.clone());
         }
         ctx.activity().wake_at(t0)?;
         self.forwarding.open(ctx.activity().waker());
@@ -182,6 +186,7 @@ impl Component for LineIo {
                 &DeviceError::Undelivered {
                     reason: "the Modbus line stopped before the write was sent",
                 },
+                &self.log,
             );
         }
     }

@@ -28,6 +28,8 @@ use crate::plan::{Barrier, Read};
 pub use crate::transport::{Parity, RtuOverTcp, Serial, Transport};
 use device_interface::time::Timestamp;
 use device_interface::{DeviceError, Status};
+use rtt::log::{Area, Arg};
+use rtt::rt_log;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
@@ -235,11 +237,14 @@ pub(crate) struct UnitState {
     refusal_logged: Option<Timestamp>,
     /// Refused writes not logged since.
     refusals_unlogged: u64,
+    /// Where the line logs (its card's name): real-time safe.
+    pub(crate) log: Area,
 }
 
 impl UnitState {
-    pub(crate) fn new(t: &UnitTiming, now: Timestamp) -> Self {
+    pub(crate) fn new(t: &UnitTiming, now: Timestamp, log: Area) -> Self {
         UnitState {
+            log,
             next: now,
             failures: 0,
             backoff: first_backoff(t),
@@ -278,7 +283,7 @@ pub(crate) async fn poll_and_schedule(
             unit.card.poll_succeeded();
             bump(&unit.stats.polls);
             if state.failures >= t.offline_after {
-                tracing::info!("modbus unit {}: back online", t.unit);
+                rt_log!(state.log, Info, "modbus unit {}: back online", t.unit);
             }
             state.failures = 0;
             state.backoff = first_backoff(&t);
@@ -302,13 +307,20 @@ pub(crate) async fn poll_and_schedule(
                 || state.failures == t.stale_after
                 || state.failures == t.offline_after
             {
-                tracing::warn!("modbus {e} (failure {} in a row: {status})", state.failures);
+                rt_log!(
+                    state.log,
+                    Warn,
+                    "modbus {} (failure {} in a row: {})",
+                    Arg::display(&e),
+                    state.failures,
+                    Arg::display(&status)
+                );
             }
             unit.card.poll_failed(DeviceError::bus(e), status);
             if status == Status::Offline {
                 // Nothing carries a write to an offline unit: its writers hear so now
                 // (again at each failed probe, for a write taken as the unit went offline).
-                fail_pending(unit, &DeviceError::Offline);
+                fail_pending(unit, &DeviceError::Offline, &state.log);
                 state.next = now().saturating_add(state.backoff);
                 state.backoff = (state.backoff * 2).min(t.backoff_max);
             } else {
@@ -320,15 +332,19 @@ pub(crate) async fn poll_and_schedule(
 
 /// Fails the writes on their way to `unit` for `why` (see [`ModbusCard::fail_pending`]),
 /// counted.
-pub(crate) fn fail_pending(unit: &LineUnit, why: &DeviceError) {
+pub(crate) fn fail_pending(unit: &LineUnit, why: &DeviceError, log: &Area) {
     let n = unit.card.fail_pending(why);
     if n > 0 {
         unit.stats
             .writes_failed
             .fetch_add(n as u64, Ordering::Relaxed);
-        tracing::warn!(
-            "modbus unit {}: {n} output write(s) not delivered: {why}",
-            unit.timing.unit
+        rt_log!(
+            log,
+            Warn,
+            "modbus unit {}: {} output write(s) not delivered: {}",
+            unit.timing.unit,
+            n,
+            Arg::display(why)
         );
     }
 }
@@ -344,12 +360,13 @@ fn log_refusal(state: &mut UnitState, e: &PollError, now: Timestamp) {
         return;
     }
     let more = std::mem::take(&mut state.refusals_unlogged);
-    let also = if more > 0 {
-        format!(" ({more} more refused since the last report)")
-    } else {
-        String::new()
-    };
-    tracing::warn!("modbus {e}: the write is not sent again{also}");
+    rt_log!(
+        state.log,
+        Warn,
+        "modbus {}: the write is not sent again ({} more refused since the last report)",
+        Arg::display(e),
+        more
+    );
     state.refusal_logged = Some(now);
 }
 

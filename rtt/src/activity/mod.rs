@@ -326,6 +326,8 @@ struct Shared {
     /// thread when it starts.
     changed: Mutex<Option<ActivitySpec>>,
     name: String,
+    /// Where its thread logs (the component's name).
+    log: crate::log::Area,
     thread_number: Option<u32>,
     running: AtomicBool,
     signal: Signal,
@@ -443,6 +445,7 @@ impl Activity {
                 spec,
                 changed: Mutex::new(None),
                 name: name.to_string(),
+                log: crate::log::Area::named(name),
                 thread_number,
                 running: AtomicBool::new(false),
                 signal: Signal::new(),

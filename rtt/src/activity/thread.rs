@@ -128,14 +128,19 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                         }
                         if !unhealthy_logged {
                             unhealthy_logged = true;
-                            tracing::error!(activity = %shared.name, overruns = run, "{} overruns in a row: activity unhealthy", run);
+                            crate::rt_log!(
+                                shared.log,
+                                Error,
+                                "{} overruns in a row: activity unhealthy",
+                                run
+                            );
                         }
                     }
                 } else {
                     stats.consecutive.store(0, Ordering::Relaxed);
                     if !stats.healthy.swap(true, Ordering::Relaxed) {
                         unhealthy_logged = false;
-                        tracing::info!(activity = %shared.name, "on time again: activity healthy");
+                        crate::rt_log!(shared.log, Info, "on time again: activity healthy");
                     }
                 }
             }
@@ -187,7 +192,12 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                     Ok(n) => n,
                     Err(nix::Error::EINTR) => continue,
                     Err(e) => {
-                        tracing::error!(activity = %shared.name, "epoll_wait failed: {e}; activity stops");
+                        crate::rt_log!(
+                            shared.log,
+                            Error,
+                            "epoll_wait failed: {}; activity stops",
+                            crate::log::Arg::Errno(e as i32)
+                        );
                         break;
                     }
                 };

@@ -275,12 +275,8 @@ impl<C: Send + 'static> InterfaceBuilder<C> {
         args: &[(&str, &str)],
         f: impl Fn(&mut C, A) -> R + Send + Sync + 'static,
     ) -> Result<(), IntrospectError> {
-        let inner: Arc<dyn crate::operation::Invoke<A, R>> = Arc::new(OwnOp {
-            name: Arc::from(name),
-            f: Arc::new(f),
-            engine: self.engine.clone(),
-            _component: std::marker::PhantomData,
-        });
+        let inner: Arc<dyn crate::operation::Invoke<A, R>> =
+            Arc::new(OwnOp::new(name, f, self.engine.clone()));
         self.add_operation(name, doc, args, ExecutionThread::OwnThread, inner)
     }
 

@@ -40,11 +40,12 @@ use crate::activity::{
     Activity, ActivityError, ActivitySpec, ActivityStats, FdEvents, Runner, StepTiming,
 };
 use crate::lock::lock;
-use crate::operation::{CallError, DynOperation, Engine, Message};
+use crate::log::Arg;
+use crate::operation::{CallError, DynOperation, Engine, QUEUE_CAPACITY, Queued};
 use crate::property::PropertyBag;
 use crate::scope::ThreadScope;
 use crate::state::StateCell;
-use crossbeam_queue::SegQueue;
+use crossbeam_queue::ArrayQueue;
 use device_interface::Registry;
 use device_interface::time::Clock;
 use serde::Serialize;
@@ -140,6 +141,13 @@ pub struct TaskCounters {
     /// Times a required service or device stopped being ready while it ran.
     #[serde(default)]
     pub services_lost: u64,
+    /// OwnThread calls refused because its queue was full ([`QUEUE_CAPACITY`]).
+    #[serde(default)]
+    pub calls_refused: u64,
+    /// OwnThread calls that needed a call slot made on the heap: more calls to one
+    /// operation were outstanding at once than its pool holds (4).
+    #[serde(default)]
+    pub call_slots_allocated: u64,
     /// Times one was ready again.
     #[serde(default)]
     pub services_back: u64,
@@ -147,11 +155,18 @@ pub struct TaskCounters {
 
 pub(crate) struct TaskCore {
     name: String,
+    /// Where its engine logs.
+    log: crate::log::Area,
     /// Itself, for what a component keeps of itself ([`SelfRef`]).
     me: Weak<TaskCore>,
     state: Arc<StateCell>,
     component: Mutex<Box<dyn ErasedComponent>>,
-    queue: SegQueue<Message>,
+    /// OwnThread calls to run before the next step: bounded, lock-free.
+    queue: ArrayQueue<Queued>,
+    /// Calls refused because the queue was full.
+    calls_refused: AtomicU64,
+    /// Call slots made on the heap because an operation's pool was in use.
+    call_slots_allocated: AtomicU64,
     activity: Activity,
     /// Swapped whole when a component adds a port while it configures.
     ports: arc_swap::ArcSwap<Vec<Arc<dyn DynPort>>>,
@@ -238,7 +253,12 @@ impl TaskCore {
     ) -> TaskState {
         let was_running = matches!(self.state(), TaskState::Running | TaskState::RunTimeError)
             && hook != Some("stop_hook");
-        tracing::error!(component = %self.name, "entering Exception: {reason}");
+        crate::rt_log!(
+            self.log,
+            Error,
+            "entering Exception: {}",
+            Arg::text(&reason)
+        );
         self.record_failure(reason);
         self.exceptions.fetch_add(1, Ordering::Relaxed);
         self.set_state(TaskState::Exception);
@@ -255,7 +275,12 @@ impl TaskCore {
             }
         });
         if let Err(msg) = r {
-            tracing::error!(component = %self.name, "handling the exception panicked: {msg}; FatalError");
+            crate::rt_log!(
+                self.log,
+                Error,
+                "handling the exception panicked: {}; FatalError",
+                Arg::text(&msg)
+            );
             self.record_failure(msg);
             self.set_state(TaskState::FatalError);
         }
@@ -294,8 +319,8 @@ impl TaskCore {
             return;
         };
         let comp: &mut dyn ErasedComponent = &mut **guard;
-        while let Some(msg) = self.queue.pop() {
-            msg(comp.as_any_mut());
+        while let Some(call) = self.queue.pop() {
+            call.run(comp.as_any_mut());
         }
         if matches!(self.state(), TaskState::Running | TaskState::RunTimeError) {
             self.look_at_requirements(comp, events, timing);
@@ -316,7 +341,7 @@ impl TaskCore {
                     // The gateway is stopping and holds its outputs: no failure of the
                     // component's (the stop reaches it next).
                     Ok(Err(e)) if e.is_held() => {
-                        tracing::debug!(component = %self.name, "update skipped: {e}");
+                        crate::rt_log!(self.log, Debug, "update skipped: {}", Arg::display(&e));
                     }
                     Ok(Err(e)) => {
                         self.enter_exception(comp, format!("update failed: {e}"));
@@ -349,23 +374,33 @@ impl TaskCore {
 }
 
 impl Engine for TaskCore {
-    fn submit(&self, operation: &str, msg: Message) -> Result<Duration, CallError> {
+    fn submit(&self, operation: &str, call: Queued) -> Result<Duration, (CallError, Queued)> {
         let state = self.state();
         if !self.activity.is_running()
             || !matches!(state, TaskState::Running | TaskState::RunTimeError)
         {
-            return Err(CallError::NotRunning {
+            let e = CallError::NotRunning {
                 operation: operation.to_string(),
                 component: self.name.clone(),
                 state: state.to_string(),
-            });
+            };
+            return Err((e, call));
         }
         if self.engine_thread.load(Ordering::Acquire) == this_thread() || self.held_here() {
-            return Err(CallError::Reentrant {
+            let e = CallError::Reentrant {
                 operation: operation.to_string(),
-            });
+            };
+            return Err((e, call));
         }
-        self.queue.push(msg);
+        if let Err(call) = self.queue.push(call) {
+            self.calls_refused.fetch_add(1, Ordering::Relaxed);
+            let e = CallError::QueueFull {
+                operation: operation.to_string(),
+                component: self.name.clone(),
+                capacity: QUEUE_CAPACITY,
+            };
+            return Err((e, call));
+        }
         self.activity.trigger();
         // A non-periodic engine answers at once (a caller spinning, yielding after 2 µs,
         // takes the result without a wake-up); the others step on their own schedule.
@@ -375,6 +410,10 @@ impl Engine for TaskCore {
             }
             _ => Duration::ZERO,
         })
+    }
+
+    fn note_slot_allocated(&self) {
+        self.call_slots_allocated.fetch_add(1, Ordering::Relaxed);
     }
 }
 
@@ -504,10 +543,13 @@ impl TaskContext {
             let iface = iface.into_parts();
             TaskCore {
                 name: name.to_string(),
+                log: crate::log::Area::named(name),
                 me: weak.clone(),
                 state: Arc::new(StateCell::new(TaskState::Init)),
                 component: Mutex::new(component),
-                queue: SegQueue::new(),
+                queue: ArrayQueue::new(QUEUE_CAPACITY),
+                calls_refused: AtomicU64::new(0),
+                call_slots_allocated: AtomicU64::new(0),
                 activity,
                 ports: arc_swap::ArcSwap::from_pointee(iface.ports),
                 operations: iface.operations,
@@ -799,6 +841,8 @@ impl TaskContext {
             warnings: self.core.warnings.load(Ordering::Relaxed),
             services_lost: self.core.required.iter().map(|r| r.counts().0).sum(),
             services_back: self.core.required.iter().map(|r| r.counts().1).sum(),
+            calls_refused: self.core.calls_refused.load(Ordering::Relaxed),
+            call_slots_allocated: self.core.call_slots_allocated.load(Ordering::Relaxed),
         }
     }
 }

@@ -4,13 +4,15 @@
 use super::CanBus;
 use can_socket::link::link;
 use device_interface::DeviceError;
+use rtt::log::Arg;
+use rtt::rt_log;
 
 impl CanBus {
     /// A socket said the interface went down or away.
     pub(super) fn link_lost(&mut self, e: nix::Error) {
         self.interface_down();
         if self.card.link_up() {
-            tracing::warn!(interface = %self.card.map().interface(), "link down: {e}");
+            rt_log!(self.card.log(), Warn, "link down: {}", Arg::Errno(e as i32));
         }
         self.card
             .set_link(false, Some(DeviceError::bus(std::io::Error::from(e))));
@@ -22,7 +24,7 @@ impl CanBus {
         match link(name) {
             None => {
                 if self.card.link_up() {
-                    tracing::warn!(interface = %name, "interface gone");
+                    rt_log!(self.card.log(), Warn, "interface {} gone", Arg::text(name));
                 }
                 self.card.set_link(
                     false,
@@ -36,16 +38,22 @@ impl CanBus {
                     self.ifindex = index;
                     self.controller = None;
                     if let Err(e) = self.open_socket() {
-                        tracing::warn!(interface = %name, "cannot reopen: {e}");
+                        rt_log!(
+                            self.card.log(),
+                            Warn,
+                            "cannot reopen {}: {}",
+                            Arg::text(name),
+                            Arg::display(&e)
+                        );
                         self.card.set_link(false, Some(DeviceError::bus(e)));
                         return;
                     }
                 }
                 if up != self.card.link_up() {
                     if up {
-                        tracing::info!(interface = %name, "link up");
+                        rt_log!(self.card.log(), Info, "link {} up", Arg::text(name));
                     } else {
-                        tracing::warn!(interface = %name, "link down");
+                        rt_log!(self.card.log(), Warn, "link {} down", Arg::text(name));
                     }
                 }
                 self.card.set_link(
@@ -71,7 +79,12 @@ impl CanBus {
             }
             Err(e) => {
                 if self.controller.is_none() {
-                    tracing::warn!(interface = %self.card.map().interface(), "controller state not readable: {e}");
+                    rt_log!(
+                        self.card.log(),
+                        Warn,
+                        "controller state not readable: {}",
+                        Arg::display(&e)
+                    );
                     self.controller = Some(true);
                 }
                 self.card.set_controller(None);

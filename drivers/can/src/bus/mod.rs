@@ -239,7 +239,12 @@ impl CanBus {
                     break;
                 }
                 Err(e) => {
-                    tracing::warn!(interface = %self.card.map().interface(), "recvmsg: {e}");
+                    rtt::rt_log!(
+                        self.card.log(),
+                        Warn,
+                        "recvmsg: {}",
+                        rtt::log::Arg::Errno(e as i32)
+                    );
                     break;
                 }
             };
@@ -354,7 +359,13 @@ impl CanBus {
             return;
         }
         if let Err(e) = &result {
-            tracing::debug!(frame = %f.name, "send failed: {e}");
+            rtt::rt_log!(
+                self.card.log(),
+                Debug,
+                "frame {} send failed: {}",
+                rtt::log::Arg::text(&f.name),
+                rtt::log::Arg::io(e)
+            );
             if e.raw_os_error() == Some(nix::Error::ENETDOWN as i32) {
                 self.link_lost(nix::Error::ENETDOWN);
             }

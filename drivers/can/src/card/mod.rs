@@ -46,6 +46,8 @@ use device_interface::bits::BitImage;
 use device_interface::encoder::WrappingCounter;
 use device_interface::time::{Clock, Timestamp};
 use device_interface::{AnalogIn, AnalogOut, DeviceError, DigitalIn, DigitalOut, Scale};
+use rtt::log::{Area, Arg};
+use rtt::rt_log;
 use status::{BusStateError, Counters, bump};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU8, AtomicU64, Ordering};
@@ -110,11 +112,20 @@ pub struct CanCard {
     claim: ArcSwapOption<J1939Report>,
     /// Why the card's J1939 groups cannot be sent now (no address), if they cannot.
     no_address: ArcSwapOption<DeviceError>,
+    /// Where the card and its bus side log (real-time safe).
+    log: Area,
 }
 
 impl CanCard {
-    /// The devices of `map`; offline until the bus side reports the link up.
+    /// The devices of `map`; offline until the bus side reports the link up. It logs as
+    /// its interface.
     pub fn new(map: CanMap, clock: Arc<dyn Clock>) -> Arc<CanCard> {
+        let log = Area::named(map.interface());
+        CanCard::with_log(map, clock, log)
+    }
+
+    /// [`new`](Self::new), logging as `log` (the card's name in a deployment).
+    pub fn with_log(map: CanMap, clock: Arc<dyn Clock>, log: Area) -> Arc<CanCard> {
         let [ai, ao, di, dout] = map.counts();
         let mut ai_at = vec![(0, 0); ai as usize];
         let mut di_at = vec![(0, 0); di as usize];
@@ -155,6 +166,7 @@ impl CanCard {
             .collect();
         let feeds = sides::Feeding::new(map.rx().len(), &ai_at, &di_at);
         Arc::new(CanCard {
+            log,
             feeds,
             rx: map
                 .rx()
@@ -346,7 +358,12 @@ impl CanCard {
         self.rx[f].last.store(stamp, Ordering::Release);
         bump(&self.rx[f].count);
         if self.rx[f].stale.swap(false, Ordering::AcqRel) {
-            tracing::info!(frame = %frame.name, "fresh again");
+            rt_log!(
+                self.log,
+                Info,
+                "frame {} fresh again",
+                Arg::text(&frame.name)
+            );
         }
         bump(&self.counters.rx_frames);
         Received::Decoded(f)
@@ -421,10 +438,21 @@ impl CanCard {
     fn follow_state(&self, s: BusState) {
         let old = BusState::from_u8(self.bus_state.swap(s as u8, Ordering::AcqRel));
         if old != s {
-            tracing::warn!(interface = %self.map.interface(), "bus state {old:?} -> {s:?}");
+            rt_log!(
+                self.log,
+                Warn,
+                "bus state {} -> {}",
+                Arg::display(&format_args!("{old:?}")),
+                Arg::display(&format_args!("{s:?}"))
+            );
             self.last_error
                 .store(Some(Arc::new(DeviceError::bus(BusStateError(s)))));
         }
+    }
+
+    /// Where the card and its bus side log.
+    pub fn log(&self) -> &Area {
+        &self.log
     }
 
     /// The controller state.
@@ -442,7 +470,13 @@ impl CanCard {
                 && !self.rx[f].stale.swap(true, Ordering::AcqRel)
             {
                 bump(&self.counters.stale_events);
-                tracing::warn!(frame = %frame.name, "stale: not received within {:?}", frame.timeout.unwrap_or_default());
+                rt_log!(
+                    self.log,
+                    Warn,
+                    "frame {} stale: not received within {} ms",
+                    Arg::text(&frame.name),
+                    frame.timeout.unwrap_or_default().as_secs_f64() * 1e3
+                );
             }
         }
     }

@@ -14,9 +14,13 @@ use serde::Serialize;
 use serde::de::DeserializeOwned;
 use serde_json::Value;
 use std::any::Any;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, Weak};
+use std::sync::{Arc, Weak};
 use std::time::Duration;
+
+mod slot;
+pub use slot::QUEUE_CAPACITY;
+pub(crate) use slot::Queued;
+use slot::{CallSlot, Outcome};
 
 /// Which thread runs an operation.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, serde::Deserialize)]
@@ -95,6 +99,18 @@ pub enum CallError {
     /// `collect` after the result was already taken.
     #[error("the result was already collected")]
     AlreadyCollected,
+    /// The component's queue of OwnThread calls is full: the call was not queued.
+    #[error(
+        "operation {operation:?} was refused: component {component:?} has {capacity} calls queued already"
+    )]
+    QueueFull {
+        /// The operation.
+        operation: String,
+        /// The component.
+        component: String,
+        /// The queue's capacity ([`QUEUE_CAPACITY`]).
+        capacity: usize,
+    },
     /// A call to an operation in another process (a service of another gateway) that
     /// brought no result of the type required.
     #[error("operation {operation:?} of the remote provider: {message}")]
@@ -164,59 +180,15 @@ args_tuple!(3; A, B, C);
 args_tuple!(4; A, B, C, D);
 args_tuple!(5; A, B, C, D, E);
 
-/// A queued OwnThread call: runs with the component as `&mut dyn Any`.
-pub(crate) type Message = Box<dyn FnOnce(&mut dyn Any) + Send>;
-
 /// What queues OwnThread calls: the component's engine.
 pub(crate) trait Engine: Send + Sync {
-    /// Queues `msg` and wakes the engine, or says why not; `Ok` carries how long the caller
-    /// may spin for the result before it parks (the engine's thread option `spin_us` for a
-    /// non-periodic engine, which answers at once; zero for the others).
-    fn submit(&self, operation: &str, msg: Message) -> Result<Duration, CallError>;
-}
-
-/// The result slot of a sent call.
-struct Slot<R> {
-    result: Mutex<Option<Result<R, CallError>>>,
-    done: AtomicBool,
-    waiter: Mutex<Option<std::thread::Thread>>,
-}
-
-impl<R> Slot<R> {
-    fn complete(&self, r: Result<R, CallError>) {
-        *crate::lock::lock(&self.result) = Some(r);
-        self.done.store(true, Ordering::Release);
-        if let Some(t) = crate::lock::lock(&self.waiter).as_ref() {
-            // The caller parked: waking it is a scheduler wake-up, and this thread should
-            // give way rather than spin after its step.
-            t.unpark();
-            crate::spin::note_woke_another();
-        }
-    }
-}
-
-/// Completes the slot with `Cancelled` if the queued call is dropped without running.
-struct Completer<R> {
-    slot: Arc<Slot<R>>,
-    operation: Arc<str>,
-    completed: bool,
-}
-
-impl<R> Completer<R> {
-    fn complete(mut self, r: Result<R, CallError>) {
-        self.completed = true;
-        self.slot.complete(r);
-    }
-}
-
-impl<R> Drop for Completer<R> {
-    fn drop(&mut self) {
-        if !self.completed {
-            self.slot.complete(Err(CallError::Cancelled {
-                operation: self.operation.to_string(),
-            }));
-        }
-    }
+    /// Queues `call` and wakes the engine, or says why not and gives the call back; `Ok`
+    /// carries how long the caller may spin for the result before it parks (the engine's
+    /// thread option `spin_us` for a non-periodic engine, which answers at once; zero for
+    /// the others). Takes no lock and allocates nothing.
+    fn submit(&self, operation: &str, call: Queued) -> Result<Duration, (CallError, Queued)>;
+    /// Counts a call slot made on the heap because every pooled one was in use.
+    fn note_slot_allocated(&self);
 }
 
 /// The pending or finished result of [`OperationCaller::send`].
@@ -227,8 +199,17 @@ pub struct SendHandle<R> {
 enum HandleState<R> {
     Ready(Result<R, CallError>),
     /// Queued: the result to come, and how long `collect` spins for it before parking.
-    Pending(Arc<Slot<R>>, Duration),
+    Pending(Arc<dyn Outcome<R>>, Duration),
     Taken,
+}
+
+impl<R> Drop for SendHandle<R> {
+    fn drop(&mut self) {
+        // A call sent and never collected: its slot is freed once the result comes.
+        if let HandleState::Pending(slot, _) = &self.state {
+            slot.abandon();
+        }
+    }
 }
 
 impl<R> SendHandle<R> {
@@ -248,16 +229,15 @@ impl<R> SendHandle<R> {
                 // A result within the spin is taken at once; after it, the caller parks
                 // until the engine unparks it (the waiter is set before `done` is looked
                 // at again, and `complete` sets `done` before it looks at the waiter).
-                if !crate::spin::spin_until(spin, || slot.done.load(Ordering::Acquire)) {
-                    *crate::lock::lock(&slot.waiter) = Some(std::thread::current());
-                    while !slot.done.load(Ordering::Acquire) {
+                if !crate::spin::spin_until(spin, || slot.is_done())
+                    && slot.park_as(std::thread::current())
+                {
+                    while !slot.is_done() {
                         // Bounded park: a wake-up aimed at another thread cannot strand us.
                         std::thread::park_timeout(Duration::from_millis(1));
                     }
                 }
-                crate::lock::lock(&slot.result)
-                    .take()
-                    .unwrap_or(Err(CallError::AlreadyCollected))
+                slot.take()
             }
         }
     }
@@ -266,16 +246,14 @@ impl<R> SendHandle<R> {
     /// result gives [`CallError::AlreadyCollected`].
     pub fn collect_if_done(&mut self) -> Option<Result<R, CallError>> {
         match &self.state {
-            HandleState::Pending(slot, _) if !slot.done.load(Ordering::Acquire) => return None,
+            HandleState::Pending(slot, _) if !slot.is_done() => return None,
             _ => {}
         }
         Some(
             match std::mem::replace(&mut self.state, HandleState::Taken) {
                 HandleState::Ready(r) => r,
                 HandleState::Taken => Err(CallError::AlreadyCollected),
-                HandleState::Pending(slot, _) => crate::lock::lock(&slot.result)
-                    .take()
-                    .unwrap_or(Err(CallError::AlreadyCollected)),
+                HandleState::Pending(slot, _) => slot.take(),
             },
         )
     }
@@ -318,14 +296,53 @@ where
     }
 }
 
-pub(crate) struct OwnOp<C, F> {
-    pub(crate) name: Arc<str>,
-    pub(crate) f: Arc<F>,
-    pub(crate) engine: Weak<dyn Engine>,
-    pub(crate) _component: std::marker::PhantomData<fn(&mut C)>,
+pub(crate) struct OwnOp<C, A, R, F> {
+    name: Arc<str>,
+    f: Arc<F>,
+    engine: Weak<dyn Engine>,
+    /// Call slots made with the operation ([`slot::POOL`]).
+    pool: Vec<Arc<CallSlot<C, A, R, F>>>,
 }
 
-impl<C, A, R, F> Invoke<A, R> for OwnOp<C, F>
+impl<C, A, R, F> OwnOp<C, A, R, F>
+where
+    C: 'static,
+    A: Send + 'static,
+    R: Send + 'static,
+    F: Fn(&mut C, A) -> R + Send + Sync + 'static,
+{
+    /// Operation `name` running `f` on `engine`'s component, with its slots.
+    pub(crate) fn new(name: &str, f: F, engine: Weak<dyn Engine>) -> Self {
+        let name: Arc<str> = Arc::from(name);
+        let f = Arc::new(f);
+        let pool = (0..slot::POOL)
+            .map(|_| Arc::new(CallSlot::new(f.clone(), name.clone())))
+            .collect();
+        OwnOp {
+            name,
+            f,
+            engine,
+            pool,
+        }
+    }
+
+    /// A slot claimed for `args`: a free one of the pool, or a new one (counted).
+    fn claim(&self, engine: &dyn Engine, mut args: A) -> Arc<CallSlot<C, A, R, F>> {
+        for slot in &self.pool {
+            match slot.claim(args) {
+                Ok(()) => return slot.clone(),
+                Err(back) => args = back,
+            }
+        }
+        engine.note_slot_allocated();
+        let slot = Arc::new(CallSlot::new(self.f.clone(), self.name.clone()));
+        // A new slot is free: the claim cannot fail.
+        let _ = slot.claim(args);
+        slot
+    }
+}
+
+impl<C, A, R, F> Invoke<A, R> for OwnOp<C, A, R, F>
 where
     C: 'static,
     A: Send + 'static,
@@ -338,44 +355,19 @@ where
 
     fn send(&self, args: A) -> SendHandle<R> {
         let Some(engine) = self.engine.upgrade() else {
-            return SendHandle {
-                state: HandleState::Ready(Err(CallError::Vanished {
-                    operation: self.name.to_string(),
-                })),
-            };
+            return SendHandle::ready(Err(CallError::Vanished {
+                operation: self.name.to_string(),
+            }));
         };
-        let slot = Arc::new(Slot {
-            result: Mutex::new(None),
-            done: AtomicBool::new(false),
-            waiter: Mutex::new(None),
-        });
-        let completer = Completer {
-            slot: slot.clone(),
-            operation: self.name.clone(),
-            completed: false,
-        };
-        let f = self.f.clone();
-        let name = self.name.clone();
-        let msg: Message = Box::new(move |any: &mut dyn Any| {
-            let result = match any.downcast_mut::<C>() {
-                Some(c) => std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(c, args)))
-                    .map_err(|p| CallError::Panicked {
-                        operation: name.to_string(),
-                        message: panic_message(p.as_ref()),
-                    }),
-                None => Err(CallError::Vanished {
-                    operation: name.to_string(),
-                }),
-            };
-            completer.complete(result);
-        });
-        match engine.submit(&self.name, msg) {
+        let slot = self.claim(engine.as_ref(), args);
+        match engine.submit(&self.name, slot::queued(slot.clone())) {
             Ok(spin) => SendHandle {
                 state: HandleState::Pending(slot, spin),
             },
-            Err(e) => SendHandle {
-                state: HandleState::Ready(Err(e)),
-            },
+            Err((e, call)) => {
+                call.refused();
+                SendHandle::ready(Err(e))
+            }
         }
     }
 }
