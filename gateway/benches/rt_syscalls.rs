@@ -43,6 +43,9 @@ use std::process::{Command, ExitCode};
 use std::time::{Duration, Instant};
 use testkit::Service;
 
+mod common;
+use common::UNIT;
+
 const HWGW: &str = env!("CARGO_BIN_EXE_hwgw");
 
 /// The embedded default with its three activities on SCHED_FIFO.
@@ -72,66 +75,11 @@ fn demo() -> String {
     out
 }
 
-/// The Modbus unit: a simulated card served on loopback.
-const UNIT: &str = r#"
-[[card]]
-name = "unit"
-driver = "sim"
-period_ms = 10
-[card.sim]
-analog_in = [{ range = { lowest = 0.0, highest = 400.0, unit = "V" }, waveform = { kind = "sine", amplitude = 10.0, frequency = 1.0, offset = 230.0 } }]
-analog_out = [{ range = { lowest = 0.0, highest = 400.0, unit = "V" } }]
-
-[modbus_server]
-listen = "127.0.0.1:0"
-
-[[modbus_server.register]]
-table = "input_registers"
-address = 0
-device = "unit"
-interface = "analog_in"
-channel = 0
-scale = 0.1
-
-[[modbus_server.register]]
-table = "holding_registers"
-address = 0
-device = "unit"
-interface = "analog_out"
-channel = 0
-scale = 0.1
-"#;
-
 /// The Modbus client: its line on SCHED_FIFO, polled every 10 ms, and `follow` writing the
 /// unit's holding register from each sample of its input.
 fn client(port: u16) -> String {
     format!(
-        r#"
-[[card]]
-name = "meter"
-driver = "modbus"
-sample_period_ms = 10
-thread = {{ policy = "fifo", priority = 60 }}
-safe_analog_out = [0.0]
-[card.names]
-analog_in = ["voltage"]
-analog_out = ["setpoint"]
-[card.modbus]
-transport = {{ type = "tcp", address = "127.0.0.1:{port}" }}
-unit = 1
-poll_ms = 10
-timeout_ms = 300
-[[card.modbus.point]]
-table = "input_registers"
-address = 0
-type = "u16"
-scale = 0.1
-[[card.modbus.point]]
-table = "holding_registers"
-address = 0
-type = "u16"
-scale = 0.1
-
+        r#"{}
 [[component]]
 name = "follow"
 type = "follow"
@@ -145,7 +93,8 @@ to = "follow.in"
 [[connection]]
 from = "follow.out"
 to = "meter.ao.setpoint"
-"#
+"#,
+        common::meter(port, 10, 60)
     )
 }
 

@@ -5,6 +5,8 @@
 //!   write at each step, and runs on when the device is back.
 //! - `follow`: `out = in * gain + offset`, from an input port to an output port (connect
 //!   an analog input's port to `in` and `out` to an analog output's port).
+//! - `scan`: at every step reads analog input channels of any cards and writes analog
+//!   outputs from them, as a PLC scans (see [`crate::scan`]).
 //! - `reporter`: writes chosen ports to a CSV file at its period, every step or only when a
 //!   port has new data (OCL's ReportingComponent); the file is rewritten at each start,
 //!   never through a link and only when it is this process's own regular file.
@@ -58,6 +60,14 @@ impl ComponentTypes {
         });
         t.types.insert("follow".into(), |rt, name, spec| {
             rt.add(name, spec, rtt::InitialState::PreOperational, Follow::new)
+        });
+        t.types.insert("scan".into(), |rt, name, spec| {
+            rt.add(
+                name,
+                spec,
+                rtt::InitialState::PreOperational,
+                crate::scan::Scan::new,
+            )
         });
         t.types.insert("reporter".into(), |rt, name, spec| {
             rt.add(name, spec, rtt::InitialState::PreOperational, Reporter::new)
@@ -128,6 +138,7 @@ pub struct Blinker {
     warn_after: Property<u32>,
     error_after: Property<u32>,
     faults: rtt::faults::FaultCounter,
+    log: rtt::log::Area,
 }
 
 impl Blinker {
@@ -153,6 +164,7 @@ impl Blinker {
                 "failed writes in a row that go to RunTimeError (0: never)",
             )?,
             faults: rtt::faults::FaultCounter::default(),
+            log: rtt::log::Area::named(iface.name()),
         })
     }
 }
@@ -188,9 +200,11 @@ impl Component for Blinker {
                 }
                 Err(e) if e.is_transient() => {
                     if self.faults.run() == 0 {
-                        tracing::warn!(
-                            "blinker {:?}: {e}: waiting for the device",
-                            self.device_name.get()
+                        rtt::rt_log!(
+                            self.log,
+                            Warn,
+                            "{}: waiting for the device",
+                            rtt::log::Arg::display(&e)
                         );
                     }
                     self.faults.missed(ctx);
@@ -208,7 +222,7 @@ impl Component for Blinker {
         if let Some(d) = &self.device
             && d.set_bit(self.bit.get(), self.state).is_ok()
         {
-            tracing::info!("blinker {:?}: the device is back", self.device_name.get());
+            rtt::rt_log!(self.log, Info, "the device is back");
             self.faults.good(ctx);
         }
     }

@@ -60,6 +60,7 @@ mod reload;
 pub mod remote;
 pub mod remote_services;
 mod requests;
+pub mod scan;
 pub mod serve;
 pub mod servers;
 pub mod socket;

@@ -33,7 +33,7 @@ use device_interface::Registry;
 use hdrhistogram::Histogram;
 use rtt::activity::{ActivitySpec, SchedPolicy, ThreadOptions, Timing};
 use rtt::{Component, Context, HookResult, Runtime, RuntimeOptions};
-use std::process::{Command, ExitCode};
+use std::process::ExitCode;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::time::Duration;
@@ -116,20 +116,6 @@ fn figures(late: &[u64], intervals: impl Iterator<Item = u64>, steal_ms: u64) ->
     }
 }
 
-/// The machine's steal time so far, CPU-ms summed over its CPUs (the `steal` column of
-/// `/proc/stat`'s `cpu` line, in USER_HZ ticks of 10 ms); 0 where it cannot be read.
-fn steal_ms() -> u64 {
-    std::fs::read_to_string("/proc/stat")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .next()
-                .and_then(|l| l.split_whitespace().nth(8))
-                .and_then(|v| v.parse::<u64>().ok())
-        })
-        .map_or(0, |ticks| ticks * 10)
-}
-
 fn run_rtt(loops: u64, fifo: bool, priority: i32) -> Figures {
     let trace = Arc::new(Trace::new(usize::try_from(loops).unwrap()));
     // The same CPU-latency request cyclictest makes by default (/dev/cpu_dma_latency = 0).
@@ -159,13 +145,13 @@ fn run_rtt(loops: u64, fifo: bool, priority: i32) -> Figures {
             Ok(Probe { trace: tr })
         })
         .unwrap();
-    let steal = steal_ms();
+    let steal = testkit::bench::steal_ms();
     t.start().unwrap();
     while trace.len.load(Ordering::Acquire) < trace.late_us.len() {
         std::thread::sleep(Duration::from_millis(50));
     }
     t.stop().unwrap();
-    let steal = steal_ms().saturating_sub(steal);
+    let steal = testkit::bench::steal_ms().saturating_sub(steal);
     if fifo && !t.stats().realtime {
         eprintln!("warning: the activity did not get SCHED_FIFO");
     }
@@ -185,35 +171,9 @@ fn run_rtt(loops: u64, fifo: bool, priority: i32) -> Figures {
 }
 
 fn run_cyclictest(loops: u64, fifo: bool, priority: i32) -> Result<Figures, String> {
-    testkit::peers::require(&testkit::peers::CYCLICTEST).map_err(|e| e.to_string())?;
     let prio = if fifo { priority } else { 0 };
-    let steal = steal_ms();
-    let out = Command::new("cyclictest")
-        .args([
-            "-t1",
-            &format!("-p{prio}"),
-            &format!("-i{PERIOD_US}"),
-            &format!("-l{loops}"),
-            "-q",
-            "-m",
-            "-v",
-        ])
-        .args(if fifo {
-            vec!["--policy=fifo"]
-        } else {
-            vec!["--policy=other"]
-        })
-        .output()
-        .map_err(|e| format!("cannot run cyclictest: {e}"))?;
-    let steal = steal_ms().saturating_sub(steal);
-    if !out.status.success() {
-        return Err(format!(
-            "cyclictest failed: {}",
-            String::from_utf8_lossy(&out.stderr)
-        ));
-    }
+    let (text, steal) = testkit::bench::cyclictest(prio, PERIOD_US, loops, &["-v"])?;
     // `-v` prints `thread: loop: latency` for every loop.
-    let text = String::from_utf8_lossy(&out.stdout);
     let late: Vec<u64> = text
         .lines()
         .filter_map(|line| {

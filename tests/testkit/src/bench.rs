@@ -104,3 +104,56 @@ pub fn proc_usage(pid: u32) -> Option<ProcUsage> {
         rss_kib,
     })
 }
+
+/// CPU time the hypervisor took from this machine so far (steal, summed over the CPUs),
+/// ms; 0 where `/proc/stat` does not say. It counts in ticks of 10 ms.
+pub fn steal_ms() -> u64 {
+    std::fs::read_to_string("/proc/stat")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .next()
+                .and_then(|l| l.split_whitespace().nth(8))
+                .and_then(|v| v.parse::<u64>().ok())
+        })
+        .map_or(0, |ticks| ticks * 10)
+}
+
+/// Runs cyclictest (Debian rt-tests, installed when missing): one thread, at SCHED_FIFO
+/// `priority` (0: SCHED_OTHER), every `period_us`, for `loops` loops, quiet, with memory
+/// locked (`-q -m`) and `extra`. Its standard output, and the steal time while it ran (ms).
+pub fn cyclictest(
+    priority: i32,
+    period_us: u64,
+    loops: u64,
+    extra: &[&str],
+) -> Result<(String, u64), String> {
+    crate::peers::require(&crate::peers::CYCLICTEST).map_err(|e| e.to_string())?;
+    let policy = if priority > 0 {
+        "--policy=fifo"
+    } else {
+        "--policy=other"
+    };
+    let steal = steal_ms();
+    let out = std::process::Command::new("cyclictest")
+        .args([
+            "-t1",
+            &format!("-p{priority}"),
+            &format!("-i{period_us}"),
+            &format!("-l{loops}"),
+            "-q",
+            "-m",
+            policy,
+        ])
+        .args(extra)
+        .output()
+        .map_err(|e| format!("cannot run cyclictest: {e}"))?;
+    let steal = steal_ms().saturating_sub(steal);
+    if !out.status.success() {
+        return Err(format!(
+            "cyclictest failed: {}",
+            String::from_utf8_lossy(&out.stderr)
+        ));
+    }
+    Ok((String::from_utf8_lossy(&out.stdout).into_owned(), steal))
+}
