@@ -52,7 +52,7 @@ impl ComponentTypes {
         }
     }
 
-    /// The types built into hwgw: blinker, follow, reporter, recorder, script.
+    /// The types built into hwgw: blinker, follow, scan, reporter, recorder, script.
     pub fn builtin() -> Self {
         let mut t = Self::empty();
         t.types.insert("blinker".into(), |rt, name, spec| {

@@ -226,8 +226,17 @@ fn set_port(
 
 /// The real-time log's levels, `component`'s set to `level` first when both are given.
 fn log_levels(component: Option<&str>, level: Option<rtt::log::Level>) -> Result<Value, Fail> {
-    if let (Some(c), Some(l)) = (component, level) {
-        rtt::log::set_level(c, l).map_err(not_found)?;
+    match (component, level) {
+        (Some(c), Some(l)) => {
+            rtt::log::set_level(c, l).map_err(not_found)?;
+        }
+        (None, Some(_)) => {
+            return Err(Fail(
+                ErrorKind::BadRequest,
+                "a level needs the component whose level it is".into(),
+            ));
+        }
+        _ => {}
     }
     let areas: Vec<crate::protocol::LogArea> = match component {
         Some(c) => vec![crate::protocol::LogArea {

@@ -209,7 +209,7 @@ fn every_broken_config_gets_its_exact_error() {
         ("ThreadScope without its output", format!("thread_scope = true\n{CARD}"),
          "t.toml:1:16: thread_scope: ThreadScope is on, but no DigitalOut named \"ThreadScope\"; registered: sim0 (add an [[alias]] with interface = \"digital_out\" and name = \"ThreadScope\")"),
         ("unknown component type", with_card("[[component]]\nname = \"c\"\ntype = \"pid\"\nactivity = { type = \"non_periodic\" }\n"),
-         "t.toml:13:8: component[0].type: unknown component type \"pid\"; this build has: blinker, follow, recorder, reporter, script"),
+         "t.toml:13:8: component[0].type: unknown component type \"pid\"; this build has: blinker, follow, recorder, reporter, scan, script"),
         ("duplicate component", with_card("[[component]]\nname = \"c\"\ntype = \"follow\"\nactivity = { type = \"non_periodic\" }\n[[component]]\nname = \"c\"\ntype = \"follow\"\nactivity = { type = \"non_periodic\" }\n"),
          "t.toml:16:8: component[1].name: a component named \"c\" already exists"),
         ("property of the wrong type", with_card("[[component]]\nname = \"b\"\ntype = \"blinker\"\nactivity = { type = \"periodic\", period_ms = 100 }\nproperties = { device = \"sim0\", bit = \"three\" }\n"),

@@ -261,7 +261,7 @@ fn check_accepts_the_demo_and_reports_every_error() {
         lines[0].ends_with("bad.toml:5:1: alias[0]: no Encoder named \"none\"; registered: none"),
         "{err}"
     );
-    assert!(lines[1].ends_with("bad.toml:11:8: component[0].type: unknown component type \"nope\"; this build has: blinker, follow, recorder, reporter, script"), "{err}");
+    assert!(lines[1].ends_with("bad.toml:11:8: component[0].type: unknown component type \"nope\"; this build has: blinker, follow, recorder, reporter, scan, script"), "{err}");
 
     let out = Command::new(HWGW)
         .args(["check", "/nonexistent.toml"])
@@ -489,6 +489,8 @@ fn real_time_log_levels_are_listed_and_set_while_it_runs() {
         err.contains("nothing logs as \"nosuch\"; what does: ") && err.contains("follow"),
         "{err}"
     );
+    let r = svc.request(json!({"cmd": "log", "level": "debug"}));
+    assert_eq!(r["error"]["kind"], "bad_request", "{r}");
     let out = svc.cli(&["log", "follow", "loud"]);
     assert!(!out.status.success());
     assert!(

@@ -62,6 +62,7 @@
 //! ```
 
 pub mod activity;
+pub mod bounded;
 pub mod component;
 pub mod error;
 pub mod faults;

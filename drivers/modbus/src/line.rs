@@ -307,11 +307,13 @@ pub(crate) async fn poll_and_schedule(
                 || state.failures == t.stale_after
                 || state.failures == t.offline_after
             {
+                let [a, b] = Arg::chunks(&e);
                 rt_log!(
                     state.log,
                     Warn,
-                    "modbus {} (failure {} in a row: {})",
-                    Arg::display(&e),
+                    "modbus {}{} (failure {} in a row: {})",
+                    a,
+                    b,
                     state.failures,
                     Arg::display(&status)
                 );
@@ -360,13 +362,25 @@ fn log_refusal(state: &mut UnitState, e: &PollError, now: Timestamp) {
         return;
     }
     let more = std::mem::take(&mut state.refusals_unlogged);
-    rt_log!(
-        state.log,
-        Warn,
-        "modbus {}: the write is not sent again ({} more refused since the last report)",
-        Arg::display(e),
-        more
-    );
+    let [a, b] = Arg::chunks(e);
+    if more > 0 {
+        rt_log!(
+            state.log,
+            Warn,
+            "modbus {}{}: the write is not sent again ({} more refused since the last report)",
+            a,
+            b,
+            more
+        );
+    } else {
+        rt_log!(
+            state.log,
+            Warn,
+            "modbus {}{}: the write is not sent again",
+            a,
+            b
+        );
+    }
     state.refusal_logged = Some(now);
 }
 

@@ -39,13 +39,13 @@ pub use services::{Provides, Requires};
 use crate::activity::{
     Activity, ActivityError, ActivitySpec, ActivityStats, FdEvents, Runner, StepTiming,
 };
+use crate::bounded::Bounded;
 use crate::lock::lock;
 use crate::log::Arg;
 use crate::operation::{CallError, DynOperation, Engine, QUEUE_CAPACITY, Queued};
 use crate::property::PropertyBag;
 use crate::scope::ThreadScope;
 use crate::state::StateCell;
-use crossbeam_queue::ArrayQueue;
 use device_interface::Registry;
 use device_interface::time::Clock;
 use serde::Serialize;
@@ -141,6 +141,9 @@ pub struct TaskCounters {
     /// Times a required service or device stopped being ready while it ran.
     #[serde(default)]
     pub services_lost: u64,
+    /// Times one was ready again.
+    #[serde(default)]
+    pub services_back: u64,
     /// OwnThread calls refused because its queue was full ([`QUEUE_CAPACITY`]).
     #[serde(default)]
     pub calls_refused: u64,
@@ -148,9 +151,6 @@ pub struct TaskCounters {
     /// operation were outstanding at once than its pool holds (4).
     #[serde(default)]
     pub call_slots_allocated: u64,
-    /// Times one was ready again.
-    #[serde(default)]
-    pub services_back: u64,
 }
 
 pub(crate) struct TaskCore {
@@ -161,8 +161,9 @@ pub(crate) struct TaskCore {
     me: Weak<TaskCore>,
     state: Arc<StateCell>,
     component: Mutex<Box<dyn ErasedComponent>>,
-    /// OwnThread calls to run before the next step: bounded, lock-free.
-    queue: ArrayQueue<Queued>,
+    /// OwnThread calls to run before the next step: bounded, never waiting for another
+    /// thread ([`crate::bounded`]).
+    queue: Bounded<Queued>,
     /// Calls refused because the queue was full.
     calls_refused: AtomicU64,
     /// Call slots made on the heap because an operation's pool was in use.
@@ -253,12 +254,8 @@ impl TaskCore {
     ) -> TaskState {
         let was_running = matches!(self.state(), TaskState::Running | TaskState::RunTimeError)
             && hook != Some("stop_hook");
-        crate::rt_log!(
-            self.log,
-            Error,
-            "entering Exception: {}",
-            Arg::text(&reason)
-        );
+        let [a, b, c, d] = Arg::chunks(&reason);
+        crate::rt_log!(self.log, Error, "entering Exception: {}{}{}{}", a, b, c, d);
         self.record_failure(reason);
         self.exceptions.fetch_add(1, Ordering::Relaxed);
         self.set_state(TaskState::Exception);
@@ -275,11 +272,14 @@ impl TaskCore {
             }
         });
         if let Err(msg) = r {
+            let [a, b, c] = Arg::chunks(&msg);
             crate::rt_log!(
                 self.log,
                 Error,
-                "handling the exception panicked: {}; FatalError",
-                Arg::text(&msg)
+                "handling the exception panicked: {}{}{}; FatalError",
+                a,
+                b,
+                c
             );
             self.record_failure(msg);
             self.set_state(TaskState::FatalError);
@@ -402,6 +402,12 @@ impl Engine for TaskCore {
             return Err((e, call));
         }
         self.activity.trigger();
+        // A stop that drained the queue after the look above and before the push would
+        // leave this call queued until the next start: look again, and cancel what is
+        // queued once the engine is stopped.
+        if !self.activity.is_running() {
+            self.drain_queue();
+        }
         // A non-periodic engine answers at once (a caller spinning, yielding after 2 µs,
         // takes the result without a wake-up); the others step on their own schedule.
         Ok(match self.activity.spec() {
@@ -547,7 +553,7 @@ impl TaskContext {
                 me: weak.clone(),
                 state: Arc::new(StateCell::new(TaskState::Init)),
                 component: Mutex::new(component),
-                queue: ArrayQueue::new(QUEUE_CAPACITY),
+                queue: Bounded::new(QUEUE_CAPACITY),
                 calls_refused: AtomicU64::new(0),
                 call_slots_allocated: AtomicU64::new(0),
                 activity,

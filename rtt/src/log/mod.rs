@@ -6,8 +6,8 @@
 //! record on the stack — the wall-clock time, the level, the area, a `&'static str`
 //! message with a `{}` for each argument, and up to [`MAX_ARGS`] arguments kept by value
 //! ([`Arg`]: numbers, flags, static text, or a short copy of a text) — and pushes it on a
-//! bounded lock-free queue ([`QUEUE_CAPACITY`] records). A full queue drops the record and
-//! counts it. The logger thread ([`spawn_writer`]) takes the records every
+//! bounded queue that never waits for another thread ([`crate::bounded`];
+//! [`QUEUE_CAPACITY`] records). A full queue drops the record and counts it. The logger thread ([`spawn_writer`]) takes the records every
 //! [`WRITE_EVERY`], formats them and writes them through `tracing` (target
 //! [`TARGET`], with the area as field `component` and the push time as field `at`), so they
 //! reach the journal or standard error as everything else the gateway logs, and reports the
@@ -21,7 +21,7 @@ mod record;
 use record::Record;
 pub use record::{Arg, MAX_ARGS, TEXT_BYTES};
 
-use crossbeam_queue::ArrayQueue;
+use crate::bounded::Bounded;
 use serde::{Deserialize, Serialize};
 use std::sync::atomic::{AtomicU8, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
@@ -148,7 +148,7 @@ impl std::fmt::Debug for Area {
 }
 
 struct Logger {
-    queue: ArrayQueue<Record>,
+    queue: Bounded<Record>,
     areas: Mutex<Vec<Arc<AreaCell>>>,
     dropped: AtomicU64,
     /// Drops already reported.
@@ -160,7 +160,7 @@ struct Logger {
 fn logger() -> &'static Logger {
     static LOGGER: OnceLock<Logger> = OnceLock::new();
     LOGGER.get_or_init(|| Logger {
-        queue: ArrayQueue::new(QUEUE_CAPACITY),
+        queue: Bounded::new(QUEUE_CAPACITY),
         areas: Mutex::new(Vec::new()),
         dropped: AtomicU64::new(0),
         reported: AtomicU64::new(0),
@@ -329,19 +329,20 @@ pub struct Entry {
 /// logger thread does, with `tracing` as its sink).
 pub fn drain(mut sink: impl FnMut(Entry)) {
     let l = logger();
-    let mut names: Option<Vec<String>> = None;
+    let all = || -> Vec<String> {
+        crate::lock::lock(&l.areas)
+            .iter()
+            .map(|a| a.name.clone())
+            .collect()
+    };
+    let mut names: Vec<String> = Vec::new();
     while let Some(r) = l.queue.pop() {
-        let names = names.get_or_insert_with(|| {
-            crate::lock::lock(&l.areas)
-                .iter()
-                .map(|a| a.name.clone())
-                .collect()
-        });
-        let area = usize::try_from(r.area)
-            .ok()
-            .and_then(|i| names.get(i))
-            .cloned()
-            .unwrap_or_default();
+        let i = usize::try_from(r.area).unwrap_or(usize::MAX);
+        if i >= names.len() {
+            // An area made since the names were taken.
+            names = all();
+        }
+        let area = names.get(i).cloned().unwrap_or_default();
         l.written.fetch_add(1, Ordering::Relaxed);
         sink(Entry {
             area,

@@ -53,6 +53,37 @@ impl fmt::Write for Inline {
     }
 }
 
+/// Fills inline texts one after the other.
+struct Chunks<const N: usize> {
+    parts: [Inline; N],
+    at: usize,
+}
+
+impl<const N: usize> fmt::Write for Chunks<N> {
+    fn write_str(&mut self, mut s: &str) -> fmt::Result {
+        while !s.is_empty() {
+            let Some(part) = self.parts.get_mut(self.at) else {
+                return Err(fmt::Error);
+            };
+            if self.at + 1 == N {
+                // The last part: what does not fit is cut there.
+                return part.write_str(s);
+            }
+            let free = TEXT_BYTES - usize::from(part.len);
+            let mut take = s.len().min(free);
+            while !s.is_char_boundary(take) {
+                take -= 1;
+            }
+            part.write_str(&s[..take])?;
+            s = &s[take..];
+            if !s.is_empty() {
+                self.at += 1;
+            }
+        }
+        Ok(())
+    }
+}
+
 /// One argument of a record: a number, a flag, a static text, or a short copy of one.
 #[derive(Clone, Copy)]
 pub enum Arg {
@@ -79,6 +110,19 @@ impl Arg {
         let mut t = Inline::empty();
         let _ = t.write_str(s);
         Arg::Text(t)
+    }
+
+    /// `v` as its `Display` writes it, into `N` arguments one after the other (at most `N`
+    /// × [`TEXT_BYTES`] bytes; beyond, it is cut and the last ends in `…`): a long text in
+    /// a message with `N` `{}`s in a row. Formats on the calling thread, as
+    /// [`display`](Self::display) does.
+    pub fn chunks<const N: usize>(v: &dyn fmt::Display) -> [Arg; N] {
+        let mut w = Chunks {
+            parts: [Inline::empty(); N],
+            at: 0,
+        };
+        let _ = write!(w, "{v}");
+        w.parts.map(Arg::Text)
     }
 
     /// An I/O error: by its number when it is the operating system's (whose text std
@@ -244,6 +288,25 @@ mod tests {
         assert_eq!(Arg::display(&42).to_string(), "42");
         let refused = std::io::Error::from_raw_os_error(111);
         assert_eq!(Arg::io(&refused).to_string(), refused.to_string());
+    }
+
+    #[test]
+    fn a_long_text_goes_whole_into_chunks() {
+        let long: String = (0..250u8).map(|i| char::from(b'a' + i % 26)).collect();
+        let [a, b, c] = Arg::chunks(&long);
+        assert_eq!(record("{}{}{}", &[a, b, c]).text(), long);
+        let [x, y] = Arg::chunks(&long);
+        let shown = record("{}{}", &[x, y]).text();
+        assert!(shown.ends_with('…'), "{shown}");
+        assert!(long.starts_with(shown.trim_end_matches('…')));
+        let [p, q] = Arg::chunks(&"short");
+        assert_eq!(record("{}{}", &[p, q]).text(), "short");
+        let accents = "é".repeat(100);
+        let [u, v, w] = Arg::chunks(&accents);
+        assert_eq!(record("{}{}{}", &[u, v, w]).text(), accents);
+        let e = std::io::Error::other("y".repeat(150));
+        let [m, n] = Arg::chunks(&e);
+        assert_eq!(record("{}{}", &[m, n]).text(), e.to_string());
     }
 
     #[test]

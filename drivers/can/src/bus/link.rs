@@ -12,7 +12,13 @@ impl CanBus {
     pub(super) fn link_lost(&mut self, e: nix::Error) {
         self.interface_down();
         if self.card.link_up() {
-            rt_log!(self.card.log(), Warn, "link down: {}", Arg::Errno(e as i32));
+            rt_log!(
+                self.card.log(),
+                Warn,
+                "link {} down: {}",
+                Arg::text(self.card.map().interface()),
+                Arg::Errno(e as i32)
+            );
         }
         self.card
             .set_link(false, Some(DeviceError::bus(std::io::Error::from(e))));
@@ -43,7 +49,7 @@ impl CanBus {
                             Warn,
                             "cannot reopen {}: {}",
                             Arg::text(name),
-                            Arg::display(&e)
+                            Arg::io(&e)
                         );
                         self.card.set_link(false, Some(DeviceError::bus(e)));
                         return;
@@ -82,7 +88,8 @@ impl CanBus {
                     rt_log!(
                         self.card.log(),
                         Warn,
-                        "controller state not readable: {}",
+                        "{}: controller state not readable: {}",
+                        Arg::text(self.card.map().interface()),
                         Arg::display(&e)
                     );
                     self.controller = Some(true);

@@ -242,7 +242,8 @@ impl CanBus {
                     rtt::rt_log!(
                         self.card.log(),
                         Warn,
-                        "recvmsg: {}",
+                        "{}: recvmsg: {}",
+                        rtt::log::Arg::text(self.card.map().interface()),
                         rtt::log::Arg::Errno(e as i32)
                     );
                     break;

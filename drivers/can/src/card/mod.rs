@@ -441,7 +441,8 @@ impl CanCard {
             rt_log!(
                 self.log,
                 Warn,
-                "bus state {} -> {}",
+                "{}: bus state {} -> {}",
+                Arg::text(self.map.interface()),
                 Arg::display(&format_args!("{old:?}")),
                 Arg::display(&format_args!("{s:?}"))
             );
