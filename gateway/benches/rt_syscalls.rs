@@ -12,7 +12,10 @@
 //! - **modbus**: a card polling a Modbus TCP unit on loopback every 10 ms (the unit: a
 //!   second hwgw serving a simulated card with `[modbus_server]`) on FIFO 60, and `follow`
 //!   at FIFO 70 from the unit's input to its holding register, so an output is written on
-//!   every sample.
+//!   every sample;
+//! - **scan**: a `scan` component every 1 ms at FIFO 80 reading a simulated card's input
+//!   and the unit's, and writing both cards' outputs at every step, the unit's line polling
+//!   every 1 ms at FIFO 70 (the `io_loop` bench's deployment).
 //!
 //! Once each has run for a second, it attaches `strace -y` to each real-time thread (one
 //! strace a thread, no `-f`) for `RT_SYSCALLS_SECONDS` (default 30), while this process asks
@@ -299,6 +302,13 @@ fn main() -> ExitCode {
         let port = unit.wait_listening("modbus_server").port();
         let svc = Service::run_text(&bin, "rt-syscalls-client", &client(port)).unwrap();
         stray += trace("modbus", &svc, &["meter", "follow"], seconds, dir.path());
+    }
+    {
+        let unit = Service::run_text(&bin, "rt-syscalls-unit-scan", UNIT).unwrap();
+        let port = unit.wait_listening("modbus_server").port();
+        let text = common::scan_loop(port, 80);
+        let svc = Service::run_text(&bin, "rt-syscalls-scan", &text).unwrap();
+        stray += trace("scan", &svc, &["loop", "meter"], seconds, dir.path());
     }
     println!("\nstray calls on real-time threads: {stray}");
     if stray > 0 {
