@@ -37,6 +37,7 @@
 //! | `load_properties` | `component`, `properties` (an object of property names, nested for bags) | `null`: every value set, or none when one is refused |
 //! | `changes` | — | the run-time changes (load, unload, connect, disconnect) since the deployment file was read, a line each |
 //! | `deployment` | — | the running deployment as TOML text: the file's with the run-time changes |
+//! | `log` | optional `component`, optional `level` (`off`, `error`, `warn`, `info`, `debug`, `trace`) | `{"areas": [{"name", "level"}], "counters": {"written", "dropped", "queued"}}`: the real-time log's levels (`component`'s only when given), after setting `component`'s to `level` |
 //!
 //! A request naming a component `<gateway>/<component>` that is not one of this gateway's
 //! is carried out by that gateway, through Zenoh (see [`crate::forward`]).

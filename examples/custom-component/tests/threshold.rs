@@ -60,6 +60,7 @@ fn the_builtin_types_are_still_there_and_names_are_unique() {
             "follow",
             "recorder",
             "reporter",
+            "scan",
             "script",
             "supervisor",
             "threshold"
