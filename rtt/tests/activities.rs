@@ -1,4 +1,5 @@
-//! Activities on real threads: fd wake-up and timeout, overrun counting and health, a
+//! Activities on real threads: fd wake-up and timeout, deadlines from the step (at once,
+//! replacing one armed before), overrun counting and health, a
 //! stop cut short however long the period,
 //! SCHED_FIFO fallback, and ThreadScope pulses read back from a sim card's output record.
 
@@ -183,6 +184,156 @@ fn fd_activity_wakes_at_the_deadlines_its_component_sets() {
             .wake_at(rtt::time::Timestamp::ZERO)
             .is_err(),
         "only a file-descriptor activity has deadlines"
+    );
+}
+
+/// Per step: (the deadline passed, the timeout fired, the pipe was ready).
+type DeadlineSteps = Arc<Mutex<Vec<(bool, bool, bool)>>>;
+
+/// Asks for a step at once from each of its steps until its pipe has been seen ready: a
+/// line polling back to back.
+struct BackToBack {
+    pipe: std::fs::File,
+    fd: i32,
+    steps: DeadlineSteps,
+}
+
+impl Component for BackToBack {
+    fn configure_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+        ctx.activity().watch(self.pipe.as_fd())?;
+        Ok(())
+    }
+
+    fn start_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+        ctx.activity().wake_at(rtt::time::Timestamp::ZERO)?;
+        Ok(())
+    }
+
+    fn update_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+        let ev = ctx.fd_events();
+        let ready = ev.is_updated(self.fd);
+        self.steps
+            .lock()
+            .unwrap()
+            .push((ev.deadline_passed(), ev.has_timeout(), ready));
+        if ready {
+            let mut buf = [0u8; 16];
+            std::io::Read::read(&mut self.pipe, &mut buf)?;
+        } else {
+            ctx.activity().wake_at(rtt::time::Timestamp::ZERO)?;
+        }
+        Ok(())
+    }
+}
+
+#[test]
+fn a_past_deadline_from_the_step_steps_again_at_once_and_still_sees_descriptors() {
+    let (rx, tx) = std::io::pipe().unwrap();
+    let rx: std::fs::File = std::os::fd::OwnedFd::from(rx).into();
+    let mut tx: std::fs::File = std::os::fd::OwnedFd::from(tx).into();
+    let steps = DeadlineSteps::default();
+    let s = steps.clone();
+    let fd = rx.as_raw_fd();
+    let rt = runtime();
+    let t = rt
+        .add(
+            "b2b",
+            ActivitySpec::file_descriptor(Some(Duration::from_secs(60))),
+            rtt::InitialState::PreOperational,
+            move |_| {
+                Ok(BackToBack {
+                    pipe: rx,
+                    fd,
+                    steps: s,
+                })
+            },
+        )
+        .unwrap();
+    t.configure().unwrap();
+    t.start().unwrap();
+    wait_for("100 steps back to back", || {
+        steps.lock().unwrap().len() >= 100
+    });
+    tx.write_all(b"x").unwrap();
+    wait_for("the pipe seen among them", || {
+        steps.lock().unwrap().iter().any(|(_, _, ready)| *ready)
+    });
+    t.stop().unwrap();
+    let steps = steps.lock().unwrap();
+    let until = steps.iter().position(|(_, _, ready)| *ready).unwrap();
+    assert!(
+        steps[..until].iter().all(|(d, t, _)| *d && !*t),
+        "every step before the pipe was a deadline step, none a timeout"
+    );
+}
+
+/// Asks, at its first trigger, for a step `gap` later; at its second, for one at once.
+struct Replacer {
+    gap: Duration,
+    triggers: u32,
+    steps: DeadlineSteps,
+}
+
+impl Component for Replacer {
+    fn update_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+        use rtt::time::{Clock, MonotonicClock};
+        let deadline = ctx.fd_events().deadline_passed();
+        self.steps.lock().unwrap().push((deadline, false, false));
+        if !deadline {
+            self.triggers += 1;
+            let at = match self.triggers {
+                1 => MonotonicClock.now().saturating_add(self.gap),
+                _ => rtt::time::Timestamp::ZERO,
+            };
+            ctx.activity().wake_at(at)?;
+        }
+        Ok(())
+    }
+}
+
+#[test]
+fn a_past_deadline_from_the_step_replaces_the_timer_armed_before() {
+    let steps = DeadlineSteps::default();
+    let s = steps.clone();
+    let gap = Duration::from_millis(100);
+    let rt = runtime();
+    let t = rt
+        .add(
+            "replacer",
+            ActivitySpec::file_descriptor(None),
+            rtt::InitialState::Stopped,
+            move |_| {
+                Ok(Replacer {
+                    gap,
+                    triggers: 0,
+                    steps: s,
+                })
+            },
+        )
+        .unwrap();
+    t.start().unwrap();
+    t.trigger();
+    wait_for("the first trigger's step", || {
+        !steps.lock().unwrap().is_empty()
+    });
+    let armed = Instant::now();
+    t.trigger();
+    wait_for("the second trigger's step and its step at once", || {
+        steps.lock().unwrap().len() >= 3
+    });
+    assert!(
+        armed.elapsed() < gap,
+        "the check below needs the second trigger before the first deadline"
+    );
+    // The timer armed for `gap` after the first trigger was replaced: no step comes then.
+    // (An absence, so a wait: three times the gap.)
+    std::thread::sleep(gap * 3);
+    t.stop().unwrap();
+    let steps = steps.lock().unwrap();
+    assert_eq!(
+        steps.iter().map(|(d, _, _)| *d).collect::<Vec<_>>(),
+        [false, false, true],
+        "trigger, trigger, the step at once, and no deadline step after"
     );
 }
 

@@ -2,7 +2,11 @@
 //! against the same server in the same run; and the per-poll overhead that follows.
 //!
 //! Both read 10 holding registers per transaction from the in-process test server over
-//! loopback TCP. Run: `cargo bench -p driver-modbus --bench poll`.
+//! loopback TCP, back to back, in alternating rounds (`POLL_ROUNDS`, default 5, of
+//! `POLL_SECONDS`, default 2 s, each side; the line is stopped during the bare client's
+//! round), so a stall of the machine falls on both. Each round prints the time per poll of
+//! both and their ratio; the last line the median ratio. Run:
+//! `cargo bench -p driver-modbus --bench poll`.
 
 #![allow(
     clippy::unwrap_used,
@@ -22,12 +26,19 @@ use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 use tokio_modbus::client::Reader;
 
-const SECONDS: f64 = 3.0;
+fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
+    std::env::var(name)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
+}
 
 fn main() {
     if std::env::args().any(|a| a == "--list" || a == "--test") {
         return;
     }
+    let rounds: usize = env_or("POLL_ROUNDS", 5).max(1);
+    let seconds: f64 = env_or("POLL_SECONDS", 2.0);
     let server = TestServer::start();
     let addr = server.addr();
 
@@ -36,18 +47,22 @@ fn main() {
         .enable_all()
         .build()
         .unwrap();
-    let (bare_n, bare_t) = rt.block_on(async {
-        let mut ctx = tokio_modbus::client::tcp::connect_slave(addr, tokio_modbus::Slave(1))
+    let mut ctx = rt.block_on(async {
+        tokio_modbus::client::tcp::connect_slave(addr, tokio_modbus::Slave(1))
             .await
-            .unwrap();
-        let t0 = Instant::now();
-        let mut n = 0u64;
-        while t0.elapsed().as_secs_f64() < SECONDS {
-            ctx.read_holding_registers(0, 10).await.unwrap().unwrap();
-            n += 1;
-        }
-        (n, t0.elapsed())
+            .unwrap()
     });
+    let mut bare_round = || {
+        rt.block_on(async {
+            let t0 = Instant::now();
+            let mut n = 0u64;
+            while t0.elapsed().as_secs_f64() < seconds {
+                ctx.read_holding_registers(0, 10).await.unwrap().unwrap();
+                n += 1;
+            }
+            t0.elapsed().as_secs_f64() * 1e6 / n as f64
+        })
+    };
 
     // The same transaction through a Line: a map of 10 read-only holding registers is one
     // read per poll; a 1 µs poll period makes it poll back to back.
@@ -87,33 +102,42 @@ fn main() {
         }],
     )
     .unwrap();
-    while card.health().status != Status::Online {
-        std::thread::sleep(Duration::from_millis(5));
-    }
-    let (p0, t0) = (stats.polls.load(Ordering::Relaxed), Instant::now());
-    std::thread::sleep(Duration::from_secs_f64(SECONDS));
-    let (p1, line_t) = (stats.polls.load(Ordering::Relaxed), t0.elapsed());
-    drop(line);
+    let task = line.task();
+    task.stop().unwrap();
+    let line_round = || {
+        task.start().unwrap();
+        while card.health().status != Status::Online {
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        let (p0, t0) = (stats.polls.load(Ordering::Relaxed), Instant::now());
+        std::thread::sleep(Duration::from_secs_f64(seconds));
+        let (p1, t) = (stats.polls.load(Ordering::Relaxed), t0.elapsed());
+        task.stop().unwrap();
+        t.as_secs_f64() * 1e6 / (p1 - p0).max(1) as f64
+    };
 
-    let bare_rate = bare_n as f64 / bare_t.as_secs_f64();
-    let line_rate = (p1 - p0) as f64 / line_t.as_secs_f64();
-    println!("10 holding registers per transaction, loopback TCP, {SECONDS} s each");
     println!(
-        "{:<34} {:>10.0} transactions/s  ({:.1} µs each)",
-        "bare tokio-modbus client loop",
-        bare_rate,
-        1e6 / bare_rate
+        "10 holding registers per transaction, loopback TCP, {rounds} alternating rounds of {seconds} s"
     );
     println!(
-        "{:<34} {:>10.0} polls/s         ({:.1} µs each)",
-        "hwgw Line (decode into the image)",
-        line_rate,
-        1e6 / line_rate
+        "{:<6} {:>22} {:>22} {:>8}",
+        "round", "bare tokio-modbus µs", "hwgw Line µs", "ratio"
     );
+    let mut ratios = Vec::new();
+    for round in 1..=rounds {
+        let bare = bare_round();
+        let polled = line_round();
+        ratios.push(polled / bare);
+        println!(
+            "{round:<6} {bare:>22.1} {polled:>22.1} {:>8.2}",
+            polled / bare
+        );
+    }
+    drop(line);
+    ratios.sort_by(f64::total_cmp);
     println!(
-        "ratio line/bare: {:.2}; per-poll overhead: {:.1} µs",
-        line_rate / bare_rate,
-        1e6 / line_rate - 1e6 / bare_rate
+        "median ratio line/bare (time per poll): {:.2}",
+        ratios[ratios.len() / 2]
     );
     println!(
         "timeouts {}, exceptions {}, bad replies {}",

@@ -15,6 +15,7 @@
 //! When the process may not use SCHED_FIFO the activity says so once, with the reason, and
 //! runs SCHED_OTHER.
 
+mod deadline;
 mod realtime;
 mod stats;
 pub mod steps;
@@ -26,10 +27,10 @@ use steps::in_step;
 pub use steps::{StepRecord, StepTap, stamp_now};
 
 use crate::scope::ThreadScope;
+use deadline::Deadline;
 use device_interface::time::{Clock, MonotonicClock, Timestamp};
 use nix::sys::epoll::{Epoll, EpollCreateFlags, EpollEvent, EpollFlags};
 use nix::sys::eventfd::{EfdFlags, EventFd};
-use nix::sys::timerfd::{ClockId, Expiration, TimerFd, TimerFlags, TimerSetTimeFlags};
 use serde::{Deserialize, Serialize};
 use stats::StatsCell;
 use std::os::fd::{AsFd, AsRawFd, BorrowedFd, OwnedFd, RawFd};
@@ -313,8 +314,8 @@ pub(crate) trait Runner: Send + Sync {
 struct FdState {
     epoll: Epoll,
     wake: EventFd,
-    /// One-shot deadline set by `wake_at` (absolute CLOCK_MONOTONIC).
-    timer: TimerFd,
+    /// The deadline set by `wake_at`.
+    deadline: Deadline,
     /// (fd as the user knows it, our duplicate registered with epoll)
     watched: Mutex<Vec<(RawFd, OwnedFd)>>,
 }
@@ -403,17 +404,10 @@ impl Activity {
                         what: "epoll_ctl(eventfd)",
                         source,
                     })?;
-                let timer = TimerFd::new(
-                    ClockId::CLOCK_MONOTONIC,
-                    TimerFlags::TFD_NONBLOCK | TimerFlags::TFD_CLOEXEC,
-                )
-                .map_err(|source| ActivityError::Fd {
-                    what: "timerfd_create",
-                    source,
-                })?;
+                let deadline = Deadline::new()?;
                 epoll
                     .add(
-                        timer.as_fd(),
+                        deadline.timer.as_fd(),
                         EpollEvent::new(EpollFlags::EPOLLIN, DEADLINE_EVENT),
                     )
                     .map_err(|source| ActivityError::Fd {
@@ -423,7 +417,7 @@ impl Activity {
                 Some(FdState {
                     epoll,
                     wake,
-                    timer,
+                    deadline,
                     watched: Mutex::new(Vec::new()),
                 })
             }
@@ -584,25 +578,12 @@ impl Activity {
 
     /// Asks a file-descriptor activity for a step at `at` (the monotonic clock), replacing
     /// any deadline set before; a time already past steps at once. The step reports it with
-    /// [`FdEvents::deadline_passed`]. One system call; callable from the activity's own step.
+    /// [`FdEvents::deadline_passed`]. From another thread: one system call (the timer is
+    /// armed). From the activity's own step: none; the thread applies it when the step ends,
+    /// and a time already past then costs no timer at all (see the `deadline` module).
     pub fn wake_at(&self, at: Timestamp) -> Result<(), ActivityError> {
         let state = self.shared.fd.as_ref().ok_or(ActivityError::NoDeadline)?;
-        // A zero it_value would disarm the timer: the earliest deadline is 1 ns.
-        let ns = at.as_nanos().max(1);
-        let ts = nix::sys::time::TimeSpec::new(
-            (ns / 1_000_000_000) as libc::time_t,
-            (ns % 1_000_000_000) as libc::c_long,
-        );
-        state
-            .timer
-            .set(
-                Expiration::OneShot(ts),
-                TimerSetTimeFlags::TFD_TIMER_ABSTIME,
-            )
-            .map_err(|source| ActivityError::Fd {
-                what: "timerfd_settime",
-                source,
-            })
+        state.deadline.wake_at(at.as_nanos())
     }
 
     /// Stops watching `fd`; true if it was watched.

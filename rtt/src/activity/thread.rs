@@ -187,8 +187,17 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                 Some(t) => EpollTimeout::try_from(*t).unwrap_or(EpollTimeout::MAX),
             };
             let mut ready = [EpollEvent::empty(); FdEvents::MAX];
+            fd.deadline.enter_thread();
+            // The step before asked for a deadline already past: look at the descriptors
+            // without waiting, and step.
+            let mut at_once = false;
             while shared.running.load(Ordering::Acquire) {
-                let n = match fd.epoll.wait(&mut ready, epoll_timeout) {
+                let wait = if at_once {
+                    EpollTimeout::ZERO
+                } else {
+                    epoll_timeout
+                };
+                let n = match fd.epoll.wait(&mut ready, wait) {
                     Ok(n) => n,
                     Err(nix::Error::EINTR) => continue,
                     Err(e) => {
@@ -205,15 +214,15 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                     break;
                 }
                 let mut events = FdEvents {
-                    timeout: n == 0,
+                    timeout: n == 0 && !at_once,
+                    deadline: at_once,
                     ..FdEvents::default()
                 };
                 for ev in &ready[..n] {
                     if ev.data() == WAKE_EVENT {
                         let _ = fd.wake.read();
                     } else if ev.data() == DEADLINE_EVENT {
-                        // Reading clears the expiry; a re-armed timer may already be unread.
-                        let _ = fd.timer.wait();
+                        fd.deadline.fired();
                         events.deadline = true;
                     } else if events.count < FdEvents::MAX {
                         events.ready[events.count] = ev.data() as RawFd;
@@ -221,7 +230,19 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                     }
                 }
                 // One clock read for the step's start and its timing.
-                run_step(&shared, runner.as_ref(), &events, StepTiming::now());
+                let ended = run_step(&shared, runner.as_ref(), &events, StepTiming::now());
+                at_once = match fd.deadline.after_step(ended) {
+                    Ok(at_once) => at_once,
+                    Err(e) => {
+                        crate::rt_log!(
+                            shared.log,
+                            Error,
+                            "the step's deadline could not be set: {}; activity stops",
+                            crate::log::Arg::display(&e)
+                        );
+                        break;
+                    }
+                };
             }
         }
         ActivitySpec::Slave => {}
