@@ -318,13 +318,8 @@ fn main() -> ExitCode {
         .iter()
         .map(|(_, o, t, _)| o.max / t.max.max(1.0))
         .collect();
-    ratios.sort_by(f64::total_cmp);
     let n = ratios.len();
-    let median = if n.is_multiple_of(2) {
-        (ratios[n / 2 - 1] + ratios[n / 2]) / 2.0
-    } else {
-        ratios[n / 2]
-    };
+    let median = testkit::bench::median(&mut ratios);
     println!("median max ratio loop/cyclictest over {n} rounds: {median:.2} (sorted {ratios:.2?})");
     let alone: Vec<u64> = rounds_seen
         .iter()

@@ -288,14 +288,8 @@ fn main() -> ExitCode {
         max_ratios.push(rmax);
     }
     let median = |v: &mut Vec<f64>| {
-        v.sort_by(f64::total_cmp);
+        let m = testkit::bench::median(v);
         let each = v.iter().map(|r| format!("{r:.2}")).collect::<Vec<_>>();
-        let n = v.len();
-        let m = if n.is_multiple_of(2) {
-            (v[n / 2 - 1] + v[n / 2]) / 2.0
-        } else {
-            v[n / 2]
-        };
         format!("{m:.2} (sorted: {})", each.join(", "))
     };
     println!(

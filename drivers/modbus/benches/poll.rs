@@ -134,10 +134,9 @@ fn main() {
         );
     }
     drop(line);
-    ratios.sort_by(f64::total_cmp);
     println!(
         "median ratio line/bare (time per poll): {:.2}",
-        ratios[ratios.len() / 2]
+        testkit::bench::median(&mut ratios)
     );
     println!(
         "timeouts {}, exceptions {}, bad replies {}",

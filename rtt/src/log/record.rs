@@ -27,6 +27,15 @@ impl Inline {
         }
     }
 
+    /// How many bytes of `s` fit in what is left, cut at a character boundary.
+    fn fitting(&self, s: &str) -> usize {
+        let mut take = s.len().min(TEXT_BYTES - usize::from(self.len));
+        while !s.is_char_boundary(take) {
+            take -= 1;
+        }
+        take
+    }
+
     fn as_str(&self) -> &str {
         // Only whole characters are ever copied in.
         std::str::from_utf8(&self.bytes[..usize::from(self.len)]).unwrap_or("")
@@ -35,11 +44,7 @@ impl Inline {
 
 impl fmt::Write for Inline {
     fn write_str(&mut self, s: &str) -> fmt::Result {
-        let free = TEXT_BYTES - usize::from(self.len);
-        let mut take = s.len().min(free);
-        while !s.is_char_boundary(take) {
-            take -= 1;
-        }
+        let take = self.fitting(s);
         let at = usize::from(self.len);
         self.bytes[at..at + take].copy_from_slice(&s.as_bytes()[..take]);
         // TEXT_BYTES fits in a u8.
@@ -69,11 +74,7 @@ impl<const N: usize> fmt::Write for Chunks<N> {
                 // The last part: what does not fit is cut there.
                 return part.write_str(s);
             }
-            let free = TEXT_BYTES - usize::from(part.len);
-            let mut take = s.len().min(free);
-            while !s.is_char_boundary(take) {
-                take -= 1;
-            }
+            let take = part.fitting(s);
             part.write_str(&s[..take])?;
             s = &s[take..];
             if !s.is_empty() {

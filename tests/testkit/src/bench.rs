@@ -21,6 +21,18 @@ pub fn mean(v: impl Iterator<Item = f64>) -> f64 {
     sum / n
 }
 
+/// Sorts `v` and returns its median (the mean of the middle two for an even count; NaN
+/// when empty): the benches' summary of ratios over rounds.
+pub fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    match n {
+        0 => f64::NAN,
+        _ if n.is_multiple_of(2) => (v[n / 2 - 1] + v[n / 2]) / 2.0,
+        _ => v[n / 2],
+    }
+}
+
 /// Whether this process may run a thread SCHED_FIFO at `priority` (tried on a short-lived
 /// thread of its own).
 pub fn can_fifo(priority: i32) -> bool {
@@ -156,4 +168,14 @@ pub fn cyclictest(
         ));
     }
     Ok((String::from_utf8_lossy(&out.stdout).into_owned(), steal))
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn median_of_odd_even_and_no_values() {
+        assert_eq!(super::median(&mut [3.0, 1.0, 2.0]), 2.0);
+        assert_eq!(super::median(&mut [4.0, 1.0, 3.0, 2.0]), 2.5);
+        assert!(super::median(&mut []).is_nan());
+    }
 }
