@@ -9,6 +9,7 @@
 //! and its writing end is touched per write only to wake an event port.
 
 use super::latest::{LatestIn, LatestOut, latest};
+use super::ring::{End, Ring, Slot};
 use super::word::WordCell;
 use super::{ConnKind, ConnPolicy, ConnectError, ConnectionInfo};
 use crate::activity::Waker;
@@ -38,7 +39,7 @@ pub(crate) struct Channel<T> {
     policy: ConnPolicy,
     /// The sample pool of a buffer connection; `None` for a data connection, whose last
     /// value's halves live in the two ends.
-    queues: Option<Queues<T>>,
+    queues: Option<Fifo<T>>,
     /// A data connection reading its output port's register: what it counts from.
     shared: Option<SharedWord>,
     /// Closed for good: disconnected, or its reader went away. Neither end uses it again.
@@ -67,14 +68,19 @@ struct SharedWord {
     init: u64,
 }
 
-/// One sample of a buffer connection, with the time it was written (0 unless the
-/// connection is stamped).
-struct Slot<T> {
-    at: u64,
-    value: T,
+/// A buffer connection's samples.
+#[allow(
+    clippy::large_enum_variant,
+    reason = "one per connection, inside its Arc: boxing would add a pointer to each write"
+)]
+enum Fifo<T> {
+    /// Dropping the newest when full: a single-producer single-consumer ring.
+    Newest(Ring<T>),
+    /// Dropping the oldest when full: the writer takes from the reader's end too.
+    Oldest(Queues<T>),
 }
 
-/// A buffer connection's samples, cycling between `free` and `full`.
+/// A circular buffer connection's samples, cycling between `free` and `full`.
 struct Queues<T> {
     free: ArrayQueue<Slot<T>>,
     full: ArrayQueue<Slot<T>>,
@@ -121,12 +127,16 @@ impl<T> Channel<T> {
 pub(crate) struct Writer<T: Send> {
     pub(super) ch: Arc<Channel<T>>,
     latest: Option<LatestIn<T>>,
+    /// Its place in a [`Ring`].
+    end: End,
 }
 
 /// The reading end of one connection, owned by its input port.
 pub(crate) struct Reader<T: Send> {
     pub(super) ch: Arc<Channel<T>>,
     latest: Option<LatestOut<T>>,
+    /// Its place in a [`Ring`].
+    end: End,
 }
 
 // An end that goes away ends its connection, so the other end lets go of it (a flag: no
@@ -206,7 +216,8 @@ pub(super) fn channel<T: Clone + Send + 'static>(
             let (i, o) = latest(sample);
             (None, Some((Some(i), o)))
         }
-        (ConnKind::Buffer { size } | ConnKind::CircularBuffer { size }, _) => {
+        (ConnKind::Buffer { size }, _) => (Some(Fifo::Newest(Ring::new(size, sample))), None),
+        (ConnKind::CircularBuffer { size }, _) => {
             let capacity = size.max(1);
             // Room for a full queue, the sample the writer fills and the one the reader
             // empties.
@@ -219,7 +230,7 @@ pub(super) fn channel<T: Clone + Send + 'static>(
                 });
             }
             let full = ArrayQueue::new(capacity);
-            (Some(Queues { free, full }), None)
+            (Some(Fifo::Oldest(Queues { free, full })), None)
         }
     };
     let ch = Arc::new(Channel {
@@ -247,8 +258,13 @@ pub(super) fn channel<T: Clone + Send + 'static>(
         Writer {
             ch: ch.clone(),
             latest: input,
+            end: End::default(),
         },
-        Reader { ch, latest: output },
+        Reader {
+            ch,
+            latest: output,
+            end: End::default(),
+        },
     )
 }
 
@@ -292,14 +308,22 @@ impl<T: Clone + Send + 'static> Writer<T> {
     #[inline(never)]
     fn push_buffered(&mut self, value: &T) -> bool {
         let ch = &*self.ch;
-        let Some(q) = &ch.queues else {
-            return false;
+        let q = match &ch.queues {
+            Some(Fifo::Newest(ring)) => {
+                let at = if ch.stamped {
+                    crate::activity::stamp_now()
+                } else {
+                    0
+                };
+                if !ring.push(&mut self.end, value, at) {
+                    bump(&ch.dropped);
+                    return false;
+                }
+                return true;
+            }
+            Some(Fifo::Oldest(q)) => q,
+            None => return false,
         };
-        let drop_newest = matches!(ch.policy.kind, ConnKind::Buffer { .. });
-        if drop_newest && q.full.is_full() {
-            bump(&ch.dropped);
-            return false;
-        }
         // The pool is sized so a free sample always exists for the single writer.
         let Some(mut slot) = q.free.pop() else {
             bump(&ch.dropped);
@@ -310,11 +334,6 @@ impl<T: Clone + Send + 'static> Writer<T> {
             slot.at = crate::activity::stamp_now();
         }
         if let Err(slot) = q.full.push(slot) {
-            if drop_newest {
-                let _ = q.free.push(slot);
-                bump(&ch.dropped);
-                return false;
-            }
             // Make room by dropping the oldest; only this writer pushes, so room stays.
             if let Some(old) = q.full.pop() {
                 let _ = q.free.push(old);
@@ -348,7 +367,8 @@ impl<T: Clone + Send + 'static> Reader<T> {
         }
         match (&self.latest, &ch.queues) {
             (Some(out), _) => !out.has_new(),
-            (None, Some(q)) => q.full.is_empty(),
+            (None, Some(Fifo::Newest(ring))) => ring.is_empty(),
+            (None, Some(Fifo::Oldest(q))) => q.full.is_empty(),
             (None, None) => true,
         }
     }
@@ -370,8 +390,18 @@ impl<T: Clone + Send + 'static> Reader<T> {
     /// A buffer connection's read (kept out of the data connections' path).
     #[inline(never)]
     fn pop_buffered(&mut self, into: &mut T, at: &mut u64) -> bool {
-        let Some(q) = &self.ch.queues else {
-            return false;
+        let q = match &self.ch.queues {
+            Some(Fifo::Newest(ring)) => {
+                let Some(stamp) = ring.pop(&mut self.end, into) else {
+                    return false;
+                };
+                if self.ch.stamped {
+                    *at = stamp;
+                }
+                return true;
+            }
+            Some(Fifo::Oldest(q)) => q,
+            None => return false,
         };
         match q.full.pop() {
             Some(slot) => {

@@ -42,6 +42,7 @@ mod channel;
 mod input;
 mod latest;
 mod output;
+mod ring;
 pub mod word;
 
 pub use input::InputPort;
