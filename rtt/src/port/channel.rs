@@ -15,10 +15,15 @@ use super::{ConnKind, ConnPolicy, ConnectError, ConnectionInfo};
 use crate::activity::Waker;
 use crate::lock::lock;
 use crossbeam_queue::ArrayQueue;
+use crossbeam_utils::CachePadded;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 
 static NEXT_CONNECTION: AtomicU64 = AtomicU64::new(1);
+
+/// A port's "look at your connections" flag, on a cache line of its own: read at every
+/// write or read of the port, it must not share a line with what other threads write.
+pub(super) type Flag = Arc<CachePadded<AtomicBool>>;
 
 /// Adds one to a counter only one thread writes: a plain load and store, no atomic
 /// read-modify-write on the hot path.
@@ -48,10 +53,13 @@ pub(crate) struct Channel<T> {
     writer_gone: AtomicBool,
     /// The "look at your connections" flags of the output and of the input port: set
     /// whenever this connection closes or loses an end.
-    out_changed: Arc<AtomicBool>,
-    in_changed: Arc<AtomicBool>,
-    written: AtomicU64,
-    read: AtomicU64,
+    out_changed: Flag,
+    in_changed: Flag,
+    /// Each counter on a line of its own: the writer bumps `written` and the reader `read`
+    /// at every sample, and neither may take the other's line, or the fields both read at
+    /// every sample, away from the other's core.
+    written: CachePadded<AtomicU64>,
+    read: CachePadded<AtomicU64>,
     dropped: AtomicU64,
     waker: Option<Arc<dyn Waker>>,
     /// A stamped buffer connection: each sample carries the time it was written (see
@@ -165,7 +173,7 @@ impl<T: Send> Drop for Reader<T> {
 /// register when its samples are one word.
 pub(super) struct From {
     pub(super) name: Arc<str>,
-    pub(super) changed: Arc<AtomicBool>,
+    pub(super) changed: Flag,
     pub(super) word: Option<Arc<WordCell>>,
 }
 
@@ -173,7 +181,7 @@ pub(super) struct From {
 /// of an event port, and whether its samples are stamped.
 pub(super) struct To {
     pub(super) name: Arc<str>,
-    pub(super) changed: Arc<AtomicBool>,
+    pub(super) changed: Flag,
     pub(super) waker: Option<Arc<dyn Waker>>,
     pub(super) stamped: bool,
 }
@@ -244,8 +252,8 @@ pub(super) fn channel<T: Clone + Send + 'static>(
         writer_gone: AtomicBool::new(false),
         out_changed,
         in_changed,
-        written: AtomicU64::new(0),
-        read: AtomicU64::new(0),
+        written: CachePadded::new(AtomicU64::new(0)),
+        read: CachePadded::new(AtomicU64::new(0)),
         dropped: AtomicU64::new(0),
         waker,
         stamped,
@@ -439,7 +447,7 @@ pub(super) struct Links<E, T> {
     pending: ArrayQueue<E>,
     /// Set when an end is put in `pending` and when one of the port's connections closes
     /// or loses an end: the owner's fast path looks at this flag only.
-    pub(super) changed: Arc<AtomicBool>,
+    pub(super) changed: Flag,
     all: Mutex<Vec<Weak<Channel<T>>>>,
 }
 
@@ -447,7 +455,7 @@ impl<E, T> Links<E, T> {
     pub(super) fn new() -> Self {
         Links {
             pending: ArrayQueue::new(PENDING),
-            changed: Arc::new(AtomicBool::new(false)),
+            changed: Arc::new(CachePadded::new(AtomicBool::new(false))),
             all: Mutex::new(Vec::new()),
         }
     }

@@ -47,7 +47,7 @@ impl<T: Clone + Send + 'static> InputShared<T> {
 pub struct InputPort<T: Send> {
     shared: Arc<InputShared<T>>,
     /// The port's "look at your connections" flag (a pointer away, not three).
-    changed: Arc<AtomicBool>,
+    changed: super::channel::Flag,
     pub(super) conns: Vec<Reader<T>>,
     last: T,
     has_last: bool,

@@ -7,6 +7,7 @@
 //! nothing for a `Vec` or `String` within its data sample's size.
 
 use super::word::{Found, WordCell, from_word, is_word, to_word};
+use crossbeam_utils::CachePadded;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -21,7 +22,7 @@ pub(crate) enum LatestIn<T: Send> {
     },
     /// A one-word sample kept only to be looked at (a port's last value): one store, no
     /// version.
-    Plain(Arc<AtomicU64>),
+    Plain(Arc<CachePadded<AtomicU64>>),
     /// Any other sample.
     Triple(triple_buffer::Input<T>),
 }
@@ -36,7 +37,7 @@ pub(crate) enum LatestOut<T: Send> {
         seen: u64,
     },
     /// A one-word sample kept only to be looked at: its word, every look a new value.
-    Plain(Arc<AtomicU64>),
+    Plain(Arc<CachePadded<AtomicU64>>),
     /// Any other sample.
     Triple(triple_buffer::Output<T>),
 }
@@ -46,7 +47,8 @@ pub(crate) enum LatestOut<T: Send> {
 /// look takes the value as it is).
 pub(crate) fn snapshot<T: Clone + Send + 'static>(sample: &T) -> (LatestIn<T>, LatestOut<T>) {
     if is_word::<T>() {
-        let cell = Arc::new(AtomicU64::new(to_word(sample)));
+        // On a line of its own: its reader's thread stores to it at every new sample.
+        let cell = Arc::new(CachePadded::new(AtomicU64::new(to_word(sample))));
         (LatestIn::Plain(cell.clone()), LatestOut::Plain(cell))
     } else {
         let (i, o) = triple_buffer::triple_buffer(sample);

@@ -63,7 +63,7 @@ impl<T: Clone + Send + 'static> OutputShared<T> {
 pub struct OutputPort<T: Send> {
     shared: Arc<OutputShared<T>>,
     /// The port's "look at your connections" flag (a pointer away, not three).
-    changed: Arc<AtomicBool>,
+    changed: super::channel::Flag,
     pub(super) conns: Vec<Writer<T>>,
     /// Some connection's end needs each write (see [`Writer::needs_push`]).
     pub(super) push: bool,

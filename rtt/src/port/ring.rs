@@ -16,6 +16,7 @@
 //! the reader while `i < tail` (the writer has published the sample). The release stores
 //! of the positions and the acquire loads that see them order the slot's accesses.
 
+use crossbeam_utils::CachePadded;
 use std::cell::UnsafeCell;
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -34,20 +35,16 @@ pub(super) struct End {
     seen: u64,
 }
 
-/// Keeps a position on a cache line of its own (the other end writes the other one).
-#[repr(align(128))]
-struct Line(AtomicU64);
-
 pub(super) struct Ring<T> {
     slots: Box<[UnsafeCell<Slot<T>>]>,
     /// `slots.len() - 1` (a power of two long).
     mask: u64,
     /// Samples it holds at most.
     capacity: u64,
-    /// Samples popped (written by the reader).
-    head: Line,
-    /// Samples pushed (written by the writer).
-    tail: Line,
+    /// Samples popped (written by the reader), on a line of its own.
+    head: CachePadded<AtomicU64>,
+    /// Samples pushed (written by the writer), on a line of its own.
+    tail: CachePadded<AtomicU64>,
 }
 
 // SAFETY: the slots are handed between the one writer and the one reader by the positions
@@ -74,8 +71,8 @@ impl<T: Clone> Ring<T> {
                 .collect(),
             mask: len as u64 - 1,
             capacity: capacity as u64,
-            head: Line(AtomicU64::new(0)),
-            tail: Line(AtomicU64::new(0)),
+            head: CachePadded::new(AtomicU64::new(0)),
+            tail: CachePadded::new(AtomicU64::new(0)),
         }
     }
 
@@ -87,7 +84,7 @@ impl<T: Clone> Ring<T> {
     #[inline]
     pub(super) fn push(&self, end: &mut End, value: &T, at: u64) -> bool {
         if end.pos - end.seen >= self.capacity {
-            end.seen = self.head.0.load(Ordering::Acquire);
+            end.seen = self.head.load(Ordering::Acquire);
             if end.pos - end.seen >= self.capacity {
                 return false;
             }
@@ -99,7 +96,7 @@ impl<T: Clone> Ring<T> {
         slot.value.clone_from(value);
         slot.at = at;
         end.pos += 1;
-        self.tail.0.store(end.pos, Ordering::Release);
+        self.tail.store(end.pos, Ordering::Release);
         true
     }
 
@@ -112,7 +109,7 @@ impl<T: Clone> Ring<T> {
     #[inline]
     pub(super) fn pop(&self, end: &mut End, into: &mut T) -> Option<u64> {
         if end.pos == end.seen {
-            end.seen = self.tail.0.load(Ordering::Acquire);
+            end.seen = self.tail.load(Ordering::Acquire);
             if end.pos == end.seen {
                 return None;
             }
@@ -124,13 +121,13 @@ impl<T: Clone> Ring<T> {
         into.clone_from(&slot.value);
         let at = slot.at;
         end.pos += 1;
-        self.head.0.store(end.pos, Ordering::Release);
+        self.head.store(end.pos, Ordering::Release);
         Some(at)
     }
 
     /// True when it holds nothing (a look from either end).
     pub(super) fn is_empty(&self) -> bool {
-        self.head.0.load(Ordering::Acquire) == self.tail.0.load(Ordering::Acquire)
+        self.head.load(Ordering::Acquire) == self.tail.load(Ordering::Acquire)
     }
 }
 

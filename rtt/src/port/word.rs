@@ -50,7 +50,9 @@ impl Word for AtomicU64 {
 /// Slots of the register (a power of two: the slot of a version is a mask away).
 const SLOTS: u64 = 4;
 
-/// The register: a sequence number and four slots.
+/// The register: a sequence number and four slots, on a cache line of its own (its writer
+/// stores to it at every write; a neighbour another thread writes must not share it).
+#[repr(align(128))]
 pub struct WordCell<A = AtomicU64> {
     seq: A,
     slots: [A; SLOTS as usize],
