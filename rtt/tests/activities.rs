@@ -337,6 +337,84 @@ fn a_past_deadline_from_the_step_replaces_the_timer_armed_before() {
     );
 }
 
+/// Per step: when, and whether its deadline passed.
+type StepLog = Arc<Mutex<Vec<(Instant, bool)>>>;
+
+/// Records each step; asks for a step at once from every step while `again` is set.
+struct Recorder {
+    again: Arc<AtomicBool>,
+    steps: StepLog,
+}
+
+impl Component for Recorder {
+    fn update_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+        let deadline = ctx.fd_events().deadline_passed();
+        self.steps.lock().unwrap().push((Instant::now(), deadline));
+        if self.again.load(Ordering::SeqCst) {
+            ctx.activity().wake_at(rtt::time::Timestamp::ZERO)?;
+        }
+        Ok(())
+    }
+}
+
+fn recorder(rt: &Runtime, name: &str, again: bool) -> (rtt::TaskContext, Arc<AtomicBool>, StepLog) {
+    let again = Arc::new(AtomicBool::new(again));
+    let steps = Arc::new(Mutex::new(Vec::new()));
+    let (a, s) = (again.clone(), steps.clone());
+    let t = rt
+        .add(
+            name,
+            ActivitySpec::file_descriptor(None),
+            rtt::InitialState::Stopped,
+            move |_| Ok(Recorder { again: a, steps: s }),
+        )
+        .unwrap();
+    (t, again, steps)
+}
+
+#[test]
+fn a_deadline_from_another_thread_steps_then_and_not_before() {
+    use rtt::time::{Clock, MonotonicClock};
+    let rt = runtime();
+    let (t, _, steps) = recorder(&rt, "asked", false);
+    t.start().unwrap();
+    let gap = Duration::from_millis(50);
+    let asked = Instant::now();
+    t.activity()
+        .wake_at(MonotonicClock.now().saturating_add(gap))
+        .unwrap();
+    wait_for("the deadline step", || !steps.lock().unwrap().is_empty());
+    let (at, deadline) = steps.lock().unwrap()[0];
+    assert!(
+        deadline,
+        "the first step is the deadline's, not the request's wake-up"
+    );
+    assert!(at.duration_since(asked) >= gap, "not before the deadline");
+    // A time already past, from another thread: a step at once.
+    t.activity().wake_at(rtt::time::Timestamp::ZERO).unwrap();
+    wait_for("the step at once", || steps.lock().unwrap().len() >= 2);
+    assert!(steps.lock().unwrap()[1].1);
+    t.stop().unwrap();
+}
+
+#[test]
+fn a_step_due_at_once_when_stopped_comes_at_the_next_start() {
+    let rt = runtime();
+    let (t, again, steps) = recorder(&rt, "restart", true);
+    t.start().unwrap();
+    t.trigger();
+    wait_for("steps back to back", || steps.lock().unwrap().len() >= 10);
+    t.stop().unwrap();
+    again.store(false, Ordering::SeqCst);
+    steps.lock().unwrap().clear();
+    t.start().unwrap();
+    wait_for("the step asked for before the stop", || {
+        !steps.lock().unwrap().is_empty()
+    });
+    assert!(steps.lock().unwrap()[0].1, "it is a deadline step");
+    t.stop().unwrap();
+}
+
 struct Nothing;
 impl Component for Nothing {}
 

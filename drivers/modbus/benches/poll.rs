@@ -14,7 +14,7 @@
 )]
 
 use device_interface::time::MonotonicClock;
-use device_interface::{Device, Status};
+
 use driver_modbus::card::ModbusCard;
 use driver_modbus::line::{LineUnit, Transport, UnitStats, UnitTiming};
 use driver_modbus::map::{Map, PointConfig};
@@ -38,7 +38,7 @@ fn main() {
         return;
     }
     let rounds: usize = env_or("POLL_ROUNDS", 5).max(1);
-    let seconds: f64 = env_or("POLL_SECONDS", 2.0);
+    let seconds: f64 = env_or("POLL_SECONDS", 2.0_f64).max(0.1);
     let server = TestServer::start();
     let addr = server.addr();
 
@@ -105,9 +105,11 @@ fn main() {
     let task = line.task();
     task.stop().unwrap();
     let line_round = || {
+        // Timed from the first poll of this start on (the connection made, the thread up).
+        let before = stats.polls.load(Ordering::Relaxed);
         task.start().unwrap();
-        while card.health().status != Status::Online {
-            std::thread::sleep(Duration::from_millis(5));
+        while stats.polls.load(Ordering::Relaxed) == before {
+            std::thread::sleep(Duration::from_millis(1));
         }
         let (p0, t0) = (stats.polls.load(Ordering::Relaxed), Instant::now());
         std::thread::sleep(Duration::from_secs_f64(seconds));

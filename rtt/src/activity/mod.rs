@@ -404,16 +404,7 @@ impl Activity {
                         what: "epoll_ctl(eventfd)",
                         source,
                     })?;
-                let deadline = Deadline::new()?;
-                epoll
-                    .add(
-                        deadline.timer.as_fd(),
-                        EpollEvent::new(EpollFlags::EPOLLIN, DEADLINE_EVENT),
-                    )
-                    .map_err(|source| ActivityError::Fd {
-                        what: "epoll_ctl(timerfd)",
-                        source,
-                    })?;
+                let deadline = Deadline::new(&epoll)?;
                 Some(FdState {
                     epoll,
                     wake,
@@ -578,9 +569,10 @@ impl Activity {
 
     /// Asks a file-descriptor activity for a step at `at` (the monotonic clock), replacing
     /// any deadline set before; a time already past steps at once. The step reports it with
-    /// [`FdEvents::deadline_passed`]. From another thread: one system call (the timer is
-    /// armed). From the activity's own step: none; the thread applies it when the step ends,
-    /// and a time already past then costs no timer at all (see the `deadline` module).
+    /// [`FdEvents::deadline_passed`]. From the activity's own step: no system call; the
+    /// thread applies it when the step ends, and a time already past then costs no timer at
+    /// all. From another thread: one (an eventfd write); the thread applies it when that
+    /// wakes it, or at its start (see the `deadline` module).
     pub fn wake_at(&self, at: Timestamp) -> Result<(), ActivityError> {
         let state = self.shared.fd.as_ref().ok_or(ActivityError::NoDeadline)?;
         state.deadline.wake_at(at.as_nanos())
@@ -670,5 +662,3 @@ impl Drop for Activity {
 
 /// epoll data of the activity's own eventfd (`trigger`, stop).
 const WAKE_EVENT: u64 = u64::MAX;
-/// epoll data of the activity's deadline timer (`wake_at`).
-const DEADLINE_EVENT: u64 = u64::MAX - 1;

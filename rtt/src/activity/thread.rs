@@ -2,9 +2,10 @@
 //! `clock_nanosleep`, the non-periodic wait for a trigger, the file-descriptor epoll wait;
 //! and the signal that wakes a non-periodic thread.
 
+use super::deadline::{ASK_EVENT, DEADLINE_EVENT};
 use super::realtime::{apply_thread_options, prepare_periodic};
 use super::{
-    ActivitySpec, DEADLINE_EVENT, FdEvents, Runner, Shared, StepTiming, Timing, WAKE_EVENT,
+    ActivityError, ActivitySpec, FdEvents, FdState, Runner, Shared, StepTiming, Timing, WAKE_EVENT,
     run_step,
 };
 use crate::scope::set_thread_number;
@@ -186,66 +187,95 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                 None => EpollTimeout::NONE,
                 Some(t) => EpollTimeout::try_from(*t).unwrap_or(EpollTimeout::MAX),
             };
-            let mut ready = [EpollEvent::empty(); FdEvents::MAX];
-            fd.deadline.enter_thread();
-            // The step before asked for a deadline already past: look at the descriptors
-            // without waiting, and step.
-            let mut at_once = false;
-            while shared.running.load(Ordering::Acquire) {
-                let wait = if at_once {
-                    EpollTimeout::ZERO
-                } else {
-                    epoll_timeout
-                };
-                let n = match fd.epoll.wait(&mut ready, wait) {
-                    Ok(n) => n,
-                    Err(nix::Error::EINTR) => continue,
-                    Err(e) => {
-                        crate::rt_log!(
-                            shared.log,
-                            Error,
-                            "epoll_wait failed: {}; activity stops",
-                            crate::log::Arg::Errno(e as i32)
-                        );
-                        break;
-                    }
-                };
-                if !shared.running.load(Ordering::Acquire) {
-                    break;
-                }
-                let mut events = FdEvents {
-                    timeout: n == 0 && !at_once,
-                    deadline: at_once,
-                    ..FdEvents::default()
-                };
-                for ev in &ready[..n] {
-                    if ev.data() == WAKE_EVENT {
-                        let _ = fd.wake.read();
-                    } else if ev.data() == DEADLINE_EVENT {
-                        fd.deadline.fired();
-                        events.deadline = true;
-                    } else if events.count < FdEvents::MAX {
-                        events.ready[events.count] = ev.data() as RawFd;
-                        events.count += 1;
-                    }
-                }
-                // One clock read for the step's start and its timing.
-                let ended = run_step(&shared, runner.as_ref(), &events, StepTiming::now());
-                at_once = match fd.deadline.after_step(ended) {
-                    Ok(at_once) => at_once,
-                    Err(e) => {
-                        crate::rt_log!(
-                            shared.log,
-                            Error,
-                            "the step's deadline could not be set: {}; activity stops",
-                            crate::log::Arg::display(&e)
-                        );
-                        break;
-                    }
-                };
-            }
+            fd_loop(&shared, runner.as_ref(), fd, epoll_timeout);
         }
         ActivitySpec::Slave => {}
+    }
+}
+
+/// The loop of a file-descriptor activity's thread: wait in epoll (not at all when the
+/// step before asked for a time already past), step, apply the deadline the step asked
+/// for (see the `deadline` module).
+fn fd_loop(shared: &Shared, runner: &dyn Runner, fd: &FdState, epoll_timeout: EpollTimeout) {
+    let failed = |e: &ActivityError| {
+        crate::rt_log!(
+            shared.log,
+            Error,
+            "the activity's deadline could not be set: {}; activity stops",
+            crate::log::Arg::display(e)
+        );
+    };
+    let mut ready = [EpollEvent::empty(); FdEvents::MAX];
+    fd.deadline.enter_thread();
+    let mut at_once = false;
+    while shared.running.load(Ordering::Acquire) {
+        let wait = if at_once {
+            EpollTimeout::ZERO
+        } else {
+            epoll_timeout
+        };
+        let n = match fd.epoll.wait(&mut ready, wait) {
+            Ok(n) => n,
+            Err(nix::Error::EINTR) => continue,
+            Err(e) => {
+                crate::rt_log!(
+                    shared.log,
+                    Error,
+                    "epoll_wait failed: {}; activity stops",
+                    crate::log::Arg::Errno(e as i32)
+                );
+                break;
+            }
+        };
+        if !shared.running.load(Ordering::Acquire) {
+            break;
+        }
+        let mut events = FdEvents {
+            timeout: n == 0 && !at_once,
+            deadline: at_once,
+            ..FdEvents::default()
+        };
+        // A wake-up that only brought another thread's deadline for later is no step.
+        let mut step = n == 0 || at_once;
+        for ev in &ready[..n] {
+            match ev.data() {
+                WAKE_EVENT => {
+                    let _ = fd.wake.read();
+                    step = true;
+                }
+                DEADLINE_EVENT => {
+                    fd.deadline.fired();
+                    events.deadline = true;
+                    step = true;
+                }
+                ASK_EVENT => match fd.deadline.take_asked(MonotonicClock.now().as_nanos()) {
+                    Ok(due) => {
+                        events.deadline |= due;
+                        step |= due;
+                    }
+                    Err(e) => return failed(&e),
+                },
+                user => {
+                    if events.count < FdEvents::MAX {
+                        events.ready[events.count] = user as RawFd;
+                        events.count += 1;
+                    }
+                    step = true;
+                }
+            }
+        }
+        if !step {
+            continue;
+        }
+        // One clock read for the step's start and its timing.
+        let ended = run_step(shared, runner, &events, StepTiming::now());
+        at_once = match fd.deadline.after_step(ended) {
+            Ok(at_once) => at_once,
+            Err(e) => return failed(&e),
+        };
+    }
+    if at_once && let Err(e) = fd.deadline.keep_for_restart() {
+        failed(&e);
     }
 }
 

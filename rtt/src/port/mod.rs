@@ -13,9 +13,11 @@
 //!
 //! # Real-time behaviour
 //!
-//! Every connection owns a fixed pool of pre-allocated samples (copies of the port's data
-//! sample) that move between two lock-free queues; `write` copies into a free sample with
-//! `clone_from` and `read` copies out the same way. So writing and reading never lock, and
+//! Every buffer connection owns a fixed pool of pre-allocated samples (copies of the
+//! port's data sample): a `buffer` keeps them in a single-writer single-reader ring, a
+//! `circular_buffer` moves them between two lock-free queues (its writer takes the oldest
+//! back when full); `write` copies into a sample with `clone_from` and `read` copies out
+//! the same way. So writing and reading never lock, and
 //! never allocate as long as `clone_from` does not — true for plain data, and for a `Vec`
 //! or `String` no longer than the data sample given with
 //! [`OutputPort::with_sample`]/[`InputPort::with_sample`].

@@ -33,13 +33,26 @@ pub(super) struct End {
     pos: u64,
     /// The other end's position at this end's last look.
     seen: u64,
+    /// `pos` wrapped to the ring's length: the slot it is at.
+    slot: usize,
+}
+
+impl End {
+    /// Moves on one sample.
+    #[inline]
+    fn advance(&mut self, len: usize) {
+        self.pos += 1;
+        self.slot += 1;
+        if self.slot == len {
+            self.slot = 0;
+        }
+    }
 }
 
 pub(super) struct Ring<T> {
+    /// As many as it holds at most.
     slots: Box<[UnsafeCell<Slot<T>>]>,
-    /// `slots.len() - 1` (a power of two long).
-    mask: u64,
-    /// Samples it holds at most.
+    /// `slots.len()`.
     capacity: u64,
     /// Samples popped (written by the reader), on a line of its own.
     head: CachePadded<AtomicU64>,
@@ -59,9 +72,8 @@ impl<T: Clone> Ring<T> {
     /// A ring of `capacity` samples (at least 1), each a copy of `sample`.
     pub(super) fn new(capacity: usize, sample: &T) -> Self {
         let capacity = capacity.max(1);
-        let len = capacity.next_power_of_two();
         Ring {
-            slots: (0..len)
+            slots: (0..capacity)
                 .map(|_| {
                     UnsafeCell::new(Slot {
                         at: 0,
@@ -69,7 +81,6 @@ impl<T: Clone> Ring<T> {
                     })
                 })
                 .collect(),
-            mask: len as u64 - 1,
             capacity: capacity as u64,
             head: CachePadded::new(AtomicU64::new(0)),
             tail: CachePadded::new(AtomicU64::new(0)),
@@ -89,13 +100,13 @@ impl<T: Clone> Ring<T> {
                 return false;
             }
         }
-        let cell = &self.slots[(end.pos & self.mask) as usize];
+        let cell = &self.slots[end.slot];
         // SAFETY: `pos - head < capacity`: the reader is done with this slot and touches
         // it again only after the store below publishes it.
         let slot = unsafe { &mut *cell.get() };
         slot.value.clone_from(value);
         slot.at = at;
-        end.pos += 1;
+        end.advance(self.slots.len());
         self.tail.store(end.pos, Ordering::Release);
         true
     }
@@ -114,13 +125,13 @@ impl<T: Clone> Ring<T> {
                 return None;
             }
         }
-        let cell = &self.slots[(end.pos & self.mask) as usize];
+        let cell = &self.slots[end.slot];
         // SAFETY: `pos < tail`: the writer published this slot and writes it again only
         // after the store below tells it the reader is done.
         let slot = unsafe { &*cell.get() };
         into.clone_from(&slot.value);
         let at = slot.at;
-        end.pos += 1;
+        end.advance(self.slots.len());
         self.head.store(end.pos, Ordering::Release);
         Some(at)
     }
