@@ -22,7 +22,7 @@
 
 use super::ActivityError;
 use nix::sys::epoll::{Epoll, EpollEvent, EpollFlags};
-use nix::sys::eventfd::{EfdFlags, EventFd};
+use nix::sys::eventfd::EventFd;
 use nix::sys::time::TimeSpec;
 use nix::sys::timerfd::{ClockId, Expiration, TimerFd, TimerFlags, TimerSetTimeFlags};
 use std::cell::Cell;
@@ -63,20 +63,16 @@ impl Deadline {
             what: "timerfd_create",
             source,
         })?;
-        let ask = EventFd::from_flags(EfdFlags::EFD_CLOEXEC | EfdFlags::EFD_NONBLOCK).map_err(
-            |source| ActivityError::Fd {
-                what: "eventfd",
+        epoll
+            .add(
+                timer.as_fd(),
+                EpollEvent::new(EpollFlags::EPOLLIN, DEADLINE_EVENT),
+            )
+            .map_err(|source| ActivityError::Fd {
+                what: "epoll_ctl(timerfd)",
                 source,
-            },
-        )?;
-        for (fd, data, what) in [
-            (timer.as_fd(), DEADLINE_EVENT, "epoll_ctl(timerfd)"),
-            (ask.as_fd(), ASK_EVENT, "epoll_ctl(eventfd)"),
-        ] {
-            epoll
-                .add(fd, EpollEvent::new(EpollFlags::EPOLLIN, data))
-                .map_err(|source| ActivityError::Fd { what, source })?;
-        }
+            })?;
+        let ask = super::eventfd_in(epoll, ASK_EVENT)?;
         Ok(Deadline {
             timer,
             asked: AtomicU64::new(0),

@@ -390,20 +390,7 @@ impl Activity {
                         source,
                     }
                 })?;
-                let wake = EventFd::from_flags(EfdFlags::EFD_CLOEXEC | EfdFlags::EFD_NONBLOCK)
-                    .map_err(|source| ActivityError::Fd {
-                        what: "eventfd",
-                        source,
-                    })?;
-                epoll
-                    .add(
-                        wake.as_fd(),
-                        EpollEvent::new(EpollFlags::EPOLLIN, WAKE_EVENT),
-                    )
-                    .map_err(|source| ActivityError::Fd {
-                        what: "epoll_ctl(eventfd)",
-                        source,
-                    })?;
+                let wake = eventfd_in(&epoll, WAKE_EVENT)?;
                 let deadline = Deadline::new(&epoll)?;
                 Some(FdState {
                     epoll,
@@ -662,3 +649,21 @@ impl Drop for Activity {
 
 /// epoll data of the activity's own eventfd (`trigger`, stop).
 const WAKE_EVENT: u64 = u64::MAX;
+
+/// A non-blocking eventfd, registered with `epoll` as `data`.
+fn eventfd_in(epoll: &Epoll, data: u64) -> Result<EventFd, ActivityError> {
+    let fd =
+        EventFd::from_flags(EfdFlags::EFD_CLOEXEC | EfdFlags::EFD_NONBLOCK).map_err(|source| {
+            ActivityError::Fd {
+                what: "eventfd",
+                source,
+            }
+        })?;
+    epoll
+        .add(fd.as_fd(), EpollEvent::new(EpollFlags::EPOLLIN, data))
+        .map_err(|source| ActivityError::Fd {
+            what: "epoll_ctl(eventfd)",
+            source,
+        })?;
+    Ok(fd)
+}

@@ -316,13 +316,13 @@ impl<T: Clone + Send + 'static> Writer<T> {
     #[inline(never)]
     fn push_buffered(&mut self, value: &T) -> bool {
         let ch = &*self.ch;
+        let at = if ch.stamped {
+            crate::activity::stamp_now()
+        } else {
+            0
+        };
         let q = match &ch.queues {
             Some(Fifo::Newest(ring)) => {
-                let at = if ch.stamped {
-                    crate::activity::stamp_now()
-                } else {
-                    0
-                };
                 if !ring.push(&mut self.end, value, at) {
                     bump(&ch.dropped);
                     return false;
@@ -338,9 +338,7 @@ impl<T: Clone + Send + 'static> Writer<T> {
             return false;
         };
         slot.value.clone_from(value);
-        if ch.stamped {
-            slot.at = crate::activity::stamp_now();
-        }
+        slot.at = at;
         if let Err(slot) = q.full.push(slot) {
             // Make room by dropping the oldest; only this writer pushes, so room stays.
             if let Some(old) = q.full.pop() {
