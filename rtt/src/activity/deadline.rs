@@ -19,19 +19,60 @@
 //! that write causes: a time to come arms the timer without a step; a time past steps. The
 //! thread applies requests in the order it sees them, so the later replaces the earlier.
 //! A request made while the activity is stopped waits for its start.
+//!
+//! **How the thread waits for it.** Where the kernel has `epoll_pwait2` (Linux 5.11), the
+//! deadline is no timer at all: the thread's wait itself ends at it, with a timeout to the
+//! nanosecond, so a line polling every period makes one system call for its wait, where a
+//! timer cost three (arm it, wake through it, read its expiry). A kernel without the call
+//! (`ENOSYS`), or a seccomp filter that refuses it (`EPERM`, as systemd's
+//! `SystemCallErrorNumber=EPERM` does for calls it does not know), turns the process over
+//! to the timer for good at the first wait that meets it; the timer is armed for the
+//! deadline then, so nothing asked for is lost. The thread's timer slack is set to 1 ns
+//! (`PR_SET_TIMERSLACK`): a SCHED_OTHER thread's timed wait would otherwise end up to
+//! 50 µs late, where a timer's never did.
 
 use super::ActivityError;
-use nix::sys::epoll::{Epoll, EpollEvent, EpollFlags};
+use device_interface::time::{Clock, MonotonicClock};
+use nix::errno::Errno;
+use nix::sys::epoll::{Epoll, EpollEvent, EpollFlags, EpollTimeout};
 use nix::sys::eventfd::EventFd;
 use nix::sys::time::TimeSpec;
 use nix::sys::timerfd::{ClockId, Expiration, TimerFd, TimerFlags, TimerSetTimeFlags};
 use std::cell::Cell;
-use std::os::fd::AsFd;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::os::fd::{AsFd, AsRawFd};
+use std::sync::atomic::{AtomicBool, AtomicU8, AtomicU64, Ordering};
 
 thread_local! {
     /// The deadline of the activity whose thread this is (its address; 0: none).
     static OWN: Cell<usize> = const { Cell::new(0) };
+}
+
+/// How deadlines are waited for, for the whole process: not known yet, by the wait's own
+/// timeout (`epoll_pwait2`), or by a timer (the kernel or a filter refused the call).
+static HOW: AtomicU8 = AtomicU8::new(UNKNOWN);
+const UNKNOWN: u8 = 0;
+const PRECISE_WAIT: u8 = 1;
+const TIMER: u8 = 2;
+
+/// Makes every deadline from now on a timer's, as on a kernel without `epoll_pwait2`: for
+/// the tests of that path.
+#[doc(hidden)]
+pub fn use_timer_deadlines() {
+    HOW.store(TIMER, Ordering::Relaxed);
+}
+
+fn by_timer() -> bool {
+    HOW.load(Ordering::Relaxed) == TIMER
+}
+
+/// What ended a wait.
+pub(super) struct Waited {
+    /// Events in the buffer.
+    pub(super) n: usize,
+    /// The deadline came (without a timer's event to say so).
+    pub(super) deadline: bool,
+    /// The activity's timeout passed with nothing ready.
+    pub(super) timeout: bool,
 }
 
 /// epoll data of the deadline timer.
@@ -44,9 +85,13 @@ pub(super) struct Deadline {
     /// Another thread's request: written before `ask` is (ns; 0: none).
     asked: AtomicU64,
     ask: EventFd,
-    /// The time the timer is armed for (monotonic ns; 0: not armed). Only the activity's
-    /// thread touches it and the timer.
+    /// The deadline in force (monotonic ns; 0: none): what the thread's wait ends at, or
+    /// what the timer is armed for. Only the activity's thread touches it and the timer.
     armed: AtomicU64,
+    /// The deadline in force is on the timer (not left to the wait). Per deadline: another
+    /// activity's thread may turn the process over to the timer while this one's deadline
+    /// waits to be waited for.
+    timed: AtomicBool,
     /// The deadline the activity's own step asked for, applied when the step ends (ns; 0:
     /// none). Only the activity's thread touches it.
     noted: AtomicU64,
@@ -78,6 +123,7 @@ impl Deadline {
             asked: AtomicU64::new(0),
             ask,
             armed: AtomicU64::new(0),
+            timed: AtomicBool::new(false),
             noted: AtomicU64::new(0),
         })
     }
@@ -86,9 +132,12 @@ impl Deadline {
         self as *const Self as usize
     }
 
-    /// Marks the calling thread as the activity's own: its `wake_at` calls are noted.
+    /// Marks the calling thread as the activity's own: its `wake_at` calls are noted, and
+    /// its timed waits end when asked (no timer slack).
     pub(super) fn enter_thread(&self) {
         OWN.with(|o| o.set(self.key()));
+        // Best effort: a thread that cannot change its slack keeps the kernel's.
+        let _ = nix::sys::prctl::set_timerslack(1);
     }
 
     /// Asks for a step at `ns` (monotonic), replacing any deadline set before.
@@ -122,7 +171,14 @@ impl Deadline {
                 source,
             })?;
         self.armed.store(ns, Ordering::Relaxed);
+        self.timed.store(true, Ordering::Relaxed);
         Ok(())
+    }
+
+    /// Makes `ns` the deadline in force, left to the thread's wait (no system call).
+    fn leave_to_wait(&self, ns: u64) {
+        self.armed.store(ns, Ordering::Relaxed);
+        self.timed.store(false, Ordering::Relaxed);
     }
 
     /// After a step that ended at `now` (monotonic ns): applies the deadline the step asked
@@ -147,12 +203,19 @@ impl Deadline {
     /// The thread's loop ends with a step due at once: leaves the timer fired, so that
     /// step comes at the next start.
     pub(super) fn keep_for_restart(&self) -> Result<(), ActivityError> {
-        self.arm(1)
+        if by_timer() {
+            self.arm(1)
+        } else {
+            self.leave_to_wait(1);
+            Ok(())
+        }
     }
 
     fn apply(&self, ns: u64, now: u64) -> Result<bool, ActivityError> {
         if ns <= now {
-            if self.armed.swap(0, Ordering::Relaxed) != 0 {
+            if self.armed.swap(0, Ordering::Relaxed) != 0
+                && self.timed.swap(false, Ordering::Relaxed)
+            {
                 self.timer.unset().map_err(|source| ActivityError::Fd {
                     what: "timerfd_settime(disarm)",
                     source,
@@ -161,14 +224,136 @@ impl Deadline {
             return Ok(true);
         }
         if self.armed.load(Ordering::Relaxed) != ns {
-            self.arm(ns)?;
+            if by_timer() {
+                self.arm(ns)?;
+            } else {
+                self.leave_to_wait(ns);
+            }
         }
         Ok(false)
+    }
+
+    /// Waits in `epoll` for ready descriptors (into `ready`), the deadline in force, or
+    /// `timeout` (ns; `None`: for ever) with nothing ready; with `at_once`, does not wait
+    /// (the step before asked for a time already past, which is the deadline that came).
+    pub(super) fn wait(
+        &self,
+        epoll: &Epoll,
+        ready: &mut [EpollEvent],
+        timeout: Option<u64>,
+        at_once: bool,
+    ) -> Result<Waited, Errno> {
+        if at_once {
+            let n = epoll.wait(ready, EpollTimeout::ZERO)?;
+            return Ok(Waited {
+                n,
+                deadline: true,
+                timeout: false,
+            });
+        }
+        let due = self.armed.load(Ordering::Relaxed);
+        if due != 0 && !self.timed.load(Ordering::Relaxed) {
+            if by_timer() {
+                self.to_timer(due)?;
+            } else {
+                match self.wait_precisely(epoll, ready, timeout, due) {
+                    Err(Errno::ENOSYS | Errno::EPERM) => self.to_timer(due)?,
+                    waited => return waited,
+                }
+            }
+        }
+        let n = epoll.wait(ready, epoll_timeout(timeout))?;
+        Ok(Waited {
+            n,
+            deadline: false,
+            timeout: n == 0,
+        })
+    }
+
+    /// Waits with `epoll_pwait2` for at most the time to `due` or `timeout`, whichever
+    /// comes first.
+    fn wait_precisely(
+        &self,
+        epoll: &Epoll,
+        ready: &mut [EpollEvent],
+        timeout: Option<u64>,
+        due: u64,
+    ) -> Result<Waited, Errno> {
+        let now = MonotonicClock.now().as_nanos();
+        let n = if due <= now {
+            epoll.wait(ready, EpollTimeout::ZERO)?
+        } else {
+            let ns = (due - now).min(timeout.unwrap_or(u64::MAX));
+            let n = epoll_pwait2(epoll, ready, ns)?;
+            HOW.store(PRECISE_WAIT, Ordering::Relaxed);
+            n
+        };
+        let deadline = due <= now || MonotonicClock.now().as_nanos() >= due;
+        if deadline {
+            self.armed.store(0, Ordering::Relaxed);
+        }
+        Ok(Waited {
+            n,
+            deadline,
+            timeout: n == 0 && !deadline,
+        })
+    }
+
+    /// The kernel refused `epoll_pwait2` (here, or on another activity's thread):
+    /// deadlines are a timer's from now on, and the one in force is armed.
+    fn to_timer(&self, due: u64) -> Result<(), Errno> {
+        HOW.store(TIMER, Ordering::Relaxed);
+        self.arm(due).map_err(|e| match e {
+            ActivityError::Fd { source, .. } => source,
+            _ => Errno::EINVAL,
+        })
     }
 
     /// The timer fired: takes its expiry (a timer re-armed meanwhile may already be unread).
     pub(super) fn fired(&self) {
         let _ = self.timer.wait();
         self.armed.store(0, Ordering::Relaxed);
+        self.timed.store(false, Ordering::Relaxed);
     }
+}
+
+/// An `epoll_wait` whose timeout is in ms (rounded up, so a timeout never ends a wait
+/// early), from one in ns (`None`: for ever).
+fn epoll_timeout(ns: Option<u64>) -> EpollTimeout {
+    match ns {
+        None => EpollTimeout::NONE,
+        Some(ns) => EpollTimeout::try_from(std::time::Duration::from_nanos(
+            ns.div_ceil(1_000_000) * 1_000_000,
+        ))
+        .unwrap_or(EpollTimeout::MAX),
+    }
+}
+
+/// `epoll_pwait2` on `epoll` with a relative timeout of `ns` and no signal mask: the
+/// events ready, at most `ready.len()` of them.
+#[allow(
+    unsafe_code,
+    reason = "no wrapper for epoll_pwait2 in nix or libc: a raw system call with a buffer we own"
+)]
+fn epoll_pwait2(epoll: &Epoll, ready: &mut [EpollEvent], ns: u64) -> Result<usize, Errno> {
+    let ts = libc::timespec {
+        tv_sec: (ns / 1_000_000_000).min(i64::MAX as u64) as libc::time_t,
+        tv_nsec: (ns % 1_000_000_000) as libc::c_long,
+    };
+    let max = libc::c_int::try_from(ready.len()).unwrap_or(libc::c_int::MAX);
+    // SAFETY: `EpollEvent` is `repr(transparent)` over `libc::epoll_event`, so `ready` is
+    // `max` writable events the kernel may fill; `ts` lives across the call; a null
+    // signal mask (size 0) leaves the mask alone.
+    let n = unsafe {
+        libc::syscall(
+            libc::SYS_epoll_pwait2,
+            epoll.0.as_raw_fd(),
+            ready.as_mut_ptr().cast::<libc::epoll_event>(),
+            max,
+            &ts as *const libc::timespec,
+            std::ptr::null::<libc::sigset_t>(),
+            0usize,
+        )
+    };
+    Errno::result(n).map(|n| usize::try_from(n).unwrap_or(0))
 }

@@ -28,6 +28,8 @@ pub use steps::{StepRecord, StepTap, stamp_now};
 
 use crate::scope::ThreadScope;
 use deadline::Deadline;
+#[doc(hidden)]
+pub use deadline::use_timer_deadlines;
 use device_interface::time::{Clock, MonotonicClock, Timestamp};
 use nix::sys::epoll::{Epoll, EpollCreateFlags, EpollEvent, EpollFlags};
 use nix::sys::eventfd::{EfdFlags, EventFd};

@@ -11,7 +11,7 @@ use super::{
 use crate::scope::set_thread_number;
 use arc_swap::ArcSwapOption;
 use device_interface::time::{Clock, MonotonicClock, Timestamp};
-use nix::sys::epoll::{EpollEvent, EpollTimeout};
+use nix::sys::epoll::EpollEvent;
 use std::os::fd::RawFd;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -183,11 +183,8 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                 Ordering::Relaxed,
             );
             let Some(fd) = &shared.fd else { return };
-            let epoll_timeout = match timeout {
-                None => EpollTimeout::NONE,
-                Some(t) => EpollTimeout::try_from(*t).unwrap_or(EpollTimeout::MAX),
-            };
-            fd_loop(&shared, runner.as_ref(), fd, epoll_timeout);
+            let timeout = timeout.map(|t| u64::try_from(t.as_nanos()).unwrap_or(u64::MAX));
+            fd_loop(&shared, runner.as_ref(), fd, timeout);
         }
         ActivitySpec::Slave => {}
     }
@@ -196,7 +193,7 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
 /// The loop of a file-descriptor activity's thread: wait in epoll (not at all when the
 /// step before asked for a time already past), step, apply the deadline the step asked
 /// for (see the `deadline` module).
-fn fd_loop(shared: &Shared, runner: &dyn Runner, fd: &FdState, epoll_timeout: EpollTimeout) {
+fn fd_loop(shared: &Shared, runner: &dyn Runner, fd: &FdState, timeout: Option<u64>) {
     let failed = |e: &ActivityError| {
         crate::rt_log!(
             shared.log,
@@ -209,13 +206,8 @@ fn fd_loop(shared: &Shared, runner: &dyn Runner, fd: &FdState, epoll_timeout: Ep
     fd.deadline.enter_thread();
     let mut at_once = false;
     while shared.running.load(Ordering::Acquire) {
-        let wait = if at_once {
-            EpollTimeout::ZERO
-        } else {
-            epoll_timeout
-        };
-        let n = match fd.epoll.wait(&mut ready, wait) {
-            Ok(n) => n,
+        let waited = match fd.deadline.wait(&fd.epoll, &mut ready, timeout, at_once) {
+            Ok(w) => w,
             Err(nix::Error::EINTR) => continue,
             Err(e) => {
                 crate::rt_log!(
@@ -230,13 +222,14 @@ fn fd_loop(shared: &Shared, runner: &dyn Runner, fd: &FdState, epoll_timeout: Ep
         if !shared.running.load(Ordering::Acquire) {
             break;
         }
+        let n = waited.n;
         let mut events = FdEvents {
-            timeout: n == 0 && !at_once,
-            deadline: at_once,
+            timeout: waited.timeout,
+            deadline: waited.deadline,
             ..FdEvents::default()
         };
         // A wake-up that only brought another thread's deadline for later is no step.
-        let mut step = n == 0 || at_once;
+        let mut step = waited.timeout || waited.deadline;
         for ev in &ready[..n] {
             match ev.data() {
                 WAKE_EVENT => {
