@@ -287,6 +287,11 @@ to = "twice.in"
     let now = components(&svc);
     assert!(now.contains(&("twice".into(), "running".into())), "{now:?}");
     assert!(now.iter().all(|(n, _)| n != "follow"), "{now:?}");
+    wait_until("follow's log area gone with it", || {
+        !svc.ok(json!({"cmd": "log"}))["areas"]
+            .as_array()
+            .is_some_and(|a| a.iter().any(|a| a["name"] == "follow"))
+    });
     wait_until("twice follows sim0.ai.ch1", || {
         svc.request(json!({"cmd": "get", "component": "twice", "port": "out"}))["ok"]
             .as_f64()

@@ -1,6 +1,7 @@
 //! The real-time logger: records come out in order with their arguments, through the
 //! area's level; levels change while it runs; a full queue drops and counts; unknown
-//! names are errors that list what exists.
+//! names are errors that list what exists; an area nothing holds is gone, and starts
+//! afresh when asked for again.
 
 #![allow(
     clippy::unwrap_used,
@@ -109,7 +110,7 @@ fn a_full_queue_drops_and_counts() {
 #[test]
 fn unknown_names_are_errors_that_list_what_exists() {
     let _one = ONE_AT_A_TIME.lock().unwrap();
-    Area::named("rt_log_known");
+    let _known = Area::named("rt_log_known");
     let e = rtt::log::set_level("rt_log_unknown", Level::Debug).unwrap_err();
     assert!(
         matches!(&e, LogError::UnknownArea { known, .. } if known.contains(&"rt_log_known".to_string()))
@@ -144,4 +145,35 @@ fn more_arguments_than_a_record_holds_are_said_to_be_left_out() {
     );
     let got = taken("rt_log_many");
     assert_eq!(got[0].text, "1 2 3 4 {} {} (+2 arguments left out)");
+}
+
+#[test]
+fn an_area_nothing_holds_is_gone_and_comes_back_at_the_default_level() {
+    let area = Area::named("rt_log_gone");
+    rtt::log::set_level("rt_log_gone", Level::Debug).unwrap();
+    assert!(rtt::log::levels().iter().any(|(n, _)| n == "rt_log_gone"));
+    let again = Area::named("rt_log_gone");
+    assert_eq!(again.level(), Level::Debug, "one area per name while held");
+    drop((area, again));
+    assert!(
+        !rtt::log::levels().iter().any(|(n, _)| n == "rt_log_gone"),
+        "its component removed, its area is not listed"
+    );
+    match rtt::log::set_level("rt_log_gone", Level::Trace) {
+        Err(LogError::UnknownArea { known, .. }) => {
+            assert!(!known.iter().any(|n| n == "rt_log_gone"));
+        }
+        other => panic!("expected an unknown area, got {other:?}"),
+    }
+    assert!(rtt::log::level("rt_log_gone").is_err());
+    let back = Area::named("rt_log_gone");
+    assert_eq!(
+        back.level(),
+        rtt::log::DEFAULT_LEVEL,
+        "made again, at the default"
+    );
+    assert_eq!(
+        rtt::log::level("rt_log_gone").unwrap(),
+        rtt::log::DEFAULT_LEVEL
+    );
 }

@@ -28,6 +28,8 @@
 
 use crate::map::J1939Node;
 use can_socket::j1939::{GLOBAL, NULL_ADDRESS, Name};
+use rtt::log::{Area, Arg};
+use rtt::rt_log;
 
 /// How long a node waits after its claim before it uses the address, ns: the standard's
 /// 250 ms and 10 ms more, as the kernel starts its own 250 ms when it sees the claim go
@@ -78,6 +80,9 @@ pub struct Claimer {
     /// The NAME each address was last claimed by (other nodes only).
     held: [Option<Name>; 254],
     counts: ClaimCounts,
+    /// Where its claims, contests and losses are told (through the real-time logger: it
+    /// runs on the bus's thread); none: not told.
+    log: Option<Area>,
 }
 
 impl Claimer {
@@ -90,7 +95,14 @@ impl Claimer {
             cannot_claim_due: None,
             held: [None; 254],
             counts: ClaimCounts::default(),
+            log: None,
         }
+    }
+
+    /// The same, telling its claims, contests and losses through `log`.
+    pub fn logging_to(mut self, log: Area) -> Claimer {
+        self.log = Some(log);
+        self
     }
 
     /// Its node.
@@ -151,7 +163,15 @@ impl Claimer {
             && now >= self.usable_at
         {
             self.state = State::Claimed(a);
-            tracing::info!(address = a, name = %self.node.name, "J1939 address claimed");
+            if let Some(log) = &self.log {
+                rt_log!(
+                    log,
+                    Info,
+                    "J1939 node {}: address {} claimed",
+                    Arg::display(&self.node.name),
+                    a
+                );
+            }
         }
         match self.cannot_claim_due {
             Some(due) if now >= due => {
@@ -182,7 +202,16 @@ impl Claimer {
         };
         if self.node.name < name {
             self.counts.won += 1;
-            tracing::info!(address = ours, other = %name, "J1939 address contest won: claiming again");
+            if let Some(log) = &self.log {
+                rt_log!(
+                    log,
+                    Info,
+                    "J1939 node {}: contest for address {} with {} won: claiming again",
+                    Arg::display(&self.node.name),
+                    ours,
+                    Arg::display(&name)
+                );
+            }
             return Some(Send::Claim(ours));
         }
         self.counts.lost += 1;
@@ -193,11 +222,30 @@ impl Claimer {
             .then(|| (128..=247u8).find(|&a| a != ours && self.held[usize::from(a)].is_none()));
         match next.flatten() {
             Some(a) => {
-                tracing::warn!(lost = ours, to = %name, next = a, "J1939 address lost: claiming another");
+                if let Some(log) = &self.log {
+                    rt_log!(
+                        log,
+                        Warn,
+                        "J1939 node {}: address {} lost to {}: claiming {}",
+                        Arg::display(&self.node.name),
+                        ours,
+                        Arg::display(&name),
+                        a
+                    );
+                }
                 Some(self.claim(a, now))
             }
             None => {
-                tracing::warn!(lost = ours, to = %name, "J1939 address lost: cannot claim another");
+                if let Some(log) = &self.log {
+                    rt_log!(
+                        log,
+                        Warn,
+                        "J1939 node {}: address {} lost to {}: cannot claim another",
+                        Arg::display(&self.node.name),
+                        ours,
+                        Arg::display(&name)
+                    );
+                }
                 self.state = State::CannotClaim;
                 Some(Send::CannotClaim)
             }

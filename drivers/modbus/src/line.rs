@@ -488,18 +488,14 @@ async fn poll_unit(
                 stats.splits.fetch_add(new.len() as u64, Ordering::Relaxed);
                 state.holes.extend_from_slice(&new);
                 let reads = map.reads_around(&state.holes);
-                let list = |v: &[Barrier]| {
-                    v.iter()
-                        .map(|b| b.to_string())
-                        .collect::<Vec<_>>()
-                        .join(", ")
-                };
-                tracing::info!(
-                    "modbus unit {}: {read} refused (IllegalDataAddress): holes in {}; {} reads a poll now (holes so far: {})",
+                rt_log!(
+                    state.log,
+                    Info,
+                    "modbus unit {}: {} refused (IllegalDataAddress): holes in {}; {} reads a poll now",
                     t.unit,
-                    list(&new),
-                    reads.len(),
-                    list(&state.holes)
+                    rtt::log::Arg::display(&read),
+                    rtt::log::Arg::display(&crate::plan::Listed(&new)),
+                    reads.len()
                 );
                 state.plan = Some(reads);
                 ri = 0;

@@ -200,6 +200,22 @@ pub struct Barrier {
     pub to: u32,
 }
 
+/// Barriers written one after the other, comma-separated, without building a string (a
+/// log record formats it in place).
+pub(crate) struct Listed<'a>(pub(crate) &'a [Barrier]);
+
+impl fmt::Display for Listed<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for (i, b) in self.0.iter().enumerate() {
+            if i > 0 {
+                f.write_str(", ")?;
+            }
+            write!(f, "{b}")?;
+        }
+        Ok(())
+    }
+}
+
 impl fmt::Display for Barrier {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(f, "{} {}..={}", self.table.name(), self.from, self.to - 1)

@@ -171,10 +171,17 @@ fn logger() -> &'static Logger {
 
 impl Area {
     /// The area `name`, made at [`DEFAULT_LEVEL`] the first time it is asked for. Takes a
-    /// lock and may allocate: call it when building, and keep the area.
+    /// lock and may allocate: call it when building, and keep the area. An area nothing
+    /// holds any more (its component or card removed) is gone from [`levels`] and
+    /// [`set_level`]; asked for again, it starts again at [`DEFAULT_LEVEL`]. (Its name is
+    /// kept, for the records still queued under it: a name costs its bytes once, however
+    /// often it comes and goes.)
     pub fn named(name: &str) -> Area {
         let mut areas = crate::lock::lock(&logger().areas);
         if let Some(a) = areas.iter().find(|a| a.name == name) {
+            if !held(a) {
+                a.level.store(DEFAULT_LEVEL as u8, Ordering::Relaxed);
+            }
             return Area(a.clone());
         }
         let cell = Arc::new(AreaCell {
@@ -252,7 +259,7 @@ macro_rules! rt_log {
 /// Sets area `name`'s level; its level before.
 pub fn set_level(name: &str, level: Level) -> Result<Level, LogError> {
     let areas = crate::lock::lock(&logger().areas);
-    match areas.iter().find(|a| a.name == name) {
+    match areas.iter().find(|a| a.name == name && held(a)) {
         Some(a) => Ok(Level::from_u8(a.level.swap(level as u8, Ordering::Relaxed))),
         None => Err(unknown(name, &areas)),
     }
@@ -261,14 +268,23 @@ pub fn set_level(name: &str, level: Level) -> Result<Level, LogError> {
 /// Area `name`'s level.
 pub fn level(name: &str) -> Result<Level, LogError> {
     let areas = crate::lock::lock(&logger().areas);
-    match areas.iter().find(|a| a.name == name) {
+    match areas.iter().find(|a| a.name == name && held(a)) {
         Some(a) => Ok(Level::from_u8(a.level.load(Ordering::Relaxed))),
         None => Err(unknown(name, &areas)),
     }
 }
 
+/// True while something besides the logger's list holds the area.
+fn held(a: &Arc<AreaCell>) -> bool {
+    Arc::strong_count(a) > 1
+}
+
 fn unknown(name: &str, areas: &[Arc<AreaCell>]) -> LogError {
-    let mut known: Vec<String> = areas.iter().map(|a| a.name.clone()).collect();
+    let mut known: Vec<String> = areas
+        .iter()
+        .filter(|a| held(a))
+        .map(|a| a.name.clone())
+        .collect();
     known.sort();
     LogError::UnknownArea {
         given: name.to_string(),
@@ -280,6 +296,7 @@ fn unknown(name: &str, areas: &[Arc<AreaCell>]) -> LogError {
 pub fn levels() -> Vec<(String, Level)> {
     let mut all: Vec<(String, Level)> = crate::lock::lock(&logger().areas)
         .iter()
+        .filter(|a| held(a))
         .map(|a| {
             (
                 a.name.clone(),

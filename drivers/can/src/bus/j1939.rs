@@ -14,6 +14,8 @@ use crate::j1939::{Claimer, Send};
 use can_socket::j1939::{GLOBAL, J1939Socket, NULL_ADDRESS, Name, Pgn};
 use can_socket::socket::realtime_offset;
 use device_interface::time::Timestamp;
+use rtt::log::Arg;
+use rtt::rt_log;
 
 /// A bus's J1939 socket and node.
 pub(super) struct Side {
@@ -135,13 +137,18 @@ impl CanBus {
             return;
         }
         if let Err(e) = self.open_j1939() {
-            let interface = self.card.map().interface().to_string();
             let later = now + self.card.map().link_check().as_nanos() as u64;
             if let Some(side) = &mut self.j1939 {
                 side.open_at = later;
                 if !side.open_warned {
                     side.open_warned = true;
-                    tracing::warn!(%interface, "J1939 socket: {e} (tried again while the link is up)");
+                    rt_log!(
+                        self.card.log(),
+                        Warn,
+                        "{}: J1939 socket: {} (tried again while the link is up)",
+                        Arg::text(self.card.map().interface()),
+                        Arg::io(&e)
+                    );
                 }
             }
         }
@@ -171,7 +178,13 @@ impl CanBus {
                         self.link_lost(nix::Error::ENETDOWN);
                     } else if !side.warned {
                         side.warned = true;
-                        tracing::warn!(interface = %self.card.map().interface(), "J1939 recvmsg: {e}");
+                        rt_log!(
+                            self.card.log(),
+                            Warn,
+                            "{}: J1939 recvmsg: {}",
+                            Arg::text(self.card.map().interface()),
+                            Arg::io(&e)
+                        );
                     }
                     break;
                 }
@@ -328,7 +341,14 @@ impl CanBus {
                 .rebind(self.ifindex, Some((name, from)))
                 .and_then(|()| socket.rebind(self.ifindex, Some((name, from))));
             if let Err(e) = rebound {
-                tracing::warn!(interface = %self.card.map().interface(), "J1939 socket for address {from:#x}: {e}");
+                rt_log!(
+                    self.card.log(),
+                    Warn,
+                    "{}: J1939 socket for address {}: {}",
+                    Arg::text(self.card.map().interface()),
+                    Arg::display(&format_args!("{from:#x}")),
+                    Arg::io(&e)
+                );
                 return false;
             }
             if let Some(side) = &mut self.j1939 {
@@ -340,7 +360,14 @@ impl CanBus {
         };
         let sent = claims.send(Pgn::ADDRESS_CLAIMED, GLOBAL, 6, &name.0.to_le_bytes());
         if let Err(e) = &sent {
-            tracing::warn!(interface = %self.card.map().interface(), "J1939 address claim from {from:#x}: {e}");
+            rt_log!(
+                self.card.log(),
+                Warn,
+                "{}: J1939 address claim from {}: {}",
+                Arg::text(self.card.map().interface()),
+                Arg::display(&format_args!("{from:#x}")),
+                Arg::io(e)
+            );
         }
         self.card.sent(sent.is_ok());
         sent.is_ok()
@@ -370,7 +397,13 @@ impl CanBus {
         );
         self.card.sent(sent.is_ok());
         let Err(e) = sent else { return };
-        tracing::debug!(frame = %f.name, "J1939 send failed: {e}");
+        rt_log!(
+            self.card.log(),
+            Debug,
+            "J1939 frame {}: send failed: {}",
+            Arg::text(&f.name),
+            Arg::io(&e)
+        );
         if gone(&e) {
             self.link_lost(nix::Error::ENETDOWN);
         }

@@ -107,7 +107,7 @@ impl CanBus {
         let j1939 = card.map().j1939().map(|node| {
             j1939::Side::new(
                 card.map().longest(false),
-                node.map(crate::j1939::Claimer::new),
+                node.map(|n| crate::j1939::Claimer::new(n).logging_to(card.log().clone())),
             )
         });
         let mut bus = CanBus {
