@@ -1,6 +1,6 @@
 //! The real-time paths allocate nothing: port write/read of pre-sized samples, a
 //! ClientThread call, an OwnThread send and collect (on the caller's thread and on the
-//! engine's), a real-time log call (written, filtered out, or dropped on a full queue),
+//! engine's), a write into a recording's journal, a real-time log call (written, filtered out, or dropped on a full queue),
 //! and a whole periodic step (sleep, statistics, ThreadScope, engine, update). A counting global allocator counts per thread, so other tests running at the
 //! same time cannot disturb the counts.
 
@@ -110,6 +110,29 @@ fn a_writer_never_frees_a_connection_a_dynamic_reader_let_go_of() {
         .join()
         .unwrap();
     assert!(freed > 2, "{freed}");
+}
+
+/// A port tapped into a journal (a recording): writing appends, full or not, without
+/// allocating or freeing; the tap let go of off the writer's thread is freed there, not by
+/// the writer.
+#[test]
+fn a_journal_tapped_write_allocates_and_frees_nothing() {
+    use rtt::port::journal::{Journal, tap};
+    let mut out = OutputPort::<f64>::new("o");
+    let journal = Arc::new(Journal::new(64));
+    let t = tap(&out, &journal, 0, "recording").unwrap();
+    out.write(&0.5); // takes up the tap, and this thread its lane
+    let n = count(|| {
+        for i in 0..10_000 {
+            // The journal fills at 64 and drops after: that must not allocate either.
+            out.write(&f64::from(i));
+        }
+    });
+    assert_eq!(n, 0);
+    assert!(journal.dropped() > 0);
+    std::thread::spawn(move || drop(t)).join().unwrap();
+    assert_eq!(frees(|| out.write(&1.0)), 0, "the writer freed the tap");
+    assert_eq!(journal.drain(usize::MAX, |_| {}), 64);
 }
 
 #[derive(Clone, Default, serde::Serialize, serde::Deserialize)]

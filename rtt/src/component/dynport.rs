@@ -3,6 +3,8 @@
 
 use crate::error::IntrospectError;
 use crate::info::{Direction, NamedValue, PortData, PortInfo};
+use crate::port::journal::{Journal, Tap, tap_shared};
+use crate::port::word::from_word;
 use crate::port::{
     ConnPolicy, ConnectError, ConnectionInfo, FlowStatus, InputPort, InputShared, OutputPort,
     OutputShared, connect_shared, connect_with,
@@ -31,6 +33,10 @@ pub trait DynReader: Send {
     }
 }
 
+/// Turns a journal entry's word back into its port's value, serialised (made with a
+/// [`DynPort::tap`]).
+pub type WordValue = Box<dyn Fn(u64) -> Option<Value> + Send>;
+
 /// Writes dynamically typed values into an input port (made by [`DynPort::writer`]).
 pub trait DynWriter: Send {
     /// Converts `value` to the port's type and writes it.
@@ -57,6 +63,21 @@ pub trait DynPort: Send + Sync {
         Err(IntrospectError::Refused {
             what: format!("port {:?}", info.name),
             detail: "it gives no stamped connection".into(),
+        })
+    }
+    /// A tap of this output port into `journal` as number `tap` (see
+    /// [`crate::port::journal`]), with what turns its entries' words back into values. A
+    /// port that cannot be tapped (an input, or samples of more than one word) refuses.
+    fn tap(
+        &self,
+        _journal: &Arc<Journal>,
+        _tap: u32,
+        _reader: &str,
+    ) -> Result<(Tap, WordValue), IntrospectError> {
+        let info = self.info();
+        Err(IntrospectError::Refused {
+            what: format!("port {:?}", info.name),
+            detail: "it cannot be tapped into a journal".into(),
         })
     }
     /// A new connection from a writer of serialised values to this input port.
@@ -272,6 +293,24 @@ impl<T: PortData> DynPort for OutEntry<T> {
 
     fn stamped_reader(&self, policy: ConnPolicy) -> Result<Box<dyn DynReader>, IntrospectError> {
         self.value_reader(policy, true)
+    }
+
+    fn tap(
+        &self,
+        journal: &Arc<Journal>,
+        tap: u32,
+        reader: &str,
+    ) -> Result<(Tap, WordValue), IntrospectError> {
+        let t = tap_shared(&self.shared, journal, tap, reader)?;
+        let sample = self.shared.sample_clone();
+        Ok((
+            t,
+            Box::new(move |w| {
+                let mut v = sample.clone();
+                from_word(w, &mut v);
+                to_json(&v)
+            }),
+        ))
     }
 
     fn writer(&self, _policy: ConnPolicy) -> Result<Box<dyn DynWriter>, IntrospectError> {

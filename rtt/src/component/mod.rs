@@ -32,7 +32,7 @@ pub use crate::state::{InitialState, TaskState};
 pub use builder::InterfaceBuilder;
 use context::Asked;
 pub use context::{Context, SelfRef};
-pub use dynport::{DynPort, DynReader, DynWriter};
+pub use dynport::{DynPort, DynReader, DynWriter, WordValue};
 pub use hook_error::{HookError, HookResult};
 pub use services::{Provides, Requires};
 

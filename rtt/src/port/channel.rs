@@ -8,6 +8,7 @@
 //! taken, so the port's write is one register write however many such connections it has,
 //! and its writing end is touched per write only to wake an event port.
 
+use super::journal::Journal;
 use super::latest::{LatestIn, LatestOut, latest};
 use super::ring::{End, Ring, Slot};
 use super::word::WordCell;
@@ -86,6 +87,11 @@ enum Fifo<T> {
     Newest(Ring<T>),
     /// Dropping the oldest when full: the writer takes from the reader's end too.
     Oldest(Queues<T>),
+    /// A tap into a journal shared with other ports: each write appends (tap, stamp,
+    /// word) through the writing end's own handle; the journal's reader takes them. Held
+    /// here too, so that the journal is freed with the connection, off the writer's
+    /// thread, never by the writer letting go of its end.
+    Journal(#[allow(dead_code, reason = "held for its lifetime only")] Arc<Journal>),
 }
 
 /// A circular buffer connection's samples, cycling between `free` and `full`.
@@ -137,6 +143,9 @@ pub(crate) struct Writer<T: Send> {
     latest: Option<LatestIn<T>>,
     /// Its place in a [`Ring`].
     end: End,
+    /// A journal tap's journal and number, kept here so that a write appends without
+    /// looking at the connection (one line fewer per recorded port and step).
+    tap: Option<(Arc<Journal>, u32)>,
 }
 
 /// The reading end of one connection, owned by its input port.
@@ -267,6 +276,7 @@ pub(super) fn channel<T: Clone + Send + 'static>(
             ch: ch.clone(),
             latest: input,
             end: End::default(),
+            tap: None,
         },
         Reader {
             ch,
@@ -274,6 +284,71 @@ pub(super) fn channel<T: Clone + Send + 'static>(
             end: End::default(),
         },
     )
+}
+
+/// The writing end of a tap of output `from` into `journal` as number `tap`, the journal's
+/// reader named `to` (see [`super::journal`]): a stamped connection whose samples go to the
+/// journal; it has no reading end (the [`Tap`](super::Tap) that holds it closes it).
+pub(super) fn journal_tap<T: Send>(
+    from: From,
+    to: Arc<str>,
+    journal: Arc<Journal>,
+    tap: u32,
+) -> Writer<T> {
+    let policy = ConnPolicy::buffer(journal.capacity());
+    let ch = Arc::new(Channel {
+        id: NEXT_CONNECTION.fetch_add(1, Ordering::Relaxed),
+        from: from.name,
+        to,
+        policy,
+        queues: Some(Fifo::Journal(journal.clone())),
+        shared: None,
+        closed: AtomicBool::new(false),
+        writer_gone: AtomicBool::new(false),
+        out_changed: from.changed,
+        in_changed: Arc::new(CachePadded::new(AtomicBool::new(false))),
+        written: CachePadded::new(AtomicU64::new(0)),
+        read: CachePadded::new(AtomicU64::new(0)),
+        dropped: AtomicU64::new(0),
+        waker: None,
+        stamped: true,
+    });
+    Writer {
+        ch,
+        latest: None,
+        end: End::default(),
+        tap: Some((journal, tap)),
+    }
+}
+
+/// What a [`Tap`](super::Tap) needs of its connection, whatever its sample type.
+pub(super) trait TapEnd: Send + Sync {
+    fn info(&self) -> ConnectionInfo;
+    fn close(&self);
+    /// The journal's reader took `n` of its entries: counted as written and read (the
+    /// writer appends without touching the connection).
+    fn taken(&self, n: u64);
+    /// Keeps the connection until its writer has let go (see [`bury`]).
+    fn bury(self: Arc<Self>);
+}
+
+impl<T: Send + 'static> TapEnd for Channel<T>
+where
+    Channel<T>: Send + Sync,
+{
+    fn info(&self) -> ConnectionInfo {
+        Channel::info(self)
+    }
+    fn close(&self) {
+        Channel::close(self);
+    }
+    fn taken(&self, n: u64) {
+        self.written.fetch_add(n, Ordering::Relaxed);
+        self.read.fetch_add(n, Ordering::Relaxed);
+    }
+    fn bury(self: Arc<Self>) {
+        bury(self);
+    }
 }
 
 impl<T: Clone + Send + 'static> Writer<T> {
@@ -292,6 +367,14 @@ impl<T: Clone + Send + 'static> Writer<T> {
     /// lock-free for buffers; allocation-free when `clone_from` is.
     #[inline]
     pub(super) fn push(&mut self, value: &T) {
+        if let Some((journal, tap)) = &self.tap {
+            // Counted by the journal's reader as it takes them (see `TapEnd::taken`).
+            let at = crate::activity::stamp_now();
+            if !journal.append(*tap, at, super::word::to_word(value)) {
+                bump(&self.ch.dropped);
+            }
+            return;
+        }
         if let Some(input) = &mut self.latest {
             // An unread value replaced is what a data connection is for: not a drop.
             input.publish(value);
@@ -322,6 +405,8 @@ impl<T: Clone + Send + 'static> Writer<T> {
             0
         };
         let q = match &ch.queues {
+            // Appended in `push`, never here.
+            Some(Fifo::Journal(_)) => return false,
             Some(Fifo::Newest(ring)) => {
                 if !ring.push(&mut self.end, value, at) {
                     bump(&ch.dropped);
@@ -375,6 +460,7 @@ impl<T: Clone + Send + 'static> Reader<T> {
             (Some(out), _) => !out.has_new(),
             (None, Some(Fifo::Newest(ring))) => ring.is_empty(),
             (None, Some(Fifo::Oldest(q))) => q.full.is_empty(),
+            (None, Some(Fifo::Journal(_))) => true,
             (None, None) => true,
         }
     }
@@ -397,6 +483,7 @@ impl<T: Clone + Send + 'static> Reader<T> {
     #[inline(never)]
     fn pop_buffered(&mut self, into: &mut T, at: &mut u64) -> bool {
         let q = match &self.ch.queues {
+            Some(Fifo::Journal(_)) => return false,
             Some(Fifo::Newest(ring)) => {
                 let Some(stamp) = ring.pop(&mut self.end, into) else {
                     return false;

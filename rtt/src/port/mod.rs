@@ -20,7 +20,9 @@
 //! the same way. So writing and reading never lock, and
 //! never allocate as long as `clone_from` does not — true for plain data, and for a `Vec`
 //! or `String` no longer than the data sample given with
-//! [`OutputPort::with_sample`]/[`InputPort::with_sample`].
+//! [`OutputPort::with_sample`]/[`InputPort::with_sample`]. A recording taps one-word
+//! ports into a [`journal`] instead: one pre-allocated ring per component that a write
+//! appends an entry to.
 //!
 //! ```
 //! use rtt::port::{connect, ConnPolicy, FlowStatus, InputPort, OutputPort};
@@ -42,6 +44,7 @@
 
 mod channel;
 mod input;
+pub mod journal;
 mod latest;
 mod output;
 mod ring;
@@ -185,6 +188,16 @@ pub enum ConnectError {
         size: usize,
         /// The most a connection takes.
         max: usize,
+    },
+    /// A journal tap asked of a port whose samples are not one word.
+    #[error(
+        "port {port:?} carries {type_name}: only one-word samples (numbers, bool, char) go into a journal"
+    )]
+    NotOneWord {
+        /// The port.
+        port: String,
+        /// Its type.
+        type_name: String,
     },
 }
 
