@@ -23,6 +23,8 @@ use testkit::wait_until as wait_for;
 mod deadlines;
 
 fn runtime() -> Runtime {
+    // The deadline tests' threads are SCHED_OTHER: they wait as a real-time one would.
+    rtt::activity::use_precise_deadlines_for_every_thread();
     Runtime::new(Arc::new(Registry::new()), RuntimeOptions::default()).unwrap()
 }
 

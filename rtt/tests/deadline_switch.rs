@@ -40,6 +40,8 @@ impl Component for AskOnce {
 
 #[test]
 fn a_deadline_waiting_when_the_process_turns_to_timers_still_comes() {
+    // The test's threads are SCHED_OTHER: they wait as a real-time one would, at first.
+    rtt::activity::use_precise_deadlines_for_every_thread();
     let rt = Runtime::new(Arc::new(Registry::new()), RuntimeOptions::default()).unwrap();
     let steps = StepLog::default();
     let s = steps.clone();

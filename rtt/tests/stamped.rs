@@ -1,7 +1,8 @@
 //! Stamped buffer connections carry the time each sample was written — the start of the
 //! step that wrote it, or the monotonic clock outside a step — through the typed and the
 //! dynamic ports; a data policy is refused; a full buffer counts what it lost. Step taps
-//! see each step's times.
+//! see each step's times. A journal tap's entries carry them too, in one lane a component
+//! keeps across restarts.
 
 use device_interface::Registry;
 use device_interface::time::{Clock, MonotonicClock};
@@ -96,4 +97,66 @@ fn in_a_step_samples_carry_the_steps_start_and_the_tap_gives_the_steps() {
             .iter()
             .all(|s| s.scheduled <= s.started && s.started <= s.ended)
     );
+}
+
+/// A journal tap (a recording's) stamps each entry with its step's start too, and a
+/// component's steps keep one lane of the journal across stops and starts — each start a
+/// new thread — so none of its writes is dropped for want of a lane.
+#[test]
+fn a_journal_keeps_a_components_steps_in_one_lane_across_restarts() {
+    use rtt::port::journal::Journal;
+    let rt = Runtime::new(Arc::new(Registry::new()), RuntimeOptions::default()).expect("runtime");
+    let task = rt
+        .add(
+            "counter",
+            ActivitySpec::non_periodic(),
+            InitialState::Stopped,
+            |i| {
+                Ok(Counter {
+                    out: i.output("out", "steps so far")?,
+                    n: 0,
+                })
+            },
+        )
+        .expect("component");
+    let journal = Arc::new(Journal::new(64));
+    let (tap, value) = task
+        .port("out")
+        .expect("port")
+        .tap(&journal, 7, "recording")
+        .expect("a one-word port taps");
+    let steps = task.activity().tap_steps(64);
+    let mut seen = Vec::new();
+    for round in 1..=6 {
+        task.start().expect("start");
+        task.trigger();
+        testkit::wait_until("the triggered step", || {
+            steps.drain(&mut seen);
+            seen.len() >= round
+        });
+        task.stop().expect("stop");
+    }
+    steps.drain(&mut seen);
+    let mut got = Vec::new();
+    let mut stamps = Vec::new();
+    journal.drain(usize::MAX, |e| {
+        got.push((e.tap, value(e.word)));
+        stamps.push(e.at);
+    });
+    assert_eq!(
+        stamps,
+        seen.iter().map(|s| s.started).collect::<Vec<_>>(),
+        "each entry has its step's start"
+    );
+    assert_eq!(journal.dropped(), 0, "six threads, one lane");
+    assert!(got.len() >= 6, "{got:?}");
+    assert!(got.iter().all(|(t, _)| *t == 7));
+    assert_eq!(
+        got.iter().map(|(_, v)| v.clone()).collect::<Vec<_>>(),
+        (1..=got.len() as u64)
+            .map(|n| Some(serde_json::json!(n)))
+            .collect::<Vec<_>>(),
+        "in order"
+    );
+    drop(tap);
 }

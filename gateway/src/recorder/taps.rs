@@ -47,6 +47,7 @@ pub struct Taps {
     /// A journal's entries as drained, and their order port after port (reused).
     entries: Vec<Entry>,
     counts: Vec<usize>,
+    starts: Vec<usize>,
     order: Vec<usize>,
     activities: Vec<String>,
     steps: Vec<StepTap>,
@@ -177,6 +178,7 @@ impl Taps {
             journals,
             entries: Vec::new(),
             counts: Vec::new(),
+            starts: Vec::new(),
             order: Vec::new(),
             activities: activities.to_vec(),
             steps,
@@ -202,13 +204,24 @@ impl Taps {
     pub fn drain(&mut self, out: &mut Vec<Item>) {
         for journal in &self.journals {
             self.entries.clear();
-            journal.drain(journal.capacity(), |e| self.entries.push(e));
+            let ports = self.ports.len();
+            let entries = &mut self.entries;
+            let unserialisable = &mut self.unserialisable;
+            // At most a lane's worth from each lane; an entry of no port (none is made) is
+            // counted, not indexed.
+            journal.drain(journal.capacity(), |e| {
+                if (e.tap as usize) < ports {
+                    entries.push(e);
+                } else {
+                    *unserialisable += 1;
+                }
+            });
             // Port after port, as the buffers give them: the file's writer takes a run of
             // one channel's messages faster than the same messages interleaved.
             self.counts.clear();
             self.counts.resize(self.ports.len() + 1, 0);
             for e in &self.entries {
-                self.counts[(e.tap as usize).min(self.ports.len()) + 1] += 1;
+                self.counts[e.tap as usize + 1] += 1;
             }
             for (source, &n) in self.sources.iter().zip(&self.counts[1..]) {
                 if let (Source::Journal(tap), 1..) = (source, n) {
@@ -218,12 +231,23 @@ impl Taps {
             for i in 1..self.counts.len() {
                 self.counts[i] += self.counts[i - 1];
             }
+            // Where each port's run starts (before the placing below moves the counts on).
+            self.starts.clear();
+            self.starts
+                .extend_from_slice(&self.counts[..self.ports.len()]);
             self.order.clear();
             self.order.resize(self.entries.len(), 0);
             for (k, e) in self.entries.iter().enumerate() {
-                let at = &mut self.counts[(e.tap as usize).min(self.ports.len())];
+                let at = &mut self.counts[e.tap as usize];
                 self.order[*at] = k;
                 *at += 1;
+            }
+            // A port written by more than one writer (lanes one after the other) is put
+            // back in time order; a run from one lane is in order already (a linear pass).
+            for (p, &start) in self.starts.iter().enumerate() {
+                let end = self.counts[p];
+                let entries = &self.entries;
+                self.order[start..end].sort_by_key(|&k| entries[k].at);
             }
             for &k in &self.order {
                 let e = self.entries[k];

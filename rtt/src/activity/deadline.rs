@@ -27,9 +27,10 @@
 //! (`ENOSYS`), or a seccomp filter that refuses it (`EPERM`, as systemd's
 //! `SystemCallErrorNumber=EPERM` does for calls it does not know), turns the process over
 //! to the timer for good at the first wait that meets it; the timer is armed for the
-//! deadline then, so nothing asked for is lost. The thread's timer slack is set to 1 ns
-//! (`PR_SET_TIMERSLACK`): a SCHED_OTHER thread's timed wait would otherwise end up to
-//! 50 µs late, where a timer's never did.
+//! deadline then, so nothing asked for is lost. Only a real-time thread (SCHED_FIFO or
+//! SCHED_RR) waits this way: the kernel gives any other thread's timed wait a slack (its
+//! timer slack, 50 µs by default, or 0.1 % of the wait if more: 1 ms late on a 1 s poll),
+//! where a timer's expiry has none. Other threads keep the timer.
 
 use super::ActivityError;
 use device_interface::time::{Clock, MonotonicClock};
@@ -61,9 +62,15 @@ pub fn use_timer_deadlines() {
     HOW.store(TIMER, Ordering::Relaxed);
 }
 
-fn by_timer() -> bool {
-    HOW.load(Ordering::Relaxed) == TIMER
+/// Threads entering their loop from now on wait for their deadlines with `epoll_pwait2`
+/// whatever their scheduling class (where the kernel has it): for the tests of that path,
+/// which run on SCHED_OTHER threads.
+#[doc(hidden)]
+pub fn use_precise_deadlines_for_every_thread() {
+    FOR_EVERY_THREAD.store(true, Ordering::Relaxed);
 }
+
+static FOR_EVERY_THREAD: AtomicBool = AtomicBool::new(false);
 
 /// What ended a wait.
 pub(super) struct Waited {
@@ -88,6 +95,8 @@ pub(super) struct Deadline {
     /// The deadline in force (monotonic ns; 0: none): what the thread's wait ends at, or
     /// what the timer is armed for. Only the activity's thread touches it and the timer.
     armed: AtomicU64,
+    /// Its thread waits for it with `epoll_pwait2` (a real-time thread; see the module).
+    precise: AtomicBool,
     /// The deadline in force is on the timer (not left to the wait). Per deadline: another
     /// activity's thread may turn the process over to the timer while this one's deadline
     /// waits to be waited for.
@@ -123,6 +132,7 @@ impl Deadline {
             asked: AtomicU64::new(0),
             ask,
             armed: AtomicU64::new(0),
+            precise: AtomicBool::new(false),
             timed: AtomicBool::new(false),
             noted: AtomicU64::new(0),
         })
@@ -134,10 +144,19 @@ impl Deadline {
 
     /// Marks the calling thread as the activity's own: its `wake_at` calls are noted, and
     /// its timed waits end when asked (no timer slack).
-    pub(super) fn enter_thread(&self) {
+    /// A `realtime` thread waits for its deadlines itself (see the module).
+    pub(super) fn enter_thread(&self, realtime: bool) {
         OWN.with(|o| o.set(self.key()));
-        // Best effort: a thread that cannot change its slack keeps the kernel's.
-        let _ = nix::sys::prctl::set_timerslack(1);
+        self.precise.store(
+            realtime || FOR_EVERY_THREAD.load(Ordering::Relaxed),
+            Ordering::Relaxed,
+        );
+    }
+
+    /// Its deadlines are the timer's: the process's kernel refused the wait, or its thread
+    /// is not a real-time one.
+    fn by_timer(&self) -> bool {
+        HOW.load(Ordering::Relaxed) == TIMER || !self.precise.load(Ordering::Relaxed)
     }
 
     /// Asks for a step at `ns` (monotonic), replacing any deadline set before.
@@ -176,9 +195,17 @@ impl Deadline {
     }
 
     /// Makes `ns` the deadline in force, left to the thread's wait (no system call).
-    fn leave_to_wait(&self, ns: u64) {
+    fn leave_to_wait(&self, ns: u64) -> Result<(), ActivityError> {
+        if self.timed.swap(false, Ordering::Relaxed) {
+            // Armed before the thread waited for itself (a restart as a real-time thread):
+            // it must not fire for the deadline this one replaces.
+            self.timer.unset().map_err(|source| ActivityError::Fd {
+                what: "timerfd_settime(disarm)",
+                source,
+            })?;
+        }
         self.armed.store(ns, Ordering::Relaxed);
-        self.timed.store(false, Ordering::Relaxed);
+        Ok(())
     }
 
     /// After a step that ended at `now` (monotonic ns): applies the deadline the step asked
@@ -203,11 +230,10 @@ impl Deadline {
     /// The thread's loop ends with a step due at once: leaves the timer fired, so that
     /// step comes at the next start.
     pub(super) fn keep_for_restart(&self) -> Result<(), ActivityError> {
-        if by_timer() {
+        if self.by_timer() {
             self.arm(1)
         } else {
-            self.leave_to_wait(1);
-            Ok(())
+            self.leave_to_wait(1)
         }
     }
 
@@ -224,10 +250,10 @@ impl Deadline {
             return Ok(true);
         }
         if self.armed.load(Ordering::Relaxed) != ns {
-            if by_timer() {
+            if self.by_timer() {
                 self.arm(ns)?;
             } else {
-                self.leave_to_wait(ns);
+                self.leave_to_wait(ns)?;
             }
         }
         Ok(false)
@@ -253,11 +279,16 @@ impl Deadline {
         }
         let due = self.armed.load(Ordering::Relaxed);
         if due != 0 && !self.timed.load(Ordering::Relaxed) {
-            if by_timer() {
-                self.to_timer(due)?;
+            if self.by_timer() {
+                // Left to the wait when the thread waited itself (before a restart as a
+                // thread that does not, or before the process turned to the timer).
+                self.arm_for_wait(due)?;
             } else {
                 match self.wait_precisely(epoll, ready, timeout, due) {
-                    Err(Errno::ENOSYS | Errno::EPERM) => self.to_timer(due)?,
+                    Err(Errno::ENOSYS | Errno::EPERM) => {
+                        HOW.store(TIMER, Ordering::Relaxed);
+                        self.arm_for_wait(due)?;
+                    }
                     waited => return waited,
                 }
             }
@@ -285,7 +316,9 @@ impl Deadline {
         } else {
             let ns = (due - now).min(timeout.unwrap_or(u64::MAX));
             let n = epoll_pwait2(epoll, ready, ns)?;
-            HOW.store(PRECISE_WAIT, Ordering::Relaxed);
+            // Once: a refusal seen meanwhile on another thread stays the process's.
+            let _ =
+                HOW.compare_exchange(UNKNOWN, PRECISE_WAIT, Ordering::Relaxed, Ordering::Relaxed);
             n
         };
         let deadline = due <= now || MonotonicClock.now().as_nanos() >= due;
@@ -299,10 +332,8 @@ impl Deadline {
         })
     }
 
-    /// The kernel refused `epoll_pwait2` (here, or on another activity's thread):
-    /// deadlines are a timer's from now on, and the one in force is armed.
-    fn to_timer(&self, due: u64) -> Result<(), Errno> {
-        HOW.store(TIMER, Ordering::Relaxed);
+    /// Arms the timer for the deadline the wait was to end at.
+    fn arm_for_wait(&self, due: u64) -> Result<(), Errno> {
         self.arm(due).map_err(|e| match e {
             ActivityError::Fd { source, .. } => source,
             _ => Errno::EINVAL,
@@ -323,7 +354,7 @@ fn epoll_timeout(ns: Option<u64>) -> EpollTimeout {
     match ns {
         None => EpollTimeout::NONE,
         Some(ns) => EpollTimeout::try_from(std::time::Duration::from_nanos(
-            ns.div_ceil(1_000_000) * 1_000_000,
+            ns.div_ceil(1_000_000).saturating_mul(1_000_000),
         ))
         .unwrap_or(EpollTimeout::MAX),
     }
@@ -336,6 +367,11 @@ fn epoll_timeout(ns: Option<u64>) -> EpollTimeout {
     reason = "no wrapper for epoll_pwait2 in nix or libc: a raw system call with a buffer we own"
 )]
 fn epoll_pwait2(epoll: &Epoll, ready: &mut [EpollEvent], ns: u64) -> Result<usize, Errno> {
+    if cfg!(not(target_pointer_width = "64")) {
+        // The call takes a 64-bit timespec, which `libc::timespec` is not everywhere here:
+        // such a target keeps the timer.
+        return Err(Errno::ENOSYS);
+    }
     let ts = libc::timespec {
         tv_sec: (ns / 1_000_000_000).min(i64::MAX as u64) as libc::time_t,
         tv_nsec: (ns % 1_000_000_000) as libc::c_long,

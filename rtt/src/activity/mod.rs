@@ -24,12 +24,13 @@ mod thread;
 pub use realtime::ThreadError;
 pub use stats::{ActivityStats, HISTOGRAM_BUCKETS};
 use steps::in_step;
+pub(crate) use steps::step_owner;
 pub use steps::{StepRecord, StepTap, stamp_now};
 
 use crate::scope::ThreadScope;
 use deadline::Deadline;
 #[doc(hidden)]
-pub use deadline::use_timer_deadlines;
+pub use deadline::{use_precise_deadlines_for_every_thread, use_timer_deadlines};
 use device_interface::time::{Clock, MonotonicClock, Timestamp};
 use nix::sys::epoll::{Epoll, EpollCreateFlags, EpollEvent, EpollFlags};
 use nix::sys::eventfd::{EfdFlags, EventFd};
@@ -298,9 +299,11 @@ impl StepTiming {
 #[inline]
 fn run_step(shared: &Shared, runner: &dyn Runner, events: &FdEvents, timing: StepTiming) -> u64 {
     let started = timing.started.as_nanos();
+    // The activity's address: its own while it lives, and never 0.
+    let owner = shared as *const Shared as u64;
     shared
         .scope
-        .pulse(|| in_step(started, || runner.step(events, timing)));
+        .pulse(|| in_step(started, owner, || runner.step(events, timing)));
     let ended = MonotonicClock.now().as_nanos();
     shared
         .stats

@@ -42,18 +42,31 @@ impl StepRecord {
 thread_local! {
     /// The start of the step this thread is running (monotonic ns), 0 outside a step.
     static STEP_START: Cell<u64> = const { Cell::new(0) };
+    /// The activity whose step this thread is running (its key), 0 outside a step.
+    static STEP_OWNER: Cell<u64> = const { Cell::new(0) };
 }
 
-/// Runs `f` as the step that began at `started` (monotonic ns): what it writes to stamped
-/// connections takes that time.
-/// A step run inside another (a slave stepped from a hook) gives the outer step its time
+/// Runs `f` as the step of activity `owner` (a key no other live activity has, never 0)
+/// that began at `started` (monotonic ns): what it writes to stamped connections takes
+/// that time, and what it appends to a journal goes to its activity's lane. A step run
+/// inside another (a slave stepped from a hook) gives the outer step its time and owner
 /// back after.
 #[inline]
-pub(crate) fn in_step<R>(started: u64, f: impl FnOnce() -> R) -> R {
+pub(crate) fn in_step<R>(started: u64, owner: u64, f: impl FnOnce() -> R) -> R {
     let outer = STEP_START.replace(started.max(1));
+    let outer_owner = STEP_OWNER.replace(owner);
     let r = f();
     STEP_START.set(outer);
+    STEP_OWNER.set(outer_owner);
     r
+}
+
+/// The activity whose step this thread is running (see [`in_step`]), 0 outside a step. An
+/// activity's steps never overlap, whatever thread runs them: a journal lane keyed by it
+/// has one writer at a time, across restarts too.
+#[inline]
+pub(crate) fn step_owner() -> u64 {
+    STEP_OWNER.get()
 }
 
 /// The time a sample written now is stamped with (monotonic ns): the start of the step

@@ -203,7 +203,8 @@ fn fd_loop(shared: &Shared, runner: &dyn Runner, fd: &FdState, timeout: Option<u
         );
     };
     let mut ready = [EpollEvent::empty(); FdEvents::MAX];
-    fd.deadline.enter_thread();
+    fd.deadline
+        .enter_thread(shared.stats.realtime.load(Ordering::Relaxed));
     let mut at_once = false;
     while shared.running.load(Ordering::Acquire) {
         let waited = match fd.deadline.wait(&fd.epoll, &mut ready, timeout, at_once) {

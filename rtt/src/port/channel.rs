@@ -139,13 +139,16 @@ impl<T> Channel<T> {
 
 /// The writing end of one connection, owned by its output port.
 pub(crate) struct Writer<T: Send> {
+    /// A journal tap's journal and number, kept here so that a write appends without
+    /// looking at the connection (one line fewer per recorded port and step). Declared
+    /// before `ch` so that it is dropped first: while the connection lives, it holds the
+    /// journal too, so the writer letting go never frees the journal (once the connection
+    /// goes to the graveyard, another thread may free it at any time).
+    tap: Option<(Arc<Journal>, u32)>,
     pub(super) ch: Arc<Channel<T>>,
     latest: Option<LatestIn<T>>,
     /// Its place in a [`Ring`].
     end: End,
-    /// A journal tap's journal and number, kept here so that a write appends without
-    /// looking at the connection (one line fewer per recorded port and step).
-    tap: Option<(Arc<Journal>, u32)>,
 }
 
 /// The reading end of one connection, owned by its input port.

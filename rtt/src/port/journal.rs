@@ -10,16 +10,18 @@
 //! side, three to a line pair: a hundred recorded ports cost about forty line fetches a step
 //! where they cost two hundred.
 //!
-//! The ports of a journal are normally written from one thread (their component's), but
-//! nothing makes them: a port may be written from an operation in the caller's thread, or
-//! handed to a thread of the component's own. So a journal has lanes, each a
-//! single-writer ring that one thread takes at its first write and keeps: a write finds
-//! its thread's lane with a plain load and compare (the first lane, for the component's
-//! own thread), and appends with plain stores — no locked instruction, which would wait
-//! for the stores of the writes before it to reach memory and so pay each entry's cache
-//! miss in full. The first lane holds the journal's capacity, the others an eighth of it;
-//! a write from a thread when every lane is taken by others, or into a full lane, is
-//! dropped and counted. Never waits, never allocates, no lock.
+//! The ports of a journal are normally written from their component's steps, but nothing
+//! makes them: a port may be written from an operation in the caller's thread, or handed
+//! to a thread of the component's own. So a journal has lanes, each a single-writer ring
+//! that a writer takes at its first write and keeps: a step's writes go to the lane of its
+//! activity (whose steps never overlap, whatever thread runs them, so the lane stays its
+//! own across a stop and start), a write outside any step to the lane of its thread. A
+//! write finds its lane with a plain load and compare and appends with plain stores — no
+//! locked instruction, which would wait for the stores of the writes before it to reach
+//! memory and so pay each entry's cache miss in full. The first lane holds the journal's
+//! capacity, the others an eighth of it; a write finding every lane taken by other writers
+//! (more than three threads writing outside steps over the journal's life), or its lane
+//! full, is dropped and counted. Never waits, never allocates, no lock.
 //!
 //! Every field is an atomic, so no `unsafe`: an entry is written with relaxed stores before
 //! the release store of the position that publishes it, and read after the acquire load
@@ -47,7 +49,17 @@ struct Cell {
 /// Lanes of a journal: the component's thread and three more.
 const LANES: usize = 4;
 
-/// This thread's token for taking a lane (0: none yet); tokens are never reused.
+/// The key of the lane a write goes to: its step's activity, or outside any step its
+/// thread (tokens with the top bit set: never an activity's key, never reused).
+#[inline]
+fn writer_key() -> u64 {
+    match crate::activity::step_owner() {
+        0 => thread_token() | 1 << 63,
+        owner => owner,
+    }
+}
+
+/// This thread's token (from 1 up).
 fn thread_token() -> u64 {
     static NEXT: AtomicU64 = AtomicU64::new(1);
     thread_local! {
@@ -66,7 +78,7 @@ fn thread_token() -> u64 {
 /// What the appending side keeps, on a line of its own.
 #[derive(Default)]
 struct Tail {
-    /// The token of the thread whose lane it is (0: free).
+    /// The key of the writer whose lane it is (0: free; see [`writer_key`]).
     owner: AtomicU64,
     /// Entries appended (published with a release store).
     pos: AtomicU64,
@@ -192,7 +204,7 @@ impl Journal {
     /// Wait-free, and no locked instruction once the thread has its lane (see the module).
     #[inline]
     pub(crate) fn append(&self, tap: u32, at: u64, word: u64) -> bool {
-        let me = thread_token();
+        let me = writer_key();
         for lane in &self.lanes {
             let owner = lane.tail.owner.load(Ordering::Relaxed);
             let mine = owner == me
@@ -213,16 +225,12 @@ impl Journal {
         false
     }
 
-    /// Takes at most `max` entries into `take`, each lane's oldest first (lanes one after
-    /// the other: entries of different threads are not ordered among themselves); how many
-    /// it took. For one reader at a time (a second one would take entries the first is
-    /// taking: never torn, but not each once).
+    /// Takes at most `max` entries from each lane into `take`, each lane's oldest first
+    /// (lanes one after the other: entries of different writers are not ordered among
+    /// themselves); how many it took. For one reader at a time (a second one would take
+    /// entries the first is taking: never torn, but not each once).
     pub fn drain(&self, max: usize, mut take: impl FnMut(Entry)) -> usize {
-        let mut n = 0;
-        for lane in &self.lanes {
-            n += lane.drain(max - n, &mut take);
-        }
-        n
+        self.lanes.iter().map(|l| l.drain(max, &mut take)).sum()
     }
 }
 
