@@ -113,19 +113,13 @@ impl Deadline {
             ClockId::CLOCK_MONOTONIC,
             TimerFlags::TFD_NONBLOCK | TimerFlags::TFD_CLOEXEC,
         )
-        .map_err(|source| ActivityError::Fd {
-            what: "timerfd_create",
-            source,
-        })?;
+        .map_err(ActivityError::fd("timerfd_create"))?;
         epoll
             .add(
                 timer.as_fd(),
                 EpollEvent::new(EpollFlags::EPOLLIN, DEADLINE_EVENT),
             )
-            .map_err(|source| ActivityError::Fd {
-                what: "epoll_ctl(timerfd)",
-                source,
-            })?;
+            .map_err(ActivityError::fd("epoll_ctl(timerfd)"))?;
         let ask = super::eventfd_in(epoll, ASK_EVENT)?;
         Ok(Deadline {
             timer,
@@ -168,10 +162,9 @@ impl Deadline {
             return Ok(());
         }
         self.asked.store(ns, Ordering::Release);
-        self.ask.write(1).map_err(|source| ActivityError::Fd {
-            what: "eventfd write",
-            source,
-        })?;
+        self.ask
+            .write(1)
+            .map_err(ActivityError::fd("eventfd write"))?;
         Ok(())
     }
 
@@ -185,10 +178,7 @@ impl Deadline {
                 Expiration::OneShot(ts),
                 TimerSetTimeFlags::TFD_TIMER_ABSTIME,
             )
-            .map_err(|source| ActivityError::Fd {
-                what: "timerfd_settime",
-                source,
-            })?;
+            .map_err(ActivityError::fd("timerfd_settime"))?;
         self.armed.store(ns, Ordering::Relaxed);
         self.timed.store(true, Ordering::Relaxed);
         Ok(())
@@ -199,10 +189,9 @@ impl Deadline {
         if self.timed.swap(false, Ordering::Relaxed) {
             // Armed before the thread waited for itself (a restart as a real-time thread):
             // it must not fire for the deadline this one replaces.
-            self.timer.unset().map_err(|source| ActivityError::Fd {
-                what: "timerfd_settime(disarm)",
-                source,
-            })?;
+            self.timer
+                .unset()
+                .map_err(ActivityError::fd("timerfd_settime(disarm)"))?;
         }
         self.armed.store(ns, Ordering::Relaxed);
         Ok(())
@@ -242,10 +231,9 @@ impl Deadline {
             if self.armed.swap(0, Ordering::Relaxed) != 0
                 && self.timed.swap(false, Ordering::Relaxed)
             {
-                self.timer.unset().map_err(|source| ActivityError::Fd {
-                    what: "timerfd_settime(disarm)",
-                    source,
-                })?;
+                self.timer
+                    .unset()
+                    .map_err(ActivityError::fd("timerfd_settime(disarm)"))?;
             }
             return Ok(true);
         }
@@ -268,9 +256,11 @@ impl Deadline {
         ready: &mut [EpollEvent],
         timeout: Option<u64>,
         at_once: bool,
-    ) -> Result<Waited, Errno> {
+    ) -> Result<Waited, ActivityError> {
         if at_once {
-            let n = epoll.wait(ready, EpollTimeout::ZERO)?;
+            let n = epoll
+                .wait(ready, EpollTimeout::ZERO)
+                .map_err(ActivityError::fd("epoll_wait"))?;
             return Ok(Waited {
                 n,
                 deadline: true,
@@ -282,18 +272,23 @@ impl Deadline {
             if self.by_timer() {
                 // Left to the wait when the thread waited itself (before a restart as a
                 // thread that does not, or before the process turned to the timer).
-                self.arm_for_wait(due)?;
+                self.arm(due)?;
             } else {
                 match self.wait_precisely(epoll, ready, timeout, due) {
-                    Err(Errno::ENOSYS | Errno::EPERM) => {
+                    Err(ActivityError::Fd {
+                        what: "epoll_pwait2",
+                        source: Errno::ENOSYS | Errno::EPERM,
+                    }) => {
                         HOW.store(TIMER, Ordering::Relaxed);
-                        self.arm_for_wait(due)?;
+                        self.arm(due)?;
                     }
                     waited => return waited,
                 }
             }
         }
-        let n = epoll.wait(ready, epoll_timeout(timeout))?;
+        let n = epoll
+            .wait(ready, epoll_timeout(timeout))
+            .map_err(ActivityError::fd("epoll_wait"))?;
         Ok(Waited {
             n,
             deadline: false,
@@ -309,13 +304,15 @@ impl Deadline {
         ready: &mut [EpollEvent],
         timeout: Option<u64>,
         due: u64,
-    ) -> Result<Waited, Errno> {
+    ) -> Result<Waited, ActivityError> {
         let now = MonotonicClock.now().as_nanos();
         let n = if due <= now {
-            epoll.wait(ready, EpollTimeout::ZERO)?
+            epoll
+                .wait(ready, EpollTimeout::ZERO)
+                .map_err(ActivityError::fd("epoll_wait"))?
         } else {
             let ns = (due - now).min(timeout.unwrap_or(u64::MAX));
-            let n = epoll_pwait2(epoll, ready, ns)?;
+            let n = epoll_pwait2(epoll, ready, ns).map_err(ActivityError::fd("epoll_pwait2"))?;
             // Once: a refusal seen meanwhile on another thread stays the process's.
             let _ =
                 HOW.compare_exchange(UNKNOWN, PRECISE_WAIT, Ordering::Relaxed, Ordering::Relaxed);
@@ -329,14 +326,6 @@ impl Deadline {
             n,
             deadline,
             timeout: n == 0 && !deadline,
-        })
-    }
-
-    /// Arms the timer for the deadline the wait was to end at.
-    fn arm_for_wait(&self, due: u64) -> Result<(), Errno> {
-        self.arm(due).map_err(|e| match e {
-            ActivityError::Fd { source, .. } => source,
-            _ => Errno::EINVAL,
         })
     }
 

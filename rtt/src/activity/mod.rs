@@ -223,6 +223,13 @@ pub enum ActivityError {
     Running,
 }
 
+impl ActivityError {
+    /// The error of the system call `what` that failed (for `map_err`).
+    fn fd(what: &'static str) -> impl FnOnce(nix::Error) -> ActivityError {
+        move |source| ActivityError::Fd { what, source }
+    }
+}
+
 /// The descriptors that were ready for one step of a file-descriptor activity.
 #[derive(Debug, Clone, Copy)]
 pub struct FdEvents {
@@ -389,12 +396,8 @@ impl Activity {
         }
         let fd = match &spec {
             ActivitySpec::FileDescriptor { .. } => {
-                let epoll = Epoll::new(EpollCreateFlags::EPOLL_CLOEXEC).map_err(|source| {
-                    ActivityError::Fd {
-                        what: "epoll_create",
-                        source,
-                    }
-                })?;
+                let epoll = Epoll::new(EpollCreateFlags::EPOLL_CLOEXEC)
+                    .map_err(ActivityError::fd("epoll_create"))?;
                 let wake = eventfd_in(&epoll, WAKE_EVENT)?;
                 let deadline = Deadline::new(&epoll)?;
                 Some(FdState {
@@ -551,10 +554,7 @@ impl Activity {
                 dup.as_fd(),
                 EpollEvent::new(EpollFlags::EPOLLIN, user as u64),
             )
-            .map_err(|source| ActivityError::Fd {
-                what: "epoll_ctl(add)",
-                source,
-            })?;
+            .map_err(ActivityError::fd("epoll_ctl(add)"))?;
         crate::lock::lock(&state.watched).push((user, dup));
         Ok(())
     }
@@ -657,18 +657,10 @@ const WAKE_EVENT: u64 = u64::MAX;
 
 /// A non-blocking eventfd, registered with `epoll` as `data`.
 fn eventfd_in(epoll: &Epoll, data: u64) -> Result<EventFd, ActivityError> {
-    let fd =
-        EventFd::from_flags(EfdFlags::EFD_CLOEXEC | EfdFlags::EFD_NONBLOCK).map_err(|source| {
-            ActivityError::Fd {
-                what: "eventfd",
-                source,
-            }
-        })?;
+    let fd = EventFd::from_flags(EfdFlags::EFD_CLOEXEC | EfdFlags::EFD_NONBLOCK)
+        .map_err(ActivityError::fd("eventfd"))?;
     epoll
         .add(fd.as_fd(), EpollEvent::new(EpollFlags::EPOLLIN, data))
-        .map_err(|source| ActivityError::Fd {
-            what: "epoll_ctl(eventfd)",
-            source,
-        })?;
+        .map_err(ActivityError::fd("epoll_ctl(eventfd)"))?;
     Ok(fd)
 }

@@ -209,13 +209,16 @@ fn fd_loop(shared: &Shared, runner: &dyn Runner, fd: &FdState, timeout: Option<u
     while shared.running.load(Ordering::Acquire) {
         let waited = match fd.deadline.wait(&fd.epoll, &mut ready, timeout, at_once) {
             Ok(w) => w,
-            Err(nix::Error::EINTR) => continue,
+            Err(ActivityError::Fd {
+                source: nix::Error::EINTR,
+                ..
+            }) => continue,
             Err(e) => {
                 crate::rt_log!(
                     shared.log,
                     Error,
-                    "epoll_wait failed: {}; activity stops",
-                    crate::log::Arg::Errno(e as i32)
+                    "the activity's wait failed: {}; activity stops",
+                    crate::log::Arg::display(&e)
                 );
                 break;
             }
