@@ -39,19 +39,32 @@ fn unit(property: &str) -> Result<String, Failed> {
         .to_string())
 }
 
+/// What systemd says of the unit, and its journal: told with a trial's failure.
+fn unit_story() -> String {
+    sh(
+        "systemctl show -p SubState -p NRestarts -p Result -p ExecMainStatus hwgw; \
+        systemctl list-jobs --no-pager; journalctl -u hwgw -o short-monotonic --no-pager -n 60",
+    )
+    .unwrap_or_else(|e| e.message().unwrap_or_default().to_string())
+}
+
 fn active() -> bool {
     unit("ActiveState").is_ok_and(|s| s == "active")
 }
 
 /// `apt-get ARGS` as an operator runs it, offline: what the package needs must already be
-/// on the machine (the guest has no network interface but lo); its output, or an error
-/// with it. (`--no-download` would say so too, but apt 2.6 then refuses a local .deb:
-/// "Pathname to install is not absolute".) It waits up to 120 s for dpkg's lock, as an
-/// operator would: the guest's systemd runs the apt-daily jobs its timers missed, whose
-/// apt-get may hold the lock when a trial begins.
+/// on the machine (the guest has no network interface but lo), so apt sees no package
+/// lists, only what dpkg has installed — the host's 26 MB of lists, parsed again by each
+/// apt-get in the emulated guest (a container image keeps no cache of them), cost 80–110 s
+/// a call. Its output, or an error with it. (`--no-download` would say so too, but apt 2.6
+/// then refuses a local .deb: "Pathname to install is not absolute".) It waits up to 120 s
+/// for dpkg's lock, as an operator would.
 fn apt(args: &str) -> Result<String, Failed> {
     let out = sh(&format!(
-        "DEBIAN_FRONTEND=noninteractive timeout 300 apt-get -y -q --no-install-recommends \
+        "mkdir -p {OFFLINE}/lists/partial {OFFLINE}/sources.list.d && : > {OFFLINE}/sources.list \
+         && DEBIAN_FRONTEND=noninteractive timeout 300 apt-get -y -q --no-install-recommends \
+         -o Dir::Etc::SourceList={OFFLINE}/sources.list \
+         -o Dir::Etc::SourceParts={OFFLINE}/sources.list.d -o Dir::State::Lists={OFFLINE}/lists \
          -o DPkg::Lock::Timeout=120 {args} 2>&1; echo rc=$?"
     ))?;
     match out.trim_end().strip_suffix("rc=0") {
@@ -59,6 +72,9 @@ fn apt(args: &str) -> Result<String, Failed> {
         None => Err(format!("apt-get {args}:\n{out}").into()),
     }
 }
+
+/// Where [`apt`] finds no sources and no lists.
+const OFFLINE: &str = "/tmp/apt-offline";
 
 /// The package's status and version in dpkg's database ("" when dpkg knows it no more).
 fn package() -> Result<String, Failed> {
@@ -577,9 +593,10 @@ fn main() -> std::process::ExitCode {
             let result = f();
             if let Err(e) = &result {
                 eprintln!(
-                    "{name}: FAILED after {:?}: {}",
+                    "{name}: FAILED after {:?}: {}\n{}",
                     started.elapsed(),
-                    e.message().unwrap_or_default()
+                    e.message().unwrap_or_default(),
+                    unit_story()
                 );
             }
             result

@@ -595,17 +595,25 @@ impl Tail {
 }
 
 /// Runs `script` with `sh -c` and returns its standard output; an error carries the exit
-/// status and standard error. For tests' guest-side setup (`ip link …`).
+/// status, standard error and standard output (where a script's `2>&1` sent its error).
+/// For tests' guest-side setup (`ip link …`).
 pub fn sh(script: &str) -> Result<String, Failed> {
     let out = Command::new("sh")
         .args(["-c", script])
         .output()
         .map_err(|e| Failed::from(format!("sh -c {script:?}: {e}")))?;
     if !out.status.success() {
+        let stdout = String::from_utf8_lossy(&out.stdout);
         return Err(format!(
-            "sh -c {script:?}: {}: {}",
+            "sh -c {script:?}: {}: {}{}{}",
             out.status,
-            String::from_utf8_lossy(&out.stderr).trim()
+            String::from_utf8_lossy(&out.stderr).trim(),
+            if stdout.trim().is_empty() {
+                ""
+            } else {
+                "\nstandard output:\n"
+            },
+            stdout.trim()
         )
         .into());
     }
