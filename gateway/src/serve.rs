@@ -27,8 +27,8 @@ fn watchdog(
     running: String,
 ) {
     let mut last: Option<Result<(), String>> = None;
-    // Each activity's unhealthy spells as last seen: one between two looks starves the
-    // watchdog too.
+    // Each activity's unhealthy spells as last seen: one between two looks withholds the
+    // next feed too.
     let mut seen = std::collections::HashMap::new();
     while !stop.load(std::sync::atomic::Ordering::Acquire) {
         let health = gw.health_since(&mut seen);

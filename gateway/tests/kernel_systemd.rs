@@ -61,11 +61,12 @@ fn active() -> bool {
 /// for dpkg's lock, as an operator would.
 fn apt(args: &str) -> Result<String, Failed> {
     let out = sh(&format!(
-        "mkdir -p {OFFLINE}/lists/partial {OFFLINE}/sources.list.d && : > {OFFLINE}/sources.list \
+        "{{ mkdir -p {OFFLINE}/lists/partial {OFFLINE}/sources.list.d \
+         && : > {OFFLINE}/sources.list \
          && DEBIAN_FRONTEND=noninteractive timeout 300 apt-get -y -q --no-install-recommends \
          -o Dir::Etc::SourceList={OFFLINE}/sources.list \
          -o Dir::Etc::SourceParts={OFFLINE}/sources.list.d -o Dir::State::Lists={OFFLINE}/lists \
-         -o DPkg::Lock::Timeout=120 {args} 2>&1; echo rc=$?"
+         -o DPkg::Lock::Timeout=120 {args}; }} 2>&1; echo rc=$?"
     ))?;
     match out.trim_end().strip_suffix("rc=0") {
         Some(text) => Ok(text.to_string()),
@@ -558,8 +559,8 @@ fn purge_leaves_nothing_but_the_system_user() -> Result<(), Failed> {
 }
 
 fn main() -> std::process::ExitCode {
-    // Fourteen trials with two package installs under an emulated CPU: 325 s on a quiet
-    // machine, over the rig's default 600 s beside a cold workspace build.
+    // Fourteen trials with two package installs under an emulated CPU: 440 s on a quiet
+    // machine, 560 s beside a build, over the rig's default 600 s beside a cold one.
     let rig = testkit::rig::vcan()
         .timeout(Duration::from_secs(1200))
         .systemd()

@@ -276,7 +276,7 @@ impl Deadline {
             } else {
                 match self.wait_precisely(epoll, ready, timeout, due) {
                     Err(ActivityError::Fd {
-                        what: "epoll_pwait2",
+                        what: EPOLL_PWAIT2,
                         source: Errno::ENOSYS | Errno::EPERM,
                     }) => {
                         HOW.store(TIMER, Ordering::Relaxed);
@@ -312,7 +312,7 @@ impl Deadline {
                 .map_err(ActivityError::fd("epoll_wait"))?
         } else {
             let ns = (due - now).min(timeout.unwrap_or(u64::MAX));
-            let n = epoll_pwait2(epoll, ready, ns).map_err(ActivityError::fd("epoll_pwait2"))?;
+            let n = epoll_pwait2(epoll, ready, ns).map_err(ActivityError::fd(EPOLL_PWAIT2))?;
             // Once: a refusal seen meanwhile on another thread stays the process's.
             let _ =
                 HOW.compare_exchange(UNKNOWN, PRECISE_WAIT, Ordering::Relaxed, Ordering::Relaxed);
@@ -336,6 +336,10 @@ impl Deadline {
         self.timed.store(false, Ordering::Relaxed);
     }
 }
+
+/// What a failed `epoll_pwait2` is called in its error: the name its refusal (ENOSYS,
+/// EPERM) is known by, which turns the process over to the timer.
+const EPOLL_PWAIT2: &str = "epoll_pwait2";
 
 /// An `epoll_wait` whose timeout is in ms (rounded up, so a timeout never ends a wait
 /// early), from one in ns (`None`: for ever).
