@@ -384,6 +384,24 @@ impl Notify {
     }
 }
 
+/// A deployment (in its directory, and its file) whose blinker `name` overruns its 1 µs
+/// period on purpose, started with the gateway when `start`.
+fn overrunning(tag: &str, name: &str, start: bool) -> (TempDir, PathBuf) {
+    let dir = TempDir::new(&format!("{tag}-cfg"));
+    let cfg = dir.path().join(format!("{tag}.toml"));
+    std::fs::write(
+        &cfg,
+        format!(
+            "[[card]]\nname = \"sim0\"\ndriver = \"sim\"\n[card.sim]\ndigital_outputs = 4\n\
+             [[component]]\nname = \"{name}\"\ntype = \"blinker\"\n\
+             activity = {{ type = \"periodic\", period_ms = 0.001, max_overruns = 1 }}\n\
+             properties = {{ device = \"sim0\", bit = 0 }}\nstart = {start}\n"
+        ),
+    )
+    .unwrap();
+    (dir, cfg)
+}
+
 /// A moment of overrun — a component that overruns on purpose, stopped as soon as a look
 /// of the watchdog saw it — costs the gateway one feed of the watchdog, not a restart:
 /// with looks four times an interval, the feeds around the spell stay half an interval
@@ -392,16 +410,7 @@ impl Notify {
 /// looks of before (checked: 1.99 s of a 2 s interval).
 #[test]
 fn a_moment_of_overrun_costs_a_watchdog_feed_not_a_restart() {
-    let dir = TempDir::new("spell-cfg");
-    let cfg = dir.path().join("spell.toml");
-    std::fs::write(
-        &cfg,
-        "[[card]]\nname = \"sim0\"\ndriver = \"sim\"\n[card.sim]\ndigital_outputs = 4\n\
-         [[component]]\nname = \"stall\"\ntype = \"blinker\"\n\
-         activity = { type = \"periodic\", period_ms = 0.001, max_overruns = 1 }\n\
-         properties = { device = \"sim0\", bit = 0 }\nstart = false\n",
-    )
-    .unwrap();
+    let (_dir, cfg) = overrunning("spell", "stall", false);
     let notify = Notify::new("notify-spell");
     let interval = Duration::from_secs(2);
     let svc = start_with(
@@ -494,16 +503,7 @@ fn systemd_notify_ready_watchdog_and_stopping() {
 
 #[test]
 fn an_overrunning_activity_starves_the_watchdog() {
-    let dir = TempDir::new("overrun-cfg");
-    let cfg = dir.path().join("overrun.toml");
-    std::fs::write(
-        &cfg,
-        "[[card]]\nname = \"sim0\"\ndriver = \"sim\"\n[card.sim]\ndigital_outputs = 4\n\
-         [[component]]\nname = \"fast\"\ntype = \"blinker\"\n\
-         activity = { type = \"periodic\", period_ms = 0.001, max_overruns = 1 }\n\
-         properties = { device = \"sim0\", bit = 0 }\n",
-    )
-    .unwrap();
+    let (_dir, cfg) = overrunning("overrun", "fast", true);
     let notify = Notify::new("notify-overrun");
     let svc = start_with(
         "overrun",
