@@ -43,11 +43,23 @@ impl PyModbus {
         panic!("{last}");
     }
 
-    /// A server in `mode` on `port` (a server started again where one was), once it
-    /// listens; panics, saying why, when it does not.
-    pub fn start_on(mode: &str, port: u16) -> PyModbus {
-        ensure(&PYMODBUS);
-        PyModbus::try_start(mode, port).unwrap_or_else(|e| panic!("{e}"))
+    /// Stops the server answering (SIGSTOP): a unit that hangs. Its port stays its own, so
+    /// [`PyModbus::resume`] brings the same unit back where a server started again on the
+    /// freed port could find it taken (a test's `free_port` elsewhere, or a client's
+    /// connection to it that the kernel joined to itself, both seen as "did not listen").
+    pub fn pause(&self) {
+        self.signal(nix::sys::signal::Signal::SIGSTOP);
+    }
+
+    /// Lets a paused server answer again (SIGCONT): what queued meanwhile is served.
+    pub fn resume(&self) {
+        self.signal(nix::sys::signal::Signal::SIGCONT);
+    }
+
+    fn signal(&self, signal: nix::sys::signal::Signal) {
+        let pid = nix::unistd::Pid::from_raw(self.child.id() as i32);
+        nix::sys::signal::kill(pid, signal)
+            .unwrap_or_else(|e| panic!("cannot send {signal} to the pymodbus server: {e}"));
     }
 
     /// Its process id.
