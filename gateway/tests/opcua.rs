@@ -290,7 +290,7 @@ fn a_modbus_card_browsed_offline_bad_and_back_good() {
 
     // The unit hung: Bad, with the device's error; answering again: Good.
     plc.pause();
-    testkit::wait_until("Bad while the unit is gone", || {
+    testkit::wait_until("Bad while the unit hangs", || {
         read(&mut c, "plc.ai.ch0")["status"]
             .as_str()
             .unwrap()
