@@ -220,6 +220,8 @@ impl Gateway {
     /// period since the last call with the same `seen` (a spell over by now still counts:
     /// the watchdog is fed only after an interval the gateway was healthy throughout);
     /// `seen` keeps each activity's count of unhealthy spells between calls, by component.
+    /// A component deployed not to start (`start = false`) and found stopped is not judged,
+    /// a spell it had before it was stopped included.
     pub fn health_since(&self, seen: &mut HashMap<String, u64>) -> Result<(), String> {
         let parts = self.parts();
         seen.retain(|name, _| parts.order.iter().any(|(t, _)| t.name() == name));
