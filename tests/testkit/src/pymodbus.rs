@@ -45,8 +45,9 @@ impl PyModbus {
 
     /// Stops the server answering (SIGSTOP): a unit that hangs. Its port stays its own, so
     /// [`PyModbus::resume`] brings the same unit back where a server started again on the
-    /// freed port could find it taken (a test's `free_port` elsewhere, or a client's
-    /// connection to it that the kernel joined to itself, both seen as "did not listen").
+    /// freed port could find it taken (by a test's `free_port` elsewhere, or a client's
+    /// connection to it that the kernel joined to itself), and pymodbus 3.0 then lives on
+    /// without listening.
     pub fn pause(&self) {
         self.signal(nix::sys::signal::Signal::SIGSTOP);
     }
