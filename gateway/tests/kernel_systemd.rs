@@ -560,8 +560,8 @@ fn purge_leaves_nothing_but_the_system_user() -> Result<(), Failed> {
 
 fn main() -> std::process::ExitCode {
     // Fourteen trials with two package installs under an emulated CPU: 387 s on a quiet
-    // machine (440 s before its guest ran no generators), 505-606 s beside a build, over
-    // the rig's default 600 s beside a cold one.
+    // machine and 404 s beside a cold clippy (440 s quiet and 505-606 s beside a build
+    // before its guest ran no generators), over the rig's default 600 s beside a cold one.
     let rig = testkit::rig::vcan()
         .timeout(Duration::from_secs(1200))
         .systemd()
