@@ -6,11 +6,11 @@
 //! would, each located in the file.
 
 use crate::config::{ChannelNames, Deployment};
+use crate::health::Looks;
 use crate::outputs::{CardOutputs, Hold};
 use crate::problems::KeyPath;
 use driver_api::{Card, Server};
 use rtt::{Runtime, TaskContext, TaskState};
-use std::collections::HashMap;
 use std::sync::{Arc, Mutex, PoisonError, RwLock, RwLockReadGuard, RwLockWriteGuard};
 use std::time::{Duration, Instant};
 
@@ -206,40 +206,40 @@ impl Gateway {
         start_tasks(&parts.order)
     }
 
-    /// `Ok` while every component that should run is running and every periodic activity
-    /// keeps its period; else what is wrong. This is what feeds the systemd watchdog. The
-    /// error model's warning is healthy (the component runs, its flag shows in `ls` and
-    /// `status`); RunTimeError is not (manual L832–884: an error the component waits out,
-    /// not a state to run in). A look that finds it withholds that feed of the watchdog;
-    /// none for a whole interval and systemd restarts the service.
+    /// `Ok` while every component that should run is running and no periodic activity
+    /// is overrunning now; else what is wrong. The error model's warning is healthy (the
+    /// component runs, its flag shows in `ls` and `status`); RunTimeError is not (manual
+    /// L832–884: an error the component waits out, not a state to run in).
     pub fn health(&self) -> Result<(), String> {
-        self.health_since(&mut HashMap::new())
+        self.health_since(&mut Looks::new())
     }
 
-    /// [`health`](Self::health), and also wrong when a periodic activity overran its
-    /// period since the last call with the same `seen` (a spell over by now still counts:
-    /// the watchdog is fed only after an interval the gateway was healthy throughout);
-    /// `seen` keeps each activity's count of unhealthy spells between calls, by component.
-    /// A component deployed not to start (`start = false`) and found stopped is not judged,
-    /// a spell it had before it was stopped included.
-    pub fn health_since(&self, seen: &mut HashMap<String, u64>) -> Result<(), String> {
+    /// [`health`](Self::health) as the systemd watchdog's looks judge it, `looks` kept
+    /// between them: a periodic activity is wrong when it spent at least half the time
+    /// since the look before overrunning, or ended no step since then and for longer than
+    /// its overruns allow (see the `health` module). A look that finds anything wrong
+    /// withholds its feed of the watchdog; none for a whole interval and systemd restarts
+    /// the service. A component deployed not to start (`start = false`) and found stopped
+    /// is not judged.
+    pub fn health_since(&self, looks: &mut Looks) -> Result<(), String> {
         let parts = self.parts();
-        seen.retain(|name, _| parts.order.iter().any(|(t, _)| t.name() == name));
+        looks.retain(|name| parts.order.iter().any(|(t, _)| t.name() == name));
+        let now = Instant::now();
         let mut wrong = Vec::new();
         for (t, start) in &parts.order {
-            let stats = t.stats();
-            let spells = seen
-                .insert(t.name().to_string(), stats.unhealthy_spells)
-                .unwrap_or(stats.unhealthy_spells);
-            match t.state() {
-                TaskState::Running => {}
-                TaskState::RunTimeError => wrong.push(format!("{} is in RunTimeError", t.name())),
-                s if *start => wrong.push(format!("{} is {s}", t.name())),
-                _ => continue,
-            }
-            if !stats.healthy || stats.unhealthy_spells > spells {
-                wrong.push(format!("{} overruns its period", t.name()));
-            }
+            let running = match t.state() {
+                TaskState::Running => true,
+                TaskState::RunTimeError => {
+                    wrong.push(format!("{} is in RunTimeError", t.name()));
+                    true
+                }
+                s if *start => {
+                    wrong.push(format!("{} is {s}", t.name()));
+                    false
+                }
+                _ => false,
+            };
+            wrong.extend(looks.judge(t, running, now));
         }
         for s in parts.all_servers() {
             if let Err(e) = s.health() {

@@ -49,6 +49,7 @@ pub mod control;
 pub mod deploy;
 pub mod drivers;
 pub mod forward;
+pub mod health;
 pub mod io;
 pub mod logical;
 pub mod outputs;

@@ -13,13 +13,12 @@ use std::process::ExitCode;
 use std::sync::Arc;
 
 /// Looks at the gateway's health four times a watchdog interval and feeds the watchdog at
-/// each look that finds it healthy with no activity overrun since the look before; says
-/// why in STATUS when it is not (once per change). So systemd restarts hwgw when no look
-/// finds it healthy for a whole interval, and a spell the looks see once (a machine busy
-/// for a moment) costs a feed, not a restart: at a feed every half interval, one withheld
-/// feed left the next exactly one interval after the last, and a look a few milliseconds
-/// late lost the race with systemd's timeout (seen in the kernel rig: one 40 ms overrun
-/// spell while dpkg ran, and hwgw was restarted).
+/// each look that finds nothing wrong since the look before (see [`Gateway::health_since`]);
+/// says why in STATUS when it is not (once per change). So systemd restarts hwgw when no
+/// look finds it healthy for a whole interval, and a look that does not feed costs a
+/// quarter interval: at a feed every half interval, one withheld feed left the next
+/// exactly one interval after the last, and a look a few milliseconds late lost the race
+/// with systemd's timeout.
 fn watchdog(
     gw: Arc<Gateway>,
     interval: std::time::Duration,
@@ -27,11 +26,9 @@ fn watchdog(
     running: String,
 ) {
     let mut last: Option<Result<(), String>> = None;
-    // Each activity's unhealthy spells as last seen: one between two looks withholds the
-    // next feed too.
-    let mut seen = std::collections::HashMap::new();
+    let mut looks = crate::health::Looks::new();
     while !stop.load(std::sync::atomic::Ordering::Acquire) {
-        let health = gw.health_since(&mut seen);
+        let health = gw.health_since(&mut looks);
         if last.as_ref() != Some(&health) {
             match &health {
                 Ok(()) => {

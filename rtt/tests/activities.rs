@@ -130,16 +130,50 @@ fn overruns_are_counted_and_turn_health_off_then_on() {
         .unwrap();
     t.start().unwrap();
     wait_for("5 overruns", || t.stats().overruns >= 5);
-    assert!(!t.stats().healthy, "more than 3 overruns in a row");
+    let unhealthy = t.stats();
+    assert!(!unhealthy.healthy, "more than 3 overruns in a row");
+    assert_eq!(unhealthy.unhealthy_spells, 1);
+    // The spell's time runs on while it is on.
+    wait_for("the spell's time to grow", || {
+        t.stats().unhealthy_ns > unhealthy.unhealthy_ns
+    });
     sleep.store(false, Ordering::SeqCst);
     wait_for("health back", || t.stats().healthy);
     let before = t.stats();
+    assert!(before.unhealthy_ns > unhealthy.unhealthy_ns);
     std::thread::sleep(Duration::from_millis(20));
     t.stop().unwrap();
     let after = t.stats();
     assert!(after.steps > before.steps);
     assert!(after.overruns >= 5);
     assert!(after.step_max_ns >= 6_000_000);
+}
+
+/// A spell on when the activity stops ends there: a stopped activity is healthy, and its
+/// unhealthy time does not run on while it is stopped.
+#[test]
+fn a_stop_ends_a_spell_of_overruns() {
+    let rt = runtime();
+    let s = Arc::new(AtomicBool::new(true));
+    let spec = ActivitySpec::Periodic {
+        period: Duration::from_millis(2),
+        thread: ThreadOptions::default(),
+        timing: Timing::Absolute,
+        max_overruns: Some(1),
+    };
+    let t = rt
+        .add("sleepy", spec, rtt::InitialState::Stopped, move |_| {
+            Ok(Sleepy { sleep: s })
+        })
+        .unwrap();
+    t.start().unwrap();
+    wait_for("a spell", || !t.stats().healthy);
+    t.stop().unwrap();
+    let stopped = t.stats();
+    assert!(stopped.healthy, "{stopped:?}");
+    assert!(stopped.unhealthy_ns > 0, "{stopped:?}");
+    std::thread::sleep(Duration::from_millis(20));
+    assert_eq!(t.stats().unhealthy_ns, stopped.unhealthy_ns);
 }
 
 #[test]

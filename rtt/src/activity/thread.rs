@@ -124,9 +124,7 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                         next = next.saturating_add(missed.saturating_mul(period_ns));
                     }
                     if max_overruns.is_some_and(|m| run > u64::from(m)) {
-                        if stats.healthy.swap(false, Ordering::Relaxed) {
-                            stats.spells.fetch_add(1, Ordering::Relaxed);
-                        }
+                        stats.unhealthy(end);
                         if !unhealthy_logged {
                             unhealthy_logged = true;
                             crate::rt_log!(
@@ -139,12 +137,15 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                     }
                 } else {
                     stats.consecutive.store(0, Ordering::Relaxed);
-                    if !stats.healthy.swap(true, Ordering::Relaxed) {
+                    if stats.healthy_again(end) {
                         unhealthy_logged = false;
                         crate::rt_log!(shared.log, Info, "on time again: activity healthy");
                     }
                 }
             }
+            // A stopped activity is not overrunning: a spell on at the stop ends there (its
+            // time would else run on until the next start's first step on time).
+            stats.healthy_again(clock.now().as_nanos());
         }
         ActivitySpec::NonPeriodic { thread } => {
             stats.realtime.store(
