@@ -46,6 +46,8 @@ fn status(gw: &Gateway, control: ControlReport) -> StatusReport {
                 steps: s.steps,
                 overruns: s.overruns,
                 healthy: s.healthy,
+                unhealthy_spells: s.unhealthy_spells,
+                unhealthy_ns: s.unhealthy_ns,
                 realtime: s.realtime,
                 lateness_p99_us: s.lateness_quantile(0.99).as_secs_f64() * 1e6,
                 step_mean_us: s.step_mean().as_secs_f64() * 1e6,

@@ -141,6 +141,15 @@ fn prometheus_scrapes_the_demo_and_reads_what_status_says() {
     );
     let steps = prom.query("hwgw_component_steps_total{component=\"blink\"}");
     assert_eq!(steps.first().map(|s| s.1), blink["steps"].as_f64());
+    // The watchdog's measure, in seconds, to the nanosecond status gives.
+    let unhealthy = prom.query("hwgw_component_unhealthy_seconds_total{component=\"blink\"}");
+    let want = blink["unhealthy_ns"].as_u64().unwrap() as f64 * 1e-9;
+    assert_eq!(unhealthy.first().map(|s| s.1), Some(want), "{blink}");
+    let spells = prom.query("hwgw_component_unhealthy_spells_total{component=\"blink\"}");
+    assert_eq!(
+        spells.first().map(|s| s.1),
+        blink["unhealthy_spells"].as_f64()
+    );
     // Count and sum, independent of how the buckets are laid out.
     let count = prom.query("hwgw_component_step_seconds_count{component=\"blink\"}");
     assert_eq!(count[0].1, histogram.iter().sum::<u64>() as f64);

@@ -712,6 +712,12 @@ pub struct ComponentStatus {
     pub overruns: u64,
     /// False while its activity overruns more than it may.
     pub healthy: bool,
+    /// Times its activity turned unhealthy (more overruns in a row than it may).
+    #[serde(default)]
+    pub unhealthy_spells: u64,
+    /// Time its activity spent unhealthy, ns (the spell on now included).
+    #[serde(default)]
+    pub unhealthy_ns: u64,
     /// True when its thread got real-time scheduling.
     pub realtime: bool,
     /// 99th percentile of wake-up lateness, µs.

@@ -17,7 +17,7 @@
 //! | `hwgw_server_status`, `hwgw_server_status_text` | `server`, `field` (, `value`) | as the cards', of every server (Modbus server, Zenoh node with its peers and import ages, these HTTP servers) |
 //! | `hwgw_component_state` | `component`, `state` | 1 for the state it is in |
 //! | `hwgw_component_healthy`, `hwgw_component_realtime`, `hwgw_component_warning` | `component` | 0 or 1 |
-//! | `hwgw_component_steps_total`, `…_overruns_total`, `…_runtime_errors_total`, `…_exceptions_total`, `…_failed_hooks_total`, `…_warnings_total`, `…_services_lost_total` | `component` | counters |
+//! | `hwgw_component_steps_total`, `…_overruns_total`, `…_unhealthy_spells_total`, `…_unhealthy_seconds_total`, `…_runtime_errors_total`, `…_exceptions_total`, `…_failed_hooks_total`, `…_warnings_total`, `…_services_lost_total` | `component` | counters |
 //! | `hwgw_component_step_seconds`, `hwgw_component_lateness_seconds` | `component` | histograms of step time and wake-up lateness |
 //! | `hwgw_control_*` | — | the control socket's clients and requests |
 //! | `hwgw_port_value` | `component`, `port` (, `index`) | opt-in: the ports a `[server.metrics]` lists |
@@ -284,6 +284,17 @@ fn components(
         "hwgw_component_overruns",
         "Wake-ups after the next was due",
     );
+    let spells = counter(
+        r,
+        "hwgw_component_unhealthy_spells",
+        "Times its activity turned unhealthy (more overruns in a row than it may)",
+    );
+    let unhealthy_time = Family::<Labels, Counter<f64, AtomicU64>>::default();
+    r.register(
+        "hwgw_component_unhealthy_seconds",
+        "Time its activity spent unhealthy (what the systemd watchdog judges)",
+        unhealthy_time.clone(),
+    );
     let runtime_errors = counter(
         r,
         "hwgw_component_runtime_errors",
@@ -328,6 +339,10 @@ fn components(
         flag(&warning, c.counters.warning);
         steps.get_or_create(&l).inc_by(c.steps);
         overruns.get_or_create(&l).inc_by(c.overruns);
+        spells.get_or_create(&l).inc_by(c.unhealthy_spells);
+        unhealthy_time
+            .get_or_create(&l)
+            .inc_by(c.unhealthy_ns as f64 * 1e-9);
         runtime_errors
             .get_or_create(&l)
             .inc_by(c.counters.runtime_errors);
