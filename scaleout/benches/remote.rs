@@ -5,7 +5,8 @@
 //! channels) through a [`Node`] publishing at 100 Hz, and beside it publishes the same
 //! values with bare `put`s on a session of its own (10 keys at 100 Hz, 100 raw `i64` and
 //! the send time as bytes); **A** imports B's devices through its own node and subscribes
-//! to the bare keys. Both paths run at once on loopback TCP, with the same Zenoh settings.
+//! to the bare keys. Both paths run at once on loopback TCP, with the same Zenoh settings,
+//! and both publish express, as the node does.
 //!
 //! Latency is the way of one sample on the same host's monotonic clock: for hwgw from B
 //! reading the device to the sample being taken into A's proxy (JSON, the node's threads
@@ -160,6 +161,7 @@ fn role_b(ports: (u16, u16)) {
         .map(|i| {
             bare.inner
                 .declare_publisher(format!("bare/dev{i}"))
+                .express(true)
                 .wait()
                 .unwrap_or_else(|e| panic!("{e}"))
         })
