@@ -17,6 +17,7 @@
 
 mod deadline;
 mod realtime;
+mod spells;
 mod stats;
 pub mod steps;
 mod thread;

@@ -26,8 +26,8 @@ pub struct ActivityStats {
     #[serde(default)]
     pub unhealthy_spells: u64,
     /// Time spent unhealthy, ns: the spells that are over and the current one up to the
-    /// snapshot (a spell that ends while the snapshot is taken may be left out of this one,
-    /// never counted twice). A watcher's share of unhealthy time between two looks.
+    /// snapshot; never less than an earlier snapshot's. A watcher's share of unhealthy
+    /// time between two looks.
     #[serde(default)]
     pub unhealthy_ns: u64,
     /// Lateness histogram: bucket `i` counts wake-ups `2^i..2^(i+1)` ns late.
@@ -86,12 +86,8 @@ pub(crate) struct StatsCell {
     pub(crate) steps: AtomicU64,
     pub(crate) overruns: AtomicU64,
     pub(crate) consecutive: AtomicU64,
-    pub(crate) healthy: AtomicBool,
-    pub(crate) spells: AtomicU64,
-    /// When the current spell began (ns, monotonic clock), valid while `healthy` is false.
-    unhealthy_since: AtomicU64,
-    /// The spells that are over, ns.
-    unhealthy_total: AtomicU64,
+    /// Health, its unhealthy spells and their time.
+    pub(crate) spells: super::spells::Spells,
     pub(crate) histogram: [AtomicU64; HISTOGRAM_BUCKETS],
     pub(crate) lateness_max: AtomicU64,
     pub(crate) lateness_total: AtomicU64,
@@ -109,10 +105,7 @@ impl StatsCell {
             steps: AtomicU64::new(0),
             overruns: AtomicU64::new(0),
             consecutive: AtomicU64::new(0),
-            healthy: AtomicBool::new(true),
-            spells: AtomicU64::new(0),
-            unhealthy_since: AtomicU64::new(0),
-            unhealthy_total: AtomicU64::new(0),
+            spells: super::spells::Spells::new(),
             histogram: std::array::from_fn(|_| AtomicU64::new(0)),
             lateness_max: AtomicU64::new(0),
             lateness_total: AtomicU64::new(0),
@@ -146,54 +139,16 @@ impl StatsCell {
         self.step_histogram[bucket(ns)].fetch_add(1, Ordering::Relaxed);
     }
 
-    /// The activity's thread found it unhealthy at `at` (ns, monotonic clock): a spell
-    /// begins unless one is on. Two stores and an add, at a change only.
-    pub(crate) fn unhealthy(&self, at: u64) -> bool {
-        if !self.healthy.load(Ordering::Relaxed) {
-            return false;
-        }
-        self.unhealthy_since.store(at, Ordering::Relaxed);
-        self.healthy.store(false, Ordering::Release);
-        self.spells.fetch_add(1, Ordering::Relaxed);
-        true
-    }
-
-    /// The activity's thread found it healthy at `at` (on time again, or stopping): the
-    /// spell that was on, if any, ends and its time is added. Healthy is said before the
-    /// time is added, so a snapshot between the two leaves the spell out rather than
-    /// counting it twice.
-    pub(crate) fn healthy_again(&self, at: u64) -> bool {
-        if self.healthy.load(Ordering::Relaxed) {
-            return false;
-        }
-        let since = self.unhealthy_since.load(Ordering::Relaxed);
-        self.healthy.store(true, Ordering::Release);
-        self.unhealthy_total
-            .fetch_add(at.saturating_sub(since), Ordering::Release);
-        true
-    }
-
-    /// Time spent unhealthy up to `now` (ns, monotonic clock), and whether healthy now.
-    fn unhealthy_time(&self, now: u64) -> (u64, bool) {
-        let total = self.unhealthy_total.load(Ordering::Acquire);
-        let healthy = self.healthy.load(Ordering::Acquire);
-        if healthy {
-            return (total, true);
-        }
-        let since = self.unhealthy_since.load(Ordering::Relaxed);
-        (total.saturating_add(now.saturating_sub(since)), false)
-    }
-
     pub(crate) fn snapshot(&self) -> ActivityStats {
         use device_interface::time::{Clock, MonotonicClock};
-        let (unhealthy_ns, healthy) = self.unhealthy_time(MonotonicClock.now().as_nanos());
+        let spells = self.spells.read(MonotonicClock.now().as_nanos());
         ActivityStats {
             steps: self.steps.load(Ordering::Relaxed),
             overruns: self.overruns.load(Ordering::Relaxed),
             consecutive_overruns: self.consecutive.load(Ordering::Relaxed),
-            healthy,
-            unhealthy_spells: self.spells.load(Ordering::Relaxed),
-            unhealthy_ns,
+            healthy: spells.healthy,
+            unhealthy_spells: spells.count,
+            unhealthy_ns: spells.unhealthy_ns,
             lateness_histogram: self
                 .histogram
                 .iter()

@@ -124,7 +124,7 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                         next = next.saturating_add(missed.saturating_mul(period_ns));
                     }
                     if max_overruns.is_some_and(|m| run > u64::from(m)) {
-                        stats.unhealthy(end);
+                        stats.spells.unhealthy(end);
                         if !unhealthy_logged {
                             unhealthy_logged = true;
                             crate::rt_log!(
@@ -137,7 +137,7 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
                     }
                 } else {
                     stats.consecutive.store(0, Ordering::Relaxed);
-                    if stats.healthy_again(end) {
+                    if stats.spells.healthy_again(end) {
                         unhealthy_logged = false;
                         crate::rt_log!(shared.log, Info, "on time again: activity healthy");
                     }
@@ -145,7 +145,7 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
             }
             // A stopped activity is not overrunning: a spell on at the stop ends there (its
             // time would else run on until the next start's first step on time).
-            stats.healthy_again(clock.now().as_nanos());
+            stats.spells.healthy_again(clock.now().as_nanos());
         }
         ActivitySpec::NonPeriodic { thread } => {
             stats.realtime.store(
