@@ -130,6 +130,8 @@ pub struct Gateway {
     pub(crate) zenoh: Option<Arc<crate::remote::Node>>,
     /// The control protocol for the servers (see [`Self::control_link`]).
     pub(crate) control: driver_api::ControlLink,
+    /// What [`Self::health`] saw at its last call (the watchdog keeps looks of its own).
+    health_looks: Mutex<Looks>,
 }
 
 impl Gateway {
@@ -156,6 +158,7 @@ impl Gateway {
             scope_vcd: None,
             zenoh: None,
             control: driver_api::ControlLink::new(),
+            health_looks: Mutex::new(Looks::new()),
         }
     }
 
@@ -207,11 +210,17 @@ impl Gateway {
     }
 
     /// `Ok` while every component that should run is running and no periodic activity
-    /// is overrunning now; else what is wrong. The error model's warning is healthy (the
+    /// overran or stalled since the last call (the first call: none overrunning now);
+    /// else what is wrong, as the watchdog judges it (see [`health_since`](Self::health_since)).
+    /// What `status` and `GET /health` say. The error model's warning is healthy (the
     /// component runs, its flag shows in `ls` and `status`); RunTimeError is not (manual
     /// L832–884: an error the component waits out, not a state to run in).
     pub fn health(&self) -> Result<(), String> {
-        self.health_since(&mut Looks::new())
+        let mut looks = self
+            .health_looks
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        self.health_since(&mut looks)
     }
 
     /// [`health`](Self::health) as the systemd watchdog's looks judge it, `looks` kept

@@ -91,15 +91,17 @@ fn overruns(t: &TaskContext) -> String {
 }
 
 /// How long a periodic activity judged for its overruns (`max_overruns` set) may go without
-/// ending a step: a period for each overrun it is allowed, and one more. `None` for an
-/// activity the watchdog does not judge.
+/// ending a step: a period for each overrun it is allowed, and two more (two step ends of
+/// an activity on time can be a period and a step apart: with no overrun allowed, one
+/// period would find a stall in a look that falls between them). `None` for an activity
+/// the watchdog does not judge.
 fn stall_allowed(spec: &ActivitySpec) -> Option<Duration> {
     match spec {
         ActivitySpec::Periodic {
             period,
             max_overruns: Some(m),
             ..
-        } => Some(period.saturating_mul(m.saturating_add(1))),
+        } => Some(period.saturating_mul(m.saturating_add(2))),
         _ => None,
     }
 }

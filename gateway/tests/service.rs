@@ -471,17 +471,23 @@ fn overrunning_for_a_look_costs_a_watchdog_feed_not_a_restart() {
 /// script held up until the test lets it go (an overrun, and with `max_overruns = 0` a
 /// spell) — cost no feed of the watchdog: each is far shorter than half the time between
 /// two looks, and a look judges that time, not the moment it is taken. A look that
-/// withholds its feed says why in STATUS, and none does. (Seen in the kernel rig before:
-/// three short spells of the demo's activities while apt ran, each seen by a look,
-/// withheld three feeds in a row and systemd restarted hwgw.) The spells are counted, and
-/// logged by the activity's thread.
+/// withholds its feed says why in STATUS, and none does after the first feed (the first
+/// look judges the moment it is taken: a start on a loaded machine may cost it). (Seen in
+/// the kernel rig before: three short spells of the demo's activities while apt ran, each
+/// seen by a look, withheld three feeds in a row and systemd restarted hwgw.) The spells
+/// are counted, and logged by the activity's thread; a loaded machine may add spells of
+/// its own (a wake-up more than a period late), never fewer.
 #[test]
 fn moments_of_overrun_cost_no_watchdog_feed() {
     let dir = TempDir::new("moments-cfg");
+    // `held` counts the steps held up, written before the hold.
     std::fs::write(
         dir.path().join("busy.lua"),
         "local hold = port.input(\"hold\", \"bool\")\n\
-         function update()\n  while hold:read() do end\nend\n",
+         local held = port.output(\"held\", \"i64\")\n\
+         local n = 0\n\
+         function update()\n  if hold:read() then\n    n = n + 1\n    held:write(n)\n\
+         \x20   while hold:read() do end\n  end\nend\n",
     )
     .unwrap();
     let cfg = dir.path().join("moments.toml");
@@ -503,10 +509,15 @@ fn moments_of_overrun_cost_no_watchdog_feed() {
         ],
     );
     let fed = |m: &str| m.contains("WATCHDOG=1");
-    let activity = |key: &str| {
-        svc.ok(json!({"cmd": "describe", "component": "busy"}))["activity"][key]
+    let spells = || {
+        svc.ok(json!({"cmd": "describe", "component": "busy"}))["activity"]["unhealthy_spells"]
             .as_u64()
             .unwrap()
+    };
+    let held = || {
+        svc.ok(json!({"cmd": "get", "component": "busy", "port": "held"}))
+            .as_i64()
+            .unwrap_or(0)
     };
     let hold = |on: &str| {
         let out = svc.cli(&["set", "busy", "hold", on]);
@@ -514,49 +525,52 @@ fn moments_of_overrun_cost_no_watchdog_feed() {
     };
     let msgs = std::thread::scope(|s| {
         let (spells_tx, spells_done) = std::sync::mpsc::channel();
+        let (first_tx, first_fed) = std::sync::mpsc::channel();
         let collector = s.spawn(move || {
             // Until two feeds after the last spell, or 60 s.
             let mut done_at = None;
             notify.collect_until(Duration::from_secs(60), |msgs| {
+                if msgs.iter().any(|(_, m)| fed(m)) {
+                    let _ = first_tx.send(());
+                }
                 if done_at.is_none() && spells_done.try_recv().is_ok() {
                     done_at = Some(msgs.len());
                 }
                 done_at.is_some_and(|i| msgs[i..].iter().filter(|(_, m)| fed(m)).count() >= 2)
             })
         });
-        for spell in 1..=3u64 {
+        first_fed
+            .recv_timeout(Duration::from_secs(20))
+            .expect("no feed in 20 s");
+        for n in 1..=3i64 {
+            let before = spells();
             hold("true");
-            // Held: its steps stand still across two looks 20 ms apart (two periods).
-            wait_until("a step held up", || {
-                let before = activity("steps");
-                std::thread::sleep(Duration::from_millis(20));
-                activity("steps") == before
-            });
+            wait_until("a step held up", || held() == n);
             hold("false");
-            wait_until("the spell", || activity("unhealthy_spells") >= spell);
+            wait_until("the spell", || spells() > before);
         }
         spells_tx.send(()).unwrap();
         collector.join().unwrap()
     });
-    let withheld: Vec<_> = msgs
+    let first = msgs.iter().position(|(_, m)| fed(m)).unwrap();
+    let withheld: Vec<_> = msgs[first..]
         .iter()
         .filter(|(_, m)| m.contains("unhealthy"))
         .collect();
     assert!(withheld.is_empty(), "a moment cost a feed: {msgs:?}");
-    assert!(msgs.iter().filter(|(_, m)| fed(m)).count() >= 2, "{msgs:?}");
-    assert_eq!(activity("unhealthy_spells"), 3);
+    assert!(
+        msgs[first..].iter().filter(|(_, m)| fed(m)).count() >= 3,
+        "{msgs:?}"
+    );
+    assert!(spells() >= 3);
     let stopped = svc.terminate();
     assert!(stopped.status.success());
-    assert_eq!(
-        stopped
-            .log
-            .lines()
-            .filter(|l| l.contains("overruns in a row: activity unhealthy"))
-            .count(),
-        3,
-        "{}",
-        stopped.log
-    );
+    let logged = stopped
+        .log
+        .lines()
+        .filter(|l| l.contains("overruns in a row: activity unhealthy"))
+        .count();
+    assert!(logged >= 3, "{}", stopped.log);
 }
 
 /// A component stuck in a step — a script looping for ever with no step budget — ends no
@@ -587,7 +601,7 @@ fn a_component_stuck_in_a_step_starves_the_watchdog() {
             ("WATCHDOG_USEC", "400000"),
         ],
     );
-    let why = "STATUS=unhealthy: stuck ended no step for more than 20 ms";
+    let why = "STATUS=unhealthy: stuck ended no step for more than 30 ms";
     let msgs = notify.collect_until(Duration::from_secs(30), |msgs| {
         msgs.iter()
             .position(|(_, m)| m.contains(why))
@@ -603,10 +617,17 @@ fn a_component_stuck_in_a_step_starves_the_watchdog() {
     );
     let described = svc.ok(json!({"cmd": "describe", "component": "stuck"}));
     assert_eq!(described["activity"]["steps"], 0, "{described}");
+    // Healthy by the count of overruns (no step ended to count one) ...
     assert!(
         described["activity"]["healthy"].as_bool().unwrap(),
         "{described}"
     );
+    // ... and `status` says what the watchdog says, from its second answer on.
+    wait_until("status to say it", || {
+        svc.ok(json!({"cmd": "status"}))["health"]
+            .as_str()
+            .is_some_and(|h| h.contains("stuck ended no step for more than 30 ms"))
+    });
     // Its thread cannot be stopped: the test's end kills the gateway.
 }
 
