@@ -486,6 +486,38 @@ mod tests {
         );
     }
 
+    /// The time a component spent unhealthy reaches the metrics to the nanosecond status
+    /// gives, and its spells as counted.
+    #[test]
+    fn a_components_unhealthy_time_is_its_seconds_to_the_nanosecond() {
+        let c: ComponentStatus = serde_json::from_value(serde_json::json!({
+            "name": "loop", "state": "running", "steps": 10, "overruns": 4, "healthy": true,
+            "unhealthy_spells": 2, "unhealthy_ns": 1_234_567_891u64, "realtime": false,
+            "lateness_p99_us": 0.0, "step_mean_us": 0.0,
+            "counters": {"runtime_errors": 0, "exceptions": 0, "failed_hooks": 0, "last_error": null}
+        }))
+        .unwrap();
+        let mut r = Registry::default();
+        let gauge = |r: &mut Registry, name: &str, help: &str| {
+            let f = Gauges::default();
+            r.register(name, help, f.clone());
+            f
+        };
+        components(&mut r, &[c], &gauge);
+        let mut text = String::new();
+        prometheus_client::encoding::text::encode(&mut text, &r).unwrap();
+        assert!(
+            text.contains(
+                "hwgw_component_unhealthy_seconds_total{component=\"loop\"} 1.234567891\n"
+            ),
+            "{text}"
+        );
+        assert!(
+            text.contains("hwgw_component_unhealthy_spells_total{component=\"loop\"} 2\n"),
+            "{text}"
+        );
+    }
+
     #[test]
     fn buckets_accumulate_below_the_lowest_and_beyond_the_highest() {
         let b = Buckets::default();
