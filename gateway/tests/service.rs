@@ -509,11 +509,8 @@ fn moments_of_overrun_cost_no_watchdog_feed() {
         ],
     );
     let fed = |m: &str| m.contains("WATCHDOG=1");
-    let spells = || {
-        svc.ok(json!({"cmd": "describe", "component": "busy"}))["activity"]["unhealthy_spells"]
-            .as_u64()
-            .unwrap()
-    };
+    let activity = || svc.ok(json!({"cmd": "describe", "component": "busy"}))["activity"].take();
+    let spells = || activity()["unhealthy_spells"].as_u64().unwrap();
     let held = || {
         svc.ok(json!({"cmd": "get", "component": "busy", "port": "held"}))
             .as_i64()
@@ -546,8 +543,15 @@ fn moments_of_overrun_cost_no_watchdog_feed() {
             let before = spells();
             hold("true");
             wait_until("a step held up", || held() == n);
+            // Held for three periods: only "false" lets it go, so it overruns.
+            std::thread::sleep(Duration::from_millis(30));
             hold("false");
-            wait_until("the spell", || spells() > before);
+            // Over before the next hold: a step held again before one on time would
+            // keep this spell on, not start another.
+            wait_until("the spell, then health back", || {
+                let a = activity();
+                a["unhealthy_spells"].as_u64().unwrap() > before && a["healthy"] == true
+            });
         }
         spells_tx.send(()).unwrap();
         collector.join().unwrap()
