@@ -402,6 +402,24 @@ fn overrunning(tag: &str, name: &str, start: bool) -> (TempDir, PathBuf) {
     (dir, cfg)
 }
 
+/// A deployment (in its directory, and its file) of one script component `name` running
+/// `lua` every 10 ms with no step budget, unhealthy after `max_overruns`.
+fn script(name: &str, lua: &str, max_overruns: u32) -> (TempDir, PathBuf) {
+    let dir = TempDir::new(&format!("{name}-cfg"));
+    std::fs::write(dir.path().join(format!("{name}.lua")), lua).unwrap();
+    let cfg = dir.path().join(format!("{name}.toml"));
+    std::fs::write(
+        &cfg,
+        format!(
+            "[[component]]\nname = \"{name}\"\ntype = \"script\"\n\
+             activity = {{ type = \"periodic\", period_ms = 10, max_overruns = {max_overruns} }}\n\
+             properties = {{ file = \"{name}.lua\", max_step_us = 0 }}\n"
+        ),
+    )
+    .unwrap();
+    (dir, cfg)
+}
+
 /// Overrunning for a look — a component that overruns on purpose, stopped as soon as a
 /// look of the watchdog saw it overrunning for at least half the time since the look
 /// before — costs the gateway a feed of the watchdog (two when the stop comes after the
@@ -479,25 +497,16 @@ fn overrunning_for_a_look_costs_a_watchdog_feed_not_a_restart() {
 /// its own (a wake-up more than a period late), never fewer.
 #[test]
 fn moments_of_overrun_cost_no_watchdog_feed() {
-    let dir = TempDir::new("moments-cfg");
     // `held` counts the steps held up, written before the hold.
-    std::fs::write(
-        dir.path().join("busy.lua"),
+    let (_dir, cfg) = script(
+        "busy",
         "local hold = port.input(\"hold\", \"bool\")\n\
          local held = port.output(\"held\", \"i64\")\n\
          local n = 0\n\
          function update()\n  if hold:read() then\n    n = n + 1\n    held:write(n)\n\
          \x20   while hold:read() do end\n  end\nend\n",
-    )
-    .unwrap();
-    let cfg = dir.path().join("moments.toml");
-    std::fs::write(
-        &cfg,
-        "[[component]]\nname = \"busy\"\ntype = \"script\"\n\
-         activity = { type = \"periodic\", period_ms = 10, max_overruns = 0 }\n\
-         properties = { file = \"busy.lua\", max_step_us = 0 }\n",
-    )
-    .unwrap();
+        0,
+    );
     let notify = Notify::new("notify-moments");
     // Looks every 2 s: a spell costs a feed only when it takes 1 s of the 2.
     let svc = start_with(
@@ -582,20 +591,7 @@ fn moments_of_overrun_cost_no_watchdog_feed() {
 /// for longer than its overruns allow and stop feeding the watchdog.
 #[test]
 fn a_component_stuck_in_a_step_starves_the_watchdog() {
-    let dir = TempDir::new("stuck-cfg");
-    std::fs::write(
-        dir.path().join("stuck.lua"),
-        "function update()\n  while true do end\nend\n",
-    )
-    .unwrap();
-    let cfg = dir.path().join("stuck.toml");
-    std::fs::write(
-        &cfg,
-        "[[component]]\nname = \"stuck\"\ntype = \"script\"\n\
-         activity = { type = \"periodic\", period_ms = 10, max_overruns = 1 }\n\
-         properties = { file = \"stuck.lua\", max_step_us = 0 }\n",
-    )
-    .unwrap();
+    let (_dir, cfg) = script("stuck", "function update()\n  while true do end\nend\n", 1);
     let notify = Notify::new("notify-stuck");
     let svc = start_with(
         "stuck",

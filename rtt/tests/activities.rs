@@ -112,22 +112,29 @@ impl Component for Sleepy {
     }
 }
 
-#[test]
-fn overruns_are_counted_and_turn_health_off_then_on() {
-    let rt = runtime();
+/// A stopped `Sleepy` on a 2 ms period, unhealthy after `max_overruns`, sleeping through
+/// its steps until the flag returned says otherwise.
+fn sleepy(rt: &Runtime, max_overruns: u32) -> (rtt::TaskContext, Arc<AtomicBool>) {
     let sleep = Arc::new(AtomicBool::new(true));
     let s = sleep.clone();
     let spec = ActivitySpec::Periodic {
         period: Duration::from_millis(2),
         thread: ThreadOptions::default(),
         timing: Timing::Absolute,
-        max_overruns: Some(3),
+        max_overruns: Some(max_overruns),
     };
     let t = rt
         .add("sleepy", spec, rtt::InitialState::Stopped, move |_| {
             Ok(Sleepy { sleep: s })
         })
         .unwrap();
+    (t, sleep)
+}
+
+#[test]
+fn overruns_are_counted_and_turn_health_off_then_on() {
+    let rt = runtime();
+    let (t, sleep) = sleepy(&rt, 3);
     t.start().unwrap();
     wait_for("5 overruns", || t.stats().overruns >= 5);
     let unhealthy = t.stats();
@@ -154,18 +161,7 @@ fn overruns_are_counted_and_turn_health_off_then_on() {
 #[test]
 fn a_stop_ends_a_spell_of_overruns() {
     let rt = runtime();
-    let s = Arc::new(AtomicBool::new(true));
-    let spec = ActivitySpec::Periodic {
-        period: Duration::from_millis(2),
-        thread: ThreadOptions::default(),
-        timing: Timing::Absolute,
-        max_overruns: Some(1),
-    };
-    let t = rt
-        .add("sleepy", spec, rtt::InitialState::Stopped, move |_| {
-            Ok(Sleepy { sleep: s })
-        })
-        .unwrap();
+    let (t, _sleep) = sleepy(&rt, 1);
     t.start().unwrap();
     wait_for("a spell", || !t.stats().healthy);
     t.stop().unwrap();

@@ -118,15 +118,17 @@ fn labels(pairs: &[(&str, &str)]) -> Labels {
 /// A port's value read for the metrics: (component, port, its `get` answer).
 pub type PortValue = (String, String, Value);
 
+/// A gauge family `name` registered in `r`.
+fn gauge(r: &mut Registry, name: &str, help: &str) -> Gauges {
+    let f = Gauges::default();
+    r.register(name, help, f.clone());
+    f
+}
+
 /// The metrics of `status` (and of `ports`, the values read of the listed ports) as
 /// OpenMetrics text.
 pub fn encode(status: &StatusReport, ports: &[PortValue]) -> String {
     let mut r = Registry::default();
-    let gauge = |r: &mut Registry, name: &str, help: &str| {
-        let f = Gauges::default();
-        r.register(name, help, f.clone());
-        f
-    };
     let healthy = Gauge::<f64, AtomicU64>::default();
     healthy.set(f64::from(u8::from(status.health == "ok")));
     r.register(
@@ -498,11 +500,6 @@ mod tests {
         }))
         .unwrap();
         let mut r = Registry::default();
-        let gauge = |r: &mut Registry, name: &str, help: &str| {
-            let f = Gauges::default();
-            r.register(name, help, f.clone());
-            f
-        };
         components(&mut r, &[c], &gauge);
         let mut text = String::new();
         prometheus_client::encoding::text::encode(&mut text, &r).unwrap();
