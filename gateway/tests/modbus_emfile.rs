@@ -64,21 +64,32 @@ fn the_server_survives_running_out_of_descriptors() {
     assert_eq!(read_hr10(addr).unwrap(), [3, 2, 0, 0]);
     let counters = || gw.server_status()[0].status.counters.clone();
 
-    // Leave room for a few dozen descriptors, then take them with clients until the
-    // server's accept fails.
+    // Leave room for a few dozen descriptors and take them all with files, then give them
+    // back one at a time to a client until one waits in the backlog while the server's
+    // accept has no descriptor left. Filling with clients alone raced: when a client took
+    // the last descriptor with no connection pending, accept never failed.
+    let accepted = || counters()["connections"].as_u64().unwrap();
+    let before = accepted();
     let soft = testkit::set_fd_limit(Some(open_fds() + 40)).unwrap();
-    let mut clients = Vec::new();
-    for _ in 0..200 {
-        match TcpStream::connect(addr) {
-            Ok(c) => clients.push(c),
-            Err(_) => break,
-        }
-        if counters()["accept_errors"].as_u64().unwrap() > 0 {
-            break;
-        }
+    let mut fillers = Vec::new();
+    while let Ok(f) = std::fs::File::open("/dev/null") {
+        fillers.push(f);
+        assert!(fillers.len() < 10_000, "the descriptor limit did not hold");
     }
+    let mut clients = Vec::new();
     wait_until("accept failing", || {
-        counters()["accept_errors"].as_u64().unwrap() > 0
+        if counters()["accept_errors"].as_u64().unwrap() > 0 {
+            return true;
+        }
+        // Every client accepted (another thread had let a descriptor go): give one more.
+        let pending = clients.len() as u64 > accepted() - before;
+        if !pending
+            && fillers.pop().is_some()
+            && let Ok(c) = TcpStream::connect(addr)
+        {
+            clients.push(c);
+        }
+        false
     });
     assert_eq!(counters()["running"], json!(true));
     // A short spell of failures is not yet unhealthy (the limit is 5 s); a long one is, and
@@ -93,6 +104,7 @@ fn the_server_survives_running_out_of_descriptors() {
 
     // Descriptors back: the server serves again.
     drop(clients);
+    drop(fillers);
     testkit::set_fd_limit(Some(soft)).unwrap();
     wait_until("the server answers again", || {
         read_hr10(addr).as_deref() == Some(&[3, 2, 0, 0])
