@@ -113,6 +113,12 @@ impl<T> Channel<T> {
         self.in_changed.store(true, Ordering::Release);
     }
 
+    /// Counts one sample its reader took (from the reader's thread only).
+    #[inline]
+    pub(super) fn count_read(&self) {
+        bump(&self.read);
+    }
+
     /// True when the connection carries nothing any more: closed, or its writer gone.
     #[inline]
     fn is_finished(&self) -> bool {
@@ -444,6 +450,23 @@ impl<T: Clone + Send + 'static> Writer<T> {
 }
 
 impl<T: Clone + Send + 'static> Reader<T> {
+    /// The output port's register and the version last taken, for a data connection that
+    /// reads it (see [`set_seen`](Self::set_seen)).
+    pub(super) fn register(&self) -> Option<(&Arc<WordCell>, u64)> {
+        match &self.latest {
+            Some(LatestOut::Word { cell, seen }) if self.ch.shared.is_some() => Some((cell, *seen)),
+            _ => None,
+        }
+    }
+
+    /// The version last taken from the register, when its port took values without this
+    /// end (its direct path) and hands the end back.
+    pub(super) fn set_seen(&mut self, version: u64) {
+        if let Some(LatestOut::Word { seen, .. }) = &mut self.latest {
+            *seen = version;
+        }
+    }
+
     /// True when its writer is gone but what it wrote is not all taken yet.
     pub(super) fn lingers(&self) -> bool {
         self.ch.writer_gone.load(Ordering::Acquire) && !self.is_done()

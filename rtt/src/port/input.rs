@@ -1,11 +1,13 @@
 //! The reading end of a data flow: [`InputPort`], and what other threads see of it (its
 //! connections, the last sample its owner read, the waker of an event port).
 
-use super::channel::{Links, RESERVED_CONNECTIONS, Reader};
+use super::channel::{Channel, Links, RESERVED_CONNECTIONS, Reader};
 use super::latest::{LatestIn, LatestOut, snapshot};
+use super::word::{Found, WordCell, from_word};
 use super::{ConnectionInfo, FlowStatus};
 use crate::activity::Waker;
-use std::sync::atomic::{AtomicBool, Ordering};
+use crossbeam_utils::CachePadded;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 
 /// What other threads see of an input port.
@@ -43,6 +45,21 @@ impl<T: Clone + Send + 'static> InputShared<T> {
     }
 }
 
+/// The port's only connection when it reads its output port's one-word register: what a
+/// read needs of it, one pointer away, so a read is the register's protocol and a few
+/// stores — no walk of the connections, no match on how each carries its samples. Its
+/// version last taken is handed back to the connection's end whenever the port's
+/// connections change (before anything looks at that end).
+pub(super) struct Direct<T> {
+    cell: Arc<WordCell>,
+    /// The register's version last taken.
+    seen: u64,
+    /// The connection, for its read counter.
+    ch: Arc<Channel<T>>,
+    /// The port's last read value for introspection (its [`LatestIn::Plain`] word).
+    published: Arc<CachePadded<AtomicU64>>,
+}
+
 /// The reading end of a data flow.
 pub struct InputPort<T: Send> {
     shared: Arc<InputShared<T>>,
@@ -53,6 +70,8 @@ pub struct InputPort<T: Send> {
     has_last: bool,
     /// Publishes each new sample for [`InputShared::last_read`].
     published: LatestIn<T>,
+    /// Set while the port's only connection reads a one-word register.
+    pub(super) direct: Option<Direct<T>>,
 }
 
 impl<T: Clone + Send + 'static> InputPort<T> {
@@ -82,6 +101,7 @@ impl<T: Clone + Send + 'static> InputPort<T> {
             last: sample,
             has_last: false,
             published,
+            direct: None,
         }
     }
 
@@ -100,19 +120,23 @@ impl<T: Clone + Send + 'static> InputPort<T> {
     #[inline(always)]
     pub fn read_at(&mut self, sample: &mut T, at: &mut u64) -> FlowStatus {
         if self.changed.load(Ordering::Relaxed) {
-            self.shared
-                .links
-                .refresh_changed(&mut self.conns, Reader::is_done, Reader::lingers);
+            self.refresh();
         }
-        for c in &mut self.conns {
-            if c.pop_into(&mut self.last, at) {
-                sample.clone_from(&self.last);
-                self.published.publish(&self.last);
-                if !self.has_last {
-                    self.has_last = true;
-                    self.shared.received.store(true, Ordering::Release);
+        if let Some(d) = &mut self.direct {
+            // A data connection is never stamped: `at` stays as it is.
+            if let Found::New { version, value } = d.cell.read(d.seen) {
+                d.seen = version;
+                d.published.store(value, Ordering::Relaxed);
+                d.ch.count_read();
+                from_word(value, &mut self.last);
+                return self.new_data(sample);
+            }
+        } else {
+            for c in &mut self.conns {
+                if c.pop_into(&mut self.last, at) {
+                    self.published.publish(&self.last);
+                    return self.new_data(sample);
                 }
-                return FlowStatus::NewData;
             }
         }
         if self.has_last {
@@ -123,10 +147,54 @@ impl<T: Clone + Send + 'static> InputPort<T> {
         }
     }
 
+    /// Hands the new sample in `last` to the caller.
+    #[inline(always)]
+    fn new_data(&mut self, sample: &mut T) -> FlowStatus {
+        sample.clone_from(&self.last);
+        if !self.has_last {
+            self.has_last = true;
+            self.shared.received.store(true, Ordering::Release);
+        }
+        FlowStatus::NewData
+    }
+
+    /// Takes up new connections and forgets closed ones; reads directly from a register
+    /// when that is the only connection left.
+    #[cold]
+    fn refresh(&mut self) {
+        self.undirect();
+        self.shared
+            .links
+            .refresh_changed(&mut self.conns, Reader::is_done, Reader::lingers);
+        let LatestIn::Plain(published) = &self.published else {
+            return;
+        };
+        if let [only] = self.conns.as_slice()
+            && let Some((cell, seen)) = only.register()
+        {
+            self.direct = Some(Direct {
+                cell: cell.clone(),
+                seen,
+                ch: only.ch.clone(),
+                published: published.clone(),
+            });
+        }
+    }
+
+    /// Hands the direct path's version back to its connection's end.
+    fn undirect(&mut self) {
+        if let Some(d) = self.direct.take()
+            && let Some(c) = self.conns.iter_mut().find(|c| Arc::ptr_eq(&c.ch, &d.ch))
+        {
+            c.set_seen(d.seen);
+        }
+    }
+
     /// Closes every connection, keeping each until its writer has let go too, so a writer
     /// on a real-time thread never frees the connection's samples (for readers off the
     /// real-time threads: it locks).
     pub(crate) fn bury_connections(&mut self) {
+        self.undirect();
         // Ends not taken up yet are taken now, so none is freed by its writer either.
         self.shared
             .links

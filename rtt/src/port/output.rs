@@ -18,7 +18,8 @@ pub(crate) struct OutputShared<T: Send> {
     pub(crate) name: Arc<str>,
     pub(super) links: Links<Writer<T>, T>,
     sample: Mutex<T>,
-    /// Set at the first write: the last value below is real.
+    /// Set at the first write: the last value below is real (not used with `word`, whose
+    /// version says so).
     written: AtomicBool,
     /// A one-word sample's register: the port's last value, read by its data connections.
     pub(super) word: Option<Arc<WordCell>>,
@@ -36,13 +37,14 @@ impl<T: Clone + Send + 'static> OutputShared<T> {
 
     /// The last value written, if any. Not for real-time paths (locks, clones).
     pub(crate) fn last_written(&self) -> Option<T> {
-        if !self.written.load(Ordering::Acquire) {
-            return None;
-        }
+        // A register says itself whether it was written.
         if let Some(cell) = &self.word {
             let mut value = self.sample_clone();
             from_word(cell.latest()?, &mut value);
             return Some(value);
+        }
+        if !self.written.load(Ordering::Acquire) {
+            return None;
         }
         let mut last = lock(&self.last);
         let (out, value) = &mut *last;
@@ -68,7 +70,12 @@ pub struct OutputPort<T: Send> {
     /// Some connection's end needs each write (see [`Writer::needs_push`]).
     pub(super) push: bool,
     last: LatestIn<T>,
+    /// The first write was made and published to other threads (a one-word port's
+    /// register says so itself: set from the start).
     written: bool,
+    /// `push`, or the first write not made yet: the one flag a write looks at after the
+    /// register.
+    more: bool,
 }
 
 impl<T: Clone + Send + 'static> OutputPort<T> {
@@ -97,12 +104,13 @@ impl<T: Clone + Send + 'static> OutputPort<T> {
                 last: Mutex::new((last_out, sample.clone())),
                 sample: Mutex::new(sample),
                 written: AtomicBool::new(false),
-                word,
+                word: word.clone(),
             }),
             conns: Vec::with_capacity(RESERVED_CONNECTIONS),
             push: false,
             last: last_in,
-            written: false,
+            written: word.is_some(),
+            more: word.is_none(),
         }
     }
 
@@ -114,6 +122,15 @@ impl<T: Clone + Send + 'static> OutputPort<T> {
         }
         // First: the connections reading the register see it before an event port wakes.
         self.last.publish(value);
+        if self.more {
+            self.write_more(value);
+        }
+    }
+
+    /// What a write does beyond the register: each connection's end that needs it, and
+    /// the first write's flag for other threads.
+    #[inline(always)]
+    fn write_more(&mut self, value: &T) {
         if self.push {
             for c in &mut self.conns {
                 c.push(value);
@@ -122,6 +139,7 @@ impl<T: Clone + Send + 'static> OutputPort<T> {
         if !self.written {
             self.written = true;
             self.shared.written.store(true, Ordering::Release);
+            self.more = self.push;
         }
     }
 
@@ -132,6 +150,7 @@ impl<T: Clone + Send + 'static> OutputPort<T> {
             .links
             .refresh_changed(&mut self.conns, |w| w.ch.is_closed(), |_| false);
         self.push = self.conns.iter().any(Writer::needs_push);
+        self.more = self.push || !self.written;
     }
 
     /// Replaces the data sample future connections pre-allocate from.
