@@ -7,9 +7,11 @@
 //! poll — is noted and applied by the thread when the step ends:
 //!
 //! - a time already past: the next step follows at once, after an `epoll_wait` that does
-//!   not wait (to take up descriptors that became ready). No timer is armed, fired and read:
-//!   one system call where there were three, so a line polling back to back costs what its
-//!   own I/O costs. A timer still armed for a later time is disarmed first, as "replaces any
+//!   not wait (to take up descriptors that became ready) — or with no call at all when
+//!   nothing in the epoll set can be ready: the activity watches no descriptor of its user,
+//!   and no wake-up or request from another thread was written since the last look (each
+//!   writer raises a flag after its write; see [`Deadline::nudge`]). No timer is armed,
+//!   fired and read, so a line polling back to back costs what its own I/O costs. A timer still armed for a later time is disarmed first, as "replaces any
 //!   deadline set before" says.
 //! - a time to come: the timer is armed unless it is armed for that time already (a step
 //!   woken by a descriptor or a trigger that asks for the same next poll costs no call).
@@ -104,6 +106,9 @@ pub(super) struct Deadline {
     /// The deadline the activity's own step asked for, applied when the step ends (ns; 0:
     /// none). Only the activity's thread touches it.
     noted: AtomicU64,
+    /// Raised by another thread after it wrote to an eventfd in the epoll set (a wake-up, a
+    /// request): a step due at once looks at the set first.
+    nudged: AtomicBool,
 }
 
 impl Deadline {
@@ -129,6 +134,7 @@ impl Deadline {
             precise: AtomicBool::new(false),
             timed: AtomicBool::new(false),
             noted: AtomicU64::new(0),
+            nudged: AtomicBool::new(false),
         })
     }
 
@@ -165,7 +171,15 @@ impl Deadline {
         self.ask
             .write(1)
             .map_err(ActivityError::fd("eventfd write"))?;
+        self.nudge();
         Ok(())
+    }
+
+    /// Says that an eventfd in the epoll set was written (called after the write, so a
+    /// thread that sees the flag sees the descriptor ready): a step due at once looks at
+    /// the set before it runs.
+    pub(super) fn nudge(&self) {
+        self.nudged.store(true, Ordering::Release);
     }
 
     fn arm(&self, ns: u64) -> Result<(), ActivityError> {
@@ -249,24 +263,35 @@ impl Deadline {
 
     /// Waits in `epoll` for ready descriptors (into `ready`), the deadline in force, or
     /// `timeout` (ns; `None`: for ever) with nothing ready; with `at_once`, does not wait
-    /// (the step before asked for a time already past, which is the deadline that came).
+    /// (the step before asked for a time already past, which is the deadline that came),
+    /// and does not look either unless `watching` (descriptors of the user's are in the set)
+    /// or a [`nudge`](Self::nudge) came since it last looked.
     pub(super) fn wait(
         &self,
         epoll: &Epoll,
         ready: &mut [EpollEvent],
         timeout: Option<u64>,
         at_once: bool,
+        watching: bool,
     ) -> Result<Waited, ActivityError> {
         if at_once {
-            let n = epoll
-                .wait(ready, EpollTimeout::ZERO)
-                .map_err(ActivityError::fd("epoll_wait"))?;
+            // Nothing can be ready: no descriptor of the user's, no eventfd written.
+            let n = if !watching && !self.nudged.swap(false, Ordering::Acquire) {
+                0
+            } else {
+                epoll
+                    .wait(ready, EpollTimeout::ZERO)
+                    .map_err(ActivityError::fd("epoll_wait"))?
+            };
             return Ok(Waited {
                 n,
                 deadline: true,
                 timeout: false,
             });
         }
+        // This wait looks at the set: what a nudge taken here said is seen by it (the swap
+        // synchronises with the nudge's release, which follows its write).
+        self.nudged.swap(false, Ordering::AcqRel);
         let due = self.armed.load(Ordering::Relaxed);
         if due != 0 && !self.timed.load(Ordering::Relaxed) {
             if self.by_timer() {

@@ -38,7 +38,7 @@ use nix::sys::eventfd::{EfdFlags, EventFd};
 use serde::{Deserialize, Serialize};
 use stats::StatsCell;
 use std::os::fd::{AsFd, AsRawFd, BorrowedFd, OwnedFd, RawFd};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::Duration;
@@ -331,6 +331,8 @@ struct FdState {
     deadline: Deadline,
     /// (fd as the user knows it, our duplicate registered with epoll)
     watched: Mutex<Vec<(RawFd, OwnedFd)>>,
+    /// How many are watched (for the thread, without the lock).
+    watching: AtomicUsize,
 }
 
 struct Shared {
@@ -357,6 +359,7 @@ impl Waker for Shared {
             ActivitySpec::FileDescriptor { .. } => {
                 if let Some(fd) = &self.fd {
                     let _ = fd.wake.write(1);
+                    fd.deadline.nudge();
                 }
             }
             // A periodic activity processes its queue at the next period; a slave when stepped.
@@ -406,6 +409,7 @@ impl Activity {
                     wake,
                     deadline,
                     watched: Mutex::new(Vec::new()),
+                    watching: AtomicUsize::new(0),
                 })
             }
             _ => None,
@@ -556,7 +560,9 @@ impl Activity {
                 EpollEvent::new(EpollFlags::EPOLLIN, user as u64),
             )
             .map_err(ActivityError::fd("epoll_ctl(add)"))?;
-        crate::lock::lock(&state.watched).push((user, dup));
+        let mut watched = crate::lock::lock(&state.watched);
+        watched.push((user, dup));
+        state.watching.store(watched.len(), Ordering::Release);
         Ok(())
     }
 
@@ -581,6 +587,7 @@ impl Activity {
             return false;
         };
         let (_, dup) = w.swap_remove(i);
+        state.watching.store(w.len(), Ordering::Release);
         let _ = state.epoll.delete(dup.as_fd());
         true
     }

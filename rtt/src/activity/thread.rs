@@ -208,7 +208,11 @@ fn fd_loop(shared: &Shared, runner: &dyn Runner, fd: &FdState, timeout: Option<u
         .enter_thread(shared.stats.realtime.load(Ordering::Relaxed));
     let mut at_once = false;
     while shared.running.load(Ordering::Acquire) {
-        let waited = match fd.deadline.wait(&fd.epoll, &mut ready, timeout, at_once) {
+        let watching = fd.watching.load(Ordering::Acquire) > 0;
+        let waited = match fd
+            .deadline
+            .wait(&fd.epoll, &mut ready, timeout, at_once, watching)
+        {
             Ok(w) => w,
             Err(ActivityError::Fd {
                 source: nix::Error::EINTR,
