@@ -407,3 +407,54 @@ fn spin_is_bounded() {
         rtt::activity::DEFAULT_SPIN_US
     );
 }
+
+/// Waits 60 ms in its own code at each step, then restarts the step's clock and ends.
+struct WaitsThenWorks {
+    at: Arc<Mutex<Vec<(u64, u64)>>>,
+}
+
+impl Component for WaitsThenWorks {
+    fn update_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
+        std::thread::sleep(Duration::from_millis(60));
+        let before = rtt::activity::stamp_now();
+        ctx.activity().restart_step();
+        self.at
+            .lock()
+            .unwrap()
+            .push((before, rtt::activity::stamp_now()));
+        Ok(())
+    }
+}
+
+#[test]
+fn a_step_that_restarts_its_clock_counts_from_there() {
+    let rt = runtime();
+    let at = Arc::new(Mutex::new(Vec::new()));
+    let a = at.clone();
+    let t = rt
+        .add(
+            "waits",
+            ActivitySpec::file_descriptor(None),
+            rtt::InitialState::Stopped,
+            move |_| Ok(WaitsThenWorks { at: a }),
+        )
+        .unwrap();
+    t.start().unwrap();
+    t.trigger();
+    wait_for("a step", || t.stats().steps >= 1);
+    t.stop().unwrap();
+    let stats = t.stats();
+    // The 60 ms waited are not the step's: what is left is the push after the restart.
+    assert!(
+        stats.step_max_ns < 50_000_000,
+        "the wait was counted: longest step {} ns",
+        stats.step_max_ns
+    );
+    let (before, after) = at.lock().unwrap()[0];
+    assert!(
+        after >= before + 50_000_000,
+        "the stamp after the restart is the restart's time: {before} then {after}"
+    );
+    // Outside a step (this thread): nothing happens.
+    t.activity().restart_step();
+}

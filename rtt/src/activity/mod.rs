@@ -38,7 +38,7 @@ use nix::sys::eventfd::{EfdFlags, EventFd};
 use serde::{Deserialize, Serialize};
 use stats::StatsCell;
 use std::os::fd::{AsFd, AsRawFd, BorrowedFd, OwnedFd, RawFd};
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::Duration;
@@ -313,9 +313,16 @@ fn run_step(shared: &Shared, runner: &dyn Runner, events: &FdEvents, timing: Ste
         .scope
         .pulse(|| in_step(started, owner, || runner.step(events, timing)));
     let ended = MonotonicClock.now().as_nanos();
-    shared
-        .stats
-        .step(timing.scheduled.as_nanos(), started, ended);
+    // A step that waited in its component's own code counts from the end of the wait
+    // (see `Activity::restart_step`); only this thread writes the cell.
+    let (scheduled, started) = match shared.restarted.load(Ordering::Relaxed) {
+        0 => (timing.scheduled.as_nanos(), started),
+        at => {
+            shared.restarted.store(0, Ordering::Relaxed);
+            (at, at)
+        }
+    };
+    shared.stats.step(scheduled, started, ended);
     ended
 }
 
@@ -350,6 +357,8 @@ struct Shared {
     fd: Option<FdState>,
     stats: StatsCell,
     scope: Arc<ThreadScope>,
+    /// When the step under way restarted its clock (monotonic ns; 0: it did not).
+    restarted: AtomicU64,
 }
 
 impl Waker for Shared {
@@ -437,6 +446,7 @@ impl Activity {
                 fd,
                 stats: StatsCell::new(),
                 scope,
+                restarted: AtomicU64::new(0),
             }),
             handle: Mutex::new(None),
         })
@@ -523,6 +533,21 @@ impl Activity {
     /// The statistics so far.
     pub fn stats(&self) -> ActivityStats {
         self.shared.stats.snapshot()
+    }
+
+    /// From the activity's own step, which waited in its component's own code for what it
+    /// now handles (a bus reading a frame in a blocking call): the step counts from now —
+    /// its duration, the lateness and the stamp of what it writes to stamped connections —
+    /// so the time it waited is not taken for time it worked. A no-op from any other
+    /// thread, or outside a step.
+    pub fn restart_step(&self) {
+        let owner = Arc::as_ptr(&self.shared) as u64;
+        if steps::step_owner() != owner {
+            return;
+        }
+        let now = MonotonicClock.now().as_nanos().max(1);
+        steps::restart_step_clock(now);
+        self.shared.restarted.store(now, Ordering::Relaxed);
     }
 
     /// Asks for a step soon (non-periodic and file-descriptor activities; a no-op for the
@@ -624,10 +649,20 @@ impl Activity {
     /// Stops the thread and waits for it: the step under way finishes; a periodic activity's
     /// sleep is cut short (within 50 ms, whatever its period).
     pub(crate) fn stop(&self) {
+        self.stop_breaking(None);
+    }
+
+    /// Stops the thread as [`stop`](Self::stop) does, calling `brk` (the component's break
+    /// hook) once the thread is told to stop and before it is joined: a step blocked in the
+    /// component's own code returns, and the thread, looking at its flag, ends.
+    pub(crate) fn stop_breaking(&self, brk: Option<&(dyn Fn() + Send + Sync)>) {
         if !self.shared.running.swap(false, Ordering::AcqRel) {
             return;
         }
         self.shared.wake();
+        if let Some(b) = brk {
+            b();
+        }
         if let Some(t) = self.shared.signal.thread.load().as_deref() {
             t.unpark();
         }

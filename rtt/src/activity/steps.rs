@@ -61,6 +61,15 @@ pub(crate) fn in_step<R>(started: u64, owner: u64, f: impl FnOnce() -> R) -> R {
     r
 }
 
+/// The step this thread is running counts from `at` (monotonic ns, not 0) from now on:
+/// what it writes to stamped connections takes that time (see
+/// [`Activity::restart_step`](super::Activity::restart_step)).
+pub(crate) fn restart_step_clock(at: u64) {
+    if STEP_START.get() != 0 {
+        STEP_START.set(at);
+    }
+}
+
 /// The activity whose step this thread is running (see [`in_step`]), 0 outside a step. An
 /// activity's steps never overlap, whatever thread runs them: a journal lane keyed by it
 /// has one writer at a time, across restarts too.

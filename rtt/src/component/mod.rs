@@ -725,13 +725,12 @@ impl TaskContext {
         if !matches!(self.state(), TaskState::Running | TaskState::RunTimeError) {
             return Err(self.illegal("stop"));
         }
-        // Its break hook first: a step blocked in the component's own code returns, and
-        // the thread can be joined.
-        if let Some(b) = &self.core.breaker {
-            b();
-        }
-        // Stop the thread first, without holding the component: its step needs it.
-        self.core.activity.stop();
+        // Stop the thread first, without holding the component: its step needs it. Its
+        // break hook once the thread is told: a step blocked in the component's own code
+        // returns, and the thread, seeing the stop, can be joined.
+        self.core
+            .activity
+            .stop_breaking(self.core.breaker.as_deref());
         self.core.engine_thread.store(0, Ordering::Release);
         self.core.drain_queue();
         self.hook(
