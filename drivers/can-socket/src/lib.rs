@@ -8,7 +8,8 @@
 //! - [`link`]: an interface's presence, state and identity from sysfs;
 //! - [`signal`]: values in frame payloads as DBC files and CANopen PDOs lay them out
 //!   (Intel/Motorola bit order, signed, 64-bit, IEEE float and double, factor, offset);
-//! - [`wakeups`]: the timer and wake-up a bus side waits on beside its socket.
+//! - [`wakeups`]: the timer and wake-up a bus side waits on beside its socket;
+//! - [`blocking`]: waiting in the socket itself, interrupted by a signal.
 //!
 //! ```
 //! use can_socket::signal::{ByteOrder, Signal};
@@ -19,6 +20,7 @@
 //! # Ok::<(), can_socket::signal::SignalError>(())
 //! ```
 
+pub mod blocking;
 pub mod isotp;
 pub mod j1939;
 pub mod link;

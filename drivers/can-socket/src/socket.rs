@@ -149,7 +149,8 @@ pub struct Received {
     pub dropped: u32,
 }
 
-/// A non-blocking CAN_RAW socket bound to one interface.
+/// A CAN_RAW socket bound to one interface: non-blocking, unless its reader waits in it
+/// (see [`crate::blocking`]); its sends never wait either way.
 pub struct RawSocket {
     socket: CanFdSocket,
     /// Room for the timestamp and drop-count control messages (allocated once).
@@ -188,11 +189,25 @@ impl RawSocket {
     /// Receives one queued frame into `data` without blocking: None when none is queued
     /// (EINTR is retried). The error is the socket's (ENETDOWN or ENODEV when the link went).
     pub fn recv(&mut self, data: &mut [u8; 64]) -> nix::Result<Option<Received>> {
+        self.receive(data, MsgFlags::MSG_DONTWAIT)
+    }
+
+    /// Receives one frame into `data`, waiting for it in the call when the socket is
+    /// blocking (see [`crate::blocking`]): None when the wait was interrupted (EINTR) or
+    /// the socket was non-blocking with nothing queued.
+    pub fn recv_wait(&mut self, data: &mut [u8; 64]) -> nix::Result<Option<Received>> {
+        match self.receive(data, MsgFlags::empty()) {
+            Err(nix::Error::EINTR) => Ok(None),
+            r => r,
+        }
+    }
+
+    fn receive(&mut self, data: &mut [u8; 64], flags: MsgFlags) -> nix::Result<Option<Received>> {
         let mut raw = [0u8; CANFD_MTU];
         let fd = self.socket.as_raw_fd();
         let (n, stamp, drops) = loop {
             let mut iov = [std::io::IoSliceMut::new(&mut raw)];
-            match recvmsg::<()>(fd, &mut iov, Some(&mut self.cmsg), MsgFlags::MSG_DONTWAIT) {
+            match recvmsg::<()>(fd, &mut iov, Some(&mut self.cmsg), flags) {
                 Ok(msg) => {
                     let mut stamp = None;
                     let mut drops = None;
@@ -212,7 +227,7 @@ impl RawSocket {
                     break (msg.bytes, stamp, drops);
                 }
                 Err(nix::Error::EAGAIN) => return Ok(None),
-                Err(nix::Error::EINTR) => continue,
+                Err(nix::Error::EINTR) if flags.contains(MsgFlags::MSG_DONTWAIT) => continue,
                 Err(e) => return Err(e),
             }
         };
@@ -266,10 +281,29 @@ impl RawSocket {
         };
         if fd {
             let frame = socketcan::CanFdFrame::new(id, data).ok_or_else(invalid)?;
-            self.socket.write_frame(&frame)
+            self.send_bytes(&frame)
         } else {
             let frame = socketcan::CanFrame::new(id, data).ok_or_else(invalid)?;
-            self.socket.write_frame(&frame)
+            self.send_bytes(&frame)
+        }
+    }
+
+    /// Sends `frame` without ever waiting (the socket may be blocking for its reader):
+    /// a full queue is an error (ENOBUFS or EAGAIN), as on a non-blocking socket.
+    fn send_bytes(&self, frame: &impl socketcan::frame::AsPtr) -> std::io::Result<()> {
+        #[allow(
+            unsafe_code,
+            reason = "the frame's bytes as the kernel takes them; socketcan's own write reads them so"
+        )]
+        // SAFETY: socketcan's frames start from a zeroed struct and zero what a shorter
+        // payload leaves (its `AsPtr::as_bytes` contract), so every byte is initialised.
+        let bytes = unsafe { frame.as_bytes() };
+        let n = nix::sys::socket::send(self.socket.as_raw_fd(), bytes, MsgFlags::MSG_DONTWAIT)
+            .map_err(std::io::Error::from)?;
+        if n == bytes.len() {
+            Ok(())
+        } else {
+            Err(std::io::Error::from(std::io::ErrorKind::WriteZero))
         }
     }
 }
