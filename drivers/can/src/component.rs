@@ -1,6 +1,8 @@
 //! A CAN bus as an rtt component on a file-descriptor activity.
 //!
-//! The component watches [`CanBus::fds`] and services the bus on every wake-up: received
+//! A card without J1939 waits in its socket ([`CanBus::wait_and_service`]) at each step and
+//! asks for the next step at once, so its activity watches nothing; a J1939 card's watches
+//! [`CanBus::fds`]. Either services the bus on every wake-up: received
 //! frames are decoded into the card's channels (which the gateway's IO components and any
 //! component holding the devices read) and, frame by frame, published on one output port
 //! per received message, so a component can see every frame rather than a sample of them.
@@ -53,6 +55,9 @@ pub struct CanIo {
     /// A real controller's state, written when it changes.
     controller: OutputPort<Controller>,
     controller_seen: Option<Controller>,
+    /// The bus waits in its socket (see [`CanBus::wait_and_service`]), not in the
+    /// activity's epoll set.
+    in_socket: bool,
 }
 
 impl CanIo {
@@ -117,6 +122,9 @@ impl CanIo {
         if !card.map().isotp().is_empty() {
             isotp_operation(&card, iface)?;
         }
+        // A stop ends a wait in the socket (see `CanBus::wait_and_service`).
+        let c = card.clone();
+        iface.on_break(move || c.wake());
         let c = card.clone();
         iface.client_operation(
             "counters",
@@ -136,6 +144,7 @@ impl CanIo {
             controller_seen: None,
             watched: SocketWatch::default(),
             watched_j1939: SocketWatch::default(),
+            in_socket: false,
         })
     }
 }
@@ -225,12 +234,20 @@ impl Component for CanIo {
                 CanBus::open(self.card.clone()).map_err(|e| HookError::new(e.to_string()))?,
             ),
         };
+        self.watched.forget(ctx);
+        self.watched_j1939.forget(ctx);
+        if bus.waits_in_socket() {
+            // Each step waits in the socket and asks for the next at once: the activity
+            // watches nothing, so it goes from step to step without a call of its own.
+            ctx.activity().wake_at(rtt::time::Timestamp::ZERO)?;
+            self.in_socket = true;
+            return Ok(());
+        }
+        self.in_socket = false;
         // The timer and the wake-up; the sockets on their own, as they can be replaced.
         for fd in bus.timer_fds() {
             ctx.activity().watch(fd)?;
         }
-        self.watched.forget(ctx);
-        self.watched_j1939.forget(ctx);
         self.watch_socket(ctx);
         // Send the first cyclic frames and learn the link state at once.
         self.update_hook(ctx)
@@ -241,7 +258,7 @@ impl Component for CanIo {
         let Some(bus) = &mut self.bus else {
             return Ok(());
         };
-        bus.service(&mut |f, values, at| {
+        let mut on_frame = |f: usize, values: &[f64], at: device_interface::time::Timestamp| {
             let Some(port) = ports.get_mut(f) else { return };
             // The card decoded the frame once, for its channels and these values alike.
             sample.values.clear();
@@ -252,8 +269,15 @@ impl Component for CanIo {
                 MonotonicClock.now().as_nanos()
             };
             port.write(sample);
-        });
-        self.watch_socket(ctx);
+        };
+        if self.in_socket {
+            let activity = ctx.activity();
+            bus.wait_and_service(&mut || activity.restart_step(), &mut on_frame);
+            activity.wake_at(rtt::time::Timestamp::ZERO)?;
+        } else {
+            bus.service(&mut on_frame);
+            self.watch_socket(ctx);
+        }
         let c = self.card.controller();
         if c != self.controller_seen {
             if let Some(c) = &c {
@@ -265,9 +289,14 @@ impl Component for CanIo {
     }
 
     fn stop_hook(&mut self, ctx: &mut Context<'_>) {
-        if let Some(bus) = &self.bus {
-            for fd in bus.timer_fds() {
-                ctx.activity().unwatch(fd.as_raw_fd());
+        if let Some(bus) = &mut self.bus {
+            if self.in_socket {
+                // The thread is joined: no signal or timer may reach a later thread.
+                bus.thread_ended();
+            } else {
+                for fd in bus.timer_fds() {
+                    ctx.activity().unwatch(fd.as_raw_fd());
+                }
             }
         }
         self.watched.forget(ctx);

@@ -6,10 +6,11 @@
 //! the descriptors that become readable when a frame arrives (the socket), when a frame is
 //! due to be sent (a timerfd at the next deadline), or when an output changed on an
 //! on-change frame (an eventfd); an rtt file-descriptor activity watches them and calls
-//! [`CanBus::service`], which never blocks. They are watched directly, not through an
-//! epoll set of the bus's own: a frame wakes the thread through one wait queue, as it wakes
-//! a plain blocking read. The socket is replaced when the interface is
-//! ([`CanBus::socket_generation`] says when).
+//! [`CanBus::service`], which never blocks. That is how a J1939 card, with two sockets,
+//! waits. A card without J1939 ([`CanBus::waits_in_socket`]) waits in the socket's own
+//! `recvmsg` instead, as a bare blocking reader does ([`CanBus::wait_and_service`]): its
+//! deadlines and wake-ups end that wait with a signal (see [`can_socket::blocking`]). The
+//! socket is replaced when the interface is ([`CanBus::socket_generation`] says when).
 //!
 //! The link is watched through the socket's errors and `/sys/class/net/IF`: when it goes
 //! down the card goes offline; when it comes back — even as a new interface of the same
@@ -36,7 +37,7 @@ use crate::card::{CanCard, ErrorReport, Received};
 use can_socket::socket::{Filter, Frame, RawSocket, check_interface, realtime_offset};
 use can_socket::wakeups::Wakeups;
 use device_interface::time::Timestamp;
-use std::os::fd::{AsFd, BorrowedFd};
+use std::os::fd::{AsFd, AsRawFd, BorrowedFd};
 use std::sync::Arc;
 
 /// Why a bus could not be opened (the socket layer's interface checks).
@@ -110,6 +111,8 @@ impl CanBus {
                 node.map(|n| crate::j1939::Claimer::new(n).logging_to(card.log().clone())),
             )
         });
+        let mut wakeups = wakeups;
+        wakeups.wait_in_socket(j1939.is_none());
         let mut bus = CanBus {
             card,
             socket: None,
@@ -131,6 +134,9 @@ impl CanBus {
     }
 
     fn open_socket(&mut self) -> std::io::Result<()> {
+        // The thread's signal must not touch the descriptor once it is closed (its number
+        // may be another file's by the next wait).
+        self.wakeups.waiter().leave();
         self.socket = None;
         let map = self.card.map();
         // J1939 groups come through the J1939 socket.
@@ -231,56 +237,129 @@ impl CanBus {
             let Some(socket) = &mut self.socket else {
                 return;
             };
-            let got = match socket.recv(&mut data) {
-                Ok(Some(got)) => got,
-                Ok(None) => break,
-                Err(e @ (nix::Error::ENETDOWN | nix::Error::ENODEV)) => {
-                    self.link_lost(e);
-                    break;
+            let got = socket.recv(&mut data);
+            if !self.take(got, &data, &mut offset, on_frame) {
+                break;
+            }
+        }
+    }
+
+    /// Handles what one receive gave: a frame (decoded and handed to `on_frame`), an error
+    /// frame, or the socket's error. False when nothing more is to be had now.
+    fn take(
+        &mut self,
+        got: nix::Result<Option<can_socket::socket::Received>>,
+        data: &[u8; 64],
+        offset: &mut Option<i128>,
+        on_frame: &mut dyn FnMut(usize, &[f64], Timestamp),
+    ) -> bool {
+        let got = match got {
+            Ok(Some(got)) => got,
+            Ok(None) => return false,
+            Err(e @ (nix::Error::ENETDOWN | nix::Error::ENODEV)) => {
+                self.link_lost(e);
+                return false;
+            }
+            Err(e) => {
+                rtt::rt_log!(
+                    self.card.log(),
+                    Warn,
+                    "{}: recvmsg: {}",
+                    rtt::log::Arg::text(self.card.map().interface()),
+                    rtt::log::Arg::Errno(e as i32)
+                );
+                return false;
+            }
+        };
+        if got.dropped > 0 {
+            self.card.dropped(u64::from(got.dropped));
+        }
+        let at = match got.stamp {
+            Some(real) => {
+                let offset = *offset.get_or_insert_with(realtime_offset);
+                Timestamp::from_nanos((real + offset).max(0) as u64)
+            }
+            None => Timestamp::from_nanos(now_ns()),
+        };
+        match got.frame {
+            Frame::WrongKind => self.card.wrong_kind(),
+            Frame::Error { class, len } => self.error_frame(class, &data[..len]),
+            Frame::Data {
+                id,
+                extended,
+                fd,
+                len,
+            } => {
+                if let Received::Decoded(f) = self.card.receive_with_values(
+                    id,
+                    extended,
+                    fd,
+                    &data[..len],
+                    at,
+                    &mut self.values,
+                ) {
+                    on_frame(f, &self.values, at);
                 }
+            }
+        }
+        true
+    }
+
+    /// The thread that waited in the socket has ended (the component stopped): nothing
+    /// aims at it any more (see [`can_socket::blocking::Waiter::forget_thread`]).
+    pub fn thread_ended(&mut self) {
+        self.wakeups.waiter().forget_thread();
+    }
+
+    /// True when the bus waits for its frames in the socket itself
+    /// ([`wait_and_service`](Self::wait_and_service)): a card without J1939, whose socket
+    /// is the only one to receive from.
+    pub fn waits_in_socket(&self) -> bool {
+        self.j1939.is_none()
+    }
+
+    /// Waits for something to do — in `recvmsg` on the socket for a frame, as a bare
+    /// blocking reader does, ended early by a deadline or a wake-up (see
+    /// [`can_socket::blocking`]); without a socket, in `poll` on the wake-up until the next
+    /// deadline — then calls `woke` and does what [`service`](Self::service) does, the
+    /// frame that ended the wait first. For a bus that [`waits_in_socket`](Self::waits_in_socket),
+    /// from one thread.
+    pub fn wait_and_service(
+        &mut self,
+        woke: &mut dyn FnMut(),
+        on_frame: &mut dyn FnMut(usize, &[f64], Timestamp),
+    ) {
+        let mut data = [0u8; 64];
+        let mut offset = None;
+        match self.socket.as_ref().map(|s| s.as_fd().as_raw_fd()) {
+            Some(fd) => match self.wakeups.waiter().prepare(fd) {
+                Ok(true) => {
+                    let got = self.socket.as_mut().map(|s| s.recv_wait(&mut data));
+                    woke();
+                    if let Some(got) = got {
+                        self.take(got, &data, &mut offset, on_frame);
+                    }
+                }
+                Ok(false) => woke(),
                 Err(e) => {
                     rtt::rt_log!(
                         self.card.log(),
                         Warn,
-                        "{}: recvmsg: {}",
+                        "{}: cannot wait in the socket: {}",
                         rtt::log::Arg::text(self.card.map().interface()),
-                        rtt::log::Arg::Errno(e as i32)
+                        rtt::log::Arg::io(&e)
                     );
-                    break;
+                    self.wakeups.wait_in_poll(self.next_deadline());
+                    woke();
                 }
-            };
-            if got.dropped > 0 {
-                self.card.dropped(u64::from(got.dropped));
-            }
-            let at = match got.stamp {
-                Some(real) => {
-                    let offset = *offset.get_or_insert_with(realtime_offset);
-                    Timestamp::from_nanos((real + offset).max(0) as u64)
-                }
-                None => Timestamp::from_nanos(now_ns()),
-            };
-            match got.frame {
-                Frame::WrongKind => self.card.wrong_kind(),
-                Frame::Error { class, len } => self.error_frame(class, &data[..len]),
-                Frame::Data {
-                    id,
-                    extended,
-                    fd,
-                    len,
-                } => {
-                    if let Received::Decoded(f) = self.card.receive_with_values(
-                        id,
-                        extended,
-                        fd,
-                        &data[..len],
-                        at,
-                        &mut self.values,
-                    ) {
-                        on_frame(f, &self.values, at);
-                    }
-                }
+            },
+            None => {
+                self.wakeups.waiter().leave();
+                self.wakeups.wait_in_poll(self.next_deadline());
+                woke();
             }
         }
+        self.service(on_frame);
     }
 
     fn error_frame(&self, class: u32, data: &[u8]) {
@@ -376,15 +455,19 @@ impl CanBus {
 
     /// Arms the timer for the next send or check.
     fn arm(&mut self) {
-        let next = self
-            .next_tx
+        let next = self.next_deadline();
+        self.wakeups.arm(next);
+    }
+
+    /// The next send or check (monotonic ns).
+    fn next_deadline(&self) -> u64 {
+        self.next_tx
             .iter()
             .flatten()
             .copied()
             .chain([self.next_check])
             .chain(self.claim_deadline())
             .min()
-            .unwrap_or(self.next_check);
-        self.wakeups.arm(next);
+            .unwrap_or(self.next_check)
     }
 }

@@ -83,6 +83,13 @@ impl CanCard {
         }
     }
 
+    /// Wakes the bus side: ends its wait (a stop's break, an operation for its thread).
+    pub fn wake(&self) {
+        if let Some(w) = self.waker.load().as_deref() {
+            w();
+        }
+    }
+
     /// Asks the bus side to send every tx frame now (at shutdown, after the safe values).
     pub fn flush(&self) {
         for d in self.tx_dirty.iter() {
