@@ -359,6 +359,8 @@ struct Shared {
     scope: Arc<ThreadScope>,
     /// When the step under way restarted its clock (monotonic ns; 0: it did not).
     restarted: AtomicU64,
+    /// Called at every wake-up, after the activity's own (see [`Activity::on_wake`]).
+    wake_hook: std::sync::OnceLock<Box<dyn Fn() + Send + Sync>>,
 }
 
 impl Waker for Shared {
@@ -369,6 +371,9 @@ impl Waker for Shared {
                 if let Some(fd) = &self.fd {
                     let _ = fd.wake.write(1);
                     fd.deadline.nudge();
+                }
+                if let Some(hook) = self.wake_hook.get() {
+                    hook();
                 }
             }
             // A periodic activity processes its queue at the next period; a slave when stepped.
@@ -447,6 +452,7 @@ impl Activity {
                 stats: StatsCell::new(),
                 scope,
                 restarted: AtomicU64::new(0),
+                wake_hook: std::sync::OnceLock::new(),
             }),
             handle: Mutex::new(None),
         })
@@ -548,6 +554,14 @@ impl Activity {
         let now = MonotonicClock.now().as_nanos().max(1);
         steps::restart_step_clock(now);
         self.shared.restarted.store(now, Ordering::Relaxed);
+    }
+
+    /// Adds `hook` to every wake-up of a file-descriptor activity (a trigger, an event
+    /// port, an OwnThread call, another thread's `wake_at`, a stop), called after the
+    /// activity's own: for a component whose step waits in its own code (a bus blocked
+    /// in `recvmsg`), to end that wait. The first hook given stays; it must not block.
+    pub fn on_wake(&self, hook: impl Fn() + Send + Sync + 'static) {
+        let _ = self.shared.wake_hook.set(Box::new(hook));
     }
 
     /// Asks for a step soon (non-periodic and file-descriptor activities; a no-op for the

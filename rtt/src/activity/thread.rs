@@ -81,6 +81,8 @@ pub(super) fn thread_main(shared: Arc<Shared>, runner: Arc<dyn Runner>) {
     }
     let clock = MonotonicClock;
     let stats = &shared.stats;
+    // A restart left by a step that unwound is not this thread's.
+    shared.restarted.store(0, Ordering::Relaxed);
     stats.taps.warm();
     let changed = crate::lock::lock(&shared.changed).clone();
     match changed.as_ref().unwrap_or(&shared.spec) {

@@ -51,7 +51,7 @@ use device_interface::time::Clock;
 use serde::Serialize;
 use std::any::Any;
 use std::fmt;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 use std::time::Duration;
 
@@ -191,6 +191,10 @@ pub(crate) struct TaskCore {
     /// The thread holding `component` ([`this_thread`]), 0 when none: a lifecycle command
     /// or own-thread call from it is refused rather than dead-locked.
     holder: AtomicU64,
+    /// Threads outside the component waiting to take it between steps (`error`,
+    /// `recover`): while any waits, its activity's steps are skipped, so a step that waits
+    /// in the component's own code cannot take it back before them.
+    outside: AtomicU32,
     peers: Weak<Mutex<Vec<TaskContext>>>,
     /// Slave components stepped after each of this one's steps, in order.
     slaves: arc_swap::ArcSwap<Vec<TaskContext>>,
@@ -308,12 +312,32 @@ impl TaskCore {
         })
     }
 
+    /// The component, for a thread outside it while its activity runs (`error`,
+    /// `recover`): the activity's steps are skipped until this thread has it, a step under
+    /// way is woken (its activity's wake hook ends a wait in the component's own code), and
+    /// the activity is asked for a step when the guard goes.
+    fn lock_from_outside(&self) -> Option<Outside<'_>> {
+        self.outside.fetch_add(1, Ordering::AcqRel);
+        self.activity.trigger();
+        let held = self.lock_component();
+        self.outside.fetch_sub(1, Ordering::AcqRel);
+        Some(Outside {
+            held: Some(held?),
+            activity: &self.activity,
+        })
+    }
+
     /// Whether this thread is inside the component's hook or step.
     fn held_here(&self) -> bool {
         self.holder.load(Ordering::Acquire) == this_thread()
     }
 
     fn step(&self, events: &FdEvents, timing: StepTiming) {
+        // A thread outside waits for the component: it goes first (it asks for a step
+        // when done).
+        if self.outside.load(Ordering::Acquire) > 0 {
+            return;
+        }
         // A step from within the component's own hook (a script stepping itself) is none.
         let Some(mut guard) = self.lock_component() else {
             return;
@@ -441,6 +465,20 @@ impl Drop for Held<'_> {
         // Before the guard lets go (fields drop after this): no other thread can have
         // noted itself meanwhile.
         self.holder.store(0, Ordering::Release);
+    }
+}
+
+/// The component held by a thread outside it (see `TaskCore::lock_from_outside`): when
+/// it goes, the component is let go and its activity asked for the step it skipped.
+struct Outside<'a> {
+    held: Option<Held<'a>>,
+    activity: &'a Activity,
+}
+
+impl Drop for Outside<'_> {
+    fn drop(&mut self) {
+        self.held = None;
+        self.activity.trigger();
     }
 }
 
@@ -573,6 +611,7 @@ impl TaskContext {
                 last_error: Mutex::new(None),
                 engine_thread: AtomicU64::new(0),
                 holder: AtomicU64::new(0),
+                outside: AtomicU32::new(0),
                 peers: setup.peers,
                 slaves: arc_swap::ArcSwap::from_pointee(Vec::new()),
                 peer_aliases: Mutex::new(Vec::new()),
@@ -780,7 +819,7 @@ impl TaskContext {
     pub fn recover(&self) -> Result<(), LifecycleError> {
         match self.state() {
             TaskState::RunTimeError => {
-                let Some(_guard) = self.core.lock_component() else {
+                let Some(_guard) = self.core.lock_from_outside() else {
                     return Err(self.reentrant("recover"));
                 };
                 if self.state() != TaskState::RunTimeError {
@@ -802,7 +841,7 @@ impl TaskContext {
 
     /// Running → RunTimeError, from outside the component.
     pub fn error(&self) -> Result<(), LifecycleError> {
-        let Some(_guard) = self.core.lock_component() else {
+        let Some(_guard) = self.core.lock_from_outside() else {
             return Err(self.reentrant("error"));
         };
         if self.state() != TaskState::Running {
