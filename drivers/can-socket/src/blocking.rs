@@ -17,9 +17,8 @@
 
 use std::cell::Cell;
 use std::os::fd::RawFd;
-use std::sync::Arc;
-use std::sync::Once;
 use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
+use std::sync::{Arc, OnceLock};
 
 /// The signal that interrupts a bus thread's wait: the sixth real-time signal above the
 /// C library's reserved ones, which nothing else in hwgw uses.
@@ -29,9 +28,10 @@ pub fn signal() -> libc::c_int {
 
 thread_local! {
     /// The socket this thread waits on (-1: none): what the handler makes non-blocking.
-    static WAITING_FD: Cell<RawFd> = const { Cell::new(-1) };
+    /// Atomics, as the handler touches them between any two instructions of the thread.
+    static WAITING_FD: AtomicI32 = const { AtomicI32::new(-1) };
     /// Set by the handler when it made the socket non-blocking.
-    static UNBLOCKED: Cell<bool> = const { Cell::new(false) };
+    static UNBLOCKED: AtomicBool = const { AtomicBool::new(false) };
     /// This thread's kernel id, once asked (0: not yet).
     static TID: Cell<libc::pid_t> = const { Cell::new(0) };
 }
@@ -64,27 +64,30 @@ extern "C" fn on_signal(_: libc::c_int) {
     unsafe {
         let errno = libc::__errno_location();
         let saved = *errno;
-        let fd = WAITING_FD.get();
-        if fd >= 0 && libc::fcntl(fd, libc::F_SETFL, libc::O_NONBLOCK) == 0 {
-            UNBLOCKED.set(true);
+        let fd = WAITING_FD.with(|w| w.load(Ordering::Relaxed));
+        if fd >= 0 {
+            let flags = libc::fcntl(fd, libc::F_GETFL);
+            if flags >= 0 && libc::fcntl(fd, libc::F_SETFL, flags | libc::O_NONBLOCK) == 0 {
+                UNBLOCKED.with(|u| u.store(true, Ordering::Relaxed));
+            }
         }
         *errno = saved;
     }
 }
 
-static INSTALL: Once = Once::new();
+/// The handler's installation: done once; its failure (an errno) kept for every waiter.
+static INSTALLED: OnceLock<Result<(), i32>> = OnceLock::new();
 
-/// Installs the handler of [`signal()`] (once per process).
+/// Installs the handler of [`signal()`] (once per process; a failure is every caller's).
 fn install() -> std::io::Result<()> {
-    let mut result = Ok(());
-    INSTALL.call_once(|| {
+    let r = INSTALLED.get_or_init(|| {
         #[allow(
             unsafe_code,
             reason = "sigaction for a real-time signal, which nix's Signal cannot name"
         )]
         // SAFETY: a zeroed sigaction is valid; its mask is emptied and its handler set
         // before the call reads it; the handler only calls async-signal-safe functions and
-        // touches thread-local cells (see `on_signal`).
+        // touches thread-local atomics (see `on_signal`).
         let r = unsafe {
             let mut action: libc::sigaction = std::mem::zeroed();
             libc::sigemptyset(&mut action.sa_mask);
@@ -92,11 +95,13 @@ fn install() -> std::io::Result<()> {
             action.sa_flags = libc::SA_RESTART;
             libc::sigaction(signal(), &action, std::ptr::null_mut())
         };
-        if r != 0 {
-            result = Err(std::io::Error::last_os_error());
+        if r == 0 {
+            Ok(())
+        } else {
+            Err(std::io::Error::last_os_error().raw_os_error().unwrap_or(0))
         }
     });
-    result
+    r.map_err(std::io::Error::from_raw_os_error)
 }
 
 /// Unblocks [`signal()`] in the calling thread.
@@ -119,6 +124,9 @@ fn unblock() -> std::io::Result<()> {
     }
 }
 
+/// This process's id, once asked.
+static PID: OnceLock<u32> = OnceLock::new();
+
 /// Interrupts one bus thread's wait; any thread may call it. Never blocks, never allocates.
 #[derive(Debug, Default)]
 pub struct Interrupter {
@@ -137,6 +145,7 @@ impl Interrupter {
         }
         let tid = self.tid.load(Ordering::Acquire);
         if tid > 0 {
+            let pid = *PID.get_or_init(std::process::id);
             // ESRCH: the thread ended; its next one looks at `pending` first.
             #[allow(
                 unsafe_code,
@@ -146,7 +155,7 @@ impl Interrupter {
             let _ = unsafe {
                 libc::syscall(
                     libc::SYS_tgkill,
-                    libc::getpid(),
+                    libc::c_long::from(pid),
                     libc::c_long::from(tid),
                     libc::c_long::from(signal()),
                 )
@@ -203,21 +212,24 @@ impl Waiter {
     /// interruption (pending, looked at after) or a deadline (come, looked at after); one
     /// while it is made blocking leaves its mark, looked at after; one after makes the
     /// wait's call return at once.
+    /// An error (the timer cannot be made or armed, the socket's mode not set): the caller
+    /// must not wait in the socket, where a deadline would not end the wait.
     pub fn prepare(&mut self, fd: RawFd) -> std::io::Result<bool> {
-        let changed = WAITING_FD.get() != fd;
-        if changed {
-            WAITING_FD.set(fd);
-        }
-        if changed || UNBLOCKED.get() {
-            UNBLOCKED.set(false);
+        let changed = WAITING_FD.with(|w| w.swap(fd, Ordering::Relaxed)) != fd;
+        if changed || UNBLOCKED.with(|u| u.load(Ordering::Relaxed)) {
+            UNBLOCKED.with(|u| u.store(false, Ordering::Relaxed));
             set_blocking(fd)?;
-            if UNBLOCKED.get() {
+            if UNBLOCKED.with(|u| u.load(Ordering::Relaxed)) {
                 return Ok(false);
             }
         }
         let tid = this_thread();
         if self.timer.is_none_or(|(t, _)| t != tid) {
             self.aim(tid)?;
+        }
+        if self.wanted != self.armed && self.wanted != 0 {
+            // An arm that failed before: again, or no wait.
+            self.arm(self.wanted)?;
         }
         if self.interrupter.pending.swap(false, Ordering::AcqRel) {
             return Ok(false);
@@ -231,8 +243,8 @@ impl Waiter {
     /// This thread no longer waits on its socket (it is replaced or closed): a signal
     /// leaves descriptors alone.
     pub fn leave(&mut self) {
-        WAITING_FD.set(-1);
-        UNBLOCKED.set(false);
+        WAITING_FD.with(|w| w.store(-1, Ordering::Relaxed));
+        UNBLOCKED.with(|u| u.store(false, Ordering::Relaxed));
     }
 
     /// The thread that waited has ended (its component stopped): the timer is deleted and
@@ -332,12 +344,19 @@ fn now_ns() -> u64 {
     MonotonicClock.now().as_nanos()
 }
 
-/// Clears `O_NONBLOCK` on `fd`.
+/// Clears `O_NONBLOCK` on `fd`, leaving its other status flags.
 fn set_blocking(fd: RawFd) -> std::io::Result<()> {
     #[allow(unsafe_code, reason = "fcntl on a raw descriptor the caller owns")]
-    // SAFETY: F_SETFL on a descriptor; no memory is passed.
-    let r = unsafe { libc::fcntl(fd, libc::F_SETFL, 0) };
-    if r == 0 {
+    // SAFETY: F_GETFL and F_SETFL on a descriptor; no memory is passed.
+    let r = unsafe {
+        let flags = libc::fcntl(fd, libc::F_GETFL);
+        if flags < 0 {
+            flags
+        } else {
+            libc::fcntl(fd, libc::F_SETFL, flags & !libc::O_NONBLOCK)
+        }
+    };
+    if r >= 0 {
         Ok(())
     } else {
         Err(std::io::Error::last_os_error())

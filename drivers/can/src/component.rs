@@ -122,9 +122,6 @@ impl CanIo {
         if !card.map().isotp().is_empty() {
             isotp_operation(&card, iface)?;
         }
-        // A stop ends a wait in the socket (see `CanBus::wait_and_service`).
-        let c = card.clone();
-        iface.on_break(move || c.wake());
         let c = card.clone();
         iface.client_operation(
             "counters",
@@ -239,6 +236,10 @@ impl Component for CanIo {
         if bus.waits_in_socket() {
             // Each step waits in the socket and asks for the next at once: the activity
             // watches nothing, so it goes from step to step without a call of its own.
+            // Every wake-up of the activity (a stop, a trigger, an operation for its
+            // thread) ends that wait (see `CanBus::wait_and_service`).
+            let card = self.card.clone();
+            ctx.activity().on_wake(move || card.wake());
             ctx.activity().wake_at(rtt::time::Timestamp::ZERO)?;
             self.in_socket = true;
             return Ok(());
@@ -286,6 +287,20 @@ impl Component for CanIo {
             self.controller_seen = c;
         }
         Ok(())
+    }
+
+    /// In RunTimeError the bus goes on as in Running (a bus that stopped sending and
+    /// reading would leave its outputs frozen and its inputs stale-unseen).
+    fn error_hook(&mut self, ctx: &mut Context<'_>) {
+        if let Err(e) = self.update_hook(ctx) {
+            rtt::rt_log!(
+                self.card.log(),
+                Warn,
+                "{}: {}",
+                rtt::log::Arg::text(self.card.map().interface()),
+                rtt::log::Arg::display(&e)
+            );
+        }
     }
 
     fn stop_hook(&mut self, ctx: &mut Context<'_>) {

@@ -499,6 +499,41 @@ signal = [{ name = "y", start = 0, length = 8 }]
     Ok(())
 }
 
+/// The bus waits in its socket between frames; `error` and `recover` from another thread
+/// still get the component at once (they end that wait and go before the next step), a bus
+/// in RunTimeError goes on sending, and a stop ends the wait.
+fn a_bus_in_error_goes_on_and_recovers() -> Result<(), Failed> {
+    let u = up("vcan10", COMMAND)?;
+    let c = &u.card;
+    wait_until("link up", Duration::from_secs(2), || c.link_up())?;
+    let sent = |n: u64| move || c.counters().tx_frames >= n;
+    wait_until("cyclic frames", Duration::from_secs(2), sent(3))?;
+    u.task.error()?;
+    assert_eq!(u.task.state(), rtt::TaskState::RunTimeError);
+    let now = c.counters().tx_frames;
+    wait_until(
+        "cyclic frames in RunTimeError",
+        Duration::from_secs(2),
+        sent(now + 5),
+    )?;
+    u.task.recover()?;
+    assert_eq!(u.task.state(), rtt::TaskState::Running);
+    let now = c.counters().tx_frames;
+    wait_until(
+        "cyclic frames after recover",
+        Duration::from_secs(2),
+        sent(now + 5),
+    )?;
+    // A trigger (a wake-up of the activity's own) ends the wait too: a step at once.
+    let steps = u.task.stats().steps;
+    u.task.trigger();
+    wait_until("a step for the trigger", Duration::from_secs(2), || {
+        u.task.stats().steps > steps
+    })?;
+    u.task.stop()?;
+    Ok(())
+}
+
 fn main() -> std::process::ExitCode {
     let rig = testkit::rig::vcan()
         .module("kvaser_pci")
@@ -537,6 +572,10 @@ fn main() -> std::process::ExitCode {
                 missing_and_unsuitable_interfaces_are_clear_errors,
             ),
             t("can_fd_frames_both_ways", can_fd_frames_both_ways),
+            t(
+                "a_bus_in_error_goes_on_and_recovers",
+                a_bus_in_error_goes_on_and_recovers,
+            ),
             t(
                 "error_frames_are_decoded_and_counted",
                 error_frames_are_decoded_and_counted,

@@ -63,6 +63,8 @@ pub struct CanBus {
     j1939_pgns: Vec<can_socket::j1939::Pgn>,
     /// The physical values of the frame just received (room for the widest rx frame).
     values: Vec<f64>,
+    /// Waiting in the socket failed and was said (said again only after it worked).
+    wait_failing: bool,
     /// Whether the interface is a real controller with a state to ask netlink for
     /// (unknown until asked; asked again when the interface is replaced).
     controller: Option<bool>,
@@ -125,6 +127,7 @@ impl CanBus {
             j1939_pgns,
             j1939,
             values: Vec::with_capacity(widest),
+            wait_failing: false,
             controller: None,
         };
         bus.open_socket().map_err(os("open socket"))?;
@@ -334,6 +337,7 @@ impl CanBus {
         match self.socket.as_ref().map(|s| s.as_fd().as_raw_fd()) {
             Some(fd) => match self.wakeups.waiter().prepare(fd) {
                 Ok(true) => {
+                    self.wait_failing = false;
                     let got = self.socket.as_mut().map(|s| s.recv_wait(&mut data));
                     woke();
                     if let Some(got) = got {
@@ -342,13 +346,17 @@ impl CanBus {
                 }
                 Ok(false) => woke(),
                 Err(e) => {
-                    rtt::rt_log!(
-                        self.card.log(),
-                        Warn,
-                        "{}: cannot wait in the socket: {}",
-                        rtt::log::Arg::text(self.card.map().interface()),
-                        rtt::log::Arg::io(&e)
-                    );
+                    if !self.wait_failing {
+                        self.wait_failing = true;
+                        rtt::rt_log!(
+                            self.card.log(),
+                            Warn,
+                            "{}: cannot wait in the socket: {} (waiting in poll for the \
+                             next deadline instead, until it can)",
+                            rtt::log::Arg::text(self.card.map().interface()),
+                            rtt::log::Arg::io(&e)
+                        );
+                    }
                     self.wakeups.wait_in_poll(self.next_deadline());
                     woke();
                 }
