@@ -544,16 +544,17 @@ impl Activity {
     /// From the activity's own step, which waited in its component's own code for what it
     /// now handles (a bus reading a frame in a blocking call): the step counts from now —
     /// its duration, the lateness and the stamp of what it writes to stamped connections —
-    /// so the time it waited is not taken for time it worked. A no-op from any other
-    /// thread, or outside a step.
-    pub fn restart_step(&self) {
-        let owner = Arc::as_ptr(&self.shared) as u64;
-        if steps::step_owner() != owner {
-            return;
-        }
+    /// so the time it waited is not taken for time it worked. Returns the time it took (the
+    /// monotonic clock's now, read once, for the caller to use too). Changes nothing from
+    /// any other thread, or outside a step.
+    pub fn restart_step(&self) -> Timestamp {
         let now = MonotonicClock.now().as_nanos().max(1);
-        steps::restart_step_clock(now);
-        self.shared.restarted.store(now, Ordering::Relaxed);
+        let owner = Arc::as_ptr(&self.shared) as u64;
+        if steps::step_owner() == owner {
+            steps::restart_step_clock(now);
+            self.shared.restarted.store(now, Ordering::Relaxed);
+        }
+        Timestamp::from_nanos(now)
     }
 
     /// Adds `hook` to every wake-up of a file-descriptor activity (a trigger, an event

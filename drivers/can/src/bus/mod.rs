@@ -70,6 +70,12 @@ pub struct CanBus {
     controller: Option<bool>,
 }
 
+/// CLOCK_REALTIME now, ns (0 if unreadable, which never happens on Linux).
+fn realtime_now() -> i128 {
+    nix::time::clock_gettime(nix::time::ClockId::CLOCK_REALTIME)
+        .map_or(0, |t| t.tv_sec() as i128 * 1_000_000_000 + t.tv_nsec() as i128)
+}
+
 fn now_ns() -> u64 {
     use device_interface::time::{Clock, MonotonicClock};
     MonotonicClock.now().as_nanos()
@@ -329,7 +335,7 @@ impl CanBus {
     /// from one thread.
     pub fn wait_and_service(
         &mut self,
-        woke: &mut dyn FnMut(),
+        woke: &mut dyn FnMut() -> Timestamp,
         on_frame: &mut dyn FnMut(usize, &[f64], Timestamp),
     ) {
         let mut data = [0u8; 64];
@@ -339,12 +345,19 @@ impl CanBus {
                 Ok(true) => {
                     self.wait_failing = false;
                     let got = self.socket.as_mut().map(|s| s.recv_wait(&mut data));
-                    woke();
+                    // The wake-up's monotonic time, read once, gives the frame's stamp its
+                    // offset with one more read (CLOCK_REALTIME), not two.
+                    let at = woke().as_nanos();
                     if let Some(got) = got {
+                        if matches!(got, Ok(Some(ref r)) if r.stamp.is_some()) {
+                            offset = Some(i128::from(at) - realtime_now());
+                        }
                         self.take(got, &data, &mut offset, on_frame);
                     }
                 }
-                Ok(false) => woke(),
+                Ok(false) => {
+                    woke();
+                }
                 Err(e) => {
                     if !self.wait_failing {
                         self.wait_failing = true;
