@@ -216,9 +216,9 @@ const REFERENCE_ID: u16 = 0x101;
 /// a bare `epoll_wait` + non-blocking `recvmsg` alone (both of frames of
 /// [`REFERENCE_ID`], which hwgw's kernel filter drops), `rounds` times. Readers in the
 /// same pass would share the guest's one CPU, and whichever the kernel wakes last would
-/// pay for the others. The second reference separates what waiting in epoll costs (a
-/// thread that also waits for a timer and wake-ups cannot wait in `recvmsg`) from what
-/// hwgw adds to it.
+/// pay for the others. The second reference is how hwgw's bus thread waited until
+/// 2026-12-01 (and a J1939 card's still waits): what waiting in epoll costs beside what hwgw
+/// adds. A card without J1939 now waits in `recvmsg` itself, as the first reference does.
 ///
 /// With `fifo`, the bus thread and the bare reader both run SCHED_FIFO at priority 50 (as
 /// a deployment's bus thread would), so each preempts the sender at once; without, both
@@ -294,8 +294,8 @@ fn latency_rounds(
 enum Wait {
     /// In the blocking `recvmsg` itself.
     Blocking,
-    /// In `epoll_wait` on the socket, then a non-blocking `recvmsg` (as any reader that
-    /// also waits for a timer and a wake-up must: hwgw's bus thread does so).
+    /// In `epoll_wait` on the socket, then a non-blocking `recvmsg` (as a reader that waits
+    /// for a timer and a wake-up in the same call must: a J1939 card's bus thread does so).
     Epoll,
     /// In `epoll_wait` on an AF_PACKET socket with a TPACKET_V2 receive ring, the frame
     /// then read from the ring with no second system call: would a bus thread reading a

@@ -72,8 +72,9 @@ pub struct CanBus {
 
 /// CLOCK_REALTIME now, ns (0 if unreadable, which never happens on Linux).
 fn realtime_now() -> i128 {
-    nix::time::clock_gettime(nix::time::ClockId::CLOCK_REALTIME)
-        .map_or(0, |t| t.tv_sec() as i128 * 1_000_000_000 + t.tv_nsec() as i128)
+    nix::time::clock_gettime(nix::time::ClockId::CLOCK_REALTIME).map_or(0, |t| {
+        t.tv_sec() as i128 * 1_000_000_000 + t.tv_nsec() as i128
+    })
 }
 
 fn now_ns() -> u64 {
