@@ -212,6 +212,7 @@ impl Waiter {
     /// interruption (pending, looked at after) or a deadline (come, looked at after); one
     /// while it is made blocking leaves its mark, looked at after; one after makes the
     /// wait's call return at once.
+    ///
     /// An error (the timer cannot be made or armed, the socket's mode not set): the caller
     /// must not wait in the socket, where a deadline would not end the wait.
     pub fn prepare(&mut self, fd: RawFd) -> std::io::Result<bool> {
@@ -339,7 +340,7 @@ impl Drop for Waiter {
 }
 
 /// CLOCK_MONOTONIC now, ns.
-fn now_ns() -> u64 {
+pub(crate) fn now_ns() -> u64 {
     use device_interface::time::{Clock, MonotonicClock};
     MonotonicClock.now().as_nanos()
 }

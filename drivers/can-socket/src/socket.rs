@@ -317,12 +317,19 @@ impl AsFd for RawSocket {
 /// CLOCK_MONOTONIC minus CLOCK_REALTIME now, ns: added to a kernel receive stamp, the
 /// monotonic receive time.
 pub fn realtime_offset() -> i128 {
-    let ns = |id| {
-        nix::time::clock_gettime(id)
-            .map(|t| t.tv_sec() as i128 * 1_000_000_000 + t.tv_nsec() as i128)
-            .unwrap_or(0)
-    };
-    ns(nix::time::ClockId::CLOCK_MONOTONIC) - ns(nix::time::ClockId::CLOCK_REALTIME)
+    clock_ns(nix::time::ClockId::CLOCK_MONOTONIC) - realtime_now()
+}
+
+/// CLOCK_REALTIME now, ns: what a kernel receive stamp is on.
+pub fn realtime_now() -> i128 {
+    clock_ns(nix::time::ClockId::CLOCK_REALTIME)
+}
+
+/// Clock `id` now, ns (0 if unreadable, which never happens on Linux).
+fn clock_ns(id: nix::time::ClockId) -> i128 {
+    nix::time::clock_gettime(id)
+        .map(|t| t.tv_sec() as i128 * 1_000_000_000 + t.tv_nsec() as i128)
+        .unwrap_or(0)
 }
 
 /// `setsockopt(fd, level, name, value)` for the options no safe wrapper knows (the kernel

@@ -10,7 +10,7 @@
 //! (see [`crate::blocking`]); the eventfd is still written, so a side without a socket
 //! waits for it with `poll`.
 
-use crate::blocking::{Interrupter, Waiter};
+use crate::blocking::Waiter;
 use nix::sys::eventfd::{EfdFlags, EventFd};
 use nix::sys::time::TimeSpec;
 use nix::sys::timerfd::{ClockId, Expiration, TimerFd, TimerFlags, TimerSetTimeFlags};
@@ -30,7 +30,6 @@ pub struct Wakeups {
     /// What waits in the socket (see [`wait_in_socket`](Self::wait_in_socket)); boxed, as
     /// most sides never use it.
     waiter: Box<Waiter>,
-    interrupter: Arc<Interrupter>,
     /// The side waits in its socket: deadlines go to the waiter's timer.
     in_socket: bool,
 }
@@ -56,7 +55,6 @@ impl Wakeups {
             wake: Arc::new(wake),
             woken: Arc::new(AtomicBool::new(false)),
             armed: 0,
-            interrupter: waiter.interrupter(),
             waiter: Box::new(waiter),
             in_socket: false,
         })
@@ -73,11 +71,9 @@ impl Wakeups {
     /// side that waits in its socket while it has none (its interface is missing).
     pub fn wait_in_poll(&mut self, deadline: u64) {
         use nix::poll::{PollFd, PollFlags, PollTimeout, poll};
-        let now = {
-            use device_interface::time::{Clock, MonotonicClock};
-            MonotonicClock.now().as_nanos()
-        };
-        let ms = deadline.saturating_sub(now).div_ceil(1_000_000);
+        let ms = deadline
+            .saturating_sub(crate::blocking::now_ns())
+            .div_ceil(1_000_000);
         let timeout = PollTimeout::try_from(ms.min(60_000) as i32).unwrap_or(PollTimeout::MAX);
         let mut fds = [PollFd::new(self.wake.as_fd(), PollFlags::POLLIN)];
         // Interrupted or failed: the caller looks at what is due, as after a wake-up.
@@ -92,7 +88,7 @@ impl Wakeups {
     /// What another thread calls to wake the bus side.
     pub fn waker(&self) -> Box<dyn Fn() + Send + Sync> {
         let (wake, woken) = (self.wake.clone(), self.woken.clone());
-        let interrupter = self.interrupter.clone();
+        let interrupter = self.waiter.interrupter();
         // The write first, then the flag: a flag seen set means the count is there (or a
         // read took it already), so the eventfd is never left readable with the flag
         // clear for longer than between these two lines. Last, the signal that ends a
@@ -130,7 +126,7 @@ impl Wakeups {
     pub fn arm(&mut self, next: u64) {
         let next = next.max(1);
         if self.in_socket {
-            // A failed arm is tried again at the next call (the waiter forgets the time).
+            // A failed arm is tried again before the next wait (the waiter keeps the time).
             let _ = self.waiter.arm(next);
             return;
         }

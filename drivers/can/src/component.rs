@@ -55,9 +55,6 @@ pub struct CanIo {
     /// A real controller's state, written when it changes.
     controller: OutputPort<Controller>,
     controller_seen: Option<Controller>,
-    /// The bus waits in its socket (see [`CanBus::wait_and_service`]), not in the
-    /// activity's epoll set.
-    in_socket: bool,
 }
 
 impl CanIo {
@@ -141,7 +138,6 @@ impl CanIo {
             controller_seen: None,
             watched: SocketWatch::default(),
             watched_j1939: SocketWatch::default(),
-            in_socket: false,
         })
     }
 }
@@ -241,10 +237,8 @@ impl Component for CanIo {
             let card = self.card.clone();
             ctx.activity().on_wake(move || card.wake());
             ctx.activity().wake_at(rtt::time::Timestamp::ZERO)?;
-            self.in_socket = true;
             return Ok(());
         }
-        self.in_socket = false;
         // The timer and the wake-up; the sockets on their own, as they can be replaced.
         for fd in bus.timer_fds() {
             ctx.activity().watch(fd)?;
@@ -271,7 +265,7 @@ impl Component for CanIo {
             };
             port.write(sample);
         };
-        if self.in_socket {
+        if bus.waits_in_socket() {
             let activity = ctx.activity();
             bus.wait_and_service(&mut || activity.restart_step(), &mut on_frame);
             activity.wake_at(rtt::time::Timestamp::ZERO)?;
@@ -305,7 +299,7 @@ impl Component for CanIo {
 
     fn stop_hook(&mut self, ctx: &mut Context<'_>) {
         if let Some(bus) = &mut self.bus {
-            if self.in_socket {
+            if bus.waits_in_socket() {
                 // The thread is joined: no signal or timer may reach a later thread.
                 bus.thread_ended();
             } else {

@@ -11,8 +11,9 @@
 //!   nothing in the epoll set can be ready: the activity watches no descriptor of its user,
 //!   and no wake-up or request from another thread was written since the last look (each
 //!   writer raises a flag after its write; see [`Deadline::nudge`]). No timer is armed,
-//!   fired and read, so a line polling back to back costs what its own I/O costs. A timer still armed for a later time is disarmed first, as "replaces any
-//!   deadline set before" says.
+//!   fired and read, so a line polling back to back costs what its own I/O costs. A
+//!   timer still armed for a later time is disarmed first, as "replaces any deadline set
+//!   before" says.
 //! - a time to come: the timer is armed unless it is armed for that time already (a step
 //!   woken by a descriptor or a trigger that asks for the same next poll costs no call).
 //!

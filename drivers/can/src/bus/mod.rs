@@ -34,7 +34,9 @@ mod link;
 pub use can_socket::link::can_interfaces;
 
 use crate::card::{CanCard, ErrorReport, Received};
-use can_socket::socket::{Filter, Frame, RawSocket, check_interface, realtime_offset};
+use can_socket::socket::{
+    Filter, Frame, RawSocket, check_interface, realtime_now, realtime_offset,
+};
 use can_socket::wakeups::Wakeups;
 use device_interface::time::Timestamp;
 use std::os::fd::{AsFd, AsRawFd, BorrowedFd};
@@ -68,13 +70,6 @@ pub struct CanBus {
     /// Whether the interface is a real controller with a state to ask netlink for
     /// (unknown until asked; asked again when the interface is replaced).
     controller: Option<bool>,
-}
-
-/// CLOCK_REALTIME now, ns (0 if unreadable, which never happens on Linux).
-fn realtime_now() -> i128 {
-    nix::time::clock_gettime(nix::time::ClockId::CLOCK_REALTIME).map_or(0, |t| {
-        t.tv_sec() as i128 * 1_000_000_000 + t.tv_nsec() as i128
-    })
 }
 
 fn now_ns() -> u64 {

@@ -77,13 +77,12 @@ impl CanCard {
     pub(super) fn output(&self, tx: u32) {
         if self.map.tx().get(tx as usize).is_some_and(|f| f.on_change) {
             self.tx_dirty[tx as usize].store(true, Ordering::Release);
-            if let Some(w) = self.waker.load().as_deref() {
-                w();
-            }
+            self.wake();
         }
     }
 
-    /// Wakes the bus side: ends its wait (a stop's break, an operation for its thread).
+    /// Wakes the bus side: ends its wait (a changed output, a flush, any wake-up of its
+    /// activity).
     pub fn wake(&self) {
         if let Some(w) = self.waker.load().as_deref() {
             w();
@@ -95,8 +94,6 @@ impl CanCard {
         for d in self.tx_dirty.iter() {
             d.store(true, Ordering::Release);
         }
-        if let Some(w) = self.waker.load().as_deref() {
-            w();
-        }
+        self.wake();
     }
 }
