@@ -52,4 +52,4 @@ pub use interfaces::{
 pub use registry::{
     CardDevices, Interface, NameInfo, NameServer, Registry, RegistryEntry, RegistryError, Served,
 };
-pub use scale::{AnalogRange, RawRange, Scale, ScaleError, Unit, linear};
+pub use scale::{AnalogRange, Linear, RawRange, Scale, ScaleError, Unit, linear};

@@ -278,15 +278,58 @@ pub struct Scale {
 /// f64 arithmetic. For values below 2^53 all three are the plain f64 formula; beyond, this
 /// is what cantools computes (Python's integers are exact) and never less exact than it.
 pub fn linear(raw: i128, factor: f64, offset: f64) -> f64 {
-    /// `x` as the integer it is, when a product with a 64-bit raw value cannot overflow
-    /// i128 (|x| < 2^63).
-    fn integral(x: f64) -> Option<i128> {
-        (x.fract() == 0.0 && x.abs() < 9.2e18).then_some(x as i128)
+    Linear::new(factor, offset).apply(raw)
+}
+
+/// [`linear`] with its factor and offset looked at once, when it is made, rather than at
+/// every value: which of the three ways applies is decided here, and [`apply`](Self::apply)
+/// gives the same value to the bit. For a decoder's hot path (a CAN signal per frame).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Linear(LinearWay);
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum LinearWay {
+    /// Integral factor and offset: multiplied and added as integers.
+    Integers(i128, i128),
+    /// An integral factor, a fractional offset: the exact product, rounded, plus it.
+    IntegerFactor(i128, f64),
+    /// f64 arithmetic.
+    Floats(f64, f64),
+}
+
+impl Linear {
+    /// `raw × factor + offset` as [`linear`] computes it.
+    pub fn new(factor: f64, offset: f64) -> Linear {
+        /// `x` as the integer it is, when a product with a 64-bit raw value cannot
+        /// overflow i128 (|x| < 2^63).
+        fn integral(x: f64) -> Option<i128> {
+            (x.fract() == 0.0 && x.abs() < 9.2e18).then_some(x as i128)
+        }
+        Linear(match (integral(factor), integral(offset)) {
+            (Some(f), Some(o)) => LinearWay::Integers(f, o),
+            (Some(f), None) => LinearWay::IntegerFactor(f, offset),
+            (None, _) => LinearWay::Floats(factor, offset),
+        })
     }
-    match (integral(factor), integral(offset)) {
-        (Some(f), Some(o)) => (raw * f + o) as f64,
-        (Some(f), None) => (raw * f) as f64 + offset,
-        (None, _) => raw as f64 * factor + offset,
+
+    /// The physical value of `raw`.
+    #[inline]
+    pub fn apply(&self, raw: i128) -> f64 {
+        match self.0 {
+            LinearWay::Integers(f, o) => to_f64(raw * f + o),
+            LinearWay::IntegerFactor(f, offset) => to_f64(raw * f) + offset,
+            LinearWay::Floats(factor, offset) => to_f64(raw) * factor + offset,
+        }
+    }
+}
+
+/// `x as f64`, rounded to nearest (ties to even) as that cast is: one conversion
+/// instruction when `x` fits in i64 (the same rounding), the 128-bit routine beyond.
+#[inline]
+fn to_f64(x: i128) -> f64 {
+    match i64::try_from(x) {
+        Ok(v) => v as f64,
+        Err(_) => x as f64,
     }
 }
 
@@ -674,6 +717,62 @@ mod tests {
                 && e.ends_with("…\" (100 characters) is longer than 23 bytes"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn linear_made_once_gives_the_formula_bit_for_bit() {
+        // The formula as `linear` computed it before `Linear` decided its way once: every
+        // conversion through i128.
+        fn reference(raw: i128, factor: f64, offset: f64) -> f64 {
+            let integral = |x: f64| (x.fract() == 0.0 && x.abs() < 9.2e18).then_some(x as i128);
+            match (integral(factor), integral(offset)) {
+                (Some(f), Some(o)) => (raw * f + o) as f64,
+                (Some(f), None) => (raw * f) as f64 + offset,
+                (None, _) => raw as f64 * factor + offset,
+            }
+        }
+        let raws = [
+            0i128,
+            1,
+            -1,
+            (1 << 53) + 1,
+            -(1 << 53) - 1,
+            i128::from(i64::MAX),
+            i128::from(i64::MIN),
+            i128::from(u64::MAX),
+            i128::from(u64::MAX) - 1,
+        ];
+        let ways = [
+            (1.0, 0.0),
+            (3.0, -7.0),
+            (1000.0, 0.5),
+            (-2.0, 1e-3),
+            (0.1, -100.0),
+            (1e-5, 0.0),
+            (4.0, 2e20),
+            (1e19, 0.0),
+        ];
+        let mut seed = 0x9E37_79B9_7F4A_7C15_u64;
+        let mut next = || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            seed
+        };
+        let random = (0..2000).map(|k| match k % 3 {
+            0 => i128::from(next() as i64),
+            1 => i128::from(next()),
+            _ => i128::from(next() as i64 >> (next() % 64)),
+        });
+        for raw in raws.into_iter().chain(random) {
+            for (factor, offset) in ways {
+                assert_eq!(
+                    Linear::new(factor, offset).apply(raw).to_bits(),
+                    reference(raw, factor, offset).to_bits(),
+                    "{raw} × {factor} + {offset}"
+                );
+            }
+        }
     }
 
     #[test]

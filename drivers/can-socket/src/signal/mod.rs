@@ -23,7 +23,7 @@
 //! # Ok::<(), can_socket::signal::SignalError>(())
 //! ```
 
-use device_interface::{DeviceError, RawRange, Scale, ScaleError, Unit};
+use device_interface::{DeviceError, Linear, RawRange, Scale, ScaleError, Unit};
 use serde::Deserialize;
 
 /// How a signal's bits hold its value (DBC `SIG_VALTYPE_`).
@@ -113,6 +113,8 @@ pub struct Signal {
     kind: ValueKind,
     factor: f64,
     offset: f64,
+    /// `factor` and `offset` as an integer signal's raw value becomes physical.
+    linear: Linear,
     /// A float signal's declared physical [min|max], if given (its raw grid cannot carry
     /// them).
     float_limits: Option<(f64, f64)>,
@@ -245,6 +247,7 @@ impl Signal {
             kind: ValueKind::Integer,
             factor,
             offset,
+            linear: Linear::new(factor, offset),
             float_limits: None,
             scale,
             bits,
@@ -319,7 +322,7 @@ impl Signal {
                 } else {
                     i128::from(raw)
                 };
-                return device_interface::linear(raw, self.factor, self.offset);
+                return self.linear.apply(raw);
             }
         };
         if self.factor == 1.0 && self.offset == 0.0 {
