@@ -12,7 +12,7 @@
 
 use crate::card::CanopenCard;
 use crate::node::{NodeRun, Tx};
-use can_socket::link::link;
+use can_socket::link::LinkReader;
 use can_socket::socket::{
     Filter, Frame, InterfaceError, RawSocket, check_interface, realtime_offset,
 };
@@ -47,6 +47,8 @@ pub struct CanopenBus {
     card: Arc<CanopenCard>,
     socket: Option<RawSocket>,
     ifindex: u32,
+    /// The interface's link state, read from sysfs files kept open.
+    link: LinkReader,
     generation: u64,
     wakeups: Wakeups,
     nodes: Vec<NodeRun>,
@@ -94,6 +96,7 @@ impl CanopenBus {
             card,
             socket: None,
             ifindex,
+            link: LinkReader::new(&name),
             generation: 0,
             wakeups,
             nodes,
@@ -355,20 +358,19 @@ impl CanopenBus {
     }
 
     fn check_link(&mut self) {
-        let name = self.card.map().interface.clone();
-        match link(&name) {
+        match self.link.read() {
             None => self.card.set_link(false),
             Some((up, index)) => {
                 if index != self.ifindex || self.socket.is_none() {
                     self.ifindex = index;
                     if let Err(e) = self.open_socket() {
-                        tracing::warn!(interface = %name, "cannot reopen: {e}");
+                        tracing::warn!(interface = %self.card.map().interface, "cannot reopen: {e}");
                         self.card.set_link(false);
                         return;
                     }
                 }
                 if up != self.card.link_up() {
-                    tracing::info!(interface = %name, up, "link");
+                    tracing::info!(interface = %self.card.map().interface, up, "link");
                 }
                 self.card.set_link(up);
             }

@@ -15,7 +15,7 @@ use std::sync::Arc;
 
 /// The bus, or what opens it at start when the interface was missing at build.
 enum Bus {
-    Open(CanopenBus),
+    Open(Box<CanopenBus>),
     Unopened(Arc<CanopenCard>, Vec<NodeRun>),
     Taken,
 }
@@ -37,7 +37,7 @@ impl CanopenIo {
         thread: rtt::ThreadOptions,
     ) -> Result<rtt::TaskContext, rtt::RuntimeError> {
         driver_api::fd_bus(runtime, name, thread, move |iface| {
-            CanopenIo::new(Bus::Open(bus), iface)
+            CanopenIo::new(Bus::Open(Box::new(bus)), iface)
         })
     }
 
@@ -94,7 +94,7 @@ impl CanopenIo {
         }
         if let Bus::Unopened(card, nodes) = std::mem::replace(&mut self.bus, Bus::Taken) {
             match CanopenBus::open(card.clone(), nodes) {
-                Ok(bus) => self.bus = Bus::Open(bus),
+                Ok(bus) => self.bus = Bus::Open(Box::new(bus)),
                 Err((e, nodes)) => {
                     self.bus = Bus::Unopened(card, nodes);
                     return Err(HookError::new(e.to_string()));

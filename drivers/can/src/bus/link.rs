@@ -2,7 +2,6 @@
 //! and a real controller's state (the sysfs and netlink reading is `can_socket`'s).
 
 use super::CanBus;
-use can_socket::link::link;
 use device_interface::DeviceError;
 use rtt::log::Arg;
 use rtt::rt_log;
@@ -27,7 +26,7 @@ impl CanBus {
     pub(super) fn check_link(&mut self) {
         let card = self.card.clone();
         let name = card.map().interface();
-        match link(name) {
+        match self.link.read() {
             None => {
                 if self.card.link_up() {
                     rt_log!(self.card.log(), Warn, "interface {} gone", Arg::text(name));

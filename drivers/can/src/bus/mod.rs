@@ -50,6 +50,8 @@ pub struct CanBus {
     card: Arc<CanCard>,
     socket: Option<RawSocket>,
     ifindex: u32,
+    /// The interface's link state, read from sysfs files kept open.
+    link: can_socket::link::LinkReader,
     /// Counts the sockets opened (see [`CanBus::socket_generation`]).
     generation: u64,
     wakeups: Wakeups,
@@ -121,6 +123,7 @@ impl CanBus {
             card,
             socket: None,
             ifindex,
+            link: can_socket::link::LinkReader::new(&name),
             generation: 0,
             wakeups,
             next_tx,
