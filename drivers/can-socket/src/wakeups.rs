@@ -67,17 +67,21 @@ impl Wakeups {
         self.armed = 0;
     }
 
-    /// Waits in `poll` on the wake-up until `deadline` (monotonic ns) at the latest, for a
-    /// side that waits in its socket while it has none (its interface is missing).
-    pub fn wait_in_poll(&mut self, deadline: u64) {
+    /// Waits in `poll` on the wake-up, and on `socket` if given, until `deadline`
+    /// (monotonic ns) at the latest: for a side that waits in its socket while it has none
+    /// (its interface is missing), or while it cannot (a signal's timer would not arm).
+    pub fn wait_in_poll(&mut self, deadline: u64, socket: Option<BorrowedFd<'_>>) {
         use nix::poll::{PollFd, PollFlags, PollTimeout, poll};
         let ms = deadline
             .saturating_sub(crate::blocking::now_ns())
             .div_ceil(1_000_000);
         let timeout = PollTimeout::try_from(ms.min(60_000) as i32).unwrap_or(PollTimeout::MAX);
-        let mut fds = [PollFd::new(self.wake.as_fd(), PollFlags::POLLIN)];
+        let wake = PollFd::new(self.wake.as_fd(), PollFlags::POLLIN);
         // Interrupted or failed: the caller looks at what is due, as after a wake-up.
-        let _ = poll(&mut fds, timeout);
+        let _ = match socket {
+            Some(s) => poll(&mut [wake, PollFd::new(s, PollFlags::POLLIN)], timeout),
+            None => poll(&mut [wake], timeout),
+        };
     }
 
     /// The waiter, for the side's thread.

@@ -223,6 +223,12 @@ impl CanBus {
     pub fn service(&mut self, on_frame: &mut dyn FnMut(usize, &[f64], Timestamp)) {
         self.receive(on_frame);
         self.receive_j1939(on_frame);
+        self.keep_time();
+    }
+
+    /// What [`service`](Self::service) does besides receiving: the wake-up, the link and
+    /// staleness checks, the address claim, the frames due, the timer.
+    fn keep_time(&mut self) {
         let now = now_ns();
         self.wakeups.clear(now);
         if now >= self.next_check {
@@ -329,9 +335,11 @@ impl CanBus {
     /// Waits for something to do — in `recvmsg` on the socket for a frame, as a bare
     /// blocking reader does, ended early by a deadline or a wake-up (see
     /// [`can_socket::blocking`]); without a socket, in `poll` on the wake-up until the next
-    /// deadline — then calls `woke` and does what [`service`](Self::service) does, the
-    /// frame that ended the wait first. For a bus that [`waits_in_socket`](Self::waits_in_socket),
-    /// from one thread.
+    /// deadline — then calls `woke`, takes the frame that ended the wait, and does what
+    /// [`service`](Self::service) does besides receiving. It reads no further frame: one
+    /// queued behind it ends the next wait at once, so a frame costs its one `recvmsg` and
+    /// no second one to learn that nothing else is queued. For a bus that
+    /// [`waits_in_socket`](Self::waits_in_socket), from one thread.
     pub fn wait_and_service(
         &mut self,
         woke: &mut dyn FnMut() -> Timestamp,
@@ -369,17 +377,20 @@ impl CanBus {
                             rtt::log::Arg::io(&e)
                         );
                     }
-                    self.wakeups.wait_in_poll(self.next_deadline());
+                    let deadline = self.next_deadline();
+                    let socket = self.socket.as_ref().map(|s| s.as_fd());
+                    self.wakeups.wait_in_poll(deadline, socket);
                     woke();
+                    self.receive(on_frame);
                 }
             },
             None => {
                 self.wakeups.waiter().leave();
-                self.wakeups.wait_in_poll(self.next_deadline());
+                self.wakeups.wait_in_poll(self.next_deadline(), None);
                 woke();
             }
         }
-        self.service(on_frame);
+        self.keep_time();
     }
 
     fn error_frame(&self, class: u32, data: &[u8]) {
