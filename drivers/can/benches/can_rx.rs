@@ -9,7 +9,10 @@
 //!
 //! Before that, latency: the time from the kernel's receive stamp to the frame's values
 //! on the port, against a bare blocking socket read of the same kind of frame and a bare
-//! `epoll_wait` + `recvmsg`, in alternating passes (see [`latency_rounds`]).
+//! `epoll_wait` + `recvmsg`, each measured in the same seconds as hwgw, their frames
+//! interleaved (see [`latency_rounds`]); what hwgw's own work after a frame costs in the
+//! guest, piece by piece ([`pieces`]); and the bus thread's system calls under strace
+//! ([`trace_bus_thread`]).
 #![allow(clippy::unwrap_used, reason = "benchmark code")]
 
 use device_interface::time::{Clock, MonotonicClock};
@@ -123,10 +126,12 @@ signal = [
     };
     let sender = <socketcan::CanSocket as socketcan::Socket>::open(iface)?;
     let rounds = if quick { 1 } else { 5 };
+    pieces(&config)?;
     for fifo in [false, true] {
         set_fifo(thread_id("can")?, fifo)?;
         latency_rounds(iface, &sender, (&count, &latency), rounds, frames / 7, fifo)?;
     }
+    trace_bus_thread(&sender, &count, if quick { 50 } else { 500 })?;
     set_fifo(thread_id("can")?, false)?;
     println!(
         " asked frames/s | offered frames/s | hwgw received (kernel drops) | candump received"
@@ -175,25 +180,132 @@ signal = [
     Ok((1e9 / best_ours.max(1.0)) as u64)
 }
 
+/// What the bus thread's own work after a frame costs in this guest, each piece timed
+/// alone on this thread with a monotonic clock read on each side: back to back (warm), and
+/// each after a 1 ms sleep (cold, as a frame finds the bus thread, which slept since the
+/// last). The pieces are the work between the blocking read's return and the port write
+/// that the bare reader does not do.
+fn pieces(config: &CanConfig) -> Result<(), Failed> {
+    let card = CanCard::new(CanMap::new(config, ".".as_ref())?, Arc::new(MonotonicClock));
+    let data = [0x12u8, 0x34, 0x56, 0x78, 0x9a, 0xbc, 0xde, 0xf0];
+    let mut values = Vec::with_capacity(4);
+    let mut message = CanMessage {
+        values: Vec::with_capacity(4),
+        ..CanMessage::default()
+    };
+    let n = 2000;
+    let time = |what: &str, piece: &mut dyn FnMut()| {
+        let mut runs = [Vec::with_capacity(n), Vec::with_capacity(n)];
+        for (cold, run) in runs.iter_mut().enumerate() {
+            for _ in 0..n {
+                if cold == 1 {
+                    std::thread::sleep(Duration::from_millis(1));
+                }
+                let t0 = MonotonicClock.now().as_nanos();
+                piece();
+                run.push(MonotonicClock.now().as_nanos() - t0);
+            }
+        }
+        let [mut warm, mut cold] = runs;
+        println!(
+            "  piece: {what}: warm p50 {:.2} us, p99 {:.2} us; after 1 ms asleep p50 {:.2} us, p99 {:.2} us",
+            quantile(&mut warm, 0.5),
+            quantile(&mut warm, 0.99),
+            quantile(&mut cold, 0.5),
+            quantile(&mut cold, 0.99)
+        );
+    };
+    println!("where a frame's time goes, each piece alone ({n} times warm, {n} after a sleep):");
+    time("nothing (two monotonic clock reads)", &mut || {});
+    time("a monotonic clock read", &mut || {
+        std::hint::black_box(MonotonicClock.now());
+    });
+    time("a realtime clock read", &mut || {
+        std::hint::black_box(can_socket::socket::realtime_now());
+    });
+    let at = device_interface::time::Timestamp::from_nanos(1);
+    time(
+        "decoding the frame into the card's channels and the values",
+        &mut || {
+            std::hint::black_box(card.receive_with_values(
+                u32::from(ID),
+                false,
+                false,
+                &data,
+                at,
+                &mut values,
+            ));
+        },
+    );
+    time("the message's values copied and stamped", &mut || {
+        message.values.clear();
+        message.values.extend_from_slice(&[1.0, 2.0, 3.0, 4.0]);
+        message.received_ns = 1;
+        message.published_ns = MonotonicClock.now().as_nanos();
+        std::hint::black_box(&message);
+    });
+    Ok(())
+}
+
+/// The bus thread's system calls while it takes `n` frames at 100 frames/s under
+/// SCHED_FIFO 50: `strace -c` of that thread alone. Traced, each call costs the guest
+/// milliseconds, so the frames come 10 ms apart, for the thread to take each as it comes
+/// rather than from a backlog; the latency under strace is not counted anywhere.
+fn trace_bus_thread(
+    sender: &socketcan::CanSocket,
+    count: &AtomicU64,
+    n: u64,
+) -> Result<(), Failed> {
+    let tid = thread_id("can")?;
+    set_fifo(tid, true)?;
+    let out = "/tmp/can-bus-thread.strace";
+    let mut strace = std::process::Command::new("strace")
+        .args(["-qq", "-c", "-o", out, "-p", &tid.to_string()])
+        .spawn()
+        .map_err(|e| format!("strace (package strace): {e}"))?;
+    // Traced once the thread's status names its tracer.
+    let status = format!("/proc/self/task/{tid}/status");
+    let end = Instant::now() + Duration::from_secs(20);
+    while !std::fs::read_to_string(&status)?
+        .lines()
+        .any(|l| l.starts_with("TracerPid:") && l.split_whitespace().nth(1) != Some("0"))
+    {
+        if Instant::now() > end {
+            return Err("strace did not attach to the bus thread within 20 s".into());
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    count.store(0, Ordering::Relaxed);
+    send_spaced(sender, ID, Duration::from_millis(10), n)?;
+    let end = Instant::now() + Duration::from_secs(10);
+    while count.load(Ordering::Relaxed) < n && Instant::now() < end {
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    nix::sys::signal::kill(
+        nix::unistd::Pid::from_raw(strace.id() as i32),
+        nix::sys::signal::Signal::SIGINT,
+    )?;
+    strace.wait()?;
+    println!(
+        "the bus thread's system calls for {n} frames at 100 frames/s, SCHED_FIFO 50 \
+         ({} reached the port), strace -c:\n{}",
+        count.load(Ordering::Relaxed),
+        std::fs::read_to_string(out)?
+    );
+    set_fifo(tid, false)?;
+    Ok(())
+}
+
 /// Sends `n` frames at `rate` frames/s (0: flat out), in 1 ms bursts on an absolute
 /// schedule; a full socket buffer is retried, not skipped, so `n` frames are offered.
 fn send(socket: &socketcan::CanSocket, id: u16, rate: u64, n: u64) -> Result<(), Failed> {
-    use socketcan::{EmbeddedFrame, Socket, StandardId};
-    let id = StandardId::new(id).ok_or("id")?;
     let per_ms = if rate == 0 { n } else { rate.div_ceil(1000) };
     let start = Instant::now();
     let mut sent = 0u64;
     let mut tick = 0u32;
     while sent < n {
         for _ in 0..per_ms.min(n - sent) {
-            let frame = socketcan::CanFrame::new(id, &sent.to_le_bytes()).ok_or("frame")?;
-            loop {
-                match socket.write_frame(&frame) {
-                    Ok(()) => break,
-                    Err(e) if e.raw_os_error() == Some(105) => std::thread::yield_now(), // ENOBUFS
-                    Err(e) => return Err(e.into()),
-                }
-            }
+            write(socket, id, sent)?;
             sent += 1;
         }
         tick += 1;
@@ -206,19 +318,66 @@ fn send(socket: &socketcan::CanSocket, id: u16, rate: u64, n: u64) -> Result<(),
     Ok(())
 }
 
+/// Sends `n` frames of `id`, `gap` apart, on an absolute schedule.
+fn send_spaced(
+    socket: &socketcan::CanSocket,
+    id: u16,
+    gap: Duration,
+    n: u64,
+) -> Result<(), Failed> {
+    let start = Instant::now();
+    for k in 0..n {
+        write(socket, id, k)?;
+        if let Some(wait) = (start + gap * (k as u32 + 1)).checked_duration_since(Instant::now()) {
+            std::thread::sleep(wait);
+        }
+    }
+    Ok(())
+}
+
+/// Sends `n` frames of each of `ids` at 1000 frames/s an id, the ids in turn and evenly
+/// spaced within each millisecond, on an absolute schedule.
+fn send_interleaved(socket: &socketcan::CanSocket, ids: &[u16], n: u64) -> Result<(), Failed> {
+    let gap = Duration::from_micros(1000 / ids.len() as u64);
+    let start = Instant::now();
+    for (k, id) in ids.iter().cycle().take(n as usize * ids.len()).enumerate() {
+        write(socket, *id, (k / ids.len()) as u64)?;
+        if let Some(wait) = (start + gap * (k as u32 + 1)).checked_duration_since(Instant::now()) {
+            std::thread::sleep(wait);
+        }
+    }
+    Ok(())
+}
+
+/// Writes one frame of `id` carrying `k`; a full socket buffer is retried, not skipped.
+fn write(socket: &socketcan::CanSocket, id: u16, k: u64) -> Result<(), Failed> {
+    use socketcan::{EmbeddedFrame, Socket, StandardId};
+    let id = StandardId::new(id).ok_or("id")?;
+    let frame = socketcan::CanFrame::new(id, &k.to_le_bytes()).ok_or("frame")?;
+    loop {
+        match socket.write_frame(&frame) {
+            Ok(()) => return Ok(()),
+            Err(e) if e.raw_os_error() == Some(105) => std::thread::yield_now(), // ENOBUFS
+            Err(e) => return Err(e.into()),
+        }
+    }
+}
+
 /// The id of the frames hwgw maps; the reference reader's ([`REFERENCE_ID`]) are
 /// filtered out of hwgw's socket by the kernel, so neither reader is woken by the other's.
 const ID: u16 = 0x100;
 const REFERENCE_ID: u16 = 0x101;
 
-/// Receive-to-port latency against two bare readers, in alternating passes of `n` frames
-/// at 1000 frames/s: hwgw alone (frames of [`ID`]), then a bare blocking read alone, then
-/// a bare `epoll_wait` + non-blocking `recvmsg` alone (both of frames of
-/// [`REFERENCE_ID`], which hwgw's kernel filter drops), `rounds` times. Readers in the
-/// same pass would share the guest's one CPU, and whichever the kernel wakes last would
-/// pay for the others. The second reference is how hwgw's bus thread waited until
-/// 2026-12-01 (and a J1939 card's still waits): what waiting in epoll costs beside what hwgw
-/// adds. A card without J1939 now waits in `recvmsg` itself, as the first reference does.
+/// Receive-to-port latency against two bare readers, `rounds` times, each round in three
+/// passes of `n` frames at 1000 frames/s a reader: hwgw and a bare blocking read together,
+/// their frames interleaved (hwgw's [`ID`] on the millisecond, the reader's
+/// [`REFERENCE_ID`] half a millisecond later: each frame wakes one reader only, hwgw's
+/// kernel filter dropping the other's, and the two are measured in the same seconds, so
+/// the guest's round-to-round swings weigh on both alike); then hwgw and a bare
+/// `epoll_wait` + non-blocking `recvmsg` the same way; then the ring reader alone. The
+/// second reference is how hwgw's bus thread waited until 2026-12-01 (and a J1939 card's
+/// still waits): what waiting in epoll costs beside what hwgw adds. A card without J1939
+/// now waits in `recvmsg` itself, as the first reference does.
 ///
 /// With `fifo`, the bus thread and the bare reader both run SCHED_FIFO at priority 50 (as
 /// a deployment's bus thread would), so each preempts the sender at once; without, both
@@ -233,45 +392,58 @@ fn latency_rounds(
 ) -> Result<(), Failed> {
     let class = if fifo { "SCHED_FIFO 50" } else { "SCHED_OTHER" };
     let mut ratios = Vec::new();
-    for round in 1..=rounds {
+    // hwgw's latencies (to the port, to the connected reader) and the reference's, of
+    // one pass beside `wait`.
+    type Pass = (Vec<u64>, Vec<u64>, Vec<u64>);
+    let beside = |wait: Wait| -> Result<Pass, Failed> {
         count.store(0, Ordering::Relaxed);
         latency.lock().unwrap().clear();
-        send(sender, ID, 1000, n)?;
+        let reader = reference_reader(iface, n, fifo, wait)?;
+        send_interleaved(sender, &[ID, REFERENCE_ID], n)?;
+        let theirs = reader.join().map_err(|_| "reference reader panicked")??;
         let end = Instant::now() + Duration::from_secs(3);
         while count.load(Ordering::Relaxed) < n && Instant::now() < end {
             std::thread::sleep(Duration::from_millis(10));
         }
-        let (mut to_port, mut to_reader): (Vec<u64>, Vec<u64>) =
-            latency.lock().unwrap().iter().copied().unzip();
-        let mut bare = reference_pass(iface, sender, n, fifo, Wait::Blocking)?;
-        let mut polled = reference_pass(iface, sender, n, fifo, Wait::Epoll)?;
+        let (to_port, to_reader) = latency.lock().unwrap().iter().copied().unzip();
+        Ok((to_port, to_reader, theirs))
+    };
+    for round in 1..=rounds {
+        let (mut to_port, mut to_reader, mut bare) = beside(Wait::Blocking)?;
+        let (mut to_port_e, _, mut polled) = beside(Wait::Epoll)?;
         let mut ringed = reference_pass(iface, sender, n, fifo, Wait::Ring)?;
         println!(
-            "  epoll_wait + a TPACKET_V2 ring read: p50 {:.1} us, p99 {:.1} us ({} frames)",
+            "  epoll_wait + a TPACKET_V2 ring read (alone): p50 {:.1} us, p99 {:.1} us ({} frames)",
             quantile(&mut ringed, 0.5),
             quantile(&mut ringed, 0.99),
             ringed.len()
         );
         let (p50, p99) = (quantile(&mut to_port, 0.5), quantile(&mut to_port, 0.99));
+        let (pe50, pe99) = (
+            quantile(&mut to_port_e, 0.5),
+            quantile(&mut to_port_e, 0.99),
+        );
         let (b50, b99) = (quantile(&mut bare, 0.5), quantile(&mut bare, 0.99));
         let (e50, e99) = (quantile(&mut polled, 0.5), quantile(&mut polled, 0.99));
         println!(
             "latency, {class}, round {round}, {n} frames at 1000 frames/s each: kernel receive -> port write \
              p50 {p50:.1} us, p99 {p99:.1} us ({} frames; -> the connected reader p50 {:.1} us, \
-             p99 {:.1} us); a bare blocking socket read: p50 {b50:.1} us, p99 {b99:.1} us \
-             ({} frames); a bare epoll_wait + recvmsg: p50 {e50:.1} us, p99 {e99:.1} us ({} frames); \
+             p99 {:.1} us) beside a bare blocking socket read: p50 {b50:.1} us, p99 {b99:.1} us \
+             ({} frames); p50 {pe50:.1} us, p99 {pe99:.1} us ({} frames) beside a bare epoll_wait + \
+             recvmsg: p50 {e50:.1} us, p99 {e99:.1} us ({} frames); \
              ratio to the blocking read p50 {:.2}, p99 {:.2}; to epoll + recvmsg p50 {:.2}, p99 {:.2}",
             to_port.len(),
             quantile(&mut to_reader, 0.5),
             quantile(&mut to_reader, 0.99),
             bare.len(),
+            to_port_e.len(),
             polled.len(),
             p50 / b50,
             p99 / b99,
-            p50 / e50,
-            p99 / e99,
+            pe50 / e50,
+            pe99 / e99,
         );
-        ratios.push([p50 / b50, p99 / b99, p50 / e50, p99 / e99]);
+        ratios.push([p50 / b50, p99 / b99, pe50 / e50, pe99 / e99]);
     }
     let median = |k: usize| {
         let mut v: Vec<f64> = ratios.iter().map(|r| r[k]).collect();
@@ -426,7 +598,7 @@ fn set_fifo(tid: i32, fifo: bool) -> Result<(), Failed> {
 }
 
 fn main() -> std::process::ExitCode {
-    let rig = testkit::rig::vcan();
+    let rig = testkit::rig::with_peer(testkit::rig::vcan(), &testkit::peers::STRACE);
     kernel_rig::harness(
         &rig,
         vec![Trial::bench("can_rx", |test_mode| {
