@@ -9,7 +9,12 @@
 //! (Machinekit's overrun: the interval between two wake-ups — hwgw's from its steps' start
 //! times, cyclictest's rebuilt from its latencies with its own rule for missed wake-ups).
 //! It also prints the host's steal time during each half (`/proc/stat`, CPU-ms summed
-//! over the CPUs), so a round where the hypervisor stalled the machine says so. Five
+//! over the CPUs), so a round where the hypervisor stalled the machine says so, and for
+//! each half's longest period the steal within 20 ms of it (a thread of the bench samples
+//! the counter every 2 ms during both halves; cyclictest's wake-up times are rebuilt from
+//! its start) and, for hwgw's thread, its page faults and involuntary context switches over
+//! the half: a long period with steal around it is the host's; one without, and without a
+//! fault or switch of the thread's, is the guest kernel's or a stall the counter missed. Five
 //! rounds (`JITTER_RUNS`), then the median of the max and p99 ratios and the rounds where
 //! hwgw had long periods and cyclictest had none.
 //!
@@ -91,10 +96,130 @@ struct Figures {
     longest: u64,
     /// The host's steal time while it ran, ms.
     steal_ms: u64,
+    /// What was seen around the longest period.
+    worst: Worst,
+}
+
+/// The longest period of a half and what was seen around it.
+#[derive(Default)]
+struct Worst {
+    /// When it began, seconds into the half.
+    at_s: f64,
+    /// The host's steal time in the window around it (the period and
+    /// [`WITNESS_MARGIN_MS`] on each side), ms.
+    steal_ms: u64,
+    /// The measured thread's page faults (minor + major) and involuntary context switches
+    /// over the whole half, when known (hwgw's thread; not cyclictest's).
+    thread: Option<(u64, u64)>,
+}
+
+/// How far on each side of the longest period the steal around it is summed: the steal
+/// counter moves in 10 ms ticks, and cyclictest's wake-up times are rebuilt from its start
+/// (a few ms off).
+const WITNESS_MARGIN_MS: u64 = 20;
+
+/// The host's steal time sampled every 2 ms on a thread of its own while a half runs, so
+/// that the half's longest period can be set beside the steal around it. Both halves run
+/// with it.
+struct StealWatch {
+    stop: Arc<std::sync::atomic::AtomicBool>,
+    thread: std::thread::JoinHandle<Vec<(u64, u64)>>,
+}
+
+impl StealWatch {
+    fn start() -> StealWatch {
+        let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let s = stop.clone();
+        let thread = std::thread::spawn(move || {
+            let mut samples = Vec::with_capacity(64 * 1024);
+            while !s.load(Ordering::Relaxed) {
+                samples.push((now_ns(), testkit::bench::steal_ms()));
+                std::thread::sleep(Duration::from_millis(2));
+            }
+            samples.push((now_ns(), testkit::bench::steal_ms()));
+            samples
+        });
+        StealWatch { stop, thread }
+    }
+
+    /// The samples: (monotonic ns, steal ms so far).
+    fn finish(self) -> Vec<(u64, u64)> {
+        self.stop.store(true, Ordering::Relaxed);
+        self.thread.join().unwrap()
+    }
+}
+
+/// Steal between the last sample at or before `from` and the first at or after `to`, ms.
+fn steal_between(samples: &[(u64, u64)], from: u64, to: u64) -> u64 {
+    let before = samples
+        .iter()
+        .rev()
+        .find(|s| s.0 <= from)
+        .or(samples.first());
+    let after = samples.iter().find(|s| s.0 >= to).or(samples.last());
+    match (before, after) {
+        (Some(b), Some(a)) => a.1.saturating_sub(b.1),
+        _ => 0,
+    }
+}
+
+fn now_ns() -> u64 {
+    use device_interface::time::{Clock, MonotonicClock};
+    MonotonicClock.now().as_nanos()
+}
+
+/// The longest period of a half from its wake-up times (ns), with the steal around it.
+fn worst(wakes: &[u64], samples: &[(u64, u64)], thread: Option<(u64, u64)>) -> Worst {
+    let Some(i) = (1..wakes.len()).max_by_key(|&i| wakes[i] - wakes[i - 1]) else {
+        return Worst::default();
+    };
+    let margin = WITNESS_MARGIN_MS * 1_000_000;
+    Worst {
+        at_s: (wakes[i - 1] - wakes[0]) as f64 / 1e9,
+        steal_ms: steal_between(
+            samples,
+            wakes[i - 1].saturating_sub(margin),
+            wakes[i] + margin,
+        ),
+        thread,
+    }
+}
+
+/// The page faults (minor + major) and involuntary context switches of this process's
+/// thread `tid` so far.
+fn thread_counts(tid: u32) -> Option<(u64, u64)> {
+    let stat = std::fs::read_to_string(format!("/proc/self/task/{tid}/stat")).ok()?;
+    // Fields after the command's closing parenthesis: state is field 3, minflt 10, majflt 12.
+    let rest: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
+    let faults = rest.get(7)?.parse::<u64>().ok()? + rest.get(9)?.parse::<u64>().ok()?;
+    let status = std::fs::read_to_string(format!("/proc/self/task/{tid}/status")).ok()?;
+    let switches = status
+        .lines()
+        .find_map(|l| l.strip_prefix("nonvoluntary_ctxt_switches:"))?
+        .trim()
+        .parse()
+        .ok()?;
+    Some((faults, switches))
+}
+
+/// This process's thread named `name`.
+fn thread_named(name: &str) -> Option<u32> {
+    std::fs::read_dir("/proc/self/task").ok()?.find_map(|t| {
+        let t = t.ok()?;
+        let comm = std::fs::read_to_string(t.path().join("comm")).ok()?;
+        (comm.trim_end() == name)
+            .then(|| t.file_name().to_str()?.parse().ok())
+            .flatten()
+    })
 }
 
 /// Figures of a run from its latencies (µs) and the intervals between its wake-ups (µs).
-fn figures(late: &[u64], intervals: impl Iterator<Item = u64>, steal_ms: u64) -> Figures {
+fn figures(
+    late: &[u64],
+    intervals: impl Iterator<Item = u64>,
+    steal_ms: u64,
+    worst: Worst,
+) -> Figures {
     let mut h = Histogram::<u64>::new_with_bounds(1, 10_000_000, 3).unwrap();
     for &us in late {
         h.record(us.clamp(1, 10_000_000)).unwrap();
@@ -113,6 +238,7 @@ fn figures(late: &[u64], intervals: impl Iterator<Item = u64>, steal_ms: u64) ->
         long,
         longest,
         steal_ms,
+        worst,
     }
 }
 
@@ -146,11 +272,23 @@ fn run_rtt(loops: u64, fifo: bool, priority: i32) -> Figures {
         })
         .unwrap();
     let steal = testkit::bench::steal_ms();
+    let watch = StealWatch::start();
     t.start().unwrap();
+    while trace.len.load(Ordering::Acquire) == 0 {
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    // The activity's thread is named after its component once it runs.
+    let tid = thread_named("jitter");
+    let counts_before = tid.and_then(thread_counts);
     while trace.len.load(Ordering::Acquire) < trace.late_us.len() {
         std::thread::sleep(Duration::from_millis(50));
     }
+    let counts = match (counts_before, tid.and_then(thread_counts)) {
+        (Some(b), Some(a)) => Some((a.0 - b.0, a.1 - b.1)),
+        _ => None,
+    };
     t.stop().unwrap();
+    let samples = watch.finish();
     let steal = testkit::bench::steal_ms().saturating_sub(steal);
     if fifo && !t.stats().realtime {
         eprintln!("warning: the activity did not get SCHED_FIFO");
@@ -167,12 +305,16 @@ fn run_rtt(loops: u64, fifo: bool, priority: i32) -> Figures {
     // The runtime skips wake-ups it missed (keeping the grid), so its intervals are taken
     // from the starts themselves; in µs, floored like the latencies.
     let intervals = starts.windows(2).map(|w| (w[1] - w[0]) / 1000);
-    figures(&late, intervals, steal)
+    let worst = worst(&starts, &samples, counts);
+    figures(&late, intervals, steal, worst)
 }
 
 fn run_cyclictest(loops: u64, fifo: bool, priority: i32) -> Result<Figures, String> {
     let prio = if fifo { priority } else { 0 };
+    let watch = StealWatch::start();
+    let spawned = now_ns();
     let (text, steal) = testkit::bench::cyclictest(prio, PERIOD_US, loops, &["-v"])?;
+    let samples = watch.finish();
     // `-v` prints `thread: loop: latency` for every loop.
     let late: Vec<u64> = text
         .lines()
@@ -199,11 +341,21 @@ fn run_cyclictest(loops: u64, fifo: bool, priority: i32) -> Result<Figures, Stri
     // point not before its wake-up (its loop moves `next` on while `now` is past it). So
     // the interval is the points moved over plus the change in lateness: the rebuilt
     // wake-up times, as the runtime's (which skips missed wake-ups too) are taken.
-    let intervals = late.windows(2).map(|w| {
-        let moved = w[0].div_ceil(PERIOD_US).max(1) * PERIOD_US;
-        (moved + w[1]).saturating_sub(w[0])
-    });
-    Ok(figures(&late, intervals, steal))
+    let intervals: Vec<u64> = late
+        .windows(2)
+        .map(|w| {
+            let moved = w[0].div_ceil(PERIOD_US).max(1) * PERIOD_US;
+            (moved + w[1]).saturating_sub(w[0])
+        })
+        .collect();
+    // Its wake-up times, rebuilt from its start: the first a period after the spawn (its
+    // set-up, a few ms, is the error), then the intervals.
+    let mut wakes = vec![spawned + PERIOD_US * 1000 + late[0] * 1000];
+    for i in &intervals {
+        wakes.push(wakes[wakes.len() - 1] + i * 1000);
+    }
+    let worst = worst(&wakes, &samples, None);
+    Ok(figures(&late, intervals.into_iter(), steal, worst))
 }
 
 fn main() -> ExitCode {
@@ -269,6 +421,26 @@ fn main() -> ExitCode {
             println!(
                 "{:<5} {:<12} {:>8} {:>8} {:>8} {:>8} {:>9} {:>6} {:>9} {:>8}",
                 run, name, f.p50, f.p99, f.p999, f.max, f.count, f.long, f.longest, f.steal_ms
+            );
+        }
+        for (name, f) in [("rtt", &ours), ("cyclictest", &theirs)] {
+            let w = &f.worst;
+            let thread = match w.thread {
+                Some((faults, switches)) => format!(
+                    "; its thread over the half: {faults} page faults, {switches} involuntary switches"
+                ),
+                None => String::new(),
+            };
+            println!(
+                "{run:<5} {name:<12} longest period {} µs at {:.3} s{}: steal within {WITNESS_MARGIN_MS} ms of it {} ms{thread}",
+                f.longest,
+                w.at_s,
+                if name == "cyclictest" {
+                    " (rebuilt)"
+                } else {
+                    ""
+                },
+                w.steal_ms
             );
         }
         let (r99, rmax) = (ratio(ours.p99, theirs.p99), ratio(ours.max, theirs.max));

@@ -546,7 +546,9 @@ impl Activity {
     /// its duration, the lateness and the stamp of what it writes to stamped connections —
     /// so the time it waited is not taken for time it worked. Returns the time it took (the
     /// monotonic clock's now, read once, for the caller to use too). Changes nothing from
-    /// any other thread, or outside a step.
+    /// any other thread, or outside a step. The step's `Context::timing`, given before the
+    /// step began, still says when the step was woken; the statistics and stamps count
+    /// from the time returned here.
     pub fn restart_step(&self) -> Timestamp {
         let now = MonotonicClock.now().as_nanos().max(1);
         let owner = Arc::as_ptr(&self.shared) as u64;
