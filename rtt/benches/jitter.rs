@@ -56,14 +56,29 @@ struct Trace {
 
 impl Trace {
     fn new(loops: usize) -> Self {
-        // `vec!` of atomics writes every element: the pages are touched here, not on the
-        // measured thread.
         Trace {
-            late_us: (0..loops).map(|_| AtomicU64::new(0)).collect(),
-            start_ns: (0..loops).map(|_| AtomicU64::new(0)).collect(),
+            late_us: touched(loops),
+            start_ns: touched(loops),
             len: AtomicUsize::new(0),
         }
     }
+}
+
+/// `n` zeroed atomics whose pages are written here, not on the measured thread. Zeroes
+/// collected into a vector may become one `calloc`, whose fresh pages stay unmapped
+/// until first written: the first round's hwgw thread took 117 page faults over its
+/// half that way (a 480 KB array is 117 pages). A volatile store to each element cannot
+/// be left out.
+fn touched(n: usize) -> Vec<AtomicU64> {
+    let v: Vec<AtomicU64> = (0..n).map(|_| AtomicU64::new(0)).collect();
+    for a in &v {
+        // SAFETY: the pointer is to an element of `v`, alive and not shared yet.
+        #[allow(unsafe_code, reason = "a volatile store to touch the element's page")]
+        unsafe {
+            std::ptr::write_volatile(a.as_ptr(), 0);
+        }
+    }
+    v
 }
 
 struct Probe {
