@@ -20,6 +20,7 @@
 //! # Ok::<(), can_socket::signal::SignalError>(())
 //! ```
 
+pub mod batch;
 pub mod blocking;
 pub mod isotp;
 pub mod j1939;

@@ -152,7 +152,7 @@ pub struct Received {
 /// A CAN_RAW socket bound to one interface: non-blocking, unless its reader waits in it
 /// (see [`crate::blocking`]); its sends never wait either way.
 pub struct RawSocket {
-    socket: CanFdSocket,
+    pub(crate) socket: CanFdSocket,
     /// Room for the timestamp and drop-count control messages (allocated once).
     cmsg: Vec<u8>,
     /// The kernel's drop counter as last seen.
@@ -231,39 +231,20 @@ impl RawSocket {
                 Err(e) => return Err(e),
             }
         };
-        let mut dropped = 0;
-        if let Some(d) = drops {
-            dropped = d.wrapping_sub(self.drops_seen);
-            self.drops_seen = d;
-        }
-        let frame = if n != CAN_MTU && n != CANFD_MTU {
-            Frame::WrongKind
-        } else {
-            let can_id = u32::from_ne_bytes([raw[0], raw[1], raw[2], raw[3]]);
-            let len = usize::from(raw[4]).min(if n == CAN_MTU { 8 } else { 64 });
-            data[..len].copy_from_slice(&raw[8..8 + len]);
-            let extended = can_id & CAN_EFF_FLAG != 0;
-            if can_id & CAN_ERR_FLAG != 0 {
-                Frame::Error {
-                    class: can_id & CAN_ERR_MASK,
-                    len,
-                }
-            } else if can_id & CAN_RTR_FLAG != 0 {
-                Frame::WrongKind
-            } else {
-                Frame::Data {
-                    id: can_id & if extended { CAN_EFF_MASK } else { CAN_SFF_MASK },
-                    extended,
-                    fd: n == CANFD_MTU,
-                    len,
-                }
-            }
-        };
+        let dropped = self.dropped_since(drops);
         Ok(Some(Received {
-            frame,
+            frame: frame_of(&raw, n, data),
             stamp,
             dropped,
         }))
+    }
+
+    /// The frames dropped since the last report, from a received drop counter.
+    pub(crate) fn dropped_since(&mut self, drops: Option<u32>) -> u32 {
+        let Some(d) = drops else { return 0 };
+        let dropped = d.wrapping_sub(self.drops_seen);
+        self.drops_seen = d;
+        dropped
     }
 
     /// Sends one frame (a classic frame carries at most 8 bytes, an FD frame 64). An id
@@ -304,6 +285,33 @@ impl RawSocket {
             Ok(())
         } else {
             Err(std::io::Error::from(std::io::ErrorKind::WriteZero))
+        }
+    }
+}
+
+/// The frame in `raw`, `n` bytes as the kernel gave them (a `can_frame` or
+/// `canfd_frame`), its payload copied into `data`.
+pub(crate) fn frame_of(raw: &[u8; CANFD_MTU], n: usize, data: &mut [u8; 64]) -> Frame {
+    if n != CAN_MTU && n != CANFD_MTU {
+        return Frame::WrongKind;
+    }
+    let can_id = u32::from_ne_bytes([raw[0], raw[1], raw[2], raw[3]]);
+    let len = usize::from(raw[4]).min(if n == CAN_MTU { 8 } else { 64 });
+    data[..len].copy_from_slice(&raw[8..8 + len]);
+    let extended = can_id & CAN_EFF_FLAG != 0;
+    if can_id & CAN_ERR_FLAG != 0 {
+        Frame::Error {
+            class: can_id & CAN_ERR_MASK,
+            len,
+        }
+    } else if can_id & CAN_RTR_FLAG != 0 {
+        Frame::WrongKind
+    } else {
+        Frame::Data {
+            id: can_id & if extended { CAN_EFF_MASK } else { CAN_SFF_MASK },
+            extended,
+            fd: n == CANFD_MTU,
+            len,
         }
     }
 }

@@ -534,6 +534,60 @@ fn a_bus_in_error_goes_on_and_recovers() -> Result<(), Failed> {
     Ok(())
 }
 
+/// A socket that overflowed: every frame sent is either decoded or counted as dropped
+/// (the drop count comes with the frames, in a control message of the batched read), and
+/// the backlog is read in batches by the bus thread's own wait.
+fn a_flooded_socket_counts_its_drops() -> Result<(), Failed> {
+    use socketcan::{EmbeddedFrame, Socket, StandardId};
+    vcan("vcan11")?;
+    let c = card(
+        "vcan11",
+        &MOTION.replace("cycle_ms = 20", "cycle_ms = 10000"),
+    )?;
+    let mut bus = CanBus::open(c.clone())?;
+    assert!(bus.waits_in_socket());
+    // Nobody reads while 3000 frames are sent: the socket's buffer (a few hundred frames)
+    // overflows. The kernel reports drops with the next frame it queues, so after each
+    // read one more frame is sent, until every frame sent is read or counted dropped.
+    let sender = socketcan::CanSocket::open("vcan11")?;
+    let id = StandardId::new(0x100).ok_or("id")?;
+    let send = |k: u64| -> Result<(), Failed> {
+        let frame = socketcan::CanFrame::new(id, &k.to_le_bytes()).ok_or("frame")?;
+        while let Err(e) = sender.write_frame(&frame) {
+            if e.raw_os_error() != Some(libc::ENOBUFS) {
+                return Err(e.into());
+            }
+            std::thread::yield_now();
+        }
+        Ok(())
+    };
+    let mut sent = 0u64;
+    while sent < 3000 {
+        send(sent)?;
+        sent += 1;
+    }
+    let mut seen = 0u64;
+    let end = std::time::Instant::now() + Duration::from_secs(20);
+    loop {
+        bus.wait_and_service(
+            &mut || device_interface::time::Timestamp::from_nanos(1),
+            &mut |_, _, _| seen += 1,
+        );
+        let k = c.counters();
+        if k.rx_frames + k.rx_dropped >= sent || std::time::Instant::now() > end {
+            break;
+        }
+        send(sent)?;
+        sent += 1;
+    }
+    bus.thread_ended();
+    let k = c.counters();
+    assert!(k.rx_dropped > 0, "the socket never overflowed: {k:?}");
+    assert_eq!(k.rx_frames + k.rx_dropped, sent, "{k:?}");
+    assert_eq!(seen, k.rx_frames, "every decoded frame reached its port");
+    Ok(())
+}
+
 fn main() -> std::process::ExitCode {
     let rig = testkit::rig::vcan()
         .module("kvaser_pci")
@@ -572,6 +626,10 @@ fn main() -> std::process::ExitCode {
                 missing_and_unsuitable_interfaces_are_clear_errors,
             ),
             t("can_fd_frames_both_ways", can_fd_frames_both_ways),
+            t(
+                "a_flooded_socket_counts_its_drops",
+                a_flooded_socket_counts_its_drops,
+            ),
             t(
                 "a_bus_in_error_goes_on_and_recovers",
                 a_bus_in_error_goes_on_and_recovers,
