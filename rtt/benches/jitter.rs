@@ -11,7 +11,8 @@
 //! It also prints the host's steal time during each half (`/proc/stat`, CPU-ms summed
 //! over the CPUs), so a round where the hypervisor stalled the machine says so, and for
 //! each half's longest period the steal within 20 ms of it (a thread of the bench samples
-//! the counter every 2 ms during both halves; cyclictest's wake-up times are rebuilt from
+//! the counter every 2 ms during both halves, `JITTER_STEAL_EVERY_MS` to change, 0 for no
+//! such thread; cyclictest's wake-up times are rebuilt from
 //! its start) and, for hwgw's thread, its page faults and involuntary context switches over
 //! the half: a long period with steal around it is the host's; one without, and without a
 //! fault or switch of the thread's, is the guest kernel's or a stall the counter missed. Five
@@ -121,8 +122,8 @@ struct Worst {
     /// When it began, seconds into the half.
     at_s: f64,
     /// The host's steal time in the window around it (the period and
-    /// [`WITNESS_MARGIN_MS`] on each side), ms.
-    steal_ms: u64,
+    /// [`WITNESS_MARGIN_MS`] on each side), ms; None when not sampled.
+    steal_ms: Option<u64>,
     /// The measured thread's page faults (minor + major) and involuntary context switches
     /// over the whole half, when known (hwgw's thread; not cyclictest's).
     thread: Option<(u64, u64)>,
@@ -133,34 +134,40 @@ struct Worst {
 /// (a few ms off).
 const WITNESS_MARGIN_MS: u64 = 20;
 
-/// The host's steal time sampled every 2 ms on a thread of its own while a half runs, so
-/// that the half's longest period can be set beside the steal around it. Both halves run
-/// with it.
+/// The host's steal time sampled every `JITTER_STEAL_EVERY_MS` (default 2; 0: not
+/// sampled, no thread) on a thread of its own while a half runs, so that the half's longest
+/// period can be set beside the steal around it. Both halves run with it.
 struct StealWatch {
     stop: Arc<std::sync::atomic::AtomicBool>,
-    thread: std::thread::JoinHandle<Vec<(u64, u64)>>,
+    thread: Option<std::thread::JoinHandle<Vec<(u64, u64)>>>,
 }
 
 impl StealWatch {
     fn start() -> StealWatch {
+        let every: u64 = std::env::var("JITTER_STEAL_EVERY_MS")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(2);
         let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
         let s = stop.clone();
-        let thread = std::thread::spawn(move || {
-            let mut samples = Vec::with_capacity(64 * 1024);
-            while !s.load(Ordering::Relaxed) {
+        let thread = (every > 0).then(|| {
+            std::thread::spawn(move || {
+                let mut samples = Vec::with_capacity(64 * 1024);
+                while !s.load(Ordering::Relaxed) {
+                    samples.push((now_ns(), testkit::bench::steal_ms()));
+                    std::thread::sleep(Duration::from_millis(every));
+                }
                 samples.push((now_ns(), testkit::bench::steal_ms()));
-                std::thread::sleep(Duration::from_millis(2));
-            }
-            samples.push((now_ns(), testkit::bench::steal_ms()));
-            samples
+                samples
+            })
         });
         StealWatch { stop, thread }
     }
 
-    /// The samples: (monotonic ns, steal ms so far).
+    /// The samples: (monotonic ns, steal ms so far); none when not sampled.
     fn finish(self) -> Vec<(u64, u64)> {
         self.stop.store(true, Ordering::Relaxed);
-        self.thread.join().unwrap()
+        self.thread.map_or_else(Vec::new, |t| t.join().unwrap())
     }
 }
 
@@ -191,11 +198,13 @@ fn worst(wakes: &[u64], samples: &[(u64, u64)], thread: Option<(u64, u64)>) -> W
     let margin = WITNESS_MARGIN_MS * 1_000_000;
     Worst {
         at_s: (wakes[i - 1] - wakes[0]) as f64 / 1e9,
-        steal_ms: steal_between(
-            samples,
-            wakes[i - 1].saturating_sub(margin),
-            wakes[i] + margin,
-        ),
+        steal_ms: (!samples.is_empty()).then(|| {
+            steal_between(
+                samples,
+                wakes[i - 1].saturating_sub(margin),
+                wakes[i] + margin,
+            )
+        }),
         thread,
     }
 }
@@ -446,8 +455,12 @@ fn main() -> ExitCode {
                 ),
                 None => String::new(),
             };
+            let steal = match w.steal_ms {
+                Some(ms) => format!("steal within {WITNESS_MARGIN_MS} ms of it {ms} ms"),
+                None => "steal not sampled".to_string(),
+            };
             println!(
-                "{run:<5} {name:<12} longest period {} µs at {:.3} s{}: steal within {WITNESS_MARGIN_MS} ms of it {} ms{thread}",
+                "{run:<5} {name:<12} longest period {} µs at {:.3} s{}: {steal}{thread}",
                 f.longest,
                 w.at_s,
                 if name == "cyclictest" {
@@ -455,7 +468,6 @@ fn main() -> ExitCode {
                 } else {
                     ""
                 },
-                w.steal_ms
             );
         }
         let (r99, rmax) = (ratio(ours.p99, theirs.p99), ratio(ours.max, theirs.max));
