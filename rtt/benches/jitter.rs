@@ -84,11 +84,18 @@ fn touched(n: usize) -> Vec<AtomicU64> {
 
 struct Probe {
     trace: Arc<Trace>,
+    /// The activity thread's id, stored at its first step.
+    tid: Arc<std::sync::atomic::AtomicU32>,
 }
 
 impl Component for Probe {
     fn update_hook(&mut self, ctx: &mut Context<'_>) -> HookResult {
         let t = ctx.timing();
+        if self.tid.load(Ordering::Relaxed) == 0 {
+            // The first step: before its record, so the record's release publishes it.
+            let tid = nix::unistd::gettid().as_raw() as u32;
+            self.tid.store(tid, Ordering::Relaxed);
+        }
         let i = self.trace.len.load(Ordering::Relaxed);
         if i < self.trace.late_us.len() {
             let us = t.lateness().as_micros() as u64;
@@ -171,18 +178,12 @@ impl StealWatch {
     }
 }
 
-/// Steal between the last sample at or before `from` and the first at or after `to`, ms.
-fn steal_between(samples: &[(u64, u64)], from: u64, to: u64) -> u64 {
-    let before = samples
-        .iter()
-        .rev()
-        .find(|s| s.0 <= from)
-        .or(samples.first());
-    let after = samples.iter().find(|s| s.0 >= to).or(samples.last());
-    match (before, after) {
-        (Some(b), Some(a)) => a.1.saturating_sub(b.1),
-        _ => 0,
-    }
+/// Steal between the last sample at or before `from` and the first at or after `to`, ms;
+/// None when the window is not within the samples.
+fn steal_between(samples: &[(u64, u64)], from: u64, to: u64) -> Option<u64> {
+    let before = samples.iter().rev().find(|s| s.0 <= from)?;
+    let after = samples.iter().find(|s| s.0 >= to)?;
+    Some(after.1.saturating_sub(before.1))
 }
 
 fn now_ns() -> u64 {
@@ -198,13 +199,11 @@ fn worst(wakes: &[u64], samples: &[(u64, u64)], thread: Option<(u64, u64)>) -> W
     let margin = WITNESS_MARGIN_MS * 1_000_000;
     Worst {
         at_s: (wakes[i - 1] - wakes[0]) as f64 / 1e9,
-        steal_ms: (!samples.is_empty()).then(|| {
-            steal_between(
-                samples,
-                wakes[i - 1].saturating_sub(margin),
-                wakes[i] + margin,
-            )
-        }),
+        steal_ms: steal_between(
+            samples,
+            wakes[i - 1].saturating_sub(margin),
+            wakes[i] + margin,
+        ),
         thread,
     }
 }
@@ -224,17 +223,6 @@ fn thread_counts(tid: u32) -> Option<(u64, u64)> {
         .parse()
         .ok()?;
     Some((faults, switches))
-}
-
-/// This process's thread named `name`.
-fn thread_named(name: &str) -> Option<u32> {
-    std::fs::read_dir("/proc/self/task").ok()?.find_map(|t| {
-        let t = t.ok()?;
-        let comm = std::fs::read_to_string(t.path().join("comm")).ok()?;
-        (comm.trim_end() == name)
-            .then(|| t.file_name().to_str()?.parse().ok())
-            .flatten()
-    })
 }
 
 /// Figures of a run from its latencies (µs) and the intervals between its wake-ups (µs).
@@ -290,9 +278,11 @@ fn run_rtt(loops: u64, fifo: bool, priority: i32) -> Figures {
         max_overruns: None,
     };
     let tr = trace.clone();
+    let thread = Arc::new(std::sync::atomic::AtomicU32::new(0));
+    let th = thread.clone();
     let t = rt
         .add("jitter", spec, rtt::InitialState::Stopped, move |_| {
-            Ok(Probe { trace: tr })
+            Ok(Probe { trace: tr, tid: th })
         })
         .unwrap();
     let steal = testkit::bench::steal_ms();
@@ -301,8 +291,8 @@ fn run_rtt(loops: u64, fifo: bool, priority: i32) -> Figures {
     while trace.len.load(Ordering::Acquire) == 0 {
         std::thread::sleep(Duration::from_millis(1));
     }
-    // The activity's thread is named after its component once it runs.
-    let tid = thread_named("jitter");
+    // The activity's thread, as its first step (published with its record) said.
+    let tid = Some(thread.load(Ordering::Relaxed)).filter(|&t| t != 0);
     let counts_before = tid.and_then(thread_counts);
     while trace.len.load(Ordering::Acquire) < trace.late_us.len() {
         std::thread::sleep(Duration::from_millis(50));
@@ -457,7 +447,7 @@ fn main() -> ExitCode {
             };
             let steal = match w.steal_ms {
                 Some(ms) => format!("steal within {WITNESS_MARGIN_MS} ms of it {ms} ms"),
-                None => "steal not sampled".to_string(),
+                None => "steal not sampled around it".to_string(),
             };
             println!(
                 "{run:<5} {name:<12} longest period {} µs at {:.3} s{}: {steal}{thread}",

@@ -53,6 +53,7 @@ impl Batch {
 
     /// Frame `k` of the last call, its payload copied into `data`.
     pub fn frame(&self, k: usize, data: &mut [u8; 64]) -> Received {
+        debug_assert!(k < self.len, "frame {k} of a batch of {}", self.len);
         let (n, stamp, dropped) = self.got[k];
         Received {
             frame: frame_of(&self.raw[k], n, data),
@@ -68,6 +69,16 @@ impl RawSocket {
     /// (EINTR) or the socket was non-blocking with nothing queued. The error is the
     /// socket's (ENETDOWN or ENODEV when the link went).
     pub fn recv_wait_batch(&mut self, batch: &mut Batch) -> nix::Result<usize> {
+        self.recv_batch(batch, libc::MSG_WAITFORONE)
+    }
+
+    /// As [`recv_wait_batch`](Self::recv_wait_batch), never waiting: what is queued, up
+    /// to [`BATCH`] frames, for the rest of a backlog after a full batch.
+    pub fn recv_batch_now(&mut self, batch: &mut Batch) -> nix::Result<usize> {
+        self.recv_batch(batch, libc::MSG_DONTWAIT)
+    }
+
+    fn recv_batch(&mut self, batch: &mut Batch, flags: libc::c_int) -> nix::Result<usize> {
         batch.len = 0;
         let mut iov: [libc::iovec; BATCH] = std::array::from_fn(|k| libc::iovec {
             iov_base: batch.raw[k].as_mut_ptr().cast(),
@@ -92,7 +103,7 @@ impl RawSocket {
                 fd,
                 headers.as_mut_ptr(),
                 BATCH as u32,
-                libc::MSG_WAITFORONE,
+                flags,
                 std::ptr::null_mut(),
             )
         };

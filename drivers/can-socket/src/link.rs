@@ -45,8 +45,9 @@ const LINK_FILES: [&str; 3] = ["flags", "ifindex", "carrier"];
 /// (sysfs gives the value afresh at each read). A file of an interface that went away
 /// answers ENODEV (any error but EINVAL, which `carrier` answers while the interface is
 /// down) and is opened again by name, which finds a new interface of that name;
-/// one that cannot be opened is tried again at the next read. An interface renamed while
-/// its files are open is still the one read, until it goes.
+/// one that cannot be opened is tried again at the next read. An interface renamed, or
+/// moved to another network namespace, while its files are open is still the one read
+/// until it goes: a new interface given the name meanwhile is not seen before then.
 #[derive(Debug)]
 pub struct LinkReader {
     iface: String,

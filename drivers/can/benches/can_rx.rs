@@ -270,7 +270,12 @@ fn trace_bus_thread(
         .lines()
         .any(|l| l.starts_with("TracerPid:") && l.split_whitespace().nth(1) != Some("0"))
     {
+        if let Some(exit) = strace.try_wait()? {
+            return Err(format!("strace ended before it attached: {exit}").into());
+        }
         if Instant::now() > end {
+            let _ = strace.kill();
+            let _ = strace.wait();
             return Err("strace did not attach to the bus thread within 20 s".into());
         }
         std::thread::sleep(Duration::from_millis(10));
@@ -535,7 +540,13 @@ fn reference_reader(
                         let now = std::time::SystemTime::now();
                         v.push(now.duration_since(at).map_or(0, |d| d.as_nanos() as u64));
                     }
-                    Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => break,
+                    // Blocking, this is the 3 s read timeout: a frame lost, the pass over.
+                    Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                        if wait == Wait::Blocking {
+                            return Ok(v);
+                        }
+                        break;
+                    }
                     Err(_) => return Ok(v),
                 }
                 if wait == Wait::Blocking || v.len() as u64 == n {
