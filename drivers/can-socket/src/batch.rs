@@ -10,7 +10,7 @@
 //! keeps the written-back size, so it is not used here).
 
 use crate::socket::{CANFD_MTU, RawSocket, Received, frame_of};
-use std::os::fd::AsRawFd;
+use std::os::fd::{AsFd, AsRawFd};
 
 /// The most frames one call takes.
 pub const BATCH: usize = 16;
@@ -94,7 +94,7 @@ impl RawSocket {
             h.msg_hdr.msg_controllen = std::mem::size_of::<[u64; CMSG_WORDS]>() as _;
             h
         });
-        let fd = self.socket.as_raw_fd();
+        let fd = self.as_fd().as_raw_fd();
         #[allow(unsafe_code, reason = "recvmmsg into buffers this function owns")]
         // SAFETY: every header points at an iovec of `CANFD_MTU` bytes of `batch.raw` and
         // at `batch.cmsg`'s room of the size given, all alive and unaliased for the call.

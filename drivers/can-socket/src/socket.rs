@@ -152,7 +152,7 @@ pub struct Received {
 /// A CAN_RAW socket bound to one interface: non-blocking, unless its reader waits in it
 /// (see [`crate::blocking`]); its sends never wait either way.
 pub struct RawSocket {
-    pub(crate) socket: CanFdSocket,
+    socket: CanFdSocket,
     /// Room for the timestamp and drop-count control messages (allocated once).
     cmsg: Vec<u8>,
     /// The kernel's drop counter as last seen.
@@ -189,25 +189,11 @@ impl RawSocket {
     /// Receives one queued frame into `data` without blocking: None when none is queued
     /// (EINTR is retried). The error is the socket's (ENETDOWN or ENODEV when the link went).
     pub fn recv(&mut self, data: &mut [u8; 64]) -> nix::Result<Option<Received>> {
-        self.receive(data, MsgFlags::MSG_DONTWAIT)
-    }
-
-    /// Receives one frame into `data`, waiting for it in the call when the socket is
-    /// blocking (see [`crate::blocking`]): None when the wait was interrupted (EINTR) or
-    /// the socket was non-blocking with nothing queued.
-    pub fn recv_wait(&mut self, data: &mut [u8; 64]) -> nix::Result<Option<Received>> {
-        match self.receive(data, MsgFlags::empty()) {
-            Err(nix::Error::EINTR) => Ok(None),
-            r => r,
-        }
-    }
-
-    fn receive(&mut self, data: &mut [u8; 64], flags: MsgFlags) -> nix::Result<Option<Received>> {
         let mut raw = [0u8; CANFD_MTU];
         let fd = self.socket.as_raw_fd();
         let (n, stamp, drops) = loop {
             let mut iov = [std::io::IoSliceMut::new(&mut raw)];
-            match recvmsg::<()>(fd, &mut iov, Some(&mut self.cmsg), flags) {
+            match recvmsg::<()>(fd, &mut iov, Some(&mut self.cmsg), MsgFlags::MSG_DONTWAIT) {
                 Ok(msg) => {
                     let mut stamp = None;
                     let mut drops = None;
@@ -227,7 +213,7 @@ impl RawSocket {
                     break (msg.bytes, stamp, drops);
                 }
                 Err(nix::Error::EAGAIN) => return Ok(None),
-                Err(nix::Error::EINTR) if flags.contains(MsgFlags::MSG_DONTWAIT) => continue,
+                Err(nix::Error::EINTR) => continue,
                 Err(e) => return Err(e),
             }
         };

@@ -356,14 +356,13 @@ impl CanBus {
             Some(fd) => match self.wakeups.waiter().prepare(fd) {
                 Ok(true) => {
                     self.wait_failing = false;
-                    let got = self
+                    let mut got = self
                         .socket
                         .as_mut()
                         .map(|s| s.recv_wait_batch(&mut self.batch));
                     // The wake-up's monotonic time, read once, gives the frames' stamps
                     // their offset with one more read (CLOCK_REALTIME), not two.
                     let at = woke().as_nanos();
-                    let mut got = got;
                     // A full batch may have left frames queued: they are taken a batch
                     // at a time without waiting, until one comes short (the queue dry).
                     while let Some(Ok(n)) = got {
