@@ -19,6 +19,21 @@
 //! rounds (`JITTER_RUNS`), then the median of the max and p99 ratios and the rounds where
 //! hwgw had long periods and cyclictest had none.
 //!
+//! Both halves run on the same CPU (`JITTER_CPU`, by default the number of CPUs the process
+//! may use less one; `JITTER_PIN=0`: where the scheduler puts them — on the machine of
+//! 2026-12-01 that was hwgw's thread on CPU 1 and cyclictest's on CPU 0 in each half
+//! watched, so each met another CPU's stalls). Pinned, that CPU runs the measured threads
+//! alone: the bench's other threads and cyclictest's main thread (`--mainaffinity`) are
+//! kept on the others, since on a kernel that does not preempt kernel code a thread in a
+//! system call on the measured CPU holds a real-time wake-up until it leaves the kernel.
+//!
+//! A third piece of each round runs the two together on that CPU, half a period apart, for
+//! the same number of cyclictest's wake-ups (`JITTER_TOGETHER=0` leaves it out, `2` runs it
+//! alone): a stall of that CPU delays both, and each late wake-up of one is set beside what
+//! the other did meanwhile (`together.rs`). Its figures count only the seconds both ran;
+//! the summary gives the median of its max ratios and how many late wake-ups of each were
+//! its own.
+//!
 //! Both hold `/dev/cpu_dma_latency` at 0 while they run (cyclictest's default; the runtime's
 //! `cpu_dma_latency_us` option). Both ask for SCHED_FIFO at `JITTER_PRIORITY` (default 80);
 //! when the machine refuses it, both run SCHED_OTHER, and the output says so.
@@ -35,6 +50,13 @@
     reason = "benchmark setup: a failed unwrap aborts the run"
 )]
 
+#[path = "jitter/report.rs"]
+mod report;
+#[path = "jitter/together.rs"]
+mod together;
+
+use report::{Settings, Tally, print_rows, print_together, print_worst};
+
 use device_interface::Registry;
 use hdrhistogram::Histogram;
 use rtt::activity::{ActivitySpec, SchedPolicy, ThreadOptions, Timing};
@@ -45,13 +67,17 @@ use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::time::Duration;
 
 const PERIOD_US: u64 = 1000;
+/// A wake-up this late after an on-time one makes a period over 1.2× nominal, µs.
+const LATE_US: u64 = PERIOD_US / 5;
 /// A period longer than this is an overrun (1.2× nominal).
 const LONG_US: u64 = PERIOD_US * 6 / 5;
 
-/// Each step's lateness in µs, floored as cyclictest reports it, and its start (ns).
+/// Each step's lateness in µs, floored as cyclictest reports it, its start and when it was
+/// due (monotonic ns).
 struct Trace {
     late_us: Vec<AtomicU64>,
     start_ns: Vec<AtomicU64>,
+    due_ns: Vec<AtomicU64>,
     len: AtomicUsize,
 }
 
@@ -60,8 +86,23 @@ impl Trace {
         Trace {
             late_us: touched(loops),
             start_ns: touched(loops),
+            due_ns: touched(loops),
             len: AtomicUsize::new(0),
         }
+    }
+
+    /// The recorded steps so far: (lateness µs, start ns, due ns).
+    fn steps(&self) -> Vec<(u64, u64, u64)> {
+        let n = self.len.load(Ordering::Acquire);
+        (0..n)
+            .map(|i| {
+                (
+                    self.late_us[i].load(Ordering::Relaxed),
+                    self.start_ns[i].load(Ordering::Relaxed),
+                    self.due_ns[i].load(Ordering::Relaxed),
+                )
+            })
+            .collect()
     }
 }
 
@@ -101,6 +142,7 @@ impl Component for Probe {
             let us = t.lateness().as_micros() as u64;
             self.trace.late_us[i].store(us, Ordering::Relaxed);
             self.trace.start_ns[i].store(t.started.as_nanos(), Ordering::Relaxed);
+            self.trace.due_ns[i].store(t.scheduled.as_nanos(), Ordering::Relaxed);
             self.trace.len.store(i + 1, Ordering::Release);
         }
         Ok(())
@@ -254,8 +296,20 @@ fn figures(
     }
 }
 
-fn run_rtt(loops: u64, fifo: bool, priority: i32) -> Figures {
-    let trace = Arc::new(Trace::new(usize::try_from(loops).unwrap()));
+/// A running probe: the periodic activity recording into its trace.
+struct Running {
+    /// Kept alive while the activity runs.
+    _rt: Runtime,
+    task: rtt::TaskContext,
+    trace: Arc<Trace>,
+    /// The activity thread's id, as its first step said.
+    tid: Option<u32>,
+}
+
+/// Starts the probe at 1 kHz with room for `capacity` steps, on `cpus` (empty: any), and
+/// returns after its first step.
+fn start_probe(capacity: u64, fifo: bool, priority: i32, cpus: Vec<usize>) -> Running {
+    let trace = Arc::new(Trace::new(usize::try_from(capacity).unwrap()));
     // The same CPU-latency request cyclictest makes by default (/dev/cpu_dma_latency = 0).
     let options = RuntimeOptions {
         cpu_dma_latency_us: Some(0),
@@ -271,7 +325,7 @@ fn run_rtt(loops: u64, fifo: bool, priority: i32) -> Figures {
                 SchedPolicy::Other
             },
             priority,
-            cpus: Vec::new(),
+            cpus,
             ..ThreadOptions::default()
         },
         timing: Timing::Absolute,
@@ -280,42 +334,47 @@ fn run_rtt(loops: u64, fifo: bool, priority: i32) -> Figures {
     let tr = trace.clone();
     let thread = Arc::new(std::sync::atomic::AtomicU32::new(0));
     let th = thread.clone();
-    let t = rt
+    let task = rt
         .add("jitter", spec, rtt::InitialState::Stopped, move |_| {
             Ok(Probe { trace: tr, tid: th })
         })
         .unwrap();
-    let steal = testkit::bench::steal_ms();
-    let watch = StealWatch::start();
-    t.start().unwrap();
+    task.start().unwrap();
     while trace.len.load(Ordering::Acquire) == 0 {
         std::thread::sleep(Duration::from_millis(1));
     }
+    if fifo && !task.stats().realtime {
+        eprintln!("warning: the activity did not get SCHED_FIFO");
+    }
     // The activity's thread, as its first step (published with its record) said.
     let tid = Some(thread.load(Ordering::Relaxed)).filter(|&t| t != 0);
-    let counts_before = tid.and_then(thread_counts);
-    while trace.len.load(Ordering::Acquire) < trace.late_us.len() {
+    Running {
+        _rt: rt,
+        task,
+        trace,
+        tid,
+    }
+}
+
+/// hwgw's half of a round, on `cpu` or (None) where the scheduler puts it.
+fn run_rtt(loops: u64, fifo: bool, priority: i32, cpu: Option<usize>) -> Figures {
+    let steal = testkit::bench::steal_ms();
+    let watch = StealWatch::start();
+    let run = start_probe(loops, fifo, priority, cpu.into_iter().collect());
+    let counts_before = run.tid.and_then(thread_counts);
+    while run.trace.len.load(Ordering::Acquire) < run.trace.late_us.len() {
         std::thread::sleep(Duration::from_millis(50));
     }
-    let counts = match (counts_before, tid.and_then(thread_counts)) {
+    let counts = match (counts_before, run.tid.and_then(thread_counts)) {
         (Some(b), Some(a)) => Some((a.0 - b.0, a.1 - b.1)),
         _ => None,
     };
-    t.stop().unwrap();
+    run.task.stop().unwrap();
     let samples = watch.finish();
     let steal = testkit::bench::steal_ms().saturating_sub(steal);
-    if fifo && !t.stats().realtime {
-        eprintln!("warning: the activity did not get SCHED_FIFO");
-    }
-    let n = trace.len.load(Ordering::Acquire);
-    let late: Vec<u64> = trace.late_us[..n]
-        .iter()
-        .map(|v| v.load(Ordering::Relaxed))
-        .collect();
-    let starts: Vec<u64> = trace.start_ns[..n]
-        .iter()
-        .map(|v| v.load(Ordering::Relaxed))
-        .collect();
+    let steps = run.trace.steps();
+    let late: Vec<u64> = steps.iter().map(|s| s.0).collect();
+    let starts: Vec<u64> = steps.iter().map(|s| s.1).collect();
     // The runtime skips wake-ups it missed (keeping the grid), so its intervals are taken
     // from the starts themselves; in µs, floored like the latencies.
     let intervals = starts.windows(2).map(|w| (w[1] - w[0]) / 1000);
@@ -323,27 +382,21 @@ fn run_rtt(loops: u64, fifo: bool, priority: i32) -> Figures {
     figures(&late, intervals, steal, worst)
 }
 
-fn run_cyclictest(loops: u64, fifo: bool, priority: i32) -> Result<Figures, String> {
+/// cyclictest's half of a round, on the settings' CPU or where the scheduler puts it.
+fn run_cyclictest(set: &Settings) -> Result<Figures, String> {
+    let (loops, fifo, priority) = (set.loops, set.fifo, set.priority);
     let prio = if fifo { priority } else { 0 };
     let watch = StealWatch::start();
     let spawned = now_ns();
-    let (text, steal) = testkit::bench::cyclictest(prio, PERIOD_US, loops, &["-v"])?;
+    let pin = set.apart_cpu.map(|c| format!("-a{c}"));
+    let main = set.cyclictest_main();
+    let mut extra = vec!["-v"];
+    extra.extend(pin.as_deref());
+    extra.extend(main.as_deref());
+    let (text, steal) = testkit::bench::cyclictest(prio, PERIOD_US, loops, &extra)?;
     let samples = watch.finish();
     // `-v` prints `thread: loop: latency` for every loop.
-    let late: Vec<u64> = text
-        .lines()
-        .filter_map(|line| {
-            let mut cols = line.split(':').map(str::trim);
-            match (cols.next(), cols.next(), cols.next(), cols.next()) {
-                (Some(t), Some(l), Some(us), None)
-                    if t.parse::<u32>().is_ok() && l.parse::<u64>().is_ok() =>
-                {
-                    us.parse::<u64>().ok()
-                }
-                _ => None,
-            }
-        })
-        .collect();
+    let late = testkit::stalls::cyclictest_latencies(&text);
     if late.len() as u64 != loops {
         return Err(format!(
             "cyclictest -v printed {} latencies for {loops} loops",
@@ -376,128 +429,51 @@ fn main() -> ExitCode {
     if std::env::args().any(|a| a == "--list" || a == "--test") {
         return ExitCode::SUCCESS; // `cargo test --benches` lists or smoke-runs: nothing to do.
     }
-    let secs: u64 = std::env::var("JITTER_SECONDS")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(10);
-    let priority: i32 = std::env::var("JITTER_PRIORITY")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(80);
-    let loops = secs * 1_000_000 / PERIOD_US;
-    let fifo = testkit::bench::can_fifo(priority);
-    println!(
-        "periodic wake-up lateness, {} µs period, {loops} wake-ups each, {}",
-        PERIOD_US,
-        if fifo {
-            format!("SCHED_FIFO priority {priority}")
-        } else {
-            "SCHED_OTHER (SCHED_FIFO refused here)".to_string()
-        }
-    );
-    let runs: usize = std::env::var("JITTER_RUNS")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(5);
-    let ratio = |a: u64, b: u64| {
-        if b == 0 {
-            f64::NAN
-        } else {
-            a as f64 / b as f64
+    let set = match Settings::from_env() {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("{e}");
+            return ExitCode::FAILURE;
         }
     };
-    println!(
-        "{:<5} {:<12} {:>8} {:>8} {:>8} {:>8} {:>9} {:>6} {:>9} {:>8}",
-        "round",
-        "",
-        "p50 µs",
-        "p99 µs",
-        "p99.9 µs",
-        "max µs",
-        "samples",
-        ">1.2×",
-        "longest",
-        "steal ms"
-    );
-    let (mut p99_ratios, mut max_ratios, mut ours_only) = (Vec::new(), Vec::new(), Vec::new());
-    for run in 1..=runs.max(1) {
-        // The two in turn, each round: a machine that gets busier or quieter over the rounds
-        // weighs on both alike.
-        let ours = run_rtt(loops, fifo, priority);
-        let theirs = match run_cyclictest(loops, fifo, priority) {
-            Ok(f) => f,
-            Err(e) => {
-                eprintln!("{e}");
-                return ExitCode::FAILURE;
-            }
-        };
-        for (name, f) in [("rtt", &ours), ("cyclictest", &theirs)] {
-            println!(
-                "{:<5} {:<12} {:>8} {:>8} {:>8} {:>8} {:>9} {:>6} {:>9} {:>8}",
-                run, name, f.p50, f.p99, f.p999, f.max, f.count, f.long, f.longest, f.steal_ms
-            );
-        }
-        for (name, f) in [("rtt", &ours), ("cyclictest", &theirs)] {
-            let w = &f.worst;
-            let thread = match w.thread {
-                Some((faults, switches)) => format!(
-                    "; its thread over the half: {faults} page faults, {switches} involuntary switches"
-                ),
-                None => String::new(),
-            };
-            let steal = match w.steal_ms {
-                Some(ms) => format!("steal within {WITNESS_MARGIN_MS} ms of it {ms} ms"),
-                None => "steal not sampled around it".to_string(),
-            };
-            println!(
-                "{run:<5} {name:<12} longest period {} µs at {:.3} s{}: {steal}{thread}",
-                f.longest,
-                w.at_s,
-                if name == "cyclictest" {
-                    " (rebuilt)"
-                } else {
-                    ""
-                },
-            );
-        }
-        let (r99, rmax) = (ratio(ours.p99, theirs.p99), ratio(ours.max, theirs.max));
-        println!(
-            "{:<5} {:<12} {:>8.2} {:>8.2} {:>8.2} {:>8.2}",
-            run,
-            "rtt/cyclic",
-            ratio(ours.p50, theirs.p50),
-            r99,
-            ratio(ours.p999, theirs.p999),
-            rmax
-        );
-        if ours.long > 0 && theirs.long == 0 {
-            ours_only.push(run);
-        }
-        p99_ratios.push(r99);
-        max_ratios.push(rmax);
+    set.print_header();
+    if let Err(e) = set.keep_off_measured_cpu() {
+        eprintln!("{e}");
+        return ExitCode::FAILURE;
     }
-    let median = |v: &mut Vec<f64>| {
-        let m = testkit::bench::median(v);
-        let each = v.iter().map(|r| format!("{r:.2}")).collect::<Vec<_>>();
-        format!("{m:.2} (sorted: {})", each.join(", "))
-    };
-    println!(
-        "median max ratio rtt/cyclictest over {} rounds: {}",
-        max_ratios.len(),
-        median(&mut max_ratios)
-    );
-    println!(
-        "median p99 ratio rtt/cyclictest over {} rounds: {}",
-        p99_ratios.len(),
-        median(&mut p99_ratios)
-    );
-    if ours_only.is_empty() {
-        println!("no round where rtt had periods over 1.2× nominal and cyclictest had none");
-    } else {
-        println!(
-            "rounds where rtt had periods over 1.2× nominal and cyclictest had none: {:?}",
-            ours_only
-        );
+    let (mut apart, mut joint) = (Tally::default(), Tally::default());
+    for run in 1..=set.runs.max(1) {
+        if set.apart {
+            // The two in turn, each round: a machine that gets busier or quieter over the
+            // rounds weighs on both alike.
+            let ours = run_rtt(set.loops, set.fifo, set.priority, set.apart_cpu);
+            let theirs = match run_cyclictest(&set) {
+                Ok(f) => f,
+                Err(e) => {
+                    eprintln!("{e}");
+                    return ExitCode::FAILURE;
+                }
+            };
+            print_rows(run, &ours, &theirs);
+            print_worst(run, &ours, &theirs);
+            apart.add(run, &ours, &theirs);
+        }
+        if set.together {
+            match together::run(&set) {
+                Ok(t) => {
+                    print_together(run, &t);
+                    joint.add(run, &t.ours, &t.theirs);
+                    joint.seen.push((t.ours_seen, t.theirs_seen));
+                }
+                Err(e) => println!("{run:<5} together: not measured: {e}"),
+            }
+        }
+    }
+    if set.apart {
+        apart.print("in turn");
+    }
+    if set.together {
+        joint.print("together");
     }
     ExitCode::SUCCESS
 }

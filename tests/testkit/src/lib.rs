@@ -23,6 +23,7 @@
 //! - [`certs`]: TLS certificates made with openssl;
 //! - [`mosquitto`]: an MQTT broker of the test's own, its clients, a Sparkplug host;
 //! - [`service`]: an `hwgw` binary running a deployment on a socket of its own;
+//! - [`stalls`]: a machine's stalls told from a program's own, two programs on one CPU;
 //! - [`logs`]: what a gateway built in the test's own process logs, captured;
 //! - [`layout`]: checks of the source tree's shape (module cycles, function lengths).
 
@@ -53,6 +54,7 @@ pub mod pypi;
 pub mod rig;
 pub mod rng;
 pub mod service;
+pub mod stalls;
 pub mod uno;
 pub mod vcd;
 pub mod wait;
